@@ -1,0 +1,107 @@
+"""The mechanical state of the free-floating system and its fixed-step RK4 integration.
+
+The satellite attitude is a unit quaternion (no Euler-angle singularity in the state); it
+is renormalised after every step, a projection that keeps RK4's 4th order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+
+from spacegrasp_jax import spatial
+from spacegrasp_jax.dynamics import forward_dynamics
+from spacegrasp_jax.model import Robot
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PlantState:
+    """Position and velocity of the satellite-manipulator system.
+
+    Attributes:
+        p_base: (3,) m, satellite CoM in the inertial frame.
+        quat_base: (4,) unit quaternion ``[w, x, y, z]``, satellite to inertial.
+        q: (7,) rad, joint angles.
+        V_base: (6,) ``[v_s (m/s), w_s (rad/s)]``, satellite CoM velocity and angular
+            velocity in the inertial frame.
+        qd: (7,) rad/s, joint rates.
+    """
+
+    p_base: jax.Array
+    quat_base: jax.Array
+    q: jax.Array
+    V_base: jax.Array
+    qd: jax.Array
+
+    @property
+    def R_base(self) -> jax.Array:
+        """(3, 3) satellite attitude, satellite to inertial."""
+        return spatial.quat_to_rotation(self.quat_base)
+
+
+def plant_state(p_base, R_base, q, V_base, qd) -> PlantState:
+    """A :class:`PlantState` from a rotation-matrix attitude ``R_base`` (3, 3)."""
+    return PlantState(
+        p_base=jnp.asarray(p_base, dtype=jnp.float64),
+        quat_base=spatial.rotation_to_quat(jnp.asarray(R_base, dtype=jnp.float64)),
+        q=jnp.asarray(q, dtype=jnp.float64),
+        V_base=jnp.asarray(V_base, dtype=jnp.float64),
+        qd=jnp.asarray(qd, dtype=jnp.float64),
+    )
+
+
+def free_floating_derivative(robot: Robot, state: PlantState, Q: jax.Array) -> PlantState:
+    """Time derivative of ``state`` under the generalised force ``Q`` (13,)
+    ``[f_s, tau_s, u]`` (inertial frame, N and N m); returned as a :class:`PlantState`
+    whose fields hold the rates."""
+    xdd = forward_dynamics(robot, state.R_base, state.q, state.V_base, state.qd, Q)
+    return PlantState(
+        p_base=state.V_base[:3],
+        quat_base=spatial.quat_derivative(state.quat_base, state.V_base[3:]),
+        q=state.qd,
+        V_base=xdd[:6],
+        qd=xdd[6:],
+    )
+
+
+def rk4_step(derivative: Callable[[PlantState], PlantState], state: PlantState, dt) -> PlantState:
+    """One classical Runge-Kutta step of length ``dt`` (s) of ``d state/dt = derivative(state)``.
+
+    ``derivative`` closes over anything held constant during the step (zero-order hold of
+    the joint torques); forces that belong to the plant (contact) are evaluated inside it,
+    at every stage.
+    """
+
+    def advance(base, rate, h):
+        return jax.tree.map(lambda x, dx: x + h * dx, base, rate)
+
+    k1 = derivative(state)
+    k2 = derivative(advance(state, k1, dt / 2))
+    k3 = derivative(advance(state, k2, dt / 2))
+    k4 = derivative(advance(state, k3, dt))
+    rate = jax.tree.map(lambda a, b, c, d: (a + 2 * b + 2 * c + d) / 6, k1, k2, k3, k4)
+    new = advance(state, rate, dt)
+    return dataclasses.replace(new, quat_base=new.quat_base / jnp.linalg.norm(new.quat_base))
+
+
+def simulate_free_floating(robot: Robot, state: PlantState, joint_torques: jax.Array, dt) -> tuple[PlantState, PlantState]:
+    """Integrate the free-floating system (no force on the satellite) with the joint
+    torques ``joint_torques`` (N, 7) N m, each held over one step of ``dt`` s.
+
+    Returns:
+        ``(final_state, trajectory)``, ``trajectory`` a :class:`PlantState` of stacked
+        states (N + 1 leading entries, the initial state first).
+    """
+
+    def step(current, u):
+        Q = jnp.concatenate([jnp.zeros(6, dtype=u.dtype), u])
+        new = rk4_step(lambda s: free_floating_derivative(robot, s, Q), current, dt)
+        return new, new
+
+    final, path = jax.lax.scan(step, state, joint_torques)
+    trajectory = jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest]), state, path)
+    return final, trajectory

@@ -1,0 +1,174 @@
+"""Forward kinematics and Jacobians of the free-floating arm, in the inertial frame.
+
+Naming: ``p_*`` positions (m), ``R_*`` rotation matrices (body to inertial), ``J*`` Jacobians
+mapping the generalised velocity ``x_v = [v_s, w_s, qd]`` (13,) of DESIGN.md (``v_s`` the
+satellite CoM velocity and ``w_s`` its angular velocity, both in the inertial frame) to
+velocities in the inertial frame.
+
+Bodies are numbered 0 (satellite) to 7 (link 7 with the EE body merged into it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from spacegrasp_jax import spatial
+from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
+
+N_DOF = 6 + N_JOINTS
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Frames:
+    """Poses of the DH frames 0..7 and the EE frame in the inertial frame.
+
+    Attributes:
+        p_frame: (8, 3) m, origins of frames 0..7 (frame 0 is the mounting point).
+        R_frame: (8, 3, 3) rotations of frames 0..7 (frame to inertial).
+        p_ee: (3,) m, origin of the EE frame.
+        R_ee: (3, 3) rotation of the EE frame (EE to inertial).
+    """
+
+    p_frame: jax.Array
+    R_frame: jax.Array
+    p_ee: jax.Array
+    R_ee: jax.Array
+
+    @property
+    def joint_axis(self) -> jax.Array:
+        """(7, 3) unit axes of joints 1..7: the z axes of frames 0..6."""
+        return self.R_frame[:-1, :, 2]
+
+    @property
+    def joint_origin(self) -> jax.Array:
+        """(7, 3) m, a point on each joint axis: the origins of frames 0..6."""
+        return self.p_frame[:-1]
+
+
+def dh_transforms(robot: Robot, q: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Relative transforms of the DH chain, ``T_{i-1,i} = Rz(theta) Tz(lambda) Tx(L) Rx(alpha)``.
+
+    Args:
+        q: (7,) rad, joint angles.
+
+    Returns:
+        R_rel: (7, 3, 3) rotation of frame i in frame i-1.
+        p_rel: (7, 3) m, origin of frame i in frame i-1.
+    """
+    theta = q + robot.joint_offset
+    ct, st = jnp.cos(theta), jnp.sin(theta)
+    ca, sa = jnp.cos(robot.dh_alpha), jnp.sin(robot.dh_alpha)
+    zero, one = jnp.zeros_like(ct), jnp.ones_like(ct)
+    R_rel = jnp.stack(
+        [
+            jnp.stack([ct, -st * ca, st * sa], axis=-1),
+            jnp.stack([st, ct * ca, -ct * sa], axis=-1),
+            jnp.stack([zero, sa * one, ca * one], axis=-1),
+        ],
+        axis=-2,
+    )
+    p_rel = jnp.stack([robot.dh_length * ct, robot.dh_length * st, robot.dh_lambda * one], axis=-1)
+    return R_rel, p_rel
+
+
+def forward_kinematics(robot: Robot, p_base: jax.Array, R_base: jax.Array, q: jax.Array) -> Frames:
+    """Poses of all DH frames and of the EE frame.
+
+    Args:
+        p_base: (3,) m, satellite CoM in the inertial frame.
+        R_base: (3, 3) satellite attitude (satellite to inertial).
+        q: (7,) rad, joint angles.
+    """
+    R_rel, p_rel = dh_transforms(robot, q)
+    R, p = R_base, p_base + R_base @ robot.mount_position
+    R_frame, p_frame = [R], [p]
+    for i in range(N_JOINTS):  # the chain is short and fixed: unrolled at trace time
+        p = p + R @ p_rel[i]
+        R = R @ R_rel[i]
+        R_frame.append(R)
+        p_frame.append(p)
+    return Frames(
+        p_frame=jnp.stack(p_frame),
+        R_frame=jnp.stack(R_frame),
+        p_ee=p + R @ robot.ee_offset,
+        R_ee=R,
+    )
+
+
+def ee_pose(robot: Robot, p_base: jax.Array, R_base: jax.Array, q: jax.Array):
+    """EE frame pose in the inertial frame.
+
+    Args:
+        p_base: (3,) m, satellite CoM. R_base: (3, 3) satellite to inertial. q: (7,) rad.
+
+    Returns:
+        p_ee: (3,) m, EE frame origin. R_ee: (3, 3) EE to inertial.
+    """
+    frames = forward_kinematics(robot, p_base, R_base, q)
+    return frames.p_ee, frames.R_ee
+
+
+def body_com_positions(robot: Robot, frames: Frames) -> jax.Array:
+    """(7, 3) m, CoM of moving bodies 1..7 in the inertial frame."""
+    _, com_local, _ = body_inertials(robot)
+    return frames.p_frame[1:] + jnp.einsum("kij,kj->ki", frames.R_frame[1:], com_local)
+
+
+def point_jacobian(frames: Frames, p_base: jax.Array, point: jax.Array, last_joint: int) -> jax.Array:
+    """(6, 13) Jacobian of ``[velocity of a point; angular velocity]`` of the body that
+    carries ``point`` (3,), a body moved by joints 1..``last_joint``."""
+    r_base = point - p_base
+    axes = frames.joint_axis
+    lever = jnp.cross(axes, point - frames.joint_origin)  # (7, 3)
+    moves = (jnp.arange(N_JOINTS) < last_joint)[:, None]
+    J_v = jnp.concatenate([jnp.eye(3), -spatial.skew(r_base), jnp.where(moves, lever, 0.0).T], axis=1)
+    J_w = jnp.concatenate([jnp.zeros((3, 3)), jnp.eye(3), jnp.where(moves, axes, 0.0).T], axis=1)
+    return jnp.concatenate([J_v, J_w], axis=0)
+
+
+def body_jacobians(robot: Robot, frames: Frames, p_base: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """CoM Jacobians of the 8 bodies (satellite first), for the dynamics.
+
+    Returns:
+        J_v: (8, 3, 13) maps x_v to the CoM velocity of each body, inertial frame.
+        J_w: (8, 3, 13) maps x_v to the angular velocity of each body, inertial frame.
+    """
+    p_com = body_com_positions(robot, frames)  # (7, 3)
+    r_base = p_com - p_base
+    axes, origins = frames.joint_axis, frames.joint_origin
+    # Column j of body k's Jacobian is z_j x (c_k - o_j) if joint j moves body k (j <= k).
+    lever = jnp.cross(axes[None, :, :], p_com[:, None, :] - origins[None, :, :])  # (7, 7, 3)
+    moves = jnp.tril(jnp.ones((N_JOINTS, N_JOINTS), dtype=bool))[:, :, None]
+    arm_v = jnp.swapaxes(jnp.where(moves, lever, 0.0), 1, 2)  # (7, 3, 7)
+    arm_w = jnp.swapaxes(jnp.where(moves, axes[None], 0.0), 1, 2)  # (7, 3, 7)
+    eye = jnp.broadcast_to(jnp.eye(3), (N_JOINTS, 3, 3))
+    links_v = jnp.concatenate([eye, -jax.vmap(spatial.skew)(r_base), arm_v], axis=2)
+    links_w = jnp.concatenate([jnp.zeros_like(eye), eye, arm_w], axis=2)
+    base_v = jnp.concatenate([jnp.eye(3), jnp.zeros((3, 3 + N_JOINTS))], axis=1)
+    base_w = jnp.concatenate([jnp.zeros((3, 3)), jnp.eye(3), jnp.zeros((3, N_JOINTS))], axis=1)
+    return (
+        jnp.concatenate([base_v[None], links_v], axis=0),
+        jnp.concatenate([base_w[None], links_w], axis=0),
+    )
+
+
+def ee_jacobians(robot: Robot, R_base: jax.Array, q: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The Jacobians of eq 5, ``V_EE = J_s V_s + J_m qd``, in the inertial frame.
+
+    ``V_EE = [v_ee; w_ee]`` (6,) is the velocity of the EE frame origin and the EE angular
+    velocity; ``V_s = [v_s; w_s]``.
+
+    Args:
+        R_base: (3, 3) satellite to inertial. q: (7,) rad.
+
+    Returns:
+        J_s: (6, 6) satellite Jacobian. J_m: (6, 7) fixed-base manipulator Jacobian.
+    """
+    p_base = jnp.zeros(3, dtype=R_base.dtype)  # Jacobians depend on relative positions only
+    frames = forward_kinematics(robot, p_base, R_base, q)
+    J = point_jacobian(frames, p_base, frames.p_ee, N_JOINTS)
+    return J[:, :6], J[:, 6:]

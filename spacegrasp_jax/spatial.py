@@ -1,0 +1,141 @@
+"""Rotations: skew matrices, elementary rotations, unit quaternions, ZYX Euler angles.
+
+Conventions
+-----------
+* A rotation matrix ``R_a_b`` (3, 3) maps coordinates in frame ``b`` to frame ``a``:
+  ``x_a = R_a_b @ x_b``.
+* Unit quaternions are scalar-first ``[w, x, y, z]`` (4,) and represent the same
+  body-to-inertial rotation as the matrix built by :func:`quat_to_rotation`.
+* ZYX Euler angles are returned ordered ``[roll (about x), pitch (about y), yaw (about z)]``
+  with ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (DESIGN.md, eq 14 pairing).
+
+All functions are pure and work on a single element; use ``jax.vmap`` for batches.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+
+def skew(v):
+    """Cross-product matrix ``[v]x`` (3, 3) such that ``skew(v) @ u == cross(v, u)``."""
+    x, y, z = v[0], v[1], v[2]
+    zero = jnp.zeros_like(x)
+    return jnp.stack(
+        [
+            jnp.stack([zero, -z, y]),
+            jnp.stack([z, zero, -x]),
+            jnp.stack([-y, x, zero]),
+        ]
+    )
+
+
+def rot_x(angle):
+    """Rotation (3, 3) by ``angle`` [rad] about the x axis."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    one, zero = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.stack(
+        [jnp.stack([one, zero, zero]), jnp.stack([zero, c, -s]), jnp.stack([zero, s, c])]
+    )
+
+
+def rot_y(angle):
+    """Rotation (3, 3) by ``angle`` [rad] about the y axis."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    one, zero = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.stack(
+        [jnp.stack([c, zero, s]), jnp.stack([zero, one, zero]), jnp.stack([-s, zero, c])]
+    )
+
+
+def rot_z(angle):
+    """Rotation (3, 3) by ``angle`` [rad] about the z axis."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    one, zero = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.stack(
+        [jnp.stack([c, -s, zero]), jnp.stack([s, c, zero]), jnp.stack([zero, zero, one])]
+    )
+
+
+def quat_to_rotation(quat):
+    """Rotation matrix (3, 3) of a unit quaternion ``[w, x, y, z]`` (4,).
+
+    The quaternion is normalised first, so slightly off-unit inputs (integration drift)
+    still give an orthonormal matrix.
+    """
+    w, x, y, z = quat / jnp.linalg.norm(quat)
+    return jnp.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rotation_to_quat(R):
+    """Unit quaternion ``[w, x, y, z]`` (4,) with ``w >= 0`` of a rotation matrix (3, 3).
+
+    Shepperd's method: the branch is chosen by the largest of ``w, x, y, z`` so the
+    square root never runs on a small number.
+    """
+    trace = R[0, 0] + R[1, 1] + R[2, 2]
+    candidates = jnp.stack(
+        [
+            jnp.array([1 + trace, R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]),
+            jnp.array([R[2, 1] - R[1, 2], 1 + 2 * R[0, 0] - trace, R[0, 1] + R[1, 0], R[0, 2] + R[2, 0]]),
+            jnp.array([R[0, 2] - R[2, 0], R[0, 1] + R[1, 0], 1 + 2 * R[1, 1] - trace, R[1, 2] + R[2, 1]]),
+            jnp.array([R[1, 0] - R[0, 1], R[0, 2] + R[2, 0], R[1, 2] + R[2, 1], 1 + 2 * R[2, 2] - trace]),
+        ]
+    )
+    diagonal = jnp.array([1 + trace, 1 + 2 * R[0, 0] - trace, 1 + 2 * R[1, 1] - trace, 1 + 2 * R[2, 2] - trace])
+    best = jnp.argmax(diagonal)
+    quat = candidates[best] / (2 * jnp.sqrt(diagonal[best]))
+    return quat * jnp.where(quat[0] < 0, -1.0, 1.0)
+
+
+def quat_multiply(a, b):
+    """Hamilton product ``a * b`` of two quaternions ``[w, x, y, z]`` (4,)."""
+    aw, av = a[0], a[1:]
+    bw, bv = b[0], b[1:]
+    return jnp.concatenate(
+        [jnp.array([aw * bw - av @ bv]), aw * bv + bw * av + jnp.cross(av, bv)]
+    )
+
+
+def quat_derivative(quat, omega_inertial):
+    """Time derivative (4,) of a body-to-inertial quaternion for an angular velocity
+    ``omega_inertial`` (3,) [rad/s] expressed in the inertial frame: ``0.5 [0, w] * quat``."""
+    omega_quat = jnp.concatenate([jnp.zeros(1, dtype=quat.dtype), omega_inertial])
+    return 0.5 * quat_multiply(omega_quat, quat)
+
+
+def euler_zyx(R):
+    """ZYX Euler angles ``[roll, pitch, yaw]`` (3,) [rad] of ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+
+    Singular at pitch = +-pi/2 (gimbal lock); the paper's scenario stays far from it.
+    """
+    roll = jnp.arctan2(R[2, 1], R[2, 2])
+    pitch = -jnp.arcsin(jnp.clip(R[2, 0], -1.0, 1.0))
+    yaw = jnp.arctan2(R[1, 0], R[0, 0])
+    return jnp.stack([roll, pitch, yaw])
+
+
+def euler_zyx_to_rotation(angles):
+    """Rotation (3, 3) ``Rz(yaw) Ry(pitch) Rx(roll)`` of ``angles = [roll, pitch, yaw]`` (3,)."""
+    return rot_z(angles[2]) @ rot_y(angles[1]) @ rot_x(angles[0])
+
+
+def rotation_log(R):
+    """Rotation vector (3,) [rad] (axis times angle) of a rotation matrix, for angles < pi.
+
+    Uses ``angle / (2 sin(angle))`` with its Taylor series near zero so the result and its
+    gradient stay finite at the identity.
+    """
+    cos_angle = jnp.clip((jnp.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    angle = jnp.arccos(cos_angle)
+    vee = jnp.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    small = angle < 1e-4
+    safe_angle = jnp.where(small, 1.0, angle)
+    factor = jnp.where(small, 0.5 + angle**2 / 12.0, safe_angle / (2.0 * jnp.sin(safe_angle)))
+    return factor * vee
