@@ -6,15 +6,18 @@ velocity ``x_v = [v_s, w_s, qd]`` (13,), ``v_s`` the satellite CoM velocity and 
 angular velocity, both in the inertial frame, and ``Q = [f_s, tau_s, u]`` (13,) the force
 on the satellite CoM, the torque on the satellite (inertial frame) and the joint torques.
 
-Algorithm. With 8 bodies and 13 velocities every quantity is a handful of small dense
-products, so the dynamics are written on the bodies' CoM Jacobians ``J_k`` (6, 13):
-``M = sum_k J_k^T diag(m_k 1, I_k) J_k`` (composite inertia in Jacobian form) and, by
-Kane's method, ``bias = sum_k J_k^T [m_k a_k; I_k alpha_k + w_k x I_k w_k]``, where
-``a_k, alpha_k`` are the velocity-product (zero ``xdot_v``) accelerations from one
-recursive Newton-Euler forward pass. The Jacobians are built in one vectorised step (no
-recursion); only the kinematic chain and the 7-step velocity pass are sequential, both
-unrolled at trace time. ``M`` is factorised by Cholesky. Everything is in the inertial
-frame, so no frame changes are needed between bodies.
+Algorithm: composite-rigid-body (CRBA) and recursive Newton-Euler (RNEA) on spatial vectors
+expressed in the inertial frame about the satellite CoM (MJX's ``smooth.py`` style). In those
+coordinates a joint's motion axis ``S_j = (z_j, o_j x z_j)`` needs no transform between
+bodies, so the RNEA velocity and velocity-product acceleration passes are cumulative sums
+over the joints and the composite inertias a reverse cumulative sum: apart from the 7
+products of the kinematic chain nothing is sequential, which suits jit, vmap and GPUs.
+``M`` (13, 13) is then factorised by Cholesky.
+
+Spatial vectors are pairs of 3-vectors ``(angular, linear)``: a motion ``(w, v)`` with ``v``
+the velocity of the body point at the satellite CoM; a force ``(n, f)`` with ``n`` the moment
+about the satellite CoM. A spatial inertia is ``(m, h, I_O)``: mass, first moment ``m c`` and
+rotational inertia about the satellite CoM, all of which add up across bodies.
 """
 
 from __future__ import annotations
@@ -24,27 +27,8 @@ import jax.numpy as jnp
 import jax.scipy.linalg
 
 from spacegrasp_jax import spatial
-from spacegrasp_jax.kinematics import (
-    N_DOF,
-    body_com_positions,
-    body_jacobians,
-    forward_kinematics,
-    point_jacobian,
-)
+from spacegrasp_jax.kinematics import N_DOF, body_com_positions, forward_kinematics, point_jacobian
 from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
-
-
-def _world_inertials(robot: Robot, frames) -> tuple[jax.Array, jax.Array]:
-    """Masses (8,) kg and inertia tensors about each CoM in the inertial frame (8, 3, 3)."""
-    mass, _, inertia_local = body_inertials(robot)
-    R = frames.R_frame  # frame 0 is parallel to the satellite frame
-    inertia = jnp.concatenate(
-        [
-            (R[0] @ robot.satellite_inertia @ R[0].T)[None],
-            jnp.einsum("kia,kab,kjb->kij", R[1:], inertia_local, R[1:]),
-        ]
-    )
-    return jnp.concatenate([robot.satellite_mass[None], mass]), inertia
 
 
 def _origin_frames(robot: Robot, R_base, q):
@@ -54,10 +38,88 @@ def _origin_frames(robot: Robot, R_base, q):
     return p_base, forward_kinematics(robot, p_base, R_base, q)
 
 
-def _mass_matrix(mass, inertia, J_v, J_w):
-    return jnp.einsum("k,kai,kaj->ij", mass, J_v, J_v) + jnp.einsum(
-        "kai,kab,kbj->ij", J_w, inertia, J_w
+def _spatial_inertias(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Spatial inertias of the 8 bodies (satellite first) about the satellite CoM, which
+    ``frames`` places at the origin: mass (8,), first moment ``m c`` (8, 3) and rotational
+    inertia about the origin (8, 3, 3), inertial axes."""
+    mass, com_local, inertia_local = body_inertials(robot)
+    R = frames.R_frame[1:]
+    com = frames.p_frame[1:] + jnp.einsum("kij,kj->ki", R, com_local)
+    inertia_com = jnp.einsum("kia,kab,kjb->kij", R, inertia_local, R)
+    # Parallel axes: I_O = I_c + m (|c|^2 1 - c c^T).
+    inertia_origin = inertia_com + mass[:, None, None] * (
+        jnp.sum(com * com, axis=-1)[:, None, None] * jnp.eye(3) - com[:, :, None] * com[:, None, :]
     )
+    R_base = frames.R_frame[0]
+    return (
+        jnp.concatenate([robot.satellite_mass[None], mass]),
+        jnp.concatenate([jnp.zeros((1, 3), dtype=com.dtype), mass[:, None] * com]),
+        jnp.concatenate([(R_base @ robot.satellite_inertia @ R_base.T)[None], inertia_origin]),
+    )
+
+
+def _apply_inertia(mass, moment, inertia, w, v):
+    """Spatial inertia times motion: ``(L, p)`` with ``p = m v + w x h`` and
+    ``L = I_O w + h x v``; broadcasts over leading axes."""
+    p = mass[..., None] * v + jnp.cross(w, moment)
+    L = jnp.einsum("...ab,...b->...a", inertia, w) + jnp.cross(moment, v)
+    return L, p
+
+
+def _joint_axes(frames) -> tuple[jax.Array, jax.Array]:
+    """Motion axes ``S_j = (z_j, o_j x z_j)`` of the 7 joints: two (7, 3) arrays."""
+    axis = frames.joint_axis
+    return axis, jnp.cross(frames.joint_origin, axis)
+
+
+def _crba(robot: Robot, frames) -> jax.Array:
+    """Mass matrix (13, 13) by composite rigid bodies; ``frames`` at the origin."""
+    mass, moment, inertia = _spatial_inertias(robot, frames)
+    # Composite inertia of the subtree of each body: a reverse cumulative sum.
+    c_mass, c_moment, c_inertia = (jnp.cumsum(x[::-1], axis=0)[::-1] for x in (mass, moment, inertia))
+    S_w, S_v = _joint_axes(frames)
+    # Force F_j = Ic_j S_j needed to move the subtree of joint j along its axis.
+    F_n, F_f = _apply_inertia(c_mass[1:], c_moment[1:], c_inertia[1:], S_w, S_v)
+    # M_ij = S_i . F_max(i,j) for joints i, j.
+    A = S_w @ F_n.T + S_v @ F_f.T  # A[i, j] = S_i . F_j
+    upper = jnp.triu(jnp.ones((N_JOINTS, N_JOINTS), dtype=bool))
+    M_mm = jnp.where(upper, A, A.T)
+    # Satellite rows (generalised velocities v_s, w_s): its columns are the whole system's
+    # composite inertia applied to a pure translation and a pure rotation.
+    m, h, I_O = c_mass[0], c_moment[0], c_inertia[0]
+    h_skew = spatial.skew(h)
+    M_s = jnp.block([[m * jnp.eye(3), -h_skew], [h_skew, I_O]])
+    M_sm = jnp.concatenate([F_f.T, F_n.T])  # rows [force; moment] for [v_s; w_s]
+    return jnp.block([[M_s, M_sm], [M_sm.T, M_mm]])
+
+
+def _rnea_bias(robot: Robot, frames, V_base, qd) -> jax.Array:
+    """Bias forces (13,) by Newton-Euler with zero generalised acceleration; ``frames`` at
+    the origin."""
+    mass, moment, inertia = _spatial_inertias(robot, frames)
+    v_s, w_s = V_base[:3], V_base[3:]
+    S_w, S_v = _joint_axes(frames)
+    # Body velocities: the satellite's plus the joint rates up the chain.
+    w = jnp.concatenate([w_s[None], w_s + jnp.cumsum(S_w * qd[:, None], axis=0)])
+    v = jnp.concatenate([v_s[None], v_s + jnp.cumsum(S_v * qd[:, None], axis=0)])
+    # Velocity-product accelerations. The satellite's spatial acceleration at zero
+    # generalised acceleration is (0, -w_s x v_s), since v_s is its CoM's classical
+    # velocity; each joint adds (v_j x S_j) qd_j, the rate of change of its moving axis.
+    dS_w = jnp.cross(w[1:], S_w)
+    dS_v = jnp.cross(w[1:], S_v) + jnp.cross(v[1:], S_w)
+    a_w = jnp.concatenate([jnp.zeros((1, 3), dtype=w.dtype), jnp.cumsum(dS_w * qd[:, None], axis=0)])
+    a_v = -jnp.cross(w_s, v_s) + jnp.concatenate(
+        [jnp.zeros((1, 3), dtype=w.dtype), jnp.cumsum(dS_v * qd[:, None], axis=0)]
+    )
+    # Newton-Euler per body: f = I a + v x* (I v), with (w, v) x* (n, f) = (w x n + v x f, w x f).
+    inertial_n, inertial_f = _apply_inertia(mass, moment, inertia, a_w, a_v)
+    momentum_n, momentum_f = _apply_inertia(mass, moment, inertia, w, v)
+    f_n = inertial_n + jnp.cross(w, momentum_n) + jnp.cross(v, momentum_f)
+    f_f = inertial_f + jnp.cross(w, momentum_f)
+    # Backward pass: each joint carries the load of its subtree.
+    sub_n, sub_f = (jnp.cumsum(x[::-1], axis=0)[::-1] for x in (f_n, f_f))
+    joints = jnp.sum(S_w * sub_n[1:], axis=-1) + jnp.sum(S_v * sub_f[1:], axis=-1)
+    return jnp.concatenate([sub_f[0], sub_n[0], joints])
 
 
 def mass_matrix(robot: Robot, R_base: jax.Array, q: jax.Array) -> jax.Array:
@@ -66,42 +128,8 @@ def mass_matrix(robot: Robot, R_base: jax.Array, q: jax.Array) -> jax.Array:
     Args:
         R_base: (3, 3) satellite attitude, satellite to inertial. q: (7,) rad.
     """
-    p_base, frames = _origin_frames(robot, R_base, q)
-    mass, inertia = _world_inertials(robot, frames)
-    J_v, J_w = body_jacobians(robot, frames, p_base)
-    return _mass_matrix(mass, inertia, J_v, J_w)
-
-
-def _bias(robot: Robot, frames, p_base, mass, inertia, J_v, J_w, V_base, qd):
-    """Kane's method: project each body's velocity-product inertial load on its Jacobian."""
-    w_s = V_base[3:]
-    p_com = body_com_positions(robot, frames)
-    axes, origins = frames.joint_axis, frames.joint_origin
-
-    # Forward pass (velocity products only): angular velocity w, angular acceleration
-    # alpha and linear acceleration a_point of a reference point on each body.
-    w, alpha = w_s, jnp.zeros(3, dtype=V_base.dtype)
-    # The satellite CoM acceleration is a generalised acceleration: its bias is zero.
-    point, a_point = p_base, jnp.zeros(3, dtype=V_base.dtype)
-    w_body, alpha_body, a_com = [], [], []
-    for k in range(N_JOINTS):
-        lever = origins[k] - point
-        a_point = a_point + jnp.cross(alpha, lever) + jnp.cross(w, jnp.cross(w, lever))
-        point = origins[k]  # the joint point belongs to both bodies k-1 and k
-        alpha = alpha + jnp.cross(w, axes[k]) * qd[k]
-        w = w + axes[k] * qd[k]
-        lever = p_com[k] - point
-        a_com.append(a_point + jnp.cross(alpha, lever) + jnp.cross(w, jnp.cross(w, lever)))
-        w_body.append(w)
-        alpha_body.append(alpha)
-    w_all = jnp.stack([w_s] + w_body)
-    alpha_all = jnp.concatenate([jnp.zeros((1, 3), dtype=V_base.dtype), jnp.stack(alpha_body)])
-    a_all = jnp.concatenate([jnp.zeros((1, 3), dtype=V_base.dtype), jnp.stack(a_com)])
-
-    force = mass[:, None] * a_all
-    Iw = jnp.einsum("kab,kb->ka", inertia, w_all)
-    torque = jnp.einsum("kab,kb->ka", inertia, alpha_all) + jnp.cross(w_all, Iw)
-    return jnp.einsum("kai,ka->i", J_v, force) + jnp.einsum("kai,ka->i", J_w, torque)
+    _, frames = _origin_frames(robot, R_base, q)
+    return _crba(robot, frames)
 
 
 def bias_forces(robot: Robot, R_base, q, V_base, qd) -> jax.Array:
@@ -112,20 +140,15 @@ def bias_forces(robot: Robot, R_base, q, V_base, qd) -> jax.Array:
         R_base: (3, 3) satellite to inertial. q: (7,) rad.
         V_base: (6,) ``[v_s (m/s), w_s (rad/s)]`` in the inertial frame. qd: (7,) rad/s.
     """
-    p_base, frames = _origin_frames(robot, R_base, q)
-    mass, inertia = _world_inertials(robot, frames)
-    J_v, J_w = body_jacobians(robot, frames, p_base)
-    return _bias(robot, frames, p_base, mass, inertia, J_v, J_w, V_base, qd)
+    _, frames = _origin_frames(robot, R_base, q)
+    return _rnea_bias(robot, frames, V_base, qd)
 
 
 def mass_matrix_and_bias(robot: Robot, R_base, q, V_base, qd) -> tuple[jax.Array, jax.Array]:
     """``(M (13, 13), bias (13,))`` sharing one kinematics pass; arguments as
     :func:`bias_forces`."""
-    p_base, frames = _origin_frames(robot, R_base, q)
-    mass, inertia = _world_inertials(robot, frames)
-    J_v, J_w = body_jacobians(robot, frames, p_base)
-    M = _mass_matrix(mass, inertia, J_v, J_w)
-    return M, _bias(robot, frames, p_base, mass, inertia, J_v, J_w, V_base, qd)
+    _, frames = _origin_frames(robot, R_base, q)
+    return _crba(robot, frames), _rnea_bias(robot, frames, V_base, qd)
 
 
 def forward_dynamics(robot: Robot, R_base, q, V_base, qd, Q) -> jax.Array:
@@ -150,15 +173,6 @@ def kinetic_energy(robot: Robot, R_base, q, V_base, qd) -> jax.Array:
     return 0.5 * x_v @ mass_matrix(robot, R_base, q) @ x_v
 
 
-def _momentum_rows(robot: Robot, frames, p_base, mass, inertia, J_v, J_w) -> jax.Array:
-    """(6, 13) map from x_v to [P; L about the inertial origin]."""
-    p_com = jnp.concatenate([p_base[None], body_com_positions(robot, frames)])
-    linear = jnp.einsum("k,kai->ai", mass, J_v)
-    moment_arm = jax.vmap(spatial.skew)(p_com) * mass[:, None, None]
-    angular = jnp.einsum("kab,kbi->ai", moment_arm, J_v) + jnp.einsum("kab,kbi->ai", inertia, J_w)
-    return jnp.concatenate([linear, angular])
-
-
 def momentum_matrix(robot: Robot, p_base, R_base, q) -> jax.Array:
     """``H = [H2 H3]`` (6, 13) with ``[P; L] = H x_v`` (eq 6): ``P`` the total linear
     momentum (N s) and ``L`` the total angular momentum about the inertial origin (N m s),
@@ -167,10 +181,9 @@ def momentum_matrix(robot: Robot, p_base, R_base, q) -> jax.Array:
     Args:
         p_base: (3,) m, satellite CoM. R_base: (3, 3) satellite to inertial. q: (7,) rad.
     """
-    frames = forward_kinematics(robot, p_base, R_base, q)
-    mass, inertia = _world_inertials(robot, frames)
-    J_v, J_w = body_jacobians(robot, frames, p_base)
-    return _momentum_rows(robot, frames, p_base, mass, inertia, J_v, J_w)
+    # The first six rows of M are [P; L about the satellite CoM]; shift L to the origin.
+    H = mass_matrix(robot, R_base, q)[:6]
+    return H.at[3:].add(spatial.skew(p_base) @ H[:3])
 
 
 def momentum_jacobians(robot: Robot, p_base, R_base, q) -> tuple[jax.Array, jax.Array]:
@@ -207,10 +220,8 @@ def dynamic_jacobian(robot: Robot, R_base, q) -> jax.Array:
     """
     p_base, frames = _origin_frames(robot, R_base, q)
     J_ee = point_jacobian(frames, p_base, frames.p_ee, N_JOINTS)
-    mass, inertia = _world_inertials(robot, frames)
-    J_v, J_w = body_jacobians(robot, frames, p_base)
-    # Zero momentum about the origin (here the satellite CoM) is the constraint of eq 6.
-    H = _momentum_rows(robot, frames, p_base, mass, inertia, J_v, J_w)
+    # Zero momentum about the satellite CoM (rows 0-5 of M) is the constraint of eq 6.
+    H = _crba(robot, frames)[:6]
     base_velocity_per_qd = -jnp.linalg.solve(H[:, :6], H[:, 6:])  # (6, 7)
     return J_ee[:, 6:] + J_ee[:, :6] @ base_velocity_per_qd
 

@@ -3,9 +3,8 @@
 Naming: ``p_*`` positions (m), ``R_*`` rotation matrices (body to inertial), ``J*`` Jacobians
 mapping the generalised velocity ``x_v = [v_s, w_s, qd]`` (13,) of DESIGN.md (``v_s`` the
 satellite CoM velocity and ``w_s`` its angular velocity, both in the inertial frame) to
-velocities in the inertial frame.
-
-Bodies are numbered 0 (satellite) to 7 (link 7 with the EE body merged into it).
+velocities in the inertial frame. Bodies are numbered 0 (satellite) to 7 (link 7 with the
+EE body merged into it).
 """
 
 from __future__ import annotations
@@ -119,8 +118,9 @@ def body_com_positions(robot: Robot, frames: Frames) -> jax.Array:
 
 
 def point_jacobian(frames: Frames, p_base: jax.Array, point: jax.Array, last_joint: int) -> jax.Array:
-    """(6, 13) Jacobian of ``[velocity of a point; angular velocity]`` of the body that
-    carries ``point`` (3,), a body moved by joints 1..``last_joint``."""
+    """Jacobian (6, 13) of a body point: maps x_v to ``[velocity of point; angular
+    velocity]`` (inertial frame) of the body that carries ``point`` (3,) m, a body moved by
+    joints 1..``last_joint`` (the satellite is ``last_joint = 0``, the EE body 7)."""
     r_base = point - p_base
     axes = frames.joint_axis
     lever = jnp.cross(axes, point - frames.joint_origin)  # (7, 3)
@@ -128,32 +128,6 @@ def point_jacobian(frames: Frames, p_base: jax.Array, point: jax.Array, last_joi
     J_v = jnp.concatenate([jnp.eye(3), -spatial.skew(r_base), jnp.where(moves, lever, 0.0).T], axis=1)
     J_w = jnp.concatenate([jnp.zeros((3, 3)), jnp.eye(3), jnp.where(moves, axes, 0.0).T], axis=1)
     return jnp.concatenate([J_v, J_w], axis=0)
-
-
-def body_jacobians(robot: Robot, frames: Frames, p_base: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """CoM Jacobians of the 8 bodies (satellite first), for the dynamics.
-
-    Returns:
-        J_v: (8, 3, 13) maps x_v to the CoM velocity of each body, inertial frame.
-        J_w: (8, 3, 13) maps x_v to the angular velocity of each body, inertial frame.
-    """
-    p_com = body_com_positions(robot, frames)  # (7, 3)
-    r_base = p_com - p_base
-    axes, origins = frames.joint_axis, frames.joint_origin
-    # Column j of body k's Jacobian is z_j x (c_k - o_j) if joint j moves body k (j <= k).
-    lever = jnp.cross(axes[None, :, :], p_com[:, None, :] - origins[None, :, :])  # (7, 7, 3)
-    moves = jnp.tril(jnp.ones((N_JOINTS, N_JOINTS), dtype=bool))[:, :, None]
-    arm_v = jnp.swapaxes(jnp.where(moves, lever, 0.0), 1, 2)  # (7, 3, 7)
-    arm_w = jnp.swapaxes(jnp.where(moves, axes[None], 0.0), 1, 2)  # (7, 3, 7)
-    eye = jnp.broadcast_to(jnp.eye(3), (N_JOINTS, 3, 3))
-    links_v = jnp.concatenate([eye, -jax.vmap(spatial.skew)(r_base), arm_v], axis=2)
-    links_w = jnp.concatenate([jnp.zeros_like(eye), eye, arm_w], axis=2)
-    base_v = jnp.concatenate([jnp.eye(3), jnp.zeros((3, 3 + N_JOINTS))], axis=1)
-    base_w = jnp.concatenate([jnp.zeros((3, 3)), jnp.eye(3), jnp.zeros((3, N_JOINTS))], axis=1)
-    return (
-        jnp.concatenate([base_v[None], links_v], axis=0),
-        jnp.concatenate([base_w[None], links_w], axis=0),
-    )
 
 
 def ee_jacobians(robot: Robot, R_base: jax.Array, q: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -129,13 +129,15 @@ def euler_zyx_to_rotation(angles):
 def rotation_log(R):
     """Rotation vector (3,) [rad] (axis times angle) of a rotation matrix, for angles < pi.
 
-    Uses ``angle / (2 sin(angle))`` with its Taylor series near zero so the result and its
-    gradient stay finite at the identity.
+    ``angle = atan2(sin, cos)`` with ``sin`` from the skew part; near the identity the
+    factor ``angle / (2 sin(angle))`` is replaced by its series ``1/2 + sin^2/12`` (no square
+    root), so the value and the gradient stay finite there.
     """
-    cos_angle = jnp.clip((jnp.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    angle = jnp.arccos(cos_angle)
     vee = jnp.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    small = angle < 1e-4
-    safe_angle = jnp.where(small, 1.0, angle)
-    factor = jnp.where(small, 0.5 + angle**2 / 12.0, safe_angle / (2.0 * jnp.sin(safe_angle)))
+    cos_angle = (jnp.trace(R) - 1.0) / 2.0
+    sin_squared = jnp.dot(vee, vee) / 4.0
+    small = (sin_squared < 1e-12) & (cos_angle > 0.0)  # near the identity, not a half turn
+    safe_sin = jnp.sqrt(jnp.where(small, 1.0, sin_squared))
+    angle = jnp.arctan2(safe_sin, cos_angle)
+    factor = jnp.where(small, 0.5 + sin_squared / 12.0, angle / (2.0 * safe_sin))
     return factor * vee

@@ -1,0 +1,120 @@
+"""Physical invariants of the simulated free-floating motion: momentum conservation under
+internal (joint) torques, energy conservation without torques and RK4's 4th order, and
+the Dynamic Jacobian against the finite-difference EE twist of a simulated motion."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import spacegrasp_jax as sg
+from spacegrasp_jax import spatial
+from spacegrasp_jax.integrator import (
+    free_floating_derivative,
+    plant_state,
+    rk4_step,
+    simulate_free_floating,
+)
+
+_simulate_chunk = jax.jit(simulate_free_floating)
+CHUNK = 25  # steps per compiled call: every test reuses the one compilation
+
+
+def simulate(robot, state, joint_torques, dt):
+    """``simulate_free_floating`` in chunks of CHUNK steps (len(joint_torques) % CHUNK == 0)."""
+    joint_torques = np.asarray(joint_torques, dtype=np.float64)
+    paths = []
+    for chunk in joint_torques.reshape(-1, CHUNK, 7):
+        state, path = _simulate_chunk(robot, state, chunk, dt)
+        paths.append(path if not paths else jax.tree.map(lambda x: x[1:], path))
+    return state, jax.tree.map(lambda *xs: jnp.concatenate(xs), *paths)
+
+
+def momentum_of(robot, state):
+    return sg.system_momentum(robot, state.p_base, state.R_base, state.q, state.V_base, state.qd)
+
+
+def energy_of(robot, state):
+    return sg.kinetic_energy(robot, state.R_base, state.q, state.V_base, state.qd)
+
+
+@pytest.mark.parametrize("index", [0, 1])
+def test_momentum_conserved_under_random_joint_torques(robot, random_states, index):
+    """2 s of RK4 at 1 ms with random joint torques (internal forces): the total linear
+    and angular momentum stay constant to 1e-9 relative."""
+    s = random_states[index]
+    start = plant_state(s.p_base, s.R_base, s.q, s.V_base, s.qd)
+    torques = np.random.default_rng(index).normal(scale=5.0, size=(2000, 7))  # N m
+    _, path = simulate(robot, start, torques, 1e-3)
+    momenta = jax.vmap(momentum_of, in_axes=(None, 0))(robot, path)
+    drift = np.max(np.abs(np.asarray(momenta) - np.asarray(momenta[0])), axis=0)
+    scale = np.abs(np.asarray(momenta[0]))
+    assert np.max(drift[:3]) <= 1e-9 * np.max(scale[:3])
+    assert np.max(drift[3:]) <= 1e-9 * np.max(scale[3:])
+    # The torques did move the arm: the test is not vacuous.
+    assert np.max(np.abs(np.asarray(path.qd[-1]) - s.qd)) > 1.0
+
+
+def test_momentum_stays_zero_from_rest(robot):
+    """Started at rest, the momentum stays zero while the joint torques move the arm."""
+    start = plant_state(np.zeros(3), np.eye(3), np.asarray(sg.PAPER_Q_INIT), np.zeros(6), np.zeros(7))
+    torques = np.tile(np.array([1.0, -2.0, 1.5, 0.5, -0.5, 0.2, 0.05]), (2000, 1))
+    final, path = simulate(robot, start, torques, 1e-3)
+    momenta = np.asarray(jax.vmap(momentum_of, in_axes=(None, 0))(robot, path))
+    base_speed = np.max(np.abs(np.asarray(path.V_base)))
+    assert base_speed > 1e-3  # the satellite reacts
+    # Zero to RK4's error (momentum is not linear in the state, so RK4 does not keep it
+    # exactly), relative to the momentum the satellite's own motion carries.
+    satellite_momentum = float(robot.satellite_mass) * base_speed
+    assert np.max(np.abs(momenta)) <= 1e-9 * satellite_momentum
+
+
+def test_energy_conserved_with_fourth_order_convergence(robot, random_states):
+    """Without torques the kinetic energy is conserved up to RK4's error, which falls as
+    dt^4: the log-log slope of the energy error against dt is 4."""
+    s = random_states[4]
+    start = plant_state(s.p_base, s.R_base, s.q, s.V_base, s.qd)
+    energy_0 = float(energy_of(robot, start))
+    steps = np.array([0.04, 0.02, 0.01, 0.005])
+    errors = []
+    for dt in steps:
+        final, _ = simulate(robot, start, jnp.zeros((int(round(1.0 / dt)), 7)), dt)
+        errors.append(abs(float(energy_of(robot, final)) - energy_0) / energy_0)
+    slope = np.polyfit(np.log(steps), np.log(errors), 1)[0]
+    assert 3.8 <= slope <= 4.2, (slope, errors)
+    final, _ = simulate(robot, start, jnp.zeros((1000, 7)), 1e-3)
+    assert abs(float(energy_of(robot, final)) - energy_0) <= 1e-11 * energy_0
+
+
+def test_dynamic_jacobian_matches_simulated_ee_twist(robot, random_states):
+    """At zero momentum, J_dyn qd equals the EE twist measured by central differences of
+    the EE pose along a simulated free motion (forward and backward in time)."""
+    for s in random_states[:4]:
+        H2, H3 = sg.momentum_jacobians(robot, s.p_base, s.R_base, s.q)
+        V_base = -np.linalg.solve(H2, H3 @ s.qd)  # zero total momentum
+        start = plant_state(s.p_base, s.R_base, s.q, V_base, s.qd)
+        zero = jnp.zeros(13)
+        h = 1e-4
+
+        def advance(dt):
+            return rk4_step(lambda x: free_floating_derivative(robot, x, zero), start, dt)
+
+        ahead, behind = advance(h), advance(-h)
+        p_ahead, R_ahead = sg.ee_pose(robot, ahead.p_base, ahead.R_base, ahead.q)
+        p_behind, R_behind = sg.ee_pose(robot, behind.p_base, behind.R_base, behind.q)
+        measured = np.concatenate(
+            [(p_ahead - p_behind) / (2 * h), spatial.rotation_log(R_ahead @ R_behind.T) / (2 * h)]
+        )
+        predicted = np.asarray(sg.dynamic_jacobian(robot, start.R_base, s.q) @ s.qd)
+        np.testing.assert_allclose(predicted, measured, rtol=0, atol=1e-7 * np.abs(predicted).max())
+
+
+def test_quaternion_stays_unit_and_matches_rotation(robot, random_states):
+    s = random_states[5]
+    start = plant_state(s.p_base, s.R_base, s.q, s.V_base, s.qd)
+    assert np.allclose(np.asarray(start.R_base), s.R_base, atol=1e-14)
+    final, path = simulate(robot, start, jnp.zeros((500, 7)), 1e-3)
+    norms = np.linalg.norm(np.asarray(path.quat_base), axis=1)
+    np.testing.assert_allclose(norms, 1.0, atol=1e-14)

@@ -1,0 +1,62 @@
+"""Rotation helpers: round trips and derivatives."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from conftest import random_rotation
+
+from spacegrasp_jax import spatial
+
+
+def test_quaternion_round_trip():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        R = random_rotation(rng)
+        quat = spatial.rotation_to_quat(R)
+        assert float(quat[0]) >= 0.0
+        np.testing.assert_allclose(jnp.linalg.norm(quat), 1.0, atol=1e-15)
+        np.testing.assert_allclose(spatial.quat_to_rotation(quat), R, atol=1e-14)
+
+
+def test_quaternion_round_trip_near_half_turns():
+    for axis in np.eye(3):
+        R = np.asarray(jax.scipy.linalg.expm(spatial.skew(axis * (np.pi - 1e-9))))
+        np.testing.assert_allclose(spatial.quat_to_rotation(spatial.rotation_to_quat(R)), R, atol=1e-14)
+
+
+def test_euler_zyx_round_trip_and_order():
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        angles = rng.uniform([-np.pi, -1.5, -np.pi], [np.pi, 1.5, np.pi])
+        R = spatial.euler_zyx_to_rotation(angles)
+        np.testing.assert_allclose(spatial.euler_zyx(R), angles, atol=1e-12)
+    # roll is about x: a pure rotation about x shows up in the first entry only.
+    np.testing.assert_allclose(spatial.euler_zyx(spatial.rot_x(0.3)), [0.3, 0.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(spatial.euler_zyx(spatial.rot_z(0.3)), [0.0, 0.0, 0.3], atol=1e-15)
+
+
+def test_quaternion_derivative_matches_finite_difference():
+    rng = np.random.default_rng(2)
+    R = random_rotation(rng)
+    omega = rng.normal(size=3)
+    quat = spatial.rotation_to_quat(R)
+    h = 1e-6
+    R_next = np.asarray(jax.scipy.linalg.expm(spatial.skew(omega * h))) @ R
+    R_prev = np.asarray(jax.scipy.linalg.expm(spatial.skew(-omega * h))) @ R
+    numeric = (spatial.rotation_to_quat(R_next) - spatial.rotation_to_quat(R_prev)) / (2 * h)
+    np.testing.assert_allclose(spatial.quat_derivative(quat, omega), numeric, atol=1e-8)
+
+
+def test_skew_and_rotation_log():
+    rng = np.random.default_rng(3)
+    v, u = rng.normal(size=3), rng.normal(size=3)
+    np.testing.assert_allclose(spatial.skew(v) @ u, np.cross(v, u), atol=1e-15)
+    for scale in [1e-8, 1e-3, 1.0, 3.0]:
+        vector = rng.normal(size=3)
+        vector = scale * vector / np.linalg.norm(vector)
+        R = jax.scipy.linalg.expm(spatial.skew(vector))
+        np.testing.assert_allclose(spatial.rotation_log(R), vector, atol=1e-12)
+    gradient = jax.grad(lambda x: jnp.sum(spatial.rotation_log(jax.scipy.linalg.expm(spatial.skew(x)))))(jnp.zeros(3))
+    assert np.all(np.isfinite(gradient))
