@@ -141,3 +141,23 @@ def rotation_log(R):
     angle = jnp.arctan2(safe_sin, cos_angle)
     factor = jnp.where(small, 0.5 + sin_squared / 12.0, angle / (2.0 * safe_sin))
     return factor * vee
+
+
+def euler_rates_to_body(angles):
+    """``T_eul`` (3, 3) of eq 10: maps ZYX Euler-angle rates ``[roll, pitch, yaw]_dot`` to the
+    angular velocity in the rotated (body) frame, ``w_body = T_eul @ angles_dot``.
+
+    Args:
+        angles: (3,) rad, ``[roll, pitch, yaw]`` of ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+    """
+    roll, pitch = angles[0], angles[1]
+    cr, sr = jnp.cos(roll), jnp.sin(roll)
+    cp, sp = jnp.cos(pitch), jnp.sin(pitch)
+    one, zero = jnp.ones_like(cr), jnp.zeros_like(cr)
+    return jnp.stack(
+        [
+            jnp.stack([one, zero, -sp]),
+            jnp.stack([zero, cr, sr * cp]),
+            jnp.stack([zero, -sr, cr * cp]),
+        ]
+    )

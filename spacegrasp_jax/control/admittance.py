@@ -1,0 +1,50 @@
+"""The active 6-DoF force/torque (admittance) law of eqs 9-17.
+
+The EE is made to behave as a mass-spring-damper ``(Md, Bd, Kd)`` around the desired
+trajectory, driven by the external wrench measured at the EE (eq 9). Eq 14 gives the
+reference twist rate, eq 15 integrates it (state ``V_ref``), eq 16 turns it into the EE frame
+and eq 17 maps it to desired joint rates through the pseudoinverse of ``J_dyn^(EE)``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
+
+
+def pose_error(pose_des: jax.Array, pose: jax.Array) -> jax.Array:
+    """``pose_des - pose`` (6,) with the Euler-angle differences wrapped to (-pi, pi]."""
+    difference = pose_des - pose
+    wrapped = jnp.arctan2(jnp.sin(difference[3:]), jnp.cos(difference[3:]))
+    return jnp.concatenate([difference[:3], wrapped])
+
+
+def reference_twist_rate(
+    gains: Gains, pose, twist, pose_des, twist_des, twist_rate_des, wrench_lar
+) -> jax.Array:
+    """Eq 14: the reference twist rate ``dV_ref/dt`` (6,) in the LAR frame.
+
+    Args:
+        pose, pose_des: (6,) ``[p (m); roll, pitch, yaw (rad)]`` of the EE in LAR.
+        twist, twist_des: (6,) ``[v (m/s); w (rad/s)]`` in LAR; the orientation rows pair
+            ``[roll, pitch, yaw]`` errors with ``[w_x, w_y, w_z]`` (DESIGN.md).
+        twist_rate_des: (6,) desired ``[a; dw/dt]`` in LAR.
+        wrench_lar: (6,) ``[f (N); n (N m)]`` the contact exerts on the EE, LAR axes.
+    """
+    restoring = wrench_lar + gains.Bd * (twist_des - twist) + gains.Kd * pose_error(pose_des, pose)
+    return twist_rate_des + restoring / gains.Md
+
+
+def desired_joint_rates(J_dyn_ee: jax.Array, R_lar_ee: jax.Array, V_ref_lar: jax.Array, damping=0.0) -> jax.Array:
+    """Eqs 16-17: ``qd_des = (J_dyn^(EE))^# blockdiag(R_ee_lar, R_ee_lar) V_ref`` (7,) rad/s.
+
+    Args:
+        J_dyn_ee: (6, 7) Dynamic Jacobian in the EE frame.
+        R_lar_ee: (3, 3) EE to LAR rotation.
+        V_ref_lar: (6,) reference twist in LAR.
+    """
+    V_ref_ee = jnp.concatenate([R_lar_ee.T @ V_ref_lar[:3], R_lar_ee.T @ V_ref_lar[3:]])
+    return pseudoinverse_apply(J_dyn_ee, V_ref_ee, damping)

@@ -1,0 +1,31 @@
+"""The classical Cartesian law of eqs 21-22: a proportional law on the pose error in LAR,
+mapped to joint rates through the pseudoinverse of ``J_dyn^(EE)``."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from spacegrasp_jax import spatial
+from spacegrasp_jax.control.admittance import pose_error
+from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
+
+
+def desired_joint_rates(gains: Gains, J_dyn_ee: jax.Array, R_lar_ee: jax.Array, pose, pose_des, damping=0.0) -> jax.Array:
+    """Eqs 21-22: ``qd_des`` (7,) rad/s.
+
+    The position error (LAR) times ``K_lin`` is a velocity command rotated into the EE frame
+    by ``R_ee_lar``. The Euler-angle error times ``K_eul`` is an Euler-rate command, which
+    ``T_eul`` (eq 10) turns into an angular velocity in the EE frame. (Eq 22 writes
+    ``R_LAR^EE T_eul``; with eq 10's ``T_eul``, which already yields EE-frame rates, the extra
+    rotation would apply twice, so the command is ``T_eul K_eul e`` - see the README.)
+
+    Args:
+        J_dyn_ee: (6, 7) Dynamic Jacobian in the EE frame. R_lar_ee: (3, 3) EE to LAR.
+        pose, pose_des: (6,) ``[p (m); roll, pitch, yaw (rad)]`` of the EE in LAR.
+    """
+    error = pose_error(pose_des, pose)
+    v_ee = R_lar_ee.T @ (gains.K_lin * error[:3])
+    w_ee = spatial.euler_rates_to_body(pose[3:]) @ (gains.K_eul * error[3:])
+    return pseudoinverse_apply(J_dyn_ee, jnp.concatenate([v_ee, w_ee]), damping)

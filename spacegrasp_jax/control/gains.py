@@ -1,0 +1,124 @@
+"""All controller gains in one differentiable pytree, with the paper's values.
+
+Every gain matrix of the paper is diagonal, so each is held as its diagonal:
+
+| field | shape | unit | paper |
+| --- | --- | --- | --- |
+| ``Md`` | (6,) | kg, kg m^2 | 800 (desired inertia, eq 9) |
+| ``Bd`` | (6,) | N s/m, N m s/rad | 500 (desired damping) |
+| ``Kd`` | (6,) | N/m, N m/rad | 600 (desired stiffness) |
+| ``K_lin`` | (3,) | 1/s | 3 (Cartesian law, eq 22) |
+| ``K_eul`` | (3,) | 1/s | 3 |
+| ``kp`` | (7,) | N m s/rad | Table 4 (joint PID on the rate error) |
+| ``ki`` | (7,) | N m/rad | Table 4 |
+| ``kd`` | (7,) | N m s^2/rad | Table 4 |
+
+The first three rows of ``Md``/``Bd``/``Kd`` act on the position in the LAR frame, the last
+three on the ZYX Euler angles ``[roll, pitch, yaw]``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+GAIN_SHAPES = {"Md": 6, "Bd": 6, "Kd": 6, "K_lin": 3, "K_eul": 3, "kp": 7, "ki": 7, "kd": 7}
+# Gains that must be strictly positive (the rest may be zero, e.g. no integral action).
+_STRICTLY_POSITIVE = {"Md", "Bd", "Kd", "K_lin", "K_eul", "kp"}
+
+
+class GainsError(ValueError):
+    """Invalid gains; the message names the offending field."""
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Gains:
+    """Diagonal gains of the admittance law (``Md``, ``Bd``, ``Kd``), the Cartesian law
+    (``K_lin``, ``K_eul``) and the joint PID loops (``kp``, ``ki``, ``kd``); see the module
+    docstring for shapes and units."""
+
+    Md: jax.Array
+    Bd: jax.Array
+    Kd: jax.Array
+    K_lin: jax.Array
+    K_eul: jax.Array
+    kp: jax.Array
+    ki: jax.Array
+    kd: jax.Array
+
+    def to_dict(self) -> dict[str, list[float]]:
+        """Plain lists, for JSON."""
+        return {name: np.asarray(getattr(self, name)).tolist() for name in GAIN_SHAPES}
+
+
+def make_gains(**fields) -> Gains:
+    """Validate and build :class:`Gains`; a scalar is broadcast to the field's length.
+
+    Raises:
+        GainsError: missing or unknown field, wrong length, non-finite, negative value, or
+            zero where the law needs a positive gain (``Md``, ``Bd``, ``Kd``, ``K_lin``,
+            ``K_eul``, ``kp``).
+    """
+    unknown = sorted(set(fields) - set(GAIN_SHAPES))
+    if unknown:
+        raise GainsError(f"unknown gain(s): {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")
+    missing = [name for name in GAIN_SHAPES if name not in fields]
+    if missing:
+        raise GainsError(f"missing gain(s): {', '.join(missing)}")
+    arrays = {}
+    for name, length in GAIN_SHAPES.items():
+        try:
+            value = np.asarray(fields[name], dtype=np.float64)
+        except (TypeError, ValueError) as error:
+            raise GainsError(f"{name}: not numbers ({error})") from None
+        if value.ndim == 0:
+            value = np.full(length, float(value))
+        if value.shape != (length,):
+            raise GainsError(f"{name}: expected {length} values, got shape {value.shape}")
+        if not np.all(np.isfinite(value)):
+            raise GainsError(f"{name}: contains non-finite values: {value.tolist()}")
+        if np.any(value < 0.0) or (name in _STRICTLY_POSITIVE and np.any(value == 0.0)):
+            bound = "positive" if name in _STRICTLY_POSITIVE else "non-negative"
+            raise GainsError(f"{name}: gains must be {bound}, got {value.tolist()}")
+        arrays[name] = jnp.asarray(value)
+    return Gains(**arrays)
+
+
+def paper_gains() -> Gains:
+    """Section 4: Kd = 600, Bd = 500, Md = 800 (all six axes), K_lin = K_eul = 3, and the
+    joint PID gains of Table 4."""
+    return make_gains(
+        Md=800.0,
+        Bd=500.0,
+        Kd=600.0,
+        K_lin=3.0,
+        K_eul=3.0,
+        kp=[140.0, 210.0, 140.0, 105.0, 105.0, 21.0, 21.0],
+        ki=[10.0, 10.0, 10.0, 1.0, 1.0, 1.0, 1.0],
+        kd=[0.01] * 7,
+    )
+
+
+def load_gains(path: str | Path) -> Gains:
+    """Read gains from a JSON file ``{"Md": [...], ..., "kd": [...]}`` (scalars allowed).
+
+    Raises:
+        GainsError: unreadable JSON or invalid gains; the message names the file.
+    """
+    path = Path(path)
+    try:
+        document = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise GainsError(f"{path}: not valid JSON: {error}") from None
+    if not isinstance(document, dict):
+        raise GainsError(f"{path}: expected a JSON object of gains")
+    try:
+        return make_gains(**document)
+    except GainsError as error:
+        raise GainsError(f"{path}: {error}") from None

@@ -1,0 +1,45 @@
+"""Joint PID loops on the joint-rate error, with the paper's t^2 gain ramp."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from spacegrasp_jax.control.gains import Gains
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PIDState:
+    """Attributes:
+    integral: (7,) rad, running integral of the rate error.
+    previous_error: (7,) rad/s, rate error at the previous control step.
+    """
+
+    integral: jax.Array
+    previous_error: jax.Array
+
+
+def pid_init(dtype=jnp.float64) -> PIDState:
+    """Integral and previous error start at zero (DESIGN.md)."""
+    return PIDState(integral=jnp.zeros(7, dtype=dtype), previous_error=jnp.zeros(7, dtype=dtype))
+
+
+def gain_ramp(t):
+    """``min(t, 1)^2``: all PID gains grow from 0 to their value over the first second."""
+    return jnp.minimum(t, 1.0) ** 2
+
+
+def pid_torque(gains: Gains, state: PIDState, rate_error: jax.Array, t, dt) -> tuple[jax.Array, PIDState]:
+    """Joint torques (7,) N m from the rate error ``qd_des - qd`` (7,) rad/s at time ``t`` (s).
+
+    Discrete at the control period ``dt`` (s): the integral accumulates ``error dt``
+    (including this step's error) and the derivative is the backward difference
+    ``(error - previous_error) / dt``.
+    """
+    integral = state.integral + rate_error * dt
+    derivative = (rate_error - state.previous_error) / dt
+    torque = gain_ramp(t) * (gains.kp * rate_error + gains.ki * integral + gains.kd * derivative)
+    return torque, PIDState(integral=integral, previous_error=rate_error)

@@ -1,0 +1,18 @@
+"""Right pseudoinverse of the (6, 7) Dynamic Jacobian, applied to a twist (eqs 17, 21)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def pseudoinverse_apply(J: jax.Array, twist: jax.Array, damping=0.0) -> jax.Array:
+    """``J^T (J J^T + damping^2 1)^-1 twist`` (7,) for ``J`` (6, 7) and ``twist`` (6,).
+
+    With ``damping = 0`` this is the exact Moore-Penrose pseudoinverse, valid (and with
+    finite gradients) wherever ``J`` has full row rank, as along the paper's motion; a
+    positive ``damping`` (same units as ``J``'s entries) gives the damped least-squares
+    inverse, which stays bounded near singular configurations.
+    """
+    gram = J @ J.T + damping**2 * jnp.eye(J.shape[0], dtype=J.dtype)
+    return J.T @ jax.scipy.linalg.solve(gram, twist, assume_a="pos")

@@ -1,0 +1,205 @@
+"""The capture scenario: initial state, LAR frame, desired trajectory and contact sphere.
+
+``duration``, ``dt`` and ``contact_law`` are static (they fix the scan length and the code
+path); everything else is an array leaf, so a batch of scenarios vmaps and model
+perturbations are differentiable.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from spacegrasp_jax.integrator import PlantState, plant_state
+from spacegrasp_jax.kinematics import ee_pose
+from spacegrasp_jax.model import PAPER_Q_INIT, Robot
+from spacegrasp_jax.trajectory import Trajectory
+
+CONTACT_LAWS = ("exact", "smooth")
+
+
+class ScenarioError(ValueError):
+    """Invalid scenario; the message names the offending field."""
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    """Attributes:
+    initial: the system's state at t = 0.
+    p_lar: (3,) m, origin of the LAR frame in the inertial frame (the target is stationary).
+    R_lar: (3, 3) LAR to inertial rotation.
+    trajectory: desired EE pose in LAR.
+    sphere_centre: (3,) m, contact sphere centre in LAR.
+    sphere_radius: () m.
+    contact_stiffness: () N m^2 (``k`` of eq 20).
+    contact_sharpness: () 1/m, sharpness of the smooth contact law.
+    duration: s, simulated time (static).
+    dt: s, integration and control period (static).
+    contact_law: ``"exact"`` (eq 20) or ``"smooth"`` (static).
+    """
+
+    initial: PlantState
+    p_lar: jax.Array
+    R_lar: jax.Array
+    trajectory: Trajectory
+    sphere_centre: jax.Array
+    sphere_radius: jax.Array
+    contact_stiffness: jax.Array
+    contact_sharpness: jax.Array
+    duration: float = dataclasses.field(default=17.0, metadata=dict(static=True))
+    dt: float = dataclasses.field(default=1e-3, metadata=dict(static=True))
+    contact_law: str = dataclasses.field(default="exact", metadata=dict(static=True))
+
+    @property
+    def n_steps(self) -> int:
+        """Number of control and integration steps, ``duration / dt``."""
+        return int(round(self.duration / self.dt))
+
+
+def paper_scenario(
+    robot: Robot,
+    *,
+    q_init=PAPER_Q_INIT,
+    duration: float = 17.0,
+    dt: float = 1e-3,
+    lar_offset: float = 0.08,
+    start_pose=(0.0, 0.0, -0.08, 0.0, 0.0, 0.0),
+    end_pose=(0.0, 0.0, 0.015, 0.0, 0.0, 0.0),
+    move_duration: float = 10.0,
+    sphere_centre=(0.0, 0.0, -0.015),
+    sphere_radius: float = 0.03,
+    contact_stiffness: float = 0.1,
+    contact_sharpness: float = 1e4,
+    contact_law: str = "exact",
+) -> Scenario:
+    """The paper's grasping scenario (section 4, DESIGN.md), every number overridable.
+
+    The satellite starts at the origin with identity attitude and the system at rest at
+    ``q_init``. The LAR frame has the orientation of the initial EE frame and its origin
+    ``lar_offset`` (m) along the initial EE z axis. The desired EE pose goes from
+    ``start_pose`` to ``end_pose`` (LAR, ``[m, m, m, rad, rad, rad]``) over ``move_duration``
+    (s), then is held. The contact sphere (eq 20) is centred at ``sphere_centre`` (LAR).
+
+    Raises:
+        ScenarioError: a value is out of range or not finite; the message names it.
+    """
+    _check_scenario_numbers(
+        q_init=q_init, duration=duration, dt=dt, lar_offset=lar_offset, start_pose=start_pose,
+        end_pose=end_pose, move_duration=move_duration, sphere_centre=sphere_centre,
+        sphere_radius=sphere_radius, contact_stiffness=contact_stiffness,
+        contact_sharpness=contact_sharpness, contact_law=contact_law,
+    )
+    q = jnp.asarray(q_init, dtype=jnp.float64)
+    p_base, R_base = jnp.zeros(3), jnp.eye(3)
+    p_ee, R_ee = ee_pose(robot, p_base, R_base, q)
+    return Scenario(
+        initial=plant_state(p_base, R_base, q, jnp.zeros(6), jnp.zeros(7)),
+        p_lar=p_ee + lar_offset * R_ee[:, 2],
+        R_lar=R_ee,
+        trajectory=Trajectory(
+            start_pose=jnp.asarray(start_pose, dtype=jnp.float64),
+            end_pose=jnp.asarray(end_pose, dtype=jnp.float64),
+            duration=jnp.asarray(move_duration, dtype=jnp.float64),
+        ),
+        sphere_centre=jnp.asarray(sphere_centre, dtype=jnp.float64),
+        sphere_radius=jnp.asarray(sphere_radius, dtype=jnp.float64),
+        contact_stiffness=jnp.asarray(contact_stiffness, dtype=jnp.float64),
+        contact_sharpness=jnp.asarray(contact_sharpness, dtype=jnp.float64),
+        duration=float(duration),
+        dt=float(dt),
+        contact_law=contact_law,
+    )
+
+
+_SHAPES = {
+    "q_init": (7,), "duration": (), "dt": (), "lar_offset": (), "start_pose": (6,), "end_pose": (6,),
+    "move_duration": (), "sphere_centre": (3,), "sphere_radius": (), "contact_stiffness": (),
+    "contact_sharpness": (),
+}
+_POSITIVE = {"duration", "dt", "move_duration", "sphere_radius", "contact_sharpness"}
+
+
+def _check_scenario_numbers(**values) -> None:
+    law = values.pop("contact_law")
+    if law not in CONTACT_LAWS:
+        raise ScenarioError(f"contact_law: expected one of {CONTACT_LAWS}, got {law!r}")
+    for name, shape in _SHAPES.items():
+        try:
+            value = np.asarray(values[name], dtype=np.float64)
+        except (TypeError, ValueError) as error:
+            raise ScenarioError(f"{name}: not numbers ({error})") from None
+        if value.shape != shape:
+            raise ScenarioError(f"{name}: expected shape {shape}, got {value.shape}")
+        if not np.all(np.isfinite(value)):
+            raise ScenarioError(f"{name}: must be finite, got {value.tolist()}")
+        if name in _POSITIVE and value <= 0.0:
+            raise ScenarioError(f"{name}: must be positive, got {float(value)}")
+    if values["contact_stiffness"] < 0.0:
+        raise ScenarioError(f"contact_stiffness: must be non-negative, got {values['contact_stiffness']}")
+    steps = values["duration"] / values["dt"]
+    if abs(steps - round(steps)) > 1e-6 * steps:
+        raise ScenarioError(f"duration: {values['duration']} s is not a whole number of steps dt = {values['dt']} s")
+    pitches = [values["start_pose"][4], values["end_pose"][4]]
+    if any(abs(pitch) >= math.pi / 2 - 1e-3 for pitch in pitches):
+        raise ScenarioError("start_pose/end_pose: pitch must stay away from +-pi/2 (ZYX Euler singularity)")
+
+
+# File keys -> paper_scenario keyword arguments.
+_FILE_KEYS = {
+    ("duration",): "duration",
+    ("dt",): "dt",
+    ("q_init",): "q_init",
+    ("lar", "offset"): "lar_offset",
+    ("trajectory", "start"): "start_pose",
+    ("trajectory", "end"): "end_pose",
+    ("trajectory", "duration"): "move_duration",
+    ("contact", "law"): "contact_law",
+    ("contact", "centre"): "sphere_centre",
+    ("contact", "radius"): "sphere_radius",
+    ("contact", "stiffness"): "contact_stiffness",
+    ("contact", "sharpness"): "contact_sharpness",
+}
+
+
+def scenario_from_mapping(robot: Robot, document: dict) -> Scenario:
+    """The paper scenario with the values given in ``document`` replaced; every key is
+    optional (see the README's scenario schema) and unknown keys are rejected."""
+    kwargs = {}
+    for key, value in document.items():
+        if isinstance(value, dict):
+            for sub_key, sub_value in value.items():
+                if (key, sub_key) not in _FILE_KEYS:
+                    raise ScenarioError(f"unknown scenario key {key}.{sub_key}")
+                kwargs[_FILE_KEYS[(key, sub_key)]] = sub_value
+        elif (key,) in _FILE_KEYS:
+            kwargs[_FILE_KEYS[(key,)]] = value
+        else:
+            raise ScenarioError(f"unknown scenario key {key}")
+    return paper_scenario(robot, **kwargs)
+
+
+def load_scenario(robot: Robot, path: str | Path) -> Scenario:
+    """Read a scenario (TOML or JSON, by extension) as :func:`scenario_from_mapping`.
+
+    Raises:
+        ScenarioError: unreadable file, unknown key or invalid value; names the file.
+    """
+    import json
+
+    path = Path(path)
+    try:
+        text = path.read_text()
+        document = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as error:
+        raise ScenarioError(f"{path}: cannot parse: {error}") from None
+    try:
+        return scenario_from_mapping(robot, document)
+    except ScenarioError as error:
+        raise ScenarioError(f"{path}: {error}") from None

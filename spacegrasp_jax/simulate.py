@@ -1,0 +1,219 @@
+"""The closed loop: contact -> sensor -> controller -> joint PID -> RK4, as one ``lax.scan``.
+
+Each step of length ``dt`` (DESIGN.md):
+1. the controller reads the state and the F/T sensor once (eqs 18-19), computes the desired
+   joint rates (admittance eqs 9-17 or Cartesian eqs 21-22) and the PID joint torques;
+2. the torques are held over the step (zero-order hold) while RK4 integrates the plant, the
+   contact force of eq 20 being evaluated at every RK4 stage from that stage's state.
+
+``rollout`` is pure: jit, vmap (over scenarios, robots or gains) and grad apply to it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from spacegrasp_jax import spatial
+from spacegrasp_jax.contact import (
+    contact_force_exact,
+    contact_force_smooth,
+    rotate_wrench,
+    sensor_wrench,
+    wrench_at_ee,
+)
+from spacegrasp_jax.control import CONTROLLERS, admittance, cartesian
+from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.pid import PIDState, pid_init, pid_torque
+from spacegrasp_jax.dynamics import dynamic_jacobian_ee, forward_dynamics, system_momentum
+from spacegrasp_jax.integrator import PlantState, rk4_step
+from spacegrasp_jax.kinematics import forward_kinematics, point_jacobian
+from spacegrasp_jax.model import N_JOINTS, Robot
+from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.trajectory import desired_state
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ControllerState:
+    """Attributes:
+    V_ref: (6,) reference EE twist in LAR, the integrator of eq 15 (admittance only).
+    pid: the joint PID loops' memory.
+    """
+
+    V_ref: jax.Array
+    pid: PIDState
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SimState:
+    """The scan carry: the plant and the controller's memory."""
+
+    plant: PlantState
+    controller: ControllerState
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Log:
+    """Time series of a rollout, one row per step (N rows, at t = 0, dt, ..., (N-1) dt),
+    each taken at the start of the step together with the torque applied over it.
+
+    Attributes:
+        t: (N,) s.
+        pose_ee: (N, 6) EE pose in LAR, ``[p (m); roll, pitch, yaw (rad)]``.
+        pose_des: (N, 6) desired EE pose in LAR.
+        twist_ee: (N, 6) EE twist in LAR ``[v (m/s); w (rad/s)]`` (true, base motion included).
+        contact_force: (N, 3) N, force of the contact on the EE, LAR axes.
+        momentum: (N, 6) ``[P (N s); L about the inertial origin (N m s)]``, inertial frame.
+        V_base: (N, 6) satellite ``[v_s (m/s); w_s (rad/s)]``, inertial frame.
+        u: (N, 7) N m, joint torques.
+        fts_force: (N, 3) N, F/T sensor force, sensor (frame 7) axes.
+        fts_torque: (N, 3) N m, F/T sensor torque about the sensor point, sensor axes.
+        V_ref: (N, 6) reference twist in LAR (admittance; zeros for the Cartesian law).
+        qd_des: (N, 7) rad/s, desired joint rates.
+        q: (N, 7) rad. qd: (N, 7) rad/s.
+    """
+
+    t: jax.Array
+    pose_ee: jax.Array
+    pose_des: jax.Array
+    twist_ee: jax.Array
+    contact_force: jax.Array
+    momentum: jax.Array
+    V_base: jax.Array
+    u: jax.Array
+    fts_force: jax.Array
+    fts_torque: jax.Array
+    V_ref: jax.Array
+    qd_des: jax.Array
+    q: jax.Array
+    qd: jax.Array
+
+
+def contact_force_lar(scenario: Scenario, p_ee: jax.Array) -> jax.Array:
+    """Force (3,) N of the contact sphere on the EE point ``p_ee`` (3,) m (inertial), in LAR
+    axes, by the scenario's contact law."""
+    p_from_centre = scenario.R_lar.T @ (p_ee - scenario.p_lar) - scenario.sphere_centre
+    if scenario.contact_law == "exact":
+        return contact_force_exact(p_from_centre, scenario.sphere_radius, scenario.contact_stiffness)
+    return contact_force_smooth(
+        p_from_centre, scenario.sphere_radius, scenario.contact_stiffness, scenario.contact_sharpness
+    )
+
+
+def plant_derivative(robot: Robot, scenario: Scenario, state: PlantState, u: jax.Array) -> PlantState:
+    """State rate under joint torques ``u`` (7,) N m and the contact force at this state."""
+    frames = forward_kinematics(robot, state.p_base, state.R_base, state.q)
+    force = scenario.R_lar @ contact_force_lar(scenario, frames.p_ee)
+    # The contact force acts at the EE point: generalised force J_point^T [f; 0].
+    J_ee = point_jacobian(frames, state.p_base, frames.p_ee, N_JOINTS)
+    Q = J_ee[:3].T @ force + jnp.concatenate([jnp.zeros(6, dtype=u.dtype), u])
+    xdd = forward_dynamics(robot, state.R_base, state.q, state.V_base, state.qd, Q)
+    return PlantState(
+        p_base=state.V_base[:3],
+        quat_base=spatial.quat_derivative(state.quat_base, state.V_base[3:]),
+        q=state.qd,
+        V_base=xdd[:6],
+        qd=xdd[6:],
+    )
+
+
+def initial_state(scenario: Scenario) -> SimState:
+    """The scan's initial carry: the scenario's plant state, ``V_ref(0) = 0``, PID at rest."""
+    dtype = scenario.initial.q.dtype
+    return SimState(plant=scenario.initial, controller=ControllerState(V_ref=jnp.zeros(6, dtype=dtype), pid=pid_init(dtype)))
+
+
+def control_step(robot: Robot, scenario: Scenario, gains: Gains, controller: str, state: SimState, t, pinv_damping=0.0):
+    """One controller update at time ``t``: returns ``(u (7,), new ControllerState, log row)``."""
+    plant = state.plant
+    R_base = plant.R_base
+    frames = forward_kinematics(robot, plant.p_base, R_base, plant.q)
+    R_lar = scenario.R_lar
+    R_lar_ee = R_lar.T @ frames.R_ee
+    pose = jnp.concatenate([R_lar.T @ (frames.p_ee - scenario.p_lar), spatial.euler_zyx(R_lar_ee)])
+    J_ee = point_jacobian(frames, plant.p_base, frames.p_ee, N_JOINTS)
+    twist_inertial = J_ee @ jnp.concatenate([plant.V_base, plant.qd])
+    twist = jnp.concatenate([R_lar.T @ twist_inertial[:3], R_lar.T @ twist_inertial[3:]])
+
+    # F/T sensor between link 7 and the EE (frame 7 axes), read once per step (eqs 18-19).
+    force_lar = contact_force_lar(scenario, frames.p_ee)
+    R_fts = frames.R_frame[-1]
+    force_fts, torque_fts = sensor_wrench(R_fts.T @ (R_lar @ force_lar), robot.ee_offset)
+    wrench_ee = wrench_at_ee(force_fts, torque_fts, robot.ee_offset)
+    wrench_lar = rotate_wrench(R_lar.T @ R_fts, wrench_ee)
+
+    pose_des, twist_des, twist_rate_des = desired_state(scenario.trajectory, t)
+    J_dyn_ee = dynamic_jacobian_ee(robot, R_base, plant.q)
+    V_ref = state.controller.V_ref
+    if controller == "admittance":
+        qd_des = admittance.desired_joint_rates(J_dyn_ee, R_lar_ee, V_ref, pinv_damping)
+        rate = admittance.reference_twist_rate(gains, pose, twist, pose_des, twist_des, twist_rate_des, wrench_lar)
+        V_ref_next = V_ref + scenario.dt * rate  # eq 15, forward Euler at the control rate
+    else:
+        qd_des = cartesian.desired_joint_rates(gains, J_dyn_ee, R_lar_ee, pose, pose_des, pinv_damping)
+        V_ref_next = V_ref
+    u, pid = pid_torque(gains, state.controller.pid, qd_des - plant.qd, t, scenario.dt)
+
+    row = Log(
+        t=t,
+        pose_ee=pose,
+        pose_des=pose_des,
+        twist_ee=twist,
+        contact_force=force_lar,
+        momentum=system_momentum(robot, plant.p_base, R_base, plant.q, plant.V_base, plant.qd),
+        V_base=plant.V_base,
+        u=u,
+        fts_force=force_fts,
+        fts_torque=torque_fts,
+        V_ref=V_ref,
+        qd_des=qd_des,
+        q=plant.q,
+        qd=plant.qd,
+    )
+    return u, ControllerState(V_ref=V_ref_next, pid=pid), row
+
+
+def rollout(
+    robot: Robot, scenario: Scenario, gains: Gains, controller: str, pinv_damping: float = 0.0
+) -> tuple[SimState, Log]:
+    """Simulate the closed loop over ``scenario.duration`` with one ``jax.lax.scan``.
+
+    Args:
+        robot, scenario, gains: pytrees (any leaf may carry a vmap batch axis).
+        controller: ``"admittance"`` (eqs 9-17) or ``"cartesian"`` (eqs 21-22); static.
+        pinv_damping: 0 for the exact pseudoinverse (the paper), > 0 for damped least
+            squares; static.
+
+    Returns:
+        ``(final_state, log)``: the state after ``scenario.n_steps`` steps and the
+        :class:`Log`. A diverging rollout carries non-finite values from the first bad
+        step on; :func:`first_nonfinite_time` finds it (``experiment.run`` reports it).
+    """
+    if controller not in CONTROLLERS:
+        raise ValueError(f"controller: expected one of {CONTROLLERS}, got {controller!r}")
+
+    def step(state: SimState, k):
+        t = k * scenario.dt
+        u, controller_state, row = control_step(robot, scenario, gains, controller, state, t, pinv_damping)
+        plant = rk4_step(lambda s: plant_derivative(robot, scenario, s, u), state.plant, scenario.dt)
+        return SimState(plant=plant, controller=controller_state), row
+
+    steps = jnp.arange(scenario.n_steps, dtype=scenario.initial.q.dtype)
+    return jax.lax.scan(step, initial_state(scenario), steps)
+
+
+def first_nonfinite_time(log: Log):
+    """Time (s) of the first log row holding a non-finite value, or ``None`` (host side)."""
+    import numpy as np
+
+    bad = np.zeros(np.shape(log.t), dtype=bool)
+    for name, series in vars(log).items():
+        if name != "t":
+            values = np.asarray(series)
+            bad |= ~np.all(np.isfinite(values.reshape(values.shape[0], -1)), axis=1)
+    return float(np.asarray(log.t)[np.argmax(bad)]) if bad.any() else None
