@@ -4,13 +4,22 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import spatial
+from spacegrasp_jax import experiment, plots, spatial
+from spacegrasp_jax.control import CONTROLLERS, GainsError, load_gains, paper_gains
+from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
+
+#: Table 5 of the paper: maximal absolute joint torques (N m).
+PAPER_MAX_TORQUE_NM = {
+    "admittance": [1.50, 2.45, 1.68, 0.86, 1.10, 0.17, 0.036],
+    "cartesian": [1.89, 4.21, 2.72, 0.72, 1.55, 0.35, 0.027],
+}
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -36,6 +45,81 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _load_inputs(args):
+    """Robot, scenario and gains from the command line, validated before any compile."""
+    robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
+    scenario = load_scenario(robot, args.scenario) if getattr(args, "scenario", None) else paper_scenario(robot)
+    gains = load_gains(args.gains) if getattr(args, "gains", None) else paper_gains()
+    if args.pinv_damping < 0.0:
+        raise GainsError(f"--pinv-damping: must be non-negative, got {args.pinv_damping}")
+    return robot, scenario, gains
+
+
+def _print_table(results: dict) -> None:
+    controllers = list(results)
+    header = "joint" + "".join(f"  {experiment.RESULT_KEYS[c] + ' [N m]':>16}  {'paper':>7}" for c in controllers)
+    print("\nTable 5: maximal absolute joint torques")
+    print(header)
+    for joint in range(7):
+        row = f"{joint + 1:>5}"
+        for c in controllers:
+            row += f"  {results[c].summary['max_abs_torque_Nm'][joint]:>16.3f}  {PAPER_MAX_TORQUE_NM[c][joint]:>7.3f}"
+        print(row)
+    print()
+    for c in controllers:
+        summary = results[c].summary
+        print(
+            f"{c:>10}: final position error {1e3 * summary['final_position_error_m']:.3f} mm, "
+            f"orientation error {np.degrees(summary['final_orientation_error_rad']):.4f} deg, "
+            f"max contact force {summary['max_contact_force_N']:.2f} N, "
+            f"compile {summary['compile_time_s']:.1f} s, run {summary['run_time_s']:.2f} s"
+        )
+
+
+def _write_results(out: Path, results: dict, config: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    key = experiment.RESULT_KEYS
+    lines = ["joint," + ",".join(f"{key[c]}_Nm" for c in results) + "," + ",".join(f"paper_{key[c]}_Nm" for c in results)]
+    for joint in range(7):
+        ours = [f"{results[c].summary['max_abs_torque_Nm'][joint]:.6g}" for c in results]
+        paper = [f"{PAPER_MAX_TORQUE_NM[c][joint]:.6g}" for c in results]
+        lines.append(",".join([str(joint + 1)] + ours + paper))
+    experiment.write_atomically(out / "table5.csv", lambda target: target.write_text("\n".join(lines) + "\n"))
+    experiment.write_json(out / "summary.json", {key[c]: result.summary for c, result in results.items()})
+    for c, result in results.items():
+        experiment.write_timeseries(out / f"timeseries_{key[c]}.npz", result.log)
+    plots.save_figures({c: result.log for c, result in results.items()}, out, experiment.write_atomically)
+    experiment.write_json(out / "config.json", config)
+
+
+def _run_controllers(args, controllers) -> int:
+    robot, scenario, gains = _load_inputs(args)
+    results = {}
+    for controller in controllers:
+        print(f"running the {controller} controller over {scenario.duration:g} s (dt = {scenario.dt:g} s)...", flush=True)
+        results[controller] = experiment.run(robot, scenario, gains, controller, pinv_damping=args.pinv_damping)
+    _print_table(results)
+    config = experiment.run_config(args.robot or "paper_robot()", scenario, gains, controllers, args.pinv_damping)
+    out = Path(args.out)
+    _write_results(out, results, config)
+    print(f"wrote {out}/: table5.csv, summary.json, fig4-fig9 PNGs, timeseries_*.npz, config.json")
+    return 0
+
+
+def _reproduce(args: argparse.Namespace) -> int:
+    return _run_controllers(args, CONTROLLERS)
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    return _run_controllers(args, [args.controller])
+
+
+def _add_run_options(parser: argparse.ArgumentParser, default_out: str) -> None:
+    parser.add_argument("--out", default=default_out, help=f"output folder (default {default_out})")
+    parser.add_argument("--robot", help="robot TOML file (default: the paper's robot)")
+    parser.add_argument("--pinv-damping", type=float, default=0.0, help="damping of the pseudoinverse (0: exact, the paper)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="spacegrasp", description=sg.__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"spacegrasp-jax {sg.__version__}")
@@ -43,6 +127,17 @@ def build_parser() -> argparse.ArgumentParser:
     info = commands.add_parser("info", help="print the robot's mass, CoM, EE pose at q_init and cond(M)")
     info.add_argument("--robot", help="robot TOML file (default: the paper's robot)")
     info.set_defaults(run=_info)
+
+    reproduce = commands.add_parser("reproduce", help="run both controllers with the paper's gains: Table 5 and Figures 4-9")
+    _add_run_options(reproduce, "results/reproduce")
+    reproduce.set_defaults(run=_reproduce)
+
+    simulate = commands.add_parser("simulate", help="run one controller with any gains and scenario")
+    simulate.add_argument("--controller", choices=CONTROLLERS, required=True)
+    simulate.add_argument("--gains", help="gains JSON file (default: the paper's)")
+    simulate.add_argument("--scenario", help="scenario TOML or JSON file (default: the paper's)")
+    _add_run_options(simulate, "results/simulate")
+    simulate.set_defaults(run=_simulate)
     return parser
 
 
@@ -50,9 +145,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except sg.RobotConfigError as error:
+    except (sg.RobotConfigError, GainsError, ScenarioError) as error:
         print(f"spacegrasp: error: {error}", file=sys.stderr)
         return 2
+    except experiment.SimulationDiverged as error:
+        print(f"spacegrasp: error: {error}", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":

@@ -1,0 +1,161 @@
+"""Host-side runs: compile once, time, check for divergence, and write results to disk.
+
+This is the edge of the library where ``jit`` happens (the core never calls it). The CLI,
+the tests and the notebooks use :func:`run`, so a rollout of a given controller, shapes and
+static settings compiles once per process.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from spacegrasp_jax import metrics
+from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.model import Robot
+from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.simulate import Log, first_nonfinite_time, rollout
+
+#: Keys of summary.json and of the timeseries files for each controller.
+RESULT_KEYS = {"admittance": "active", "cartesian": "cartesian"}
+
+
+class SimulationDiverged(RuntimeError):
+    """The closed loop produced non-finite values; ``time_s`` is the first bad step."""
+
+    def __init__(self, controller: str, time_s: float):
+        super().__init__(f"the {controller} rollout diverged: first non-finite value at t = {time_s:.4f} s")
+        self.controller = controller
+        self.time_s = time_s
+
+
+@dataclasses.dataclass(frozen=True)
+class RunResult:
+    """One rollout on the host: its log as NumPy arrays, summary and timings (s)."""
+
+    controller: str
+    log: Log
+    summary: dict
+    compile_time_s: float
+    run_time_s: float
+
+
+_COMPILED: dict = {}
+
+
+def _compiled_rollout(robot, scenario, gains, controller, pinv_damping):
+    """AOT-compiled rollout, cached by controller, static settings and argument shapes.
+    Returns ``(executable, compile_time_s)``; the time is that of the original compile."""
+    arguments = (robot, scenario, gains)
+    key = (
+        controller,
+        pinv_damping,
+        jax.tree.structure(arguments),
+        tuple((np.shape(leaf), np.result_type(leaf)) for leaf in jax.tree.leaves(arguments)),
+    )
+    if key not in _COMPILED:
+        start = time.perf_counter()
+        function = jax.jit(rollout, static_argnames=("controller", "pinv_damping"))
+        executable = function.lower(robot, scenario, gains, controller=controller, pinv_damping=pinv_damping).compile()
+        _COMPILED[key] = (executable, time.perf_counter() - start)
+    return _COMPILED[key]
+
+
+def run(
+    robot: Robot, scenario: Scenario, gains: Gains, controller: str, *, pinv_damping: float = 0.0, check: bool = True
+) -> RunResult:
+    """Run one closed-loop rollout and bring its log back as NumPy arrays.
+
+    Raises:
+        SimulationDiverged: (when ``check``) the state became non-finite; the error gives
+            the first non-finite time.
+    """
+    executable, compile_time = _compiled_rollout(robot, scenario, gains, controller, pinv_damping)
+    start = time.perf_counter()
+    _, log = executable(robot, scenario, gains)
+    log = jax.tree.map(np.asarray, jax.block_until_ready(log))
+    run_time = time.perf_counter() - start
+    bad_time = first_nonfinite_time(log)
+    if check and bad_time is not None:
+        raise SimulationDiverged(controller, bad_time)
+    summary = metrics.summary(log) if bad_time is None else {"first_nonfinite_s": bad_time}
+    summary.update(compile_time_s=compile_time, run_time_s=run_time)
+    return RunResult(controller, log, summary, compile_time, run_time)
+
+
+# ---- files -------------------------------------------------------------------------------
+
+
+def write_atomically(path: Path, write) -> None:
+    """Call ``write(handle_path)`` on a temporary file beside ``path``, then rename it into
+    place, so an interrupted run never leaves a half-written file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
+    os.close(descriptor)
+    try:
+        write(Path(temporary))
+        os.replace(temporary, path)
+    finally:
+        if os.path.exists(temporary):
+            os.unlink(temporary)
+
+
+def write_json(path: Path, document) -> None:
+    write_atomically(path, lambda target: target.write_text(json.dumps(document, indent=2) + "\n"))
+
+
+def write_timeseries(path: Path, log: Log) -> None:
+    """The log as a compressed ``.npz`` (one array per :class:`Log` field)."""
+    arrays = {name: np.asarray(value) for name, value in vars(log).items()}
+    write_atomically(path, lambda target: np.savez_compressed(target, **arrays))
+
+
+def git_revision() -> str | None:
+    """The checkout's commit (with ``-dirty`` for uncommitted changes), or None."""
+    here = Path(__file__).resolve().parent
+    try:
+        revision = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
+        if revision.returncode != 0:
+            return None
+        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=here, capture_output=True, text=True, timeout=10)
+        return revision.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def scenario_to_dict(scenario: Scenario) -> dict:
+    """The scenario's numbers as plain JSON (initial state, LAR pose, trajectory, contact)."""
+    leaves = dataclasses.asdict(scenario)  # nested dataclasses become dicts of arrays
+
+    def plain(value):
+        if isinstance(value, dict):
+            return {key: plain(item) for key, item in value.items()}
+        return np.asarray(value).tolist() if not isinstance(value, (str, float, int)) else value
+
+    return plain(leaves)
+
+
+def run_config(robot_source: str, scenario: Scenario, gains: Gains, controllers, pinv_damping: float) -> dict:
+    """What ``config.json`` records: enough to trace every number back to how it was made."""
+    from spacegrasp_jax import __version__
+
+    return {
+        "controllers": list(controllers),
+        "robot": robot_source,
+        "gains": gains.to_dict(),
+        "scenario": scenario_to_dict(scenario),
+        "pinv_damping": pinv_damping,
+        "spacegrasp_jax_version": __version__,
+        "jax_version": jax.__version__,
+        "numpy_version": np.__version__,
+        "backend": jax.default_backend(),
+        "git_revision": git_revision(),
+    }

@@ -1,0 +1,125 @@
+"""The paper's Figures 4-9 from rollout logs (NumPy in, matplotlib figures out).
+
+Style of the paper: blue dashed line for the active 6-DoF F/T (admittance) law, red dotted for
+the Cartesian law, black solid for the desired trajectory. ``logs`` maps a controller name
+(``"admittance"``, ``"cartesian"``) to a log with NumPy fields; either may be missing.
+"""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only; no display needed
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+STYLES = {
+    "admittance": dict(color="tab:blue", linestyle="--", label="active 6 DoF F/T control"),
+    "cartesian": dict(color="tab:red", linestyle=":", label="Cartesian control"),
+    "desired": dict(color="black", linestyle="-", label="desired"),
+}
+
+
+def plot_series(ax, t: np.ndarray, values: np.ndarray, style: str, linewidth: float = 1.4):
+    """One time series on ``ax`` in the paper's style for ``style``; returns the line."""
+    (line,) = ax.plot(t, values, linewidth=linewidth, **STYLES[style])
+    return line
+
+
+def _grid(rows: int, columns: int, title: str, height: float = 2.2):
+    fig, axes = plt.subplots(rows, columns, figsize=(5.0 * columns, height * rows), sharex=True, squeeze=False)
+    fig.suptitle(title)
+    return fig, axes
+
+
+def _finish(fig, axes, ylabels):
+    for ax, label in zip(axes.flat, ylabels):
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("time [s]")
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), frameon=False)
+    fig.tight_layout(rect=(0, 0.05, 1, 0.96))
+    return fig
+
+
+def _plot_columns(fig, axes, logs, series, columns, desired=None):
+    for name, log in logs.items():
+        for ax, column in zip(axes.flat, columns):
+            plot_series(ax, log.t, series(log)[:, column], name)
+    if desired is not None:
+        log = next(iter(logs.values()))
+        for ax, column in zip(axes.flat, columns):
+            plot_series(ax, log.t, desired(log)[:, column], "desired", linewidth=1.0)
+
+
+def figure_ee_pose(logs):
+    """Figure 4: EE position (mm) and orientation (deg) in the LAR frame, with the desired."""
+    fig, axes = _grid(3, 2, "Fig. 4  End-effector position and orientation in the LAR frame")
+    scale = np.array([1e3, 1e3, 1e3, np.degrees(1), np.degrees(1), np.degrees(1)])
+    order = [0, 3, 1, 4, 2, 5]  # left column positions, right column angles
+    _plot_columns(fig, axes, logs, lambda log: log.pose_ee * scale, order, desired=lambda log: log.pose_des * scale)
+    labels = ["x [mm]", "roll [deg]", "y [mm]", "pitch [deg]", "z [mm]", "yaw [deg]"]
+    return _finish(fig, axes, labels)
+
+
+def figure_contact_force(logs):
+    """Figure 5: the contact model's force on the EE, LAR axes, and its magnitude."""
+    fig, axes = _grid(2, 2, "Fig. 5  External forces from the contact model (LAR axes)")
+    _plot_columns(fig, axes, logs, lambda log: np.column_stack([log.contact_force, np.linalg.norm(log.contact_force, axis=1)]), range(4))
+    return _finish(fig, axes, ["F_x [N]", "F_y [N]", "F_z [N]", "|F| [N]"])
+
+
+def figure_momentum(logs):
+    """Figure 6: resultant linear and angular momentum of the whole system."""
+    fig, axes = _grid(1, 2, "Fig. 6  Momentum and angular momentum of the satellite-manipulator system", height=3.0)
+    norms = lambda log: np.column_stack([np.linalg.norm(log.momentum[:, :3], axis=1), np.linalg.norm(log.momentum[:, 3:], axis=1)])  # noqa: E731
+    _plot_columns(fig, axes, logs, norms, range(2))
+    return _finish(fig, axes, ["|P| [N s]", "|L| (about the inertial origin) [N m s]"])
+
+
+def figure_base_velocity(logs):
+    """Figure 7: resultant linear and angular velocity of the servicing satellite."""
+    fig, axes = _grid(1, 2, "Fig. 7  Servicing satellite velocities", height=3.0)
+    norms = lambda log: np.column_stack([1e3 * np.linalg.norm(log.V_base[:, :3], axis=1), np.degrees(np.linalg.norm(log.V_base[:, 3:], axis=1))])  # noqa: E731
+    _plot_columns(fig, axes, logs, norms, range(2))
+    return _finish(fig, axes, ["|v_s| [mm/s]", "|w_s| [deg/s]"])
+
+
+def figure_joint_torques(logs):
+    """Figure 8: joint torques of the seven joints."""
+    fig, axes = _grid(4, 2, "Fig. 8  Joint torques", height=2.0)
+    _plot_columns(fig, axes, logs, lambda log: log.u, range(7))
+    axes.flat[7].set_visible(False)
+    axes.flat[5].xaxis.set_tick_params(labelbottom=True)
+    axes.flat[5].set_xlabel("time [s]")
+    return _finish(fig, axes, [f"u_{i + 1} [N m]" for i in range(7)])
+
+
+def figure_sensor_loads(logs):
+    """Figure 9: loads measured by the F/T sensor between link 7 and the EE (sensor axes)."""
+    fig, axes = _grid(3, 2, "Fig. 9  Loads measured between the seventh link and the end-effector")
+    both = lambda log: np.column_stack([log.fts_force, log.fts_torque])  # noqa: E731
+    _plot_columns(fig, axes, logs, both, [0, 3, 1, 4, 2, 5])
+    return _finish(fig, axes, ["f_x [N]", "n_x [N m]", "f_y [N]", "n_y [N m]", "f_z [N]", "n_z [N m]"])
+
+
+FIGURES = {
+    "fig4_ee_pose.png": figure_ee_pose,
+    "fig5_contact_force.png": figure_contact_force,
+    "fig6_momentum.png": figure_momentum,
+    "fig7_base_velocity.png": figure_base_velocity,
+    "fig8_joint_torques.png": figure_joint_torques,
+    "fig9_fts_loads.png": figure_sensor_loads,
+}
+
+
+def save_figures(logs, out_dir, write_atomically) -> list[str]:
+    """Write Figures 4-9 into ``out_dir``; returns the file names."""
+    for name, build in FIGURES.items():
+        fig = build(logs)
+        write_atomically(out_dir / name, lambda target: fig.savefig(target, dpi=110, format="png"))
+        plt.close(fig)
+    return list(FIGURES)
