@@ -59,7 +59,7 @@ def _compiled_rollout(robot, scenario, gains, controller, pinv_damping):
         controller,
         pinv_damping,
         jax.tree.structure(arguments),
-        tuple((np.shape(leaf), np.result_type(leaf)) for leaf in jax.tree.leaves(arguments)),
+        tuple((np.shape(leaf), str(getattr(leaf, "dtype", type(leaf)))) for leaf in jax.tree.leaves(arguments)),
     )
     if key not in _COMPILED:
         start = time.perf_counter()

@@ -69,3 +69,31 @@ def pinocchio_model():
 
     model, ee_frame = pinocchio_reference.build_model()
     return model, model.createData(), ee_frame
+
+
+# ---- closed loop: each compiled once per session (experiment.run caches executables) ----
+
+
+@pytest.fixture(scope="session")
+def gains():
+    from spacegrasp_jax.control import paper_gains
+
+    return paper_gains()
+
+
+@pytest.fixture(scope="session")
+def full_runs(robot, gains):
+    """The paper's 17 s scenario with both controllers (exact contact law)."""
+    from spacegrasp_jax import experiment
+    from spacegrasp_jax.scenario import paper_scenario
+
+    scenario = paper_scenario(robot)
+    return {controller: experiment.run(robot, scenario, gains, controller) for controller in ("admittance", "cartesian")}
+
+
+@pytest.fixture(scope="session")
+def short_scenario(robot):
+    """2 s with the whole approach compressed into it: contact starts at about 0.9 s."""
+    from spacegrasp_jax.scenario import paper_scenario
+
+    return paper_scenario(robot, duration=2.0, move_duration=2.0, contact_law="smooth")

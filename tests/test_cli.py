@@ -50,3 +50,72 @@ def test_info_reports_a_bad_robot_file_clearly(tmp_path):
     assert result.returncode == 2
     assert "end_effector.mass: masses must be positive" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+# ---- reproduce and simulate (in-process: the session's compiled rollouts are reused) ------
+
+import json  # noqa: E402
+
+from spacegrasp_jax import cli  # noqa: E402
+
+SUMMARY_KEYS = {
+    "max_abs_torque_Nm", "final_position_error_m", "final_orientation_error_rad", "max_contact_force_N",
+    "first_contact_s", "max_linear_momentum_Ns", "max_angular_momentum_Nms", "max_base_speed_mps",
+    "max_base_rate_radps", "compile_time_s", "run_time_s",
+}
+FIGURES = [f"fig{i}_{name}.png" for i, name in [(4, "ee_pose"), (5, "contact_force"), (6, "momentum"), (7, "base_velocity"), (8, "joint_torques"), (9, "fts_loads")]]
+
+
+def test_reproduce_writes_every_file_and_field_and_is_deterministic(tmp_path, full_runs, capsys):
+    first, second = tmp_path / "a", tmp_path / "b"
+    assert cli.main(["reproduce", "--out", str(first)]) == 0
+    printed = capsys.readouterr().out
+    assert "Table 5" in printed and "final position error" in printed
+    assert cli.main(["reproduce", "--out", str(second)]) == 0
+    for name in ["table5.csv", "summary.json", "config.json", "timeseries_active.npz", "timeseries_cartesian.npz", *FIGURES]:
+        assert (first / name).stat().st_size > 0, name
+    rows = (first / "table5.csv").read_text().splitlines()
+    assert rows[0] == "joint,active_Nm,cartesian_Nm,paper_active_Nm,paper_cartesian_Nm"
+    assert rows[2].split(",")[3:] == ["2.45", "4.21"] and len(rows) == 8
+    assert (first / "table5.csv").read_text() == (second / "table5.csv").read_text()
+    summaries = [json.loads((folder / "summary.json").read_text()) for folder in (first, second)]
+    for key in ("active", "cartesian"):
+        assert set(summaries[0][key]) >= SUMMARY_KEYS
+        assert len(summaries[0][key]["max_abs_torque_Nm"]) == 7
+        for field in SUMMARY_KEYS - {"compile_time_s", "run_time_s"}:
+            assert summaries[0][key][field] == summaries[1][key][field], field
+        with np.load(first / f"timeseries_{key}.npz") as a, np.load(second / f"timeseries_{key}.npz") as b:
+            assert set(a.files) >= {"t", "pose_ee", "pose_des", "contact_force", "momentum", "V_base", "u", "fts_force", "fts_torque", "V_ref", "qd_des"}
+            for name in a.files:
+                np.testing.assert_array_equal(a[name], b[name])
+    # The numbers on disk are the library's.
+    np.testing.assert_allclose(summaries[0]["active"]["max_abs_torque_Nm"], full_runs["admittance"].summary["max_abs_torque_Nm"], rtol=1e-12)
+    config = json.loads((first / "config.json").read_text())
+    assert {"gains", "scenario", "spacegrasp_jax_version", "jax_version", "git_revision"} <= set(config)
+    assert config["gains"]["kp"] == [140.0, 210.0, 140.0, 105.0, 105.0, 21.0, 21.0]
+
+
+def test_simulate_one_controller_with_gains_and_scenario_files(tmp_path, gains):
+    gains_file = tmp_path / "gains.json"
+    gains_file.write_text(json.dumps({**gains.to_dict(), "Kd": 300.0}))
+    scenario_file = tmp_path / "scenario.toml"
+    scenario_file.write_text("duration = 1.0\n")
+    out = tmp_path / "sim"
+    args = ["simulate", "--controller", "admittance", "--gains", str(gains_file), "--scenario", str(scenario_file), "--out", str(out)]
+    assert cli.main(args) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary) == {"active"} and set(summary["active"]) >= SUMMARY_KEYS
+    assert (out / "timeseries_active.npz").exists() and all((out / name).exists() for name in FIGURES)
+    assert json.loads((out / "config.json").read_text())["gains"]["Kd"] == [300.0] * 6
+
+
+def test_simulate_rejects_bad_files_before_running(tmp_path, gains, capsys):
+    bad_gains = tmp_path / "gains.json"
+    bad_gains.write_text(json.dumps({**gains.to_dict(), "Kd": -1.0}))
+    assert cli.main(["simulate", "--controller", "cartesian", "--gains", str(bad_gains), "--out", str(tmp_path / "x")]) == 2
+    assert "gains.json: Kd: gains must be positive" in capsys.readouterr().err
+    bad_scenario = tmp_path / "scenario.toml"
+    bad_scenario.write_text("dt = 0.0\n")
+    assert cli.main(["simulate", "--controller", "cartesian", "--scenario", str(bad_scenario), "--out", str(tmp_path / "y")]) == 2
+    assert "dt: must be positive" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()

@@ -1,0 +1,121 @@
+"""Controllers: gains validation, PID, pseudoinverse, and the admittance and Cartesian laws."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from spacegrasp_jax.control import GainsError, load_gains, make_gains, paper_gains
+from spacegrasp_jax.control import admittance, cartesian
+from spacegrasp_jax.control.pid import pid_init, pid_torque
+from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
+
+
+def test_paper_gains_match_the_paper():
+    gains = paper_gains()
+    np.testing.assert_array_equal(gains.Kd, np.full(6, 600.0))
+    np.testing.assert_array_equal(gains.Bd, np.full(6, 500.0))
+    np.testing.assert_array_equal(gains.Md, np.full(6, 800.0))
+    np.testing.assert_array_equal(gains.K_lin, [3, 3, 3])
+    np.testing.assert_array_equal(gains.kp, [140, 210, 140, 105, 105, 21, 21])  # Table 4
+    np.testing.assert_array_equal(gains.ki, [10, 10, 10, 1, 1, 1, 1])
+    np.testing.assert_array_equal(gains.kd, [0.01] * 7)
+
+
+BAD_GAINS = [
+    ({"Kd": -1.0}, r"Kd: gains must be positive"),
+    ({"Md": 0.0}, r"Md: gains must be positive"),
+    ({"ki": [-1.0] * 7}, r"ki: gains must be non-negative"),
+    ({"kp": [1.0] * 6}, r"kp: expected 7 values"),
+    ({"Bd": float("nan")}, r"Bd: contains non-finite"),
+    ({"gain_x": 1.0}, r"unknown gain\(s\): gain_x"),
+]
+
+
+@pytest.mark.parametrize("change, message", BAD_GAINS)
+def test_make_gains_rejects_bad_values(change, message):
+    fields = paper_gains().to_dict()
+    fields.update(change)
+    with pytest.raises(GainsError, match=message):
+        make_gains(**fields)
+
+
+def test_gains_json_round_trip_and_errors(tmp_path):
+    path = tmp_path / "gains.json"
+    path.write_text(json.dumps(paper_gains().to_dict()))
+    assert load_gains(path).to_dict() == paper_gains().to_dict()
+    fields = paper_gains().to_dict()
+    del fields["kd"]
+    path.write_text(json.dumps(fields))
+    with pytest.raises(GainsError, match=r"gains.json: missing gain\(s\): kd"):
+        load_gains(path)
+    path.write_text("{not json")
+    with pytest.raises(GainsError, match="not valid JSON"):
+        load_gains(path)
+
+
+def test_pid_hand_computed():
+    gains = paper_gains()
+    state = pid_init()
+    error = jnp.arange(1.0, 8.0)
+    dt = 1e-3
+    # At t = 0.5 s the ramp is 0.25; first step: integral = e dt, derivative = e / dt.
+    torque, state = pid_torque(gains, state, error, 0.5, dt)
+    expected = 0.25 * (gains.kp * error + gains.ki * error * dt + gains.kd * error / dt)
+    np.testing.assert_allclose(torque, expected, rtol=1e-14)
+    # Second step after the ramp: integral accumulates, derivative is the difference.
+    torque, state = pid_torque(gains, state, 2 * error, 1.5, dt)
+    expected = gains.kp * 2 * error + gains.ki * 3 * error * dt + gains.kd * error / dt
+    np.testing.assert_allclose(torque, expected, rtol=1e-14)
+    # At t = 0 every gain is ramped to zero.
+    torque, _ = pid_torque(gains, pid_init(), error, 0.0, dt)
+    np.testing.assert_array_equal(torque, 0.0)
+
+
+def test_pseudoinverse_exact_and_damped():
+    rng = np.random.default_rng(0)
+    J, twist = rng.normal(size=(6, 7)), rng.normal(size=6)
+    np.testing.assert_allclose(pseudoinverse_apply(J, twist), np.linalg.pinv(J) @ twist, rtol=1e-10)
+    np.testing.assert_allclose(J @ pseudoinverse_apply(J, twist), twist, rtol=1e-10)
+    # Damped least squares: argmin |J x - v|^2 + lambda^2 |x|^2, closed form via numpy.
+    lam = 0.1
+    expected = np.linalg.solve(J.T @ J + lam**2 * np.eye(7), J.T @ twist)
+    np.testing.assert_allclose(pseudoinverse_apply(J, twist, lam), expected, rtol=1e-10)
+    # At a singular J (rank 5) the damped inverse stays finite, gradients too.
+    J_singular = J.copy()
+    J_singular[5] = J_singular[4]
+    assert np.all(np.isfinite(pseudoinverse_apply(J_singular, twist, lam)))
+    gradient = jax.grad(lambda M: jnp.sum(pseudoinverse_apply(M, twist, lam)))(jnp.asarray(J_singular))
+    assert np.all(np.isfinite(gradient))
+
+
+def test_admittance_reference_rate_eq14_by_hand():
+    gains = paper_gains()
+    pose = jnp.array([0.001, -0.002, -0.05, 0.01, -0.02, 0.03])
+    pose_des = jnp.array([0.0, 0.0, -0.049, 0.0, 0.0, 0.0])
+    twist = jnp.array([0.001, 0.0, 0.01, 0.0, 0.02, 0.0])
+    twist_des = jnp.array([0.0, 0.0, 0.011, 0.0, 0.0, 0.0])
+    rate_des = jnp.array([0.0, 0.0, 0.001, 0.0, 0.0, 0.0])
+    wrench = jnp.array([0.5, 0.0, -3.0, 0.0, 0.01, 0.0])
+    rate = admittance.reference_twist_rate(gains, pose, twist, pose_des, twist_des, rate_des, wrench)
+    expected = rate_des + (wrench + 500.0 * (twist_des - twist) + 600.0 * (pose_des - pose)) / 800.0
+    np.testing.assert_allclose(rate, expected, rtol=1e-14)
+    # Euler-angle errors wrap: a yaw error of 2 pi - 0.1 acts as -0.1.
+    wrapped = admittance.pose_error(jnp.zeros(6), jnp.array([0, 0, 0, 0, 0, 2 * np.pi - 0.1]))
+    np.testing.assert_allclose(wrapped[5], 0.1, atol=1e-12)
+
+
+def test_laws_drive_the_ee_towards_the_target():
+    """With J = [I 0] the joint rates are the EE twist: the admittance law follows V_ref
+    rotated into the EE frame, and the Cartesian law moves along the pose error."""
+    J = jnp.concatenate([jnp.eye(6), jnp.zeros((6, 1))], axis=1)
+    R_lar_ee = jnp.eye(3)
+    V_ref = jnp.array([0.01, -0.02, 0.03, 0.1, 0.2, 0.3])
+    np.testing.assert_allclose(admittance.desired_joint_rates(J, R_lar_ee, V_ref)[:6], V_ref, atol=1e-14)
+    pose, pose_des = jnp.zeros(6), jnp.array([0.0, 0.0, 0.01, 0.0, 0.0, 0.02])
+    qd = cartesian.desired_joint_rates(paper_gains(), J, R_lar_ee, pose, pose_des)
+    np.testing.assert_allclose(qd[:6], 3.0 * (pose_des - pose), atol=1e-14)

@@ -1,0 +1,124 @@
+"""The closed loop: stability, the paper's findings, momentum without contact, dt
+convergence, divergence reporting, vmap and gradients."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from spacegrasp_jax import experiment, metrics
+from spacegrasp_jax.control import make_gains
+from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.simulate import first_nonfinite_time, rollout
+
+# Table 5 of the paper, N m.
+PAPER_TABLE5 = {
+    "admittance": np.array([1.50, 2.45, 1.68, 0.86, 1.10, 0.17, 0.036]),
+    "cartesian": np.array([1.89, 4.21, 2.72, 0.72, 1.55, 0.35, 0.027]),
+}
+
+
+def test_both_controllers_stable_over_17_s(full_runs):
+    for controller, result in full_runs.items():
+        assert first_nonfinite_time(result.log) is None
+        assert result.log.t[-1] == pytest.approx(17.0 - 1e-3)
+        torque = np.array(result.summary["max_abs_torque_Nm"])
+        # Same order of magnitude as Table 5 for every joint (within a factor of 2).
+        ratio = torque / PAPER_TABLE5[controller]
+        assert np.all((ratio > 0.5) & (ratio < 2.0)), (controller, ratio)
+        assert result.summary["max_contact_force_N"] > 1.0  # the EE did meet the sphere
+
+
+def test_paper_findings_hold(full_runs):
+    """Section 5's claims, each checkable here: the admittance law reaches the target more
+    precisely, with lower torques in the joints where Table 5 says so (1, 2, 3, 5, 6),
+    enters the sphere earlier, and keeps lower momentum and satellite velocities."""
+    active, cartesian = full_runs["admittance"].summary, full_runs["cartesian"].summary
+    assert active["final_position_error_m"] < 0.2 * cartesian["final_position_error_m"]
+    assert active["final_position_error_m"] < 5e-3
+    lower = np.array(active["max_abs_torque_Nm"]) < np.array(cartesian["max_abs_torque_Nm"])
+    assert all(lower[[0, 1, 2, 4, 5]])
+    assert active["first_contact_s"] < cartesian["first_contact_s"]
+    for key in ("max_linear_momentum_Ns", "max_angular_momentum_Nms", "max_base_speed_mps", "max_base_rate_radps"):
+        assert active[key] < cartesian[key], key
+
+
+@pytest.mark.parametrize("controller", ["admittance", "cartesian"])
+def test_without_contact_tracks_and_keeps_zero_momentum(robot, gains, controller):
+    """Full 17 s with the sphere removed (k = 0): the EE follows the trajectory and the
+    system's momentum stays zero (no external force) to 1e-9 relative to the momentum
+    the satellite's own reaction motion carries."""
+    scenario = paper_scenario(robot, contact_stiffness=0.0)
+    result = experiment.run(robot, scenario, gains, controller)
+    log = result.log
+    assert result.summary["max_contact_force_N"] == 0.0
+    assert np.max(metrics.position_error(log)) < 0.01
+    assert result.summary["final_position_error_m"] < 5e-4
+    assert result.summary["final_orientation_error_rad"] < 1e-3
+    satellite_momentum = float(robot.satellite_mass) * np.max(np.linalg.norm(log.V_base[:, :3], axis=1))
+    assert satellite_momentum > 0.1  # the satellite does react to the arm
+    assert np.max(np.abs(log.momentum)) <= 1e-9 * satellite_momentum
+
+
+@pytest.mark.parametrize("controller", ["admittance", "cartesian"])
+def test_halving_dt_changes_peak_torques_by_less_than_one_percent(robot, gains, full_runs, controller):
+    fine = experiment.run(robot, paper_scenario(robot, dt=5e-4), gains, controller)
+    coarse = np.array(full_runs[controller].summary["max_abs_torque_Nm"])
+    change = np.abs(np.array(fine.summary["max_abs_torque_Nm"]) - coarse) / coarse
+    assert np.all(change < 0.01), change
+
+
+def test_divergence_is_reported_with_its_time(robot, gains):
+    wild = make_gains(**{**gains.to_dict(), "kp": [1e7] * 7})
+    scenario = paper_scenario(robot, duration=0.5)
+    with pytest.raises(experiment.SimulationDiverged, match=r"first non-finite value at t = ") as error:
+        experiment.run(robot, scenario, wild, "cartesian")
+    assert 0.0 < error.value.time_s < 0.5
+
+
+def test_unknown_controller_is_rejected_before_compiling(robot, gains, short_scenario):
+    with pytest.raises(ValueError, match="controller: expected one of"):
+        rollout(robot, short_scenario, gains, "impedance")
+
+
+def test_vmap_over_scenarios_equals_loop(robot, gains):
+    q_init = np.asarray(paper_scenario(robot).initial.q)
+    scenarios = [
+        paper_scenario(robot, duration=1.0, move_duration=1.0, contact_stiffness=k, q_init=q_init + 0.01 * k)
+        for k in (0.1, 0.2, 0.05)
+    ]
+    batch = jax.tree.map(lambda *leaves: jnp.stack(leaves), *scenarios)
+    batched = jax.jit(jax.vmap(rollout, in_axes=(None, 0, None, None)), static_argnums=3)
+    _, logs = batched(robot, batch, gains, "admittance")
+    for i, scenario in enumerate(scenarios):
+        single = experiment.run(robot, scenario, gains, "admittance").log
+        for name in ("u", "pose_ee", "contact_force", "momentum"):
+            np.testing.assert_allclose(getattr(logs, name)[i], getattr(single, name), rtol=1e-9, atol=1e-12, err_msg=name)
+    assert np.max(np.linalg.norm(logs.contact_force, axis=-1)) > 0.0
+
+
+@pytest.mark.parametrize("controller", ["admittance", "cartesian"])
+def test_gradient_of_final_position_error_wrt_gains(robot, gains, short_scenario, controller):
+    """jax.grad through the whole rollout (smooth contact): finite, non-zero, and along a
+    random direction in log-gain space equal to a central difference."""
+
+    def final_error(log_gains):
+        g = jax.tree.map(jnp.exp, log_gains)
+        _, log = rollout(robot, short_scenario, g, controller)
+        return metrics.final_position_error(log)
+
+    log_gains = jax.tree.map(jnp.log, gains)
+    value, gradient = jax.jit(jax.value_and_grad(final_error))(log_gains)
+    leaves = jax.tree.leaves(gradient)
+    assert all(np.all(np.isfinite(leaf)) for leaf in leaves)
+    assert max(float(np.max(np.abs(leaf))) for leaf in leaves) > 0.0
+    rng = np.random.default_rng(1)
+    direction = jax.tree.map(lambda leaf: jnp.asarray(rng.normal(size=leaf.shape)), log_gains)
+    slope = sum(float(jnp.vdot(g, d)) for g, d in zip(leaves, jax.tree.leaves(direction)))
+    h = 1e-5
+    evaluate = jax.jit(final_error)
+    plus = evaluate(jax.tree.map(lambda x, d: x + h * d, log_gains, direction))
+    minus = evaluate(jax.tree.map(lambda x, d: x - h * d, log_gains, direction))
+    np.testing.assert_allclose(slope, (plus - minus) / (2 * h), rtol=1e-4, atol=1e-12 * abs(float(value)))
