@@ -31,11 +31,15 @@ from spacegrasp_jax.kinematics import N_DOF, body_com_positions, forward_kinemat
 from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
 
 
+def frames_at_base(robot: Robot, R_base, q):
+    """Kinematics with the satellite CoM at the origin, as the ``*_from_frames`` functions
+    expect: M, bias and J_dyn are invariant under translation of the whole system, and a
+    caller that needs several of them computes the frames once."""
+    return forward_kinematics(robot, jnp.zeros(3, dtype=R_base.dtype), R_base, q)
+
+
 def _origin_frames(robot: Robot, R_base, q):
-    """Kinematics with the satellite CoM at the origin: M, bias and J_dyn are invariant
-    under translation of the whole system."""
-    p_base = jnp.zeros(3, dtype=R_base.dtype)
-    return p_base, forward_kinematics(robot, p_base, R_base, q)
+    return jnp.zeros(3, dtype=R_base.dtype), frames_at_base(robot, R_base, q)
 
 
 def _spatial_inertias(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -72,8 +76,8 @@ def _joint_axes(frames) -> tuple[jax.Array, jax.Array]:
     return axis, jnp.cross(frames.joint_origin, axis)
 
 
-def _crba(robot: Robot, frames) -> jax.Array:
-    """Mass matrix (13, 13) by composite rigid bodies; ``frames`` at the origin."""
+def mass_matrix_from_frames(robot: Robot, frames) -> jax.Array:
+    """Mass matrix (13, 13) by composite rigid bodies, from :func:`frames_at_base`."""
     mass, moment, inertia = _spatial_inertias(robot, frames)
     # Composite inertia of the subtree of each body: a reverse cumulative sum.
     c_mass, c_moment, c_inertia = (jnp.cumsum(x[::-1], axis=0)[::-1] for x in (mass, moment, inertia))
@@ -93,9 +97,9 @@ def _crba(robot: Robot, frames) -> jax.Array:
     return jnp.block([[M_s, M_sm], [M_sm.T, M_mm]])
 
 
-def _rnea_bias(robot: Robot, frames, V_base, qd) -> jax.Array:
-    """Bias forces (13,) by Newton-Euler with zero generalised acceleration; ``frames`` at
-    the origin."""
+def bias_from_frames(robot: Robot, frames, V_base, qd) -> jax.Array:
+    """Bias forces (13,) by Newton-Euler with zero generalised acceleration, from
+    :func:`frames_at_base`."""
     mass, moment, inertia = _spatial_inertias(robot, frames)
     v_s, w_s = V_base[:3], V_base[3:]
     S_w, S_v = _joint_axes(frames)
@@ -129,7 +133,7 @@ def mass_matrix(robot: Robot, R_base: jax.Array, q: jax.Array) -> jax.Array:
         R_base: (3, 3) satellite attitude, satellite to inertial. q: (7,) rad.
     """
     _, frames = _origin_frames(robot, R_base, q)
-    return _crba(robot, frames)
+    return mass_matrix_from_frames(robot, frames)
 
 
 def bias_forces(robot: Robot, R_base, q, V_base, qd) -> jax.Array:
@@ -141,14 +145,14 @@ def bias_forces(robot: Robot, R_base, q, V_base, qd) -> jax.Array:
         V_base: (6,) ``[v_s (m/s), w_s (rad/s)]`` in the inertial frame. qd: (7,) rad/s.
     """
     _, frames = _origin_frames(robot, R_base, q)
-    return _rnea_bias(robot, frames, V_base, qd)
+    return bias_from_frames(robot, frames, V_base, qd)
 
 
 def mass_matrix_and_bias(robot: Robot, R_base, q, V_base, qd) -> tuple[jax.Array, jax.Array]:
     """``(M (13, 13), bias (13,))`` sharing one kinematics pass; arguments as
     :func:`bias_forces`."""
     _, frames = _origin_frames(robot, R_base, q)
-    return _crba(robot, frames), _rnea_bias(robot, frames, V_base, qd)
+    return mass_matrix_from_frames(robot, frames), bias_from_frames(robot, frames, V_base, qd)
 
 
 def forward_dynamics(robot: Robot, R_base, q, V_base, qd, Q) -> jax.Array:
@@ -163,8 +167,12 @@ def forward_dynamics(robot: Robot, R_base, q, V_base, qd, Q) -> jax.Array:
         (13,) ``[dv_s/dt (m/s^2), dw_s/dt (rad/s^2), qdd (rad/s^2)]``, inertial frame.
     """
     M, bias = mass_matrix_and_bias(robot, R_base, q, V_base, qd)
-    factor = jax.scipy.linalg.cho_factor(M)
-    return jax.scipy.linalg.cho_solve(factor, Q - bias)
+    return solve_dynamics(M, bias, Q)
+
+
+def solve_dynamics(M: jax.Array, bias: jax.Array, Q: jax.Array) -> jax.Array:
+    """``M^-1 (Q - bias)`` (13,) by Cholesky."""
+    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(M), Q - bias)
 
 
 def kinetic_energy(robot: Robot, R_base, q, V_base, qd) -> jax.Array:
@@ -220,9 +228,14 @@ def dynamic_jacobian(robot: Robot, R_base, q) -> jax.Array:
     """
     p_base, frames = _origin_frames(robot, R_base, q)
     J_ee = point_jacobian(frames, p_base, frames.p_ee, N_JOINTS)
+    return dynamic_jacobian_from(mass_matrix_from_frames(robot, frames), J_ee)
+
+
+def dynamic_jacobian_from(M: jax.Array, J_ee: jax.Array) -> jax.Array:
+    """``J_dyn`` (6, 7) from the mass matrix ``M`` (13, 13) and the EE point Jacobian
+    ``J_ee = [J_s J_m]`` (6, 13), both at the same state."""
     # Zero momentum about the satellite CoM (rows 0-5 of M) is the constraint of eq 6.
-    H = _crba(robot, frames)[:6]
-    base_velocity_per_qd = -jnp.linalg.solve(H[:, :6], H[:, 6:])  # (6, 7)
+    base_velocity_per_qd = -jnp.linalg.solve(M[:6, :6], M[:6, 6:])  # (6, 7)
     return J_ee[:, 6:] + J_ee[:, :6] @ base_velocity_per_qd
 
 
@@ -238,8 +251,12 @@ def dynamic_jacobian_ee(robot: Robot, R_base, q) -> jax.Array:
 __all__ = [
     "N_DOF",
     "bias_forces",
+    "bias_from_frames",
     "dynamic_jacobian",
     "dynamic_jacobian_ee",
+    "dynamic_jacobian_from",
+    "frames_at_base",
+    "mass_matrix_from_frames",
     "forward_dynamics",
     "kinetic_energy",
     "mass_matrix",

@@ -27,9 +27,15 @@ from spacegrasp_jax.contact import (
 from spacegrasp_jax.control import CONTROLLERS, admittance, cartesian
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.pid import PIDState, pid_init, pid_torque
-from spacegrasp_jax.dynamics import dynamic_jacobian_ee, forward_dynamics, system_momentum
+from spacegrasp_jax.dynamics import (
+    bias_from_frames,
+    dynamic_jacobian_from,
+    frames_at_base,
+    mass_matrix_from_frames,
+    solve_dynamics,
+)
 from spacegrasp_jax.integrator import PlantState, rk4_step
-from spacegrasp_jax.kinematics import forward_kinematics, point_jacobian
+from spacegrasp_jax.kinematics import point_jacobian
 from spacegrasp_jax.model import N_JOINTS, Robot
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.trajectory import desired_state
@@ -107,12 +113,13 @@ def contact_force_lar(scenario: Scenario, p_ee: jax.Array) -> jax.Array:
 
 def plant_derivative(robot: Robot, scenario: Scenario, state: PlantState, u: jax.Array) -> PlantState:
     """State rate under joint torques ``u`` (7,) N m and the contact force at this state."""
-    frames = forward_kinematics(robot, state.p_base, state.R_base, state.q)
-    force = scenario.R_lar @ contact_force_lar(scenario, frames.p_ee)
+    frames = frames_at_base(robot, state.R_base, state.q)  # one kinematics pass per stage
+    force = scenario.R_lar @ contact_force_lar(scenario, state.p_base + frames.p_ee)
     # The contact force acts at the EE point: generalised force J_point^T [f; 0].
-    J_ee = point_jacobian(frames, state.p_base, frames.p_ee, N_JOINTS)
+    J_ee = point_jacobian(frames, jnp.zeros(3, dtype=u.dtype), frames.p_ee, N_JOINTS)
     Q = J_ee[:3].T @ force + jnp.concatenate([jnp.zeros(6, dtype=u.dtype), u])
-    xdd = forward_dynamics(robot, state.R_base, state.q, state.V_base, state.qd, Q)
+    M = mass_matrix_from_frames(robot, frames)
+    xdd = solve_dynamics(M, bias_from_frames(robot, frames, state.V_base, state.qd), Q)
     return PlantState(
         p_base=state.V_base[:3],
         quat_base=spatial.quat_derivative(state.quat_base, state.V_base[3:]),
@@ -131,24 +138,27 @@ def initial_state(scenario: Scenario) -> SimState:
 def control_step(robot: Robot, scenario: Scenario, gains: Gains, controller: str, state: SimState, t, pinv_damping=0.0):
     """One controller update at time ``t``: returns ``(u (7,), new ControllerState, log row)``."""
     plant = state.plant
-    R_base = plant.R_base
-    frames = forward_kinematics(robot, plant.p_base, R_base, plant.q)
+    x_v = jnp.concatenate([plant.V_base, plant.qd])
+    frames = frames_at_base(robot, plant.R_base, plant.q)  # satellite CoM at the origin
+    M = mass_matrix_from_frames(robot, frames)
+    p_ee = plant.p_base + frames.p_ee
     R_lar = scenario.R_lar
     R_lar_ee = R_lar.T @ frames.R_ee
-    pose = jnp.concatenate([R_lar.T @ (frames.p_ee - scenario.p_lar), spatial.euler_zyx(R_lar_ee)])
-    J_ee = point_jacobian(frames, plant.p_base, frames.p_ee, N_JOINTS)
-    twist_inertial = J_ee @ jnp.concatenate([plant.V_base, plant.qd])
+    pose = jnp.concatenate([R_lar.T @ (p_ee - scenario.p_lar), spatial.euler_zyx(R_lar_ee)])
+    J_ee = point_jacobian(frames, jnp.zeros(3, dtype=x_v.dtype), frames.p_ee, N_JOINTS)
+    twist_inertial = J_ee @ x_v
     twist = jnp.concatenate([R_lar.T @ twist_inertial[:3], R_lar.T @ twist_inertial[3:]])
 
     # F/T sensor between link 7 and the EE (frame 7 axes), read once per step (eqs 18-19).
-    force_lar = contact_force_lar(scenario, frames.p_ee)
+    force_lar = contact_force_lar(scenario, p_ee)
     R_fts = frames.R_frame[-1]
     force_fts, torque_fts = sensor_wrench(R_fts.T @ (R_lar @ force_lar), robot.ee_offset)
     wrench_ee = wrench_at_ee(force_fts, torque_fts, robot.ee_offset)
     wrench_lar = rotate_wrench(R_lar.T @ R_fts, wrench_ee)
 
     pose_des, twist_des, twist_rate_des = desired_state(scenario.trajectory, t)
-    J_dyn_ee = dynamic_jacobian_ee(robot, R_base, plant.q)
+    J_dyn = dynamic_jacobian_from(M, J_ee)
+    J_dyn_ee = jnp.concatenate([frames.R_ee.T @ J_dyn[:3], frames.R_ee.T @ J_dyn[3:]])
     V_ref = state.controller.V_ref
     if controller == "admittance":
         qd_des = admittance.desired_joint_rates(J_dyn_ee, R_lar_ee, V_ref, pinv_damping)
@@ -165,7 +175,8 @@ def control_step(robot: Robot, scenario: Scenario, gains: Gains, controller: str
         pose_des=pose_des,
         twist_ee=twist,
         contact_force=force_lar,
-        momentum=system_momentum(robot, plant.p_base, R_base, plant.q, plant.V_base, plant.qd),
+        # Rows 0-5 of M give [P; L about the satellite CoM]; move L to the inertial origin.
+        momentum=jnp.concatenate([M[:3] @ x_v, M[3:6] @ x_v + jnp.cross(plant.p_base, M[:3] @ x_v)]),
         V_base=plant.V_base,
         u=u,
         fts_force=force_fts,

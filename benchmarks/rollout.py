@@ -1,0 +1,76 @@
+"""Closed-loop rollout benchmark: compile time and run time of one 17 s rollout per controller.
+
+    python -m benchmarks.rollout [--out results/benchmarks] [--repeats 5] [--duration 17]
+
+Run time is measured after compilation, as the median (and spread) of ``--repeats`` runs of
+the paper scenario (dt = 1 ms, 17,000 RK4 steps). For the figure "on one CPU core", run it
+pinned to one core: ``taskset -c 0 python -m benchmarks.rollout``. Writes ``rollout.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+import spacegrasp_jax as sg
+from benchmarks.dynamics import machine, timed
+from spacegrasp_jax.control import CONTROLLERS, paper_gains
+from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.simulate import rollout
+
+
+def bench_controller(robot, scenario, gains, controller: str, repeats: int) -> dict:
+    function = jax.jit(rollout, static_argnames=("controller",))
+    start = time.perf_counter()
+    executable = function.lower(robot, scenario, gains, controller=controller).compile()
+    compile_s = time.perf_counter() - start
+    jax.block_until_ready(executable(robot, scenario, gains))  # warm-up
+    run = timed(lambda: jax.block_until_ready(executable(robot, scenario, gains)), repeats)
+    return {
+        "compile_s": compile_s,
+        "run_s": run["median_s"],
+        "run_spread_s": [run["min_s"], run["max_s"]],
+        "steps": scenario.n_steps,
+        "us_per_step": 1e6 * run["median_s"] / scenario.n_steps,
+        "simulated_s_per_wall_s": scenario.duration / run["median_s"],
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="results/benchmarks", help="folder for rollout.json")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--duration", type=float, default=17.0, help="simulated seconds (17 in the paper)")
+    args = parser.parse_args(argv)
+    if args.repeats < 1 or args.duration <= 0:
+        parser.error("--repeats and --duration must be positive")
+
+    robot, gains = sg.paper_robot(), paper_gains()
+    scenario = paper_scenario(robot, duration=args.duration)
+    affinity = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+    result = {"machine": {**machine(), "cpu_affinity": affinity}, "duration_s": args.duration}
+    for controller in CONTROLLERS:
+        result[controller] = bench_controller(robot, scenario, gains, controller, args.repeats)
+
+    info = result["machine"]
+    print(f"machine: {info['cpu']}, {info['cores']} cores (pinned to {affinity}), backend {info['backend']}, jax {info['jax']}")
+    print(f"{'controller':12} {'compile [s]':>12} {'run [s]':>10} {'spread [s]':>16} {'us/step':>9} {'sim s / wall s':>15}")
+    for controller in CONTROLLERS:
+        r = result[controller]
+        spread = f"{r['run_spread_s'][0]:.3f}-{r['run_spread_s'][1]:.3f}"
+        print(f"{controller:12} {r['compile_s']:>12.2f} {r['run_s']:>10.3f} {spread:>16} {r['us_per_step']:>9.1f} {r['simulated_s_per_wall_s']:>15.1f}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "rollout.json").write_text(json.dumps(result, indent=2))
+    print(f"wrote {out / 'rollout.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
