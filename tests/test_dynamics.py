@@ -266,3 +266,40 @@ def test_no_retrace_on_new_values(robot, random_states, name):
         arguments = [a[0] for a in stacked_arguments([state], names)]
         jax.block_until_ready(compiled(robot, *arguments))
     assert len(traces) == 1
+
+
+# ---- property-based: any configuration, not just the 20 seeded states ----------------------
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+angles = st.floats(min_value=-np.pi, max_value=np.pi, allow_nan=False)
+rates = st.floats(min_value=-3.0, max_value=3.0, allow_nan=False)
+
+_mass_matrix = jax.jit(sg.mass_matrix)
+_forward = jax.jit(sg.forward_dynamics)
+_bias = jax.jit(sg.bias_forces)
+
+
+@settings(max_examples=40, deadline=None)
+@given(q=st.lists(angles, min_size=7, max_size=7), euler=st.lists(angles, min_size=3, max_size=3))
+def test_property_mass_matrix_spd_and_matches_pinocchio(robot, pinocchio_model, q, euler):
+    model, data, _ = pinocchio_model
+    R_base = np.asarray(sg.spatial.euler_zyx_to_rotation(jnp.asarray(euler)))
+    M = np.asarray(_mass_matrix(robot, R_base, np.asarray(q)))
+    assert np.linalg.eigvalsh(M)[0] > 0.0
+    T = ref.velocity_map(R_base)
+    M_pin = pin.crba(model, data, ref.configuration(np.zeros(3), R_base, q))
+    expected = T.T @ (np.triu(M_pin) + np.triu(M_pin, 1).T) @ T
+    assert relative_error(M, expected) <= RTOL
+
+
+@settings(max_examples=40, deadline=None)
+@given(q=st.lists(angles, min_size=7, max_size=7), velocity=st.lists(rates, min_size=13, max_size=13), acceleration=st.lists(rates, min_size=13, max_size=13))
+def test_property_forward_dynamics_inverts_the_equation_of_motion(robot, q, velocity, acceleration):
+    """forward_dynamics(Q = M a + bias) returns a, for any state and acceleration."""
+    R_base = np.eye(3)
+    V_base, qd, a = np.asarray(velocity[:6]), np.asarray(velocity[6:]), np.asarray(acceleration)
+    Q = _mass_matrix(robot, R_base, np.asarray(q)) @ a + _bias(robot, R_base, np.asarray(q), V_base, qd)
+    recovered = _forward(robot, R_base, np.asarray(q), V_base, qd, Q)
+    np.testing.assert_allclose(recovered, a, rtol=0, atol=1e-9 * (1.0 + np.abs(a).max()))
