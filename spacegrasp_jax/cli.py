@@ -114,6 +114,51 @@ def _simulate(args: argparse.Namespace) -> int:
     return _run_controllers(args, [args.controller])
 
 
+class UsageError(ValueError):
+    """A command-line option is invalid."""
+
+
+def _tune(args: argparse.Namespace) -> int:
+    from tuning.objective import Weights
+    from tuning.run import TuneSetupError, tune
+    from tuning.tune import TuneConfig
+
+    try:
+        if args.resume:
+            return tune(Path(args.out), resume=True)
+        config = _tune_config(args, TuneConfig, Weights)
+    except (TuneSetupError, ValueError) as error:
+        raise UsageError(str(error)) from None
+    for path in (args.gains, args.scenario, args.robot):  # fail on bad files before compiling
+        if path and not Path(path).is_file():
+            raise UsageError(f"{path}: no such file")
+    robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
+    if args.scenario:
+        load_scenario(robot, args.scenario)
+    if args.gains:
+        load_gains(args.gains)
+    try:
+        return tune(Path(args.out), config=config, gains_file=args.gains, scenario_file=args.scenario, robot_file=args.robot, holdout=args.holdout)
+    except TuneSetupError as error:
+        raise UsageError(str(error)) from None
+
+
+def _tune_config(args, TuneConfig, Weights):
+    return TuneConfig(
+        controller=args.controller,
+        steps=args.steps,
+        learning_rate=args.lr,
+        optimizer=args.optimizer,
+        weights=Weights.parse(args.weights),
+        batch=args.batch,
+        cvar_alpha=args.cvar,
+        seed=args.seed,
+        frozen=tuple(filter(None, args.freeze.split(","))),
+        gradient=args.gradient,
+        torque_guard_Nm=args.torque_guard,
+    )
+
+
 def _add_run_options(parser: argparse.ArgumentParser, default_out: str) -> None:
     parser.add_argument("--out", default=default_out, help=f"output folder (default {default_out})")
     parser.add_argument("--robot", help="robot TOML file (default: the paper's robot)")
@@ -138,6 +183,26 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--scenario", help="scenario TOML or JSON file (default: the paper's)")
     _add_run_options(simulate, "results/simulate")
     simulate.set_defaults(run=_simulate)
+
+    tune = commands.add_parser("tune", help="tune the gains by gradient descent (resumable)")
+    tune.add_argument("--out", required=True, help="output folder (also holds the checkpoint)")
+    tune.add_argument("--controller", choices=CONTROLLERS, default="admittance")
+    tune.add_argument("--steps", type=int, default=60, help="optimiser steps (default 60)")
+    tune.add_argument("--lr", type=float, default=0.05, help="initial step size in log-gain space (default 0.05)")
+    tune.add_argument("--weights", default="", help="objective weights, e.g. final_position=1,peak_torque=4 (see README)")
+    tune.add_argument("--batch", type=int, default=1, help="scenarios per step: nominal + batch-1 perturbed (default 1)")
+    tune.add_argument("--cvar", type=float, default=None, help="optimise CVaR at this level over the batch instead of the mean")
+    tune.add_argument("--seed", type=int, default=0, help="seed of the perturbed scenarios")
+    tune.add_argument("--optimizer", default="adam", help="any optax optimiser taking a learning rate (default adam)")
+    tune.add_argument("--freeze", default="", help="gain groups to keep fixed, e.g. kd,ki")
+    tune.add_argument("--gradient", choices=("reverse", "forward"), default="reverse")
+    tune.add_argument("--torque-guard", type=float, default=100.0, help="reject steps whose peak torque exceeds this (N m)")
+    tune.add_argument("--holdout", type=int, default=100, help="held-out perturbed scenarios for the final evaluation")
+    tune.add_argument("--gains", help="starting gains JSON (default: the paper's)")
+    tune.add_argument("--scenario", help="scenario TOML/JSON (default: the paper's)")
+    tune.add_argument("--robot", help="robot TOML (default: the paper's)")
+    tune.add_argument("--resume", action="store_true", help="continue the run in --out from its last completed step")
+    tune.set_defaults(run=_tune)
     return parser
 
 
@@ -145,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (sg.RobotConfigError, GainsError, ScenarioError) as error:
+    except (sg.RobotConfigError, GainsError, ScenarioError, UsageError) as error:
         print(f"spacegrasp: error: {error}", file=sys.stderr)
         return 2
     except experiment.SimulationDiverged as error:

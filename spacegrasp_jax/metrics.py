@@ -12,9 +12,17 @@ import jax.numpy as jnp
 from spacegrasp_jax import spatial
 
 
+def safe_norm(x, axis=-1):
+    """Euclidean norm along ``axis`` whose gradient is 0 (not NaN) at exactly zero: errors
+    and forces do hit exact zeros (the start of a run; a contact force that underflows)."""
+    squared = jnp.sum(x * x, axis=axis)
+    positive = squared > 0.0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
+
+
 def position_error(log):
     """(N,) m, norm of the EE position error in LAR at every step."""
-    return jnp.linalg.norm(log.pose_ee[:, :3] - log.pose_des[:, :3], axis=-1)
+    return safe_norm(log.pose_ee[:, :3] - log.pose_des[:, :3])
 
 
 def orientation_error(log):
@@ -22,7 +30,7 @@ def orientation_error(log):
 
     def angle(euler, euler_des):
         R_error = spatial.euler_zyx_to_rotation(euler_des).T @ spatial.euler_zyx_to_rotation(euler)
-        return jnp.linalg.norm(spatial.rotation_log(R_error))
+        return safe_norm(spatial.rotation_log(R_error))
 
     return jax.vmap(angle)(log.pose_ee[:, 3:], log.pose_des[:, 3:])
 
@@ -49,7 +57,7 @@ def max_abs_torque(log):
 
 def contact_force_norm(log):
     """(N,) N, magnitude of the contact force."""
-    return jnp.linalg.norm(log.contact_force, axis=-1)
+    return safe_norm(log.contact_force)
 
 
 def first_contact_time(log):

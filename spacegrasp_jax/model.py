@@ -217,8 +217,14 @@ def load_robot(path: str | Path) -> Robot:
             invalid; the message names the file and the key (``arm.link_mass``).
     """
     path = Path(path)
+    return robot_from_toml(path.read_text(), source=str(path))
+
+
+def robot_from_toml(text: str, source: str = "<robot TOML>") -> Robot:
+    """:func:`load_robot` on the text of a TOML file; errors name ``source``."""
+    path = source
     try:
-        document = tomllib.loads(path.read_text())
+        document = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise RobotConfigError(f"{path}: not valid TOML: {error}") from None
     key_to_field = {key: field for field, (_, _, key) in _FIELDS.items()}

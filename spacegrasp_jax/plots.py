@@ -18,6 +18,8 @@ STYLES = {
     "admittance": dict(color="tab:blue", linestyle="--", label="active 6 DoF F/T control"),
     "cartesian": dict(color="tab:red", linestyle=":", label="Cartesian control"),
     "desired": dict(color="black", linestyle="-", label="desired"),
+    "start": dict(color="tab:gray", linestyle="--", label="starting gains"),
+    "tuned": dict(color="tab:green", linestyle="-", label="tuned gains"),
 }
 
 
@@ -55,9 +57,9 @@ def _plot_columns(fig, axes, logs, series, columns, desired=None):
             plot_series(ax, log.t, desired(log)[:, column], "desired", linewidth=1.0)
 
 
-def figure_ee_pose(logs):
+def figure_ee_pose(logs, title: str = "Fig. 4  End-effector position and orientation in the LAR frame"):
     """Figure 4: EE position (mm) and orientation (deg) in the LAR frame, with the desired."""
-    fig, axes = _grid(3, 2, "Fig. 4  End-effector position and orientation in the LAR frame")
+    fig, axes = _grid(3, 2, title)
     scale = np.array([1e3, 1e3, 1e3, np.degrees(1), np.degrees(1), np.degrees(1)])
     order = [0, 3, 1, 4, 2, 5]  # left column positions, right column angles
     _plot_columns(fig, axes, logs, lambda log: log.pose_ee * scale, order, desired=lambda log: log.pose_des * scale)
@@ -123,3 +125,52 @@ def save_figures(logs, out_dir, write_atomically) -> list[str]:
         write_atomically(out_dir / name, lambda target: fig.savefig(target, dpi=110, format="png"))
         plt.close(fig)
     return list(FIGURES)
+
+
+def figure_loss_curve(history: list[dict]):
+    """Tuning: the loss and its main parts against the optimiser step."""
+    steps = np.array([row["step"] for row in history])
+    fig, axes = plt.subplots(1, 3, figsize=(15, 3.6))
+    axes[0].plot(steps, [row["loss"] for row in history], color="black", marker=".")
+    axes[0].set_ylabel("loss [-]")
+    axes[1].plot(steps, [1e3 * row["final_position_m"] for row in history], color="tab:blue", marker=".", label="final position error")
+    axes[1].plot(steps, [1e3 * row["rms_tracking_m"] for row in history], color="tab:orange", marker=".", label="RMS tracking error")
+    axes[1].set_ylabel("error [mm]")
+    axes[1].legend()
+    axes[2].plot(steps, [row["peak_torque_smooth"] for row in history], color="tab:red", marker=".", label="smooth max (optimised)")
+    axes[2].plot(steps, [row["peak_torque_hard"] for row in history], color="tab:red", linestyle=":", label="hard max")
+    axes[2].set_ylabel("peak |u_i| / start peak_i [-]")
+    axes[2].legend()
+    for ax in axes:
+        ax.set_xlabel("optimiser step")
+        ax.grid(True, alpha=0.3)
+    fig.suptitle("Tuning: loss and its parts (smooth contact law)")
+    fig.tight_layout()
+    return fig
+
+
+def figure_peak_torques(before, after):
+    """Tuning: per-joint peak |u| before and after (exact contact law)."""
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    joints = np.arange(1, 8)
+    ax.bar(joints - 0.2, before, width=0.4, color=STYLES["start"]["color"], label=STYLES["start"]["label"])
+    ax.bar(joints + 0.2, after, width=0.4, color=STYLES["tuned"]["color"], label=STYLES["tuned"]["label"])
+    ax.set_xlabel("joint")
+    ax.set_ylabel("max |u_i| [N m]")
+    ax.set_title("Peak joint torques, nominal scenario, exact contact law")
+    ax.legend()
+    ax.grid(True, axis="y", alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def save_tuning_figures(history, log_before, log_after, out_dir, write_atomically) -> None:
+    """``loss.png``, ``peak_torques.png`` and ``ee_pose.png`` of a tuning run."""
+    figures = {
+        "loss.png": figure_loss_curve(history),
+        "peak_torques.png": figure_peak_torques(np.max(np.abs(log_before.u), axis=0), np.max(np.abs(log_after.u), axis=0)),
+        "ee_pose.png": figure_ee_pose({"start": log_before, "tuned": log_after}, "EE pose in LAR before and after tuning (exact contact law)"),
+    }
+    for name, fig in figures.items():
+        write_atomically(out_dir / name, lambda target: fig.savefig(target, dpi=110, format="png"))
+        plt.close(fig)

@@ -190,7 +190,12 @@ def control_step(robot: Robot, scenario: Scenario, gains: Gains, controller: str
 
 
 def rollout(
-    robot: Robot, scenario: Scenario, gains: Gains, controller: str, pinv_damping: float = 0.0
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller: str,
+    pinv_damping: float = 0.0,
+    checkpoint_segment: int | None = None,
 ) -> tuple[SimState, Log]:
     """Simulate the closed loop over ``scenario.duration`` with one ``jax.lax.scan``.
 
@@ -199,6 +204,11 @@ def rollout(
         controller: ``"admittance"`` (eqs 9-17) or ``"cartesian"`` (eqs 21-22); static.
         pinv_damping: 0 for the exact pseudoinverse (the paper), > 0 for damped least
             squares; static.
+        checkpoint_segment: for reverse-mode gradients, the number of steps per
+            rematerialised segment (static; must divide ``n_steps``). The scan then runs as
+            segments under ``jax.checkpoint``: the backward pass stores one state per
+            segment and recomputes each segment's steps, so memory grows with
+            ``n_steps / segment + segment`` instead of ``n_steps``. ``None``: one plain scan.
 
     Returns:
         ``(final_state, log)``: the state after ``scenario.n_steps`` steps and the
@@ -214,8 +224,19 @@ def rollout(
         plant = rk4_step(lambda s: plant_derivative(robot, scenario, s, u), state.plant, scenario.dt)
         return SimState(plant=plant, controller=controller_state), row
 
-    steps = jnp.arange(scenario.n_steps, dtype=scenario.initial.q.dtype)
-    return jax.lax.scan(step, initial_state(scenario), steps)
+    n_steps = scenario.n_steps
+    steps = jnp.arange(n_steps, dtype=scenario.initial.q.dtype)
+    if checkpoint_segment is None:
+        return jax.lax.scan(step, initial_state(scenario), steps)
+    if checkpoint_segment < 1 or n_steps % checkpoint_segment:
+        raise ValueError(f"checkpoint_segment: {checkpoint_segment} must be a positive divisor of the {n_steps} steps")
+
+    @jax.checkpoint
+    def segment(state, segment_steps):
+        return jax.lax.scan(step, state, segment_steps)
+
+    final, rows = jax.lax.scan(segment, initial_state(scenario), steps.reshape(-1, checkpoint_segment))
+    return final, jax.tree.map(lambda x: x.reshape((n_steps,) + x.shape[2:]), rows)
 
 
 def first_nonfinite_time(log: Log):

@@ -161,3 +161,16 @@ def euler_rates_to_body(angles):
             jnp.stack([zero, -sr, cr * cp]),
         ]
     )
+
+
+def rotation_exp(vector):
+    """Rotation (3, 3) of a rotation vector (3,) [rad] (Rodrigues), finite with finite
+    gradients at zero (series for small angles)."""
+    angle_squared = jnp.dot(vector, vector)
+    small = angle_squared < 1e-12
+    safe = jnp.where(small, 1.0, angle_squared)
+    angle = jnp.sqrt(safe)
+    a = jnp.where(small, 1.0 - angle_squared / 6.0, jnp.sin(angle) / angle)
+    b = jnp.where(small, 0.5 - angle_squared / 24.0, (1.0 - jnp.cos(angle)) / safe)
+    K = skew(vector)
+    return jnp.eye(3, dtype=vector.dtype) + a * K + b * K @ K

@@ -1,0 +1,108 @@
+"""Cost of one gradient of the tuning objective against one forward rollout.
+
+    python -m benchmarks.gradient [--out results/benchmarks] [--duration 17] [--repeats 3]
+
+Modes, each in its own process so that peak memory is its own:
+* ``forward``: the objective alone (one rollout of the 17 s paper scenario, smooth contact);
+* ``reverse_checkpointed``: ``jax.value_and_grad`` with ``jax.checkpoint`` segments of about
+  sqrt(n) steps (the tuning default);
+* ``reverse_plain``: ``jax.value_and_grad`` through one plain scan;
+* ``forward_mode``: ``jax.jacfwd`` over the 39 admittance log-gains.
+Reports wall time after compilation (median of ``--repeats``), its ratio to ``forward``,
+XLA's ``memory_analysis`` (temporary and argument/output buffers) and the process's peak RSS.
+Writes ``gradient.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+MODES = ("forward", "reverse_checkpointed", "reverse_plain", "forward_mode")
+
+
+def measure(mode: str, duration: float, repeats: int) -> dict:
+    import jax
+
+    import spacegrasp_jax as sg
+    from benchmarks.dynamics import timed
+    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.scenario import paper_scenario
+    from tuning.objective import Objective, Weights
+    from tuning.parameters import initial_params, make_mask
+    from tuning.tune import TuneConfig, checkpoint_segment, make_loss, make_value_and_grad, training_scenarios
+
+    robot, gains = sg.paper_robot(), paper_gains()
+    scenario = paper_scenario(robot, contact_law="smooth", duration=duration)
+    config = TuneConfig()
+    objective = Objective(weights=Weights(), torque_scale_Nm=(0.80, 2.71, 1.82, 0.77, 1.11, 0.24, 0.028))
+    params = initial_params(gains, "admittance")
+    segment = checkpoint_segment(scenario.n_steps) if mode == "reverse_checkpointed" else None
+    loss = make_loss(robot, training_scenarios(scenario, config), gains, make_mask(gains, "admittance"), config, objective, segment)
+    if mode == "forward":
+        function = jax.jit(lambda p: loss(p)[0])
+    else:
+        function = make_value_and_grad(loss, params, "forward" if mode == "forward_mode" else "reverse")
+    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    start = time.perf_counter()
+    compiled = function.lower(params).compile()
+    compile_s = time.perf_counter() - start
+    memory = compiled.memory_analysis()
+    jax.block_until_ready(compiled(params))
+    run = timed(lambda: jax.block_until_ready(compiled(params)), repeats)
+    return {
+        "mode": mode,
+        "checkpoint_segment": segment,
+        "compile_s": compile_s,
+        "run_s": run["median_s"],
+        "run_spread_s": [run["min_s"], run["max_s"]],
+        "xla_temp_mb": memory.temp_size_in_bytes / 1e6,
+        "xla_argument_output_mb": (memory.argument_size_in_bytes + memory.output_size_in_bytes) / 1e6,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3,
+        "rss_before_compile_mb": rss_before / 1e3,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="results/benchmarks")
+    parser.add_argument("--duration", type=float, default=17.0)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--modes", default=",".join(MODES), help=f"comma-separated subset of {', '.join(MODES)}")
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        print(json.dumps(measure(args.child, args.duration, args.repeats)))
+        return 0
+    modes = [mode for mode in args.modes.split(",") if mode]
+    unknown = set(modes) - set(MODES)
+    if unknown:
+        parser.error(f"unknown mode(s): {', '.join(sorted(unknown))}")
+    results = {}
+    for mode in modes:
+        command = [sys.executable, "-m", "benchmarks.gradient", "--child", mode, "--duration", str(args.duration), "--repeats", str(args.repeats)]
+        output = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+        results[mode] = json.loads(output.strip().splitlines()[-1])
+        print(f"measured {mode}", flush=True)
+    forward = results.get("forward", {}).get("run_s")
+    print(f"\n{'mode':22} {'compile [s]':>11} {'run [s]':>9} {'/ forward':>9} {'XLA temp [MB]':>13} {'peak RSS [MB]':>13}")
+    for mode, r in results.items():
+        ratio = r["run_s"] / forward if forward else float("nan")
+        r["over_forward"] = ratio
+        print(f"{mode:22} {r['compile_s']:>11.1f} {r['run_s']:>9.2f} {ratio:>9.2f} {r['xla_temp_mb']:>13.1f} {r['peak_rss_mb']:>13.0f}")
+    from benchmarks.dynamics import machine
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "gradient.json").write_text(json.dumps({"machine": machine(), "duration_s": args.duration, "results": results}, indent=2))
+    print(f"wrote {out / 'gradient.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,242 @@
+"""Tuning: the objective, the parameterisation, gradients against finite differences, the
+divergence guard, and resume after an interruption (a real SIGINT to a subprocess)."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from spacegrasp_jax.control import load_gains
+from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.simulate import rollout
+from tuning.objective import Objective, Weights, objective_parts, smooth_max
+from tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
+from tuning.tune import TuneConfig, make_loss, make_value_and_grad, optimise, training_scenarios
+
+SHORT = dict(duration=1.0, move_duration=1.0)  # contact starts at about 0.45 s
+
+
+def test_smooth_max_bounds_the_hard_max():
+    rng = np.random.default_rng(0)
+    values = jnp.asarray(rng.uniform(0.0, 1.0, size=(500, 7)))
+    for temperature in (0.1, 0.02, 0.005):
+        smooth = float(smooth_max(values, temperature))
+        hard = float(jnp.max(values))
+        assert hard <= smooth <= hard + temperature * math.log(values.size)
+    assert float(smooth_max(values, 1e-4)) == pytest.approx(float(jnp.max(values)), abs=1e-3)
+
+
+def test_weights_parse():
+    assert Weights.parse("peak_torque=4, final_position=2") == Weights(final_position=2.0, peak_torque=4.0)
+    assert Weights.parse("") == Weights()
+    for bad, message in [("speed=1", "unknown weight 'speed'"), ("peak_torque=x", "needs a number"), ("rms_tracking=-1", "non-negative")]:
+        with pytest.raises(ValueError, match=message):
+            Weights.parse(bad)
+
+
+def test_config_validation():
+    for change, message in [
+        (dict(controller="pid"), "controller"),
+        (dict(learning_rate=0.0), "learning_rate"),
+        (dict(steps=0), "steps"),
+        (dict(cvar_alpha=1.0), "cvar_alpha"),
+        (dict(optimizer="newton"), "no optimiser named 'newton'"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            TuneConfig(**change)
+
+
+def test_parameters_round_trip_and_mask(gains):
+    params = initial_params(gains, "admittance")
+    assert sum(p.size for p in params.values()) == 39
+    rebuilt = gains_from_params(params, gains, make_mask(gains, "admittance"))
+    for name in ("Md", "Bd", "Kd", "kp", "ki", "kd"):
+        np.testing.assert_allclose(getattr(rebuilt, name), getattr(gains, name), rtol=1e-14)
+    mask = make_mask(gains, "admittance", frozen=("kd",))
+    moved = gains_from_params({k: v + 1.0 for k, v in params.items()}, gains, mask)
+    np.testing.assert_array_equal(moved.kd, gains.kd)  # frozen
+    np.testing.assert_allclose(moved.kp, np.e * np.asarray(gains.kp), rtol=1e-14)
+    assert set(initial_params(gains, "cartesian")) == set(GROUPS["cartesian"])
+    with pytest.raises(ValueError, match="unknown gain group"):
+        make_mask(gains, "admittance", frozen=("Kx",))
+
+
+def test_objective_parts_on_a_synthetic_log(full_runs):
+    log = full_runs["admittance"].log
+    scale = tuple(np.max(np.abs(log.u), axis=0))
+    parts = objective_parts(log, Objective(weights=Weights(), torque_scale_Nm=scale))
+    assert float(parts["peak_torque_hard"]) == pytest.approx(1.0)  # the log's own peaks
+    assert 0.0 <= float(parts["peak_torque_gap"]) <= 0.02 * math.log(log.u.size)
+    expected = (
+        float(parts["final_position_m"]) / 1e-3
+        + 0.1 * float(parts["final_orientation_rad"]) / 1e-2
+        + 0.1 * float(parts["rms_tracking_m"]) / 1e-2
+        + float(parts["peak_torque_smooth"])
+    )
+    assert float(parts["loss"]) == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.fixture(scope="module")
+def short_problem(robot, gains, full_runs):
+    """Loss of the admittance and Cartesian laws on a 1 s scenario with (smooth) contact."""
+
+    def build(controller, scenario=None, segment=25):
+        scenario = scenario or paper_scenario(robot, contact_law="smooth", **SHORT)
+        config = TuneConfig(controller=controller)
+        scale = tuple(float(x) for x in full_runs[controller].summary["max_abs_torque_Nm"])
+        objective = Objective(weights=Weights(contact_force=0.1), torque_scale_Nm=scale)
+        mask = make_mask(gains, controller)
+        params = initial_params(gains, controller)
+        loss = make_loss(robot, training_scenarios(scenario, config), gains, mask, config, objective, segment)
+        return loss, params
+
+    return build
+
+
+@pytest.mark.parametrize("controller", ["admittance", "cartesian"])
+def test_gradient_of_each_gain_group_matches_central_differences(short_problem, controller):
+    loss, params = short_problem(controller)
+    value_and_grad = make_value_and_grad(loss, params, "reverse")
+    (value, aux), gradient = value_and_grad(params)
+    assert float(aux["peak_contact_hard_N"]) > 0.0  # the scenario does include contact
+    value_only = jax.jit(lambda p: loss(p)[0])
+    rng = np.random.default_rng(5)
+    h = 1e-5
+    for group in GROUPS[controller]:
+        direction = jnp.asarray(rng.normal(size=params[group].shape))
+        plus = value_only({**params, group: params[group] + h * direction})
+        minus = value_only({**params, group: params[group] - h * direction})
+        numeric = float(plus - minus) / (2 * h)
+        analytic = float(jnp.vdot(gradient[group], direction))
+        assert abs(analytic - numeric) <= 1e-4 * abs(numeric) + 1e-9, (group, analytic, numeric)
+
+
+def test_forward_mode_gradient_equals_reverse_mode(short_problem):
+    loss, params = short_problem("cartesian", segment=None)
+    (_, _), reverse = make_value_and_grad(loss, params, "reverse")(params)
+    (_, _), forward = make_value_and_grad(loss, params, "forward")(params)
+    for group in params:
+        np.testing.assert_allclose(forward[group], reverse[group], rtol=1e-8, atol=1e-12)
+
+
+def test_gradient_finite_when_the_ee_passes_through_the_sphere_centre(robot, short_problem):
+    """With a tiny stiffness the EE follows the desired path straight through the sphere's
+    centre (it starts 65 mm below it and reaches it at about 6 s): no NaN or inf, although
+    the contact force, far outside the sphere, underflows to exactly zero."""
+    scenario = paper_scenario(robot, contact_law="smooth", contact_stiffness=1e-6, duration=7.0)
+    loss, params = short_problem("admittance", scenario, segment=100)
+    (value, aux), gradient = make_value_and_grad(loss, params, "reverse")(params)
+    assert np.isfinite(float(value))
+    assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(gradient))
+    _, log = jax.jit(rollout, static_argnums=3)(robot, scenario, gains_from_params(params, *_base_and_mask(params)), "admittance")
+    distance = np.linalg.norm(np.asarray(log.pose_ee[:, :3]) - np.asarray(scenario.sphere_centre), axis=1)
+    assert distance.min() < 1e-3  # within a millimetre of the centre
+
+
+def _base_and_mask(params):
+    from spacegrasp_jax.control import paper_gains
+
+    base = paper_gains()
+    return base, make_mask(base, "admittance")
+
+
+def test_divergence_guard_rejects_and_shrinks_the_step(short_problem):
+    """A learning rate of 3 in log space multiplies gains by up to e^3 in one step: the
+    closed loop blows up, the step is rejected, the step size halved and the event logged;
+    the run goes on from finite gains."""
+    loss, params = short_problem("admittance")
+    config = TuneConfig(steps=2, learning_rate=3.0, torque_guard_Nm=20.0)
+    state, status = optimise(make_value_and_grad(loss, params, "reverse"), params, config)
+    assert status == "done" and state.step == 2
+    assert len(state.events) >= 1 and all(event["event"] == "rejected" for event in state.events)
+    assert state.scale < 1.0
+    assert np.isfinite(state.loss) and state.aux["peak_torque_Nm"] <= 20.0
+    assert sum(row["rejected_candidates"] for row in state.history) == len(state.events)
+
+
+# ---- the spacegrasp tune command: files, and resume after SIGINT ---------------------------
+
+
+def tune_command(tmp_path, out, *extra):
+    scenario = tmp_path / "short.toml"
+    scenario.write_text("duration = 1.0\n[trajectory]\nduration = 1.0\n")
+    return [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--scenario", str(scenario),
+            "--steps", "5", "--holdout", "3", "--batch", "2", *extra]
+
+
+def run_until_step(command, history, step, timeout=600):
+    """Start ``command``, send SIGINT once ``history`` shows ``step`` completed steps."""
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + timeout
+    while time.time() < deadline and process.poll() is None:
+        if history.exists() and len(history.read_text().splitlines()) >= step + 2:  # header + step 0
+            process.send_signal(signal.SIGINT)
+            break
+        time.sleep(0.2)
+    _, err = process.communicate(timeout=timeout)
+    return process.returncode, err
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    tmp_path = tmp_path_factory.mktemp("tune")
+    out = tmp_path / "full"
+    result = subprocess.run(tune_command(tmp_path, out), capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr
+    return tmp_path, out, result
+
+
+def test_tune_writes_every_file(uninterrupted):
+    _, out, result = uninterrupted
+    assert "step 5/5" in result.stderr  # the progress bar
+    for name in ("gains.json", "history.csv", "summary.json", "run.json", "checkpoint.npz", "loss.png", "peak_torques.png", "ee_pose.png"):
+        assert (out / name).stat().st_size > 0, name
+    gains = load_gains(out / "gains.json")  # loadable as simulate --gains takes it
+    assert gains.kp.shape == (7,)
+    rows = list(csv.DictReader((out / "history.csv").open()))
+    assert [int(row["step"]) for row in rows] == list(range(6))
+    assert {"loss", "final_position_m", "peak_torque_smooth", "peak_torque_hard", "peak_torque_gap", "gradient_norm", "step_size"} <= set(rows[0])
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("paper_gains", "tuned_gains"):
+        assert {"max_abs_torque_Nm", "final_position_error_m", "final_orientation_error_rad", "rms_position_error_m", "max_contact_force_N"} <= set(summary[key])
+    assert summary["holdout"]["scenarios"] == 3
+    assert summary["evaluated_with"].startswith("exact contact law")
+
+
+def test_interrupted_run_resumes_to_the_same_result(uninterrupted):
+    tmp_path, full, _ = uninterrupted
+    out = tmp_path / "interrupted"
+    code, err = run_until_step(tune_command(tmp_path, out), out / "history.csv", step=2)
+    assert code == 130, err
+    assert "--resume" in err
+    steps_done = len((out / "history.csv").read_text().splitlines()) - 2
+    assert 2 <= steps_done < 5
+    result = subprocess.run([sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--resume"], capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr
+    assert f"resuming after step {steps_done}/5" in result.stderr
+    assert json.loads((out / "gains.json").read_text()) == json.loads((full / "gains.json").read_text())
+    history = list(csv.DictReader((out / "history.csv").open()))
+    reference = list(csv.DictReader((full / "history.csv").open()))
+    assert [row["loss"] for row in history] == [row["loss"] for row in reference]
+
+
+def test_tune_refuses_to_overwrite_and_rejects_bad_options(uninterrupted, tmp_path):
+    _, full, _ = uninterrupted
+    result = subprocess.run(tune_command(tmp_path, full), capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2 and "already holds a tuning run" in result.stderr
+    result = subprocess.run(tune_command(tmp_path, tmp_path / "x", "--weights", "speed=1"), capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2 and "unknown weight 'speed'" in result.stderr
+    result = subprocess.run([sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(tmp_path / "none"), "--resume"], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2 and "holds no tuning run" in result.stderr

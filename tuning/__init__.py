@@ -1,0 +1,26 @@
+"""Gradient-based tuning of the admittance, Cartesian and joint PID gains with optax.
+
+* :mod:`tuning.objective` - the objective (final errors, RMS tracking, smooth peak torque).
+* :mod:`tuning.parameters` - log-gain parameters and the freeze mask.
+* :mod:`tuning.tune` - loss over a scenario batch, gradients, the resumable optimiser loop.
+* :mod:`tuning.run` - the ``spacegrasp tune`` job: files, evaluation, plots.
+"""
+
+from tuning.objective import Objective, Weights, objective_parts, smooth_max
+from tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
+from tuning.tune import TuneConfig, make_optimizer, optimise, setup
+
+__all__ = [
+    "GROUPS",
+    "Objective",
+    "TuneConfig",
+    "Weights",
+    "gains_from_params",
+    "initial_params",
+    "make_mask",
+    "make_optimizer",
+    "objective_parts",
+    "optimise",
+    "setup",
+    "smooth_max",
+]

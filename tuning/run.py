@@ -1,0 +1,243 @@
+"""The ``spacegrasp tune`` job: set up, optimise (resumably), evaluate, write files.
+
+Files in ``--out`` (all written atomically):
+* ``run.json`` - the run's definition (config, starting gains, scenario and robot sources);
+  ``--resume`` reads it, so a resumed run is the same run.
+* ``checkpoint.npz`` - the loop's state after the last completed step.
+* ``history.csv`` - one row per step: loss, every part, gradient norm, step size, rejections.
+* ``gains.json`` - the tuned gains (``spacegrasp simulate --gains gains.json``).
+* ``summary.json`` - starting vs tuned gains on the nominal scenario with the EXACT contact
+  law, and their mean objective over held-out perturbed scenarios.
+* ``loss.png``, ``peak_torques.png``, ``ee_pose.png`` - loss curve, per-joint peak torque and
+  EE pose before/after.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import sys
+import tomllib
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import spacegrasp_jax as sg
+from spacegrasp_jax import experiment, plots
+from spacegrasp_jax.control import load_gains, make_gains, paper_gains
+from spacegrasp_jax.model import robot_from_toml
+from spacegrasp_jax.perturbations import sample_scenarios
+from spacegrasp_jax.scenario import paper_scenario, scenario_from_mapping
+from spacegrasp_jax.simulate import rollout
+from tuning.objective import Objective, objective_parts
+from tuning.parameters import gains_from_params
+from tuning.tune import (
+    CHECKPOINT,
+    StopRequest,
+    TuneConfig,
+    load_checkpoint,
+    make_optimizer,
+    optimise,
+    progress_line,
+    setup,
+)
+
+HOLDOUT_SEED_OFFSET = 1_000_003  # held-out samples never coincide with training samples
+
+
+class TuneSetupError(ValueError):
+    """The tuning run cannot start (bad options, or an output folder in the wrong state)."""
+
+
+def _read_optional(path: str | None) -> str | None:
+    return None if path is None else Path(path).read_text()
+
+
+def _robot(record: dict):
+    if record["robot_toml"] is None:
+        return sg.paper_robot()
+    return robot_from_toml(record["robot_toml"], source=record["robot_source"])
+
+
+def _scenario(robot, record: dict):
+    if record["scenario_text"] is None:
+        return paper_scenario(robot)
+    text = record["scenario_text"]
+    document = json.loads(text) if record["scenario_is_json"] else tomllib.loads(text)
+    return scenario_from_mapping(robot, document)
+
+
+def new_record(config: TuneConfig, gains_file, scenario_file, robot_file, holdout: int) -> dict:
+    """The run's definition, with the sources' contents so the run can be redone anywhere."""
+    base = load_gains(gains_file) if gains_file else paper_gains()
+    return {
+        "config": config.to_dict(),
+        "base_gains": base.to_dict(),
+        "gains_source": gains_file or "paper_gains()",
+        "scenario_source": scenario_file or "paper_scenario()",
+        "scenario_text": _read_optional(scenario_file),
+        "scenario_is_json": bool(scenario_file and scenario_file.endswith(".json")),
+        "robot_source": robot_file or "paper_robot()",
+        "robot_toml": _read_optional(robot_file),
+        "holdout": holdout,
+    }
+
+
+def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chunk: int = 10) -> dict[str, np.ndarray]:
+    """Objective parts for each scenario of a batch (exact or smooth per the scenarios),
+    by vmapped rollouts in chunks of ``chunk``; NaN marks a diverged sample."""
+    count = int(np.shape(scenarios.contact_stiffness)[0])
+
+    @jax.jit
+    def parts_of(batch):
+        def one(scenario):
+            _, log = rollout(robot, scenario, gains, controller)
+            parts = objective_parts(log, objective)
+            parts["peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
+            return parts
+
+        return jax.vmap(one)(batch)
+
+    results = []
+    for start in range(0, count, chunk):
+        indices = np.arange(start, start + chunk) % count  # pad the last chunk: one compile
+        batch = jax.tree.map(lambda leaf: leaf[indices], scenarios)
+        parts = jax.tree.map(np.asarray, parts_of(batch))
+        keep = min(chunk, count - start)
+        results.append({name: value[:keep] for name, value in parts.items()})
+    return {name: np.concatenate([r[name] for r in results]) for name in results[0]}
+
+
+def _write_history(path: Path, history: list) -> None:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(history[0]))
+    writer.writeheader()
+    writer.writerows(history)
+    experiment.write_atomically(path, lambda target: target.write_text(buffer.getvalue()))
+
+
+def _comparison(result: experiment.RunResult) -> dict:
+    summary = result.summary
+    return {
+        "max_abs_torque_Nm": summary["max_abs_torque_Nm"],
+        "largest_peak_torque_Nm": max(summary["max_abs_torque_Nm"]),
+        "final_position_error_m": summary["final_position_error_m"],
+        "final_orientation_error_rad": summary["final_orientation_error_rad"],
+        "rms_position_error_m": summary["rms_position_error_m"],
+        "max_contact_force_N": summary["max_contact_force_N"],
+    }
+
+
+def tune(
+    out: Path,
+    *,
+    config: TuneConfig | None = None,
+    gains_file: str | None = None,
+    scenario_file: str | None = None,
+    robot_file: str | None = None,
+    holdout: int = 100,
+    resume: bool = False,
+    progress=sys.stderr,
+) -> int:
+    """Run the job; returns the exit code (0 done, 130 interrupted)."""
+    out = Path(out)
+    record_path, checkpoint_path = out / "run.json", out / CHECKPOINT
+    if resume:
+        if not record_path.exists():
+            raise TuneSetupError(f"--resume: {out} holds no tuning run (no run.json)")
+        record = json.loads(record_path.read_text())
+        config = TuneConfig.from_dict(record["config"])
+        holdout = record["holdout"]
+    else:
+        if record_path.exists():
+            raise TuneSetupError(f"{out} already holds a tuning run: pass --resume to continue it, or choose another --out")
+        if holdout < 0:
+            raise TuneSetupError(f"--holdout: must be >= 0, got {holdout}")
+        record = new_record(config or TuneConfig(), gains_file, scenario_file, robot_file, holdout)
+        config = TuneConfig.from_dict(record["config"])
+        out.mkdir(parents=True, exist_ok=True)
+        experiment.write_json(record_path, record)
+
+    robot = _robot(record)
+    base = make_gains(**record["base_gains"])
+    exact = dataclasses.replace(_scenario(robot, record), contact_law="exact")
+    smooth = dataclasses.replace(exact, contact_law="smooth")  # gradients need the smooth law
+
+    print(f"evaluating the starting gains ({record['gains_source']}) on the nominal scenario...", file=progress, flush=True)
+    before = experiment.run(robot, exact, base, config.controller)
+    objective, mask, params, value_and_grad = setup(robot, smooth, base, config, before.summary["max_abs_torque_Nm"])
+    resume_state = None
+    if resume and checkpoint_path.exists():
+        resume_state, _ = load_checkpoint(checkpoint_path, params, make_optimizer(config)[0].init(params))
+        print(f"resuming after step {resume_state.step}/{config.steps}", file=progress, flush=True)
+
+    def on_step(state):
+        print(progress_line(state, config.steps), end="", file=progress, flush=True)
+        _write_history(out / "history.csv", state.history)
+
+    print(f"compiling the {config.gradient}-mode gradient of the {config.controller} objective over {config.batch} scenario(s)...", file=progress, flush=True)
+    with StopRequest() as stop:
+        state, status = optimise(
+            value_and_grad,
+            params,
+            config,
+            checkpoint_path=checkpoint_path,
+            resume_state=resume_state,
+            write_atomically=experiment.write_atomically,
+            on_step=on_step,
+            stop=stop,
+        )
+    print(file=progress)
+    _write_history(out / "history.csv", state.history)
+    tuned = gains_from_params(state.params, base, mask)
+    experiment.write_json(out / "gains.json", tuned.to_dict())
+    if status == "interrupted":
+        print(f"interrupted after step {state.step}/{config.steps}; continue with: spacegrasp tune --out {out} --resume", file=progress)
+        return 130
+
+    print("evaluating the tuned gains with the exact contact law...", file=progress, flush=True)
+    after = experiment.run(robot, exact, tuned, config.controller)
+    summary = {
+        "status": status,
+        "controller": config.controller,
+        "steps": state.step,
+        "evaluated_with": "exact contact law (eq 20), nominal scenario",
+        "paper_gains" if record["gains_source"] == "paper_gains()" else "starting_gains": _comparison(before),
+        "tuned_gains": _comparison(after),
+        "rejected_steps": state.events,
+        "objective": dataclasses.asdict(objective),
+    }
+    start_key = next(key for key in summary if key in ("paper_gains", "starting_gains"))
+    summary["largest_peak_torque_change"] = summary["tuned_gains"]["largest_peak_torque_Nm"] / summary[start_key]["largest_peak_torque_Nm"] - 1.0
+    summary["joints_with_higher_peak"] = [
+        joint + 1
+        for joint, (old, new) in enumerate(zip(summary[start_key]["max_abs_torque_Nm"], summary["tuned_gains"]["max_abs_torque_Nm"]))
+        if new > old
+    ]
+    if holdout:
+        print(f"evaluating both on {holdout} held-out perturbed scenarios...", file=progress, flush=True)
+        scenarios = sample_scenarios(exact, config.seed + HOLDOUT_SEED_OFFSET, range(holdout), config.ranges)
+        before_parts = evaluate(robot, scenarios, base, config.controller, objective)
+        after_parts = evaluate(robot, scenarios, tuned, config.controller, objective)
+        summary["holdout"] = {
+            "scenarios": holdout,
+            "seed": config.seed + HOLDOUT_SEED_OFFSET,
+            "contact_law": "exact",
+            "mean_objective_start": float(np.nanmean(before_parts["loss"])),
+            "mean_objective_tuned": float(np.nanmean(after_parts["loss"])),
+            "tuned_better_fraction": float(np.mean(after_parts["loss"] < before_parts["loss"])),
+            "mean_largest_peak_torque_Nm_start": float(np.nanmean(before_parts["peak_torque_Nm"])),
+            "mean_largest_peak_torque_Nm_tuned": float(np.nanmean(after_parts["peak_torque_Nm"])),
+            "mean_final_position_error_m_start": float(np.nanmean(before_parts["final_position_m"])),
+            "mean_final_position_error_m_tuned": float(np.nanmean(after_parts["final_position_m"])),
+            "diverged_start": int(np.sum(~np.isfinite(before_parts["loss"]))),
+            "diverged_tuned": int(np.sum(~np.isfinite(after_parts["loss"]))),
+        }
+    experiment.write_json(out / "summary.json", summary)
+    plots.save_tuning_figures(state.history, before.log, after.log, out, experiment.write_atomically)
+    print(f"wrote {out}/: gains.json, history.csv, summary.json, loss.png, peak_torques.png, ee_pose.png", file=progress)
+    return 0

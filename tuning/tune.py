@@ -1,0 +1,346 @@
+"""Gradient-based gain tuning: the loss over a batch of scenarios, its gradient, and a
+resumable optax loop that rejects diverging steps.
+
+One step: ``updates = optimiser(gradient)``; the candidate ``params + scale * updates`` is
+evaluated (loss and gradient together); if its rollout diverged (non-finite values, or a peak
+torque above ``torque_guard_Nm``) it is rejected, ``scale`` is halved and the event logged,
+else it is accepted together with the optimiser's new state. After every accepted step the
+whole run state is written atomically to ``checkpoint.npz``, so an interrupted run resumes
+from its last completed step and ends exactly where an uninterrupted one would.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.flatten_util import ravel_pytree
+
+from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.model import Robot
+from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
+from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.simulate import rollout
+from tuning.objective import Objective, Weights, objective_parts
+from tuning.parameters import gains_from_params, initial_params, make_mask
+
+CHECKPOINT = "checkpoint.npz"
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneConfig:
+    """Everything that defines a tuning run (saved with its checkpoint).
+
+    Attributes:
+        controller: ``"admittance"`` or ``"cartesian"``.
+        steps: optimiser steps.
+        learning_rate: initial step size in log-gain space (0.05 = 5% per step at most,
+            before Adam's normalisation), decayed by a cosine schedule to a tenth.
+        optimizer: any optax optimiser taking a learning rate (``adam``, ``sgd``, ...).
+        clip_norm: global-norm clipping of the gradient.
+        weights: objective weights.
+        temperature: smooth-max temperature of the objective.
+        batch: scenarios per step: the nominal one plus ``batch - 1`` perturbed ones.
+        cvar_alpha: None for the batch mean; else the mean over the worst ``1 - alpha``
+            fraction of the batch (conditional value at risk).
+        seed: seed of the training perturbations.
+        frozen: gain groups kept at their initial values.
+        gradient: ``"reverse"`` (checkpointed; measured faster) or ``"forward"``.
+        torque_guard_Nm: a candidate whose peak torque exceeds this is rejected.
+        ranges: perturbation half-widths for the robust batch.
+    """
+
+    controller: str = "admittance"
+    steps: int = 60
+    learning_rate: float = 0.05
+    optimizer: str = "adam"
+    clip_norm: float = 1.0
+    weights: Weights = Weights()
+    temperature: float = 0.02
+    batch: int = 1
+    cvar_alpha: float | None = None
+    seed: int = 0
+    frozen: tuple[str, ...] = ()
+    gradient: str = "reverse"
+    torque_guard_Nm: float = 100.0
+    ranges: PerturbationRanges = PerturbationRanges()
+
+    def __post_init__(self):
+        if self.controller not in ("admittance", "cartesian"):
+            raise ValueError(f"controller: expected admittance or cartesian, got {self.controller!r}")
+        if self.steps < 1 or self.batch < 1:
+            raise ValueError("steps and batch must be at least 1")
+        for name in ("learning_rate", "clip_norm", "temperature", "torque_guard_Nm"):
+            value = getattr(self, name)
+            if not (value > 0.0 and math.isfinite(value)):
+                raise ValueError(f"{name}: must be positive and finite, got {value}")
+        if self.cvar_alpha is not None and not 0.0 <= self.cvar_alpha < 1.0:
+            raise ValueError(f"cvar_alpha: must be in [0, 1), got {self.cvar_alpha}")
+        if self.gradient not in ("reverse", "forward"):
+            raise ValueError(f"gradient: expected reverse or forward, got {self.gradient!r}")
+        factory = getattr(optax, self.optimizer, None)
+        if not callable(factory):
+            raise ValueError(f"optimizer: optax has no optimiser named {self.optimizer!r}")
+
+    def to_dict(self) -> dict:
+        document = dataclasses.asdict(self)
+        document["frozen"] = list(self.frozen)
+        return document
+
+    @classmethod
+    def from_dict(cls, document: dict) -> "TuneConfig":
+        document = dict(document)
+        document["weights"] = Weights(**document["weights"])
+        document["ranges"] = PerturbationRanges(**document["ranges"])
+        document["frozen"] = tuple(document["frozen"])
+        return cls(**document)
+
+
+def make_optimizer(config: TuneConfig):
+    """``chain(clip_by_global_norm, <optimizer>(cosine schedule))`` and its schedule."""
+    schedule = optax.cosine_decay_schedule(config.learning_rate, decay_steps=config.steps, alpha=0.1)
+    return optax.chain(optax.clip_by_global_norm(config.clip_norm), getattr(optax, config.optimizer)(schedule)), schedule
+
+
+def checkpoint_segment(n_steps: int) -> int:
+    """The divisor of ``n_steps`` closest to its square root: memory ~ 2 sqrt(n) states."""
+    divisors = [d for d in range(1, n_steps + 1) if n_steps % d == 0]
+    return min(divisors, key=lambda d: abs(d - math.sqrt(n_steps)))
+
+
+def training_scenarios(nominal: Scenario, config: TuneConfig) -> Scenario:
+    """The nominal scenario followed by ``batch - 1`` perturbed ones, stacked."""
+    stacked = jax.tree.map(lambda leaf: jnp.asarray(leaf)[None], nominal)
+    if config.batch == 1:
+        return stacked
+    perturbed = sample_scenarios(nominal, config.seed, range(1, config.batch), config.ranges)
+    return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), stacked, perturbed)
+
+
+def make_loss(robot: Robot, scenarios: Scenario, base: Gains, mask, config: TuneConfig, objective: Objective, segment: int | None):
+    """``loss(params) -> (loss, aux)``: the batch mean (or CVaR) of the objective, and the
+    batch-mean parts plus the worst hard peak torque (N m) for the divergence guard."""
+
+    def loss(params):
+        gains = gains_from_params(params, base, mask)
+
+        def one(scenario):
+            _, log = rollout(robot, scenario, gains, config.controller, checkpoint_segment=segment)
+            parts = objective_parts(log, objective)
+            parts["peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
+            return parts
+
+        parts = jax.vmap(one)(scenarios)
+        losses = parts["loss"]
+        if config.cvar_alpha is None:
+            total = jnp.mean(losses)
+        else:
+            worst = max(1, math.ceil((1.0 - config.cvar_alpha) * losses.shape[0]))
+            total = jnp.mean(jnp.sort(losses)[-worst:])
+        aux = {name: jnp.mean(value) for name, value in parts.items()}
+        aux["peak_torque_Nm"] = jnp.max(parts["peak_torque_Nm"])
+        return total, aux
+
+    return loss
+
+
+def make_value_and_grad(loss: Callable, params, mode: str):
+    """Jitted ``params -> ((loss, aux), gradient)`` by reverse or forward mode."""
+    if mode == "reverse":
+        return jax.jit(jax.value_and_grad(loss, has_aux=True))
+    _, unravel = ravel_pytree(params)
+
+    def forward(params):
+        def flat_loss(x):
+            value, aux = loss(unravel(x))
+            return value, (value, aux)
+
+        gradient, (value, aux) = jax.jacfwd(flat_loss, has_aux=True)(ravel_pytree(params)[0])
+        return (value, aux), unravel(gradient)
+
+    return jax.jit(forward)
+
+
+@dataclasses.dataclass
+class RunState:
+    """What a checkpoint holds: the loop's whole state after ``step`` accepted steps."""
+
+    step: int
+    scale: float
+    params: dict
+    opt_state: object
+    loss: float
+    aux: dict
+    gradient: dict
+    history: list
+    events: list
+
+
+def _is_acceptable(loss, aux, gradient, guard_Nm: float) -> bool:
+    finite = math.isfinite(float(loss)) and all(bool(np.all(np.isfinite(g))) for g in jax.tree.leaves(gradient))
+    return finite and float(aux["peak_torque_Nm"]) <= guard_Nm
+
+
+def save_checkpoint(path: Path, state: RunState, config: TuneConfig, write_atomically) -> None:
+    leaves = {
+        "params": jax.tree.leaves(state.params),
+        "opt_state": jax.tree.leaves(state.opt_state),
+        "gradient": jax.tree.leaves(state.gradient),
+    }
+    meta = {
+        "config": config.to_dict(),
+        "step": state.step,
+        "scale": state.scale,
+        "loss": state.loss,
+        "aux": {k: float(v) for k, v in state.aux.items()},
+        "history": state.history,
+        "events": state.events,
+    }
+    arrays = {f"{group}_{i}": np.asarray(leaf) for group, values in leaves.items() for i, leaf in enumerate(values)}
+    arrays["meta"] = np.array(json.dumps(meta))
+    write_atomically(path, lambda target: np.savez(target, **arrays))
+
+
+def load_checkpoint(path: Path, params_template, opt_state_template) -> tuple[RunState, TuneConfig]:
+    with np.load(path, allow_pickle=False) as data:
+        meta = json.loads(str(data["meta"]))
+
+        def restore(group, template):
+            leaves = [jnp.asarray(data[f"{group}_{i}"]) for i in range(len(jax.tree.leaves(template)))]
+            return jax.tree.unflatten(jax.tree.structure(template), leaves)
+
+        params = restore("params", params_template)
+        state = RunState(
+            step=meta["step"],
+            scale=meta["scale"],
+            params=params,
+            opt_state=restore("opt_state", opt_state_template),
+            loss=meta["loss"],
+            aux=meta["aux"],
+            gradient=restore("gradient", params_template),
+            history=meta["history"],
+            events=meta["events"],
+        )
+    return state, TuneConfig.from_dict(meta["config"])
+
+
+class StopRequest:
+    """SIGINT/SIGTERM set a flag that the loop checks after each step; a second signal
+    interrupts at once (the last checkpoint is complete either way)."""
+
+    def __init__(self):
+        self.requested = False
+        self._previous = {}
+
+    def __enter__(self):
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print(f"\n{signal.Signals(signum).name} received: stopping after this step (send again to stop now)", file=sys.stderr, flush=True)
+
+    def __exit__(self, *exc):
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        return False
+
+
+def history_row(step: int, loss: float, aux: dict, gradient, step_size: float, rejected: int, seconds: float) -> dict:
+    flat, _ = ravel_pytree(gradient)
+    return {
+        "step": step,
+        "loss": float(loss),
+        **{name: float(value) for name, value in aux.items()},
+        "gradient_norm": float(jnp.linalg.norm(flat)),
+        "step_size": step_size,
+        "rejected_candidates": rejected,
+        "wall_s": seconds,
+    }
+
+
+def progress_line(state: RunState, total: int, width: int = 24) -> str:
+    done = int(width * state.step / total)
+    aux = state.aux
+    return (
+        f"\r[{'#' * done}{'.' * (width - done)}] step {state.step}/{total} loss {state.loss:.4f} | "
+        f"final pos {1e3 * aux['final_position_m']:.3f} mm | peak torque {aux['peak_torque_smooth']:.3f} "
+        f"(hard {aux['peak_torque_hard']:.3f}, gap {aux['peak_torque_gap']:.3f}) | rms {1e3 * aux['rms_tracking_m']:.2f} mm"
+    )
+
+
+def optimise(
+    value_and_grad,
+    params,
+    config: TuneConfig,
+    *,
+    checkpoint_path: Path | None = None,
+    resume_state: RunState | None = None,
+    write_atomically=None,
+    on_step: Callable[[RunState], None] | None = None,
+    stop: StopRequest | None = None,
+) -> tuple[RunState, str]:
+    """Run (or continue) the optimisation loop. Returns the final state and its status,
+    ``"done"`` or ``"interrupted"``; raises RuntimeError if no step can be taken."""
+    optimizer, schedule = make_optimizer(config)
+    if resume_state is None:
+        start = time.perf_counter()
+        (loss, aux), gradient = value_and_grad(params)
+        if not _is_acceptable(loss, aux, gradient, config.torque_guard_Nm):
+            raise RuntimeError(f"the initial gains already diverge or exceed the torque guard (loss {float(loss)})")
+        state = RunState(0, 1.0, params, optimizer.init(params), float(loss), aux, gradient, [], [])
+        state.history.append(history_row(0, loss, aux, gradient, 0.0, 0, time.perf_counter() - start))
+    else:
+        state = resume_state
+    while state.step < config.steps:
+        if stop is not None and stop.requested:
+            return state, "interrupted"
+        start = time.perf_counter()
+        updates, new_opt_state = optimizer.update(state.gradient, state.opt_state, state.params)
+        rejected = 0
+        while True:
+            candidate = jax.tree.map(lambda p, u: p + state.scale * u, state.params, updates)
+            (loss, aux), gradient = value_and_grad(candidate)
+            if _is_acceptable(loss, aux, gradient, config.torque_guard_Nm):
+                break
+            rejected += 1
+            state.events.append(
+                {"step": state.step + 1, "event": "rejected", "loss": float(loss), "peak_torque_Nm": float(aux["peak_torque_Nm"]), "new_scale": state.scale / 2}
+            )
+            state.scale /= 2.0
+            if state.scale < 1e-6:
+                raise RuntimeError("every candidate step diverges even at 1e-6 of the step size")
+        step_size = float(schedule(state.step)) * state.scale
+        state = dataclasses.replace(
+            state, step=state.step + 1, params=candidate, opt_state=new_opt_state, loss=float(loss), aux=aux, gradient=gradient
+        )
+        state.history.append(history_row(state.step, loss, aux, gradient, step_size, rejected, time.perf_counter() - start))
+        if checkpoint_path is not None:
+            save_checkpoint(checkpoint_path, state, config, write_atomically)
+        if on_step is not None:
+            on_step(state)
+    return state, "done"
+
+
+def setup(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torque_scale_Nm):
+    """Objective, initial parameters, mask and the jitted loss gradient for a run."""
+    objective = Objective(weights=config.weights, torque_scale_Nm=tuple(float(x) for x in torque_scale_Nm), temperature=config.temperature)
+    mask = make_mask(base, config.controller, config.frozen)
+    params = initial_params(base, config.controller)
+    scenarios = training_scenarios(nominal, config)
+    segment = checkpoint_segment(nominal.n_steps) if config.gradient == "reverse" else None
+    loss = make_loss(robot, scenarios, base, mask, config, objective, segment)
+    return objective, mask, params, make_value_and_grad(loss, params, config.gradient)
