@@ -188,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--out", required=True, help="output folder (also holds the checkpoint)")
     tune.add_argument("--controller", choices=CONTROLLERS, default="admittance")
     tune.add_argument("--steps", type=int, default=60, help="optimiser steps (default 60)")
-    tune.add_argument("--lr", type=float, default=0.05, help="initial step size in log-gain space (default 0.05)")
+    tune.add_argument("--lr", type=float, default=0.15, help="initial step size in log-gain space (default 0.15)")
     tune.add_argument("--weights", default="", help="objective weights, e.g. final_position=1,peak_torque=4 (see README)")
     tune.add_argument("--batch", type=int, default=1, help="scenarios per step: nominal + batch-1 perturbed (default 1)")
     tune.add_argument("--cvar", type=float, default=None, help="optimise CVaR at this level over the batch instead of the mean")

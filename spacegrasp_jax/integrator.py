@@ -58,7 +58,11 @@ def free_floating_derivative(robot: Robot, state: PlantState, Q: jax.Array) -> P
     """Time derivative of ``state`` under the generalised force ``Q`` (13,)
     ``[f_s, tau_s, u]`` (inertial frame, N and N m); returned as a :class:`PlantState`
     whose fields hold the rates."""
-    xdd = forward_dynamics(robot, state.R_base, state.q, state.V_base, state.qd, Q)
+    return state_rate(state, forward_dynamics(robot, state.R_base, state.q, state.V_base, state.qd, Q))
+
+
+def state_rate(state: PlantState, xdd: jax.Array) -> PlantState:
+    """The rate of ``state`` given its generalised acceleration ``xdd`` (13,)."""
     return PlantState(
         p_base=state.V_base[:3],
         quat_base=spatial.quat_derivative(state.quat_base, state.V_base[3:]),

@@ -34,7 +34,7 @@ from spacegrasp_jax.dynamics import (
     mass_matrix_from_frames,
     solve_dynamics,
 )
-from spacegrasp_jax.integrator import PlantState, rk4_step
+from spacegrasp_jax.integrator import PlantState, rk4_step, state_rate
 from spacegrasp_jax.kinematics import point_jacobian
 from spacegrasp_jax.model import N_JOINTS, Robot
 from spacegrasp_jax.scenario import Scenario
@@ -119,14 +119,7 @@ def plant_derivative(robot: Robot, scenario: Scenario, state: PlantState, u: jax
     J_ee = point_jacobian(frames, jnp.zeros(3, dtype=u.dtype), frames.p_ee, N_JOINTS)
     Q = J_ee[:3].T @ force + jnp.concatenate([jnp.zeros(6, dtype=u.dtype), u])
     M = mass_matrix_from_frames(robot, frames)
-    xdd = solve_dynamics(M, bias_from_frames(robot, frames, state.V_base, state.qd), Q)
-    return PlantState(
-        p_base=state.V_base[:3],
-        quat_base=spatial.quat_derivative(state.quat_base, state.V_base[3:]),
-        q=state.qd,
-        V_base=xdd[:6],
-        qd=xdd[6:],
-    )
+    return state_rate(state, solve_dynamics(M, bias_from_frames(robot, frames, state.V_base, state.qd), Q))
 
 
 def initial_state(scenario: Scenario) -> SimState:

@@ -4,7 +4,6 @@ divergence guard, and resume after an interruption (a real SIGINT to a subproces
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 import math
 import os
@@ -76,14 +75,16 @@ def test_parameters_round_trip_and_mask(gains):
 def test_objective_parts_on_a_synthetic_log(full_runs):
     log = full_runs["admittance"].log
     scale = tuple(np.max(np.abs(log.u), axis=0))
-    parts = objective_parts(log, Objective(weights=Weights(), torque_scale_Nm=scale))
+    weights = Weights(final_position=1.0, final_orientation=0.1, rms_tracking=0.1, peak_torque=10.0, contact_force=0.5)
+    parts = objective_parts(log, Objective(weights=weights, torque_scale_Nm=scale))
     assert float(parts["peak_torque_hard"]) == pytest.approx(1.0)  # the log's own peaks
     assert 0.0 <= float(parts["peak_torque_gap"]) <= 0.02 * math.log(log.u.size)
     expected = (
         float(parts["final_position_m"]) / 1e-3
         + 0.1 * float(parts["final_orientation_rad"]) / 1e-2
         + 0.1 * float(parts["rms_tracking_m"]) / 1e-2
-        + float(parts["peak_torque_smooth"])
+        + 10.0 * float(parts["peak_torque_smooth"])
+        + 0.5 * float(parts["peak_contact_smooth_N"]) / 10.0
     )
     assert float(parts["loss"]) == pytest.approx(expected, rel=1e-12)
 
@@ -123,8 +124,9 @@ def test_gradient_of_each_gain_group_matches_central_differences(short_problem, 
         assert abs(analytic - numeric) <= 1e-4 * abs(numeric) + 1e-9, (group, analytic, numeric)
 
 
-def test_forward_mode_gradient_equals_reverse_mode(short_problem):
-    loss, params = short_problem("cartesian", segment=None)
+def test_forward_mode_gradient_equals_reverse_mode(robot, short_problem):
+    scenario = paper_scenario(robot, contact_law="smooth", duration=0.25, move_duration=1.0)
+    loss, params = short_problem("cartesian", scenario, segment=None)
     (_, _), reverse = make_value_and_grad(loss, params, "reverse")(params)
     (_, _), forward = make_value_and_grad(loss, params, "forward")(params)
     for group in params:
@@ -169,6 +171,12 @@ def test_divergence_guard_rejects_and_shrinks_the_step(short_problem):
 # ---- the spacegrasp tune command: files, and resume after SIGINT ---------------------------
 
 
+def tune_environment(tmp_path):
+    """The tune subprocesses share JAX's persistent compilation cache: the first run
+    compiles, the interrupted and resumed runs reuse its executables."""
+    return {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache"), "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+
+
 def tune_command(tmp_path, out, *extra):
     scenario = tmp_path / "short.toml"
     scenario.write_text("duration = 1.0\n[trajectory]\nduration = 1.0\n")
@@ -176,9 +184,9 @@ def tune_command(tmp_path, out, *extra):
             "--steps", "5", "--holdout", "3", "--batch", "2", *extra]
 
 
-def run_until_step(command, history, step, timeout=600):
+def run_until_step(command, history, step, env, timeout=600):
     """Start ``command``, send SIGINT once ``history`` shows ``step`` completed steps."""
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.time() + timeout
     while time.time() < deadline and process.poll() is None:
         if history.exists() and len(history.read_text().splitlines()) >= step + 2:  # header + step 0
@@ -193,7 +201,7 @@ def run_until_step(command, history, step, timeout=600):
 def uninterrupted(tmp_path_factory):
     tmp_path = tmp_path_factory.mktemp("tune")
     out = tmp_path / "full"
-    result = subprocess.run(tune_command(tmp_path, out), capture_output=True, text=True, timeout=900)
+    result = subprocess.run(tune_command(tmp_path, out), capture_output=True, text=True, timeout=900, env=tune_environment(tmp_path))
     assert result.returncode == 0, result.stderr
     return tmp_path, out, result
 
@@ -218,12 +226,13 @@ def test_tune_writes_every_file(uninterrupted):
 def test_interrupted_run_resumes_to_the_same_result(uninterrupted):
     tmp_path, full, _ = uninterrupted
     out = tmp_path / "interrupted"
-    code, err = run_until_step(tune_command(tmp_path, out), out / "history.csv", step=2)
+    code, err = run_until_step(tune_command(tmp_path, out), out / "history.csv", step=2, env=tune_environment(tmp_path))
     assert code == 130, err
     assert "--resume" in err
     steps_done = len((out / "history.csv").read_text().splitlines()) - 2
     assert 2 <= steps_done < 5
-    result = subprocess.run([sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--resume"], capture_output=True, text=True, timeout=900)
+    resume = [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--resume"]
+    result = subprocess.run(resume, capture_output=True, text=True, timeout=900, env=tune_environment(tmp_path))
     assert result.returncode == 0, result.stderr
     assert f"resuming after step {steps_done}/5" in result.stderr
     assert json.loads((out / "gains.json").read_text()) == json.loads((full / "gains.json").read_text())

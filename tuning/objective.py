@@ -34,7 +34,7 @@ class Weights:
     final_position: float = 1.0
     final_orientation: float = 0.1
     rms_tracking: float = 0.1
-    peak_torque: float = 1.0
+    peak_torque: float = 10.0
     contact_force: float = 0.0
 
     @classmethod

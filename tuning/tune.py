@@ -44,7 +44,7 @@ class TuneConfig:
     Attributes:
         controller: ``"admittance"`` or ``"cartesian"``.
         steps: optimiser steps.
-        learning_rate: initial step size in log-gain space (0.05 = 5% per step at most,
+        learning_rate: initial step size in log-gain space (0.15: about 15% per step at most,
             before Adam's normalisation), decayed by a cosine schedule to a tenth.
         optimizer: any optax optimiser taking a learning rate (``adam``, ``sgd``, ...).
         clip_norm: global-norm clipping of the gradient.
@@ -62,7 +62,7 @@ class TuneConfig:
 
     controller: str = "admittance"
     steps: int = 60
-    learning_rate: float = 0.05
+    learning_rate: float = 0.15
     optimizer: str = "adam"
     clip_norm: float = 1.0
     weights: Weights = Weights()
