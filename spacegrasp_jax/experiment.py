@@ -102,6 +102,9 @@ def write_atomically(path: Path, write) -> None:
     os.close(descriptor)
     try:
         write(Path(temporary))
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(temporary, 0o666 & ~umask)  # mkstemp makes 0600; results are ordinary files
         os.replace(temporary, path)
     finally:
         if os.path.exists(temporary):

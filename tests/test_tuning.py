@@ -220,6 +220,8 @@ def test_tune_writes_every_file(uninterrupted):
     for key in ("paper_gains", "tuned_gains"):
         assert {"max_abs_torque_Nm", "final_position_error_m", "final_orientation_error_rad", "rms_position_error_m", "max_contact_force_N"} <= set(summary[key])
     assert summary["holdout"]["scenarios"] == 3
+    with np.load(out / "holdout.npz") as samples:
+        assert samples["start_loss"].shape == (3,) and samples["tuned_final_position_m"].shape == (3,)
     assert summary["evaluated_with"].startswith("exact contact law")
 
 

@@ -7,7 +7,8 @@ Files in ``--out`` (all written atomically):
 * ``history.csv`` - one row per step: loss, every part, gradient norm, step size, rejections.
 * ``gains.json`` - the tuned gains (``spacegrasp simulate --gains gains.json``).
 * ``summary.json`` - starting vs tuned gains on the nominal scenario with the EXACT contact
-  law, and their mean objective over held-out perturbed scenarios.
+  law, and their mean and median objective over held-out perturbed scenarios;
+  ``holdout.npz`` - every part of the objective for each held-out sample, both gain sets.
 * ``loss.png``, ``peak_torques.png``, ``ee_pose.png`` - loss curve, per-joint peak torque and
   EE pose before/after.
 """
@@ -229,14 +230,24 @@ def tune(
             "contact_law": "exact",
             "mean_objective_start": float(np.nanmean(before_parts["loss"])),
             "mean_objective_tuned": float(np.nanmean(after_parts["loss"])),
+            "median_objective_start": float(np.nanmedian(before_parts["loss"])),
+            "median_objective_tuned": float(np.nanmedian(after_parts["loss"])),
             "tuned_better_fraction": float(np.mean(after_parts["loss"] < before_parts["loss"])),
             "mean_largest_peak_torque_Nm_start": float(np.nanmean(before_parts["peak_torque_Nm"])),
             "mean_largest_peak_torque_Nm_tuned": float(np.nanmean(after_parts["peak_torque_Nm"])),
+            "median_largest_peak_torque_Nm_start": float(np.nanmedian(before_parts["peak_torque_Nm"])),
+            "median_largest_peak_torque_Nm_tuned": float(np.nanmedian(after_parts["peak_torque_Nm"])),
             "mean_final_position_error_m_start": float(np.nanmean(before_parts["final_position_m"])),
             "mean_final_position_error_m_tuned": float(np.nanmean(after_parts["final_position_m"])),
+            "median_final_position_error_m_start": float(np.nanmedian(before_parts["final_position_m"])),
+            "median_final_position_error_m_tuned": float(np.nanmedian(after_parts["final_position_m"])),
             "diverged_start": int(np.sum(~np.isfinite(before_parts["loss"]))),
             "diverged_tuned": int(np.sum(~np.isfinite(after_parts["loss"]))),
+            "per_sample": "holdout.npz",
         }
+        samples = {f"start_{name}": value for name, value in before_parts.items()}
+        samples.update({f"tuned_{name}": value for name, value in after_parts.items()})
+        experiment.write_atomically(out / "holdout.npz", lambda target: np.savez_compressed(target, **samples))
     experiment.write_json(out / "summary.json", summary)
     plots.save_tuning_figures(state.history, before.log, after.log, out, experiment.write_atomically)
     print(f"wrote {out}/: gains.json, history.csv, summary.json, loss.png, peak_torques.png, ee_pose.png", file=progress)
