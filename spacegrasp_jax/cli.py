@@ -14,6 +14,9 @@ import spacegrasp_jax as sg
 from spacegrasp_jax import experiment, plots, spatial
 from spacegrasp_jax.control import CONTROLLERS, GainsError, load_gains, paper_gains
 from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
+from tuning.objective import Weights
+from tuning.run import TuneSetupError, tune
+from tuning.tune import TuneConfig
 
 #: Table 5 of the paper: maximal absolute joint torques (N m).
 PAPER_MAX_TORQUE_NM = {
@@ -119,14 +122,10 @@ class UsageError(ValueError):
 
 
 def _tune(args: argparse.Namespace) -> int:
-    from tuning.objective import Weights
-    from tuning.run import TuneSetupError, tune
-    from tuning.tune import TuneConfig
-
     try:
         if args.resume:
             return tune(Path(args.out), resume=True)
-        config = _tune_config(args, TuneConfig, Weights)
+        config = _tune_config(args)
     except (TuneSetupError, ValueError) as error:
         raise UsageError(str(error)) from None
     for path in (args.gains, args.scenario, args.robot):  # fail on bad files before compiling
@@ -143,7 +142,8 @@ def _tune(args: argparse.Namespace) -> int:
         raise UsageError(str(error)) from None
 
 
-def _tune_config(args, TuneConfig, Weights):
+def _tune_config(args: argparse.Namespace) -> TuneConfig:
+    """The tuning options of the command line (validated by TuneConfig and Weights)."""
     return TuneConfig(
         controller=args.controller,
         steps=args.steps,
