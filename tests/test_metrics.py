@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import jax
 import jax.numpy as jnp
 import numpy as np
-from types import SimpleNamespace
 
 from spacegrasp_jax import metrics
 
