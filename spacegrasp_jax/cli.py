@@ -190,7 +190,7 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--steps", type=int, default=60, help="optimiser steps (default 60)")
     tune.add_argument("--lr", type=float, default=0.15, help="initial step size in log-gain space (default 0.15)")
     tune.add_argument("--weights", default="", help="objective weights, e.g. final_position=1,peak_torque=4 (see README)")
-    tune.add_argument("--batch", type=int, default=1, help="scenarios per step: nominal + batch-1 perturbed (default 1)")
+    tune.add_argument("--batch", type=int, default=4, help="scenarios per step: nominal + batch-1 perturbed (default 4)")
     tune.add_argument("--cvar", type=float, default=None, help="optimise CVaR at this level over the batch instead of the mean")
     tune.add_argument("--seed", type=int, default=0, help="seed of the perturbed scenarios")
     tune.add_argument("--optimizer", default="adam", help="any optax optimiser taking a learning rate (default adam)")

@@ -95,7 +95,7 @@ def short_problem(robot, gains, full_runs):
 
     def build(controller, scenario=None, segment=25):
         scenario = scenario or paper_scenario(robot, contact_law="smooth", **SHORT)
-        config = TuneConfig(controller=controller)
+        config = TuneConfig(controller=controller, batch=1)  # the nominal scenario alone
         scale = tuple(float(x) for x in full_runs[controller].summary["max_abs_torque_Nm"])
         objective = Objective(weights=Weights(contact_force=0.1), torque_scale_Nm=scale)
         mask = make_mask(gains, controller)

@@ -67,7 +67,7 @@ class TuneConfig:
     clip_norm: float = 1.0
     weights: Weights = Weights()
     temperature: float = 0.02
-    batch: int = 1
+    batch: int = 4
     cvar_alpha: float | None = None
     seed: int = 0
     frozen: tuple[str, ...] = ()
