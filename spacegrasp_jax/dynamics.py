@@ -38,10 +38,6 @@ def frames_at_base(robot: Robot, R_base, q):
     return forward_kinematics(robot, jnp.zeros(3, dtype=R_base.dtype), R_base, q)
 
 
-def _origin_frames(robot: Robot, R_base, q):
-    return jnp.zeros(3, dtype=R_base.dtype), frames_at_base(robot, R_base, q)
-
-
 def _spatial_inertias(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Spatial inertias of the 8 bodies (satellite first) about the satellite CoM, which
     ``frames`` places at the origin: mass (8,), first moment ``m c`` (8, 3) and rotational
@@ -132,7 +128,7 @@ def mass_matrix(robot: Robot, R_base: jax.Array, q: jax.Array) -> jax.Array:
     Args:
         R_base: (3, 3) satellite attitude, satellite to inertial. q: (7,) rad.
     """
-    _, frames = _origin_frames(robot, R_base, q)
+    frames = frames_at_base(robot, R_base, q)
     return mass_matrix_from_frames(robot, frames)
 
 
@@ -144,14 +140,14 @@ def bias_forces(robot: Robot, R_base, q, V_base, qd) -> jax.Array:
         R_base: (3, 3) satellite to inertial. q: (7,) rad.
         V_base: (6,) ``[v_s (m/s), w_s (rad/s)]`` in the inertial frame. qd: (7,) rad/s.
     """
-    _, frames = _origin_frames(robot, R_base, q)
+    frames = frames_at_base(robot, R_base, q)
     return bias_from_frames(robot, frames, V_base, qd)
 
 
 def mass_matrix_and_bias(robot: Robot, R_base, q, V_base, qd) -> tuple[jax.Array, jax.Array]:
     """``(M (13, 13), bias (13,))`` sharing one kinematics pass; arguments as
     :func:`bias_forces`."""
-    _, frames = _origin_frames(robot, R_base, q)
+    frames = frames_at_base(robot, R_base, q)
     return mass_matrix_from_frames(robot, frames), bias_from_frames(robot, frames, V_base, qd)
 
 
@@ -226,8 +222,11 @@ def dynamic_jacobian(robot: Robot, R_base, q) -> jax.Array:
     Args:
         R_base: (3, 3) satellite to inertial. q: (7,) rad.
     """
-    p_base, frames = _origin_frames(robot, R_base, q)
-    J_ee = point_jacobian(frames, p_base, frames.p_ee, N_JOINTS)
+    return _dynamic_jacobian_at(robot, frames_at_base(robot, R_base, q))
+
+
+def _dynamic_jacobian_at(robot: Robot, frames) -> jax.Array:
+    J_ee = point_jacobian(frames, jnp.zeros(3, dtype=frames.p_ee.dtype), frames.p_ee, N_JOINTS)
     return dynamic_jacobian_from(mass_matrix_from_frames(robot, frames), J_ee)
 
 
@@ -242,9 +241,9 @@ def dynamic_jacobian_from(M: jax.Array, J_ee: jax.Array) -> jax.Array:
 def dynamic_jacobian_ee(robot: Robot, R_base, q) -> jax.Array:
     """``J_dyn^(EE)`` (6, 7): the Dynamic Jacobian mapping ``qd`` to the EE twist expressed
     in the EE frame (used by eqs 17 and 21). Arguments as :func:`dynamic_jacobian`."""
-    _, frames = _origin_frames(robot, R_base, q)
+    frames = frames_at_base(robot, R_base, q)
     R_ee_T = frames.R_ee.T
-    J_dyn = dynamic_jacobian(robot, R_base, q)
+    J_dyn = _dynamic_jacobian_at(robot, frames)
     return jnp.concatenate([R_ee_T @ J_dyn[:3], R_ee_T @ J_dyn[3:]])
 
 

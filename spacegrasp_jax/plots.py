@@ -47,7 +47,7 @@ def _finish(fig, axes, ylabels):
     return fig
 
 
-def _plot_columns(fig, axes, logs, series, columns, desired=None):
+def _plot_columns(axes, logs, series, columns, desired=None):
     for name, log in logs.items():
         for ax, column in zip(axes.flat, columns):
             plot_series(ax, log.t, series(log)[:, column], name)
@@ -62,7 +62,7 @@ def figure_ee_pose(logs, title: str = "Fig. 4  End-effector position and orienta
     fig, axes = _grid(3, 2, title)
     scale = np.array([1e3, 1e3, 1e3, np.degrees(1), np.degrees(1), np.degrees(1)])
     order = [0, 3, 1, 4, 2, 5]  # left column positions, right column angles
-    _plot_columns(fig, axes, logs, lambda log: log.pose_ee * scale, order, desired=lambda log: log.pose_des * scale)
+    _plot_columns(axes, logs, lambda log: log.pose_ee * scale, order, desired=lambda log: log.pose_des * scale)
     labels = ["x [mm]", "roll [deg]", "y [mm]", "pitch [deg]", "z [mm]", "yaw [deg]"]
     return _finish(fig, axes, labels)
 
@@ -70,7 +70,7 @@ def figure_ee_pose(logs, title: str = "Fig. 4  End-effector position and orienta
 def figure_contact_force(logs):
     """Figure 5: the contact model's force on the EE, LAR axes, and its magnitude."""
     fig, axes = _grid(2, 2, "Fig. 5  External forces from the contact model (LAR axes)")
-    _plot_columns(fig, axes, logs, lambda log: np.column_stack([log.contact_force, np.linalg.norm(log.contact_force, axis=1)]), range(4))
+    _plot_columns(axes, logs, lambda log: np.column_stack([log.contact_force, np.linalg.norm(log.contact_force, axis=1)]), range(4))
     return _finish(fig, axes, ["F_x [N]", "F_y [N]", "F_z [N]", "|F| [N]"])
 
 
@@ -78,7 +78,7 @@ def figure_momentum(logs):
     """Figure 6: resultant linear and angular momentum of the whole system."""
     fig, axes = _grid(1, 2, "Fig. 6  Momentum and angular momentum of the satellite-manipulator system", height=3.0)
     norms = lambda log: np.column_stack([np.linalg.norm(log.momentum[:, :3], axis=1), np.linalg.norm(log.momentum[:, 3:], axis=1)])  # noqa: E731
-    _plot_columns(fig, axes, logs, norms, range(2))
+    _plot_columns(axes, logs, norms, range(2))
     return _finish(fig, axes, ["|P| [N s]", "|L| (about the inertial origin) [N m s]"])
 
 
@@ -86,14 +86,14 @@ def figure_base_velocity(logs):
     """Figure 7: resultant linear and angular velocity of the servicing satellite."""
     fig, axes = _grid(1, 2, "Fig. 7  Servicing satellite velocities", height=3.0)
     norms = lambda log: np.column_stack([1e3 * np.linalg.norm(log.V_base[:, :3], axis=1), np.degrees(np.linalg.norm(log.V_base[:, 3:], axis=1))])  # noqa: E731
-    _plot_columns(fig, axes, logs, norms, range(2))
+    _plot_columns(axes, logs, norms, range(2))
     return _finish(fig, axes, ["|v_s| [mm/s]", "|w_s| [deg/s]"])
 
 
 def figure_joint_torques(logs):
     """Figure 8: joint torques of the seven joints."""
     fig, axes = _grid(4, 2, "Fig. 8  Joint torques", height=2.0)
-    _plot_columns(fig, axes, logs, lambda log: log.u, range(7))
+    _plot_columns(axes, logs, lambda log: log.u, range(7))
     axes.flat[7].set_visible(False)
     axes.flat[5].xaxis.set_tick_params(labelbottom=True)
     axes.flat[5].set_xlabel("time [s]")
@@ -104,7 +104,7 @@ def figure_sensor_loads(logs):
     """Figure 9: loads measured by the F/T sensor between link 7 and the EE (sensor axes)."""
     fig, axes = _grid(3, 2, "Fig. 9  Loads measured between the seventh link and the end-effector")
     both = lambda log: np.column_stack([log.fts_force, log.fts_torque])  # noqa: E731
-    _plot_columns(fig, axes, logs, both, [0, 3, 1, 4, 2, 5])
+    _plot_columns(axes, logs, both, [0, 3, 1, 4, 2, 5])
     return _finish(fig, axes, ["f_x [N]", "n_x [N m]", "f_y [N]", "n_y [N m]", "f_z [N]", "n_z [N m]"])
 
 

@@ -15,6 +15,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from spacegrasp_jax import spatial
 from spacegrasp_jax.contact import (
@@ -234,8 +235,6 @@ def rollout(
 
 def first_nonfinite_time(log: Log):
     """Time (s) of the first log row holding a non-finite value, or ``None`` (host side)."""
-    import numpy as np
-
     bad = np.zeros(np.shape(log.t), dtype=bool)
     for name, series in vars(log).items():
         if name != "t":

@@ -133,7 +133,7 @@ def test_forward_mode_gradient_equals_reverse_mode(robot, short_problem):
         np.testing.assert_allclose(forward[group], reverse[group], rtol=1e-8, atol=1e-12)
 
 
-def test_gradient_finite_when_the_ee_passes_through_the_sphere_centre(robot, short_problem):
+def test_gradient_finite_when_the_ee_passes_through_the_sphere_centre(robot, gains, short_problem):
     """With a tiny stiffness the EE follows the desired path straight through the sphere's
     centre (it starts 65 mm below it and reaches it at about 6 s): no NaN or inf, although
     the contact force, far outside the sphere, underflows to exactly zero."""
@@ -142,16 +142,9 @@ def test_gradient_finite_when_the_ee_passes_through_the_sphere_centre(robot, sho
     (value, aux), gradient = make_value_and_grad(loss, params, "reverse")(params)
     assert np.isfinite(float(value))
     assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(gradient))
-    _, log = jax.jit(rollout, static_argnums=3)(robot, scenario, gains_from_params(params, *_base_and_mask(params)), "admittance")
+    _, log = jax.jit(rollout, static_argnums=3)(robot, scenario, gains_from_params(params, gains, make_mask(gains, "admittance")), "admittance")
     distance = np.linalg.norm(np.asarray(log.pose_ee[:, :3]) - np.asarray(scenario.sphere_centre), axis=1)
     assert distance.min() < 1e-3  # within a millimetre of the centre
-
-
-def _base_and_mask(params):
-    from spacegrasp_jax.control import paper_gains
-
-    base = paper_gains()
-    return base, make_mask(base, "admittance")
 
 
 def test_divergence_guard_rejects_and_shrinks_the_step(short_problem):

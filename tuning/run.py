@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import io
 import json
 import sys
@@ -88,26 +89,28 @@ def new_record(config: TuneConfig, gains_file, scenario_file, robot_file, holdou
     }
 
 
+@functools.partial(jax.jit, static_argnames=("controller", "objective"))
+def _batch_parts(robot, batch, gains, controller: str, objective: Objective):
+    def one(scenario):
+        _, log = rollout(robot, scenario, gains, controller)
+        parts = objective_parts(log, objective)
+        parts["peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
+        return parts
+
+    return jax.vmap(one)(batch)
+
+
 def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chunk: int = 10) -> dict[str, np.ndarray]:
     """Objective parts for each scenario of a batch (exact or smooth per the scenarios),
-    by vmapped rollouts in chunks of ``chunk``; NaN marks a diverged sample."""
+    by vmapped rollouts in chunks of ``chunk``; NaN marks a diverged sample. The gains are
+    an argument of the compiled function, so evaluating another gain set reuses it."""
     count = int(np.shape(scenarios.contact_stiffness)[0])
-
-    @jax.jit
-    def parts_of(batch):
-        def one(scenario):
-            _, log = rollout(robot, scenario, gains, controller)
-            parts = objective_parts(log, objective)
-            parts["peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
-            return parts
-
-        return jax.vmap(one)(batch)
 
     results = []
     for start in range(0, count, chunk):
         indices = np.arange(start, start + chunk) % count  # pad the last chunk: one compile
         batch = jax.tree.map(lambda leaf: leaf[indices], scenarios)
-        parts = jax.tree.map(np.asarray, parts_of(batch))
+        parts = jax.tree.map(np.asarray, _batch_parts(robot, batch, gains, controller, objective))
         keep = min(chunk, count - start)
         results.append({name: value[:keep] for name, value in parts.items()})
     return {name: np.concatenate([r[name] for r in results]) for name in results[0]}
