@@ -24,10 +24,10 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg
 
 from spacegrasp_jax import spatial
 from spacegrasp_jax.kinematics import N_DOF, body_com_positions, forward_kinematics, point_jacobian
+from spacegrasp_jax.linalg import solve_spd
 from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
 
 
@@ -168,7 +168,7 @@ def forward_dynamics(robot: Robot, R_base, q, V_base, qd, Q) -> jax.Array:
 
 def solve_dynamics(M: jax.Array, bias: jax.Array, Q: jax.Array) -> jax.Array:
     """``M^-1 (Q - bias)`` (13,) by Cholesky."""
-    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(M), Q - bias)
+    return solve_spd(M, Q - bias)
 
 
 def kinetic_energy(robot: Robot, R_base, q, V_base, qd) -> jax.Array:
@@ -234,7 +234,7 @@ def dynamic_jacobian_from(M: jax.Array, J_ee: jax.Array) -> jax.Array:
     """``J_dyn`` (6, 7) from the mass matrix ``M`` (13, 13) and the EE point Jacobian
     ``J_ee = [J_s J_m]`` (6, 13), both at the same state."""
     # Zero momentum about the satellite CoM (rows 0-5 of M) is the constraint of eq 6.
-    base_velocity_per_qd = -jnp.linalg.solve(M[:6, :6], M[:6, 6:])  # (6, 7)
+    base_velocity_per_qd = -solve_spd(M[:6, :6], M[:6, 6:])  # (6, 7)
     return J_ee[:, 6:] + J_ee[:, :6] @ base_velocity_per_qd
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from spacegrasp_jax.linalg import solve_spd
+
 
 def pseudoinverse_apply(J: jax.Array, twist: jax.Array, damping=0.0) -> jax.Array:
     """``J^T (J J^T + damping^2 1)^-1 twist`` (7,) for ``J`` (6, 7) and ``twist`` (6,).
@@ -15,4 +17,4 @@ def pseudoinverse_apply(J: jax.Array, twist: jax.Array, damping=0.0) -> jax.Arra
     inverse, which stays bounded near singular configurations.
     """
     gram = J @ J.T + damping**2 * jnp.eye(J.shape[0], dtype=J.dtype)
-    return J.T @ jax.scipy.linalg.solve(gram, twist, assume_a="pos")
+    return J.T @ solve_spd(gram, twist)
