@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import math
+import shlex
 import sys
 from pathlib import Path
 
@@ -11,8 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import experiment, plots, spatial
+from spacegrasp_jax import campaign, experiment, plots, spatial
 from spacegrasp_jax.control import CONTROLLERS, GainsError, load_gains, paper_gains
+from spacegrasp_jax.perturbations import PerturbationError, PerturbationRanges, load_ranges
 from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
 from tuning.objective import Weights
 from tuning.run import TuneSetupError, tune
@@ -159,6 +162,94 @@ def _tune_config(args: argparse.Namespace) -> TuneConfig:
     )
 
 
+def _montecarlo_ranges(args: argparse.Namespace) -> PerturbationRanges:
+    """The campaign defaults, then ``--ranges FILE``, then each ``--range NAME=VALUE``."""
+    ranges = load_ranges(args.ranges) if args.ranges else PerturbationRanges()
+    overrides = {}
+    for item in args.range:
+        name, separator, value = item.partition("=")
+        if not separator:
+            raise UsageError(f"--range {item!r}: expected NAME=VALUE, e.g. q_init_rad=0.05")
+        try:
+            overrides[name.strip()] = float(value)
+        except ValueError:
+            raise UsageError(f"--range {item!r}: {value!r} is not a number") from None
+    return PerturbationRanges.from_mapping(overrides, base=ranges)
+
+
+def _montecarlo_variants(args: argparse.Namespace) -> list[campaign.Variant]:
+    """The paper's gains for each selected controller, plus each ``--gains`` file."""
+    controllers = CONTROLLERS if args.controller == "both" else (args.controller,)
+    gain_sets = [("paper", paper_gains())]
+    for path in args.gains:
+        label = Path(path).stem
+        if label in {existing for existing, _ in gain_sets}:
+            raise UsageError(f"--gains {path}: two gain sets would both be called {label!r}; rename one file")
+        gain_sets.append((label, load_gains(path)))
+    return [campaign.Variant(controller, gains, label) for controller in controllers for label, gains in gain_sets]
+
+
+def _montecarlo(args: argparse.Namespace) -> int:
+    if args.distributed:  # before anything touches a device
+        jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+    try:
+        ranges = _montecarlo_ranges(args)
+        variants = _montecarlo_variants(args)
+        if args.n < 1:
+            raise UsageError(f"--n: must be at least 1, got {args.n}")
+        devices = jax.device_count()
+        chunk = min(args.chunk, devices * math.ceil(args.n / devices))  # no padding beyond n
+        config = campaign.CampaignConfig(
+            n=args.n,
+            seed=args.seed,
+            chunk=chunk,
+            ranges=ranges,
+            position_tolerance_m=args.tolerance_mm * 1e-3,
+            orientation_tolerance_rad=math.radians(args.tolerance_deg),
+            timeseries_every=args.timeseries_every,
+            pinv_damping=args.pinv_damping,
+        )
+    except (PerturbationError, campaign.CampaignError) as error:
+        raise UsageError(str(error)) from None
+    robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
+    scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
+    out = Path(args.out)
+    names = ", ".join(variant.key for variant in variants)
+    print(f"Monte-Carlo: {args.n} samples x {len(variants)} variant(s) ({names}), {scenario.duration:g} s each, "
+          f"chunks of {chunk} over {devices} device(s) in {jax.process_count()} process(es)", file=sys.stderr, flush=True)
+    try:
+        with experiment.StopRequest("chunk") as stop:
+            result = campaign.run_campaign(robot, scenario, variants, config, out, resume=args.resume, robot_source=args.robot or "paper_robot()", stop=stop)
+    except campaign.CampaignError as error:
+        raise UsageError(str(error)) from None
+    if result.status == "interrupted":
+        print(f"interrupted; finished chunks are in {out}/chunks. Continue with: spacegrasp montecarlo {shlex.join(sys.argv[2:]) if sys.argv[1:2] == ['montecarlo'] else '...'} --resume", file=sys.stderr)
+        return 130
+    _print_campaign(result)
+    if jax.process_index() == 0:
+        print(f"wrote {out}/: samples.npz, summary.json, histograms.png, torque_vs_error.png" + (", timeseries_*.npz" if config.timeseries_every else ""))
+    return 0
+
+
+def _print_campaign(result: campaign.CampaignResult) -> None:
+    header = f"{'variant':24} {'success':>8} {'diverged':>8} {'final pos p50/p95 [mm]':>23} {'peak |u| p50/p95 [N m]':>23} {'contact p95 [N]':>16}"
+    print(header)
+    for key, summary in result.summary["variants"].items():
+        stats = summary["statistics_over_non_diverged"]
+
+        def pair(name, scale=1.0):
+            s = stats[name]
+            return f"{scale * s['p50']:.3f}/{scale * s['p95']:.3f}" if s.get("count") else "-"
+
+        contact = stats["max_contact_force_N"]
+        print(f"{key:24} {summary['success_rate']:>8.1%} {summary['diverged']:>8d} {pair('final_position_error_m', 1e3):>23} "
+              f"{pair('max_abs_torque_any_joint_Nm'):>23} {contact['p95'] if contact.get('count') else float('nan'):>16.3f}")
+    throughput = result.summary["throughput"]
+    if throughput["rollouts_per_s"]:
+        print(f"throughput: {throughput['rollouts_per_s']:.2f} rollouts/s, {throughput['simulated_s_per_wall_s']:.1f} simulated s per wall s "
+              f"on {throughput['devices']} {throughput['platform']} device(s); compile {throughput['compile_s']:.1f} s")
+
+
 def _add_run_options(parser: argparse.ArgumentParser, default_out: str) -> None:
     parser.add_argument("--out", default=default_out, help=f"output folder (default {default_out})")
     parser.add_argument("--robot", help="robot TOML file (default: the paper's robot)")
@@ -203,6 +294,30 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--robot", help="robot TOML (default: the paper's)")
     tune.add_argument("--resume", action="store_true", help="continue the run in --out from its last completed step")
     tune.set_defaults(run=_tune)
+
+    montecarlo = commands.add_parser("montecarlo", help="robustness campaign over perturbed captures (sharded, resumable)")
+    montecarlo.add_argument("--n", type=int, required=True, help="number of perturbed samples")
+    montecarlo.add_argument("--controller", choices=(*CONTROLLERS, "both"), default="both")
+    montecarlo.add_argument("--gains", action="append", default=[], metavar="FILE",
+                            help="gains JSON to compare with the paper's (repeatable; labelled by file name)")
+    montecarlo.add_argument("--seed", type=int, default=0, help="campaign seed (default 0)")
+    montecarlo.add_argument("--chunk", type=int, default=256, help="samples per compiled call, a multiple of the device count (default 256)")
+    montecarlo.add_argument("--out", default="results/montecarlo", help="output folder (default results/montecarlo)")
+    montecarlo.add_argument("--ranges", help="TOML file of perturbation half-widths (see README)")
+    montecarlo.add_argument("--range", action="append", default=[], metavar="NAME=VALUE", help="override one half-width, e.g. q_init_rad=0.05 (repeatable)")
+    montecarlo.add_argument("--tolerance-mm", type=float, default=5.0, help="success: final position error at most this (default 5 mm)")
+    montecarlo.add_argument("--tolerance-deg", type=float, default=1.0, help="success: final orientation error at most this (default 1 deg)")
+    montecarlo.add_argument("--timeseries-every", type=int, default=None, metavar="K", help="also keep every K-th log row of every sample")
+    montecarlo.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
+    montecarlo.add_argument("--robot", help="robot TOML (default: the paper's)")
+    montecarlo.add_argument("--pinv-damping", type=float, default=0.0, help="damping of the pseudoinverse (0: exact, the paper)")
+    montecarlo.add_argument("--resume", action="store_true", help="continue the campaign in --out chunk by chunk")
+    cluster = montecarlo.add_argument_group("several hosts (jax.distributed; run the same command on every host)")
+    cluster.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize (auto-detects SLURM and similar without the options below)")
+    cluster.add_argument("--coordinator", help="HOST:PORT of process 0")
+    cluster.add_argument("--num-processes", type=int, help="number of processes")
+    cluster.add_argument("--process-id", type=int, help="this process's rank, 0 .. num-processes - 1")
+    montecarlo.set_defaults(run=_montecarlo)
     return parser
 
 
@@ -210,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (sg.RobotConfigError, GainsError, ScenarioError, UsageError) as error:
+    except (sg.RobotConfigError, GainsError, ScenarioError, PerturbationError, UsageError) as error:
         print(f"spacegrasp: error: {error}", file=sys.stderr)
         return 2
     except experiment.SimulationDiverged as error:

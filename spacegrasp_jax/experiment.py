@@ -10,7 +10,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import signal
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -89,6 +91,33 @@ def run(
     summary = metrics.summary(log) if bad_time is None else {"first_nonfinite_s": bad_time}
     summary.update(compile_time_s=compile_time, run_time_s=run_time)
     return RunResult(controller, log, summary, compile_time, run_time)
+
+
+class StopRequest:
+    """Context manager for long runs: SIGINT/SIGTERM set ``requested``, which the loop checks
+    after each unit of work (a tuning step, a Monte-Carlo chunk) before stopping cleanly; a
+    second signal interrupts at once (completed units are on disk either way)."""
+
+    def __init__(self, unit: str = "step"):
+        self.requested = False
+        self.unit = unit
+        self._previous = {}
+
+    def __enter__(self):
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print(f"\n{signal.Signals(signum).name} received: stopping after this {self.unit} (send again to stop now)", file=sys.stderr, flush=True)
+
+    def __exit__(self, *exc):
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        return False
 
 
 # ---- files -------------------------------------------------------------------------------

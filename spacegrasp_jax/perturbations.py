@@ -1,69 +1,208 @@
-"""Seeded perturbations of a scenario, for robust tuning and Monte-Carlo campaigns.
+"""Seeded perturbations of the robot and the scenario, for robust tuning and Monte-Carlo
+campaigns.
 
 Sample ``i`` of a campaign depends only on ``(seed, i)`` (``jax.random.fold_in``), so a
-batch gives the same samples whatever its size or chunking. Every perturbation is uniform:
+batch gives the same samples whatever its size, chunking or device count. Every draw is
+uniform, ``U`` meaning a fresh uniform number in [-1, 1]:
 
-* ``q_init_rad``: each initial joint angle moves by up to +- this much;
-* ``lar_position_m``: the LAR origin moves by up to +- this much along each LAR axis;
-* ``lar_angle_rad``: the LAR frame turns by a rotation vector whose components are up to +-
-  this much (LAR axes);
-* ``stiffness_factor``: the contact stiffness is scaled by ``factor^U(-1, 1)``.
+* ``q_init_rad``: each initial joint angle moves by ``U * q_init_rad``;
+* ``lar_position_m``: the LAR origin moves by ``U * lar_position_m`` along each LAR axis;
+* ``lar_angle_rad``: the LAR frame turns by a rotation vector (LAR axes) with components
+  ``U * lar_angle_rad``;
+* ``stiffness_factor``: the contact stiffness is scaled by ``stiffness_factor ** U``;
+* ``base_speed_mps``, ``base_rate_radps``: each component of the satellite's initial linear
+  (m/s) and angular (rad/s) velocity, inertial frame, is ``U * value`` (nominal: at rest);
+* ``joint_rate_radps``: each initial joint rate is ``U * value`` (nominal: at rest);
+* ``radius_fraction``: the contact sphere radius is scaled by ``1 + U * value``;
+* ``satellite_mass_fraction``: the satellite mass is scaled by ``1 + U * value``;
+* ``satellite_inertia_fraction``: the satellite inertia ``I`` becomes ``D I D`` with
+  ``D = diag(sqrt(1 + U_k * value))`` (satellite axes), which scales each principal moment of
+  a diagonal ``I`` independently and keeps any ``I`` symmetric positive definite.
 
-The LAR frame is moved independently of ``q_init``: a perturbed sample starts with the EE off
-its desired start, as a real approach would.
+The LAR frame moves independently of ``q_init``: a perturbed sample starts with the EE off
+its desired start, as a real approach would. The controller is not told about the model
+perturbations (the satellite mass and inertia): it uses the perturbed robot's own Dynamic
+Jacobian, i.e. a perfectly identified plant; only the plant and the initial conditions vary.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import tomllib
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import spatial
+from spacegrasp_jax.model import N_JOINTS, Robot
 from spacegrasp_jax.scenario import Scenario
+
+
+class PerturbationError(ValueError):
+    """Invalid perturbation ranges; the message names the offending field."""
 
 
 @dataclasses.dataclass(frozen=True)
 class PerturbationRanges:
-    """Half-widths of the uniform perturbations (module docstring); zeros give the nominal."""
+    """Half-widths of the uniform perturbations (module docstring). The defaults are the
+    Monte-Carlo campaign's (README, "Monte-Carlo"); all zeros give the nominal scenario."""
 
-    q_init_rad: float = 0.01
-    lar_position_m: float = 0.003
-    lar_angle_rad: float = 0.005
+    q_init_rad: float = 0.02
+    lar_position_m: float = 0.005
+    lar_angle_rad: float = 0.01
     stiffness_factor: float = 2.0
+    base_speed_mps: float = 0.001
+    base_rate_radps: float = 0.001
+    joint_rate_radps: float = 0.005
+    radius_fraction: float = 0.1
+    satellite_mass_fraction: float = 0.1
+    satellite_inertia_fraction: float = 0.1
 
     def __post_init__(self):
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
-            if not (isinstance(value, (int, float)) and value == value and abs(value) != float("inf")):
-                raise ValueError(f"{field.name}: must be a finite number, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise PerturbationError(f"{field.name}: must be a finite number, got {value!r}")
             if value < 0.0:
-                raise ValueError(f"{field.name}: must be non-negative, got {value}")
+                raise PerturbationError(f"{field.name}: must be non-negative, got {value}")
         if self.stiffness_factor < 1.0:
-            raise ValueError(f"stiffness_factor: must be >= 1 (1 leaves the stiffness unchanged), got {self.stiffness_factor}")
+            raise PerturbationError(f"stiffness_factor: must be >= 1 (1 leaves the stiffness unchanged), got {self.stiffness_factor}")
+        for name in ("radius_fraction", "satellite_mass_fraction", "satellite_inertia_fraction"):
+            if getattr(self, name) >= 1.0:
+                raise PerturbationError(f"{name}: must be below 1 (the quantity must stay positive), got {getattr(self, name)}")
+
+    @classmethod
+    def nominal(cls) -> "PerturbationRanges":
+        """No perturbation at all."""
+        return cls(**{field.name: 0.0 for field in dataclasses.fields(cls)} | {"stiffness_factor": 1.0})
+
+    @property
+    def perturbs_robot(self) -> bool:
+        """Whether the satellite's mass or inertia varies between samples."""
+        return self.satellite_mass_fraction > 0.0 or self.satellite_inertia_fraction > 0.0
+
+    def to_dict(self) -> dict[str, float]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_mapping(cls, document: dict, base: "PerturbationRanges | None" = None) -> "PerturbationRanges":
+        """``base`` (default: the campaign defaults) with the values in ``document``
+        replaced; unknown keys are rejected."""
+        known = {field.name for field in dataclasses.fields(cls)}
+        for key in document:
+            if key not in known:
+                raise PerturbationError(f"unknown perturbation range {key!r}; known: {', '.join(sorted(known))}")
+        return dataclasses.replace(base if base is not None else cls(), **document)
 
 
-def perturb(scenario: Scenario, key: jax.Array, ranges: PerturbationRanges) -> Scenario:
-    """One perturbed copy of ``scenario`` drawn with ``key``."""
+def load_ranges(path: str | Path) -> PerturbationRanges:
+    """Ranges from a TOML file whose keys are the field names (all optional; a
+    ``[perturbations]`` table is also accepted). Raises :class:`PerturbationError`."""
+    path = Path(path)
+    try:
+        document = tomllib.loads(path.read_text())
+    except OSError as error:
+        raise PerturbationError(f"{path}: cannot read: {error.strerror}") from None
+    except tomllib.TOMLDecodeError as error:
+        raise PerturbationError(f"{path}: cannot parse: {error}") from None
+    if set(document) == {"perturbations"} and isinstance(document["perturbations"], dict):
+        document = document["perturbations"]
+    try:
+        return PerturbationRanges.from_mapping(document)
+    except PerturbationError as error:
+        raise PerturbationError(f"{path}: {error}") from None
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Perturbation:
+    """The numbers drawn for one sample (module docstring for their meaning).
+
+    Attributes:
+        dq_init: (7,) rad. dp_lar: (3,) m, LAR axes. dr_lar: (3,) rad, rotation vector, LAR axes.
+        stiffness_scale: (). V_base_init: (6,) ``[m/s, rad/s]`` inertial frame.
+        qd_init: (7,) rad/s. radius_scale: (). satellite_mass_scale: ().
+        satellite_inertia_scale: (3,) the diagonal of ``D^2``.
+    """
+
+    dq_init: jax.Array
+    dp_lar: jax.Array
+    dr_lar: jax.Array
+    stiffness_scale: jax.Array
+    V_base_init: jax.Array
+    qd_init: jax.Array
+    radius_scale: jax.Array
+    satellite_mass_scale: jax.Array
+    satellite_inertia_scale: jax.Array
+
+
+def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Perturbation:
+    """The perturbation of one sample, drawn with ``key``."""
+
+    def uniform(k, shape):
+        return jax.random.uniform(k, shape, dtype, -1.0, 1.0)
+
+    # The first four draws keep the stream they had before the state and model draws were
+    # added, so that earlier tuning runs (which use only those four) reproduce.
     k_q, k_p, k_r, k_k = jax.random.split(key, 4)
-    dtype = scenario.initial.q.dtype
-    dq = ranges.q_init_rad * jax.random.uniform(k_q, (7,), dtype, -1.0, 1.0)
-    dp = ranges.lar_position_m * jax.random.uniform(k_p, (3,), dtype, -1.0, 1.0)
-    dr = ranges.lar_angle_rad * jax.random.uniform(k_r, (3,), dtype, -1.0, 1.0)
-    stiffness_exponent = jax.random.uniform(k_k, (), dtype, -1.0, 1.0)
-    return dataclasses.replace(
-        scenario,
-        initial=dataclasses.replace(scenario.initial, q=scenario.initial.q + dq),
-        p_lar=scenario.p_lar + scenario.R_lar @ dp,
-        R_lar=scenario.R_lar @ spatial.rotation_exp(dr),
-        contact_stiffness=scenario.contact_stiffness * ranges.stiffness_factor**stiffness_exponent,
+    k_v, k_w, k_qd, k_radius, k_mass, k_inertia = jax.random.split(jax.random.fold_in(key, 1), 6)
+    return Perturbation(
+        dq_init=ranges.q_init_rad * uniform(k_q, (N_JOINTS,)),
+        dp_lar=ranges.lar_position_m * uniform(k_p, (3,)),
+        dr_lar=ranges.lar_angle_rad * uniform(k_r, (3,)),
+        stiffness_scale=jnp.asarray(ranges.stiffness_factor, dtype) ** uniform(k_k, ()),
+        V_base_init=jnp.concatenate([ranges.base_speed_mps * uniform(k_v, (3,)), ranges.base_rate_radps * uniform(k_w, (3,))]),
+        qd_init=ranges.joint_rate_radps * uniform(k_qd, (N_JOINTS,)),
+        radius_scale=1.0 + ranges.radius_fraction * uniform(k_radius, ()),
+        satellite_mass_scale=1.0 + ranges.satellite_mass_fraction * uniform(k_mass, ()),
+        satellite_inertia_scale=1.0 + ranges.satellite_inertia_fraction * uniform(k_inertia, (3,)),
     )
 
 
-def sample_scenarios(scenario: Scenario, seed: int, indices, ranges: PerturbationRanges) -> Scenario:
-    """A batch of perturbed scenarios (leading axis over ``indices``), sample ``i`` drawn
-    with ``fold_in(PRNGKey(seed), i)``."""
+def apply_to_robot(robot: Robot, perturbation: Perturbation) -> Robot:
+    """The robot with the satellite's mass and inertia perturbed."""
+    D = jnp.sqrt(perturbation.satellite_inertia_scale)
+    return dataclasses.replace(
+        robot,
+        satellite_mass=robot.satellite_mass * perturbation.satellite_mass_scale,
+        satellite_inertia=D[:, None] * robot.satellite_inertia * D[None, :],
+    )
+
+
+def apply_to_scenario(scenario: Scenario, perturbation: Perturbation) -> Scenario:
+    """The scenario with its initial state, LAR pose and contact sphere perturbed."""
+    p, initial = perturbation, scenario.initial
+    return dataclasses.replace(
+        scenario,
+        initial=dataclasses.replace(initial, q=initial.q + p.dq_init, V_base=initial.V_base + p.V_base_init, qd=initial.qd + p.qd_init),
+        p_lar=scenario.p_lar + scenario.R_lar @ p.dp_lar,
+        R_lar=scenario.R_lar @ spatial.rotation_exp(p.dr_lar),
+        sphere_radius=scenario.sphere_radius * p.radius_scale,
+        contact_stiffness=scenario.contact_stiffness * p.stiffness_scale,
+    )
+
+
+def sample_keys(seed: int, indices) -> jax.Array:
+    """The keys ``fold_in(PRNGKey(seed), i)`` of the samples ``indices`` (n,)."""
     base_key = jax.random.PRNGKey(seed)
-    keys = jax.vmap(lambda i: jax.random.fold_in(base_key, i))(jnp.asarray(indices, dtype=jnp.uint32))
-    return jax.vmap(lambda key: perturb(scenario, key, ranges))(keys)
+    return jax.vmap(lambda i: jax.random.fold_in(base_key, i))(jnp.asarray(indices, dtype=jnp.uint32))
+
+
+def sample(robot: Robot, scenario: Scenario, seed: int, indices, ranges: PerturbationRanges) -> tuple[Robot, Scenario, Perturbation]:
+    """Samples ``indices`` of the campaign ``seed``: the perturbed robots and scenarios and
+    the drawn perturbations, each with a leading batch axis."""
+    perturbations = jax.vmap(lambda key: draw(key, ranges, scenario.initial.q.dtype))(sample_keys(seed, indices))
+    robots = jax.vmap(lambda p: apply_to_robot(robot, p))(perturbations)
+    scenarios = jax.vmap(lambda p: apply_to_scenario(scenario, p))(perturbations)
+    return robots, scenarios, perturbations
+
+
+def sample_scenarios(scenario: Scenario, seed: int, indices, ranges: PerturbationRanges) -> Scenario:
+    """The perturbed scenarios alone (leading axis over ``indices``), for ranges that leave
+    the robot unchanged (tuning vmaps over scenarios with one robot)."""
+    if ranges.perturbs_robot:
+        raise PerturbationError("these ranges perturb the satellite's mass or inertia: use sample(), which returns the robots too")
+    perturbations = jax.vmap(lambda key: draw(key, ranges, scenario.initial.q.dtype))(sample_keys(seed, indices))
+    return jax.vmap(lambda p: apply_to_scenario(scenario, p))(perturbations)

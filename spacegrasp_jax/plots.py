@@ -174,3 +174,78 @@ def save_tuning_figures(history, log_before, log_after, out_dir, write_atomicall
     for name, fig in figures.items():
         write_atomically(out_dir / name, lambda target: fig.savefig(target, dpi=110, format="png"))
         plt.close(fig)
+
+
+# ---- Monte-Carlo campaigns: ``metrics`` maps a variant key ("admittance/paper") to its
+# per-sample metrics (NumPy arrays, leading axis over samples). ----
+
+
+def _variant_colour(index: int, key: str):
+    controller = key.split("/")[0]
+    if index == 0 or key.endswith("/paper"):
+        return STYLES.get(controller, STYLES["start"])["color"]
+    return plt.get_cmap("tab10")(index % 10)
+
+
+def _campaign_values(sample_metrics: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(final position error in mm, largest peak |u| over the joints in N m) of the samples
+    that did not diverge."""
+    ok = ~np.isfinite(sample_metrics["first_nonfinite_s"])
+    error_mm = 1e3 * np.asarray(sample_metrics["final_position_error_m"])[ok]
+    peak = np.asarray(sample_metrics["max_abs_torque_Nm"])[ok].max(axis=1, initial=-np.inf)
+    return error_mm, peak
+
+
+def figure_campaign_histograms(metrics: dict, title: str = "Monte-Carlo campaign", tolerance_mm: float | None = None):
+    """Histograms of the final position error (with the success tolerance, if given) and of
+    the largest peak joint torque."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    values = {key: _campaign_values(m) for key, m in metrics.items()}
+    for column, (ax, xlabel, panel_title) in enumerate(zip(
+        axes,
+        ["final EE position error [mm]", "max over joints of max |u_i| [N m]"],
+        ["Final positioning error", "Peak joint torque"],
+    )):
+        pooled = np.concatenate([v[column] for v in values.values()])
+        bins = np.linspace(pooled.min(), pooled.max(), 31) if pooled.size and pooled.max() > pooled.min() else 30
+        for index, (key, v) in enumerate(values.items()):
+            n_samples = len(metrics[key]["first_nonfinite_s"])
+            ax.hist(v[column], bins=bins, alpha=0.55, color=_variant_colour(index, key), label=f"{key} ({v[column].size}/{n_samples} finite)")
+        if column == 0 and tolerance_mm is not None:
+            ax.axvline(tolerance_mm, color="black", linestyle="--", linewidth=1, label=f"success tolerance {tolerance_mm:g} mm")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("samples")
+        ax.set_title(panel_title)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def figure_campaign_scatter(metrics: dict, title: str = "Monte-Carlo campaign"):
+    """Largest peak joint torque against final position error, one point per sample."""
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    for index, (key, sample_metrics) in enumerate(metrics.items()):
+        error_mm, peak = _campaign_values(sample_metrics)
+        ax.scatter(error_mm, peak, s=10, alpha=0.6, color=_variant_colour(index, key), label=key)
+    ax.set_xlabel("final EE position error [mm]")
+    ax.set_ylabel("max over joints of max |u_i| [N m]")
+    ax.set_title(f"Peak joint torque against final positioning error\n{title}", fontsize=10)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def save_campaign_figures(out_dir, metrics: dict, title: str, tolerance_mm: float) -> None:
+    """``histograms.png`` and ``torque_vs_error.png`` of a Monte-Carlo campaign."""
+    from spacegrasp_jax.experiment import write_atomically
+
+    figures = {
+        "histograms.png": figure_campaign_histograms(metrics, title, tolerance_mm),
+        "torque_vs_error.png": figure_campaign_scatter(metrics, title),
+    }
+    for name, fig in figures.items():
+        write_atomically(out_dir / name, lambda target: fig.savefig(target, dpi=110, format="png"))
+        plt.close(fig)

@@ -183,6 +183,22 @@ def control_step(robot: Robot, scenario: Scenario, gains: Gains, controller: str
     return u, ControllerState(V_ref=V_ref_next, pid=pid), row
 
 
+def closed_loop_step(robot: Robot, scenario: Scenario, gains: Gains, controller: str, pinv_damping: float = 0.0):
+    """The scan body ``step(state: SimState, k) -> (next SimState, Log row)`` for step
+    number ``k`` (a float, t = k dt): one controller update, then one RK4 step of the plant
+    under the held torques. Arguments as :func:`rollout`."""
+    if controller not in CONTROLLERS:
+        raise ValueError(f"controller: expected one of {CONTROLLERS}, got {controller!r}")
+
+    def step(state: SimState, k):
+        t = k * scenario.dt
+        u, controller_state, row = control_step(robot, scenario, gains, controller, state, t, pinv_damping)
+        plant = rk4_step(lambda s: plant_derivative(robot, scenario, s, u), state.plant, scenario.dt)
+        return SimState(plant=plant, controller=controller_state), row
+
+    return step
+
+
 def rollout(
     robot: Robot,
     scenario: Scenario,
@@ -209,15 +225,7 @@ def rollout(
         :class:`Log`. A diverging rollout carries non-finite values from the first bad
         step on; :func:`first_nonfinite_time` finds it (``experiment.run`` reports it).
     """
-    if controller not in CONTROLLERS:
-        raise ValueError(f"controller: expected one of {CONTROLLERS}, got {controller!r}")
-
-    def step(state: SimState, k):
-        t = k * scenario.dt
-        u, controller_state, row = control_step(robot, scenario, gains, controller, state, t, pinv_damping)
-        plant = rk4_step(lambda s: plant_derivative(robot, scenario, s, u), state.plant, scenario.dt)
-        return SimState(plant=plant, controller=controller_state), row
-
+    step = closed_loop_step(robot, scenario, gains, controller, pinv_damping)
     n_steps = scenario.n_steps
     steps = jnp.arange(n_steps, dtype=scenario.initial.q.dtype)
     if checkpoint_segment is None:

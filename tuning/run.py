@@ -39,7 +39,6 @@ from tuning.objective import Objective, objective_parts
 from tuning.parameters import gains_from_params
 from tuning.tune import (
     CHECKPOINT,
-    StopRequest,
     TuneConfig,
     load_checkpoint,
     make_optimizer,
@@ -184,7 +183,7 @@ def tune(
         _write_history(out / "history.csv", state.history)
 
     print(f"compiling the {config.gradient}-mode gradient of the {config.controller} objective over {config.batch} scenario(s)...", file=progress, flush=True)
-    with StopRequest() as stop:
+    with experiment.StopRequest() as stop:
         state, status = optimise(
             value_and_grad,
             params,

@@ -14,8 +14,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import signal
-import sys
 import time
 from pathlib import Path
 from typing import Callable
@@ -27,6 +25,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.experiment import StopRequest
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
 from spacegrasp_jax.scenario import Scenario
@@ -35,6 +34,15 @@ from tuning.objective import Objective, Weights, objective_parts
 from tuning.parameters import gains_from_params, initial_params, make_mask
 
 CHECKPOINT = "checkpoint.npz"
+
+
+#: The robust batch's perturbations: initial joint angles, LAR pose and contact stiffness,
+#: the model and the initial velocities left nominal (the Monte-Carlo defaults vary those too).
+TUNING_RANGES = PerturbationRanges(
+    q_init_rad=0.01, lar_position_m=0.003, lar_angle_rad=0.005, stiffness_factor=2.0, base_speed_mps=0.0,
+    base_rate_radps=0.0, joint_rate_radps=0.0, radius_fraction=0.0, satellite_mass_fraction=0.0,
+    satellite_inertia_fraction=0.0,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,7 +65,7 @@ class TuneConfig:
         frozen: gain groups kept at their initial values.
         gradient: ``"reverse"`` (checkpointed; measured faster) or ``"forward"``.
         torque_guard_Nm: a candidate whose peak torque exceeds this is rejected.
-        ranges: perturbation half-widths for the robust batch.
+        ranges: perturbation half-widths for the robust batch (:data:`TUNING_RANGES`).
     """
 
     controller: str = "admittance"
@@ -73,7 +81,7 @@ class TuneConfig:
     frozen: tuple[str, ...] = ()
     gradient: str = "reverse"
     torque_guard_Nm: float = 100.0
-    ranges: PerturbationRanges = PerturbationRanges()
+    ranges: PerturbationRanges = TUNING_RANGES
 
     def __post_init__(self):
         if self.controller not in ("admittance", "cartesian"):
@@ -101,7 +109,7 @@ class TuneConfig:
     def from_dict(cls, document: dict) -> "TuneConfig":
         document = dict(document)
         document["weights"] = Weights(**document["weights"])
-        document["ranges"] = PerturbationRanges(**document["ranges"])
+        document["ranges"] = PerturbationRanges.from_mapping(document["ranges"], base=TUNING_RANGES)
         document["frozen"] = tuple(document["frozen"])
         return cls(**document)
 
@@ -232,31 +240,6 @@ def load_checkpoint(path: Path, params_template, opt_state_template) -> tuple[Ru
             events=meta["events"],
         )
     return state, TuneConfig.from_dict(meta["config"])
-
-
-class StopRequest:
-    """SIGINT/SIGTERM set a flag that the loop checks after each step; a second signal
-    interrupts at once (the last checkpoint is complete either way)."""
-
-    def __init__(self):
-        self.requested = False
-        self._previous = {}
-
-    def __enter__(self):
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum, frame):
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
-        print(f"\n{signal.Signals(signum).name} received: stopping after this step (send again to stop now)", file=sys.stderr, flush=True)
-
-    def __exit__(self, *exc):
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-        return False
 
 
 def history_row(step: int, loss: float, aux: dict, gradient, step_size: float, rejected: int, seconds: float) -> dict:

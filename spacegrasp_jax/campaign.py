@@ -1,0 +1,459 @@
+"""Monte-Carlo campaigns on the host: chunks, sharding over devices and hosts, resume, files.
+
+A campaign evaluates ``n`` perturbed samples (:mod:`~spacegrasp_jax.perturbations`) for one
+or more *variants* (a controller with a set of gains). Samples are processed in chunks of
+``chunk``; each chunk is one call of a compiled function whose batch axis is sharded over a
+1-D mesh of ALL devices of ALL processes (``jax.devices()``). On one CPU that mesh has one
+device; with ``jax.distributed`` it spans the cluster; the code path is the same. Only the
+per-sample metrics (and, on request, decimated time series) come back to the host.
+
+Files in ``out`` (written by process 0, atomically):
+
+* ``campaign.json``: the configuration, checked on ``resume``;
+* ``chunks/<controller>/<gains>/<first sample>.npz``: one file per finished chunk, so an
+  interrupted run loses at most the chunk in flight and resumes chunk by chunk;
+* ``samples.npz``, ``summary.json``, ``timeseries_<controller>_<gains>.npz`` and the plots,
+  once every chunk is done (see :func:`run_campaign`).
+
+For several hosts, ``out`` must be a folder that every process can read (a shared file
+system): every process reads the finished chunks on resume so that all agree on what is left.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import jax
+import numpy as np
+from jax.experimental import multihost_utils
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from spacegrasp_jax import experiment
+from spacegrasp_jax.control import CONTROLLERS
+from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.model import Robot
+from spacegrasp_jax.montecarlo import METRICS, evaluate_samples, success
+from spacegrasp_jax.perturbations import PerturbationRanges
+from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.simulate import Log
+
+PERCENTILES = (5, 50, 95)
+
+
+class CampaignError(ValueError):
+    """An invalid campaign setting or an output folder that does not match; names the cause."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CampaignConfig:
+    """Attributes:
+    n: number of samples (sample indices 0 .. n-1).
+    seed: campaign seed; sample i is drawn with ``fold_in(PRNGKey(seed), i)``.
+    chunk: samples per compiled call; a multiple of the number of devices. Memory grows
+        with it; results do not depend on it.
+    ranges: perturbation half-widths.
+    position_tolerance_m, orientation_tolerance_rad: success thresholds on the final errors.
+    timeseries_every: keep every k-th log row of every sample (``None``: metrics only).
+    pinv_damping: damping of the pseudoinverse (0: exact, the paper).
+    """
+
+    n: int
+    seed: int = 0
+    chunk: int = 64
+    ranges: PerturbationRanges = PerturbationRanges()
+    position_tolerance_m: float = 0.005
+    orientation_tolerance_rad: float = math.radians(1.0)
+    timeseries_every: int | None = None
+    pinv_damping: float = 0.0
+
+    def __post_init__(self):
+        for name in ("n", "seed", "chunk"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise CampaignError(f"{name}: must be an integer, got {value!r}")
+        if self.n < 1:
+            raise CampaignError(f"n: must be at least 1, got {self.n}")
+        if self.chunk < 1:
+            raise CampaignError(f"chunk: must be at least 1, got {self.chunk}")
+        if not 0 <= self.seed < 2**32:
+            raise CampaignError(f"seed: must be in [0, 2^32), got {self.seed}")
+        for name in ("position_tolerance_m", "orientation_tolerance_rad"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0.0):
+                raise CampaignError(f"{name}: must be positive and finite, got {value!r}")
+        if self.timeseries_every is not None and self.timeseries_every < 1:
+            raise CampaignError(f"timeseries_every: must be at least 1, got {self.timeseries_every}")
+        if not (math.isfinite(self.pinv_damping) and self.pinv_damping >= 0.0):
+            raise CampaignError(f"pinv_damping: must be non-negative, got {self.pinv_damping}")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self) | {"ranges": self.ranges.to_dict()}
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """One arm of the comparison: a controller with a set of gains, ``label`` naming the
+    gains (``"paper"`` or a file's stem)."""
+
+    controller: str
+    gains: Gains
+    label: str = "paper"
+
+    def __post_init__(self):
+        if self.controller not in CONTROLLERS:
+            raise CampaignError(f"controller: expected one of {CONTROLLERS}, got {self.controller!r}")
+        if not self.label or not all(c.isalnum() or c in "-_." for c in self.label):
+            raise CampaignError(f"gains label {self.label!r}: use letters, digits, '-', '_' or '.'")
+
+    @property
+    def key(self) -> str:
+        """``"<controller>/<label>"``, the prefix of this variant's arrays in samples.npz."""
+        return f"{self.controller}/{self.label}"
+
+
+@dataclasses.dataclass
+class CampaignResult:
+    """Attributes:
+    perturbations: field -> (n, ...) the drawn perturbations (shared by all variants).
+    metrics: variant key -> metric -> (n, ...) per-sample metrics, plus ``"success"`` (n,).
+    timeseries: variant key -> decimated :class:`Log` with leading axis n (if requested).
+    summary: the content of summary.json.
+    status: ``"done"`` or ``"interrupted"``.
+    """
+
+    perturbations: dict[str, np.ndarray]
+    metrics: dict[str, dict[str, np.ndarray]]
+    timeseries: dict[str, Log]
+    summary: dict
+    status: str
+
+
+# ---- the sharded, chunked evaluation --------------------------------------------------
+
+
+def batch_mesh() -> Mesh:
+    """A 1-D mesh (axis ``"batch"``) over every device of every process."""
+    return Mesh(np.asarray(jax.devices()), ("batch",))
+
+
+def _compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig, mesh: Mesh):
+    """The compiled evaluation of one chunk of ``config.chunk`` samples, and its compile
+    time (s). Inputs other than the sample indices are replicated on every device."""
+    replicated, batched = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("batch"))
+    function = functools.partial(
+        evaluate_samples,
+        controller=variant.controller,
+        ranges=config.ranges,
+        pinv_damping=config.pinv_damping,
+        every=config.timeseries_every,
+    )
+    jitted = jax.jit(function, in_shardings=(replicated, replicated, replicated, replicated, batched), out_shardings=batched)
+    indices = jax.ShapeDtypeStruct((config.chunk,), np.uint32, sharding=batched)
+    seed = jax.ShapeDtypeStruct((), np.uint32, sharding=replicated)
+    start = time.perf_counter()
+    executable = jitted.lower(robot, scenario, variant.gains, seed, indices).compile()
+    return executable, time.perf_counter() - start
+
+
+def _run_chunk(executable, robot, scenario, gains, config: CampaignConfig, first: int, mesh: Mesh) -> dict[str, np.ndarray]:
+    """Samples ``first .. first + chunk - 1`` (indices past ``n`` are computed and dropped)
+    as flat NumPy arrays: ``perturbation.<field>``, ``<metric>`` and ``timeseries.<field>``."""
+    batched = NamedSharding(mesh, PartitionSpec("batch"))
+    all_indices = np.arange(first, first + config.chunk, dtype=np.uint32)
+    indices = jax.make_array_from_callback(all_indices.shape, batched, lambda where: all_indices[where])
+    outputs = executable(robot, scenario, gains, np.uint32(config.seed), indices)
+    perturbations, sample_metrics, rows = multihost_utils.process_allgather(outputs, tiled=True)
+    keep = slice(0, min(config.chunk, config.n - first))
+    arrays = {f"perturbation.{name}": np.asarray(value)[keep] for name, value in vars(perturbations).items()}
+    arrays |= {name: np.asarray(value)[keep] for name, value in sample_metrics.items()}
+    if rows is not None:
+        arrays |= {f"timeseries.{name}": np.asarray(value)[keep] for name, value in vars(rows).items()}
+    return arrays
+
+
+# ---- files and resume -----------------------------------------------------------------
+
+
+def _chunk_path(out: Path, variant: Variant, first: int) -> Path:
+    return out / "chunks" / variant.controller / variant.label / f"{first:09d}.npz"
+
+
+def _record(config: CampaignConfig, variants, robot_source: str, scenario: Scenario) -> dict:
+    return {
+        "config": config.to_dict(),
+        "variants": [{"controller": v.controller, "gains_label": v.label, "gains": v.gains.to_dict()} for v in variants],
+        "robot": robot_source,
+        "scenario": experiment.scenario_to_dict(scenario),
+    }
+
+
+def _check_resume(out: Path, record: dict, resume: bool) -> None:
+    path = out / "campaign.json"
+    if not path.exists():
+        return
+    if not resume:
+        raise CampaignError(f"{out} already holds a campaign: pass --resume (resume=True) to continue it, or choose another output folder")
+    previous = json.loads(path.read_text())
+    for key in ("config", "variants", "robot", "scenario"):
+        if json.dumps(previous.get(key), sort_keys=True) != json.dumps(record[key], sort_keys=True):
+            detail = ""
+            if key == "config":
+                changed = sorted(k for k in record[key] if previous[key].get(k) != record[key][k])
+                detail = f" ({', '.join(changed)})"
+            raise CampaignError(f"{out}: cannot resume, the {key} differs from the interrupted campaign's{detail}")
+
+
+def _load_chunk(path: Path) -> dict[str, np.ndarray] | None:
+    try:
+        with np.load(path) as data:
+            return {name: data[name] for name in data.files}
+    except (OSError, ValueError):
+        return None  # a chunk file that cannot be read is recomputed
+
+
+# ---- summary --------------------------------------------------------------------------
+
+
+def _statistics(values: np.ndarray) -> dict:
+    """Mean, standard deviation, percentiles, min and max over the finite entries."""
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return {"count": 0}
+    percentiles = np.percentile(finite, PERCENTILES)
+    return {
+        "count": int(finite.size),
+        "mean": float(finite.mean()),
+        "std": float(finite.std()),
+        **{f"p{p}": float(v) for p, v in zip(PERCENTILES, percentiles)},
+        "min": float(finite.min()),
+        "max": float(finite.max()),
+    }
+
+
+def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfig) -> dict:
+    """Statistics of every metric over the samples that did not diverge, success rate, the
+    diverged samples and the five worst samples by final position error and by peak torque."""
+    diverged = np.flatnonzero(np.isfinite(sample_metrics["first_nonfinite_s"]))
+    ok = np.ones(len(sample_metrics["first_nonfinite_s"]), dtype=bool)
+    ok[diverged] = False
+    statistics = {}
+    for name in METRICS:
+        values = np.asarray(sample_metrics[name])
+        if values.ndim == 2:  # per joint
+            statistics[name] = [_statistics(values[ok, j]) for j in range(values.shape[1])]
+            statistics["max_abs_torque_any_joint_Nm"] = _statistics(values[ok].max(axis=1, initial=-np.inf))
+        elif name != "first_nonfinite_s":
+            statistics[name] = _statistics(values[ok])
+    peak = np.asarray(sample_metrics["max_abs_torque_Nm"]).max(axis=1)
+
+    def worst(values):
+        order = np.argsort(np.where(np.isfinite(values), values, np.inf))[::-1]
+        return [int(i) for i in order[:5]]
+
+    return {
+        "samples": int(ok.size),
+        "success_rate": float(np.mean(sample_metrics["success"])),
+        "successes": int(np.sum(sample_metrics["success"])),
+        "diverged": int(diverged.size),
+        "diverged_samples": [int(i) for i in diverged],
+        "worst_by_final_position_error": worst(np.asarray(sample_metrics["final_position_error_m"])),
+        "worst_by_peak_torque": worst(peak),
+        "statistics_over_non_diverged": statistics,
+    }
+
+
+# ---- the campaign -----------------------------------------------------------------------
+
+
+def _progress_line(done_chunks: int, total_chunks: int, variant: Variant, samples_done: int, n: int, rate: float | None, diverged: int, width: int = 24) -> str:
+    filled = int(width * done_chunks / total_chunks)
+    speed = f"{rate:.2f} rollouts/s" if rate else "compiling or resuming"
+    return f"\r[{'#' * filled}{'.' * (width - filled)}] chunk {done_chunks}/{total_chunks} | {variant.key}: {samples_done}/{n} samples | {speed} | diverged {diverged}"
+
+
+def run_campaign(
+    robot: Robot,
+    scenario: Scenario,
+    variants: list[Variant],
+    config: CampaignConfig,
+    out: Path | None = None,
+    *,
+    resume: bool = False,
+    robot_source: str = "paper_robot()",
+    progress=sys.stderr,
+    stop: experiment.StopRequest | None = None,
+    on_chunk: Callable[[Variant, int], None] | None = None,
+) -> CampaignResult:
+    """Run (or, with ``resume``, continue) a campaign; write its files to ``out`` if given.
+
+    Args:
+        robot, scenario: the nominal system; every sample perturbs them.
+        variants: the controller/gains pairs to evaluate on the same samples.
+        config: sizes, seed, ranges and tolerances.
+        out: output folder (``None``: nothing written and no resume).
+        resume: continue the campaign already in ``out`` (its configuration must match).
+        progress: stream for the progress bar (``None``: silent).
+        stop: checked after each chunk; when set, the run stops with status "interrupted".
+        on_chunk: called after each finished chunk with the variant and its first index.
+
+    Raises:
+        CampaignError: invalid variants, a chunk size that is not a multiple of the device
+            count, or an ``out`` that holds a different campaign.
+    """
+    if not variants:
+        raise CampaignError("no variants to evaluate")
+    keys = [variant.key for variant in variants]
+    if len(set(keys)) != len(keys):
+        raise CampaignError(f"variants must differ in controller or gains label, got {keys}")
+    devices = jax.device_count()
+    if config.chunk % devices:
+        raise CampaignError(f"chunk: {config.chunk} is not a multiple of the {devices} devices; use a multiple such as {devices * max(1, round(config.chunk / devices))}")
+    if config.timeseries_every is not None and scenario.n_steps % config.timeseries_every:
+        raise CampaignError(f"timeseries_every: {config.timeseries_every} does not divide the {scenario.n_steps} steps")
+    writer = out is not None and jax.process_index() == 0
+    record = _record(config, variants, robot_source, scenario)
+    if out is not None:
+        _check_resume(out, record, resume)
+        if writer:
+            experiment.write_json(out / "campaign.json", record)
+
+    mesh = batch_mesh()
+    starts = list(range(0, config.n, config.chunk))
+    total_chunks = len(starts) * len(variants)
+    done_chunks, compile_s, run_s, computed_samples = 0, 0.0, 0.0, 0
+    chunks: dict[str, dict[int, dict]] = {variant.key: {} for variant in variants}
+    status = "done"
+    for variant in variants:
+        executable = None
+        diverged = 0
+        for first in starts:
+            path = _chunk_path(out, variant, first) if out is not None else None
+            arrays = _load_chunk(path) if path is not None and path.exists() else None
+            if arrays is None:
+                if executable is None:
+                    executable, seconds = _compiled_chunk(robot, scenario, variant, config, mesh)
+                    compile_s += seconds
+                start = time.perf_counter()
+                arrays = _run_chunk(executable, robot, scenario, variant.gains, config, first, mesh)
+                run_s += time.perf_counter() - start
+                computed_samples += config.chunk
+                if writer:
+                    experiment.write_atomically(path, lambda target, a=arrays: np.savez(target, **a))
+            chunks[variant.key][first] = arrays
+            diverged += int(np.isfinite(arrays["first_nonfinite_s"]).sum())
+            done_chunks += 1
+            if on_chunk is not None:
+                on_chunk(variant, first)
+            if progress is not None:
+                rate = computed_samples / run_s if run_s > 0 else None
+                print(_progress_line(done_chunks, total_chunks, variant, min(first + config.chunk, config.n), config.n, rate, diverged), end="", file=progress, flush=True)
+            if stop is not None and stop.requested:
+                status = "interrupted"
+                break
+        if status == "interrupted":
+            break
+    if progress is not None:
+        print(file=progress, flush=True)
+
+    throughput = {
+        "devices": devices,
+        "device_kind": jax.devices()[0].device_kind,
+        "platform": jax.devices()[0].platform,
+        "processes": jax.process_count(),
+        "compile_s": compile_s,
+        "run_s": run_s,
+        "rollouts_computed_this_run": computed_samples,
+        "rollouts_per_s": computed_samples / run_s if run_s > 0 else None,
+        "simulated_s_per_wall_s": computed_samples * scenario.duration / run_s if run_s > 0 else None,
+        "scenario_steps_per_s": computed_samples * scenario.n_steps / run_s if run_s > 0 else None,
+    }
+    if status == "interrupted":
+        return CampaignResult({}, {}, {}, {"status": status, "throughput": throughput}, status)
+
+    perturbations, all_metrics, timeseries, summaries = {}, {}, {}, {}
+    for variant in variants:
+        merged = {name: np.concatenate([chunks[variant.key][first][name] for first in starts]) for name in chunks[variant.key][starts[0]]}
+        perturbations = {name.removeprefix("perturbation."): value for name, value in merged.items() if name.startswith("perturbation.")}
+        sample_metrics = {name: merged[name] for name in METRICS}
+        sample_metrics["success"] = success(sample_metrics, config.position_tolerance_m, config.orientation_tolerance_rad)
+        all_metrics[variant.key] = sample_metrics
+        if config.timeseries_every is not None:
+            fields = {name.removeprefix("timeseries."): value for name, value in merged.items() if name.startswith("timeseries.")}
+            timeseries[variant.key] = Log(**fields)
+        summaries[variant.key] = variant_summary(sample_metrics, config)
+    summary = {
+        "status": status,
+        "n": config.n,
+        "seed": config.seed,
+        "duration_s": scenario.duration,
+        "dt_s": scenario.dt,
+        "contact_law": scenario.contact_law,
+        "tolerances": {"final_position_m": config.position_tolerance_m, "final_orientation_rad": config.orientation_tolerance_rad},
+        "ranges": config.ranges.to_dict(),
+        "throughput": throughput,
+        "variants": summaries,
+    }
+    result = CampaignResult(perturbations, all_metrics, timeseries, summary, status)
+    if writer:
+        write_results(out, result)
+    return result
+
+
+def write_results(out: Path, result: CampaignResult) -> None:
+    """samples.npz, summary.json, the decimated time series and the comparison plots."""
+    from spacegrasp_jax import plots
+
+    arrays = {f"perturbation/{name}": value for name, value in result.perturbations.items()}
+    for key, sample_metrics in result.metrics.items():
+        arrays |= {f"{key}/{name}": value for name, value in sample_metrics.items()}
+    experiment.write_atomically(out / "samples.npz", lambda target: np.savez_compressed(target, **arrays))
+    experiment.write_json(out / "summary.json", result.summary)
+    for key, log in result.timeseries.items():
+        experiment.write_timeseries(out / f"timeseries_{key.replace('/', '_')}.npz", log)
+    summary = result.summary
+    title = (f"Monte-Carlo: {summary['n']} perturbed captures, seed {summary['seed']}, "
+             f"{summary['duration_s']:g} s, {summary['contact_law']} contact law")
+    plots.save_campaign_figures(out, result.metrics, title, 1e3 * summary["tolerances"]["final_position_m"])
+
+
+def load_samples(path: Path) -> tuple[dict[str, np.ndarray], dict[str, dict[str, np.ndarray]]]:
+    """``(perturbations, metrics by variant key)`` from a campaign's samples.npz."""
+    perturbations, by_variant = {}, {}
+    with np.load(path) as data:
+        for name in data.files:
+            head, _, field = name.rpartition("/")
+            if head == "perturbation":
+                perturbations[field] = data[name]
+            else:
+                by_variant.setdefault(head, {})[field] = data[name]
+    return perturbations, by_variant
+
+
+def replay_sample(robot: Robot, scenario: Scenario, config: CampaignConfig, index: int) -> tuple[Robot, Scenario]:
+    """The perturbed ``(robot, scenario)`` of sample ``index``, for a full rollout with its
+    log (e.g. ``experiment.run``) of a worst case."""
+    from spacegrasp_jax.perturbations import sample
+
+    robots, scenarios, _ = sample(robot, scenario, config.seed, [index], config.ranges)
+    return jax.tree.map(lambda x: x[0], robots), jax.tree.map(lambda x: x[0], scenarios)
+
+
+__all__ = [
+    "CampaignConfig",
+    "CampaignError",
+    "CampaignResult",
+    "Variant",
+    "batch_mesh",
+    "load_samples",
+    "replay_sample",
+    "run_campaign",
+    "variant_summary",
+    "write_results",
+]
