@@ -143,38 +143,59 @@ def batch_mesh() -> Mesh:
     return Mesh(np.asarray(jax.devices()), ("batch",))
 
 
-def _compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig, mesh: Mesh):
-    """The compiled evaluation of one chunk of ``config.chunk`` samples, and its compile
-    time (s). Inputs other than the sample indices are replicated on every device."""
-    replicated, batched = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("batch"))
-    function = functools.partial(
-        evaluate_samples,
-        controller=variant.controller,
-        ranges=config.ranges,
-        pinv_damping=config.pinv_damping,
-        every=config.timeseries_every,
+_EXECUTABLES: dict = {}
+
+
+def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
+    """The compiled evaluation of one chunk of ``config.chunk`` samples, cached per process
+    by everything that shapes it, and its compile time (s; that of the original compile).
+    Inputs other than the sample indices are replicated on every device."""
+    arguments = (robot, scenario, variant.gains)
+    key = (
+        variant.controller,
+        config.ranges,
+        config.pinv_damping,
+        config.timeseries_every,
+        config.chunk,
+        tuple(jax.devices()),
+        jax.tree.structure(arguments),
+        tuple((np.shape(leaf), str(np.asarray(leaf).dtype)) for leaf in jax.tree.leaves(arguments)),
     )
-    jitted = jax.jit(function, in_shardings=(replicated, replicated, replicated, replicated, batched), out_shardings=batched)
-    indices = jax.ShapeDtypeStruct((config.chunk,), np.uint32, sharding=batched)
-    seed = jax.ShapeDtypeStruct((), np.uint32, sharding=replicated)
-    start = time.perf_counter()
-    executable = jitted.lower(robot, scenario, variant.gains, seed, indices).compile()
-    return executable, time.perf_counter() - start
+    if key not in _EXECUTABLES:
+        mesh = batch_mesh()
+        replicated, batched = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("batch"))
+        function = functools.partial(
+            evaluate_samples,
+            controller=variant.controller,
+            ranges=config.ranges,
+            pinv_damping=config.pinv_damping,
+            every=config.timeseries_every,
+        )
+        jitted = jax.jit(function, in_shardings=(replicated,) * 4 + (batched,), out_shardings=batched)
+        indices = jax.ShapeDtypeStruct((config.chunk,), np.uint32, sharding=batched)
+        seed = jax.ShapeDtypeStruct((), np.uint32, sharding=replicated)
+        start = time.perf_counter()
+        executable = jitted.lower(robot, scenario, variant.gains, seed, indices).compile()
+        _EXECUTABLES[key] = (executable, time.perf_counter() - start)
+    return _EXECUTABLES[key]
 
 
-def _run_chunk(executable, robot, scenario, gains, config: CampaignConfig, first: int, mesh: Mesh) -> dict[str, np.ndarray]:
-    """Samples ``first .. first + chunk - 1`` (indices past ``n`` are computed and dropped)
-    as flat NumPy arrays: ``perturbation.<field>``, ``<metric>`` and ``timeseries.<field>``."""
-    batched = NamedSharding(mesh, PartitionSpec("batch"))
-    all_indices = np.arange(first, first + config.chunk, dtype=np.uint32)
-    indices = jax.make_array_from_callback(all_indices.shape, batched, lambda where: all_indices[where])
-    outputs = executable(robot, scenario, gains, np.uint32(config.seed), indices)
+def evaluate_indices(robot, scenario, variant: Variant, config: CampaignConfig, indices) -> dict[str, np.ndarray]:
+    """Samples ``indices`` (``config.chunk`` of them, any values) of the campaign, gathered
+    on every host as flat NumPy arrays: ``perturbation.<field>``, the metrics, and
+    ``timeseries.<field>`` when requested."""
+    executable, _ = compiled_chunk(robot, scenario, variant, config)
+    indices = np.asarray(indices, dtype=np.uint32)
+    if indices.shape != (config.chunk,):
+        raise CampaignError(f"indices: expected {config.chunk} of them (the chunk size), got shape {indices.shape}")
+    batched = NamedSharding(batch_mesh(), PartitionSpec("batch"))
+    sharded = jax.make_array_from_callback(indices.shape, batched, lambda where: indices[where])
+    outputs = executable(robot, scenario, variant.gains, np.uint32(config.seed), sharded)
     perturbations, sample_metrics, rows = multihost_utils.process_allgather(outputs, tiled=True)
-    keep = slice(0, min(config.chunk, config.n - first))
-    arrays = {f"perturbation.{name}": np.asarray(value)[keep] for name, value in vars(perturbations).items()}
-    arrays |= {name: np.asarray(value)[keep] for name, value in sample_metrics.items()}
+    arrays = {f"perturbation.{name}": np.asarray(value) for name, value in vars(perturbations).items()}
+    arrays |= {name: np.asarray(value) for name, value in sample_metrics.items()}
     if rows is not None:
-        arrays |= {f"timeseries.{name}": np.asarray(value)[keep] for name, value in vars(rows).items()}
+        arrays |= {f"timeseries.{name}": np.asarray(value) for name, value in vars(rows).items()}
     return arrays
 
 
@@ -324,24 +345,25 @@ def run_campaign(
         if writer:
             experiment.write_json(out / "campaign.json", record)
 
-    mesh = batch_mesh()
     starts = list(range(0, config.n, config.chunk))
     total_chunks = len(starts) * len(variants)
     done_chunks, compile_s, run_s, computed_samples = 0, 0.0, 0.0, 0
     chunks: dict[str, dict[int, dict]] = {variant.key: {} for variant in variants}
     status = "done"
     for variant in variants:
-        executable = None
+        compiled = False
         diverged = 0
         for first in starts:
             path = _chunk_path(out, variant, first) if out is not None else None
             arrays = _load_chunk(path) if path is not None and path.exists() else None
             if arrays is None:
-                if executable is None:
-                    executable, seconds = _compiled_chunk(robot, scenario, variant, config, mesh)
-                    compile_s += seconds
+                if not compiled:
+                    compile_s += compiled_chunk(robot, scenario, variant, config)[1]
+                    compiled = True
                 start = time.perf_counter()
-                arrays = _run_chunk(executable, robot, scenario, variant.gains, config, first, mesh)
+                # Indices past n pad the last chunk; they are computed and dropped.
+                arrays = evaluate_indices(robot, scenario, variant, config, np.arange(first, first + config.chunk))
+                arrays = {name: value[: config.n - first] for name, value in arrays.items()}
                 run_s += time.perf_counter() - start
                 computed_samples += config.chunk
                 if writer:
@@ -451,6 +473,8 @@ __all__ = [
     "CampaignResult",
     "Variant",
     "batch_mesh",
+    "compiled_chunk",
+    "evaluate_indices",
     "load_samples",
     "replay_sample",
     "run_campaign",

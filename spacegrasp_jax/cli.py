@@ -192,6 +192,9 @@ def _montecarlo_variants(args: argparse.Namespace) -> list[campaign.Variant]:
 def _montecarlo(args: argparse.Namespace) -> int:
     if args.distributed:  # before anything touches a device
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+    for path in (*args.gains, args.scenario, args.robot, args.ranges):  # fail on bad files before compiling
+        if path and not Path(path).is_file():
+            raise UsageError(f"{path}: no such file")
     try:
         ranges = _montecarlo_ranges(args)
         variants = _montecarlo_variants(args)

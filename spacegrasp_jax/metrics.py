@@ -14,10 +14,12 @@ from spacegrasp_jax import spatial
 
 def safe_norm(x, axis=-1):
     """Euclidean norm along ``axis`` whose gradient is 0 (not NaN) at exactly zero: errors
-    and forces do hit exact zeros (the start of a run; a contact force that underflows)."""
+    and forces do hit exact zeros (the start of a run; a contact force that underflows).
+    A non-finite ``x`` gives a non-finite norm."""
     squared = jnp.sum(x * x, axis=axis)
     positive = squared > 0.0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
+    # Not positive: 0 (whose branch has gradient 2x = 0) or NaN, passed through.
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), squared)
 
 
 def position_error(log):

@@ -1,12 +1,21 @@
-"""The seeded scenario sampler: nominal at zero range, reproducible, chunk-independent."""
+"""The seeded sampler: nominal at zero range, reproducible, chunk-independent, in range,
+validated."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import jax
 import numpy as np
 import pytest
 
-from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
+from spacegrasp_jax.perturbations import (
+    PerturbationError,
+    PerturbationRanges,
+    load_ranges,
+    sample,
+    sample_scenarios,
+)
 from spacegrasp_jax.scenario import paper_scenario
 
 
@@ -15,41 +24,87 @@ def nominal(robot):
     return paper_scenario(robot)
 
 
-def test_zero_ranges_give_the_nominal_scenario_exactly(nominal):
-    batch = sample_scenarios(nominal, 7, range(3), PerturbationRanges(0.0, 0.0, 0.0, 1.0))
-    for leaf, batched in zip(jax.tree.leaves(nominal), jax.tree.leaves(batch)):
-        for i in range(3):
-            np.testing.assert_array_equal(batched[i], leaf)
+def test_zero_ranges_give_the_nominal_robot_and_scenario_exactly(robot, nominal):
+    robots, scenarios, _ = sample(robot, nominal, 7, range(3), PerturbationRanges.nominal())
+    for original, batch in ((robot, robots), (nominal, scenarios)):
+        for leaf, batched in zip(jax.tree.leaves(original), jax.tree.leaves(batch)):
+            for i in range(3):
+                np.testing.assert_array_equal(batched[i], leaf)
 
 
-def test_same_seed_same_samples_whatever_the_batch(nominal):
+def test_same_seed_same_samples_whatever_the_batch(robot, nominal):
     ranges = PerturbationRanges()
-    whole = sample_scenarios(nominal, 3, range(8), ranges)
-    tail = sample_scenarios(nominal, 3, range(5, 8), ranges)  # a later chunk on its own
+    _, whole, drawn = sample(robot, nominal, 3, range(8), ranges)
+    _, tail, tail_drawn = sample(robot, nominal, 3, range(5, 8), ranges)  # a later chunk on its own
     np.testing.assert_array_equal(whole.initial.q[5:], tail.initial.q)
     np.testing.assert_array_equal(whole.R_lar[5:], tail.R_lar)
-    other = sample_scenarios(nominal, 4, range(8), ranges)
+    for a, b in zip(jax.tree.leaves(drawn), jax.tree.leaves(tail_drawn)):
+        np.testing.assert_array_equal(a[5:], b)
+    _, other, _ = sample(robot, nominal, 4, range(8), ranges)
     assert not np.allclose(whole.initial.q, other.initial.q)
 
 
-def test_samples_stay_within_their_ranges(nominal):
-    ranges = PerturbationRanges(q_init_rad=0.02, lar_position_m=0.004, lar_angle_rad=0.01, stiffness_factor=3.0)
-    batch = sample_scenarios(nominal, 0, range(200), ranges)
+def test_samples_stay_within_their_ranges(robot, nominal):
+    ranges = PerturbationRanges(
+        q_init_rad=0.02, lar_position_m=0.004, lar_angle_rad=0.01, stiffness_factor=3.0, base_speed_mps=0.002,
+        base_rate_radps=0.003, joint_rate_radps=0.01, radius_fraction=0.2, satellite_mass_fraction=0.1,
+        satellite_inertia_fraction=0.3,
+    )
+    robots, batch, _ = sample(robot, nominal, 0, range(200), ranges)
     dq = np.asarray(batch.initial.q) - np.asarray(nominal.initial.q)
-    assert np.abs(dq).max() <= 0.02 and np.abs(dq).max() > 0.015
+    assert np.abs(dq).max() <= 0.02 and np.abs(dq).max() > 0.015  # bounded, and the range is used
     dp_lar = np.einsum("ji,nj->ni", np.asarray(nominal.R_lar), np.asarray(batch.p_lar) - np.asarray(nominal.p_lar))
-    assert np.abs(dp_lar).max() <= 0.004 + 1e-15
+    assert 0.003 < np.abs(dp_lar).max() <= 0.004 + 1e-15
     k = np.asarray(batch.contact_stiffness) / float(nominal.contact_stiffness)
     assert k.min() >= 1 / 3 - 1e-12 and k.max() <= 3 + 1e-12
     for R in np.asarray(batch.R_lar[:5]):
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-14)  # still rotations
+    V = np.asarray(batch.initial.V_base)
+    assert 0.0015 < np.abs(V[:, :3]).max() <= 0.002 and 0.002 < np.abs(V[:, 3:]).max() <= 0.003
+    assert 0.008 < np.abs(np.asarray(batch.initial.qd)).max() <= 0.01
+    radius = np.asarray(batch.sphere_radius) / float(nominal.sphere_radius)
+    assert radius.min() >= 0.8 and radius.max() <= 1.2
+    mass = np.asarray(robots.satellite_mass) / float(robot.satellite_mass)
+    assert 0.9 <= mass.min() < 0.92 and 1.08 < mass.max() <= 1.1
+    for inertia in np.asarray(robots.satellite_inertia):
+        np.testing.assert_allclose(inertia, inertia.T, atol=1e-12)
+        assert np.linalg.eigvalsh(inertia).min() > 0.0
+    diagonal = np.einsum("nii->ni", np.asarray(robots.satellite_inertia)) / np.diag(np.asarray(robot.satellite_inertia))
+    assert 0.7 <= diagonal.min() < 0.75 and 1.25 < diagonal.max() <= 1.3
+    # Only the satellite's mass and inertia vary in the robot.
+    for name in ("link_mass", "dh_length", "ee_mass"):
+        np.testing.assert_array_equal(getattr(robots, name)[17], getattr(robot, name))
+
+
+def test_scenario_only_sampler_refuses_model_perturbations(nominal):
+    with pytest.raises(PerturbationError, match="use sample()"):
+        sample_scenarios(nominal, 0, range(2), PerturbationRanges())
+    ranges = dataclasses.replace(PerturbationRanges(), satellite_mass_fraction=0.0, satellite_inertia_fraction=0.0)
+    assert sample_scenarios(nominal, 0, range(2), ranges).initial.q.shape == (2, 7)
 
 
 @pytest.mark.parametrize("change, message", [
     (dict(q_init_rad=-0.1), "q_init_rad: must be non-negative"),
     (dict(lar_position_m=float("nan")), "lar_position_m: must be a finite number"),
     (dict(stiffness_factor=0.5), "stiffness_factor: must be >= 1"),
+    (dict(radius_fraction=1.0), "radius_fraction: must be below 1"),
+    (dict(satellite_mass_fraction=2.0), "satellite_mass_fraction: must be below 1"),
+    (dict(base_speed_mps="fast"), "base_speed_mps: must be a finite number"),
 ])
 def test_ranges_are_validated(change, message):
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(PerturbationError, match=message):
         PerturbationRanges(**change)
+
+
+def test_ranges_from_a_file(tmp_path):
+    path = tmp_path / "ranges.toml"
+    path.write_text("[perturbations]\nq_init_rad = 0.05\nsatellite_mass_fraction = 0.2\n")
+    ranges = load_ranges(path)
+    assert ranges.q_init_rad == 0.05 and ranges.satellite_mass_fraction == 0.2
+    assert ranges.lar_position_m == PerturbationRanges().lar_position_m  # the rest keep the defaults
+    path.write_text("q_init = 0.05\n")
+    with pytest.raises(PerturbationError, match="ranges.toml: unknown perturbation range 'q_init'"):
+        load_ranges(path)
+    path.write_text("q_init_rad = [0.05\n")
+    with pytest.raises(PerturbationError, match="cannot parse"):
+        load_ranges(path)

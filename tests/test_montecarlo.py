@@ -1,0 +1,195 @@
+"""Monte-Carlo campaigns: nominal reproduction, chunk and device independence, isolation of
+diverging samples, resume, and the command line.
+
+All campaigns run the short scenario (2 s, contact from about 0.9 s); executables are
+cached per process, so each (ranges, chunk, decimation) compiles once per session.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spacegrasp_jax import campaign, experiment, metrics
+from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, run_campaign
+from spacegrasp_jax.montecarlo import METRICS
+from spacegrasp_jax.perturbations import PerturbationRanges
+
+SHORT_SCENARIO_TOML = """
+duration = 2.0
+[trajectory]
+duration = 2.0
+[contact]
+law = "smooth"
+"""
+
+
+@pytest.fixture(scope="module")
+def variant(gains):
+    return Variant("admittance", gains)
+
+
+@pytest.fixture(scope="module")
+def five_samples(robot, short_scenario, variant):
+    """n = 5 with the default ranges in chunks of 2 and of 4 (the last chunk padded)."""
+    return {
+        chunk: run_campaign(robot, short_scenario, [variant], CampaignConfig(n=5, chunk=chunk), progress=None)
+        for chunk in (2, 4)
+    }
+
+
+def test_zero_perturbation_reproduces_the_nominal_rollout(robot, short_scenario, gains, variant):
+    config = CampaignConfig(n=2, chunk=2, ranges=PerturbationRanges.nominal(), timeseries_every=10)
+    result = run_campaign(robot, short_scenario, [variant], config, progress=None)
+    nominal = experiment.run(robot, short_scenario, gains, "admittance")
+    sample_metrics = result.metrics[variant.key]
+    for name, expected in nominal.summary.items():
+        if name in METRICS:
+            for i in range(2):
+                np.testing.assert_allclose(sample_metrics[name][i], expected, rtol=1e-12, atol=1e-15, err_msg=name)
+    assert np.all(np.isnan(sample_metrics["first_nonfinite_s"]))
+    rows = result.timeseries[variant.key]
+    for name, series in vars(nominal.log).items():
+        np.testing.assert_allclose(getattr(rows, name)[1], series[::10], rtol=1e-11, atol=1e-13, err_msg=name)
+
+
+def test_running_metrics_match_the_metrics_module_on_a_perturbed_sample(robot, short_scenario, gains, variant, five_samples):
+    # An independent route: rebuild sample 3, run it with its full log, apply metrics.summary.
+    sample_robot, sample_scenario = campaign.replay_sample(robot, short_scenario, CampaignConfig(n=5), 3)
+    full = experiment.run(sample_robot, sample_scenario, gains, "admittance")
+    sample_metrics = five_samples[2].metrics[variant.key]
+    for name, expected in full.summary.items():
+        if name in METRICS:
+            np.testing.assert_allclose(sample_metrics[name][3], expected, rtol=1e-10, err_msg=name)
+
+
+def test_results_do_not_depend_on_the_chunk_size(five_samples, variant):
+    by_two, by_four = (five_samples[c] for c in (2, 4))
+    for name, value in by_two.perturbations.items():
+        np.testing.assert_array_equal(value, by_four.perturbations[name])
+    for name, value in by_two.metrics[variant.key].items():
+        assert value.shape[0] == 5
+        np.testing.assert_allclose(value, by_four.metrics[variant.key][name], rtol=1e-10, err_msg=name)
+
+
+def test_four_devices_give_the_results_of_one(tmp_path, five_samples, variant):
+    scenario_file = tmp_path / "short.toml"
+    scenario_file.write_text(SHORT_SCENARIO_TOML)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    command = [sys.executable, "-m", "spacegrasp_jax.cli", "montecarlo", "--n", "5", "--chunk", "4", "--controller", "admittance",
+               "--scenario", str(scenario_file), "--out", str(tmp_path / "mc")]
+    finished = subprocess.run(command, capture_output=True, text=True, env=env, timeout=600)
+    assert finished.returncode == 0, finished.stderr
+    assert "over 4 device(s)" in finished.stderr
+    perturbations, by_variant = campaign.load_samples(tmp_path / "mc" / "samples.npz")
+    summary = json.loads((tmp_path / "mc" / "summary.json").read_text())
+    assert summary["throughput"]["devices"] == 4
+    reference = five_samples[4]
+    for name, value in reference.perturbations.items():
+        np.testing.assert_array_equal(perturbations[name], value)
+    for name, value in reference.metrics[variant.key].items():
+        np.testing.assert_allclose(by_variant[variant.key][name], value, rtol=1e-9, err_msg=name)
+
+
+def test_a_diverging_sample_is_reported_and_leaves_the_others_alone(robot, short_scenario, variant):
+    # Initial joint rates of up to 10 rad/s: sample 1 of seed 0 blows up at about 0.83 s.
+    config = CampaignConfig(n=4, chunk=4, ranges=PerturbationRanges.from_mapping({"joint_rate_radps": 10.0}))
+    result = run_campaign(robot, short_scenario, [variant], config, progress=None)
+    sample_metrics = result.metrics[variant.key]
+    assert result.status == "done"
+    assert np.isfinite(sample_metrics["first_nonfinite_s"][1]) and 0.0 < sample_metrics["first_nonfinite_s"][1] < 2.0
+    assert np.isnan(sample_metrics["final_position_error_m"][1]) and not sample_metrics["success"][1]
+    assert result.summary["variants"][variant.key]["diverged_samples"] == [1]
+    # The same executable with sample 1 swapped for sample 5: the others are bit-identical.
+    swapped = campaign.evaluate_indices(robot, short_scenario, variant, config, [0, 5, 2, 3])
+    assert np.isnan(swapped["first_nonfinite_s"][1])
+    for name in METRICS:
+        np.testing.assert_array_equal(swapped[name][[0, 2, 3]], sample_metrics[name][[0, 2, 3]], err_msg=name)
+
+
+def test_interrupted_campaign_resumes_chunk_by_chunk(tmp_path, robot, short_scenario, variant, five_samples):
+    config = CampaignConfig(n=5, chunk=2)
+    stop = experiment.StopRequest("chunk")  # used as a flag only: no signal handlers installed
+    computed = []
+
+    def stop_after_first(v, first):
+        computed.append(first)
+        stop.requested = True
+
+    out = tmp_path / "mc"
+    first = run_campaign(robot, short_scenario, [variant], config, out, progress=None, stop=stop, on_chunk=stop_after_first)
+    assert first.status == "interrupted" and computed == [0]
+    assert not (out / "samples.npz").exists()
+    assert sorted(p.name for p in (out / "chunks" / "admittance" / "paper").iterdir()) == ["000000000.npz"]
+
+    with pytest.raises(CampaignError, match="already holds a campaign"):
+        run_campaign(robot, short_scenario, [variant], config, out, progress=None)
+    with pytest.raises(CampaignError, match=r"the config differs .*\(seed\)"):
+        run_campaign(robot, short_scenario, [variant], dataclasses.replace(config, seed=1), out, resume=True, progress=None)
+
+    resumed = run_campaign(robot, short_scenario, [variant], config, out, resume=True, progress=None)
+    assert resumed.status == "done"
+    assert resumed.summary["throughput"]["rollouts_computed_this_run"] == 4  # chunks 2 and 4 only
+    _, by_variant = campaign.load_samples(out / "samples.npz")
+    for name, value in five_samples[2].metrics[variant.key].items():
+        np.testing.assert_array_equal(by_variant[variant.key][name], value, err_msg=name)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["variants"][variant.key]["samples"] == 5
+    assert {p.name for p in out.iterdir()} >= {"campaign.json", "samples.npz", "summary.json", "histograms.png", "torque_vs_error.png"}
+
+
+def test_summary_statistics_are_those_of_the_samples(five_samples, variant):
+    result = five_samples[2]
+    errors = result.metrics[variant.key]["final_position_error_m"]
+    stats = result.summary["variants"][variant.key]["statistics_over_non_diverged"]["final_position_error_m"]
+    assert stats["count"] == 5
+    np.testing.assert_allclose([stats["mean"], stats["p50"], stats["max"]], [errors.mean(), np.median(errors), errors.max()], rtol=1e-12)
+    success = result.metrics[variant.key]["success"]
+    np.testing.assert_array_equal(success, errors <= 0.005)  # orientation is well inside 1 deg here
+    assert result.summary["variants"][variant.key]["worst_by_final_position_error"][0] == int(np.argmax(errors))
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(n=0), "n: must be at least 1"),
+    (dict(chunk=0), "chunk: must be at least 1"),
+    (dict(seed=-1), "seed: must be in"),
+    (dict(position_tolerance_m=0.0), "position_tolerance_m: must be positive"),
+    (dict(timeseries_every=0), "timeseries_every: must be at least 1"),
+])
+def test_campaign_config_is_validated(change, message):
+    with pytest.raises(CampaignError, match=message):
+        CampaignConfig(**{"n": 4} | change)
+
+
+def test_bad_campaign_setups_fail_before_compiling(robot, short_scenario, gains, variant):
+    with pytest.raises(CampaignError, match="does not divide the 2000 steps"):
+        run_campaign(robot, short_scenario, [variant], CampaignConfig(n=2, chunk=2, timeseries_every=3), progress=None)
+    with pytest.raises(CampaignError, match="variants must differ"):
+        run_campaign(robot, short_scenario, [variant, Variant("admittance", gains)], CampaignConfig(n=2), progress=None)
+    with pytest.raises(CampaignError, match="controller: expected one of"):
+        Variant("pid", gains)
+
+
+def test_montecarlo_command_rejects_bad_input(tmp_path, capsys):
+    from spacegrasp_jax.cli import main
+
+    assert main(["montecarlo", "--n", "0", "--out", str(tmp_path / "a")]) == 2
+    assert "--n: must be at least 1" in capsys.readouterr().err
+    assert main(["montecarlo", "--n", "4", "--range", "q_init=0.1", "--out", str(tmp_path / "b")]) == 2
+    assert "unknown perturbation range 'q_init'" in capsys.readouterr().err
+    assert main(["montecarlo", "--n", "4", "--range", "radius_fraction=1.5", "--out", str(tmp_path / "c")]) == 2
+    assert "radius_fraction: must be below 1" in capsys.readouterr().err
+    ranges = tmp_path / "ranges.toml"
+    ranges.write_text("q_init_rad = -1\n")
+    assert main(["montecarlo", "--n", "4", "--ranges", str(ranges), "--out", str(tmp_path / "d")]) == 2
+    assert "ranges.toml: q_init_rad: must be non-negative" in capsys.readouterr().err
+    assert main(["montecarlo", "--n", "4", "--gains", str(tmp_path / "missing.json"), "--out", str(tmp_path / "e")]) == 2
+    assert "missing.json" in capsys.readouterr().err
+    assert not any((tmp_path / name).exists() for name in "abcde")
