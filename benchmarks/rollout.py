@@ -1,12 +1,11 @@
 """Closed-loop rollout benchmark: compile time and run time of one 17 s rollout per controller.
 
-    python -m benchmarks.rollout [--out results/benchmarks] [--repeats 5] [--duration 17] [--batches 64,256]
+    python -m benchmarks.rollout [--out results/benchmarks] [--repeats 5] [--duration 17]
 
 Run time is measured after compilation, as the median (and spread) of ``--repeats`` runs of
 the paper scenario (dt = 1 ms, 17,000 RK4 steps). For the figure "on one CPU core", run it
-pinned to one core: ``taskset -c 0 python -m benchmarks.rollout``. ``--batches`` adds the
-throughput of ``vmap`` over that many perturbed scenarios (admittance law, full logs kept:
-about 11 MB of log per 17 s scenario). Writes ``rollout.json``.
+pinned to one core: ``taskset -c 0 python -m benchmarks.rollout``. Batched throughput is
+``benchmarks.montecarlo``'s. Writes ``rollout.json``.
 """
 
 from __future__ import annotations
@@ -23,7 +22,6 @@ import jax
 import spacegrasp_jax as sg
 from benchmarks.dynamics import machine, timed
 from spacegrasp_jax.control import CONTROLLERS, paper_gains
-from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
 
@@ -45,36 +43,12 @@ def bench_controller(robot, scenario, gains, controller: str, repeats: int) -> d
     }
 
 
-def bench_batch(robot, scenario, gains, size: int, repeats: int) -> dict:
-    batch = sample_scenarios(scenario, 0, range(size), PerturbationRanges())
-    function = jax.jit(jax.vmap(rollout, in_axes=(None, 0, None, None)), static_argnums=3)
-    start = time.perf_counter()
-    executable = function.lower(robot, batch, gains, "admittance").compile()
-    compile_s = time.perf_counter() - start
-    jax.block_until_ready(executable(robot, batch, gains))
-    run = timed(lambda: jax.block_until_ready(executable(robot, batch, gains)), repeats)
-    return {
-        "compile_s": compile_s,
-        "run_s": run["median_s"],
-        "rollouts_per_s": size / run["median_s"],
-        "scenario_steps_per_s": size * scenario.n_steps / run["median_s"],
-        "simulated_s_per_wall_s": size * scenario.duration / run["median_s"],
-    }
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks", help="folder for rollout.json")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--duration", type=float, default=17.0, help="simulated seconds (17 in the paper)")
-    parser.add_argument("--batches", default="", help="comma-separated batch sizes for vmap throughput, e.g. 64,256")
     args = parser.parse_args(argv)
-    try:
-        batches = [int(size) for size in args.batches.split(",") if size]
-    except ValueError:
-        parser.error(f"--batches: expected integers, got {args.batches!r}")
-    if any(size < 1 for size in batches):
-        parser.error("--batches: sizes must be positive")
     if args.repeats < 1 or args.duration <= 0:
         parser.error("--repeats and --duration must be positive")
 
@@ -92,12 +66,6 @@ def main(argv: list[str] | None = None) -> int:
         r = result[controller]
         spread = f"{r['run_spread_s'][0]:.3f}-{r['run_spread_s'][1]:.3f}"
         print(f"{controller:12} {r['compile_s']:>12.2f} {r['run_s']:>10.3f} {spread:>16} {r['us_per_step']:>9.1f} {r['simulated_s_per_wall_s']:>15.1f}")
-    if batches:
-        result["batches"] = {str(size): bench_batch(robot, scenario, gains, size, args.repeats) for size in batches}
-        single = result["admittance"]["simulated_s_per_wall_s"]
-        print(f"\n{'batch':>6} {'compile [s]':>12} {'run [s]':>9} {'rollouts/s':>11} {'steps/s':>12} {'vs single':>10}")
-        for size, r in result["batches"].items():
-            print(f"{size:>6} {r['compile_s']:>12.1f} {r['run_s']:>9.2f} {r['rollouts_per_s']:>11.2f} {r['scenario_steps_per_s']:>12.3g} {r['simulated_s_per_wall_s'] / single:>9.1f}x")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "rollout.json").write_text(json.dumps(result, indent=2))

@@ -138,6 +138,25 @@ class CampaignResult:
 # ---- the sharded, chunked evaluation --------------------------------------------------
 
 
+def use_all_cpu_cores() -> int | None:
+    """Expose one XLA CPU device per core (``jax_num_cpu_devices``), so that the batch axis
+    shards across the cores: one CPU device runs a batch on about one core. It takes effect
+    only if called before JAX initialises its backends (before the first array or device
+    query). Returns the device count requested, or ``None`` if the user already chose one
+    (``XLA_FLAGS`` with ``--xla_force_host_platform_device_count``, or
+    ``JAX_NUM_CPU_DEVICES``). Harmless on GPU hosts, whose default devices are the GPUs."""
+    import os
+
+    if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", "") or "JAX_NUM_CPU_DEVICES" in os.environ:
+        return None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    try:
+        jax.config.update("jax_num_cpu_devices", cores)
+    except RuntimeError:  # backends already initialised: keep what there is
+        return None
+    return cores
+
+
 def batch_mesh() -> Mesh:
     """A 1-D mesh (axis ``"batch"``) over every device of every process."""
     return Mesh(np.asarray(jax.devices()), ("batch",))
@@ -161,6 +180,8 @@ def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
         jax.tree.structure(arguments),
         tuple((np.shape(leaf), str(np.asarray(leaf).dtype)) for leaf in jax.tree.leaves(arguments)),
     )
+    if config.chunk % jax.device_count():
+        raise CampaignError(f"chunk: {config.chunk} is not a multiple of the {jax.device_count()} devices")
     if key not in _EXECUTABLES:
         mesh = batch_mesh()
         replicated, batched = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("batch"))
@@ -477,6 +498,7 @@ __all__ = [
     "evaluate_indices",
     "load_samples",
     "replay_sample",
+    "use_all_cpu_cores",
     "run_campaign",
     "variant_summary",
     "write_results",

@@ -190,8 +190,10 @@ def _montecarlo_variants(args: argparse.Namespace) -> list[campaign.Variant]:
 
 
 def _montecarlo(args: argparse.Namespace) -> int:
-    if args.distributed:  # before anything touches a device
+    # Both before anything touches a device.
+    if args.distributed:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+    campaign.use_all_cpu_cores()
     for path in (*args.gains, args.scenario, args.robot, args.ranges):  # fail on bad files before compiling
         if path and not Path(path).is_file():
             raise UsageError(f"{path}: no such file")
@@ -200,8 +202,11 @@ def _montecarlo(args: argparse.Namespace) -> int:
         variants = _montecarlo_variants(args)
         if args.n < 1:
             raise UsageError(f"--n: must be at least 1, got {args.n}")
+        if args.chunk < 1:
+            raise UsageError(f"--chunk: must be at least 1, got {args.chunk}")
         devices = jax.device_count()
-        chunk = min(args.chunk, devices * math.ceil(args.n / devices))  # no padding beyond n
+        # A multiple of the device count, and no larger than n needs.
+        chunk = devices * math.ceil(min(args.chunk, args.n) / devices)
         config = campaign.CampaignConfig(
             n=args.n,
             seed=args.seed,

@@ -107,7 +107,7 @@ def _finish(running: RunningMetrics, final_state, n_steps: int, duration: float)
     first_nonfinite = jnp.where(jnp.isinf(running.first_nonfinite_s) & ~final_finite, duration, running.first_nonfinite_s)
     # The metrics module's definitions, applied to the last row alone.
     final_rows = types.SimpleNamespace(pose_ee=running.last_pose_ee[None], pose_des=running.last_pose_des[None])
-    never = lambda s: jnp.where(jnp.isinf(s), jnp.nan, s)  # noqa: E731
+    never = lambda s: jnp.where(jnp.isinf(s), jnp.nan, s)
     return {
         "final_position_error_m": metrics.final_position_error(final_rows),
         "final_orientation_error_rad": metrics.final_orientation_error(final_rows),
@@ -190,7 +190,7 @@ def evaluate_samples(
         final errors and a finite ``first_nonfinite_s``; the others are unaffected.
     """
     robots, scenarios, perturbations = sample(robot, scenario, seed, indices, ranges)
-    one = lambda r, s: rollout_metrics(r, s, gains, controller, pinv_damping, every)  # noqa: E731
+    one = lambda r, s: rollout_metrics(r, s, gains, controller, pinv_damping, every)
     sample_metrics, rows = jax.vmap(one)(robots, scenarios)
     return perturbations, sample_metrics, rows
 

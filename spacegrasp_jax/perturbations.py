@@ -74,7 +74,7 @@ class PerturbationRanges:
                 raise PerturbationError(f"{name}: must be below 1 (the quantity must stay positive), got {getattr(self, name)}")
 
     @classmethod
-    def nominal(cls) -> "PerturbationRanges":
+    def nominal(cls) -> PerturbationRanges:
         """No perturbation at all."""
         return cls(**{field.name: 0.0 for field in dataclasses.fields(cls)} | {"stiffness_factor": 1.0})
 
@@ -87,7 +87,7 @@ class PerturbationRanges:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_mapping(cls, document: dict, base: "PerturbationRanges | None" = None) -> "PerturbationRanges":
+    def from_mapping(cls, document: dict, base: PerturbationRanges | None = None) -> PerturbationRanges:
         """``base`` (default: the campaign defaults) with the values in ``document``
         replaced; unknown keys are rejected."""
         known = {field.name for field in dataclasses.fields(cls)}

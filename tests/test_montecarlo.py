@@ -12,12 +12,11 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from spacegrasp_jax import campaign, experiment, metrics
+from spacegrasp_jax import campaign, experiment
 from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, run_campaign
 from spacegrasp_jax.montecarlo import METRICS
 from spacegrasp_jax.perturbations import PerturbationRanges
