@@ -148,7 +148,10 @@ def make_loss(robot: Robot, scenarios: Scenario, base: Gains, mask, config: Tune
             parts["peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
             return parts
 
-        parts = jax.vmap(one)(scenarios)
+        if jax.tree.leaves(scenarios)[0].shape[0] == 1:  # one scenario: the unbatched program
+            parts = jax.tree.map(lambda x: x[None], one(jax.tree.map(lambda x: x[0], scenarios)))
+        else:
+            parts = jax.vmap(one)(scenarios)
         losses = parts["loss"]
         if config.cvar_alpha is None:
             total = jnp.mean(losses)
