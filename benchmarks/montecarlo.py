@@ -9,7 +9,8 @@ Each measurement runs in its own process, so that its peak memory is its own:
 * ``batch B``: one chunk of B samples through the campaign's compiled, sharded kernel
   (``campaign.evaluate_indices``: sampling, vmapped rollouts, metrics gathered to the host),
   with one CPU device per core as ``spacegrasp montecarlo`` sets up (on a GPU host: the GPUs;
-  a batch that does not divide among the cores, such as 1, runs on one CPU device).
+  a batch that does not divide among the cores, such as 1, runs on one CPU device), and on
+  a CPU in sub-batches of 128 samples per device, as ``spacegrasp montecarlo`` defaults to.
 All use the admittance law, the paper scenario (exact contact) and the default campaign
 ranges. Times are after compilation: the median of ``--repeats`` for the sequential loop and
 for batches up to 256, a single run for larger ones (minutes on a laptop). Reports rollouts/s,
@@ -62,7 +63,7 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
 
     else:
         variant = campaign.Variant("admittance", gains)
-        config = campaign.CampaignConfig(n=size, chunk=size)
+        config = campaign.CampaignConfig(n=size, chunk=size, device_batch=128 if jax.default_backend() == "cpu" else None)
         compiled, compile_s = campaign.compiled_chunk(robot, scenario, variant, config)
 
         def run():

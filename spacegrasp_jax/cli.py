@@ -216,6 +216,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
             orientation_tolerance_rad=math.radians(args.tolerance_deg),
             timeseries_every=args.timeseries_every,
             pinv_damping=args.pinv_damping,
+            device_batch=args.device_batch if args.device_batch is not None else (128 if jax.default_backend() == "cpu" else None),
         )
     except (PerturbationError, campaign.CampaignError) as error:
         raise UsageError(str(error)) from None
@@ -310,6 +311,8 @@ def build_parser() -> argparse.ArgumentParser:
                             help="gains JSON to compare with the paper's (repeatable; labelled by file name)")
     montecarlo.add_argument("--seed", type=int, default=0, help="campaign seed (default 0)")
     montecarlo.add_argument("--chunk", type=int, default=256, help="samples per compiled call, a multiple of the device count (default 256)")
+    montecarlo.add_argument("--device-batch", type=int, default=None, metavar="K",
+                            help="samples each device simulates at once (default 128 on CPU, its whole share on GPU)")
     montecarlo.add_argument("--out", default="results/montecarlo", help="output folder (default results/montecarlo)")
     montecarlo.add_argument("--ranges", help="TOML file of perturbation half-widths (see README)")
     montecarlo.add_argument("--range", action="append", default=[], metavar="NAME=VALUE", help="override one half-width, e.g. q_init_rad=0.05 (repeatable)")

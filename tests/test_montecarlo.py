@@ -37,11 +37,10 @@ def variant(gains):
 
 @pytest.fixture(scope="module")
 def five_samples(robot, short_scenario, variant):
-    """n = 5 with the default ranges in chunks of 2 and of 4 (the last chunk padded)."""
-    return {
-        chunk: run_campaign(robot, short_scenario, [variant], CampaignConfig(n=5, chunk=chunk), progress=None)
-        for chunk in (2, 4)
-    }
+    """n = 5 with the default ranges in chunks of 2 and of 4 (the last chunk padded), and in
+    chunks of 4 run as sub-batches of 2 (``device_batch``)."""
+    configs = {2: CampaignConfig(n=5, chunk=2), 4: CampaignConfig(n=5, chunk=4), "4/2": CampaignConfig(n=5, chunk=4, device_batch=2)}
+    return {name: run_campaign(robot, short_scenario, [variant], config, progress=None) for name, config in configs.items()}
 
 
 def test_zero_perturbation_reproduces_the_nominal_rollout(robot, short_scenario, gains, variant):
@@ -69,13 +68,14 @@ def test_running_metrics_match_the_metrics_module_on_a_perturbed_sample(robot, s
             np.testing.assert_allclose(sample_metrics[name][3], expected, rtol=1e-10, err_msg=name)
 
 
-def test_results_do_not_depend_on_the_chunk_size(five_samples, variant):
-    by_two, by_four = (five_samples[c] for c in (2, 4))
+@pytest.mark.parametrize("other", [4, "4/2"])
+def test_results_do_not_depend_on_the_chunk_or_sub_batch_size(five_samples, variant, other):
+    by_two, by_other = five_samples[2], five_samples[other]
     for name, value in by_two.perturbations.items():
-        np.testing.assert_array_equal(value, by_four.perturbations[name])
+        np.testing.assert_array_equal(value, by_other.perturbations[name])
     for name, value in by_two.metrics[variant.key].items():
         assert value.shape[0] == 5
-        np.testing.assert_allclose(value, by_four.metrics[variant.key][name], rtol=1e-10, err_msg=name)
+        np.testing.assert_allclose(value, by_other.metrics[variant.key][name], rtol=1e-10, err_msg=name)
 
 
 def test_four_devices_give_the_results_of_one(tmp_path, five_samples, variant):
@@ -161,6 +161,7 @@ def test_summary_statistics_are_those_of_the_samples(five_samples, variant):
     (dict(seed=-1), "seed: must be in"),
     (dict(position_tolerance_m=0.0), "position_tolerance_m: must be positive"),
     (dict(timeseries_every=0), "timeseries_every: must be at least 1"),
+    (dict(device_batch=0), "device_batch: must be a positive integer"),
 ])
 def test_campaign_config_is_validated(change, message):
     with pytest.raises(CampaignError, match=message):
