@@ -10,9 +10,12 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import matplotlib
 import numpy as np
 
-import spacegrasp_jax as sg
+matplotlib.use("Agg")  # the command line only writes figures to files; before pyplot is imported
+
+import spacegrasp_jax as sg  # noqa: E402
 from spacegrasp_jax import campaign, experiment, plots, spatial
 from spacegrasp_jax.control import CONTROLLERS, GainsError, load_gains, paper_gains
 from spacegrasp_jax.perturbations import PerturbationError, PerturbationRanges, load_ranges
@@ -21,11 +24,7 @@ from tuning.objective import Weights
 from tuning.run import TuneSetupError, tune
 from tuning.tune import TuneConfig
 
-#: Table 5 of the paper: maximal absolute joint torques (N m).
-PAPER_MAX_TORQUE_NM = {
-    "admittance": [1.50, 2.45, 1.68, 0.86, 1.10, 0.17, 0.036],
-    "cartesian": [1.89, 4.21, 2.72, 0.72, 1.55, 0.35, 0.027],
-}
+PAPER_MAX_TORQUE_NM = experiment.PAPER_MAX_TORQUE_NM
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -240,6 +239,19 @@ def _montecarlo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _benchmark(args: argparse.Namespace) -> int:
+    if args.repeats < 1:
+        raise UsageError(f"--repeats: must be at least 1, got {args.repeats}")
+    try:
+        import mujoco  # noqa: F401
+        import pinocchio  # noqa: F401
+
+        from benchmarks import suite
+    except ImportError as error:  # the peers, or the benchmarks package outside a checkout
+        raise UsageError(f"the benchmark needs the test extra (pip install -e '.[test]'): {error}") from None
+    return suite.main([*(["--quick"] if args.quick else []), "--out", args.out, "--repeats", str(args.repeats)])
+
+
 def _print_campaign(result: campaign.CampaignResult) -> None:
     header = f"{'variant':24} {'success':>8} {'diverged':>8} {'final pos p50/p95 [mm]':>23} {'peak |u| p50/p95 [N m]':>23} {'contact p95 [N]':>16}"
     print(header)
@@ -329,6 +341,12 @@ def build_parser() -> argparse.ArgumentParser:
     cluster.add_argument("--num-processes", type=int, help="number of processes")
     cluster.add_argument("--process-id", type=int, help="this process's rank, 0 .. num-processes - 1")
     montecarlo.set_defaults(run=_montecarlo)
+
+    benchmark = commands.add_parser("benchmark", help="speed and memory against MuJoCo and a Pinocchio loop (needs the test extra)")
+    benchmark.add_argument("--quick", action="store_true", help="toy sizes: exercises every part in about two minutes; numbers mean nothing")
+    benchmark.add_argument("--out", default="results/benchmarks", help="folder for benchmark.json (default results/benchmarks)")
+    benchmark.add_argument("--repeats", type=int, default=3, help="repeats per timing, median reported (default 3)")
+    benchmark.set_defaults(run=_benchmark)
     return parser
 
 

@@ -29,6 +29,12 @@ from spacegrasp_jax.simulate import Log, first_nonfinite_time, rollout
 #: Keys of summary.json and of the timeseries files for each controller.
 RESULT_KEYS = {"admittance": "active", "cartesian": "cartesian"}
 
+#: Table 5 of the paper: maximal absolute joint torques (N m).
+PAPER_MAX_TORQUE_NM = {
+    "admittance": [1.50, 2.45, 1.68, 0.86, 1.10, 0.17, 0.036],
+    "cartesian": [1.89, 4.21, 2.72, 0.72, 1.55, 0.35, 0.027],
+}
+
 
 class SimulationDiverged(RuntimeError):
     """The closed loop produced non-finite values; ``time_s`` is the first bad step."""
@@ -91,6 +97,44 @@ def run(
     summary = metrics.summary(log) if bad_time is None else {"first_nonfinite_s": bad_time}
     summary.update(compile_time_s=compile_time, run_time_s=run_time)
     return RunResult(controller, log, summary, compile_time, run_time)
+
+
+def table5_markdown(results: dict) -> str:
+    """Table 5 (peak |u_i| per joint, N m) of ``results`` (controller -> :class:`RunResult`)
+    beside the paper's, with the relative difference, as a Markdown table."""
+    header = "| joint |" + "".join(f" {RESULT_KEYS[c]} (ours) | {RESULT_KEYS[c]} (paper) | difference |" for c in results)
+    lines = [header, "|" + " --- |" * (1 + 3 * len(results))]
+    for joint in range(7):
+        cells = []
+        for controller, result in results.items():
+            ours, paper = result.summary["max_abs_torque_Nm"][joint], PAPER_MAX_TORQUE_NM[controller][joint]
+            cells.append(f" {ours:.3f} | {paper:.3g} | {100.0 * (ours / paper - 1.0):+.0f}% |")
+        lines.append(f"| {joint + 1} |" + "".join(cells))
+    return "\n".join(lines)
+
+
+#: Rows of :func:`summary_markdown`: label, summary key, scale to the display unit, format.
+_SUMMARY_ROWS = [
+    ("final EE position error [mm]", "final_position_error_m", 1e3, "{:.2f}"),
+    ("final EE orientation error [deg]", "final_orientation_error_rad", 180.0 / 3.141592653589793, "{:.3f}"),
+    ("RMS position tracking error [mm]", "rms_position_error_m", 1e3, "{:.1f}"),
+    ("first contact [s]", "first_contact_s", 1.0, "{:.2f}"),
+    ("peak contact force [N]", "max_contact_force_N", 1.0, "{:.2f}"),
+    ("peak linear momentum [N s]", "max_linear_momentum_Ns", 1.0, "{:.2f}"),
+    ("peak angular momentum [N m s]", "max_angular_momentum_Nms", 1.0, "{:.2f}"),
+    ("peak satellite speed [mm/s]", "max_base_speed_mps", 1e3, "{:.1f}"),
+    ("peak satellite rate [deg/s]", "max_base_rate_radps", 180.0 / 3.141592653589793, "{:.1f}"),
+]
+
+
+def summary_markdown(results: dict) -> str:
+    """The end-of-run errors and the peaks of ``results`` (controller -> :class:`RunResult`)
+    side by side, as a Markdown table."""
+    lines = ["| |" + "".join(f" {RESULT_KEYS.get(c, c)} |" for c in results), "|" + " --- |" * (1 + len(results))]
+    for label, key, scale, number in _SUMMARY_ROWS:
+        values = [result.summary.get(key) for result in results.values()]
+        lines.append(f"| {label} |" + "".join(" never |" if v is None else f" {number.format(scale * v)} |" for v in values))
+    return "\n".join(lines)
 
 
 class StopRequest:

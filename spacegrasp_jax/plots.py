@@ -3,16 +3,16 @@
 Style of the paper: blue dashed line for the active 6-DoF F/T (admittance) law, red dotted for
 the Cartesian law, black solid for the desired trajectory. ``logs`` maps a controller name
 (``"admittance"``, ``"cartesian"``) to a log with NumPy fields; either may be missing.
+
+Every ``figure_*`` function returns a matplotlib figure and leaves the backend alone: a
+notebook shows it inline, the command line (which selects the file-only Agg backend) saves
+it.
 """
 
 from __future__ import annotations
 
-import matplotlib
-
-matplotlib.use("Agg")  # files only; no display needed
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
 STYLES = {
     "admittance": dict(color="tab:blue", linestyle="--", label="active 6 DoF F/T control"),
@@ -196,6 +196,20 @@ def _campaign_values(sample_metrics: dict) -> tuple[np.ndarray, np.ndarray]:
     return error_mm, peak
 
 
+def _spans_decades(values: np.ndarray, decades: float = 2.0) -> bool:
+    """True when positive values spread over more than ``decades`` powers of ten: a few
+    unstable samples (thousands of N m) would otherwise squeeze the rest into one bin."""
+    return bool(values.size and values.min() > 0.0 and np.log10(values.max() / values.min()) > decades)
+
+
+def _bins(values: np.ndarray, count: int = 30):
+    if not values.size or values.max() <= values.min():
+        return count
+    if _spans_decades(values):
+        return np.geomspace(values.min(), values.max(), count + 1)
+    return np.linspace(values.min(), values.max(), count + 1)
+
+
 def figure_campaign_histograms(metrics: dict, title: str = "Monte-Carlo campaign", tolerance_mm: float | None = None):
     """Histograms of the final position error (with the success tolerance, if given) and of
     the largest peak joint torque."""
@@ -207,7 +221,9 @@ def figure_campaign_histograms(metrics: dict, title: str = "Monte-Carlo campaign
         ["Final positioning error", "Peak joint torque"],
     )):
         pooled = np.concatenate([v[column] for v in values.values()])
-        bins = np.linspace(pooled.min(), pooled.max(), 31) if pooled.size and pooled.max() > pooled.min() else 30
+        bins = _bins(pooled)
+        if _spans_decades(pooled):
+            ax.set_xscale("log")
         for index, (key, v) in enumerate(values.items()):
             n_samples = len(metrics[key]["first_nonfinite_s"])
             ax.hist(v[column], bins=bins, alpha=0.55, color=_variant_colour(index, key), label=f"{key} ({v[column].size}/{n_samples} finite)")
@@ -229,6 +245,11 @@ def figure_campaign_scatter(metrics: dict, title: str = "Monte-Carlo campaign"):
     for index, (key, sample_metrics) in enumerate(metrics.items()):
         error_mm, peak = _campaign_values(sample_metrics)
         ax.scatter(error_mm, peak, s=10, alpha=0.6, color=_variant_colour(index, key), label=key)
+    pooled = [_campaign_values(m) for m in metrics.values()]
+    if _spans_decades(np.concatenate([error for error, _ in pooled])):
+        ax.set_xscale("log")
+    if _spans_decades(np.concatenate([peak for _, peak in pooled])):
+        ax.set_yscale("log")
     ax.set_xlabel("final EE position error [mm]")
     ax.set_ylabel("max over joints of max |u_i| [N m]")
     ax.set_title(f"Peak joint torque against final positioning error\n{title}", fontsize=10)
@@ -249,3 +270,95 @@ def save_campaign_figures(out_dir, metrics: dict, title: str, tolerance_mm: floa
     for name, fig in figures.items():
         write_atomically(out_dir / name, lambda target: fig.savefig(target, dpi=110, format="png"))
         plt.close(fig)
+
+
+# ---- the EE path around the contact sphere, and gain sweeps ----------------------------
+
+
+def _sphere_outline(centre_mm, radius_mm, axes_pair, n: int = 181):
+    angle = np.linspace(0.0, 2.0 * np.pi, n)
+    i, j = axes_pair
+    return centre_mm[i] + radius_mm * np.cos(angle), centre_mm[j] + radius_mm * np.sin(angle)
+
+
+def figure_ee_path(logs, sphere_centre, sphere_radius, title: str = "End-effector path around the contact sphere (LAR frame)"):
+    """The EE position in the LAR frame in 3-D, and its side (x-z) and top (x-y) views, with
+    the desired path and the contact sphere (eq 20).
+
+    Args:
+        logs: controller or style name -> log (NumPy fields).
+        sphere_centre: (3,) m, LAR frame. sphere_radius: m.
+    """
+    centre, radius = 1e3 * np.asarray(sphere_centre, dtype=float), 1e3 * float(sphere_radius)
+    fig = plt.figure(figsize=(15, 4.8))
+    ax3d = fig.add_subplot(1, 3, 1, projection="3d")
+    side, top = fig.add_subplot(1, 3, 2), fig.add_subplot(1, 3, 3)
+    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 25), np.linspace(0, np.pi, 13))
+    ax3d.plot_wireframe(
+        centre[0] + radius * np.cos(u) * np.sin(v), centre[1] + radius * np.sin(u) * np.sin(v), centre[2] + radius * np.cos(v),
+        color="tab:gray", linewidth=0.4, alpha=0.5,
+    )
+    desired = 1e3 * next(iter(logs.values())).pose_des[:, :3]
+    paths = {name: 1e3 * log.pose_ee[:, :3] for name, log in logs.items()} | {"desired": desired}
+    for name, p in paths.items():
+        style = dict(STYLES[name], linewidth=1.0 if name == "desired" else 1.6)
+        ax3d.plot(p[:, 0], p[:, 1], p[:, 2], **style)
+        side.plot(p[:, 0], p[:, 2], **style)
+        top.plot(p[:, 0], p[:, 1], **style)
+        if name != "desired":
+            for ax, (a, b) in ((side, (0, 2)), (top, (0, 1))):
+                ax.plot(p[-1, a], p[-1, b], marker="o", color=style["color"], markersize=4)
+    for ax, pair, xlabel, ylabel, view in ((side, (0, 2), "x [mm]", "z [mm]", "side view (x-z)"), (top, (0, 1), "x [mm]", "y [mm]", "top view (x-y)")):
+        ax.fill(*_sphere_outline(centre, radius, pair), color="tab:gray", alpha=0.15, label="contact sphere")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.set_title(f"{view}; dots: final position", fontsize=10)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(True, alpha=0.3)
+    ax3d.set_xlabel("x [mm]")
+    ax3d.set_ylabel("y [mm]")
+    ax3d.set_zlabel("z [mm]")
+    ax3d.set_title("3-D, LAR frame", fontsize=10)
+    side.legend(fontsize=8, loc="best")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def figure_tradeoff(
+    peak_torque_Nm,
+    final_error_m,
+    contact_force_N,
+    front,
+    highlights: dict | None = None,
+    title: str = "Peak joint torque against final positioning error",
+):
+    """One point per gain set: largest peak joint torque against final EE position error
+    (log axes), coloured by peak contact force, the Pareto front joined by a line.
+
+    Args:
+        peak_torque_Nm, final_error_m, contact_force_N: (N,) per gain set; non-finite
+            (diverged) points are left out and counted in the title.
+        front: (N,) bool, the Pareto-optimal points (:func:`spacegrasp_jax.sweep.pareto_front`).
+        highlights: label -> (peak torque N m, final error m), drawn as large markers
+            (e.g. the paper's and the tuned gains).
+    """
+    torque, error_mm, force = np.asarray(peak_torque_Nm), 1e3 * np.asarray(final_error_m), np.asarray(contact_force_N)
+    finite = np.isfinite(torque) & np.isfinite(error_mm) & np.isfinite(force)
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    points = ax.scatter(error_mm[finite], torque[finite], c=force[finite], cmap="viridis", s=22, edgecolors="none")
+    fig.colorbar(points, ax=ax, label="peak contact force [N]")
+    order = np.argsort(error_mm[front])
+    ax.plot(error_mm[front][order], torque[front][order], color="black", linewidth=1.2, drawstyle="steps-post", label="Pareto front")
+    for (label, (peak, error)), marker in zip((highlights or {}).items(), ["*", "P", "D", "X", "s"]):
+        ax.plot(1e3 * error, peak, marker=marker, markersize=14, markeredgecolor="black", color="white", linestyle="none", label=label)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("final EE position error [mm]")
+    ax.set_ylabel("max over joints of max |u_i| [N m]")
+    dropped = int(np.sum(~finite))
+    ax.set_title(title + (f"\n({dropped} diverged gain set{'s' if dropped != 1 else ''} not shown)" if dropped else ""), fontsize=11)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=9)
+    fig.tight_layout()
+    return fig

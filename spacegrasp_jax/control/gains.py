@@ -105,6 +105,14 @@ def paper_gains() -> Gains:
     )
 
 
+def tuned_gains() -> Gains:
+    """The admittance gains found by ``spacegrasp tune`` with its defaults, starting from the
+    paper's (README, "Tuning the gains": 43% lower largest peak torque on the nominal
+    scenario). Shipped as ``spacegrasp_jax/data/tuned_admittance_gains.json``; ``K_lin`` and
+    ``K_eul`` are the paper's (the admittance law does not use them)."""
+    return load_gains(Path(__file__).resolve().parents[1] / "data" / "tuned_admittance_gains.json")
+
+
 def load_gains(path: str | Path) -> Gains:
     """Read gains from a JSON file ``{"Md": [...], ..., "kd": [...]}`` (scalars allowed).
 

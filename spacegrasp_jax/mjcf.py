@@ -1,0 +1,107 @@
+"""The robot as a MuJoCo model (MJCF text), for side-by-side benchmarks and checks.
+
+The generated model has a free joint at the satellite CoM, seven hinges and the EE merged into
+link 7 (as :func:`~spacegrasp_jax.model.body_inertials` does), no gravity, no geometry and so
+no contacts, the RK4 integrator at ``dt`` and one motor per joint (``ctrl`` = joint torque,
+N m). It describes the same rigid-body system as :class:`~spacegrasp_jax.model.Robot`:
+
+* body ``link<i>`` has the pose of DH frame ``i``. Its hinge sits at the origin of frame
+  ``i-1``, about ``z_{i-1}``; at ``q = 0`` the body is placed by ``T_{i-1,i}(0)``.
+* MuJoCo's free-joint velocity is ``[v_s (world), R_s^T w_s (satellite frame)]``; ours is
+  ``[v_s, w_s]``, both in the inertial frame (``qvel_from_state`` converts).
+* site ``ee`` is the EE frame's origin.
+
+MuJoCo itself is not a dependency of the package: only :mod:`benchmarks` and the tests
+import it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
+
+
+def _rotation_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``[w, x, y, z]`` of a rotation matrix (Shepperd's method)."""
+    trace = np.trace(R)
+    if trace > 0.0:
+        s = 2.0 * np.sqrt(trace + 1.0)
+        quat = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+        quat = np.zeros(4)
+        quat[0] = (R[k, j] - R[j, k]) / s
+        quat[1 + i] = 0.25 * s
+        quat[1 + j] = (R[j, i] + R[i, j]) / s
+        quat[1 + k] = (R[k, i] + R[i, k]) / s
+    quat = np.asarray(quat, dtype=float)
+    return quat / np.linalg.norm(quat)
+
+
+def _dh_at_zero(offset: float, lam: float, length: float, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(p, R)`` of ``Rz(offset) Tz(lambda) Tx(length) Rx(alpha)``."""
+    c, s, ca, sa = np.cos(offset), np.sin(offset), np.cos(alpha), np.sin(alpha)
+    R = np.array([[c, -s * ca, s * sa], [s, c * ca, -c * sa], [0.0, sa, ca]])
+    return np.array([length * c, length * s, lam]), R
+
+
+def _numbers(values) -> str:
+    return " ".join(f"{float(v):.17g}" for v in np.ravel(values))
+
+
+def _full_inertia(I: np.ndarray) -> str:
+    """MuJoCo's ``fullinertia`` order: Ixx Iyy Izz Ixy Ixz Iyz."""
+    return _numbers([I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2]])
+
+
+def robot_to_mjcf(robot: Robot, dt: float = 1e-3) -> str:
+    """MJCF text of ``robot`` (unbatched) with the RK4 integrator at ``dt`` (s)."""
+    mass, com, inertia = (np.asarray(x, dtype=float) for x in body_inertials(robot))
+    lam, length, alpha, offset = (np.asarray(getattr(robot, name), dtype=float) for name in ("dh_lambda", "dh_length", "dh_alpha", "joint_offset"))
+    lines = [
+        '<mujoco model="spacegrasp">',
+        '  <compiler angle="radian" autolimits="true" inertiafromgeom="false"/>',
+        f'  <option timestep="{float(dt):.17g}" integrator="RK4" gravity="0 0 0"/>',
+        "  <worldbody>",
+        '    <body name="satellite" pos="0 0 0">',
+        '      <freejoint name="satellite"/>',
+        f'      <inertial pos="0 0 0" mass="{float(robot.satellite_mass):.17g}" fullinertia="{_full_inertia(np.asarray(robot.satellite_inertia, dtype=float))}"/>',
+    ]
+    indent = "      "
+    for i in range(N_JOINTS):
+        p, R = _dh_at_zero(offset[i], lam[i], length[i], alpha[i])
+        if i == 0:
+            p = np.asarray(robot.mount_position, dtype=float) + p  # frame 0: the mount, satellite axes
+        hinge = -np.array([length[i], lam[i] * np.sin(alpha[i]), lam[i] * np.cos(alpha[i])])  # origin of frame i-1, frame i axes
+        axis = np.array([0.0, np.sin(alpha[i]), np.cos(alpha[i])])  # z_{i-1} in frame i axes
+        lines += [
+            f'{indent}<body name="link{i + 1}" pos="{_numbers(p)}" quat="{_numbers(_rotation_to_quat(R))}">',
+            f'{indent}  <joint name="joint{i + 1}" type="hinge" pos="{_numbers(hinge)}" axis="{_numbers(axis)}"/>',
+            f'{indent}  <inertial pos="{_numbers(com[i])}" mass="{mass[i]:.17g}" fullinertia="{_full_inertia(inertia[i])}"/>',
+        ]
+        indent += "  "
+    lines.append(f'{indent}<site name="ee" pos="{_numbers(np.asarray(robot.ee_offset, dtype=float))}"/>')
+    for i in reversed(range(N_JOINTS)):
+        indent = indent[:-2]
+        lines.append(f"{indent}</body>")
+    lines += ["    </body>", "  </worldbody>", "  <actuator>"]
+    lines += [f'    <motor name="joint{i + 1}" joint="joint{i + 1}" gear="1"/>' for i in range(N_JOINTS)]
+    lines += ["  </actuator>", "</mujoco>", ""]
+    return "\n".join(lines)
+
+
+def qpos_from_state(p_base, R_base, q) -> np.ndarray:
+    """MuJoCo ``qpos`` (14,): satellite position, quaternion ``[w, x, y, z]``, joint angles."""
+    return np.concatenate([np.asarray(p_base, dtype=float), _rotation_to_quat(np.asarray(R_base, dtype=float)), np.asarray(q, dtype=float)])
+
+
+def qvel_from_state(R_base, V_base, qd) -> np.ndarray:
+    """MuJoCo ``qvel`` (13,) from our ``[v_s, w_s]`` (inertial frame) and joint rates."""
+    V_base = np.asarray(V_base, dtype=float)
+    return np.concatenate([V_base[:3], np.asarray(R_base, dtype=float).T @ V_base[3:], np.asarray(qd, dtype=float)])
+
+
+__all__ = ["qpos_from_state", "qvel_from_state", "robot_to_mjcf"]
