@@ -1,0 +1,195 @@
+"""``spacegrasp benchmark``: every speed and memory figure of the project, with its peers, in
+one run on one machine.
+
+    spacegrasp benchmark [--quick] [--out results/benchmarks] [--repeats 3]
+
+Measures, after compilation and a warm-up, medians over ``--repeats``:
+1. compile and run time of one closed-loop rollout per controller (``benchmarks.rollout``);
+2. throughput of batches of 1, 64, 256 and 1,024 perturbed scenarios against sequential single
+   rollouts, with peak memory (``benchmarks.montecarlo``, each batch in its own process);
+3. one gradient of the tuning objective, reverse mode with checkpointing and forward mode, as
+   a ratio to one forward rollout, with peak memory (``benchmarks.gradient``);
+4. the floating-point work of one closed-loop step from XLA's cost analysis, and the rate
+   achieved by the single rollout against an estimate of the machine's peak;
+5. the peers (``benchmarks.peers``): MuJoCo's ``mj_step`` and ``mujoco.rollout`` on the same
+   robot, and the same closed loop written as a Python loop over Pinocchio (whose final pose
+   must agree with ours, else the comparison is void and the run fails).
+Prints one table with the ratios and writes ``benchmark.json`` (the keys are listed in
+:data:`KEYS`). ``--quick`` runs every part at toy sizes (0.2-0.5 s scenarios, batches of 1 and
+4) so CI exercises the whole command in about two minutes; its numbers mean nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+#: Keys of benchmark.json (seconds unless the name says otherwise).
+KEYS = (
+    "machine", "quick", "duration_s", "rollout_s", "compile_s", "us_per_step", "batch_steps_per_s", "batch_peak_rss_mb",
+    "sequential_steps_per_s", "gradient_over_forward", "gradient_peak_mb", "gradient_xla_temp_mb", "flops_per_step",
+    "achieved_gflops", "peak_gflops_estimate", "pinocchio_loop_rollout_s", "pinocchio_loop_max_pose_difference",
+    "mujoco_mj_step_17s_s", "mujoco_us_per_step", "mujoco_rollout_steps_per_s", "mujoco_rollout_batches",
+)
+RESULT_NAMES = {"admittance": "active", "cartesian": "cartesian"}
+
+
+def _child(module: str, out: Path, *options: str) -> dict:
+    """Run ``python -m <module> --out <out> <options>`` and read the JSON it writes."""
+    subprocess.run([sys.executable, "-m", module, "--out", str(out), *options], check=True, stdout=subprocess.DEVNULL)
+    name = {"benchmarks.rollout": "rollout.json", "benchmarks.montecarlo": "montecarlo.json", "benchmarks.gradient": "gradient.json"}[module]
+    return json.loads((out / name).read_text())
+
+
+def peak_gflops_estimate() -> float | None:
+    """Cores x clock x double-precision FLOPs per cycle (16 with AVX2 FMA, 32 with AVX-512),
+    from /proc/cpuinfo; ``None`` where it cannot be read."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return None
+    clocks = [float(line.split(":")[1]) for line in text.splitlines() if line.startswith("cpu MHz")]
+    flags = next((line.split(":")[1].split() for line in text.splitlines() if line.startswith("flags")), [])
+    if not clocks:
+        return None
+    per_cycle = 32 if "avx512f" in flags else 16 if {"avx2", "fma"} <= set(flags) else 8
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return cores * max(clocks) * 1e6 * per_cycle / 1e9
+
+
+def flops_per_step(controller: str = "admittance") -> float:
+    """XLA's count of floating-point operations in one compiled closed-loop step (one control
+    update and one RK4 step of the plant)."""
+    import jax
+
+    import spacegrasp_jax as sg
+    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.simulate import closed_loop_step, initial_state
+
+    robot = sg.paper_robot()
+    scenario = paper_scenario(robot, duration=1.0)
+    step = closed_loop_step(robot, scenario, paper_gains(), controller)
+    compiled = jax.jit(step).lower(initial_state(scenario), 0.0).compile()
+    analysis = compiled.cost_analysis()
+    analysis = analysis[0] if isinstance(analysis, list) else analysis
+    return float(analysis["flops"])
+
+
+def run(out: Path, quick: bool, repeats: int) -> dict:
+    import spacegrasp_jax as sg
+    from benchmarks import peers
+    from benchmarks.dynamics import machine
+    from spacegrasp_jax import experiment
+    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.scenario import paper_scenario
+
+    duration = 0.5 if quick else 17.0
+    batches = [1, 4] if quick else [1, 64, 256, 1024]
+    out.mkdir(parents=True, exist_ok=True)
+    parts = Path(tempfile.mkdtemp(prefix="benchmark-", dir=out))
+    report = {"machine": machine(), "quick": quick, "duration_s": duration}
+
+    print(f"1/5 single rollouts ({duration:g} s)...", flush=True)
+    rollout = _child("benchmarks.rollout", parts, "--duration", str(duration), "--repeats", str(repeats))
+    report["rollout_s"] = {RESULT_NAMES[c]: rollout[c]["run_s"] for c in RESULT_NAMES}
+    report["compile_s"] = {RESULT_NAMES[c]: rollout[c]["compile_s"] for c in RESULT_NAMES}
+    report["us_per_step"] = {RESULT_NAMES[c]: rollout[c]["us_per_step"] for c in RESULT_NAMES}
+
+    print(f"2/5 batches {batches}...", flush=True)
+    montecarlo = _child("benchmarks.montecarlo", parts, "--duration", str(duration), "--batches", ",".join(map(str, batches)),
+                        "--sequential", "2" if quick else "8", "--repeats", str(repeats))
+    batch_results = [r for r in montecarlo["results"] if r["kind"] == "batch"]
+    report["batch_steps_per_s"] = {str(r["size"]): r["scenario_steps_per_s"] for r in batch_results}
+    report["batch_peak_rss_mb"] = {str(r["size"]): r["peak_rss_mb"] for r in batch_results}
+    report["sequential_steps_per_s"] = montecarlo["results"][0]["scenario_steps_per_s"]
+
+    print("3/5 gradients...", flush=True)
+    gradient_duration = 0.2 if quick else 17.0
+    gradient = _child("benchmarks.gradient", parts, "--duration", str(gradient_duration), "--repeats", str(repeats),
+                      "--modes", "forward,reverse_checkpointed,forward_mode")["results"]
+    report["gradient_over_forward"] = {"reverse": gradient["reverse_checkpointed"]["over_forward"], "forward": gradient["forward_mode"]["over_forward"]}
+    report["gradient_peak_mb"] = {"reverse": gradient["reverse_checkpointed"]["peak_rss_mb"], "forward": gradient["forward_mode"]["peak_rss_mb"], "rollout": gradient["forward"]["peak_rss_mb"]}
+    report["gradient_xla_temp_mb"] = {"reverse": gradient["reverse_checkpointed"]["xla_temp_mb"], "forward": gradient["forward_mode"]["xla_temp_mb"]}
+
+    print("4/5 cost analysis...", flush=True)
+    report["flops_per_step"] = flops_per_step()
+    report["achieved_gflops"] = report["flops_per_step"] / (report["us_per_step"]["active"] * 1e-6) / 1e9
+    report["peak_gflops_estimate"] = peak_gflops_estimate()
+
+    print("5/5 peers: MuJoCo and a Python loop over Pinocchio...", flush=True)
+    robot, gains = sg.paper_robot(), paper_gains()
+    scenario = paper_scenario(robot, duration=duration)
+    mj_step = peers.mujoco_mj_step(robot, scenario, repeats)
+    report["mujoco_mj_step_17s_s"] = mj_step["run_s"] * 17.0 / duration
+    report["mujoco_us_per_step"] = mj_step["us_per_step"]
+    mujoco_batches = {str(b): peers.mujoco_rollout(robot, scenario, b) for b in batches}
+    report["mujoco_rollout_batches"] = {b: r["scenario_steps_per_s"] for b, r in mujoco_batches.items()}
+    report["mujoco_rollout_steps_per_s"] = mujoco_batches[str(batches[-1])]["scenario_steps_per_s"]
+    pinocchio = peers.pinocchio_closed_loop(robot, scenario, gains)
+    ours = experiment.run(robot, scenario, gains, "admittance")
+    difference = float(np.max(np.abs(np.asarray(pinocchio["final_pose"]) - ours.log.pose_ee[-1])))
+    report["pinocchio_loop_rollout_s"] = pinocchio["run_s"]
+    report["pinocchio_loop_max_pose_difference"] = difference
+    if not difference < 1e-6:
+        raise RuntimeError(f"the Pinocchio loop ends {difference:.3g} from our rollout: the peers do not simulate the same thing")
+    for path in parts.iterdir():
+        path.unlink()
+    parts.rmdir()
+    return report
+
+
+def table(report: dict) -> str:
+    """The report as one plain-text table, ratios as this project over the peer or target."""
+    d, rows = report["duration_s"], []
+    active = report["rollout_s"]["active"]
+
+    def row(what, ours, peer, ratio, target=""):
+        rows.append(f"{what:<52} {ours:>14} {peer:>14} {ratio:>9} {target:>12}")
+
+    row("measure", "spacegrasp-jax", "peer", "ratio", "target")
+    row(f"closed-loop rollout {d:g} s, active law [s]", f"{active:.3f}", f"{report['pinocchio_loop_rollout_s']:.3f}", f"{report['pinocchio_loop_rollout_s'] / active:.1f}x", ">= 10x")
+    row("  peer: Python loop over Pinocchio, same closed loop", "", "", "", "")
+    row(f"closed-loop rollout {d:g} s vs MuJoCo mj_step [s]", f"{active:.3f}", f"{report['mujoco_mj_step_17s_s'] * d / 17.0:.3f}", f"{report['mujoco_mj_step_17s_s'] * d / 17.0 / active:.2f}x", ">= 1x")
+    row("  peer: open-loop mj_step, one thread", "", "", "", "")
+    for batch, ours in report["batch_steps_per_s"].items():
+        peer = report["mujoco_rollout_batches"][batch]
+        row(f"batch {batch}, scenario-steps/s", f"{ours:.3g}", f"{peer:.3g}", f"{ours / peer:.2f}x", ">= 1x" if batch == "1024" else "")
+    row("  peer: mujoco.rollout open loop, a thread per core", "", "", "", "")
+    row("gradient / forward rollout, reverse (checkpointed)", f"{report['gradient_over_forward']['reverse']:.2f}", "", "", "<= 4")
+    row("gradient / forward rollout, forward mode", f"{report['gradient_over_forward']['forward']:.2f}", "", "", "<= 4")
+    row("gradient peak RSS, reverse [MB]", f"{report['gradient_peak_mb']['reverse']:.0f}", "", "", "<= 1000")
+    row("compile, active / Cartesian rollout [s]", f"{report['compile_s']['active']:.1f} / {report['compile_s']['cartesian']:.1f}", "", "", "< 30")
+    peak = report["peak_gflops_estimate"]
+    row("FLOPs per closed-loop step (XLA cost analysis)", f"{report['flops_per_step']:.3g}", "", "", "")
+    row("achieved GFLOP/s, single rollout", f"{report['achieved_gflops']:.2f}", f"{peak:.0f}" if peak else "n/a", f"{100 * report['achieved_gflops'] / peak:.1f}%" if peak else "", "")
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="spacegrasp benchmark", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="toy sizes: exercises every part in about two minutes; numbers mean nothing")
+    parser.add_argument("--out", default="results/benchmarks", help="folder for benchmark.json")
+    parser.add_argument("--repeats", type=int, default=3, help="repeats per timing (median reported)")
+    args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error(f"--repeats: must be at least 1, got {args.repeats}")
+    out = Path(args.out)
+    report = run(out, args.quick, 1 if args.quick else args.repeats)
+    info = report["machine"]
+    print(f"\nmachine: {info['cpu']}, {info['cores']} cores, {info['backend']} backend, jax {info['jax']}" + (" (--quick: sizes too small to mean anything)" if args.quick else ""))
+    print(table(report))
+    (out / "benchmark.json").write_text(json.dumps(report, indent=2))
+    print(f"wrote {out / 'benchmark.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
