@@ -5,7 +5,10 @@ Same robot (built here in Pinocchio from a :class:`~spacegrasp_jax.model.Robot`)
 scenario, same controllers (admittance eqs 9-17 and Cartesian eqs 21-22, joint PID with the
 t^2 ramp), same exact contact law and the same RK4 with the torques held over each 1 ms step.
 The state is kept in our convention (inertial base twist, satellite quaternion) and converted
-to Pinocchio's (base twist in the base frame) at each call.
+to Pinocchio's (base twist in the base frame) at each call. Apart from reading the ``Robot``,
+``Scenario`` and ``Gains`` (and ``body_inertials`` for the EE merged into link 7), it uses
+none of the package's code: the small rotation helpers and the control law are written again
+in NumPy, on purpose, as a user without this package would write them.
 
 Run alone: ``python -m benchmarks.pinocchio_loop [--duration S]`` prints the time of one
 rollout and its agreement with ``spacegrasp_jax``'s rollout of the same scenario.

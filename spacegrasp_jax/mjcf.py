@@ -19,26 +19,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from spacegrasp_jax import spatial
 from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
 
 
 def _rotation_to_quat(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``[w, x, y, z]`` of a rotation matrix (Shepperd's method)."""
-    trace = np.trace(R)
-    if trace > 0.0:
-        s = 2.0 * np.sqrt(trace + 1.0)
-        quat = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        quat = np.zeros(4)
-        quat[0] = (R[k, j] - R[j, k]) / s
-        quat[1 + i] = 0.25 * s
-        quat[1 + j] = (R[j, i] + R[i, j]) / s
-        quat[1 + k] = (R[k, i] + R[i, k]) / s
-    quat = np.asarray(quat, dtype=float)
-    return quat / np.linalg.norm(quat)
+    """Unit quaternion ``[w, x, y, z]`` of a rotation matrix, as NumPy."""
+    return np.asarray(spatial.rotation_to_quat(np.asarray(R, dtype=float)))
 
 
 def _dh_at_zero(offset: float, lam: float, length: float, alpha: float) -> tuple[np.ndarray, np.ndarray]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from conftest import random_rotation
+from random_states import random_rotation
 
 from spacegrasp_jax import spatial
 
