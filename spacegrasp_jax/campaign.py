@@ -60,6 +60,9 @@ class CampaignConfig:
         with it; results do not depend on it.
     ranges: perturbation half-widths.
     position_tolerance_m, orientation_tolerance_rad: success thresholds on the final errors.
+    torque_limit_Nm: a sample whose peak |u_i| on any joint exceeds this (N m) is counted as
+        unstable and is not a success, even if it never turns non-finite (unstable captures
+        reach 1e4-1e5 N m without a NaN); ``None``: no limit.
     timeseries_every: keep every k-th log row of every sample (``None``: metrics only).
     pinv_damping: damping of the pseudoinverse (0: exact, the paper).
     device_batch: samples each device simulates at once (``None``: its whole share of the
@@ -73,6 +76,7 @@ class CampaignConfig:
     ranges: PerturbationRanges = PerturbationRanges()
     position_tolerance_m: float = 0.005
     orientation_tolerance_rad: float = math.radians(1.0)
+    torque_limit_Nm: float | None = 100.0
     timeseries_every: int | None = None
     pinv_damping: float = 0.0
     device_batch: int | None = None
@@ -92,6 +96,10 @@ class CampaignConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0.0):
                 raise CampaignError(f"{name}: must be positive and finite, got {value!r}")
+        if self.torque_limit_Nm is not None and not (
+            isinstance(self.torque_limit_Nm, (int, float)) and math.isfinite(self.torque_limit_Nm) and self.torque_limit_Nm > 0.0
+        ):
+            raise CampaignError(f"torque_limit_Nm: must be positive and finite, or None, got {self.torque_limit_Nm!r}")
         if self.timeseries_every is not None and self.timeseries_every < 1:
             raise CampaignError(f"timeseries_every: must be at least 1, got {self.timeseries_every}")
         if self.device_batch is not None and (isinstance(self.device_batch, bool) or not isinstance(self.device_batch, int) or self.device_batch < 1):
@@ -297,7 +305,8 @@ def _statistics(values: np.ndarray) -> dict:
 
 def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfig) -> dict:
     """Statistics of every metric over the samples that did not diverge, success rate, the
-    diverged samples and the five worst samples by final position error and by peak torque."""
+    diverged and the unstable samples, and the five worst samples by final position error and
+    by peak torque."""
     diverged = np.flatnonzero(np.isfinite(sample_metrics["first_nonfinite_s"]))
     ok = np.ones(len(sample_metrics["first_nonfinite_s"]), dtype=bool)
     ok[diverged] = False
@@ -310,6 +319,8 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
         elif name != "first_nonfinite_s":
             statistics[name] = _statistics(values[ok])
     peak = np.asarray(sample_metrics["max_abs_torque_Nm"]).max(axis=1)
+    limit = np.inf if config.torque_limit_Nm is None else config.torque_limit_Nm
+    unstable = np.flatnonzero(ok & (peak > limit))
 
     def worst(values):
         order = np.argsort(np.where(np.isfinite(values), values, np.inf))[::-1]
@@ -321,6 +332,8 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
         "successes": int(np.sum(sample_metrics["success"])),
         "diverged": int(diverged.size),
         "diverged_samples": [int(i) for i in diverged],
+        "unstable": int(unstable.size),
+        "unstable_samples": [int(i) for i in unstable],
         "worst_by_final_position_error": worst(np.asarray(sample_metrics["final_position_error_m"])),
         "worst_by_peak_torque": worst(peak),
         "statistics_over_non_diverged": statistics,
@@ -441,7 +454,7 @@ def run_campaign(
         merged = {name: np.concatenate([chunks[variant.key][first][name] for first in starts]) for name in chunks[variant.key][starts[0]]}
         perturbations = {name.removeprefix("perturbation."): value for name, value in merged.items() if name.startswith("perturbation.")}
         sample_metrics = {name: merged[name] for name in METRICS}
-        sample_metrics["success"] = success(sample_metrics, config.position_tolerance_m, config.orientation_tolerance_rad)
+        sample_metrics["success"] = success(sample_metrics, config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm)
         all_metrics[variant.key] = sample_metrics
         if config.timeseries_every is not None:
             fields = {name.removeprefix("timeseries."): value for name, value in merged.items() if name.startswith("timeseries.")}
@@ -454,7 +467,7 @@ def run_campaign(
         "duration_s": scenario.duration,
         "dt_s": scenario.dt,
         "contact_law": scenario.contact_law,
-        "tolerances": {"final_position_m": config.position_tolerance_m, "final_orientation_rad": config.orientation_tolerance_rad},
+        "tolerances": {"final_position_m": config.position_tolerance_m, "final_orientation_rad": config.orientation_tolerance_rad, "torque_limit_Nm": config.torque_limit_Nm},
         "ranges": config.ranges.to_dict(),
         "throughput": throughput,
         "variants": summaries,

@@ -213,6 +213,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
             ranges=ranges,
             position_tolerance_m=args.tolerance_mm * 1e-3,
             orientation_tolerance_rad=math.radians(args.tolerance_deg),
+            torque_limit_Nm=args.torque_limit if args.torque_limit > 0 else None,
             timeseries_every=args.timeseries_every,
             pinv_damping=args.pinv_damping,
             device_batch=args.device_batch if args.device_batch is not None else (128 if jax.default_backend() == "cpu" else None),
@@ -253,7 +254,7 @@ def _benchmark(args: argparse.Namespace) -> int:
 
 
 def _print_campaign(result: campaign.CampaignResult) -> None:
-    header = f"{'variant':24} {'success':>8} {'diverged':>8} {'final pos p50/p95 [mm]':>23} {'peak |u| p50/p95 [N m]':>23} {'contact p95 [N]':>16}"
+    header = f"{'variant':24} {'success':>8} {'diverged':>8} {'unstable':>8} {'final pos p50/p95 [mm]':>23} {'peak |u| p50/p95 [N m]':>23} {'contact p95 [N]':>16}"
     print(header)
     for key, summary in result.summary["variants"].items():
         stats = summary["statistics_over_non_diverged"]
@@ -263,7 +264,7 @@ def _print_campaign(result: campaign.CampaignResult) -> None:
             return f"{scale * s['p50']:.3f}/{scale * s['p95']:.3f}" if s.get("count") else "-"
 
         contact = stats["max_contact_force_N"]
-        print(f"{key:24} {summary['success_rate']:>8.1%} {summary['diverged']:>8d} {pair('final_position_error_m', 1e3):>23} "
+        print(f"{key:24} {summary['success_rate']:>8.1%} {summary['diverged']:>8d} {summary['unstable']:>8d} {pair('final_position_error_m', 1e3):>23} "
               f"{pair('max_abs_torque_any_joint_Nm'):>23} {contact['p95'] if contact.get('count') else float('nan'):>16.3f}")
     throughput = result.summary["throughput"]
     if throughput["rollouts_per_s"]:
@@ -330,6 +331,8 @@ def build_parser() -> argparse.ArgumentParser:
     montecarlo.add_argument("--range", action="append", default=[], metavar="NAME=VALUE", help="override one half-width, e.g. q_init_rad=0.05 (repeatable)")
     montecarlo.add_argument("--tolerance-mm", type=float, default=5.0, help="success: final position error at most this (default 5 mm)")
     montecarlo.add_argument("--tolerance-deg", type=float, default=1.0, help="success: final orientation error at most this (default 1 deg)")
+    montecarlo.add_argument("--torque-limit", type=float, default=100.0, metavar="NM",
+                            help="success: peak |u_i| at most this, else the sample counts as unstable (default 100 N m; 0: no limit)")
     montecarlo.add_argument("--timeseries-every", type=int, default=None, metavar="K", help="also keep every K-th log row of every sample")
     montecarlo.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
     montecarlo.add_argument("--robot", help="robot TOML (default: the paper's)")

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from spacegrasp_jax import campaign, experiment
-from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, run_campaign
-from spacegrasp_jax.montecarlo import METRICS
+from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, run_campaign, variant_summary
+from spacegrasp_jax.montecarlo import METRICS, success
 from spacegrasp_jax.perturbations import PerturbationRanges
 
 SHORT_SCENARIO_TOML = """
@@ -160,6 +160,8 @@ def test_summary_statistics_are_those_of_the_samples(five_samples, variant):
     (dict(chunk=0), "chunk: must be at least 1"),
     (dict(seed=-1), "seed: must be in"),
     (dict(position_tolerance_m=0.0), "position_tolerance_m: must be positive"),
+    (dict(torque_limit_Nm=-1.0), "torque_limit_Nm: must be positive and finite, or None"),
+    (dict(torque_limit_Nm=float("inf")), "torque_limit_Nm: must be positive and finite, or None"),
     (dict(timeseries_every=0), "timeseries_every: must be at least 1"),
     (dict(device_batch=0), "device_batch: must be a positive integer"),
 ])
@@ -193,3 +195,21 @@ def test_montecarlo_command_rejects_bad_input(tmp_path, capsys):
     assert main(["montecarlo", "--n", "4", "--gains", str(tmp_path / "missing.json"), "--out", str(tmp_path / "e")]) == 2
     assert "missing.json" in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in "abcde")
+
+
+def test_unstable_samples_are_counted_and_are_not_successes(five_samples, variant):
+    """A sample whose peak torque passes the limit is unstable (not a success), whatever its
+    final errors; the limit is checked against the samples' own peaks."""
+    sample_metrics = dict(five_samples[2].metrics[variant.key])
+    peaks = sample_metrics["max_abs_torque_Nm"].max(axis=1)
+    limit = float(np.median(peaks))  # about half the samples above it
+    loose = CampaignConfig(n=5, position_tolerance_m=1.0, orientation_tolerance_rad=1.0, torque_limit_Nm=None)
+    strict = dataclasses.replace(loose, torque_limit_Nm=limit)
+    assert success(sample_metrics, 1.0, 1.0, None).all()
+    np.testing.assert_array_equal(success(sample_metrics, 1.0, 1.0, limit), peaks <= limit)
+    sample_metrics["success"] = success(sample_metrics, 1.0, 1.0, limit)
+    summary = variant_summary(sample_metrics, strict)
+    assert summary["unstable_samples"] == [int(i) for i in np.flatnonzero(peaks > limit)]
+    assert summary["unstable"] >= 1 and summary["success_rate"] == pytest.approx(np.mean(peaks <= limit))
+    sample_metrics["success"] = success(sample_metrics, 1.0, 1.0, None)
+    assert variant_summary(sample_metrics, loose)["unstable"] == 0
