@@ -68,6 +68,17 @@ def _euler_rates_to_body(angles: np.ndarray) -> np.ndarray:
     return np.array([[1.0, 0.0, -sp], [0.0, cr, sr * cp], [0.0, -sr, cr * cp]])
 
 
+def _euler_rates_to_body_rate(angles: np.ndarray, angle_rates: np.ndarray) -> np.ndarray:
+    """Time derivative of ``_euler_rates_to_body(angles)`` along ``angle_rates``."""
+    cr, sr, cp, sp = np.cos(angles[0]), np.sin(angles[0]), np.cos(angles[1]), np.sin(angles[1])
+    dr, dp = angle_rates[0], angle_rates[1]
+    return np.array([
+        [0.0, 0.0, -cp * dp],
+        [0.0, -sr * dr, cr * cp * dr - sr * sp * dp],
+        [0.0, -cr * dr, -sr * cp * dr - cr * sp * dp],
+    ])
+
+
 def _euler_to_rotation(angles: np.ndarray) -> np.ndarray:
     return pin.utils.rpyToMatrix(*angles)  # Rz(yaw) Ry(pitch) Rx(roll)
 
@@ -151,8 +162,7 @@ class PinocchioClosedLoop:
         pose_des, rate, acceleration = self.start + s * delta, ds * delta, dds * delta
         angles = pose_des[3:]
         T_eul = _euler_rates_to_body(angles)
-        h = 1e-7  # T_eul's rate along the angle rates, by a central difference
-        T_rate = (_euler_rates_to_body(angles + h * rate[3:]) - _euler_rates_to_body(angles - h * rate[3:])) / (2 * h)
+        T_rate = _euler_rates_to_body_rate(angles, rate[3:])
         R_des = _euler_to_rotation(angles)
         twist_des = np.concatenate([rate[:3], R_des @ T_eul @ rate[3:]])
         twist_rate_des = np.concatenate([acceleration[:3], R_des @ (T_rate @ rate[3:] + T_eul @ acceleration[3:])])

@@ -84,6 +84,16 @@ def flops_per_step(controller: str = "admittance") -> float:
 
 
 def run(out: Path, quick: bool, repeats: int) -> dict:
+    """Run every measurement and return the report (the content of benchmark.json)."""
+    duration = 0.5 if quick else 17.0
+    batches = [1, 4] if quick else [1, 64, 256, 1024]
+    out.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="benchmark-", dir=out) as parts:
+        return _measure(Path(parts), quick, repeats, duration, batches)
+
+
+def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: list[int]) -> dict:
+    """Every measurement; the parts' own JSON files go to ``parts`` (removed afterwards)."""
     import spacegrasp_jax as sg
     from benchmarks import peers
     from benchmarks.dynamics import machine
@@ -91,10 +101,6 @@ def run(out: Path, quick: bool, repeats: int) -> dict:
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.scenario import paper_scenario
 
-    duration = 0.5 if quick else 17.0
-    batches = [1, 4] if quick else [1, 64, 256, 1024]
-    out.mkdir(parents=True, exist_ok=True)
-    parts = Path(tempfile.mkdtemp(prefix="benchmark-", dir=out))
     report = {"machine": machine(), "quick": quick, "duration_s": duration}
 
     print(f"1/5 single rollouts ({duration:g} s)...", flush=True)
@@ -140,9 +146,6 @@ def run(out: Path, quick: bool, repeats: int) -> dict:
     report["pinocchio_loop_max_pose_difference"] = difference
     if not difference < 1e-6:
         raise RuntimeError(f"the Pinocchio loop ends {difference:.3g} from our rollout: the peers do not simulate the same thing")
-    for path in parts.iterdir():
-        path.unlink()
-    parts.rmdir()
     return report
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import signal
 import subprocess
@@ -116,14 +117,14 @@ def table5_markdown(results: dict) -> str:
 #: Rows of :func:`summary_markdown`: label, summary key, scale to the display unit, format.
 _SUMMARY_ROWS = [
     ("final EE position error [mm]", "final_position_error_m", 1e3, "{:.2f}"),
-    ("final EE orientation error [deg]", "final_orientation_error_rad", 180.0 / 3.141592653589793, "{:.3f}"),
+    ("final EE orientation error [deg]", "final_orientation_error_rad", math.degrees(1.0), "{:.3f}"),
     ("RMS position tracking error [mm]", "rms_position_error_m", 1e3, "{:.1f}"),
     ("first contact [s]", "first_contact_s", 1.0, "{:.2f}"),
     ("peak contact force [N]", "max_contact_force_N", 1.0, "{:.2f}"),
     ("peak linear momentum [N s]", "max_linear_momentum_Ns", 1.0, "{:.2f}"),
     ("peak angular momentum [N m s]", "max_angular_momentum_Nms", 1.0, "{:.2f}"),
     ("peak satellite speed [mm/s]", "max_base_speed_mps", 1e3, "{:.1f}"),
-    ("peak satellite rate [deg/s]", "max_base_rate_radps", 180.0 / 3.141592653589793, "{:.1f}"),
+    ("peak satellite rate [deg/s]", "max_base_rate_radps", math.degrees(1.0), "{:.1f}"),
 ]
 
 

@@ -71,7 +71,7 @@ def robot_to_mjcf(robot: Robot, dt: float = 1e-3) -> str:
         ]
         indent += "  "
     lines.append(f'{indent}<site name="ee" pos="{_numbers(np.asarray(robot.ee_offset, dtype=float))}"/>')
-    for i in reversed(range(N_JOINTS)):
+    for _ in range(N_JOINTS):
         indent = indent[:-2]
         lines.append(f"{indent}</body>")
     lines += ["    </body>", "  </worldbody>", "  <actuator>"]
