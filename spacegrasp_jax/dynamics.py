@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from spacegrasp_jax import spatial
 from spacegrasp_jax.kinematics import N_DOF, body_com_positions, forward_kinematics, point_jacobian
@@ -58,6 +59,35 @@ def _spatial_inertias(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.A
     )
 
 
+def _packed(arrays):
+    """Arrays sharing their first axis, flattened and side by side: one (n, k) array and
+    the slices that undo it. One cumulative sum over the pack is one kernel instead of
+    one per array."""
+    n = arrays[0].shape[0]
+    flat = [x.reshape(n, -1) for x in arrays]
+    packed = jnp.concatenate(flat, axis=1)
+    bounds = np.cumsum([0] + [x.shape[1] for x in flat])
+    return packed, [(int(a), int(b), x.shape) for a, b, x in zip(bounds[:-1], bounds[1:], arrays)]
+
+
+def _cumulative(arrays, reverse: bool):
+    packed, layout = _packed(arrays)
+    total = jax.lax.cumsum(packed, axis=0, reverse=reverse)
+    return tuple(total[:, a:b].reshape(shape) for a, b, shape in layout)
+
+
+def _chain_sums(*arrays):
+    """Cumulative sums down the chain (body i gets the sum over joints 1..i), each array
+    (n, ...) summed along its first axis."""
+    return _cumulative(arrays, reverse=False)
+
+
+def _subtree_sums(*arrays):
+    """Sums over each body's subtree (body i gets the sum over bodies i..n-1), each array
+    (n, ...) summed along its first axis."""
+    return _cumulative(arrays, reverse=True)
+
+
 def _apply_inertia(mass, moment, inertia, w, v):
     """Spatial inertia times motion: ``(L, p)`` with ``p = m v + w x h`` and
     ``L = I_O w + h x v``; broadcasts over leading axes."""
@@ -76,7 +106,8 @@ def mass_matrix_from_frames(robot: Robot, frames) -> jax.Array:
     """Mass matrix (13, 13) by composite rigid bodies, from :func:`frames_at_base`."""
     mass, moment, inertia = _spatial_inertias(robot, frames)
     # Composite inertia of the subtree of each body: a reverse cumulative sum.
-    c_mass, c_moment, c_inertia = (jnp.cumsum(x[::-1], axis=0)[::-1] for x in (mass, moment, inertia))
+    c_mass, c_moment, c_inertia = _subtree_sums(mass[:, None], moment, inertia)
+    c_mass = c_mass[:, 0]
     S_w, S_v = _joint_axes(frames)
     # Force F_j = Ic_j S_j needed to move the subtree of joint j along its axis.
     F_n, F_f = _apply_inertia(c_mass[1:], c_moment[1:], c_inertia[1:], S_w, S_v)
@@ -100,24 +131,24 @@ def bias_from_frames(robot: Robot, frames, V_base, qd) -> jax.Array:
     v_s, w_s = V_base[:3], V_base[3:]
     S_w, S_v = _joint_axes(frames)
     # Body velocities: the satellite's plus the joint rates up the chain.
-    w = jnp.concatenate([w_s[None], w_s + jnp.cumsum(S_w * qd[:, None], axis=0)])
-    v = jnp.concatenate([v_s[None], v_s + jnp.cumsum(S_v * qd[:, None], axis=0)])
+    w_chain, v_chain = _chain_sums(S_w * qd[:, None], S_v * qd[:, None])
+    w = jnp.concatenate([w_s[None], w_s + w_chain])
+    v = jnp.concatenate([v_s[None], v_s + v_chain])
     # Velocity-product accelerations. The satellite's spatial acceleration at zero
     # generalised acceleration is (0, -w_s x v_s), since v_s is its CoM's classical
     # velocity; each joint adds (v_j x S_j) qd_j, the rate of change of its moving axis.
     dS_w = jnp.cross(w[1:], S_w)
     dS_v = jnp.cross(w[1:], S_v) + jnp.cross(v[1:], S_w)
-    a_w = jnp.concatenate([jnp.zeros((1, 3), dtype=w.dtype), jnp.cumsum(dS_w * qd[:, None], axis=0)])
-    a_v = -jnp.cross(w_s, v_s) + jnp.concatenate(
-        [jnp.zeros((1, 3), dtype=w.dtype), jnp.cumsum(dS_v * qd[:, None], axis=0)]
-    )
+    a_w_chain, a_v_chain = _chain_sums(dS_w * qd[:, None], dS_v * qd[:, None])
+    a_w = jnp.concatenate([jnp.zeros((1, 3), dtype=w.dtype), a_w_chain])
+    a_v = -jnp.cross(w_s, v_s) + jnp.concatenate([jnp.zeros((1, 3), dtype=w.dtype), a_v_chain])
     # Newton-Euler per body: f = I a + v x* (I v), with (w, v) x* (n, f) = (w x n + v x f, w x f).
     inertial_n, inertial_f = _apply_inertia(mass, moment, inertia, a_w, a_v)
     momentum_n, momentum_f = _apply_inertia(mass, moment, inertia, w, v)
     f_n = inertial_n + jnp.cross(w, momentum_n) + jnp.cross(v, momentum_f)
     f_f = inertial_f + jnp.cross(w, momentum_f)
     # Backward pass: each joint carries the load of its subtree.
-    sub_n, sub_f = (jnp.cumsum(x[::-1], axis=0)[::-1] for x in (f_n, f_f))
+    sub_n, sub_f = _subtree_sums(f_n, f_f)
     joints = jnp.sum(S_w * sub_n[1:], axis=-1) + jnp.sum(S_v * sub_f[1:], axis=-1)
     return jnp.concatenate([sub_f[0], sub_n[0], joints])
 

@@ -72,18 +72,21 @@ def state_rate(state: PlantState, xdd: jax.Array) -> PlantState:
     )
 
 
-def rk4_step(derivative: Callable[[PlantState], PlantState], state: PlantState, dt) -> PlantState:
+def rk4_step(
+    derivative: Callable[[PlantState], PlantState], state: PlantState, dt, rate_at_start: PlantState | None = None
+) -> PlantState:
     """One classical Runge-Kutta step of length ``dt`` (s) of ``d state/dt = derivative(state)``.
 
     ``derivative`` closes over anything held constant during the step (zero-order hold of
     the joint torques); forces that belong to the plant (contact) are evaluated inside it,
-    at every stage.
+    at every stage. ``rate_at_start``, when given, is ``derivative(state)`` computed by the
+    caller (the closed loop shares its kinematics with the controller).
     """
 
     def advance(base, rate, h):
         return jax.tree.map(lambda x, dx: x + h * dx, base, rate)
 
-    k1 = derivative(state)
+    k1 = derivative(state) if rate_at_start is None else rate_at_start
     k2 = derivative(advance(state, k1, dt / 2))
     k3 = derivative(advance(state, k2, dt / 2))
     k4 = derivative(advance(state, k3, dt))

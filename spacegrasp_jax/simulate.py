@@ -36,7 +36,7 @@ from spacegrasp_jax.dynamics import (
     solve_dynamics,
 )
 from spacegrasp_jax.integrator import PlantState, rk4_step, state_rate
-from spacegrasp_jax.kinematics import point_jacobian
+from spacegrasp_jax.kinematics import Frames, point_jacobian
 from spacegrasp_jax.model import N_JOINTS, Robot
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.trajectory import desired_state
@@ -112,15 +112,49 @@ def contact_force_lar(scenario: Scenario, p_ee: jax.Array) -> jax.Array:
     )
 
 
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PlantKinematics:
+    """What both the controller and the plant's rate need at one state, computed once.
+
+    Attributes:
+        frames: :class:`~spacegrasp_jax.kinematics.Frames` with the satellite CoM at the
+            origin (:func:`~spacegrasp_jax.dynamics.frames_at_base`).
+        M: (13, 13) mass matrix.
+        J_ee: (6, 13) EE point Jacobian ``[J_s J_m]``, inertial frame.
+        contact_force_lar: (3,) N, force of the contact sphere on the EE, LAR axes.
+    """
+
+    frames: Frames
+    M: jax.Array
+    J_ee: jax.Array
+    contact_force_lar: jax.Array
+
+
+def plant_kinematics(robot: Robot, scenario: Scenario, state: PlantState) -> PlantKinematics:
+    """One kinematics pass, the mass matrix, the EE Jacobian and the contact force at ``state``."""
+    frames = frames_at_base(robot, state.R_base, state.q)  # satellite CoM at the origin
+    return PlantKinematics(
+        frames=frames,
+        M=mass_matrix_from_frames(robot, frames),
+        J_ee=point_jacobian(frames, jnp.zeros(3, dtype=state.q.dtype), frames.p_ee, N_JOINTS),
+        contact_force_lar=contact_force_lar(scenario, state.p_base + frames.p_ee),
+    )
+
+
+def plant_rate(robot: Robot, scenario: Scenario, state: PlantState, kinematics: PlantKinematics, u: jax.Array) -> PlantState:
+    """State rate under joint torques ``u`` (7,) N m and the contact force, given
+    ``kinematics = plant_kinematics(robot, scenario, state)``."""
+    force = scenario.R_lar @ kinematics.contact_force_lar
+    # The contact force acts at the EE point: generalised force J_point^T [f; 0].
+    Q = kinematics.J_ee[:3].T @ force + jnp.concatenate([jnp.zeros(6, dtype=u.dtype), u])
+    bias = bias_from_frames(robot, kinematics.frames, state.V_base, state.qd)
+    return state_rate(state, solve_dynamics(kinematics.M, bias, Q))
+
+
 def plant_derivative(robot: Robot, scenario: Scenario, state: PlantState, u: jax.Array) -> PlantState:
     """State rate under joint torques ``u`` (7,) N m and the contact force at this state."""
-    frames = frames_at_base(robot, state.R_base, state.q)  # one kinematics pass per stage
-    force = scenario.R_lar @ contact_force_lar(scenario, state.p_base + frames.p_ee)
-    # The contact force acts at the EE point: generalised force J_point^T [f; 0].
-    J_ee = point_jacobian(frames, jnp.zeros(3, dtype=u.dtype), frames.p_ee, N_JOINTS)
-    Q = J_ee[:3].T @ force + jnp.concatenate([jnp.zeros(6, dtype=u.dtype), u])
-    M = mass_matrix_from_frames(robot, frames)
-    return state_rate(state, solve_dynamics(M, bias_from_frames(robot, frames, state.V_base, state.qd), Q))
+    return plant_rate(robot, scenario, state, plant_kinematics(robot, scenario, state), u)
 
 
 def initial_state(scenario: Scenario) -> SimState:
@@ -129,22 +163,32 @@ def initial_state(scenario: Scenario) -> SimState:
     return SimState(plant=scenario.initial, controller=ControllerState(V_ref=jnp.zeros(6, dtype=dtype), pid=pid_init(dtype)))
 
 
-def control_step(robot: Robot, scenario: Scenario, gains: Gains, controller: str, state: SimState, t, pinv_damping=0.0):
-    """One controller update at time ``t``: returns ``(u (7,), new ControllerState, log row)``."""
+def control_step(
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller: str,
+    state: SimState,
+    t,
+    pinv_damping=0.0,
+    kinematics: PlantKinematics | None = None,
+):
+    """One controller update at time ``t``: returns ``(u (7,), new ControllerState, log row)``.
+
+    ``kinematics``: :func:`plant_kinematics` of ``state.plant`` if the caller has it."""
     plant = state.plant
+    if kinematics is None:
+        kinematics = plant_kinematics(robot, scenario, plant)
+    frames, M, J_ee, force_lar = kinematics.frames, kinematics.M, kinematics.J_ee, kinematics.contact_force_lar
     x_v = jnp.concatenate([plant.V_base, plant.qd])
-    frames = frames_at_base(robot, plant.R_base, plant.q)  # satellite CoM at the origin
-    M = mass_matrix_from_frames(robot, frames)
     p_ee = plant.p_base + frames.p_ee
     R_lar = scenario.R_lar
     R_lar_ee = R_lar.T @ frames.R_ee
     pose = jnp.concatenate([R_lar.T @ (p_ee - scenario.p_lar), spatial.euler_zyx(R_lar_ee)])
-    J_ee = point_jacobian(frames, jnp.zeros(3, dtype=x_v.dtype), frames.p_ee, N_JOINTS)
     twist_inertial = J_ee @ x_v
     twist = jnp.concatenate([R_lar.T @ twist_inertial[:3], R_lar.T @ twist_inertial[3:]])
 
     # F/T sensor between link 7 and the EE (frame 7 axes), read once per step (eqs 18-19).
-    force_lar = contact_force_lar(scenario, p_ee)
     R_fts = frames.R_frame[-1]
     force_fts, torque_fts = sensor_wrench(R_fts.T @ (R_lar @ force_lar), robot.ee_offset)
     wrench_ee = wrench_at_ee(force_fts, torque_fts, robot.ee_offset)
@@ -192,8 +236,15 @@ def closed_loop_step(robot: Robot, scenario: Scenario, gains: Gains, controller:
 
     def step(state: SimState, k):
         t = k * scenario.dt
-        u, controller_state, row = control_step(robot, scenario, gains, controller, state, t, pinv_damping)
-        plant = rk4_step(lambda s: plant_derivative(robot, scenario, s, u), state.plant, scenario.dt)
+        # The controller reads the state RK4's first stage starts from: share the kinematics.
+        kinematics = plant_kinematics(robot, scenario, state.plant)
+        u, controller_state, row = control_step(robot, scenario, gains, controller, state, t, pinv_damping, kinematics)
+        plant = rk4_step(
+            lambda s: plant_derivative(robot, scenario, s, u),
+            state.plant,
+            scenario.dt,
+            rate_at_start=plant_rate(robot, scenario, state.plant, kinematics, u),
+        )
         return SimState(plant=plant, controller=controller_state), row
 
     return step
