@@ -98,17 +98,22 @@ def test_four_devices_give_the_results_of_one(tmp_path, five_samples, variant):
 
 
 def test_a_diverging_sample_is_reported_and_leaves_the_others_alone(robot, short_scenario, variant):
-    # Initial joint rates of up to 10 rad/s: sample 1 of seed 0 blows up at about 0.83 s.
+    # Initial joint rates of up to 10 rad/s make every sample violently unstable (1e5 N m and
+    # more). Sample 1 of seed 0 reaches a NaN at about 0.83 s whatever the rounding; whether
+    # the others end in a NaN too is chaotic (it changes with the last bit of any operation),
+    # so the diverged set is read from the metrics, and sample 1 must be in it.
     config = CampaignConfig(n=4, chunk=4, ranges=PerturbationRanges.from_mapping({"joint_rate_radps": 10.0}))
     result = run_campaign(robot, short_scenario, [variant], config, progress=None)
     sample_metrics = result.metrics[variant.key]
     assert result.status == "done"
-    assert np.isfinite(sample_metrics["first_nonfinite_s"][1]) and 0.0 < sample_metrics["first_nonfinite_s"][1] < 2.0
-    assert np.isnan(sample_metrics["final_position_error_m"][1]) and not sample_metrics["success"][1]
-    assert result.summary["variants"][variant.key]["diverged_samples"] == [1]
+    assert 0.8 < sample_metrics["first_nonfinite_s"][1] < 0.9
+    diverged = np.flatnonzero(np.isfinite(sample_metrics["first_nonfinite_s"]))
+    assert result.summary["variants"][variant.key]["diverged_samples"] == diverged.tolist()
+    assert np.all(np.isnan(sample_metrics["final_position_error_m"][diverged]))
+    assert not np.any(sample_metrics["success"][diverged])
     # The same executable with sample 1 swapped for sample 5: the others are bit-identical.
     swapped = campaign.evaluate_indices(robot, short_scenario, variant, config, [0, 5, 2, 3])
-    assert np.isnan(swapped["first_nonfinite_s"][1])
+    assert not np.array_equal(swapped["perturbation.qd_init"][1], result.perturbations["qd_init"][1])
     for name in METRICS:
         np.testing.assert_array_equal(swapped[name][[0, 2, 3]], sample_metrics[name][[0, 2, 3]], err_msg=name)
 
