@@ -10,13 +10,15 @@ Modes, each in its own process so that peak memory is its own:
 * ``forward_mode``: ``jax.jacfwd`` over the 39 admittance log-gains.
 Reports wall time after compilation (median of ``--repeats``), its ratio to ``forward``,
 XLA's ``memory_analysis`` (temporary and argument/output buffers) and the process's peak RSS.
-Writes ``gradient.json``.
+With ``--compile-cache DIR``, run twice: the second run loads the compiled programs from
+DIR, and its peak RSS is what a gradient needs once compiled. Writes ``gradient.json``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -74,6 +76,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=17.0)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--modes", default=",".join(MODES), help=f"comma-separated subset of {', '.join(MODES)}")
+    parser.add_argument("--compile-cache", metavar="DIR",
+                        help="JAX persistent compilation cache for the children: run twice with the same DIR and the "
+                             "second run loads the programs instead of compiling them ('compile' is then the load time)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
@@ -83,10 +88,13 @@ def main(argv: list[str] | None = None) -> int:
     unknown = set(modes) - set(MODES)
     if unknown:
         parser.error(f"unknown mode(s): {', '.join(sorted(unknown))}")
+    environment = dict(os.environ)
+    if args.compile_cache:
+        environment |= {"JAX_COMPILATION_CACHE_DIR": args.compile_cache, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
     results = {}
     for mode in modes:
         command = [sys.executable, "-m", "benchmarks.gradient", "--child", mode, "--duration", str(args.duration), "--repeats", str(args.repeats)]
-        output = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+        output = subprocess.run(command, capture_output=True, text=True, check=True, env=environment).stdout
         results[mode] = json.loads(output.strip().splitlines()[-1])
         print(f"measured {mode}", flush=True)
     forward = results.get("forward", {}).get("run_s")
@@ -99,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "gradient.json").write_text(json.dumps({"machine": machine(), "duration_s": args.duration, "results": results}, indent=2))
+    (out / "gradient.json").write_text(json.dumps({"machine": machine(), "duration_s": args.duration, "compile_cache": args.compile_cache, "results": results}, indent=2))
     print(f"wrote {out / 'gradient.json'}")
     return 0
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -123,7 +124,31 @@ class UsageError(ValueError):
     """A command-line option is invalid."""
 
 
+def default_compile_cache() -> Path:
+    """``$XDG_CACHE_HOME/spacegrasp-jax/xla`` (``~/.cache/...`` without it)."""
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "spacegrasp-jax" / "xla"
+
+
+def use_compile_cache(folder: str | None) -> Path | None:
+    """Turn on JAX's persistent compilation cache in ``folder`` and return it.
+
+    ``None``: a cache the user set already (``JAX_COMPILATION_CACHE_DIR``), else
+    :func:`default_compile_cache`; ``"none"``: leave it off. A cached program is loaded instead
+    of compiled: the tuning gradient then takes 5 s instead of 21 s to get ready, and the
+    process peaks at 0.84 GB instead of 1.7 GB (README, Performance)."""
+    if folder == "none":
+        return None
+    if folder is None:
+        folder = jax.config.jax_compilation_cache_dir or str(default_compile_cache())
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    return Path(folder)
+
+
 def _tune(args: argparse.Namespace) -> int:
+    cache = use_compile_cache(args.compile_cache)
+    print(f"compilation cache: {cache if cache else 'off'}", file=sys.stderr)
     try:
         if args.resume:
             return tune(Path(args.out), resume=True)
@@ -315,6 +340,9 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--scenario", help="scenario TOML/JSON (default: the paper's)")
     tune.add_argument("--robot", help="robot TOML (default: the paper's)")
     tune.add_argument("--resume", action="store_true", help="continue the run in --out from its last completed step")
+    tune.add_argument("--compile-cache", metavar="DIR",
+                      help="keep compiled programs here for later runs and --resume (default: $JAX_COMPILATION_CACHE_DIR, "
+                           "else ~/.cache/spacegrasp-jax/xla; 'none': off)")
     tune.set_defaults(run=_tune)
 
     montecarlo = commands.add_parser("montecarlo", help="robustness campaign over perturbed captures (sharded, resumable)")

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from test_model import CONFIG
 
 import spacegrasp_jax as sg
@@ -119,3 +121,38 @@ def test_simulate_rejects_bad_files_before_running(tmp_path, gains, capsys):
     assert cli.main(["simulate", "--controller", "cartesian", "--scenario", str(bad_scenario), "--out", str(tmp_path / "y")]) == 2
     assert "dt: must be positive" in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+COMPILE_ONE = """
+import sys, jax
+from spacegrasp_jax import cli
+folder = cli.use_compile_cache(None if sys.argv[1] == "default" else sys.argv[1])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # cache even this toy program
+jax.jit(lambda x: 2.0 * x + 1.0)(1.0)
+print(folder)
+"""
+
+
+@pytest.mark.parametrize("case", ["explicit", "xdg_default", "jax_variable", "off"])
+def test_tune_compile_cache_folder_and_precedence(tmp_path, case):
+    """``--compile-cache``: a folder given wins; without one, JAX's own variable, else the
+    XDG cache folder; ``none`` writes nothing. The program must land in the folder chosen."""
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "XDG_CACHE_HOME")}
+    env["XDG_CACHE_HOME"] = str(tmp_path / "xdg")
+    env["MPLCONFIGDIR"] = str(tmp_path.parent / f"{tmp_path.name}-matplotlib")  # not a JAX cache
+    argument, expected = {
+        "explicit": (str(tmp_path / "mine"), tmp_path / "mine"),
+        "xdg_default": ("default", tmp_path / "xdg" / "spacegrasp-jax" / "xla"),
+        "jax_variable": ("default", tmp_path / "jax"),
+        "off": ("none", None),
+    }[case]
+    if case == "jax_variable":
+        env["JAX_COMPILATION_CACHE_DIR"] = str(tmp_path / "jax")
+    result = subprocess.run([sys.executable, "-c", COMPILE_ONE, argument], capture_output=True, text=True, env=env, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == str(expected)
+    written = [p for p in tmp_path.rglob("*") if p.is_file()]
+    if expected is None:
+        assert written == []
+    else:
+        assert written and all(expected in p.parents for p in written), written
