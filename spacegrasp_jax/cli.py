@@ -141,8 +141,7 @@ def use_compile_cache(folder: str | None) -> Path | None:
         return None
     if folder is None:
         folder = jax.config.jax_compilation_cache_dir or str(default_compile_cache())
-    jax.config.update("jax_compilation_cache_dir", str(folder))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    jax.config.update("jax_compilation_cache_dir", str(folder))  # JAX caches programs that took >= 1 s
     return Path(folder)
 
 
