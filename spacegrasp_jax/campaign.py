@@ -39,7 +39,7 @@ from spacegrasp_jax import experiment
 from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.montecarlo import METRICS, evaluate_samples, success
+from spacegrasp_jax.montecarlo import METRICS, evaluate_samples, over_torque_limit, success
 from spacegrasp_jax.perturbations import PerturbationRanges
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import Log
@@ -319,8 +319,7 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
         elif name != "first_nonfinite_s":
             statistics[name] = _statistics(values[ok])
     peak = np.asarray(sample_metrics["max_abs_torque_Nm"]).max(axis=1)
-    limit = np.inf if config.torque_limit_Nm is None else config.torque_limit_Nm
-    unstable = np.flatnonzero(ok & (peak > limit))
+    unstable = np.flatnonzero(ok & over_torque_limit(sample_metrics, config.torque_limit_Nm))
 
     def worst(values):
         order = np.argsort(np.where(np.isfinite(values), values, np.inf))[::-1]

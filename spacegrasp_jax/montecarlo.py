@@ -195,13 +195,21 @@ def evaluate_samples(
     return perturbations, sample_metrics, rows
 
 
+def over_torque_limit(sample_metrics: dict, torque_limit_Nm: float | None):
+    """(n,) bool: the sample's peak |u_i| on some joint exceeded ``torque_limit_Nm`` (N m;
+    ``None``: never). NaN peaks (diverged samples) are not over it (NumPy)."""
+    peak = np.asarray(sample_metrics["max_abs_torque_Nm"]).max(axis=-1)
+    limit = np.inf if torque_limit_Nm is None else torque_limit_Nm
+    with np.errstate(invalid="ignore"):
+        return peak > limit
+
+
 def success(sample_metrics: dict, position_tolerance_m: float, orientation_tolerance_rad: float, torque_limit_Nm: float | None = None):
     """(n,) bool: the sample did not diverge, its peak |u_i| stayed at or below
     ``torque_limit_Nm`` (N m; ``None``: no limit), and it ended within both tolerances (NumPy)."""
     position = np.asarray(sample_metrics["final_position_error_m"])
     orientation = np.asarray(sample_metrics["final_orientation_error_rad"])
     diverged = np.isfinite(np.asarray(sample_metrics["first_nonfinite_s"]))
-    peak = np.asarray(sample_metrics["max_abs_torque_Nm"]).max(axis=-1)
-    limit = np.inf if torque_limit_Nm is None else torque_limit_Nm
     with np.errstate(invalid="ignore"):
-        return ~diverged & (peak <= limit) & (position <= position_tolerance_m) & (orientation <= orientation_tolerance_rad)
+        within = (position <= position_tolerance_m) & (orientation <= orientation_tolerance_rad)
+    return ~diverged & ~over_torque_limit(sample_metrics, torque_limit_Nm) & within
