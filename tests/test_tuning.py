@@ -22,7 +22,7 @@ from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
 from tuning.objective import Objective, Weights, objective_parts, smooth_max
 from tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
-from tuning.tune import TuneConfig, make_loss, make_value_and_grad, optimise, training_scenarios
+from tuning.tune import CHECKPOINT_SEGMENT, TuneConfig, make_loss, make_value_and_grad, optimise, training_scenarios
 
 SHORT = dict(duration=1.0, move_duration=1.0)  # contact starts at about 0.45 s
 
@@ -93,7 +93,7 @@ def test_objective_parts_on_a_synthetic_log(full_runs):
 def short_problem(robot, gains, full_runs):
     """Loss of the admittance and Cartesian laws on a 1 s scenario with (smooth) contact."""
 
-    def build(controller, scenario=None, segment=25):
+    def build(controller, scenario=None, segment=CHECKPOINT_SEGMENT):  # the tuning default
         scenario = scenario or paper_scenario(robot, contact_law="smooth", **SHORT)
         config = TuneConfig(controller=controller, batch=1)  # the nominal scenario alone
         scale = tuple(float(x) for x in full_runs[controller].summary["max_abs_torque_Nm"])
