@@ -41,59 +41,50 @@ def frames_at_base(robot: Robot, R_base, q):
     return forward_kinematics(robot, jnp.zeros(3, dtype=R_base.dtype), R_base, q)
 
 
-def _spatial_inertias(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Spatial inertias of the 8 bodies (satellite first) about the satellite CoM, which
-    ``frames`` places at the origin: mass (8,), first moment ``m c`` (8, 3) and rotational
-    inertia about the origin (8, 3, 3), inertial axes."""
+def _link_inertias(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Spatial inertias of links 1..7 about the satellite CoM, which ``frames`` places at the
+    origin: mass (7,), first moment ``m c`` (7, 3) and rotational inertia about the origin
+    (7, 3, 3), inertial axes."""
     mass, com_local, inertia_local = body_inertials(robot)
-    R = frames.R_frame[1:]
+    R = frames.R_link
     com = frames.p_frame[1:] + jnp.einsum("kij,kj->ki", R, com_local)
     inertia_com = jnp.einsum("kia,kab,kjb->kij", R, inertia_local, R)
     # Parallel axes: I_O = I_c + m (|c|^2 1 - c c^T).
     inertia_origin = inertia_com + mass[:, None, None] * (
         jnp.sum(com * com, axis=-1)[:, None, None] * jnp.eye(3) - com[:, :, None] * com[:, None, :]
     )
-    R_base = frames.R_frame[0]
-    return (
-        jnp.concatenate([robot.satellite_mass[None], mass]),
-        jnp.concatenate([jnp.zeros((1, 3), dtype=com.dtype), mass[:, None] * com]),
-        jnp.concatenate([(R_base @ robot.satellite_inertia @ R_base.T)[None], inertia_origin]),
-    )
+    return mass, mass[:, None] * com, inertia_origin
 
 
-def _packed(arrays):
-    """Arrays sharing their first axis, flattened and side by side: one (n, k) array and
-    the slices that undo it. One cumulative sum over the pack is one kernel instead of
-    one per array."""
-    n = arrays[0].shape[0]
-    flat = [x.reshape(n, -1) for x in arrays]
-    packed = jnp.concatenate(flat, axis=1)
-    bounds = np.cumsum([0] + [x.shape[1] for x in flat])
-    return packed, [(int(a), int(b), x.shape) for a, b, x in zip(bounds[:-1], bounds[1:], arrays)]
+def _satellite_inertia(robot: Robot, frames) -> jax.Array:
+    """Rotational inertia (3, 3) of the satellite about its CoM, inertial axes (its first
+    moment about its own CoM is zero)."""
+    R_base = frames.R_mount
+    return R_base @ robot.satellite_inertia @ R_base.T
 
 
 def _cumulative(arrays, reverse: bool):
-    packed, layout = _packed(arrays)
-    # Written out as n - 1 additions (n <= 8), which XLA fuses into one loop:
-    # ``lax.cumsum`` lowers to a reduce-window, 3x slower per call on a CPU under vmap
-    # (README, Performance).
-    rows = [packed[i] for i in range(packed.shape[0])]
-    if reverse:
-        total = jnp.stack(list(itertools.accumulate(rows[::-1]))[::-1])
-    else:
-        total = jnp.stack(list(itertools.accumulate(rows)))
-    return tuple(total[:, a:b].reshape(shape) for a, b, shape in layout)
+    # Written out as n - 1 additions (n = 7), which XLA fuses into one loop per array:
+    # ``lax.cumsum`` lowers to a reduce-window, 3x slower per call on a CPU under vmap.
+    # Arrays are summed one by one, not packed side by side, so none exceeds 64 numbers.
+    def prefix(x):
+        rows = [x[i] for i in range(x.shape[0])]
+        if reverse:
+            return jnp.stack(list(itertools.accumulate(rows[::-1]))[::-1])
+        return jnp.stack(list(itertools.accumulate(rows)))
+
+    return tuple(prefix(x) for x in arrays)
 
 
 def _chain_sums(*arrays):
-    """Cumulative sums down the chain (body i gets the sum over joints 1..i), each array
-    (n, ...) summed along its first axis."""
+    """Cumulative sums down the chain (link i gets the sum over joints 1..i), each array
+    (7, ...) summed along its first axis."""
     return _cumulative(arrays, reverse=False)
 
 
 def _subtree_sums(*arrays):
-    """Sums over each body's subtree (body i gets the sum over bodies i..n-1), each array
-    (n, ...) summed along its first axis."""
+    """Sums over each link's subtree (link i gets the sum over links i..7), each array
+    (7, ...) summed along its first axis."""
     return _cumulative(arrays, reverse=True)
 
 
@@ -111,55 +102,98 @@ def _joint_axes(frames) -> tuple[jax.Array, jax.Array]:
     return axis, jnp.cross(frames.joint_origin, axis)
 
 
-def mass_matrix_from_frames(robot: Robot, frames) -> jax.Array:
-    """Mass matrix (13, 13) by composite rigid bodies, from :func:`frames_at_base`."""
-    mass, moment, inertia = _spatial_inertias(robot, frames)
-    # Composite inertia of the subtree of each body: a reverse cumulative sum.
-    c_mass, c_moment, c_inertia = _subtree_sums(mass[:, None], moment, inertia)
-    c_mass = c_mass[:, 0]
+def mass_matrix_blocks_from_frames(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The mass matrix by composite rigid bodies, from :func:`frames_at_base`, as its blocks
+    ``M = [[M_base, M_coupling], [M_coupling^T, M_joints]]``: ``M_base`` (6, 6) for the
+    satellite's ``[v_s, w_s]``, ``M_coupling`` (6, 7), ``M_joints`` (7, 7)."""
+    mass, moment, inertia = _link_inertias(robot, frames)
+    # Composite inertia of the subtree of each link: a reverse cumulative sum.
+    c_mass, c_moment, c_inertia = _subtree_sums(mass, moment, inertia)
     S_w, S_v = _joint_axes(frames)
     # Force F_j = Ic_j S_j needed to move the subtree of joint j along its axis.
-    F_n, F_f = _apply_inertia(c_mass[1:], c_moment[1:], c_inertia[1:], S_w, S_v)
+    F_n, F_f = _apply_inertia(c_mass, c_moment, c_inertia, S_w, S_v)
     # M_ij = S_i . F_max(i,j) for joints i, j.
     A = S_w @ F_n.T + S_v @ F_f.T  # A[i, j] = S_i . F_j
     upper = jnp.triu(jnp.ones((N_JOINTS, N_JOINTS), dtype=bool))
-    M_mm = jnp.where(upper, A, A.T)
+    M_joints = jnp.where(upper, A, A.T)
     # Satellite rows (generalised velocities v_s, w_s): its columns are the whole system's
     # composite inertia applied to a pure translation and a pure rotation.
-    m, h, I_O = c_mass[0], c_moment[0], c_inertia[0]
+    m = robot.satellite_mass + c_mass[0]
+    h = c_moment[0]
+    I_O = _satellite_inertia(robot, frames) + c_inertia[0]
     h_skew = spatial.skew(h)
-    M_s = jnp.block([[m * jnp.eye(3), -h_skew], [h_skew, I_O]])
-    M_sm = jnp.concatenate([F_f.T, F_n.T])  # rows [force; moment] for [v_s; w_s]
-    return jnp.block([[M_s, M_sm], [M_sm.T, M_mm]])
+    M_base = jnp.block([[m * jnp.eye(3), -h_skew], [h_skew, I_O]])
+    M_coupling = jnp.concatenate([F_f.T, F_n.T])  # rows [force; moment] for [v_s; w_s]
+    return M_base, M_coupling, M_joints
+
+
+def mass_matrix_from_frames(robot: Robot, frames) -> jax.Array:
+    """Mass matrix (13, 13) by composite rigid bodies, from :func:`frames_at_base`."""
+    M_base, M_coupling, M_joints = mass_matrix_blocks_from_frames(robot, frames)
+    return jnp.block([[M_base, M_coupling], [M_coupling.T, M_joints]])
 
 
 def bias_from_frames(robot: Robot, frames, V_base, qd) -> jax.Array:
     """Bias forces (13,) by Newton-Euler with zero generalised acceleration, from
     :func:`frames_at_base`."""
-    mass, moment, inertia = _spatial_inertias(robot, frames)
+    mass, moment, inertia = _link_inertias(robot, frames)
     v_s, w_s = V_base[:3], V_base[3:]
     S_w, S_v = _joint_axes(frames)
-    # Body velocities: the satellite's plus the joint rates up the chain.
+    # Link velocities: the satellite's plus the joint rates up the chain.
     w_chain, v_chain = _chain_sums(S_w * qd[:, None], S_v * qd[:, None])
-    w = jnp.concatenate([w_s[None], w_s + w_chain])
-    v = jnp.concatenate([v_s[None], v_s + v_chain])
+    w, v = w_s + w_chain, v_s + v_chain
     # Velocity-product accelerations. The satellite's spatial acceleration at zero
     # generalised acceleration is (0, -w_s x v_s), since v_s is its CoM's classical
     # velocity; each joint adds (v_j x S_j) qd_j, the rate of change of its moving axis.
-    dS_w = jnp.cross(w[1:], S_w)
-    dS_v = jnp.cross(w[1:], S_v) + jnp.cross(v[1:], S_w)
-    a_w_chain, a_v_chain = _chain_sums(dS_w * qd[:, None], dS_v * qd[:, None])
-    a_w = jnp.concatenate([jnp.zeros((1, 3), dtype=w.dtype), a_w_chain])
-    a_v = -jnp.cross(w_s, v_s) + jnp.concatenate([jnp.zeros((1, 3), dtype=w.dtype), a_v_chain])
-    # Newton-Euler per body: f = I a + v x* (I v), with (w, v) x* (n, f) = (w x n + v x f, w x f).
+    dS_w = jnp.cross(w, S_w)
+    dS_v = jnp.cross(w, S_v) + jnp.cross(v, S_w)
+    a_w, a_v_chain = _chain_sums(dS_w * qd[:, None], dS_v * qd[:, None])
+    a_v = -jnp.cross(w_s, v_s) + a_v_chain
+    # Newton-Euler per link: f = I a + v x* (I v), with (w, v) x* (n, f) = (w x n + v x f, w x f).
     inertial_n, inertial_f = _apply_inertia(mass, moment, inertia, a_w, a_v)
     momentum_n, momentum_f = _apply_inertia(mass, moment, inertia, w, v)
     f_n = inertial_n + jnp.cross(w, momentum_n) + jnp.cross(v, momentum_f)
     f_f = inertial_f + jnp.cross(w, momentum_f)
+    # The satellite, about its own CoM (zero first moment), with acceleration (0, -w_s x v_s):
+    # f = m (-w_s x v_s) + w_s x (m v_s) = 0 and n = w_s x (I_s w_s) + v_s x (m v_s) = w_s x I_s w_s.
+    satellite_n = jnp.cross(w_s, _satellite_inertia(robot, frames) @ w_s)
     # Backward pass: each joint carries the load of its subtree.
     sub_n, sub_f = _subtree_sums(f_n, f_f)
-    joints = jnp.sum(S_w * sub_n[1:], axis=-1) + jnp.sum(S_v * sub_f[1:], axis=-1)
-    return jnp.concatenate([sub_f[0], sub_n[0], joints])
+    joints = jnp.sum(S_w * sub_n, axis=-1) + jnp.sum(S_v * sub_f, axis=-1)
+    return jnp.concatenate([sub_f[0], satellite_n + sub_n[0], joints])
+
+
+def solve_base_block(M_base: jax.Array, rhs: jax.Array) -> jax.Array:
+    """``M_base^-1 rhs`` for the satellite block (6, 6) of the mass matrix, ``rhs`` (6,) or
+    (6, k), in closed form.
+
+    ``M_base = [[m 1, -h x], [h x, I_O]]`` is the whole system's spatial inertia about the
+    satellite CoM (mass ``m``, first moment ``h = m c``). For ``M_base [v; w] = [f; n]``:
+    ``I_c w = n - c x f`` with ``I_c = I_O + (h x)(h x) / m`` the inertia about the system's
+    CoM (parallel axes), then ``v = f / m + c x w``. The 3x3 solve is by the adjugate.
+    """
+    m, h_skew, I_O = M_base[0, 0], M_base[3:, :3], M_base[3:, 3:]
+    c_skew = h_skew / m
+    I_c = I_O + h_skew @ c_skew
+    # Inverse of the symmetric I_c: rows are cross products of its columns over det.
+    c0, c1, c2 = I_c[:, 0], I_c[:, 1], I_c[:, 2]
+    adjugate = jnp.stack([jnp.cross(c1, c2), jnp.cross(c2, c0), jnp.cross(c0, c1)])
+    I_c_inv = adjugate / jnp.dot(c0, adjugate[0])
+    f, n = rhs[:3], rhs[3:]
+    w = I_c_inv @ (n - c_skew @ f)
+    return jnp.concatenate([f / m + c_skew @ w, w])
+
+
+def solve_mass_blocks(M_base, M_coupling, M_joints, base_per_joint, rhs) -> jax.Array:
+    """``M^-1 rhs`` (13,) by block elimination, given the blocks of
+    :func:`mass_matrix_blocks_from_frames` and ``base_per_joint = M_base^-1 M_coupling``
+    (6, 7) (:func:`solve_base_block`): the joint accelerations from the Schur complement
+    ``M_joints - M_coupling^T M_base^-1 M_coupling`` (7, 7), symmetric positive definite,
+    by Cholesky, then the satellite's."""
+    schur = M_joints - M_coupling.T @ base_per_joint
+    y = solve_base_block(M_base, rhs[:6])
+    qdd = solve_spd(schur, rhs[6:] - M_coupling.T @ y)
+    return jnp.concatenate([y - base_per_joint @ qdd, qdd])
 
 
 def mass_matrix(robot: Robot, R_base: jax.Array, q: jax.Array) -> jax.Array:

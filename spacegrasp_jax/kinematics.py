@@ -25,22 +25,33 @@ N_DOF = 6 + N_JOINTS
 class Frames:
     """Poses of the DH frames 0..7 and the EE frame in the inertial frame.
 
+    The rotations are kept as frame 0's and frames 1..7's, not as one (8, 3, 3) stack: no
+    array of the closed loop's step exceeds 64 numbers, which lets XLA's CPU runtime run the
+    step's kernels one after the other instead of as a task graph (README, Performance).
+
     Attributes:
         p_frame: (8, 3) m, origins of frames 0..7 (frame 0 is the mounting point).
-        R_frame: (8, 3, 3) rotations of frames 0..7 (frame to inertial).
+        R_mount: (3, 3) rotation of frame 0, the mounting frame (frame to inertial).
+        R_link: (7, 3, 3) rotations of frames 1..7 (frame to inertial).
         p_ee: (3,) m, origin of the EE frame.
         R_ee: (3, 3) rotation of the EE frame (EE to inertial).
     """
 
     p_frame: jax.Array
-    R_frame: jax.Array
+    R_mount: jax.Array
+    R_link: jax.Array
     p_ee: jax.Array
     R_ee: jax.Array
 
     @property
+    def R_frame(self) -> jax.Array:
+        """(8, 3, 3) rotations of frames 0..7 (frame to inertial)."""
+        return jnp.concatenate([self.R_mount[None], self.R_link])
+
+    @property
     def joint_axis(self) -> jax.Array:
         """(7, 3) unit axes of joints 1..7: the z axes of frames 0..6."""
-        return self.R_frame[:-1, :, 2]
+        return jnp.concatenate([self.R_mount[None, :, 2], self.R_link[:-1, :, 2]])
 
     @property
     def joint_origin(self) -> jax.Array:
@@ -84,15 +95,16 @@ def forward_kinematics(robot: Robot, p_base: jax.Array, R_base: jax.Array, q: ja
     """
     R_rel, p_rel = dh_transforms(robot, q)
     R, p = R_base, p_base + R_base @ robot.mount_position
-    R_frame, p_frame = [R], [p]
+    R_link, p_frame = [], [p]
     for i in range(N_JOINTS):  # the chain is short and fixed: unrolled at trace time
         p = p + R @ p_rel[i]
         R = R @ R_rel[i]
-        R_frame.append(R)
+        R_link.append(R)
         p_frame.append(p)
     return Frames(
         p_frame=jnp.stack(p_frame),
-        R_frame=jnp.stack(R_frame),
+        R_mount=R_base,
+        R_link=jnp.stack(R_link),
         p_ee=p + R @ robot.ee_offset,
         R_ee=R,
     )
@@ -114,20 +126,26 @@ def ee_pose(robot: Robot, p_base: jax.Array, R_base: jax.Array, q: jax.Array):
 def body_com_positions(robot: Robot, frames: Frames) -> jax.Array:
     """(7, 3) m, CoM of moving bodies 1..7 in the inertial frame."""
     _, com_local, _ = body_inertials(robot)
-    return frames.p_frame[1:] + jnp.einsum("kij,kj->ki", frames.R_frame[1:], com_local)
+    return frames.p_frame[1:] + jnp.einsum("kij,kj->ki", frames.R_link, com_local)
+
+
+def point_jacobian_blocks(frames: Frames, p_base: jax.Array, point: jax.Array, last_joint: int) -> tuple[jax.Array, jax.Array]:
+    """:func:`point_jacobian` as its satellite block (6, 6), for ``[v_s, w_s]``, and its
+    joint block (6, 7), for ``qd``."""
+    r_base = point - p_base
+    axes = frames.joint_axis
+    lever = jnp.cross(axes, point - frames.joint_origin)  # (7, 3)
+    moves = (jnp.arange(N_JOINTS) < last_joint)[:, None]
+    J_base = jnp.block([[jnp.eye(3), -spatial.skew(r_base)], [jnp.zeros((3, 3)), jnp.eye(3)]])
+    J_joints = jnp.concatenate([jnp.where(moves, lever, 0.0).T, jnp.where(moves, axes, 0.0).T])
+    return J_base, J_joints
 
 
 def point_jacobian(frames: Frames, p_base: jax.Array, point: jax.Array, last_joint: int) -> jax.Array:
     """Jacobian (6, 13) of a body point: maps x_v to ``[velocity of point; angular
     velocity]`` (inertial frame) of the body that carries ``point`` (3,) m, a body moved by
     joints 1..``last_joint`` (the satellite is ``last_joint = 0``, the EE body 7)."""
-    r_base = point - p_base
-    axes = frames.joint_axis
-    lever = jnp.cross(axes, point - frames.joint_origin)  # (7, 3)
-    moves = (jnp.arange(N_JOINTS) < last_joint)[:, None]
-    J_v = jnp.concatenate([jnp.eye(3), -spatial.skew(r_base), jnp.where(moves, lever, 0.0).T], axis=1)
-    J_w = jnp.concatenate([jnp.zeros((3, 3)), jnp.eye(3), jnp.where(moves, axes, 0.0).T], axis=1)
-    return jnp.concatenate([J_v, J_w], axis=0)
+    return jnp.concatenate(point_jacobian_blocks(frames, p_base, point, last_joint), axis=1)
 
 
 def ee_jacobians(robot: Robot, R_base: jax.Array, q: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -146,25 +146,26 @@ def rollout_metrics(
     n_steps = scenario.n_steps
     dtype = scenario.initial.q.dtype
 
-    def step_and_fold(carry, k):
-        state, running = carry
+    # The step number rides in the carry rather than being scanned over: the loop then reads
+    # no array longer than 64 numbers, and XLA's CPU runtime runs its body as a sequence.
+    def step_and_fold(carry, _):
+        state, running, k = carry
         state, row = step(state, k)
-        return (state, _update(running, row)), row
+        return (state, _update(running, row), k + 1), row
 
-    steps = jnp.arange(n_steps, dtype=dtype)
-    carry = (initial_state(scenario), _start(dtype))
+    carry = (initial_state(scenario), _start(dtype), jnp.zeros((), dtype))
     if every is None:
-        (final, running), _ = jax.lax.scan(lambda c, k: (step_and_fold(c, k)[0], None), carry, steps)
+        (final, running, _), _ = jax.lax.scan(lambda c, _: (step_and_fold(c, None)[0], None), carry, None, length=n_steps)
         rows = None
     else:
         if every < 1 or n_steps % every:
             raise ValueError(f"every: {every} must be a positive divisor of the {n_steps} steps")
 
-        def block(carry, block_steps):
-            carry, rows = jax.lax.scan(step_and_fold, carry, block_steps)
+        def block(carry, _):
+            carry, rows = jax.lax.scan(step_and_fold, carry, None, length=every)
             return carry, jax.tree.map(lambda x: x[0], rows)
 
-        (final, running), rows = jax.lax.scan(block, carry, steps.reshape(-1, every))
+        (final, running, _), rows = jax.lax.scan(block, carry, None, length=n_steps // every)
     return _finish(running, final, n_steps, scenario.duration), rows
 
 
