@@ -4,8 +4,8 @@
 
 Modes, each in its own process so that peak memory is its own:
 * ``forward``: the objective alone (one rollout of the 17 s paper scenario, smooth contact);
-* ``reverse_checkpointed``: ``jax.value_and_grad`` with every step under ``jax.checkpoint``
-  (``tuning.tune.CHECKPOINT_SEGMENT``, the tuning default);
+* ``reverse_checkpointed``: ``jax.value_and_grad`` with ``jax.checkpoint`` segments of 8
+  steps, each step checkpointed too (``tuning.tune.checkpoint_segment``, the tuning default);
 * ``reverse_plain``: ``jax.value_and_grad`` through one plain scan;
 * ``forward_mode``: ``jax.jacfwd`` over the 39 admittance log-gains.
 Reports wall time after compilation (median of ``--repeats``), its ratio to ``forward``,
@@ -37,14 +37,14 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
     from spacegrasp_jax.scenario import paper_scenario
     from tuning.objective import Objective, Weights
     from tuning.parameters import initial_params, make_mask
-    from tuning.tune import CHECKPOINT_SEGMENT, TuneConfig, make_loss, make_value_and_grad, training_scenarios
+    from tuning.tune import TuneConfig, checkpoint_segment, make_loss, make_value_and_grad, training_scenarios
 
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, contact_law="smooth", duration=duration)
     config = TuneConfig(batch=1)  # one scenario: the cost of one gradient against one rollout
     objective = Objective(weights=Weights(), torque_scale_Nm=(0.80, 2.71, 1.82, 0.77, 1.11, 0.24, 0.028))
     params = initial_params(gains, "admittance")
-    segment = CHECKPOINT_SEGMENT if mode == "reverse_checkpointed" else None
+    segment = checkpoint_segment(scenario.n_steps) if mode == "reverse_checkpointed" else None
     loss = make_loss(robot, training_scenarios(scenario, config), gains, make_mask(gains, "admittance"), config, objective, segment)
     if mode == "forward":
         function = jax.jit(lambda p: loss(p)[0])

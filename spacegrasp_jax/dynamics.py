@@ -22,6 +22,7 @@ rotational inertia about the satellite CoM, all of which add up across bodies.
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 import jax
@@ -63,17 +64,32 @@ def _satellite_inertia(robot: Robot, frames) -> jax.Array:
     return R_base @ robot.satellite_inertia @ R_base.T
 
 
-def _cumulative(arrays, reverse: bool):
-    # Written out as n - 1 additions (n = 7), which XLA fuses into one loop per array:
-    # ``lax.cumsum`` lowers to a reduce-window, 3x slower per call on a CPU under vmap.
-    # Arrays are summed one by one, not packed side by side, so none exceeds 64 numbers.
-    def prefix(x):
-        rows = [x[i] for i in range(x.shape[0])]
-        if reverse:
-            return jnp.stack(list(itertools.accumulate(rows[::-1]))[::-1])
-        return jnp.stack(list(itertools.accumulate(rows)))
+def _prefix_unrolled(x: jax.Array, reverse: bool) -> jax.Array:
+    rows = [x[i] for i in range(x.shape[0])]
+    if reverse:
+        return jnp.stack(list(itertools.accumulate(rows[::-1]))[::-1])
+    return jnp.stack(list(itertools.accumulate(rows)))
 
-    return tuple(prefix(x) for x in arrays)
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+def _prefix_sums(x: jax.Array, reverse: bool) -> jax.Array:
+    """Cumulative sums of ``x`` (n, ...) down (or, if ``reverse``, up) its first axis,
+    n <= 8. The values are written out as n - 1 additions, which XLA fuses into one loop
+    (``lax.cumsum`` lowers to a reduce-window, 3x slower per call on a CPU under vmap). The
+    derivative is ``lax.cumsum``: one kernel each way, where the additions' derivative would
+    be one kernel per row (the transposes of the row slices)."""
+    return _prefix_unrolled(x, reverse)
+
+
+@_prefix_sums.defjvp
+def _prefix_sums_jvp(reverse, primals, tangents):
+    (x,), (dx,) = primals, tangents
+    return _prefix_sums(x, reverse), jax.lax.cumsum(dx, axis=0, reverse=reverse)
+
+
+def _cumulative(arrays, reverse: bool):
+    # Arrays are summed one by one, not packed side by side, so none exceeds 64 numbers.
+    return tuple(_prefix_sums(x, reverse) for x in arrays)
 
 
 def _chain_sums(*arrays):
@@ -102,10 +118,13 @@ def _joint_axes(frames) -> tuple[jax.Array, jax.Array]:
     return axis, jnp.cross(frames.joint_origin, axis)
 
 
-def mass_matrix_blocks_from_frames(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """The mass matrix by composite rigid bodies, from :func:`frames_at_base`, as its blocks
-    ``M = [[M_base, M_coupling], [M_coupling^T, M_joints]]``: ``M_base`` (6, 6) for the
-    satellite's ``[v_s, w_s]``, ``M_coupling`` (6, 7), ``M_joints`` (7, 7)."""
+def mass_matrix_parts_from_frames(robot: Robot, frames):
+    """The mass matrix by composite rigid bodies, from :func:`frames_at_base`, in parts:
+    ``(m, h, I_O, M_coupling, M_joints)``. The satellite block
+    ``M_base = [[m 1, -h x], [h x, I_O]]`` (6, 6) is the whole system's spatial inertia about
+    the satellite CoM: mass ``m`` (), first moment ``h`` (3,) kg m, rotational inertia
+    ``I_O`` (3, 3); ``M_coupling`` (6, 7) couples ``[v_s, w_s]`` with ``qd``; ``M_joints``
+    (7, 7) is the joints' block."""
     mass, moment, inertia = _link_inertias(robot, frames)
     # Composite inertia of the subtree of each link: a reverse cumulative sum.
     c_mass, c_moment, c_inertia = _subtree_sums(mass, moment, inertia)
@@ -118,13 +137,23 @@ def mass_matrix_blocks_from_frames(robot: Robot, frames) -> tuple[jax.Array, jax
     M_joints = jnp.where(upper, A, A.T)
     # Satellite rows (generalised velocities v_s, w_s): its columns are the whole system's
     # composite inertia applied to a pure translation and a pure rotation.
-    m = robot.satellite_mass + c_mass[0]
-    h = c_moment[0]
-    I_O = _satellite_inertia(robot, frames) + c_inertia[0]
-    h_skew = spatial.skew(h)
-    M_base = jnp.block([[m * jnp.eye(3), -h_skew], [h_skew, I_O]])
+    m, h, I_O = robot.satellite_mass + c_mass[0], c_moment[0], _satellite_inertia(robot, frames) + c_inertia[0]
     M_coupling = jnp.concatenate([F_f.T, F_n.T])  # rows [force; moment] for [v_s; w_s]
-    return M_base, M_coupling, M_joints
+    return m, h, I_O, M_coupling, M_joints
+
+
+def base_block(m, h, I_O) -> jax.Array:
+    """``M_base = [[m 1, -h x], [h x, I_O]]`` (6, 6) from :func:`mass_matrix_parts_from_frames`."""
+    h_skew = spatial.skew(h)
+    return jnp.block([[m * jnp.eye(3), -h_skew], [h_skew, I_O]])
+
+
+def mass_matrix_blocks_from_frames(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The mass matrix's blocks ``M = [[M_base, M_coupling], [M_coupling^T, M_joints]]``:
+    ``M_base`` (6, 6) for the satellite's ``[v_s, w_s]``, ``M_coupling`` (6, 7),
+    ``M_joints`` (7, 7)."""
+    m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
+    return base_block(m, h, I_O), M_coupling, M_joints
 
 
 def mass_matrix_from_frames(robot: Robot, frames) -> jax.Array:
@@ -163,35 +192,41 @@ def bias_from_frames(robot: Robot, frames, V_base, qd) -> jax.Array:
     return jnp.concatenate([sub_f[0], satellite_n + sub_n[0], joints])
 
 
-def solve_base_block(M_base: jax.Array, rhs: jax.Array) -> jax.Array:
-    """``M_base^-1 rhs`` for the satellite block (6, 6) of the mass matrix, ``rhs`` (6,) or
-    (6, k), in closed form.
+def solve_base(m, h, I_O, rhs: jax.Array) -> jax.Array:
+    """``M_base^-1 rhs`` for the satellite block ``M_base = [[m 1, -h x], [h x, I_O]]``
+    (:func:`base_block`), ``rhs`` (6,) or (6, k), in closed form.
 
-    ``M_base = [[m 1, -h x], [h x, I_O]]`` is the whole system's spatial inertia about the
-    satellite CoM (mass ``m``, first moment ``h = m c``). For ``M_base [v; w] = [f; n]``:
-    ``I_c w = n - c x f`` with ``I_c = I_O + (h x)(h x) / m`` the inertia about the system's
-    CoM (parallel axes), then ``v = f / m + c x w``. The 3x3 solve is by the adjugate.
+    For ``M_base [v; w] = [f; n]``: ``I_c w = n - c x f`` with ``c = h / m`` and
+    ``I_c = I_O + (h x)(c x) = I_O + c h^T - (h . c) 1`` the inertia about the system's CoM
+    (parallel axes), then ``v = f / m + c x w``. The 3x3 solve is by the adjugate; all of it
+    is elementwise (no matrix products), so that XLA fuses it, derivative included.
     """
-    m, h_skew, I_O = M_base[0, 0], M_base[3:, :3], M_base[3:, 3:]
-    c_skew = h_skew / m
-    I_c = I_O + h_skew @ c_skew
+    c = h / m
+    I_c = I_O + c[:, None] * h[None, :] - jnp.dot(h, c) * jnp.eye(3)
     # Inverse of the symmetric I_c: rows are cross products of its columns over det.
     c0, c1, c2 = I_c[:, 0], I_c[:, 1], I_c[:, 2]
     adjugate = jnp.stack([jnp.cross(c1, c2), jnp.cross(c2, c0), jnp.cross(c0, c1)])
-    I_c_inv = adjugate / jnp.dot(c0, adjugate[0])
+    I_c_inv = adjugate / jnp.sum(c0 * adjugate[0])
     f, n = rhs[:3], rhs[3:]
-    w = I_c_inv @ (n - c_skew @ f)
-    return jnp.concatenate([f / m + c_skew @ w, w])
+    if rhs.ndim == 2:  # columns
+        cross = lambda a, b: jnp.cross(a, b, axisb=0, axisc=0)
+        moment = n - cross(c, f)
+        w = jnp.sum(I_c_inv[:, :, None] * moment[None], axis=1)
+    else:
+        cross = jnp.cross
+        moment = n - cross(c, f)
+        w = jnp.sum(I_c_inv * moment[None], axis=1)
+    return jnp.concatenate([f / m + cross(c, w), w])
 
 
-def solve_mass_blocks(M_base, M_coupling, M_joints, base_per_joint, rhs) -> jax.Array:
-    """``M^-1 rhs`` (13,) by block elimination, given the blocks of
-    :func:`mass_matrix_blocks_from_frames` and ``base_per_joint = M_base^-1 M_coupling``
-    (6, 7) (:func:`solve_base_block`): the joint accelerations from the Schur complement
-    ``M_joints - M_coupling^T M_base^-1 M_coupling`` (7, 7), symmetric positive definite,
-    by Cholesky, then the satellite's."""
+def solve_mass_blocks(base, M_coupling, M_joints, base_per_joint, rhs) -> jax.Array:
+    """``M^-1 rhs`` (13,) by block elimination, given the parts of
+    :func:`mass_matrix_parts_from_frames` (``base = (m, h, I_O)``) and
+    ``base_per_joint = M_base^-1 M_coupling`` (6, 7) (:func:`solve_base`): the joint
+    accelerations from the Schur complement ``M_joints - M_coupling^T M_base^-1 M_coupling``
+    (7, 7), symmetric positive definite, by Cholesky, then the satellite's."""
     schur = M_joints - M_coupling.T @ base_per_joint
-    y = solve_base_block(M_base, rhs[:6])
+    y = solve_base(*base, rhs[:6])
     qdd = solve_spd(schur, rhs[6:] - M_coupling.T @ y)
     return jnp.concatenate([y - base_per_joint @ qdd, qdd])
 

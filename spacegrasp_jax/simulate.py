@@ -31,8 +31,8 @@ from spacegrasp_jax.control.pid import PIDState, pid_init, pid_torque
 from spacegrasp_jax.dynamics import (
     bias_from_frames,
     frames_at_base,
-    mass_matrix_blocks_from_frames,
-    solve_base_block,
+    mass_matrix_parts_from_frames,
+    solve_base,
     solve_mass_blocks,
 )
 from spacegrasp_jax.integrator import PlantState, rk4_step, state_rate
@@ -124,20 +124,22 @@ class PlantKinematics:
     Attributes:
         frames: :class:`~spacegrasp_jax.kinematics.Frames` with the satellite CoM at the
             origin (:func:`~spacegrasp_jax.dynamics.frames_at_base`).
-        M_base, M_coupling, M_joints: (6, 6), (6, 7), (7, 7) blocks of the mass matrix.
+        base: ``(m, h, I_O)``, the mass matrix's satellite block
+            ``M_base = [[m 1, -h x], [h x, I_O]]`` (:func:`~spacegrasp_jax.dynamics.mass_matrix_parts_from_frames`).
+        M_coupling, M_joints: (6, 7), (7, 7) blocks of the mass matrix.
         base_per_joint: (6, 7) ``M_base^-1 M_coupling``: minus the satellite velocity per
             unit joint rate at zero momentum (eq 6).
-        J_base, J_joints: (6, 6), (6, 7) blocks of the EE point Jacobian ``[J_s J_m]``,
-            inertial frame.
+        J_joints: (6, 7) joint block ``J_m`` of the EE point Jacobian, inertial frame. Its
+            satellite block ``J_s = [[1, -r x], [0, 1]]`` needs only ``r = frames.p_ee``,
+            the EE point from the satellite CoM, and is applied as cross products.
         contact_force_lar: (3,) N, force of the contact sphere on the EE, LAR axes.
     """
 
     frames: Frames
-    M_base: jax.Array
+    base: tuple
     M_coupling: jax.Array
     M_joints: jax.Array
     base_per_joint: jax.Array
-    J_base: jax.Array
     J_joints: jax.Array
     contact_force_lar: jax.Array
 
@@ -145,15 +147,14 @@ class PlantKinematics:
 def plant_kinematics(robot: Robot, scenario: Scenario, state: PlantState) -> PlantKinematics:
     """One kinematics pass, the mass matrix, the EE Jacobian and the contact force at ``state``."""
     frames = frames_at_base(robot, state.R_base, state.q)  # satellite CoM at the origin
-    M_base, M_coupling, M_joints = mass_matrix_blocks_from_frames(robot, frames)
-    J_base, J_joints = point_jacobian_blocks(frames, jnp.zeros(3, dtype=state.q.dtype), frames.p_ee, N_JOINTS)
+    m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
+    _, J_joints = point_jacobian_blocks(frames, jnp.zeros(3, dtype=state.q.dtype), frames.p_ee, N_JOINTS)
     return PlantKinematics(
         frames=frames,
-        M_base=M_base,
+        base=(m, h, I_O),
         M_coupling=M_coupling,
         M_joints=M_joints,
-        base_per_joint=solve_base_block(M_base, M_coupling),
-        J_base=J_base,
+        base_per_joint=solve_base(m, h, I_O, M_coupling),
         J_joints=J_joints,
         contact_force_lar=contact_force_lar(scenario, state.p_base + frames.p_ee),
     )
@@ -165,9 +166,9 @@ def plant_rate(robot: Robot, scenario: Scenario, state: PlantState, kinematics: 
     k = kinematics
     force = scenario.R_lar @ k.contact_force_lar
     # The contact force acts at the EE point: generalised force J_point^T [f; 0].
-    Q = jnp.concatenate([k.J_base[:3].T @ force, k.J_joints[:3].T @ force + u])
+    Q = jnp.concatenate([force, jnp.cross(k.frames.p_ee, force), k.J_joints[:3].T @ force + u])
     bias = bias_from_frames(robot, k.frames, state.V_base, state.qd)
-    return state_rate(state, solve_mass_blocks(k.M_base, k.M_coupling, k.M_joints, k.base_per_joint, Q - bias))
+    return state_rate(state, solve_mass_blocks(k.base, k.M_coupling, k.M_joints, k.base_per_joint, Q - bias))
 
 
 def plant_derivative(robot: Robot, scenario: Scenario, state: PlantState, u: jax.Array) -> PlantState:
@@ -178,7 +179,9 @@ def plant_derivative(robot: Robot, scenario: Scenario, state: PlantState, u: jax
 def momentum_at(kinematics: PlantKinematics, plant: PlantState) -> jax.Array:
     """``[P (N s); L about the inertial origin (N m s)]`` (6,), inertial frame."""
     # Rows 0-5 of M give [P; L about the satellite CoM]; move L to the inertial origin.
-    PL = kinematics.M_base @ plant.V_base + kinematics.M_coupling @ plant.qd
+    m, h, I_O = kinematics.base
+    v_s, w_s = plant.V_base[:3], plant.V_base[3:]
+    PL = jnp.concatenate([m * v_s - jnp.cross(h, w_s), jnp.cross(h, v_s) + I_O @ w_s]) + kinematics.M_coupling @ plant.qd
     return jnp.concatenate([PL[:3], PL[3:] + jnp.cross(plant.p_base, PL[:3])])
 
 
@@ -209,7 +212,8 @@ def control_step(
     R_lar = scenario.R_lar
     R_lar_ee = R_lar.T @ frames.R_ee
     pose = jnp.concatenate([R_lar.T @ (p_ee - scenario.p_lar), spatial.euler_zyx(R_lar_ee)])
-    twist_inertial = kinematics.J_base @ plant.V_base + kinematics.J_joints @ plant.qd
+    r_ee = frames.p_ee  # EE point from the satellite CoM
+    twist_inertial = jnp.concatenate([plant.V_base[:3] + jnp.cross(plant.V_base[3:], r_ee), plant.V_base[3:]]) + kinematics.J_joints @ plant.qd
     twist = jnp.concatenate([R_lar.T @ twist_inertial[:3], R_lar.T @ twist_inertial[3:]])
 
     # F/T sensor between link 7 and the EE (frame 7 axes), read once per step (eqs 18-19).
@@ -220,7 +224,8 @@ def control_step(
 
     pose_des, twist_des, twist_rate_des = desired_state(scenario.trajectory, t)
     # Dynamic Jacobian (eq 8): zero momentum about the satellite CoM ties V_base to qd.
-    J_dyn = kinematics.J_joints - kinematics.J_base @ kinematics.base_per_joint
+    X_v, X_w = kinematics.base_per_joint[:3], kinematics.base_per_joint[3:]  # J_s X = [X_v + X_w x r; X_w]
+    J_dyn = kinematics.J_joints - jnp.concatenate([X_v + jnp.cross(X_w, r_ee, axisa=0, axisc=0), X_w])
     J_dyn_ee = jnp.concatenate([frames.R_ee.T @ J_dyn[:3], frames.R_ee.T @ J_dyn[3:]])
     V_ref = state.controller.V_ref
     if controller == "admittance":
@@ -296,9 +301,11 @@ def rollout(
             squares; static.
         checkpoint_segment: for reverse-mode gradients, the number of steps per
             rematerialised segment (static; must divide ``n_steps``). The scan then runs as
-            segments under ``jax.checkpoint``: the backward pass stores one state per
-            segment and recomputes each segment's steps, so memory grows with
-            ``n_steps / segment + segment`` instead of ``n_steps``. ``None``: one plain scan.
+            segments under ``jax.checkpoint``, each step of a segment under ``jax.checkpoint``
+            too: the backward pass stores one state per segment, recomputes a segment
+            keeping each step's state, then each step as it differentiates it, so memory
+            grows with ``n_steps / segment + segment`` states instead of every intermediate
+            of ``n_steps`` steps. ``None``: one plain scan.
 
     Returns:
         ``(final_state, log)``: the state after ``scenario.n_steps`` steps and the
@@ -320,7 +327,7 @@ def rollout(
 
     @jax.checkpoint
     def segment(state, segment_steps):
-        return jax.lax.scan(step, state, segment_steps)
+        return jax.lax.scan(jax.checkpoint(step), state, segment_steps)
 
     final, rows = jax.lax.scan(segment, initial_state(scenario), steps.reshape(-1, checkpoint_segment))
     return final, jax.tree.map(lambda x: x.reshape((n_steps,) + x.shape[2:]), rows)

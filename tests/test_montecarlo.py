@@ -54,8 +54,11 @@ def test_zero_perturbation_reproduces_the_nominal_rollout(robot, short_scenario,
                 np.testing.assert_allclose(sample_metrics[name][i], expected, rtol=1e-12, atol=1e-15, err_msg=name)
     assert np.all(np.isnan(sample_metrics["first_nonfinite_s"]))
     rows = result.timeseries[variant.key]
+    # The batch solves its 7x7 systems with unrolled code, the single rollout with LAPACK:
+    # the same arithmetic in another order, whose last-bit differences the closed loop
+    # carries over 2,000 steps (largest seen: 1.5e-13 N m on a torque of 4e-3 N m).
     for name, series in vars(nominal.log).items():
-        np.testing.assert_allclose(getattr(rows, name)[1], series[::10], rtol=1e-11, atol=1e-13, err_msg=name)
+        np.testing.assert_allclose(getattr(rows, name)[1], series[::10], rtol=1e-11, atol=1e-12, err_msg=name)
 
 
 def test_running_metrics_match_the_metrics_module_on_a_perturbed_sample(robot, short_scenario, gains, variant, five_samples):

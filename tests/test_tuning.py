@@ -93,7 +93,7 @@ def test_objective_parts_on_a_synthetic_log(full_runs):
 def short_problem(robot, gains, full_runs):
     """Loss of the admittance and Cartesian laws on a 1 s scenario with (smooth) contact."""
 
-    def build(controller, scenario=None, segment=CHECKPOINT_SEGMENT):  # the tuning default
+    def build(controller, scenario=None, segment=CHECKPOINT_SEGMENT):  # the tuning default (1,000 steps)
         scenario = scenario or paper_scenario(robot, contact_law="smooth", **SHORT)
         config = TuneConfig(controller=controller, batch=1)  # the nominal scenario alone
         scale = tuple(float(x) for x in full_runs[controller].summary["max_abs_torque_Nm"])
