@@ -27,7 +27,6 @@ import itertools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from spacegrasp_jax import spatial
 from spacegrasp_jax.kinematics import N_DOF, body_com_positions, forward_kinematics, point_jacobian
