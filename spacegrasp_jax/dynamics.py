@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import spatial
-from spacegrasp_jax.kinematics import N_DOF, body_com_positions, forward_kinematics, point_jacobian
+from spacegrasp_jax.kinematics import N_DOF, body_com_positions, forward_kinematics, point_jacobian_blocks
 from spacegrasp_jax.linalg import solve_spd
 from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
 
@@ -141,23 +141,11 @@ def mass_matrix_parts_from_frames(robot: Robot, frames):
     return m, h, I_O, M_coupling, M_joints
 
 
-def base_block(m, h, I_O) -> jax.Array:
-    """``M_base = [[m 1, -h x], [h x, I_O]]`` (6, 6) from :func:`mass_matrix_parts_from_frames`."""
-    h_skew = spatial.skew(h)
-    return jnp.block([[m * jnp.eye(3), -h_skew], [h_skew, I_O]])
-
-
-def mass_matrix_blocks_from_frames(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """The mass matrix's blocks ``M = [[M_base, M_coupling], [M_coupling^T, M_joints]]``:
-    ``M_base`` (6, 6) for the satellite's ``[v_s, w_s]``, ``M_coupling`` (6, 7),
-    ``M_joints`` (7, 7)."""
-    m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
-    return base_block(m, h, I_O), M_coupling, M_joints
-
-
 def mass_matrix_from_frames(robot: Robot, frames) -> jax.Array:
     """Mass matrix (13, 13) by composite rigid bodies, from :func:`frames_at_base`."""
-    M_base, M_coupling, M_joints = mass_matrix_blocks_from_frames(robot, frames)
+    m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
+    h_skew = spatial.skew(h)
+    M_base = jnp.block([[m * jnp.eye(3), -h_skew], [h_skew, I_O]])
     return jnp.block([[M_base, M_coupling], [M_coupling.T, M_joints]])
 
 
@@ -193,7 +181,7 @@ def bias_from_frames(robot: Robot, frames, V_base, qd) -> jax.Array:
 
 def solve_base(m, h, I_O, rhs: jax.Array) -> jax.Array:
     """``M_base^-1 rhs`` for the satellite block ``M_base = [[m 1, -h x], [h x, I_O]]``
-    (:func:`base_block`), ``rhs`` (6,) or (6, k), in closed form.
+    (:func:`mass_matrix_parts_from_frames`), ``rhs`` (6,) or (6, k), in closed form.
 
     For ``M_base [v; w] = [f; n]``: ``I_c w = n - c x f`` with ``c = h / m`` and
     ``I_c = I_O + (h x)(c x) = I_O + c h^T - (h . c) 1`` the inertia about the system's CoM
@@ -260,7 +248,8 @@ def mass_matrix_and_bias(robot: Robot, R_base, q, V_base, qd) -> tuple[jax.Array
 
 
 def forward_dynamics(robot: Robot, R_base, q, V_base, qd, Q) -> jax.Array:
-    """Generalised acceleration ``xdot_v = M^-1 (Q - bias)`` (13,).
+    """Generalised acceleration ``xdot_v = M^-1 (Q - bias)`` (13,), by the block
+    elimination of :func:`solve_mass_blocks` (the closed loop's own solve).
 
     Args:
         R_base, q, V_base, qd: as :func:`bias_forces`.
@@ -270,13 +259,10 @@ def forward_dynamics(robot: Robot, R_base, q, V_base, qd, Q) -> jax.Array:
     Returns:
         (13,) ``[dv_s/dt (m/s^2), dw_s/dt (rad/s^2), qdd (rad/s^2)]``, inertial frame.
     """
-    M, bias = mass_matrix_and_bias(robot, R_base, q, V_base, qd)
-    return solve_dynamics(M, bias, Q)
-
-
-def solve_dynamics(M: jax.Array, bias: jax.Array, Q: jax.Array) -> jax.Array:
-    """``M^-1 (Q - bias)`` (13,) by Cholesky."""
-    return solve_spd(M, Q - bias)
+    frames = frames_at_base(robot, R_base, q)
+    m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
+    base_per_joint = solve_base(m, h, I_O, M_coupling)
+    return solve_mass_blocks((m, h, I_O), M_coupling, M_joints, base_per_joint, Q - bias_from_frames(robot, frames, V_base, qd))
 
 
 def kinetic_energy(robot: Robot, R_base, q, V_base, qd) -> jax.Array:
@@ -334,16 +320,19 @@ def dynamic_jacobian(robot: Robot, R_base, q) -> jax.Array:
 
 
 def _dynamic_jacobian_at(robot: Robot, frames) -> jax.Array:
-    J_ee = point_jacobian(frames, jnp.zeros(3, dtype=frames.p_ee.dtype), frames.p_ee, N_JOINTS)
-    return dynamic_jacobian_from(mass_matrix_from_frames(robot, frames), J_ee)
+    _, J_joints = point_jacobian_blocks(frames, jnp.zeros(3, dtype=frames.p_ee.dtype), frames.p_ee, N_JOINTS)
+    m, h, I_O, M_coupling, _ = mass_matrix_parts_from_frames(robot, frames)
+    return dynamic_jacobian_from_parts(solve_base(m, h, I_O, M_coupling), J_joints, frames.p_ee)
 
 
-def dynamic_jacobian_from(M: jax.Array, J_ee: jax.Array) -> jax.Array:
-    """``J_dyn`` (6, 7) from the mass matrix ``M`` (13, 13) and the EE point Jacobian
-    ``J_ee = [J_s J_m]`` (6, 13), both at the same state."""
-    # Zero momentum about the satellite CoM (rows 0-5 of M) is the constraint of eq 6.
-    base_velocity_per_qd = -solve_spd(M[:6, :6], M[:6, 6:])  # (6, 7)
-    return J_ee[:, 6:] + J_ee[:, :6] @ base_velocity_per_qd
+def dynamic_jacobian_from_parts(base_per_joint: jax.Array, J_joints: jax.Array, r_ee: jax.Array) -> jax.Array:
+    """``J_dyn = J_m - J_s M_base^-1 M_coupling`` (6, 7), inertial frame, from
+    ``base_per_joint = M_base^-1 M_coupling`` (6, 7) (:func:`solve_base`), the joint block
+    ``J_m`` (6, 7) of the EE point Jacobian and ``r_ee`` (3,) m, the EE point from the
+    satellite CoM. Zero momentum about the satellite CoM (rows 0-5 of ``M``) is the
+    constraint of eq 6; ``J_s X = [X_v + X_w x r_ee; X_w]`` is applied as cross products."""
+    X_v, X_w = base_per_joint[:3], base_per_joint[3:]
+    return J_joints - jnp.concatenate([X_v + jnp.cross(X_w, r_ee, axisa=0, axisc=0), X_w])
 
 
 def dynamic_jacobian_ee(robot: Robot, R_base, q) -> jax.Array:
@@ -361,7 +350,7 @@ __all__ = [
     "bias_from_frames",
     "dynamic_jacobian",
     "dynamic_jacobian_ee",
-    "dynamic_jacobian_from",
+    "dynamic_jacobian_from_parts",
     "frames_at_base",
     "mass_matrix_from_frames",
     "forward_dynamics",

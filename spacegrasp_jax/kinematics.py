@@ -44,11 +44,6 @@ class Frames:
     R_ee: jax.Array
 
     @property
-    def R_frame(self) -> jax.Array:
-        """(8, 3, 3) rotations of frames 0..7 (frame to inertial)."""
-        return jnp.concatenate([self.R_mount[None], self.R_link])
-
-    @property
     def joint_axis(self) -> jax.Array:
         """(7, 3) unit axes of joints 1..7: the z axes of frames 0..6."""
         return jnp.concatenate([self.R_mount[None, :, 2], self.R_link[:-1, :, 2]])

@@ -30,6 +30,7 @@ from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.pid import PIDState, pid_init, pid_torque
 from spacegrasp_jax.dynamics import (
     bias_from_frames,
+    dynamic_jacobian_from_parts,
     frames_at_base,
     mass_matrix_parts_from_frames,
     solve_base,
@@ -223,9 +224,7 @@ def control_step(
     wrench_lar = rotate_wrench(R_lar.T @ R_fts, wrench_ee)
 
     pose_des, twist_des, twist_rate_des = desired_state(scenario.trajectory, t)
-    # Dynamic Jacobian (eq 8): zero momentum about the satellite CoM ties V_base to qd.
-    X_v, X_w = kinematics.base_per_joint[:3], kinematics.base_per_joint[3:]  # J_s X = [X_v + X_w x r; X_w]
-    J_dyn = kinematics.J_joints - jnp.concatenate([X_v + jnp.cross(X_w, r_ee, axisa=0, axisc=0), X_w])
+    J_dyn = dynamic_jacobian_from_parts(kinematics.base_per_joint, kinematics.J_joints, r_ee)  # eq 8
     J_dyn_ee = jnp.concatenate([frames.R_ee.T @ J_dyn[:3], frames.R_ee.T @ J_dyn[3:]])
     V_ref = state.controller.V_ref
     if controller == "admittance":
