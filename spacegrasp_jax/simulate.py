@@ -278,6 +278,11 @@ def closed_loop_step(robot: Robot, scenario: Scenario, gains: Gains, controller:
     return step
 
 
+def largest_divisor(n: int, at_most: int) -> int:
+    """The largest divisor of ``n`` that is at most ``at_most`` (1 if none larger)."""
+    return max(d for d in range(1, at_most + 1) if n % d == 0)
+
+
 #: Steps per inner scan of :func:`rollout`: the largest log field (7 numbers) times 8 is 56,
 #: under the 64 numbers (512 bytes) up to which XLA's CPU runtime runs a loop in sequence.
 LOG_BLOCK = 8
@@ -318,7 +323,7 @@ def rollout(
         # Blocks of a few steps, each an inner scan whose log buffers stay within 64 numbers
         # a field: XLA's CPU runtime runs that inner loop's kernels in sequence, where a
         # loop that writes into the whole log runs as a task graph (README, Performance).
-        block = max(d for d in range(1, LOG_BLOCK + 1) if n_steps % d == 0)
+        block = largest_divisor(n_steps, LOG_BLOCK)
         final, rows = jax.lax.scan(lambda s, ks: jax.lax.scan(step, s, ks), initial_state(scenario), steps.reshape(-1, block))
         return final, jax.tree.map(lambda x: x.reshape((n_steps,) + x.shape[2:]), rows)
     if checkpoint_segment < 1 or n_steps % checkpoint_segment:

@@ -29,7 +29,7 @@ from spacegrasp_jax.experiment import StopRequest
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import rollout
+from spacegrasp_jax.simulate import largest_divisor, rollout
 from tuning.objective import Objective, Weights, objective_parts
 from tuning.parameters import gains_from_params, initial_params, make_mask
 
@@ -136,7 +136,7 @@ def checkpoint_segment(n_steps: int, batch: int = 1) -> int:
     kernels come from checkpointing every step (batch of 4, 2 s: 2.08 s against 2.52 s)."""
     if batch > 1:
         return 1
-    return max(d for d in range(1, CHECKPOINT_SEGMENT + 1) if n_steps % d == 0)
+    return largest_divisor(n_steps, CHECKPOINT_SEGMENT)
 
 
 def training_scenarios(nominal: Scenario, config: TuneConfig) -> Scenario:
