@@ -17,6 +17,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from spacegrasp_jax.spatial import cross
+
 
 def contact_force_exact(p_from_centre: jax.Array, radius, stiffness) -> jax.Array:
     """Eq 20: force (3,) N on the EE point, in the axes of ``p_from_centre`` (3,) m.
@@ -48,7 +50,7 @@ def sensor_wrench(force_fts: jax.Array, p_ee_fts: jax.Array) -> tuple[jax.Array,
     """What the F/T sensor between link 7 and the EE measures when ``force_fts`` (3,) N acts
     at the EE point, ``p_ee_fts`` (3,) m from the sensor, both in sensor axes: the force and
     its moment about the sensor point, ``(f, p x f)`` (N, N m)."""
-    return force_fts, jnp.cross(p_ee_fts, force_fts)
+    return force_fts, cross(p_ee_fts, force_fts)
 
 
 def wrench_at_ee(force_fts: jax.Array, torque_fts: jax.Array, p_ee_fts: jax.Array) -> jax.Array:
@@ -56,7 +58,7 @@ def wrench_at_ee(force_fts: jax.Array, torque_fts: jax.Array, p_ee_fts: jax.Arra
     in sensor axes. The moment about the EE point is ``n_fts + f x p_ee`` (the paper's
     ``p (x) f`` read with the sign that makes a pure force at the EE point give zero moment
     there, as it must)."""
-    return jnp.concatenate([force_fts, torque_fts + jnp.cross(force_fts, p_ee_fts)])
+    return jnp.concatenate([force_fts, torque_fts + cross(force_fts, p_ee_fts)])
 
 
 def rotate_wrench(R_a_b: jax.Array, wrench_b: jax.Array) -> jax.Array:

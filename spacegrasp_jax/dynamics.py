@@ -31,6 +31,7 @@ import jax.numpy as jnp
 from spacegrasp_jax import spatial
 from spacegrasp_jax.kinematics import N_DOF, body_com_positions, forward_kinematics, point_jacobian_blocks
 from spacegrasp_jax.linalg import solve_spd
+from spacegrasp_jax.spatial import cross
 from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
 
 
@@ -106,15 +107,15 @@ def _subtree_sums(*arrays):
 def _apply_inertia(mass, moment, inertia, w, v):
     """Spatial inertia times motion: ``(L, p)`` with ``p = m v + w x h`` and
     ``L = I_O w + h x v``; broadcasts over leading axes."""
-    p = mass[..., None] * v + jnp.cross(w, moment)
-    L = jnp.einsum("...ab,...b->...a", inertia, w) + jnp.cross(moment, v)
+    p = mass[..., None] * v + cross(w, moment)
+    L = jnp.einsum("...ab,...b->...a", inertia, w) + cross(moment, v)
     return L, p
 
 
 def _joint_axes(frames) -> tuple[jax.Array, jax.Array]:
     """Motion axes ``S_j = (z_j, o_j x z_j)`` of the 7 joints: two (7, 3) arrays."""
     axis = frames.joint_axis
-    return axis, jnp.cross(frames.joint_origin, axis)
+    return axis, cross(frames.joint_origin, axis)
 
 
 def mass_matrix_parts_from_frames(robot: Robot, frames):
@@ -161,18 +162,18 @@ def bias_from_frames(robot: Robot, frames, V_base, qd) -> jax.Array:
     # Velocity-product accelerations. The satellite's spatial acceleration at zero
     # generalised acceleration is (0, -w_s x v_s), since v_s is its CoM's classical
     # velocity; each joint adds (v_j x S_j) qd_j, the rate of change of its moving axis.
-    dS_w = jnp.cross(w, S_w)
-    dS_v = jnp.cross(w, S_v) + jnp.cross(v, S_w)
+    dS_w = cross(w, S_w)
+    dS_v = cross(w, S_v) + cross(v, S_w)
     a_w, a_v_chain = _chain_sums(dS_w * qd[:, None], dS_v * qd[:, None])
-    a_v = -jnp.cross(w_s, v_s) + a_v_chain
+    a_v = -cross(w_s, v_s) + a_v_chain
     # Newton-Euler per link: f = I a + v x* (I v), with (w, v) x* (n, f) = (w x n + v x f, w x f).
     inertial_n, inertial_f = _apply_inertia(mass, moment, inertia, a_w, a_v)
     momentum_n, momentum_f = _apply_inertia(mass, moment, inertia, w, v)
-    f_n = inertial_n + jnp.cross(w, momentum_n) + jnp.cross(v, momentum_f)
-    f_f = inertial_f + jnp.cross(w, momentum_f)
+    f_n = inertial_n + cross(w, momentum_n) + cross(v, momentum_f)
+    f_f = inertial_f + cross(w, momentum_f)
     # The satellite, about its own CoM (zero first moment), with acceleration (0, -w_s x v_s):
     # f = m (-w_s x v_s) + w_s x (m v_s) = 0 and n = w_s x (I_s w_s) + v_s x (m v_s) = w_s x I_s w_s.
-    satellite_n = jnp.cross(w_s, _satellite_inertia(robot, frames) @ w_s)
+    satellite_n = cross(w_s, _satellite_inertia(robot, frames) @ w_s)
     # Backward pass: each joint carries the load of its subtree.
     sub_n, sub_f = _subtree_sums(f_n, f_f)
     joints = jnp.sum(S_w * sub_n, axis=-1) + jnp.sum(S_v * sub_f, axis=-1)
@@ -192,17 +193,15 @@ def solve_base(m, h, I_O, rhs: jax.Array) -> jax.Array:
     I_c = I_O + c[:, None] * h[None, :] - jnp.dot(h, c) * jnp.eye(3)
     # Inverse of the symmetric I_c: rows are cross products of its columns over det.
     c0, c1, c2 = I_c[:, 0], I_c[:, 1], I_c[:, 2]
-    adjugate = jnp.stack([jnp.cross(c1, c2), jnp.cross(c2, c0), jnp.cross(c0, c1)])
+    adjugate = jnp.stack([cross(c1, c2), cross(c2, c0), cross(c0, c1)])
     I_c_inv = adjugate / jnp.sum(c0 * adjugate[0])
     f, n = rhs[:3], rhs[3:]
     if rhs.ndim == 2:  # columns
-        cross = lambda a, b: jnp.cross(a, b, axisb=0, axisc=0)
-        moment = n - cross(c, f)
+        moment = n - cross(c, f.T).T
         w = jnp.sum(I_c_inv[:, :, None] * moment[None], axis=1)
-    else:
-        cross = jnp.cross
-        moment = n - cross(c, f)
-        w = jnp.sum(I_c_inv * moment[None], axis=1)
+        return jnp.concatenate([f / m + cross(c, w.T).T, w])
+    moment = n - cross(c, f)
+    w = jnp.sum(I_c_inv * moment[None], axis=1)
     return jnp.concatenate([f / m + cross(c, w), w])
 
 
@@ -332,7 +331,7 @@ def dynamic_jacobian_from_parts(base_per_joint: jax.Array, J_joints: jax.Array, 
     satellite CoM. Zero momentum about the satellite CoM (rows 0-5 of ``M``) is the
     constraint of eq 6; ``J_s X = [X_v + X_w x r_ee; X_w]`` is applied as cross products."""
     X_v, X_w = base_per_joint[:3], base_per_joint[3:]
-    return J_joints - jnp.concatenate([X_v + jnp.cross(X_w, r_ee, axisa=0, axisc=0), X_w])
+    return J_joints - jnp.concatenate([X_v + cross(X_w.T, r_ee).T, X_w])
 
 
 def dynamic_jacobian_ee(robot: Robot, R_base, q) -> jax.Array:

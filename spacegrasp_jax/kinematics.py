@@ -129,7 +129,7 @@ def point_jacobian_blocks(frames: Frames, p_base: jax.Array, point: jax.Array, l
     joint block (6, 7), for ``qd``."""
     r_base = point - p_base
     axes = frames.joint_axis
-    lever = jnp.cross(axes, point - frames.joint_origin)  # (7, 3)
+    lever = spatial.cross(axes, point - frames.joint_origin)  # (7, 3)
     moves = (jnp.arange(N_JOINTS) < last_joint)[:, None]
     J_base = jnp.block([[jnp.eye(3), -spatial.skew(r_base)], [jnp.zeros((3, 3)), jnp.eye(3)]])
     J_joints = jnp.concatenate([jnp.where(moves, lever, 0.0).T, jnp.where(moves, axes, 0.0).T])

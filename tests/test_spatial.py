@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import jax.test_util
 import numpy as np
 from random_states import random_rotation
 
@@ -60,3 +61,17 @@ def test_skew_and_rotation_log():
         np.testing.assert_allclose(spatial.rotation_log(R), vector, atol=1e-12)
     gradient = jax.grad(lambda x: jnp.sum(spatial.rotation_log(jax.scipy.linalg.expm(spatial.skew(x)))))(jnp.zeros(3))
     assert np.all(np.isfinite(gradient))
+
+
+def test_cross_matches_numpy_with_broadcasting_and_its_derivatives_match_finite_differences():
+    rng = np.random.default_rng(5)
+    shapes = [((3,), (3,)), ((7, 3), (3,)), ((3,), (7, 3)), ((7, 3), (7, 3)), ((2, 7, 3), (7, 3))]
+    for shape_a, shape_b in shapes:
+        a, b = rng.normal(size=shape_a), rng.normal(size=shape_b)
+        np.testing.assert_allclose(spatial.cross(a, b), np.cross(a, b), atol=1e-15)
+        np.testing.assert_allclose((spatial.skew(a) @ np.broadcast_to(b, np.broadcast_shapes(a.shape, b.shape))[..., None])[..., 0], np.cross(a, b), atol=1e-15)
+        # Both modes, both arguments and each alone (the other a constant: a symbolic zero
+        # tangent), against central finite differences.
+        jax.test_util.check_grads(spatial.cross, (a, b), order=1, modes=("fwd", "rev"), eps=1e-6)
+        jax.test_util.check_grads(lambda x: spatial.cross(x, b), (a,), order=1, modes=("fwd", "rev"), eps=1e-6)
+        jax.test_util.check_grads(lambda y: spatial.cross(a, y), (b,), order=1, modes=("fwd", "rev"), eps=1e-6)
