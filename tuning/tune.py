@@ -120,20 +120,19 @@ def make_optimizer(config: TuneConfig):
     return optax.chain(optax.clip_by_global_norm(config.clip_norm), getattr(optax, config.optimizer)(schedule)), schedule
 
 
-#: Steps per ``jax.checkpoint`` segment of a one-scenario reverse-mode gradient, each step of
-#: a segment itself under ``jax.checkpoint`` (``simulate.rollout``): the tape holds one scan
-#: carry per segment, the backward pass recomputes a segment keeping each step's carry, then
-#: each step just before differentiating it. With 8 steps the loops that do so hold no array
-#: over 64 numbers and XLA's CPU runtime runs them in sequence (README, Performance): a 4 s
-#: gradient took 1.86 s against 2.37 s with single-step segments.
+#: Steps per inner scan of a one-scenario reverse-mode gradient, each step under
+#: ``jax.checkpoint`` (``simulate.rollout``): the tape holds each step's state and the backward
+#: pass recomputes a step just before differentiating it. With 8 steps the inner loops hold
+#: no array over 64 numbers and XLA's CPU runtime runs them in sequence (README,
+#: Performance): a 4 s gradient took 1.35 s against 1.85 s with one step per scan.
 CHECKPOINT_SEGMENT = 8
 
 
 def checkpoint_segment(n_steps: int, batch: int = 1) -> int:
-    """Steps per checkpointed segment for a gradient over ``batch`` scenarios: the largest
-    divisor of ``n_steps`` up to :data:`CHECKPOINT_SEGMENT` for one scenario; 1 for a vmapped
-    batch, whose arrays are too large for the sequential mode anyway and whose fewest
-    kernels come from checkpointing every step (batch of 4, 2 s: 2.08 s against 2.52 s)."""
+    """Steps per inner scan for a gradient over ``batch`` scenarios: the largest divisor of
+    ``n_steps`` up to :data:`CHECKPOINT_SEGMENT` for one scenario; 1 for a vmapped batch,
+    whose arrays are too large for the sequential mode anyway (batch of 4, 2 s: 1.91 s
+    against 2.0 s with 8 steps)."""
     if batch > 1:
         return 1
     return largest_divisor(n_steps, CHECKPOINT_SEGMENT)
