@@ -17,7 +17,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from spacegrasp_jax.spatial import cross
+from spacegrasp_jax.spatial import cross, matvec
 
 
 def contact_force_exact(p_from_centre: jax.Array, radius, stiffness) -> jax.Array:
@@ -26,7 +26,7 @@ def contact_force_exact(p_from_centre: jax.Array, radius, stiffness) -> jax.Arra
     At the centre itself the direction is undefined; the force is set to zero there, with
     a guarded division so that gradients stay finite (not meaningful) at that single point.
     """
-    distance_squared = jnp.dot(p_from_centre, p_from_centre)
+    distance_squared = jnp.sum(p_from_centre * p_from_centre)
     at_centre = distance_squared == 0.0
     distance = jnp.sqrt(jnp.where(at_centre, 1.0, distance_squared))
     magnitude = stiffness * jnp.maximum(radius - distance, 0.0) / radius**3
@@ -41,7 +41,7 @@ def contact_force_smooth(p_from_centre: jax.Array, radius, stiffness, sharpness)
     ``p != 0``. Outside the sphere the force decays like ``exp(-sharpness (d - r))``.
     """
     width = 1.0 / sharpness
-    distance = jnp.sqrt(jnp.dot(p_from_centre, p_from_centre) + width**2)
+    distance = jnp.sqrt(jnp.sum(p_from_centre * p_from_centre) + width**2)
     penetration = width * jax.nn.softplus((radius - distance) / width)
     return stiffness * penetration / radius**3 * p_from_centre / distance
 
@@ -63,4 +63,4 @@ def wrench_at_ee(force_fts: jax.Array, torque_fts: jax.Array, p_ee_fts: jax.Arra
 
 def rotate_wrench(R_a_b: jax.Array, wrench_b: jax.Array) -> jax.Array:
     """Eq 19: a wrench ``[f; n]`` (6,) in frame ``b`` axes rotated into frame ``a`` axes."""
-    return jnp.concatenate([R_a_b @ wrench_b[:3], R_a_b @ wrench_b[3:]])
+    return jnp.concatenate([matvec(R_a_b, wrench_b[:3]), matvec(R_a_b, wrench_b[3:])])

@@ -31,8 +31,8 @@ import jax.numpy as jnp
 from spacegrasp_jax import spatial
 from spacegrasp_jax.kinematics import N_DOF, body_com_positions, forward_kinematics, point_jacobian_blocks
 from spacegrasp_jax.linalg import solve_spd
-from spacegrasp_jax.spatial import cross
 from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
+from spacegrasp_jax.spatial import cross
 
 
 def frames_at_base(robot: Robot, R_base, q):
@@ -48,8 +48,8 @@ def _link_inertias(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.Arra
     (7, 3, 3), inertial axes."""
     mass, com_local, inertia_local = body_inertials(robot)
     R = frames.R_link
-    com = frames.p_frame[1:] + jnp.einsum("kij,kj->ki", R, com_local)
-    inertia_com = jnp.einsum("kia,kab,kjb->kij", R, inertia_local, R)
+    com = frames.p_frame[1:] + spatial.matvec(R, com_local)
+    inertia_com = spatial.matmul(spatial.matmul(R, inertia_local), jnp.swapaxes(R, -1, -2))
     # Parallel axes: I_O = I_c + m (|c|^2 1 - c c^T).
     inertia_origin = inertia_com + mass[:, None, None] * (
         jnp.sum(com * com, axis=-1)[:, None, None] * jnp.eye(3) - com[:, :, None] * com[:, None, :]
@@ -61,7 +61,7 @@ def _satellite_inertia(robot: Robot, frames) -> jax.Array:
     """Rotational inertia (3, 3) of the satellite about its CoM, inertial axes (its first
     moment about its own CoM is zero)."""
     R_base = frames.R_mount
-    return R_base @ robot.satellite_inertia @ R_base.T
+    return spatial.matmul(spatial.matmul(R_base, robot.satellite_inertia), R_base.T)
 
 
 def _prefix_unrolled(x: jax.Array, reverse: bool) -> jax.Array:
@@ -108,7 +108,7 @@ def _apply_inertia(mass, moment, inertia, w, v):
     """Spatial inertia times motion: ``(L, p)`` with ``p = m v + w x h`` and
     ``L = I_O w + h x v``; broadcasts over leading axes."""
     p = mass[..., None] * v + cross(w, moment)
-    L = jnp.einsum("...ab,...b->...a", inertia, w) + cross(moment, v)
+    L = spatial.matvec(inertia, w) + cross(moment, v)
     return L, p
 
 
@@ -132,7 +132,7 @@ def mass_matrix_parts_from_frames(robot: Robot, frames):
     # Force F_j = Ic_j S_j needed to move the subtree of joint j along its axis.
     F_n, F_f = _apply_inertia(c_mass, c_moment, c_inertia, S_w, S_v)
     # M_ij = S_i . F_max(i,j) for joints i, j.
-    A = S_w @ F_n.T + S_v @ F_f.T  # A[i, j] = S_i . F_j
+    A = spatial.matmul(S_w, F_n.T) + spatial.matmul(S_v, F_f.T)  # A[i, j] = S_i . F_j
     upper = jnp.triu(jnp.ones((N_JOINTS, N_JOINTS), dtype=bool))
     M_joints = jnp.where(upper, A, A.T)
     # Satellite rows (generalised velocities v_s, w_s): its columns are the whole system's
@@ -173,7 +173,7 @@ def bias_from_frames(robot: Robot, frames, V_base, qd) -> jax.Array:
     f_f = inertial_f + cross(w, momentum_f)
     # The satellite, about its own CoM (zero first moment), with acceleration (0, -w_s x v_s):
     # f = m (-w_s x v_s) + w_s x (m v_s) = 0 and n = w_s x (I_s w_s) + v_s x (m v_s) = w_s x I_s w_s.
-    satellite_n = cross(w_s, _satellite_inertia(robot, frames) @ w_s)
+    satellite_n = cross(w_s, spatial.matvec(_satellite_inertia(robot, frames), w_s))
     # Backward pass: each joint carries the load of its subtree.
     sub_n, sub_f = _subtree_sums(f_n, f_f)
     joints = jnp.sum(S_w * sub_n, axis=-1) + jnp.sum(S_v * sub_f, axis=-1)
@@ -190,7 +190,7 @@ def solve_base(m, h, I_O, rhs: jax.Array) -> jax.Array:
     is elementwise (no matrix products), so that XLA fuses it, derivative included.
     """
     c = h / m
-    I_c = I_O + c[:, None] * h[None, :] - jnp.dot(h, c) * jnp.eye(3)
+    I_c = I_O + c[:, None] * h[None, :] - jnp.sum(h * c) * jnp.eye(3)
     # Inverse of the symmetric I_c: rows are cross products of its columns over det.
     c0, c1, c2 = I_c[:, 0], I_c[:, 1], I_c[:, 2]
     adjugate = jnp.stack([cross(c1, c2), cross(c2, c0), cross(c0, c1)])
@@ -211,10 +211,10 @@ def solve_mass_blocks(base, M_coupling, M_joints, base_per_joint, rhs) -> jax.Ar
     ``base_per_joint = M_base^-1 M_coupling`` (6, 7) (:func:`solve_base`): the joint
     accelerations from the Schur complement ``M_joints - M_coupling^T M_base^-1 M_coupling``
     (7, 7), symmetric positive definite, by Cholesky, then the satellite's."""
-    schur = M_joints - M_coupling.T @ base_per_joint
+    schur = M_joints - spatial.matmul(M_coupling.T, base_per_joint)
     y = solve_base(*base, rhs[:6])
-    qdd = solve_spd(schur, rhs[6:] - M_coupling.T @ y)
-    return jnp.concatenate([y - base_per_joint @ qdd, qdd])
+    qdd = solve_spd(schur, rhs[6:] - spatial.matvec(M_coupling.T, y))
+    return jnp.concatenate([y - spatial.matvec(base_per_joint, qdd), qdd])
 
 
 def mass_matrix(robot: Robot, R_base: jax.Array, q: jax.Array) -> jax.Array:

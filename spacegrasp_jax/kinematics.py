@@ -89,18 +89,18 @@ def forward_kinematics(robot: Robot, p_base: jax.Array, R_base: jax.Array, q: ja
         q: (7,) rad, joint angles.
     """
     R_rel, p_rel = dh_transforms(robot, q)
-    R, p = R_base, p_base + R_base @ robot.mount_position
+    R, p = R_base, p_base + spatial.matvec(R_base, robot.mount_position)
     R_link, p_frame = [], [p]
     for i in range(N_JOINTS):  # the chain is short and fixed: unrolled at trace time
-        p = p + R @ p_rel[i]
-        R = R @ R_rel[i]
+        p = p + spatial.matvec(R, p_rel[i])
+        R = spatial.matmul(R, R_rel[i])
         R_link.append(R)
         p_frame.append(p)
     return Frames(
         p_frame=jnp.stack(p_frame),
         R_mount=R_base,
         R_link=jnp.stack(R_link),
-        p_ee=p + R @ robot.ee_offset,
+        p_ee=p + spatial.matvec(R, robot.ee_offset),
         R_ee=R,
     )
 
@@ -121,7 +121,7 @@ def ee_pose(robot: Robot, p_base: jax.Array, R_base: jax.Array, q: jax.Array):
 def body_com_positions(robot: Robot, frames: Frames) -> jax.Array:
     """(7, 3) m, CoM of moving bodies 1..7 in the inertial frame."""
     _, com_local, _ = body_inertials(robot)
-    return frames.p_frame[1:] + jnp.einsum("kij,kj->ki", frames.R_link, com_local)
+    return frames.p_frame[1:] + spatial.matvec(frames.R_link, com_local)
 
 
 def point_jacobian_blocks(frames: Frames, p_base: jax.Array, point: jax.Array, last_joint: int) -> tuple[jax.Array, jax.Array]:

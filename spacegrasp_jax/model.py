@@ -273,7 +273,7 @@ def body_inertials(robot: Robot) -> tuple[jax.Array, jax.Array, jax.Array]:
 
     def shifted(inertia, m, c):
         d = c - c_total
-        return inertia + m * (jnp.dot(d, d) * jnp.eye(3) - jnp.outer(d, d))
+        return inertia + m * (jnp.sum(d * d) * jnp.eye(3) - d[:, None] * d[None, :])
 
     inertia7 = shifted(robot.link_inertia[-1], m7, c7) + shifted(robot.ee_inertia, me, ce)
     return (

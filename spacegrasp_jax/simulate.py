@@ -105,7 +105,7 @@ class Log:
 def contact_force_lar(scenario: Scenario, p_ee: jax.Array) -> jax.Array:
     """Force (3,) N of the contact sphere on the EE point ``p_ee`` (3,) m (inertial), in LAR
     axes, by the scenario's contact law."""
-    p_from_centre = scenario.R_lar.T @ (p_ee - scenario.p_lar) - scenario.sphere_centre
+    p_from_centre = spatial.matvec(scenario.R_lar.T, p_ee - scenario.p_lar) - scenario.sphere_centre
     if scenario.contact_law == "exact":
         return contact_force_exact(p_from_centre, scenario.sphere_radius, scenario.contact_stiffness)
     return contact_force_smooth(
@@ -165,9 +165,9 @@ def plant_rate(robot: Robot, scenario: Scenario, state: PlantState, kinematics: 
     """State rate under joint torques ``u`` (7,) N m and the contact force, given
     ``kinematics = plant_kinematics(robot, scenario, state)``."""
     k = kinematics
-    force = scenario.R_lar @ k.contact_force_lar
+    force = spatial.matvec(scenario.R_lar, k.contact_force_lar)
     # The contact force acts at the EE point: generalised force J_point^T [f; 0].
-    Q = jnp.concatenate([force, spatial.cross(k.frames.p_ee, force), k.J_joints[:3].T @ force + u])
+    Q = jnp.concatenate([force, spatial.cross(k.frames.p_ee, force), spatial.matvec(k.J_joints[:3].T, force) + u])
     bias = bias_from_frames(robot, k.frames, state.V_base, state.qd)
     return state_rate(state, solve_mass_blocks(k.base, k.M_coupling, k.M_joints, k.base_per_joint, Q - bias))
 
@@ -182,7 +182,7 @@ def momentum_at(kinematics: PlantKinematics, plant: PlantState) -> jax.Array:
     # Rows 0-5 of M give [P; L about the satellite CoM]; move L to the inertial origin.
     m, h, I_O = kinematics.base
     v_s, w_s = plant.V_base[:3], plant.V_base[3:]
-    PL = jnp.concatenate([m * v_s - spatial.cross(h, w_s), spatial.cross(h, v_s) + I_O @ w_s]) + kinematics.M_coupling @ plant.qd
+    PL = jnp.concatenate([m * v_s - spatial.cross(h, w_s), spatial.cross(h, v_s) + spatial.matvec(I_O, w_s)]) + spatial.matvec(kinematics.M_coupling, plant.qd)
     return jnp.concatenate([PL[:3], PL[3:] + spatial.cross(plant.p_base, PL[:3])])
 
 
@@ -211,21 +211,21 @@ def control_step(
     frames, force_lar = kinematics.frames, kinematics.contact_force_lar
     p_ee = plant.p_base + frames.p_ee
     R_lar = scenario.R_lar
-    R_lar_ee = R_lar.T @ frames.R_ee
-    pose = jnp.concatenate([R_lar.T @ (p_ee - scenario.p_lar), spatial.euler_zyx(R_lar_ee)])
+    R_lar_ee = spatial.matmul(R_lar.T, frames.R_ee)
+    pose = jnp.concatenate([spatial.matvec(R_lar.T, p_ee - scenario.p_lar), spatial.euler_zyx(R_lar_ee)])
     r_ee = frames.p_ee  # EE point from the satellite CoM
-    twist_inertial = jnp.concatenate([plant.V_base[:3] + spatial.cross(plant.V_base[3:], r_ee), plant.V_base[3:]]) + kinematics.J_joints @ plant.qd
-    twist = jnp.concatenate([R_lar.T @ twist_inertial[:3], R_lar.T @ twist_inertial[3:]])
+    twist_inertial = jnp.concatenate([plant.V_base[:3] + spatial.cross(plant.V_base[3:], r_ee), plant.V_base[3:]]) + spatial.matvec(kinematics.J_joints, plant.qd)
+    twist = jnp.concatenate([spatial.matvec(R_lar.T, twist_inertial[:3]), spatial.matvec(R_lar.T, twist_inertial[3:])])
 
     # F/T sensor between link 7 and the EE (frame 7 axes), read once per step (eqs 18-19).
     R_fts = frames.R_link[-1]
-    force_fts, torque_fts = sensor_wrench(R_fts.T @ (R_lar @ force_lar), robot.ee_offset)
+    force_fts, torque_fts = sensor_wrench(spatial.matvec(R_fts.T, spatial.matvec(R_lar, force_lar)), robot.ee_offset)
     wrench_ee = wrench_at_ee(force_fts, torque_fts, robot.ee_offset)
-    wrench_lar = rotate_wrench(R_lar.T @ R_fts, wrench_ee)
+    wrench_lar = rotate_wrench(spatial.matmul(R_lar.T, R_fts), wrench_ee)
 
     pose_des, twist_des, twist_rate_des = desired_state(scenario.trajectory, t)
     J_dyn = dynamic_jacobian_from_parts(kinematics.base_per_joint, kinematics.J_joints, r_ee)  # eq 8
-    J_dyn_ee = jnp.concatenate([frames.R_ee.T @ J_dyn[:3], frames.R_ee.T @ J_dyn[3:]])
+    J_dyn_ee = jnp.concatenate([spatial.matmul(frames.R_ee.T, J_dyn[:3]), spatial.matmul(frames.R_ee.T, J_dyn[3:])])
     V_ref = state.controller.V_ref
     if controller == "admittance":
         qd_des = admittance.desired_joint_rates(J_dyn_ee, R_lar_ee, V_ref, pinv_damping)

@@ -37,6 +37,19 @@ def skew(v):
     )
 
 
+def matvec(A, x):
+    """``A @ x`` for a small matrix ``A`` (..., m, n) and vector ``x`` (..., n), leading axes
+    broadcast, written as a product and a sum: XLA fuses it with its neighbours, derivative
+    included, where a ``dot`` is a library call of its own on a CPU."""
+    return jnp.sum(A * x[..., None, :], axis=-1)
+
+
+def matmul(A, B):
+    """``A @ B`` for small matrices ``A`` (..., m, k) and ``B`` (..., k, n), leading axes
+    broadcast, as a product and a sum (see :func:`matvec`)."""
+    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
+
+
 @jax.custom_jvp
 def cross(a, b):
     """Cross product ``a x b`` of 3-vectors along the last axis (leading axes broadcast),
@@ -53,9 +66,6 @@ def cross(a, b):
     return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
-def _matrix_vector(matrix, vector):
-    # As a product and a sum (not a dot): fused by XLA, and so is its transpose.
-    return jnp.sum(matrix * vector[..., None, :], axis=-1)
 
 
 @functools.partial(cross.defjvp, symbolic_zeros=True)
@@ -65,9 +75,9 @@ def _cross_jvp(primals, tangents):
     value = cross(a, b)
     tangent = jnp.zeros_like(value)
     if not isinstance(db, SymbolicZero):
-        tangent = tangent + _matrix_vector(skew(a), db)
+        tangent = tangent + matvec(skew(a), db)
     if not isinstance(da, SymbolicZero):
-        tangent = tangent - _matrix_vector(skew(b), da)
+        tangent = tangent - matvec(skew(b), da)
     return value, tangent
 
 
@@ -140,7 +150,7 @@ def quat_multiply(a, b):
     aw, av = a[0], a[1:]
     bw, bv = b[0], b[1:]
     return jnp.concatenate(
-        [jnp.array([aw * bw - av @ bv]), aw * bv + bw * av + cross(av, bv)]
+        [jnp.array([aw * bw - jnp.sum(av * bv)]), aw * bv + bw * av + cross(av, bv)]
     )
 
 
@@ -164,7 +174,7 @@ def euler_zyx(R):
 
 def euler_zyx_to_rotation(angles):
     """Rotation (3, 3) ``Rz(yaw) Ry(pitch) Rx(roll)`` of ``angles = [roll, pitch, yaw]`` (3,)."""
-    return rot_z(angles[2]) @ rot_y(angles[1]) @ rot_x(angles[0])
+    return matmul(matmul(rot_z(angles[2]), rot_y(angles[1])), rot_x(angles[0]))
 
 
 def rotation_log(R):

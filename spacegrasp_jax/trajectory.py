@@ -58,9 +58,9 @@ def desired_state(trajectory: Trajectory, t) -> tuple[jax.Array, jax.Array, jax.
     R_lar_ee = spatial.euler_zyx_to_rotation(angles)
     # Eq 10: w_ee = T_eul(angles) angles_dot; eq 11: its derivative.
     T_eul, T_eul_rate = jax.jvp(spatial.euler_rates_to_body, (angles,), (angle_rates,))
-    w_ee = T_eul @ angle_rates
-    dw_ee = T_eul_rate @ angle_rates + T_eul @ angle_accelerations
+    w_ee = spatial.matvec(T_eul, angle_rates)
+    dw_ee = spatial.matvec(T_eul_rate, angle_rates) + spatial.matvec(T_eul, angle_accelerations)
     # Eqs 12-13 (dR/dt w_ee = R (w_ee x w_ee) = 0, so only the rotation remains).
-    twist = jnp.concatenate([pose_rate[:3], R_lar_ee @ w_ee])
-    twist_rate = jnp.concatenate([pose_acceleration[:3], R_lar_ee @ dw_ee])
+    twist = jnp.concatenate([pose_rate[:3], spatial.matvec(R_lar_ee, w_ee)])
+    twist_rate = jnp.concatenate([pose_acceleration[:3], spatial.matvec(R_lar_ee, dw_ee)])
     return pose, twist, twist_rate

@@ -11,6 +11,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from spacegrasp_jax import spatial
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
 
@@ -46,5 +47,5 @@ def desired_joint_rates(J_dyn_ee: jax.Array, R_lar_ee: jax.Array, V_ref_lar: jax
         R_lar_ee: (3, 3) EE to LAR rotation.
         V_ref_lar: (6,) reference twist in LAR.
     """
-    V_ref_ee = jnp.concatenate([R_lar_ee.T @ V_ref_lar[:3], R_lar_ee.T @ V_ref_lar[3:]])
+    V_ref_ee = jnp.concatenate([spatial.matvec(R_lar_ee.T, V_ref_lar[:3]), spatial.matvec(R_lar_ee.T, V_ref_lar[3:])])
     return pseudoinverse_apply(J_dyn_ee, V_ref_ee, damping)

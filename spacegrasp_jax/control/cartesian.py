@@ -26,6 +26,6 @@ def desired_joint_rates(gains: Gains, J_dyn_ee: jax.Array, R_lar_ee: jax.Array, 
         pose, pose_des: (6,) ``[p (m); roll, pitch, yaw (rad)]`` of the EE in LAR.
     """
     error = pose_error(pose_des, pose)
-    v_ee = R_lar_ee.T @ (gains.K_lin * error[:3])
-    w_ee = spatial.euler_rates_to_body(pose[3:]) @ (gains.K_eul * error[3:])
+    v_ee = spatial.matvec(R_lar_ee.T, gains.K_lin * error[:3])
+    w_ee = spatial.matvec(spatial.euler_rates_to_body(pose[3:]), gains.K_eul * error[3:])
     return pseudoinverse_apply(J_dyn_ee, jnp.concatenate([v_ee, w_ee]), damping)

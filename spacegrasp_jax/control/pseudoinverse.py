@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax.linalg import solve_spd
+from spacegrasp_jax.spatial import matmul, matvec
 
 
 def pseudoinverse_apply(J: jax.Array, twist: jax.Array, damping=0.0) -> jax.Array:
@@ -16,5 +17,5 @@ def pseudoinverse_apply(J: jax.Array, twist: jax.Array, damping=0.0) -> jax.Arra
     positive ``damping`` (same units as ``J``'s entries) gives the damped least-squares
     inverse, which stays bounded near singular configurations.
     """
-    gram = J @ J.T + damping**2 * jnp.eye(J.shape[0], dtype=J.dtype)
-    return J.T @ solve_spd(gram, twist)
+    gram = matmul(J, J.T) + damping**2 * jnp.eye(J.shape[0], dtype=J.dtype)
+    return matvec(J.T, solve_spd(gram, twist))
