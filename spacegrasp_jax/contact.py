@@ -63,4 +63,4 @@ def wrench_at_ee(force_fts: jax.Array, torque_fts: jax.Array, p_ee_fts: jax.Arra
 
 def rotate_wrench(R_a_b: jax.Array, wrench_b: jax.Array) -> jax.Array:
     """Eq 19: a wrench ``[f; n]`` (6,) in frame ``b`` axes rotated into frame ``a`` axes."""
-    return jnp.concatenate([matvec(R_a_b, wrench_b[:3]), matvec(R_a_b, wrench_b[3:])])
+    return matvec(R_a_b, wrench_b.reshape(2, 3)).reshape(6)

@@ -48,7 +48,7 @@ def _link_inertias(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.Arra
     (7, 3, 3), inertial axes."""
     mass, com_local, inertia_local = body_inertials(robot)
     R = frames.R_link
-    com = frames.p_frame[1:] + spatial.matvec(R, com_local)
+    com = frames.link_origin + spatial.matvec(R, com_local)
     inertia_com = spatial.matmul(spatial.matmul(R, inertia_local), jnp.swapaxes(R, -1, -2))
     # Parallel axes: I_O = I_c + m (|c|^2 1 - c c^T).
     inertia_origin = inertia_com + mass[:, None, None] * (
@@ -136,8 +136,10 @@ def mass_matrix_parts_from_frames(robot: Robot, frames):
     upper = jnp.triu(jnp.ones((N_JOINTS, N_JOINTS), dtype=bool))
     M_joints = jnp.where(upper, A, A.T)
     # Satellite rows (generalised velocities v_s, w_s): its columns are the whole system's
-    # composite inertia applied to a pure translation and a pure rotation.
-    m, h, I_O = robot.satellite_mass + c_mass[0], c_moment[0], _satellite_inertia(robot, frames) + c_inertia[0]
+    # composite inertia applied to a pure translation and a pure rotation. Summed directly
+    # rather than read as c_mass[0] etc., whose derivative would be a zero-padding.
+    m, h = robot.satellite_mass + jnp.sum(mass), jnp.sum(moment, axis=0)
+    I_O = _satellite_inertia(robot, frames) + jnp.sum(inertia, axis=0)
     M_coupling = jnp.concatenate([F_f.T, F_n.T])  # rows [force; moment] for [v_s; w_s]
     return m, h, I_O, M_coupling, M_joints
 
@@ -154,7 +156,7 @@ def bias_from_frames(robot: Robot, frames, V_base, qd) -> jax.Array:
     """Bias forces (13,) by Newton-Euler with zero generalised acceleration, from
     :func:`frames_at_base`."""
     mass, moment, inertia = _link_inertias(robot, frames)
-    v_s, w_s = V_base[:3], V_base[3:]
+    v_s, w_s = jnp.split(V_base, 2)
     S_w, S_v = _joint_axes(frames)
     # Link velocities: the satellite's plus the joint rates up the chain.
     w_chain, v_chain = _chain_sums(S_w * qd[:, None], S_v * qd[:, None])
@@ -177,7 +179,8 @@ def bias_from_frames(robot: Robot, frames, V_base, qd) -> jax.Array:
     # Backward pass: each joint carries the load of its subtree.
     sub_n, sub_f = _subtree_sums(f_n, f_f)
     joints = jnp.sum(S_w * sub_n, axis=-1) + jnp.sum(S_v * sub_f, axis=-1)
-    return jnp.concatenate([sub_f[0], satellite_n + sub_n[0], joints])
+    # The satellite carries every link's load: the sums over all links.
+    return jnp.concatenate([jnp.sum(f_f, axis=0), satellite_n + jnp.sum(f_n, axis=0), joints])
 
 
 def solve_base(m, h, I_O, rhs: jax.Array) -> jax.Array:
@@ -192,10 +195,10 @@ def solve_base(m, h, I_O, rhs: jax.Array) -> jax.Array:
     c = h / m
     I_c = I_O + c[:, None] * h[None, :] - jnp.sum(h * c) * jnp.eye(3)
     # Inverse of the symmetric I_c: rows are cross products of its columns over det.
-    c0, c1, c2 = I_c[:, 0], I_c[:, 1], I_c[:, 2]
-    adjugate = jnp.stack([cross(c1, c2), cross(c2, c0), cross(c0, c1)])
-    I_c_inv = adjugate / jnp.sum(c0 * adjugate[0])
-    f, n = rhs[:3], rhs[3:]
+    c0, c1, c2 = jnp.unstack(I_c, axis=1)
+    row0 = cross(c1, c2)
+    I_c_inv = jnp.stack([row0, cross(c2, c0), cross(c0, c1)]) / jnp.sum(c0 * row0)
+    f, n = jnp.split(rhs, 2)
     if rhs.ndim == 2:  # columns
         moment = n - cross(c, f.T).T
         w = jnp.sum(I_c_inv[:, :, None] * moment[None], axis=1)
@@ -212,8 +215,9 @@ def solve_mass_blocks(base, M_coupling, M_joints, base_per_joint, rhs) -> jax.Ar
     accelerations from the Schur complement ``M_joints - M_coupling^T M_base^-1 M_coupling``
     (7, 7), symmetric positive definite, by Cholesky, then the satellite's."""
     schur = M_joints - spatial.matmul(M_coupling.T, base_per_joint)
-    y = solve_base(*base, rhs[:6])
-    qdd = solve_spd(schur, rhs[6:] - spatial.matvec(M_coupling.T, y))
+    rhs_base, rhs_joints = jnp.split(rhs, [6])
+    y = solve_base(*base, rhs_base)
+    qdd = solve_spd(schur, rhs_joints - spatial.matvec(M_coupling.T, y))
     return jnp.concatenate([y - spatial.matvec(base_per_joint, qdd), qdd])
 
 
@@ -330,7 +334,7 @@ def dynamic_jacobian_from_parts(base_per_joint: jax.Array, J_joints: jax.Array, 
     ``J_m`` (6, 7) of the EE point Jacobian and ``r_ee`` (3,) m, the EE point from the
     satellite CoM. Zero momentum about the satellite CoM (rows 0-5 of ``M``) is the
     constraint of eq 6; ``J_s X = [X_v + X_w x r_ee; X_w]`` is applied as cross products."""
-    X_v, X_w = base_per_joint[:3], base_per_joint[3:]
+    X_v, X_w = jnp.split(base_per_joint, 2)
     return J_joints - jnp.concatenate([X_v + cross(X_w.T, r_ee).T, X_w])
 
 

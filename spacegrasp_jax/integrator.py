@@ -63,12 +63,14 @@ def free_floating_derivative(robot: Robot, state: PlantState, Q: jax.Array) -> P
 
 def state_rate(state: PlantState, xdd: jax.Array) -> PlantState:
     """The rate of ``state`` given its generalised acceleration ``xdd`` (13,)."""
+    v_s, w_s = jnp.split(state.V_base, 2)
+    V_base_rate, qd_rate = jnp.split(xdd, [6])
     return PlantState(
-        p_base=state.V_base[:3],
-        quat_base=spatial.quat_derivative(state.quat_base, state.V_base[3:]),
+        p_base=v_s,
+        quat_base=spatial.quat_derivative(state.quat_base, w_s),
         q=state.qd,
-        V_base=xdd[:6],
-        qd=xdd[6:],
+        V_base=V_base_rate,
+        qd=qd_rate,
     )
 
 

@@ -28,30 +28,33 @@ class Frames:
     The rotations are kept as frame 0's and frames 1..7's, not as one (8, 3, 3) stack: no
     array of the closed loop's step exceeds 64 numbers, which lets XLA's CPU runtime run the
     step's kernels one after the other instead of as a task graph (README, Performance).
+    The origins and axes the dynamics read are stacked as they are built, not sliced out of
+    larger arrays: the derivative of a slice is a zero-padding, a kernel of its own.
 
     Attributes:
-        p_frame: (8, 3) m, origins of frames 0..7 (frame 0 is the mounting point).
+        joint_origin: (7, 3) m, origins of frames 0..6 (frame 0 is the mounting point): a
+            point on each joint's axis.
+        link_origin: (7, 3) m, origins of frames 1..7.
+        joint_axis: (7, 3) unit axes of joints 1..7: the z axes of frames 0..6.
         R_mount: (3, 3) rotation of frame 0, the mounting frame (frame to inertial).
         R_link: (7, 3, 3) rotations of frames 1..7 (frame to inertial).
         p_ee: (3,) m, origin of the EE frame.
-        R_ee: (3, 3) rotation of the EE frame (EE to inertial).
+        R_ee: (3, 3) rotation of the EE frame (EE to inertial), that of frame 7 (the EE
+            offset is a translation).
     """
 
-    p_frame: jax.Array
+    joint_origin: jax.Array
+    link_origin: jax.Array
+    joint_axis: jax.Array
     R_mount: jax.Array
     R_link: jax.Array
     p_ee: jax.Array
     R_ee: jax.Array
 
     @property
-    def joint_axis(self) -> jax.Array:
-        """(7, 3) unit axes of joints 1..7: the z axes of frames 0..6."""
-        return jnp.concatenate([self.R_mount[None, :, 2], self.R_link[:-1, :, 2]])
-
-    @property
-    def joint_origin(self) -> jax.Array:
-        """(7, 3) m, a point on each joint axis: the origins of frames 0..6."""
-        return self.p_frame[:-1]
+    def p_frame(self) -> jax.Array:
+        """(8, 3) m, origins of frames 0..7."""
+        return jnp.concatenate([self.joint_origin, self.link_origin[-1:]])
 
 
 def dh_transforms(robot: Robot, q: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -91,13 +94,18 @@ def forward_kinematics(robot: Robot, p_base: jax.Array, R_base: jax.Array, q: ja
     R_rel, p_rel = dh_transforms(robot, q)
     R, p = R_base, p_base + spatial.matvec(R_base, robot.mount_position)
     R_link, p_frame = [], [p]
-    for i in range(N_JOINTS):  # the chain is short and fixed: unrolled at trace time
-        p = p + spatial.matvec(R, p_rel[i])
-        R = spatial.matmul(R, R_rel[i])
+    # The chain is short and fixed: unrolled at trace time. jnp.unstack, not x[i]: its
+    # derivative is one stack, where each x[i]'s is a zero-padding of its own.
+    for R_joint, p_joint in zip(jnp.unstack(R_rel), jnp.unstack(p_rel)):
+        p = p + spatial.matvec(R, p_joint)
+        R = spatial.matmul(R, R_joint)
         R_link.append(R)
         p_frame.append(p)
+    z_axis = jnp.array([0.0, 0.0, 1.0], dtype=R.dtype)
     return Frames(
-        p_frame=jnp.stack(p_frame),
+        joint_origin=jnp.stack(p_frame[:-1]),
+        link_origin=jnp.stack(p_frame[1:]),
+        joint_axis=jnp.stack([spatial.matvec(R_frame, z_axis) for R_frame in [R_base] + R_link[:-1]]),
         R_mount=R_base,
         R_link=jnp.stack(R_link),
         p_ee=p + spatial.matvec(R, robot.ee_offset),
@@ -121,7 +129,7 @@ def ee_pose(robot: Robot, p_base: jax.Array, R_base: jax.Array, q: jax.Array):
 def body_com_positions(robot: Robot, frames: Frames) -> jax.Array:
     """(7, 3) m, CoM of moving bodies 1..7 in the inertial frame."""
     _, com_local, _ = body_inertials(robot)
-    return frames.p_frame[1:] + spatial.matvec(frames.R_link, com_local)
+    return frames.link_origin + spatial.matvec(frames.R_link, com_local)
 
 
 def point_jacobian_blocks(frames: Frames, p_base: jax.Array, point: jax.Array, last_joint: int) -> tuple[jax.Array, jax.Array]:

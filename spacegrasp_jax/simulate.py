@@ -167,7 +167,7 @@ def plant_rate(robot: Robot, scenario: Scenario, state: PlantState, kinematics: 
     k = kinematics
     force = spatial.matvec(scenario.R_lar, k.contact_force_lar)
     # The contact force acts at the EE point: generalised force J_point^T [f; 0].
-    Q = jnp.concatenate([force, spatial.cross(k.frames.p_ee, force), spatial.matvec(k.J_joints[:3].T, force) + u])
+    Q = jnp.concatenate([force, spatial.cross(k.frames.p_ee, force), spatial.matvec(jnp.split(k.J_joints, 2)[0].T, force) + u])
     bias = bias_from_frames(robot, k.frames, state.V_base, state.qd)
     return state_rate(state, solve_mass_blocks(k.base, k.M_coupling, k.M_joints, k.base_per_joint, Q - bias))
 
@@ -181,9 +181,11 @@ def momentum_at(kinematics: PlantKinematics, plant: PlantState) -> jax.Array:
     """``[P (N s); L about the inertial origin (N m s)]`` (6,), inertial frame."""
     # Rows 0-5 of M give [P; L about the satellite CoM]; move L to the inertial origin.
     m, h, I_O = kinematics.base
-    v_s, w_s = plant.V_base[:3], plant.V_base[3:]
-    PL = jnp.concatenate([m * v_s - spatial.cross(h, w_s), spatial.cross(h, v_s) + spatial.matvec(I_O, w_s)]) + spatial.matvec(kinematics.M_coupling, plant.qd)
-    return jnp.concatenate([PL[:3], PL[3:] + spatial.cross(plant.p_base, PL[:3])])
+    v_s, w_s = jnp.split(plant.V_base, 2)
+    P, L = jnp.split(spatial.matvec(kinematics.M_coupling, plant.qd), 2)
+    P = P + m * v_s - spatial.cross(h, w_s)
+    L = L + spatial.cross(h, v_s) + spatial.matvec(I_O, w_s)
+    return jnp.concatenate([P, L + spatial.cross(plant.p_base, P)])
 
 
 def initial_state(scenario: Scenario) -> SimState:
@@ -214,18 +216,20 @@ def control_step(
     R_lar_ee = spatial.matmul(R_lar.T, frames.R_ee)
     pose = jnp.concatenate([spatial.matvec(R_lar.T, p_ee - scenario.p_lar), spatial.euler_zyx(R_lar_ee)])
     r_ee = frames.p_ee  # EE point from the satellite CoM
-    twist_inertial = jnp.concatenate([plant.V_base[:3] + spatial.cross(plant.V_base[3:], r_ee), plant.V_base[3:]]) + spatial.matvec(kinematics.J_joints, plant.qd)
-    twist = jnp.concatenate([spatial.matvec(R_lar.T, twist_inertial[:3]), spatial.matvec(R_lar.T, twist_inertial[3:])])
+    v_s, w_s = jnp.split(plant.V_base, 2)
+    twist_inertial = jnp.concatenate([v_s + spatial.cross(w_s, r_ee), w_s]) + spatial.matvec(kinematics.J_joints, plant.qd)
+    # Both 3-vectors of a twist (wrench, Jacobian) rotate at once as a (2, 3) array.
+    twist = spatial.matvec(R_lar.T, twist_inertial.reshape(2, 3)).reshape(6)
 
     # F/T sensor between link 7 and the EE (frame 7 axes), read once per step (eqs 18-19).
-    R_fts = frames.R_link[-1]
+    R_fts = frames.R_ee  # frame 7's rotation
     force_fts, torque_fts = sensor_wrench(spatial.matvec(R_fts.T, spatial.matvec(R_lar, force_lar)), robot.ee_offset)
     wrench_ee = wrench_at_ee(force_fts, torque_fts, robot.ee_offset)
     wrench_lar = rotate_wrench(spatial.matmul(R_lar.T, R_fts), wrench_ee)
 
     pose_des, twist_des, twist_rate_des = desired_state(scenario.trajectory, t)
     J_dyn = dynamic_jacobian_from_parts(kinematics.base_per_joint, kinematics.J_joints, r_ee)  # eq 8
-    J_dyn_ee = jnp.concatenate([spatial.matmul(frames.R_ee.T, J_dyn[:3]), spatial.matmul(frames.R_ee.T, J_dyn[3:])])
+    J_dyn_ee = spatial.matmul(frames.R_ee.T, J_dyn.reshape(2, 3, N_JOINTS)).reshape(6, N_JOINTS)
     V_ref = state.controller.V_ref
     if controller == "admittance":
         qd_des = admittance.desired_joint_rates(J_dyn_ee, R_lar_ee, V_ref, pinv_damping)

@@ -114,7 +114,7 @@ def quat_to_rotation(quat):
     The quaternion is normalised first, so slightly off-unit inputs (integration drift)
     still give an orthonormal matrix.
     """
-    w, x, y, z = quat / jnp.linalg.norm(quat)
+    w, x, y, z = jnp.unstack(quat / jnp.linalg.norm(quat))
     return jnp.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -147,10 +147,10 @@ def rotation_to_quat(R):
 
 def quat_multiply(a, b):
     """Hamilton product ``a * b`` of two quaternions ``[w, x, y, z]`` (4,)."""
-    aw, av = a[0], a[1:]
-    bw, bv = b[0], b[1:]
+    aw, av = jnp.split(a, [1])
+    bw, bv = jnp.split(b, [1])
     return jnp.concatenate(
-        [jnp.array([aw * bw - jnp.sum(av * bv)]), aw * bv + bw * av + cross(av, bv)]
+        [aw * bw - jnp.sum(av * bv, keepdims=True), aw * bv + bw * av + cross(av, bv)]
     )
 
 

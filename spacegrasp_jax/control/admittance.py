@@ -18,9 +18,8 @@ from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
 
 def pose_error(pose_des: jax.Array, pose: jax.Array) -> jax.Array:
     """``pose_des - pose`` (6,) with the Euler-angle differences wrapped to (-pi, pi]."""
-    difference = pose_des - pose
-    wrapped = jnp.arctan2(jnp.sin(difference[3:]), jnp.cos(difference[3:]))
-    return jnp.concatenate([difference[:3], wrapped])
+    position, angles = jnp.split(pose_des - pose, 2)
+    return jnp.concatenate([position, jnp.arctan2(jnp.sin(angles), jnp.cos(angles))])
 
 
 def reference_twist_rate(
@@ -47,5 +46,5 @@ def desired_joint_rates(J_dyn_ee: jax.Array, R_lar_ee: jax.Array, V_ref_lar: jax
         R_lar_ee: (3, 3) EE to LAR rotation.
         V_ref_lar: (6,) reference twist in LAR.
     """
-    V_ref_ee = jnp.concatenate([spatial.matvec(R_lar_ee.T, V_ref_lar[:3]), spatial.matvec(R_lar_ee.T, V_ref_lar[3:])])
+    V_ref_ee = spatial.matvec(R_lar_ee.T, V_ref_lar.reshape(2, 3)).reshape(6)
     return pseudoinverse_apply(J_dyn_ee, V_ref_ee, damping)
