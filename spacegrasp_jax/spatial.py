@@ -19,6 +19,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from jax.custom_batching import custom_vmap
 from jax.custom_derivatives import SymbolicZero
 
 
@@ -37,17 +38,86 @@ def skew(v):
     )
 
 
-def matvec(A, x):
-    """``A @ x`` for a small matrix ``A`` (..., m, n) and vector ``x`` (..., n), leading axes
-    broadcast, written as a product and a sum: XLA fuses it with its neighbours, derivative
-    included, where a ``dot`` is a library call of its own on a CPU."""
+@custom_vmap
+def _matvec_product(A, x):
     return jnp.sum(A * x[..., None, :], axis=-1)
 
 
+def _batch_first(axis_size, in_batched, A, B, core_dims):
+    """``A`` and ``B`` with the vmap axis first, their other leading axes padded to one rank,
+    so that ``jnp.matmul`` broadcasts them."""
+    leading = max(A.ndim - in_batched[0] - core_dims[0], B.ndim - in_batched[1] - core_dims[1])
+
+    def arrange(X, batched, core):
+        X = X if batched else jnp.broadcast_to(X, (axis_size, *X.shape))
+        return X.reshape((axis_size,) + (1,) * (leading - (X.ndim - 1 - core)) + X.shape[1:])
+
+    return arrange(A, in_batched[0], core_dims[0]), arrange(B, in_batched[1], core_dims[1])
+
+
+@_matvec_product.def_vmap
+def _matvec_product_batched(axis_size, in_batched, A, x):
+    # Under vmap a dot is the faster form: the batch makes it a real matrix product, where
+    # the sum over a 3-long minor axis is slow for the batch (18 against 11 us per
+    # sample-step of a vmapped rollout, one core).
+    A, x = _batch_first(axis_size, in_batched, A, x, (2, 1))
+    return jnp.matmul(A, x[..., None])[..., 0], True
+
+
+@custom_vmap
+def _matmul_product(A, B):
+    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
+
+
+@_matmul_product.def_vmap
+def _matmul_product_batched(axis_size, in_batched, A, B):
+    return jnp.matmul(*_batch_first(axis_size, in_batched, A, B, (2, 2))), True
+
+
+@jax.custom_jvp
+def matvec(A, x):
+    """``A @ x`` for a small matrix ``A`` (..., m, n) and vector ``x`` (..., n), leading axes
+    broadcast.
+
+    On its own it is written as a product and a sum, which XLA fuses with its neighbours,
+    where a ``dot`` is a library call of its own on a CPU (about 150 of them per closed-loop
+    step). Under ``vmap`` it is a batched ``dot`` (``jax.custom_batching.custom_vmap``). The
+    derivative is products and sums in both cases, which transpose into fused kernels.
+    """
+    return _matvec_product(A, x)
+
+
+@functools.partial(matvec.defjvp, symbolic_zeros=True)
+def _matvec_jvp(primals, tangents):
+    A, x = primals
+    dA, dx = tangents
+    value = matvec(A, x)
+    tangent = jnp.zeros_like(value)
+    if not isinstance(dA, SymbolicZero):
+        tangent = tangent + jnp.sum(dA * x[..., None, :], axis=-1)
+    if not isinstance(dx, SymbolicZero):
+        tangent = tangent + jnp.sum(A * dx[..., None, :], axis=-1)
+    return value, tangent
+
+
+@jax.custom_jvp
 def matmul(A, B):
     """``A @ B`` for small matrices ``A`` (..., m, k) and ``B`` (..., k, n), leading axes
-    broadcast, as a product and a sum (see :func:`matvec`)."""
-    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
+    broadcast; as :func:`matvec`."""
+    return _matmul_product(A, B)
+
+
+@functools.partial(matmul.defjvp, symbolic_zeros=True)
+def _matmul_jvp(primals, tangents):
+    A, B = primals
+    dA, dB = tangents
+    value = matmul(A, B)
+    tangent = jnp.zeros_like(value)
+    if not isinstance(dA, SymbolicZero):
+        tangent = tangent + jnp.sum(dA[..., :, :, None] * B[..., None, :, :], axis=-2)
+    if not isinstance(dB, SymbolicZero):
+        tangent = tangent + jnp.sum(A[..., :, :, None] * dB[..., None, :, :], axis=-2)
+    return value, tangent
 
 
 @jax.custom_jvp
@@ -75,9 +145,9 @@ def _cross_jvp(primals, tangents):
     value = cross(a, b)
     tangent = jnp.zeros_like(value)
     if not isinstance(db, SymbolicZero):
-        tangent = tangent + matvec(skew(a), db)
+        tangent = tangent + jnp.sum(skew(a) * db[..., None, :], axis=-1)
     if not isinstance(da, SymbolicZero):
-        tangent = tangent - matvec(skew(b), da)
+        tangent = tangent - jnp.sum(skew(b) * da[..., None, :], axis=-1)
     return value, tangent
 
 

@@ -75,3 +75,25 @@ def test_cross_matches_numpy_with_broadcasting_and_its_derivatives_match_finite_
         jax.test_util.check_grads(spatial.cross, (a, b), order=1, modes=("fwd", "rev"), eps=1e-6)
         jax.test_util.check_grads(lambda x: spatial.cross(x, b), (a,), order=1, modes=("fwd", "rev"), eps=1e-6)
         jax.test_util.check_grads(lambda y: spatial.cross(a, y), (b,), order=1, modes=("fwd", "rev"), eps=1e-6)
+
+
+def test_matvec_and_matmul_match_numpy_alone_and_under_vmap_with_their_derivatives():
+    rng = np.random.default_rng(6)
+    A, x, B = rng.normal(size=(7, 3, 3)), rng.normal(size=(2, 3)), rng.normal(size=(3, 4))
+    np.testing.assert_allclose(spatial.matvec(A, x[0]), A @ x[0], atol=1e-14)
+    np.testing.assert_allclose(spatial.matvec(A[0], x), x @ A[0].T, atol=1e-14)
+    np.testing.assert_allclose(spatial.matmul(A, B), A @ B, atol=1e-14)
+    # Under vmap (the batched dot) with either operand, or both, batched, and leading axes
+    # that differ between the operands.
+    batch_A, batch_x, batch_B = rng.normal(size=(5, 3, 3)), rng.normal(size=(5, 2, 3)), rng.normal(size=(5, 3, 4))
+    for in_axes in [(0, 0), (0, None), (None, 0)]:
+        a = batch_A if in_axes[0] == 0 else A[0]
+        v = batch_x if in_axes[1] == 0 else x
+        m = batch_B if in_axes[1] == 0 else B
+        np.testing.assert_allclose(jax.vmap(spatial.matvec, in_axes)(a, v), np.einsum("...ij,...kj->...ki", a, v), atol=1e-14)
+        np.testing.assert_allclose(jax.vmap(spatial.matmul, in_axes)(a, m), a @ m, atol=1e-14)
+    for function, args in [(spatial.matvec, (A, x[0])), (spatial.matmul, (A, B))]:
+        jax.test_util.check_grads(function, args, order=1, modes=("fwd", "rev"), eps=1e-6)
+        jax.test_util.check_grads(lambda a: function(a, args[1]), args[:1], order=1, modes=("fwd", "rev"), eps=1e-6)
+        jax.test_util.check_grads(lambda b: function(args[0], b), args[1:], order=1, modes=("fwd", "rev"), eps=1e-6)
+    jax.test_util.check_grads(jax.vmap(spatial.matvec), (batch_A, batch_x), order=1, modes=("fwd", "rev"), eps=1e-6)
