@@ -9,8 +9,9 @@ Conventions
 * ZYX Euler angles are returned ordered ``[roll (about x), pitch (about y), yaw (about z)]``
   with ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (DESIGN.md, eq 14 pairing).
 
-All functions are pure and work on a single element (:func:`skew` and :func:`cross` also
-broadcast over leading axes); use ``jax.vmap`` for batches.
+All functions are pure and work on a single element (:func:`skew`, :func:`cross`,
+:func:`matvec` and :func:`matmul` also broadcast over leading axes); use ``jax.vmap`` for
+batches.
 """
 
 from __future__ import annotations
@@ -38,9 +39,17 @@ def skew(v):
     )
 
 
-@custom_vmap
-def _matvec_product(A, x):
+def _summed_matvec(A, x):
+    # A @ x as a product and a sum over the last axis of A.
     return jnp.sum(A * x[..., None, :], axis=-1)
+
+
+def _summed_matmul(A, B):
+    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
+
+
+_matvec_product = custom_vmap(_summed_matvec)
+_matmul_product = custom_vmap(_summed_matmul)
 
 
 def _batch_first(axis_size, in_batched, A, B, core_dims):
@@ -62,11 +71,6 @@ def _matvec_product_batched(axis_size, in_batched, A, x):
     # sample-step of a vmapped rollout, one core).
     A, x = _batch_first(axis_size, in_batched, A, x, (2, 1))
     return jnp.matmul(A, x[..., None])[..., 0], True
-
-
-@custom_vmap
-def _matmul_product(A, B):
-    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
 
 
 @_matmul_product.def_vmap
@@ -94,9 +98,9 @@ def _matvec_jvp(primals, tangents):
     value = matvec(A, x)
     tangent = jnp.zeros_like(value)
     if not isinstance(dA, SymbolicZero):
-        tangent = tangent + jnp.sum(dA * x[..., None, :], axis=-1)
+        tangent = tangent + _summed_matvec(dA, x)
     if not isinstance(dx, SymbolicZero):
-        tangent = tangent + jnp.sum(A * dx[..., None, :], axis=-1)
+        tangent = tangent + _summed_matvec(A, dx)
     return value, tangent
 
 
@@ -114,9 +118,9 @@ def _matmul_jvp(primals, tangents):
     value = matmul(A, B)
     tangent = jnp.zeros_like(value)
     if not isinstance(dA, SymbolicZero):
-        tangent = tangent + jnp.sum(dA[..., :, :, None] * B[..., None, :, :], axis=-2)
+        tangent = tangent + _summed_matmul(dA, B)
     if not isinstance(dB, SymbolicZero):
-        tangent = tangent + jnp.sum(A[..., :, :, None] * dB[..., None, :, :], axis=-2)
+        tangent = tangent + _summed_matmul(A, dB)
     return value, tangent
 
 
@@ -136,8 +140,6 @@ def cross(a, b):
     return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
-
-
 @functools.partial(cross.defjvp, symbolic_zeros=True)
 def _cross_jvp(primals, tangents):
     a, b = primals
@@ -145,9 +147,9 @@ def _cross_jvp(primals, tangents):
     value = cross(a, b)
     tangent = jnp.zeros_like(value)
     if not isinstance(db, SymbolicZero):
-        tangent = tangent + jnp.sum(skew(a) * db[..., None, :], axis=-1)
+        tangent = tangent + _summed_matvec(skew(a), db)
     if not isinstance(da, SymbolicZero):
-        tangent = tangent - jnp.sum(skew(b) * da[..., None, :], axis=-1)
+        tangent = tangent - _summed_matvec(skew(b), da)
     return value, tangent
 
 
