@@ -91,19 +91,6 @@ def matvec(A, x):
     return _matvec_product(A, x)
 
 
-@functools.partial(matvec.defjvp, symbolic_zeros=True)
-def _matvec_jvp(primals, tangents):
-    A, x = primals
-    dA, dx = tangents
-    value = matvec(A, x)
-    tangent = jnp.zeros_like(value)
-    if not isinstance(dA, SymbolicZero):
-        tangent = tangent + _summed_matvec(dA, x)
-    if not isinstance(dx, SymbolicZero):
-        tangent = tangent + _summed_matvec(A, dx)
-    return value, tangent
-
-
 @jax.custom_jvp
 def matmul(A, B):
     """``A @ B`` for small matrices ``A`` (..., m, k) and ``B`` (..., k, n), leading axes
@@ -111,17 +98,24 @@ def matmul(A, B):
     return _matmul_product(A, B)
 
 
-@functools.partial(matmul.defjvp, symbolic_zeros=True)
-def _matmul_jvp(primals, tangents):
-    A, B = primals
-    dA, dB = tangents
-    value = matmul(A, B)
-    tangent = jnp.zeros_like(value)
-    if not isinstance(dA, SymbolicZero):
-        tangent = tangent + _summed_matmul(dA, B)
-    if not isinstance(dB, SymbolicZero):
-        tangent = tangent + _summed_matmul(A, dB)
-    return value, tangent
+def _bilinear_jvp(product, summed):
+    """Give the bilinear ``product`` (:func:`matvec` or :func:`matmul`) the derivative
+    ``product(dA, B) + product(A, dB)``, written with ``summed``, its products-and-sums form."""
+
+    @functools.partial(product.defjvp, symbolic_zeros=True)
+    def jvp(primals, tangents):
+        (A, B), (dA, dB) = primals, tangents
+        value = product(A, B)
+        tangent = jnp.zeros_like(value)
+        if not isinstance(dA, SymbolicZero):
+            tangent = tangent + summed(dA, B)
+        if not isinstance(dB, SymbolicZero):
+            tangent = tangent + summed(A, dB)
+        return value, tangent
+
+
+_bilinear_jvp(matvec, _summed_matvec)
+_bilinear_jvp(matmul, _summed_matmul)
 
 
 @jax.custom_jvp
