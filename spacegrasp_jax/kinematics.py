@@ -51,11 +51,6 @@ class Frames:
     p_ee: jax.Array
     R_ee: jax.Array
 
-    @property
-    def p_frame(self) -> jax.Array:
-        """(8, 3) m, origins of frames 0..7."""
-        return jnp.concatenate([self.joint_origin, self.link_origin[-1:]])
-
 
 def dh_transforms(robot: Robot, q: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Relative transforms of the DH chain, ``T_{i-1,i} = Rz(theta) Tz(lambda) Tx(L) Rx(alpha)``.

@@ -320,23 +320,20 @@ def rollout(
         :class:`Log`. A diverging rollout carries non-finite values from the first bad
         step on; :func:`first_nonfinite_time` finds it (``experiment.run`` reports it).
     """
-    step = closed_loop_step(robot, scenario, gains, controller, pinv_damping)
     n_steps = scenario.n_steps
-    steps = jnp.arange(n_steps, dtype=scenario.initial.q.dtype)
-    if checkpoint_segment is None:
-        # Blocks of a few steps, each an inner scan whose log buffers stay within 64 numbers
-        # a field: XLA's CPU runtime runs that inner loop's kernels in sequence, where a
-        # loop that writes into the whole log runs as a task graph (README, Performance).
-        block = largest_divisor(n_steps, LOG_BLOCK)
-        final, rows = jax.lax.scan(lambda s, ks: jax.lax.scan(step, s, ks), initial_state(scenario), steps.reshape(-1, block))
-        return final, jax.tree.map(lambda x: x.reshape((n_steps,) + x.shape[2:]), rows)
-    if checkpoint_segment < 1 or n_steps % checkpoint_segment:
+    if checkpoint_segment is not None and (checkpoint_segment < 1 or n_steps % checkpoint_segment):
         raise ValueError(f"checkpoint_segment: {checkpoint_segment} must be a positive divisor of the {n_steps} steps")
-
-    def segment(state, segment_steps):
-        return jax.lax.scan(jax.checkpoint(step), state, segment_steps)
-
-    final, rows = jax.lax.scan(segment, initial_state(scenario), steps.reshape(-1, checkpoint_segment))
+    step = closed_loop_step(robot, scenario, gains, controller, pinv_damping)
+    if checkpoint_segment is None:
+        block, block_step = largest_divisor(n_steps, LOG_BLOCK), step
+    else:
+        block, block_step = checkpoint_segment, jax.checkpoint(step)
+    # Blocks of a few steps, each an inner scan whose buffers (log rows, saved states) stay
+    # within 64 numbers a field: XLA's CPU runtime runs that inner loop's kernels in
+    # sequence, where a loop that writes into the whole log runs as a task graph (README,
+    # Performance).
+    steps = jnp.arange(n_steps, dtype=scenario.initial.q.dtype).reshape(-1, block)
+    final, rows = jax.lax.scan(lambda s, ks: jax.lax.scan(block_step, s, ks), initial_state(scenario), steps)
     return final, jax.tree.map(lambda x: x.reshape((n_steps,) + x.shape[2:]), rows)
 
 

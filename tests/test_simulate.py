@@ -122,3 +122,10 @@ def test_gradient_of_final_position_error_wrt_gains(robot, gains, short_scenario
     plus = evaluate(jax.tree.map(lambda x, d: x + h * d, log_gains, direction))
     minus = evaluate(jax.tree.map(lambda x, d: x - h * d, log_gains, direction))
     np.testing.assert_allclose(slope, (plus - minus) / (2 * h), rtol=1e-4, atol=1e-12 * abs(float(value)))
+
+
+def test_rollout_rejects_a_checkpoint_segment_that_does_not_divide_the_steps(robot, gains):
+    scenario = paper_scenario(robot, duration=0.1)  # 100 steps
+    for segment in (0, 3):
+        with pytest.raises(ValueError, match="checkpoint_segment"):
+            rollout(robot, scenario, gains, "admittance", checkpoint_segment=segment)
