@@ -33,6 +33,7 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
 
     import spacegrasp_jax as sg
     from benchmarks.dynamics import timed
+    from spacegrasp_jax import compilation
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.scenario import paper_scenario
     from tuning.objective import Objective, Weights
@@ -47,7 +48,7 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
     segment = checkpoint_segment(scenario.n_steps) if mode == "reverse_checkpointed" else None
     loss = make_loss(robot, training_scenarios(scenario, config), gains, make_mask(gains, "admittance"), config, objective, segment)
     if mode == "forward":
-        function = jax.jit(lambda p: loss(p)[0])
+        function = compilation.jit(lambda p: loss(p)[0])
     else:
         function = make_value_and_grad(loss, params, "forward" if mode == "forward_mode" else "reverse")
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss

@@ -42,6 +42,7 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
         campaign.use_all_cpu_cores()  # as `spacegrasp montecarlo` does; before any device use
     import spacegrasp_jax as sg
     from benchmarks.dynamics import timed
+    from spacegrasp_jax import compilation
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.montecarlo import rollout_metrics
     from spacegrasp_jax.perturbations import PerturbationRanges, sample
@@ -53,7 +54,7 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
     if kind == "sequential":
         robots, scenarios, _ = sample(robot, scenario, 0, range(size), PerturbationRanges())
         samples = [(jax.tree.map(lambda x: x[i], robots), jax.tree.map(lambda x: x[i], scenarios)) for i in range(size)]
-        function = jax.jit(rollout_metrics, static_argnames=("controller",))
+        function = compilation.jit(rollout_metrics, static_argnames=("controller",))
         compiled = function.lower(*samples[0], gains, controller="admittance").compile()
         compile_s = time.perf_counter() - start
 

@@ -21,13 +21,14 @@ import jax
 
 import spacegrasp_jax as sg
 from benchmarks.dynamics import machine, timed
+from spacegrasp_jax import compilation
 from spacegrasp_jax.control import CONTROLLERS, paper_gains
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
 
 
 def bench_controller(robot, scenario, gains, controller: str, repeats: int) -> dict:
-    function = jax.jit(rollout, static_argnames=("controller",))
+    function = compilation.jit(rollout, static_argnames=("controller",))
     start = time.perf_counter()
     executable = function.lower(robot, scenario, gains, controller=controller).compile()
     compile_s = time.perf_counter() - start

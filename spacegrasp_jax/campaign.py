@@ -35,7 +35,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from spacegrasp_jax import experiment
+from spacegrasp_jax import compilation, experiment
 from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
@@ -220,7 +220,7 @@ def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
         indices = jax.ShapeDtypeStruct((config.chunk,), np.uint32, sharding=NamedSharding(mesh, batched))
         seed = jax.ShapeDtypeStruct((), np.uint32, sharding=NamedSharding(mesh, replicated))
         start = time.perf_counter()
-        executable = jax.jit(sharded).lower(robot, scenario, variant.gains, seed, indices).compile()
+        executable = compilation.jit(sharded).lower(robot, scenario, variant.gains, seed, indices).compile()
         _EXECUTABLES[key] = (executable, time.perf_counter() - start)
     return _EXECUTABLES[key]
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from spacegrasp_jax import metrics
+from spacegrasp_jax import compilation, metrics
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.scenario import Scenario
@@ -72,7 +72,7 @@ def _compiled_rollout(robot, scenario, gains, controller, pinv_damping):
     )
     if key not in _COMPILED:
         start = time.perf_counter()
-        function = jax.jit(rollout, static_argnames=("controller", "pinv_damping"))
+        function = compilation.jit(rollout, static_argnames=("controller", "pinv_damping"))
         executable = function.lower(robot, scenario, gains, controller=controller, pinv_damping=pinv_damping).compile()
         _COMPILED[key] = (executable, time.perf_counter() - start)
     return _COMPILED[key]

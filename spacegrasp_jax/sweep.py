@@ -26,6 +26,7 @@ import jax
 import numpy as np
 from jax.sharding import PartitionSpec
 
+from spacegrasp_jax import compilation
 from spacegrasp_jax.campaign import batch_mesh
 from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import GAIN_SHAPES, Gains
@@ -111,7 +112,7 @@ def _sharded_metrics(controller: str, pinv_damping: float, devices: tuple):
         return jax.vmap(lambda g: rollout_metrics(robot, scenario, g, controller, pinv_damping)[0])(gains)
 
     replicated, batched = PartitionSpec(), PartitionSpec("batch")
-    return jax.jit(jax.shard_map(on_one_device, mesh=mesh, in_specs=(replicated, replicated, batched), out_specs=batched, check_vma=False))
+    return compilation.jit(jax.shard_map(on_one_device, mesh=mesh, in_specs=(replicated, replicated, batched), out_specs=batched, check_vma=False))
 
 
 def evaluate_gains(

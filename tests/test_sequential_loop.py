@@ -17,6 +17,7 @@ import re
 import jax
 import pytest
 
+from spacegrasp_jax import compilation
 from spacegrasp_jax.montecarlo import rollout_metrics
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
@@ -83,7 +84,7 @@ def test_the_hlo_reader_finds_an_oversized_array():
 def test_the_step_loop_holds_no_array_over_512_bytes(robot, gains, controller, program):
     scenario = paper_scenario(robot, duration=0.1)
     function = {"rollout": rollout, "rollout_metrics": rollout_metrics}[program]
-    hlo = jax.jit(function, static_argnames=("controller",)).lower(robot, scenario, gains, controller=controller).compile().as_text()
+    hlo = compilation.jit(function, static_argnames=("controller",)).lower(robot, scenario, gains, controller=controller).compile().as_text()
     instructions, too_big = step_loop_oversized(hlo)
     assert instructions > 300  # the whole step: controller, contact, the RK4 stages
     assert too_big == [], f"{len(too_big)} arrays over {SEQUENTIAL_LIMIT_BYTES} B in the step loop: {too_big[:5]}"

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import experiment, plots
+from spacegrasp_jax import compilation, experiment, plots
 from spacegrasp_jax.control import load_gains, make_gains, paper_gains
 from spacegrasp_jax.model import robot_from_toml
 from spacegrasp_jax.perturbations import sample_scenarios
@@ -88,8 +88,9 @@ def new_record(config: TuneConfig, gains_file, scenario_file, robot_file, holdou
     }
 
 
-@functools.partial(jax.jit, static_argnames=("controller", "objective"))
 def _batch_parts(robot, batch, gains, controller: str, objective: Objective):
+    """Objective parts (and the hard peak |u|) of each scenario of ``batch``, vmapped."""
+
     def one(scenario):
         _, log = rollout(robot, scenario, gains, controller)
         parts = objective_parts(log, objective)
@@ -97,6 +98,11 @@ def _batch_parts(robot, batch, gains, controller: str, objective: Objective):
         return parts
 
     return jax.vmap(one)(batch)
+
+
+@functools.cache
+def _compiled_batch_parts():
+    return compilation.jit(_batch_parts, static_argnames=("controller", "objective"))
 
 
 def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chunk: int = 10) -> dict[str, np.ndarray]:
@@ -109,7 +115,7 @@ def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chu
     for start in range(0, count, chunk):
         indices = np.arange(start, start + chunk) % count  # pad the last chunk: one compile
         batch = jax.tree.map(lambda leaf: leaf[indices], scenarios)
-        parts = jax.tree.map(np.asarray, _batch_parts(robot, batch, gains, controller, objective))
+        parts = jax.tree.map(np.asarray, _compiled_batch_parts()(robot, batch, gains, controller, objective))
         keep = min(chunk, count - start)
         results.append({name: value[:keep] for name, value in parts.items()})
     return {name: np.concatenate([r[name] for r in results]) for name in results[0]}

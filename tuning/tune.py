@@ -24,6 +24,7 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
+from spacegrasp_jax import compilation
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.experiment import StopRequest
 from spacegrasp_jax.model import Robot
@@ -180,7 +181,7 @@ def make_loss(robot: Robot, scenarios: Scenario, base: Gains, mask, config: Tune
 def make_value_and_grad(loss: Callable, params, mode: str):
     """Jitted ``params -> ((loss, aux), gradient)`` by reverse or forward mode."""
     if mode == "reverse":
-        return jax.jit(jax.value_and_grad(loss, has_aux=True))
+        return compilation.jit(jax.value_and_grad(loss, has_aux=True))
     _, unravel = ravel_pytree(params)
 
     def forward(params):
@@ -191,7 +192,7 @@ def make_value_and_grad(loss: Callable, params, mode: str):
         gradient, (value, aux) = jax.jacfwd(flat_loss, has_aux=True)(ravel_pytree(params)[0])
         return (value, aux), unravel(gradient)
 
-    return jax.jit(forward)
+    return compilation.jit(forward)
 
 
 @dataclasses.dataclass
