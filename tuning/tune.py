@@ -129,12 +129,26 @@ def make_optimizer(config: TuneConfig):
 CHECKPOINT_SEGMENT = 8
 
 
+#: The largest batch whose scenarios a gradient on a CPU runs one after another
+#: (``lax.map``), each in XLA's sequential mode, instead of vmapping them (their arrays are
+#: then too large for that mode). Tuning gradient of a 2 s scenario batch, 2-core Xeon
+#: (README, Performance): batch 4 0.90 s one after another, 1.47 s vmapped; batch 8 1.87
+#: against 2.04 s; batch 16 3.73 against 3.03 s.
+SEQUENTIAL_BATCH = 8
+
+
+def batch_in_sequence(batch: int) -> bool:
+    """Whether the loss runs its ``batch`` scenarios one after another rather than vmapped:
+    one scenario, or up to :data:`SEQUENTIAL_BATCH` on a CPU (a GPU always vmaps)."""
+    return batch == 1 or (batch <= SEQUENTIAL_BATCH and jax.default_backend() == "cpu")
+
+
 def checkpoint_segment(n_steps: int, batch: int = 1) -> int:
     """Steps per inner scan for a gradient over ``batch`` scenarios: the largest divisor of
-    ``n_steps`` up to :data:`CHECKPOINT_SEGMENT` for one scenario; 1 for a vmapped batch,
-    whose arrays are too large for the sequential mode anyway (batch of 4, 2 s: 1.91 s
-    against 2.0 s with 8 steps)."""
-    if batch > 1:
+    ``n_steps`` up to :data:`CHECKPOINT_SEGMENT` when the scenarios run one after another
+    (:func:`batch_in_sequence`); 1 for a vmapped batch, whose arrays are too large for the
+    sequential mode anyway (batch of 4, 2 s: 1.91 s against 2.0 s with 8 steps)."""
+    if not batch_in_sequence(batch):
         return 1
     return largest_divisor(n_steps, CHECKPOINT_SEGMENT)
 
@@ -150,7 +164,8 @@ def training_scenarios(nominal: Scenario, config: TuneConfig) -> Scenario:
 
 def make_loss(robot: Robot, scenarios: Scenario, base: Gains, mask, config: TuneConfig, objective: Objective, segment: int | None):
     """``loss(params) -> (loss, aux)``: the batch mean (or CVaR) of the objective, and the
-    batch-mean parts plus the worst hard peak torque (N m) for the divergence guard."""
+    batch-mean parts plus the worst hard peak torque (N m) for the divergence guard. The
+    scenarios run one after another or vmapped, as :func:`batch_in_sequence` says."""
 
     def loss(params):
         gains = gains_from_params(params, base, mask)
@@ -161,8 +176,11 @@ def make_loss(robot: Robot, scenarios: Scenario, base: Gains, mask, config: Tune
             parts["peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
             return parts
 
-        if jax.tree.leaves(scenarios)[0].shape[0] == 1:  # one scenario: the unbatched program
+        count = jax.tree.leaves(scenarios)[0].shape[0]
+        if count == 1:  # one scenario: the unbatched program
             parts = jax.tree.map(lambda x: x[None], one(jax.tree.map(lambda x: x[0], scenarios)))
+        elif batch_in_sequence(count):
+            parts = jax.lax.map(one, scenarios)
         else:
             parts = jax.vmap(one)(scenarios)
         losses = parts["loss"]
