@@ -92,10 +92,10 @@ def rk4_step(
     Stages 2-4 are one ``lax.scan`` over their coefficients, its body under
     ``jax.checkpoint``: the compiled step holds one copy of ``derivative`` for them instead
     of three, and its derivative one copy of the stage's adjoint. XLA's CPU runtime pays
-    for every distinct kernel of a loop body (instruction cache): with three copies one
-    reverse-mode gradient took 1.3x as long (README, Performance). The checkpoint keeps
-    the loop's saved values to the stage's input state, so the backward loop's buffers stay
-    as small as the forward step's.
+    for every distinct kernel of a loop body: with three copies a reverse-mode gradient
+    took 1.3x to 1.7x as long (README, Performance). The checkpoint limits what the loop
+    saves to the stage's input state, so the backward loop's arrays stay within 64
+    numbers, like the forward step's.
     """
 
     def advance(base, rate, h):
