@@ -27,7 +27,7 @@ def compiler_options() -> dict[str, Any]:
     probe compiles a scalar program, so it initialises the JAX backend)."""
     try:
         jax.jit(lambda x: x + 1.0, compiler_options=CPU_OPTIONS).lower(0.0).compile()
-    except jax.errors.JaxRuntimeError:
+    except (jax.errors.JaxRuntimeError, TypeError):  # unknown option; a jit without the argument
         return {}
     return dict(CPU_OPTIONS)
 
@@ -36,4 +36,5 @@ def jit(fun: Callable, **jit_kwargs) -> Callable:
     """``jax.jit(fun, **jit_kwargs)`` compiled with :func:`compiler_options`. Call it when
     the program is about to be compiled, not at import: the options' probe initialises the
     JAX backend (``campaign.use_all_cpu_cores`` must come before that)."""
-    return jax.jit(fun, compiler_options=compiler_options(), **jit_kwargs)
+    options = compiler_options()
+    return jax.jit(fun, compiler_options=options, **jit_kwargs) if options else jax.jit(fun, **jit_kwargs)
