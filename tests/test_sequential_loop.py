@@ -4,8 +4,9 @@ XLA:CPU executes a loop body as a task graph on its thread pool unless every buf
 body's kernels use is at most 512 bytes (64 float64 numbers; the threshold is fixed in
 ``CpuExecutable``, ``ThunkExecutor::Options::execute_sequential_buffer_threshold``). The
 task graph cost about half of a single rollout's time (README, Performance). These tests
-compile the single-rollout programs and read the optimised HLO: no array produced in the
-loop that runs the steps may exceed 512 bytes. They fail when a change brings back a large
+compile the single-rollout programs and the one-scenario tuning gradient and read the
+optimised HLO: no array produced in the loops that run the steps (and RK4's stage loops
+inside them) may exceed 512 bytes. They fail when a change brings back a large
 array (a 13x13 mass matrix, a stacked (8, 3, 3) rotation, a scanned-over time vector).
 """
 
@@ -88,3 +89,27 @@ def test_the_step_loop_holds_no_array_over_512_bytes(robot, gains, controller, p
     instructions, too_big = step_loop_oversized(hlo)
     assert instructions > 300  # the whole step: controller, contact, the RK4 stages
     assert too_big == [], f"{len(too_big)} arrays over {SEQUENTIAL_LIMIT_BYTES} B in the step loop: {too_big[:5]}"
+
+
+def test_the_gradient_step_loops_hold_no_array_over_512_bytes(robot, gains):
+    # The one-scenario tuning gradient: its loops over the steps (forward and backward) and the
+    # RK4 stage loops inside them must stay sequential. The outermost loops, over 8-step
+    # blocks, hold the tape and are exempt. Without jax.checkpoint on RK4's stage loop, the
+    # backward loops hold the stages' stacked residuals and this fails.
+    from tuning.objective import Objective, Weights
+    from tuning.parameters import initial_params, make_mask
+    from tuning.tune import TuneConfig, checkpoint_segment, make_loss, make_value_and_grad, training_scenarios
+
+    scenario = paper_scenario(robot, contact_law="smooth", duration=0.1)
+    config = TuneConfig(batch=1)
+    objective = Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 7)
+    loss = make_loss(robot, training_scenarios(scenario, config), gains, make_mask(gains, "admittance"), config,
+                     objective, checkpoint_segment(scenario.n_steps))
+    params = initial_params(gains, "admittance")
+    hlo = make_value_and_grad(loss, params, "reverse").lower(params).compile().as_text()
+    bodies = computations(hlo)
+    nested = {inner for body in set(re.findall(r"body=(%[\w.\-]+)", hlo)) for inner in loops_within(body, bodies)}
+    assert len(nested) >= 4  # forward and backward: the step loops and the stage loops in them
+    lines = [line for body in nested for line in bodies[body]]
+    too_big = [line.strip()[:160] for line in lines if any(size > SEQUENTIAL_LIMIT_BYTES for size in array_bytes(line))]
+    assert too_big == [], f"{len(too_big)} arrays over {SEQUENTIAL_LIMIT_BYTES} B in the gradient's step loops: {too_big[:5]}"
