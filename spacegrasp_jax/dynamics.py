@@ -27,10 +27,11 @@ import itertools
 
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
 from spacegrasp_jax import spatial
 from spacegrasp_jax.kinematics import N_DOF, body_com_positions, forward_kinematics, point_jacobian_blocks
-from spacegrasp_jax.linalg import solve_spd
+from spacegrasp_jax.linalg import cho_solve, cholesky, solve_spd
 from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
 from spacegrasp_jax.spatial import cross
 
@@ -155,32 +156,54 @@ def mass_matrix_from_frames(robot: Robot, frames) -> jax.Array:
 def bias_from_frames(robot: Robot, frames, V_base, qd) -> jax.Array:
     """Bias forces (13,) by Newton-Euler with zero generalised acceleration, from
     :func:`frames_at_base`."""
+    return _newton_euler(robot, frames, V_base, qd, None)
+
+
+def inverse_dynamics_from_frames(robot: Robot, frames, V_base, qd, xdd) -> jax.Array:
+    """Generalised force ``Q = M xdd + bias`` (13,) by Newton-Euler (RNEA), from
+    :func:`frames_at_base`; ``xdd`` (13,) ``[dv_s/dt, dw_s/dt, qdd]``, inertial frame."""
+    return _newton_euler(robot, frames, V_base, qd, xdd)
+
+
+def _newton_euler(robot: Robot, frames, V_base, qd, xdd) -> jax.Array:
+    """``M xdd + bias`` (13,), or ``bias`` alone when ``xdd`` is None."""
     mass, moment, inertia = _link_inertias(robot, frames)
     v_s, w_s = jnp.split(V_base, 2)
     S_w, S_v = _joint_axes(frames)
     # Link velocities: the satellite's plus the joint rates up the chain.
     w_chain, v_chain = _chain_sums(S_w * qd[:, None], S_v * qd[:, None])
     w, v = w_s + w_chain, v_s + v_chain
-    # Velocity-product accelerations. The satellite's spatial acceleration at zero
-    # generalised acceleration is (0, -w_s x v_s), since v_s is its CoM's classical
-    # velocity; each joint adds (v_j x S_j) qd_j, the rate of change of its moving axis.
+    # Link accelerations. Each joint adds S_j qdd_j and (v_j x S_j) qd_j, the rate of
+    # change of its moving axis. The satellite's spatial acceleration is
+    # (dw_s/dt, dv_s/dt - w_s x v_s), since v_s is its CoM's classical velocity.
     dS_w = cross(w, S_w)
     dS_v = cross(w, S_v) + cross(v, S_w)
-    a_w, a_v_chain = _chain_sums(dS_w * qd[:, None], dS_v * qd[:, None])
+    joint_w, joint_v = dS_w * qd[:, None], dS_v * qd[:, None]
+    if xdd is not None:
+        dv_s, dw_s, qdd = jnp.split(xdd, [3, 6])
+        joint_w, joint_v = joint_w + S_w * qdd[:, None], joint_v + S_v * qdd[:, None]
+    a_w, a_v_chain = _chain_sums(joint_w, joint_v)
     a_v = -cross(w_s, v_s) + a_v_chain
+    if xdd is not None:
+        a_w, a_v = dw_s + a_w, dv_s + a_v
     # Newton-Euler per link: f = I a + v x* (I v), with (w, v) x* (n, f) = (w x n + v x f, w x f).
     inertial_n, inertial_f = _apply_inertia(mass, moment, inertia, a_w, a_v)
     momentum_n, momentum_f = _apply_inertia(mass, moment, inertia, w, v)
     f_n = inertial_n + cross(w, momentum_n) + cross(v, momentum_f)
     f_f = inertial_f + cross(w, momentum_f)
-    # The satellite, about its own CoM (zero first moment), with acceleration (0, -w_s x v_s):
-    # f = m (-w_s x v_s) + w_s x (m v_s) = 0 and n = w_s x (I_s w_s) + v_s x (m v_s) = w_s x I_s w_s.
-    satellite_n = cross(w_s, spatial.matvec(_satellite_inertia(robot, frames), w_s))
+    # The satellite, about its own CoM (zero first moment), with acceleration
+    # (dw_s/dt, dv_s/dt - w_s x v_s): f = m dv_s/dt (the -m w_s x v_s cancels the velocity
+    # term w_s x m v_s) and n = I_s dw_s/dt + w_s x I_s w_s (v_s x m v_s = 0).
+    I_s = _satellite_inertia(robot, frames)
+    satellite_n = cross(w_s, spatial.matvec(I_s, w_s))
+    if xdd is not None:
+        satellite_n = satellite_n + spatial.matvec(I_s, dw_s)
     # Backward pass: each joint carries the load of its subtree.
     sub_n, sub_f = _subtree_sums(f_n, f_f)
     joints = jnp.sum(S_w * sub_n, axis=-1) + jnp.sum(S_v * sub_f, axis=-1)
     # The satellite carries every link's load: the sums over all links.
-    return jnp.concatenate([jnp.sum(f_f, axis=0), satellite_n + jnp.sum(f_n, axis=0), joints])
+    force = jnp.sum(f_f, axis=0) if xdd is None else robot.satellite_mass * dv_s + jnp.sum(f_f, axis=0)
+    return jnp.concatenate([force, satellite_n + jnp.sum(f_n, axis=0), joints])
 
 
 def solve_base(m, h, I_O, rhs: jax.Array) -> jax.Array:
@@ -215,10 +238,87 @@ def solve_mass_blocks(base, M_coupling, M_joints, base_per_joint, rhs) -> jax.Ar
     accelerations from the Schur complement ``M_joints - M_coupling^T M_base^-1 M_coupling``
     (7, 7), symmetric positive definite, by Cholesky, then the satellite's."""
     schur = M_joints - spatial.matmul(M_coupling.T, base_per_joint)
+    return _solve_blocks(base, M_coupling, base_per_joint, rhs, lambda b: solve_spd(schur, b))
+
+
+def _solve_blocks(base, M_coupling, base_per_joint, rhs, solve_schur, matvec=spatial.matvec) -> jax.Array:
     rhs_base, rhs_joints = jnp.split(rhs, [6])
     y = solve_base(*base, rhs_base)
-    qdd = solve_spd(schur, rhs_joints - spatial.matvec(M_coupling.T, y))
-    return jnp.concatenate([y - spatial.matvec(base_per_joint, qdd), qdd])
+    qdd = solve_schur(rhs_joints - matvec(M_coupling.T, y))
+    return jnp.concatenate([y - matvec(base_per_joint, qdd), qdd])
+
+
+def _linear_matvec(A: jax.Array, x: jax.Array) -> jax.Array:
+    # A @ x (m, n) (n,) as a product and a sum, for tangents: unlike spatial.matvec, whose
+    # vmap rule autodiff cannot transpose, it is linear in x to JAX.
+    return jnp.sum(A * x[None, :], axis=-1)
+
+
+def mass_blocks_from_frames(robot: Robot, frames):
+    """The mass matrix's blocks as the solves use them, from :func:`frames_at_base`:
+    ``((m, h, I_O), M_coupling, M_joints, base_per_joint)``, the parts of
+    :func:`mass_matrix_parts_from_frames` and ``base_per_joint = M_base^-1 M_coupling``
+    (6, 7) (:func:`solve_base`)."""
+    m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
+    return (m, h, I_O), M_coupling, M_joints, solve_base(m, h, I_O, M_coupling)
+
+
+def forward_dynamics_from_frames(robot: Robot, frames, V_base, qd, Q, mass_blocks=None) -> jax.Array:
+    """Generalised acceleration ``xdd = M^-1 (Q - bias)`` (13,) from :func:`frames_at_base`,
+    by composite rigid bodies and the block elimination of :func:`solve_mass_blocks`.
+
+    ``mass_blocks``, if given, must be ``mass_blocks_from_frames(robot, frames)``, computed
+    by a caller that needs it too (the closed loop's controller). Derivatives do not flow
+    through it but through ``frames``.
+
+    The derivative is that of inverse dynamics, not of the solve: differentiating
+    ``M(x) xdd + bias(x, x_v) = Q`` at the solution gives
+    ``d xdd = M^-1 (dQ - d[M xdd + bias]|xdd held)``, the bracket being Newton-Euler
+    (:func:`inverse_dynamics_from_frames`) at fixed ``xdd`` (as Carpentier and Mansard,
+    RSS 2018, for Pinocchio). Neither autodiff mode goes through the composite inertias,
+    the Schur complement or its factorisation, and the tangent's solve reuses the factor.
+    """
+    if mass_blocks is None:
+        mass_blocks = mass_blocks_from_frames(robot, frames)
+    return _forward_dynamics(robot, frames, V_base, qd, Q, mass_blocks)
+
+
+@jax.custom_jvp
+def _forward_dynamics(robot, frames, V_base, qd, Q, mass_blocks):
+    return solve_mass_blocks(*mass_blocks, Q - bias_from_frames(robot, frames, V_base, qd))
+
+
+@functools.partial(_forward_dynamics.defjvp, symbolic_zeros=True)
+def _forward_dynamics_jvp(primals, tangents):
+    robot, frames, V_base, qd, Q, (base, M_coupling, M_joints, base_per_joint) = primals
+    L = cholesky(M_joints - spatial.matmul(M_coupling.T, base_per_joint))
+    blocks = (base, M_coupling, base_per_joint)
+    xdd = _solve_blocks(*blocks, Q - bias_from_frames(robot, frames, V_base, qd), lambda b: cho_solve(L, b))
+
+    # d[M xdd + bias] with xdd held, over the inputs that carry a tangent (the mass
+    # blocks' tangent is ignored: they are functions of the frames).
+    is_zero = lambda t: isinstance(t, SymbolicZero)  # noqa: E731
+    inputs, structure = jax.tree.flatten(primals[:4])
+    input_tangents = jax.tree.leaves(tangents[:4], is_leaf=is_zero)
+    active = [i for i, t in enumerate(input_tangents) if not is_zero(t)]
+
+    def newton_euler_at(*active_inputs):
+        leaves = list(inputs)
+        for i, x in zip(active, active_inputs):
+            leaves[i] = x
+        return inverse_dynamics_from_frames(*jax.tree.unflatten(structure, leaves), xdd)
+
+    rhs_dot = jnp.zeros_like(xdd) if is_zero(tangents[4]) else tangents[4]
+    if active:
+        _, id_dot = jax.jvp(newton_euler_at, [inputs[i] for i in active], [input_tangents[i] for i in active])
+        rhs_dot = rhs_dot - id_dot
+    return xdd, _solve_blocks(*blocks, rhs_dot, lambda b: _cho_solve_linear(L, b), _linear_matvec)
+
+
+def _cho_solve_linear(L: jax.Array, b: jax.Array) -> jax.Array:
+    """``(L L^T)^-1 b`` (n,) by two triangular solves, which autodiff can transpose."""
+    y = jax.lax.linalg.triangular_solve(L, b[:, None], left_side=True, lower=True)
+    return jax.lax.linalg.triangular_solve(L, y, left_side=True, lower=True, transpose_a=True)[:, 0]
 
 
 def mass_matrix(robot: Robot, R_base: jax.Array, q: jax.Array) -> jax.Array:
@@ -262,10 +362,15 @@ def forward_dynamics(robot: Robot, R_base, q, V_base, qd, Q) -> jax.Array:
     Returns:
         (13,) ``[dv_s/dt (m/s^2), dw_s/dt (rad/s^2), qdd (rad/s^2)]``, inertial frame.
     """
-    frames = frames_at_base(robot, R_base, q)
-    m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
-    base_per_joint = solve_base(m, h, I_O, M_coupling)
-    return solve_mass_blocks((m, h, I_O), M_coupling, M_joints, base_per_joint, Q - bias_from_frames(robot, frames, V_base, qd))
+    return forward_dynamics_from_frames(robot, frames_at_base(robot, R_base, q), V_base, qd, Q)
+
+
+def inverse_dynamics(robot: Robot, R_base, q, V_base, qd, xdd) -> jax.Array:
+    """Generalised force ``Q = M xdd + bias`` (13,) ``[f_s (N), tau_s (N m), u (N m)]``
+    that gives the acceleration ``xdd`` (13,) ``[dv_s/dt, dw_s/dt, qdd]`` (inertial frame),
+    by recursive Newton-Euler; the inverse of :func:`forward_dynamics`. Other arguments as
+    :func:`bias_forces`."""
+    return inverse_dynamics_from_frames(robot, frames_at_base(robot, R_base, q), V_base, qd, xdd)
 
 
 def kinetic_energy(robot: Robot, R_base, q, V_base, qd) -> jax.Array:
@@ -354,7 +459,11 @@ __all__ = [
     "dynamic_jacobian",
     "dynamic_jacobian_ee",
     "dynamic_jacobian_from_parts",
+    "forward_dynamics_from_frames",
     "frames_at_base",
+    "inverse_dynamics",
+    "inverse_dynamics_from_frames",
+    "mass_blocks_from_frames",
     "mass_matrix_from_frames",
     "forward_dynamics",
     "kinetic_energy",

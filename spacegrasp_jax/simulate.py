@@ -29,12 +29,11 @@ from spacegrasp_jax.control import CONTROLLERS, admittance, cartesian
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.pid import PIDState, pid_init, pid_torque
 from spacegrasp_jax.dynamics import (
-    bias_from_frames,
     dynamic_jacobian_from_parts,
+    forward_dynamics_from_frames,
     frames_at_base,
     mass_matrix_parts_from_frames,
     solve_base,
-    solve_mass_blocks,
 )
 from spacegrasp_jax.integrator import PlantState, rk4_step, state_rate
 from spacegrasp_jax.kinematics import Frames, point_jacobian_blocks
@@ -168,8 +167,8 @@ def plant_rate(robot: Robot, scenario: Scenario, state: PlantState, kinematics: 
     force = spatial.matvec(scenario.R_lar, k.contact_force_lar)
     # The contact force acts at the EE point: generalised force J_point^T [f; 0].
     Q = jnp.concatenate([force, spatial.cross(k.frames.p_ee, force), spatial.matvec(jnp.split(k.J_joints, 2)[0].T, force) + u])
-    bias = bias_from_frames(robot, k.frames, state.V_base, state.qd)
-    return state_rate(state, solve_mass_blocks(k.base, k.M_coupling, k.M_joints, k.base_per_joint, Q - bias))
+    mass_blocks = (k.base, k.M_coupling, k.M_joints, k.base_per_joint)
+    return state_rate(state, forward_dynamics_from_frames(robot, k.frames, state.V_base, state.qd, Q, mass_blocks))
 
 
 def plant_derivative(robot: Robot, scenario: Scenario, state: PlantState, u: jax.Array) -> PlantState:

@@ -33,6 +33,7 @@ def jitted():
         "mass_matrix": jax.jit(sg.mass_matrix),
         "bias_forces": jax.jit(sg.bias_forces),
         "forward_dynamics": jax.jit(sg.forward_dynamics),
+        "inverse_dynamics": jax.jit(sg.inverse_dynamics),
         "dynamic_jacobian": jax.jit(sg.dynamic_jacobian),
         "dynamic_jacobian_ee": jax.jit(sg.dynamic_jacobian_ee),
         "system_momentum": jax.jit(sg.system_momentum),
@@ -75,6 +76,49 @@ def test_forward_dynamics_matches_pinocchio_aba(robot, random_states, pinocchio_
         expected = T.T @ (a_pin - ref.frame_acceleration_offset(state.R_base, state.V_base))
         actual = jitted["forward_dynamics"](robot, state.R_base, state.q, state.V_base, state.qd, Q)
         assert relative_error(actual, expected) <= RTOL
+
+
+def test_inverse_dynamics_matches_pinocchio_rnea(robot, random_states, pinocchio_model, jitted):
+    model, data, _ = pinocchio_model
+    rng = np.random.default_rng(5)
+    for state in random_states:
+        xdd = np.concatenate([rng.normal(scale=0.5, size=6), rng.normal(scale=2.0, size=7)])
+        T = ref.velocity_map(state.R_base)
+        qp = ref.configuration(state.p_base, state.R_base, state.q)
+        v_pin = T @ np.concatenate([state.V_base, state.qd])
+        a_pin = T @ xdd + ref.frame_acceleration_offset(state.R_base, state.V_base)
+        expected = T.T @ pin.rnea(model, data, qp, v_pin, a_pin)
+        actual = jitted["inverse_dynamics"](robot, state.R_base, state.q, state.V_base, state.qd, xdd)
+        assert relative_error(actual, expected) <= RTOL
+
+
+def test_forward_dynamics_derivatives_match_the_solve(robot, random_states):
+    """forward_dynamics is differentiated through inverse dynamics (its own rule); both
+    autodiff modes must agree with autodiff of ``M^-1 (Q - bias)`` written with a dense
+    13x13 solve, for every argument, the robot's masses included."""
+    Q = np.linspace(-2.0, 2.0, 13)
+
+    def dense(robot, R_base, q, V_base, qd, Q):
+        M = sg.mass_matrix(robot, R_base, q)
+        return jnp.linalg.solve(M, Q - sg.bias_forces(robot, R_base, q, V_base, qd))
+
+    def with_masses(function):
+        def at(satellite_mass, link_mass, R_base, q, V_base, qd, Q):
+            perturbed = sg.Robot(**{**vars(robot), "satellite_mass": satellite_mass, "link_mass": link_mass})
+            return function(perturbed, R_base, q, V_base, qd, Q)
+
+        return at
+
+    argnums = tuple(range(7))
+    ours_fwd = jax.jit(jax.jacfwd(with_masses(sg.forward_dynamics), argnums=argnums))
+    ours_rev = jax.jit(jax.jacrev(with_masses(sg.forward_dynamics), argnums=argnums))
+    reference = jax.jit(jax.jacfwd(with_masses(dense), argnums=argnums))
+    for state in random_states[:4]:
+        arguments = (robot.satellite_mass, robot.link_mass, state.R_base, state.q, state.V_base, state.qd, Q)
+        expected = reference(*arguments)
+        for got in (ours_fwd(*arguments), ours_rev(*arguments)):
+            for g, e in zip(got, expected):
+                assert relative_error(g, e) <= 1e-9
 
 
 def test_momentum_matches_pinocchio(robot, random_states, pinocchio_model, jitted):
@@ -167,6 +211,7 @@ API_CASES = {
     "mass_matrix": (sg.mass_matrix, ("R_base", "q")),
     "bias_forces": (sg.bias_forces, ("R_base", "q", "V_base", "qd")),
     "forward_dynamics": (sg.forward_dynamics, ("R_base", "q", "V_base", "qd", "Q")),
+    "inverse_dynamics": (sg.inverse_dynamics, ("R_base", "q", "V_base", "qd", "Q")),
     "ee_pose": (sg.ee_pose, ("p_base", "R_base", "q")),
     "dynamic_jacobian": (sg.dynamic_jacobian, ("R_base", "q")),
     "dynamic_jacobian_ee": (sg.dynamic_jacobian_ee, ("R_base", "q")),
