@@ -12,7 +12,8 @@ coordinates a joint's motion axis ``S_j = (z_j, o_j x z_j)`` needs no transform 
 bodies, so the RNEA velocity and velocity-product acceleration passes are cumulative sums
 over the joints and the composite inertias a reverse cumulative sum: apart from the 7
 products of the kinematic chain nothing is sequential, which suits jit, vmap and GPUs.
-``M`` (13, 13) is then factorised by Cholesky.
+The accelerations come by block elimination on ``M``'s satellite and joint blocks.
+Their derivative is that of inverse dynamics (:func:`forward_dynamics_from_frames`).
 
 Spatial vectors are pairs of 3-vectors ``(angular, linear)``: a motion ``(w, v)`` with ``v``
 the velocity of the body point at the satellite CoM; a force ``(n, f)`` with ``n`` the moment
