@@ -326,7 +326,9 @@ def rollout(
     if checkpoint_segment is None:
         block, block_step = largest_divisor(n_steps, LOG_BLOCK), step
     else:
-        block, block_step = checkpoint_segment, jax.checkpoint(step)
+        # Inside the inner scan no CSE can undo the checkpoint; without the optimisation
+        # barriers of the default prevent_cse=True, XLA fuses more (integrator.rk4_step).
+        block, block_step = checkpoint_segment, jax.checkpoint(step, prevent_cse=False)
     # Blocks of a few steps, each an inner scan whose buffers (log rows, saved states) stay
     # within 64 numbers a field: XLA's CPU runtime runs that inner loop's kernels in
     # sequence, where a loop that writes into the whole log runs as a task graph (README,
