@@ -258,24 +258,34 @@ def control_step(
     return u, ControllerState(V_ref=V_ref_next, pid=pid), row
 
 
-def closed_loop_step(robot: Robot, scenario: Scenario, gains: Gains, controller: str, pinv_damping: float = 0.0):
+def closed_loop_step(
+    robot: Robot, scenario: Scenario, gains: Gains, controller: str, pinv_damping: float = 0.0, checkpoint: bool = False
+):
     """The scan body ``step(state: SimState, k) -> (next SimState, Log row)`` for step
     number ``k`` (a float, t = k dt): one controller update, then one RK4 step of the plant
-    under the held torques. Arguments as :func:`rollout`."""
+    under the held torques. Arguments as :func:`rollout`.
+
+    ``checkpoint``: put the controller update and RK4's first stage under
+    ``jax.checkpoint`` (RK4's later stages always are, one by one: ``integrator.rk4_step``).
+    A reverse-mode gradient then keeps, per step, the state and the rates RK4's stages
+    start from, and recomputes each part just before differentiating it."""
     if controller not in CONTROLLERS:
         raise ValueError(f"controller: expected one of {CONTROLLERS}, got {controller!r}")
 
-    def step(state: SimState, k):
-        t = k * scenario.dt
+    def control_and_first_rate(state: SimState, t):
         # The controller reads the state RK4's first stage starts from: share the kinematics.
         kinematics = plant_kinematics(robot, scenario, state.plant)
         u, controller_state, row = control_step(robot, scenario, gains, controller, state, t, pinv_damping, kinematics)
-        plant = rk4_step(
-            lambda s: plant_derivative(robot, scenario, s, u),
-            state.plant,
-            scenario.dt,
-            rate_at_start=plant_rate(robot, scenario, state.plant, kinematics, u),
-        )
+        return u, controller_state, row, plant_rate(robot, scenario, state.plant, kinematics, u)
+
+    if checkpoint:
+        # Inside a scan no CSE can undo the checkpoint; without the optimisation barriers of
+        # the default prevent_cse=True, XLA fuses more (integrator.rk4_step).
+        control_and_first_rate = jax.checkpoint(control_and_first_rate, prevent_cse=False)
+
+    def step(state: SimState, k):
+        u, controller_state, row, k1 = control_and_first_rate(state, k * scenario.dt)
+        plant = rk4_step(lambda s: plant_derivative(robot, scenario, s, u), state.plant, scenario.dt, rate_at_start=k1)
         return SimState(plant=plant, controller=controller_state), row
 
     return step
@@ -307,11 +317,13 @@ def rollout(
         pinv_damping: 0 for the exact pseudoinverse (the paper), > 0 for damped least
             squares; static.
         checkpoint_segment: for reverse-mode gradients, the number of steps per inner
-            scan (static; must divide ``n_steps``), each step under ``jax.checkpoint``: the
-            tape holds one state per step (47 numbers: 6.4 MB for 17,000 steps) instead
-            of every intermediate of every step, and the backward pass recomputes each step
-            just before differentiating it. Inner scans of 8 steps hold no array over 64
-            numbers, so XLA's CPU runtime runs them in sequence (README, Performance).
+            scan (static; must divide ``n_steps``), each step's parts under
+            ``jax.checkpoint`` (:func:`closed_loop_step`): the tape holds, per step, the
+            state and the rates RK4's stages start from instead of every intermediate of
+            every step, and the backward pass recomputes each part just before
+            differentiating it. A stage's rate is at most 7 numbers a field, so the three
+            of one step are (3, 7) and inner scans of 2 steps hold no array over 64
+            numbers: XLA's CPU runtime runs them in sequence (README, Performance).
             ``None``: blocks of :data:`LOG_BLOCK` steps, nothing checkpointed.
 
     Returns:
@@ -322,19 +334,14 @@ def rollout(
     n_steps = scenario.n_steps
     if checkpoint_segment is not None and (checkpoint_segment < 1 or n_steps % checkpoint_segment):
         raise ValueError(f"checkpoint_segment: {checkpoint_segment} must be a positive divisor of the {n_steps} steps")
-    step = closed_loop_step(robot, scenario, gains, controller, pinv_damping)
-    if checkpoint_segment is None:
-        block, block_step = largest_divisor(n_steps, LOG_BLOCK), step
-    else:
-        # Inside the inner scan no CSE can undo the checkpoint; without the optimisation
-        # barriers of the default prevent_cse=True, XLA fuses more (integrator.rk4_step).
-        block, block_step = checkpoint_segment, jax.checkpoint(step, prevent_cse=False)
+    step = closed_loop_step(robot, scenario, gains, controller, pinv_damping, checkpoint=checkpoint_segment is not None)
+    block = largest_divisor(n_steps, LOG_BLOCK) if checkpoint_segment is None else checkpoint_segment
     # Blocks of a few steps, each an inner scan whose buffers (log rows, saved states) stay
     # within 64 numbers a field: XLA's CPU runtime runs that inner loop's kernels in
     # sequence, where a loop that writes into the whole log runs as a task graph (README,
     # Performance).
     steps = jnp.arange(n_steps, dtype=scenario.initial.q.dtype).reshape(-1, block)
-    final, rows = jax.lax.scan(lambda s, ks: jax.lax.scan(block_step, s, ks), initial_state(scenario), steps)
+    final, rows = jax.lax.scan(lambda s, ks: jax.lax.scan(step, s, ks), initial_state(scenario), steps)
     return final, jax.tree.map(lambda x: x.reshape((n_steps,) + x.shape[2:]), rows)
 
 
