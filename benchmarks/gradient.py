@@ -4,8 +4,9 @@
 
 Modes, each in its own process so that peak memory is its own:
 * ``forward``: the objective alone (one rollout of the 17 s paper scenario, smooth contact);
-* ``reverse_checkpointed``: ``jax.value_and_grad`` with every step under ``jax.checkpoint``,
-  in inner scans of 8 steps (``tuning.tune.checkpoint_segment``, the tuning default);
+* ``reverse_checkpointed``: ``jax.value_and_grad`` with each step's parts under
+  ``jax.checkpoint``, in inner scans of 2 steps (``tuning.tune.checkpoint_segment``, the
+  tuning default);
 * ``reverse_plain``: ``jax.value_and_grad`` through one plain scan;
 * ``forward_mode``: ``jax.jacfwd`` over the 39 admittance log-gains.
 Reports wall time after compilation (median of ``--repeats``), its ratio to ``forward``,
