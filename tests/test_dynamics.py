@@ -27,6 +27,13 @@ def pin_mass_matrix(model, data, state):
     return np.triu(M) + np.triu(M, 1).T  # crba fills the upper triangle
 
 
+def pin_state(state):
+    """``(T, configuration, velocity)`` of ``state`` in Pinocchio's conventions, with
+    ``v_pin = T x_v`` (``ref.velocity_map``)."""
+    T = ref.velocity_map(state.R_base)
+    return T, ref.configuration(state.p_base, state.R_base, state.q), T @ np.concatenate([state.V_base, state.qd])
+
+
 @pytest.fixture(scope="module")
 def jitted():
     return {
@@ -53,9 +60,7 @@ def test_mass_matrix_matches_pinocchio(robot, random_states, pinocchio_model, ji
 def test_bias_forces_match_pinocchio(robot, random_states, pinocchio_model, jitted):
     model, data, _ = pinocchio_model
     for state in random_states:
-        T = ref.velocity_map(state.R_base)
-        qp = ref.configuration(state.p_base, state.R_base, state.q)
-        v_pin = T @ np.concatenate([state.V_base, state.qd])
+        T, qp, v_pin = pin_state(state)
         nle = pin.nonLinearEffects(model, data, qp, v_pin)
         # tau_pin = M_pin (T xdot_v + c) + nle and Q = T^T tau_pin.
         c = ref.frame_acceleration_offset(state.R_base, state.V_base)
@@ -69,9 +74,7 @@ def test_forward_dynamics_matches_pinocchio_aba(robot, random_states, pinocchio_
     rng = np.random.default_rng(7)
     for state in random_states:
         Q = np.concatenate([rng.normal(scale=5.0, size=6), rng.normal(scale=2.0, size=7)])
-        T = ref.velocity_map(state.R_base)
-        qp = ref.configuration(state.p_base, state.R_base, state.q)
-        v_pin = T @ np.concatenate([state.V_base, state.qd])
+        T, qp, v_pin = pin_state(state)
         a_pin = pin.aba(model, data, qp, v_pin, T @ Q)
         expected = T.T @ (a_pin - ref.frame_acceleration_offset(state.R_base, state.V_base))
         actual = jitted["forward_dynamics"](robot, state.R_base, state.q, state.V_base, state.qd, Q)
@@ -83,9 +86,7 @@ def test_inverse_dynamics_matches_pinocchio_rnea(robot, random_states, pinocchio
     rng = np.random.default_rng(5)
     for state in random_states:
         xdd = np.concatenate([rng.normal(scale=0.5, size=6), rng.normal(scale=2.0, size=7)])
-        T = ref.velocity_map(state.R_base)
-        qp = ref.configuration(state.p_base, state.R_base, state.q)
-        v_pin = T @ np.concatenate([state.V_base, state.qd])
+        T, qp, v_pin = pin_state(state)
         a_pin = T @ xdd + ref.frame_acceleration_offset(state.R_base, state.V_base)
         expected = T.T @ pin.rnea(model, data, qp, v_pin, a_pin)
         actual = jitted["inverse_dynamics"](robot, state.R_base, state.q, state.V_base, state.qd, xdd)
@@ -124,9 +125,7 @@ def test_forward_dynamics_derivatives_match_the_solve(robot, random_states):
 def test_momentum_matches_pinocchio(robot, random_states, pinocchio_model, jitted):
     model, data, _ = pinocchio_model
     for state in random_states:
-        T = ref.velocity_map(state.R_base)
-        qp = ref.configuration(state.p_base, state.R_base, state.q)
-        v_pin = T @ np.concatenate([state.V_base, state.qd])
+        T, qp, v_pin = pin_state(state)
         h_com = pin.computeCentroidalMomentum(model, data, qp, v_pin)  # about the system CoM
         linear = h_com.linear
         angular_origin = h_com.angular + np.cross(data.com[0], linear)
