@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import spacegrasp_jax as sg
+from spacegrasp_jax import compilation
 
 
 def machine() -> dict:
@@ -43,6 +44,7 @@ def machine() -> dict:
         "backend": jax.default_backend(),
         "jax": jax.__version__,
         "python": platform.python_version(),
+        "loops_compiled_whole": compilation.loops_compile_whole(),
     }
 
 

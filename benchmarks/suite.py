@@ -192,7 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     report = run(out, args.quick, 1 if args.quick else args.repeats)
     info = report["machine"]
-    print(f"\nmachine: {info['cpu']}, {info['cores']} cores, {info['backend']} backend, jax {info['jax']}" + (" (--quick: sizes too small to mean anything)" if args.quick else ""))
+    loops = "loops compiled whole" if info["loops_compiled_whole"] else "loops kernel by kernel"
+    print(f"\nmachine: {info['cpu']}, {info['cores']} cores, {info['backend']} backend, jax {info['jax']}, {loops}" + (" (--quick: sizes too small to mean anything)" if args.quick else ""))
     print(table(report))
     (out / "benchmark.json").write_text(json.dumps(report, indent=2))
     print(f"wrote {out / 'benchmark.json'}")

@@ -1,10 +1,15 @@
 """spacegrasp-jax: a differentiable simulator of a free-floating space manipulator capturing
 a satellite (Basmadji et al., active 6-DoF force/torque control on the Dynamic Jacobian).
 
-Importing the package enables float64 in JAX: the dynamics need it (DESIGN.md).
+Importing the package enables float64 in JAX (the dynamics need it, DESIGN.md) and asks
+XLA:CPU to compile small loops into single kernels (``spacegrasp_jax.compilation``).
 """
 
-import jax
+from spacegrasp_jax.compilation import request_loop_kernels
+
+request_loop_kernels()
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 

@@ -250,8 +250,8 @@ def _solve_blocks(base, M_coupling, base_per_joint, rhs, solve_schur, matvec=spa
 
 
 def _linear_matvec(A: jax.Array, x: jax.Array) -> jax.Array:
-    # A @ x (m, n) (n,) as a product and a sum, for tangents: unlike spatial.matvec, whose
-    # vmap rule autodiff cannot transpose, it is linear in x to JAX.
+    # A @ x (m, n) (n,) as a product and a sum, for tangents: plain operations, linear in x
+    # to JAX (spatial.matvec is a custom_jvp function, which a rule's tangent need not go through).
     return jnp.sum(A * x[None, :], axis=-1)
 
 
@@ -313,13 +313,7 @@ def _forward_dynamics_jvp(primals, tangents):
     if active:
         _, id_dot = jax.jvp(newton_euler_at, [inputs[i] for i in active], [input_tangents[i] for i in active])
         rhs_dot = rhs_dot - id_dot
-    return xdd, _solve_blocks(*blocks, rhs_dot, lambda b: _cho_solve_linear(L, b), _linear_matvec)
-
-
-def _cho_solve_linear(L: jax.Array, b: jax.Array) -> jax.Array:
-    """``(L L^T)^-1 b`` (n,) by two triangular solves, which autodiff can transpose."""
-    y = jax.lax.linalg.triangular_solve(L, b[:, None], left_side=True, lower=True)
-    return jax.lax.linalg.triangular_solve(L, y, left_side=True, lower=True, transpose_a=True)[:, 0]
+    return xdd, _solve_blocks(*blocks, rhs_dot, lambda b: cho_solve(L, b), _linear_matvec)
 
 
 def mass_matrix(robot: Robot, R_base: jax.Array, q: jax.Array) -> jax.Array:

@@ -20,7 +20,6 @@ import functools
 
 import jax
 import jax.numpy as jnp
-from jax.custom_batching import custom_vmap
 from jax.custom_derivatives import SymbolicZero
 
 
@@ -48,54 +47,25 @@ def _summed_matmul(A, B):
     return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
 
 
-_matvec_product = custom_vmap(_summed_matvec)
-_matmul_product = custom_vmap(_summed_matmul)
-
-
-def _batch_first(axis_size, in_batched, A, B, core_dims):
-    """``A`` and ``B`` with the vmap axis first, their other leading axes padded to one rank,
-    so that ``jnp.matmul`` broadcasts them."""
-    leading = max(A.ndim - in_batched[0] - core_dims[0], B.ndim - in_batched[1] - core_dims[1])
-
-    def arrange(X, batched, core):
-        X = X if batched else jnp.broadcast_to(X, (axis_size, *X.shape))
-        return X.reshape((axis_size,) + (1,) * (leading - (X.ndim - 1 - core)) + X.shape[1:])
-
-    return arrange(A, in_batched[0], core_dims[0]), arrange(B, in_batched[1], core_dims[1])
-
-
-@_matvec_product.def_vmap
-def _matvec_product_batched(axis_size, in_batched, A, x):
-    # Under vmap a dot is the faster form: the batch makes it a real matrix product, where
-    # the sum over a 3-long minor axis is slow for the batch (18 against 11 us per
-    # sample-step of a vmapped rollout, one core).
-    A, x = _batch_first(axis_size, in_batched, A, x, (2, 1))
-    return jnp.matmul(A, x[..., None])[..., 0], True
-
-
-@_matmul_product.def_vmap
-def _matmul_product_batched(axis_size, in_batched, A, B):
-    return jnp.matmul(*_batch_first(axis_size, in_batched, A, B, (2, 2))), True
-
-
 @jax.custom_jvp
 def matvec(A, x):
     """``A @ x`` for a small matrix ``A`` (..., m, n) and vector ``x`` (..., n), leading axes
     broadcast.
 
-    On its own it is written as a product and a sum, which XLA fuses with its neighbours,
-    where a ``dot`` is a library call of its own on a CPU (about 150 of them per closed-loop
-    step). Under ``vmap`` it is a batched ``dot`` (``jax.custom_batching.custom_vmap``). The
-    derivative is products and sums in both cases, which transpose into fused kernels.
+    It is written as a product and a sum, which XLA fuses with its neighbours, where a
+    ``dot`` is a library call of its own on a CPU (about 150 of them per closed-loop step),
+    which also keeps a loop from compiling to one kernel (``spacegrasp_jax.compilation``).
+    The derivative is products and sums too (its own rule, so that the transposes stay
+    fused).
     """
-    return _matvec_product(A, x)
+    return _summed_matvec(A, x)
 
 
 @jax.custom_jvp
 def matmul(A, B):
     """``A @ B`` for small matrices ``A`` (..., m, k) and ``B`` (..., k, n), leading axes
     broadcast; as :func:`matvec`."""
-    return _matmul_product(A, B)
+    return _summed_matmul(A, B)
 
 
 def _bilinear_jvp(product, summed):

@@ -1,5 +1,5 @@
-"""The Cholesky factorisation and solves, one system (LAPACK) and under vmap (unrolled),
-against NumPy; their derivative rule against central differences."""
+"""The unrolled Cholesky factorisation and solves, one system and under vmap, against NumPy;
+their derivative rule against central differences."""
 
 import jax
 import jax.numpy as jnp
@@ -56,7 +56,8 @@ def test_gradients_match_central_differences(batched):
 
 
 def test_large_vmap_batch_matches_loop():
-    # Batched LAPACK deadlocked jaxlib 0.10.2 on 2 cores from ~512 systems; this is 1,024.
+    # Batched LAPACK deadlocked jaxlib 0.10.2 on 2 cores from ~512 systems (the reason the
+    # package has none); this is 1,024.
     rng = np.random.default_rng(1)
     As = np.stack([random_spd(rng, 13) for _ in range(1024)])
     bs = rng.normal(size=(1024, 13))

@@ -83,7 +83,7 @@ def test_matvec_and_matmul_match_numpy_alone_and_under_vmap_with_their_derivativ
     np.testing.assert_allclose(spatial.matvec(A, x[0]), A @ x[0], atol=1e-14)
     np.testing.assert_allclose(spatial.matvec(A[0], x), x @ A[0].T, atol=1e-14)
     np.testing.assert_allclose(spatial.matmul(A, B), A @ B, atol=1e-14)
-    # Under vmap (the batched dot) with either operand, or both, batched, and leading axes
+    # Under vmap with either operand, or both, batched, and leading axes
     # that differ between the operands.
     batch_A, batch_x, batch_B = rng.normal(size=(5, 3, 3)), rng.normal(size=(5, 2, 3)), rng.normal(size=(5, 3, 4))
     for in_axes in [(0, 0), (0, None), (None, 0)]:

@@ -1,0 +1,197 @@
+"""How XLA:CPU compiles the loops that run the closed loop's steps, read from the optimised HLO
+of the single-rollout programs and of the one-scenario tuning gradient.
+
+1. **Compiled whole.** Importing the package asks XLA:CPU to compile a small loop that calls
+   no library into one kernel (``spacegrasp_jax.compilation``): the step loops, and RK4's
+   stage loops inside them, must lie in the computations XLA marks ``xla_cpu_small_call``,
+   and the programs must hold no custom call (a LAPACK solve, a YNNPACK fusion), which
+   would keep a loop kernel by kernel. These tests fail when such a call creeps back or
+   when an XLA upgrade drops the option.
+2. **Sequential when not.** Where loops run kernel by kernel (another XLA, or a user who
+   turns the option off), XLA:CPU runs a loop body as a task graph on its thread pool
+   unless every buffer its kernels use is at most 512 bytes (64 float64 numbers; fixed in
+   ``CpuExecutable``, ``ThunkExecutor::Options::execute_sequential_buffer_threshold``),
+   which cost about half of a rollout's time. No array produced in the step loops may
+   exceed 512 bytes: the tests fail when a change brings back a large array (a 13x13 mass
+   matrix, a stacked (8, 3, 3) rotation, a scanned-over time vector).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+import jax
+import pytest
+
+from spacegrasp_jax import compilation
+from spacegrasp_jax.montecarlo import rollout_metrics
+from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.simulate import rollout
+
+SEQUENTIAL_LIMIT_BYTES = 512
+BYTES = {"f64": 8, "s64": 8, "u64": 8, "f32": 4, "s32": 4, "u32": 4, "pred": 1, "s8": 1, "u8": 1}
+
+
+def computations(hlo: str) -> dict[str, list[str]]:
+    """Instruction lines of each computation of an optimised HLO module, by name."""
+    bodies, name = {}, None
+    for line in hlo.splitlines():
+        header = re.match(r"^(?:ENTRY )?(%[\w.\-]+) .*\{$", line)
+        if header:
+            name = header.group(1)
+            bodies[name] = []
+        elif line.strip() == "}":
+            name = None
+        elif name:
+            bodies[name].append(line)
+    return bodies
+
+
+def array_bytes(instruction: str) -> list[int]:
+    """Sizes in bytes of the arrays an HLO instruction line produces (one per tuple element)."""
+    match = re.match(r"\s*(?:ROOT )?%[\w.\-]+ = (.*?) [\w\-]+\(", instruction)
+    if not match:
+        return []
+    return [BYTES[dtype] * math.prod(int(n) for n in dims.split(",") if n) for dtype, dims in re.findall(r"(\w+)\[([\d,]*)\]", match.group(1))]
+
+
+def loops_within(name: str, bodies: dict[str, list[str]]) -> list[str]:
+    """Bodies of the while loops that run inside computation ``name``, at any depth (through
+    the calls that wrap loops compiled whole too)."""
+    text = "\n".join(bodies[name])
+    inner = re.findall(r"body=(%[\w.\-]+)", text)
+    calls = re.findall(r" call\(.*?to_apply=(%[\w.\-]+)", text)
+    return [loop for body in inner for loop in [body, *loops_within(body, bodies)]] + [
+        loop for called in calls for loop in loops_within(called, bodies)
+    ]
+
+
+def loops_compiled_whole(hlo: str) -> set[str]:
+    """Bodies of the loops that XLA compiles into one kernel: those inside the calls it marks
+    ``xla_cpu_small_call``."""
+    bodies = computations(hlo)
+    marked = re.findall(r'to_apply=(%[\w.\-]+), frontend_attributes=\{xla_cpu_small_call="true"\}', hlo)
+    return {loop for called in marked for loop in loops_within(called, bodies)}
+
+
+def step_loop_oversized(hlo: str) -> tuple[int, list[str]]:
+    """The loop that runs the steps (the largest loop body) with the loops inside it (RK4's
+    stage loop): their instruction count and their instructions that produce an array over
+    the limit."""
+    bodies = computations(hlo)
+    loops = re.findall(r"body=(%[\w.\-]+)", hlo)
+    assert loops, "no while loop in the compiled program"
+    step = max(loops, key=lambda name: len(bodies[name]))
+    lines = [line for body in [step, *loops_within(step, bodies)] for line in bodies[body]]
+    too_big = [line.strip()[:160] for line in lines if any(size > SEQUENTIAL_LIMIT_BYTES for size in array_bytes(line))]
+    return len(lines), too_big
+
+
+def test_the_hlo_reader_finds_an_oversized_array():
+    # The reader itself must see a large array when there is one: a loop carrying 65 numbers.
+    def loop(x, n):  # a trip count known only at run time: the loop stays a loop
+        return jax.lax.fori_loop(0, n, lambda i, y: y * 0.5 + 1.0, x)
+
+    hlo = jax.jit(loop).lower(jax.numpy.ones(65), 10).compile().as_text()
+    assert step_loop_oversized(hlo)[1]
+    hlo = jax.jit(loop).lower(jax.numpy.ones(64), 10).compile().as_text()
+    assert step_loop_oversized(hlo)[1] == []
+
+
+@pytest.fixture(scope="module")
+def compiled_hlo(robot, gains):
+    """Optimised HLO text of a program, compiled once for this module's tests: ``"rollout"``
+    and ``"rollout_metrics"`` per controller, and the one-scenario tuning ``"gradient"``."""
+    texts = {}
+
+    def get(program: str, controller: str = "admittance") -> str:
+        if (program, controller) not in texts:
+            if program == "gradient":
+                texts[program, controller] = _gradient_hlo(robot, gains)
+            else:
+                scenario = paper_scenario(robot, duration=0.1)
+                function = {"rollout": rollout, "rollout_metrics": rollout_metrics}[program]
+                jitted = compilation.jit(function, static_argnames=("controller",))
+                texts[program, controller] = jitted.lower(robot, scenario, gains, controller=controller).compile().as_text()
+        return texts[program, controller]
+
+    return get
+
+
+def _gradient_hlo(robot, gains) -> str:
+    from tuning.objective import Objective, Weights
+    from tuning.parameters import initial_params, make_mask
+    from tuning.tune import TuneConfig, checkpoint_segment, make_loss, make_value_and_grad, training_scenarios
+
+    scenario = paper_scenario(robot, contact_law="smooth", duration=0.1)
+    config = TuneConfig(batch=1)
+    objective = Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 7)
+    loss = make_loss(robot, training_scenarios(scenario, config), gains, make_mask(gains, "admittance"), config,
+                     objective, checkpoint_segment(scenario.n_steps))
+    params = initial_params(gains, "admittance")
+    return make_value_and_grad(loss, params, "reverse").lower(params).compile().as_text()
+
+
+def gradient_step_loops(hlo: str) -> set[str]:
+    """The gradient's loops over the steps (forward and backward) and RK4's stage loops inside
+    them: every loop inside another loop (the outermost loops run over blocks of steps)."""
+    bodies = computations(hlo)
+    return {inner for body in set(re.findall(r"body=(%[\w.\-]+)", hlo)) for inner in loops_within(body, bodies)}
+
+
+def test_the_hlo_reader_finds_loops_compiled_whole():
+    # The reader must tell a loop compiled whole from one that is not: a LAPACK call (a custom
+    # call) in the body keeps it kernel by kernel.
+    def loop(x, n):
+        return jax.lax.fori_loop(0, n, lambda i, y: y * 0.5 + 1.0, x)
+
+    def loop_with_lapack(x, n):
+        return jax.lax.fori_loop(0, n, lambda i, y: y * 0.5 + jax.numpy.linalg.cholesky(jax.numpy.diag(2.0 + y * y))[0], x)
+
+    assert len(loops_compiled_whole(jax.jit(loop).lower(jax.numpy.ones(3), 10).compile().as_text())) == 1
+    assert loops_compiled_whole(jax.jit(loop_with_lapack).lower(jax.numpy.ones(3), 10).compile().as_text()) == set()
+
+
+def test_importing_the_package_makes_xla_compile_small_loops_whole():
+    # If an XLA upgrade renames the backend option, XLA ignores it silently: this says so.
+    assert compilation.loops_compile_whole()
+
+
+@pytest.mark.parametrize("controller", ["admittance", "cartesian"])
+@pytest.mark.parametrize("program", ["rollout", "rollout_metrics"])
+def test_the_step_loop_is_compiled_whole(compiled_hlo, controller, program):
+    hlo = compiled_hlo(program, controller)
+    bodies = computations(hlo)
+    step = max(re.findall(r"body=(%[\w.\-]+)", hlo), key=lambda name: len(bodies[name]))
+    assert step in loops_compiled_whole(hlo)
+    assert "custom-call" not in hlo
+
+
+def test_the_gradient_step_loops_are_compiled_whole(compiled_hlo):
+    hlo = compiled_hlo("gradient")
+    step_loops = gradient_step_loops(hlo)
+    assert len(step_loops) >= 4  # forward and backward: the step loops and the stage loops in them
+    assert step_loops <= loops_compiled_whole(hlo)
+    assert "custom-call" not in hlo
+
+
+@pytest.mark.parametrize("controller", ["admittance", "cartesian"])
+@pytest.mark.parametrize("program", ["rollout", "rollout_metrics"])
+def test_the_step_loop_holds_no_array_over_512_bytes(compiled_hlo, controller, program):
+    instructions, too_big = step_loop_oversized(compiled_hlo(program, controller))
+    assert instructions > 300  # the whole step: controller, contact, the RK4 stages
+    assert too_big == [], f"{len(too_big)} arrays over {SEQUENTIAL_LIMIT_BYTES} B in the step loop: {too_big[:5]}"
+
+
+def test_the_gradient_step_loops_hold_no_array_over_512_bytes(compiled_hlo):
+    # The outermost loops, over blocks of steps, hold the tape and are exempt. Without
+    # jax.checkpoint on RK4's stage loop, the backward loops hold the stages' stacked
+    # residuals and this fails.
+    hlo = compiled_hlo("gradient")
+    bodies = computations(hlo)
+    step_loops = gradient_step_loops(hlo)
+    assert len(step_loops) >= 4
+    lines = [line for body in step_loops for line in bodies[body]]
+    too_big = [line.strip()[:160] for line in lines if any(size > SEQUENTIAL_LIMIT_BYTES for size in array_bytes(line))]
+    assert too_big == [], f"{len(too_big)} arrays over {SEQUENTIAL_LIMIT_BYTES} B in the gradient's step loops: {too_big[:5]}"
