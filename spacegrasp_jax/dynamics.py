@@ -242,17 +242,11 @@ def solve_mass_blocks(base, M_coupling, M_joints, base_per_joint, rhs) -> jax.Ar
     return _solve_blocks(base, M_coupling, base_per_joint, rhs, lambda b: solve_spd(schur, b))
 
 
-def _solve_blocks(base, M_coupling, base_per_joint, rhs, solve_schur, matvec=spatial.matvec) -> jax.Array:
+def _solve_blocks(base, M_coupling, base_per_joint, rhs, solve_schur) -> jax.Array:
     rhs_base, rhs_joints = jnp.split(rhs, [6])
     y = solve_base(*base, rhs_base)
-    qdd = solve_schur(rhs_joints - matvec(M_coupling.T, y))
-    return jnp.concatenate([y - matvec(base_per_joint, qdd), qdd])
-
-
-def _linear_matvec(A: jax.Array, x: jax.Array) -> jax.Array:
-    # A @ x (m, n) (n,) as a product and a sum, for tangents: plain operations, linear in x
-    # to JAX (spatial.matvec is a custom_jvp function, which a rule's tangent need not go through).
-    return jnp.sum(A * x[None, :], axis=-1)
+    qdd = solve_schur(rhs_joints - spatial.matvec(M_coupling.T, y))
+    return jnp.concatenate([y - spatial.matvec(base_per_joint, qdd), qdd])
 
 
 def mass_blocks_from_frames(robot: Robot, frames):
@@ -313,7 +307,7 @@ def _forward_dynamics_jvp(primals, tangents):
     if active:
         _, id_dot = jax.jvp(newton_euler_at, [inputs[i] for i in active], [input_tangents[i] for i in active])
         rhs_dot = rhs_dot - id_dot
-    return xdd, _solve_blocks(*blocks, rhs_dot, lambda b: cho_solve(L, b), _linear_matvec)
+    return xdd, _solve_blocks(*blocks, rhs_dot, lambda b: cho_solve(L, b))
 
 
 def mass_matrix(robot: Robot, R_base: jax.Array, q: jax.Array) -> jax.Array:

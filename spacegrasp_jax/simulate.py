@@ -323,7 +323,8 @@ def rollout(
             every step, and the backward pass recomputes each part just before
             differentiating it. A stage's rate is at most 7 numbers a field, so the three
             of one step are (3, 7) and inner scans of 2 steps hold no array over 64
-            numbers: XLA's CPU runtime runs them in sequence (README, Performance).
+            numbers, which matters where XLA runs loops kernel by kernel (README,
+            Performance; with loops compiled whole the length does not).
             ``None``: blocks of :data:`LOG_BLOCK` steps, nothing checkpointed.
 
     Returns:
@@ -337,9 +338,10 @@ def rollout(
     step = closed_loop_step(robot, scenario, gains, controller, pinv_damping, checkpoint=checkpoint_segment is not None)
     block = largest_divisor(n_steps, LOG_BLOCK) if checkpoint_segment is None else checkpoint_segment
     # Blocks of a few steps, each an inner scan whose buffers (log rows, saved states) stay
-    # within 64 numbers a field: XLA's CPU runtime runs that inner loop's kernels in
-    # sequence, where a loop that writes into the whole log runs as a task graph (README,
-    # Performance).
+    # within 64 numbers a field. Where XLA runs loops kernel by kernel, it then runs that
+    # inner loop's kernels in sequence, where a loop that writes into the whole log runs as
+    # a task graph; compiled whole (spacegrasp_jax.compilation), the inner loop is one
+    # kernel (README, Performance).
     steps = jnp.arange(n_steps, dtype=scenario.initial.q.dtype).reshape(-1, block)
     final, rows = jax.lax.scan(lambda s, ks: jax.lax.scan(step, s, ks), initial_state(scenario), steps)
     return final, jax.tree.map(lambda x: x.reshape((n_steps,) + x.shape[2:]), rows)

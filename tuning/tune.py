@@ -122,26 +122,20 @@ def make_optimizer(config: TuneConfig):
 
 
 #: Steps per inner scan of a one-scenario reverse-mode gradient (``simulate.rollout``'s
-#: ``checkpoint_segment``): the tape holds each step's state and RK4's stage rates, (3, 7)
-#: numbers a field per step, so with 2 steps the inner loops hold no array over 64 numbers
-#: and XLA's CPU runtime runs them in sequence (README, Performance). 4 s gradient, 2-core
-#: Xeon: 0.34-0.35 s, against 0.48 s with one step per scan and 0.51 s with 8 (whose
-#: (8, 3, 7) tape arrays make the inner loop a task graph). That is where XLA runs loops
-#: kernel by kernel; with loops compiled whole (``spacegrasp_jax.compilation``, the default
-#: on a CPU) 1, 2, 4 and 8 steps give the same 4 s gradient (0.11 s).
+#: ``checkpoint_segment``). The tape holds each step's state and RK4's stage rates, (3, 7)
+#: numbers a field per step. With loops compiled whole (``spacegrasp_jax.compilation``, the
+#: default on a CPU) the length does not matter: 1, 2, 4 and 8 steps give the same 4 s
+#: gradient (0.11 s, 2-core Xeon). Where XLA runs loops kernel by kernel, 2 steps keep the
+#: inner loops within 64 numbers an array, in XLA's sequential mode (0.35 s, against 0.48 s
+#: with 1 step and 0.51 s with 8; README, Performance, and benchmarks/HISTORY.md).
 CHECKPOINT_SEGMENT = 2
 
 
 #: The largest batch whose scenarios a gradient on a CPU runs one after another
-#: (``lax.map``), each in XLA's sequential mode, instead of vmapping them (their arrays are
-#: then too large for that mode). Tuning gradient of a 2 s scenario batch, 2-core Xeon
-#: (README, Performance), with whole-step checkpoints: batch 4 0.90 s one after another,
-#: 1.47 s vmapped; batch 8 1.87 against 2.04 s; batch 16 3.73 against 3.03 s. With the
-#: per-part checkpoints (``simulate.closed_loop_step``) a vmapped gradient alone is faster
-#: from batch 4 (17 s, batch 4: 5.2 against 5.8 s), but the whole default ``spacegrasp
-#: tune`` took 9.4 min vmapped against 7.7 min one after another. With loops compiled whole
-#: (``spacegrasp_jax.compilation``), 17 s, batch 4: 1.86 s one after another, 1.79 s vmapped,
-#: whose program compiles in 50 s against 32 s; so the crossing stays here.
+#: (``lax.map``) instead of vmapping them. Default tuning gradient (batch 4, 17 s, 2-core
+#: Xeon, loops compiled whole): 1.86 s one after another, 1.79 s vmapped, but the vmapped
+#: program compiles in 50 s against 32 s. Earlier measurements, kernel by kernel, in
+#: benchmarks/HISTORY.md.
 SEQUENTIAL_BATCH = 8
 
 
@@ -154,9 +148,8 @@ def batch_in_sequence(batch: int) -> bool:
 def checkpoint_segment(n_steps: int, batch: int = 1) -> int:
     """Steps per inner scan for a gradient over ``batch`` scenarios: the largest divisor of
     ``n_steps`` up to :data:`CHECKPOINT_SEGMENT` when the scenarios run one after another
-    (:func:`batch_in_sequence`); 1 for a vmapped batch, whose arrays are too large for the
-    sequential mode anyway (batch of 4, 2 s, with whole-step checkpoints: 1.91 s against
-    2.0 s with 8 steps)."""
+    (:func:`batch_in_sequence`); 1 for a vmapped batch, whose arrays are too large for XLA's
+    sequential mode anyway."""
     if not batch_in_sequence(batch):
         return 1
     return largest_divisor(n_steps, CHECKPOINT_SEGMENT)
