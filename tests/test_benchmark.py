@@ -32,3 +32,43 @@ def test_quick_benchmark_writes_every_key(tmp_path):
     assert report["pinocchio_loop_max_pose_difference"] < 1e-6
     assert "spacegrasp-jax" in result.stdout and "ratio" in result.stdout
     assert not any(tmp_path.glob("benchmark-*")), "intermediate files left behind"
+
+
+def test_batch_efficiency_reports_each_part(tmp_path):
+    """``benchmarks.batch_efficiency`` at toy size: a row per requested part with finite
+    positive times; an unknown part is refused before anything compiles."""
+    command = [sys.executable, "-m", "benchmarks.batch_efficiency", "--out", str(tmp_path), "--parts", "kinematics",
+               "--batch", "4", "--iterations", "10", "--repeats", "1"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    report = json.loads((tmp_path / "batch_efficiency.json").read_text())
+    assert [row["part"] for row in report["results"]] == ["kinematics"]
+    row = report["results"][0]
+    numbers = [row["single_us_per_sample"], row["batch_us_per_sample"], row["batch_gain"]]
+    assert all(math.isfinite(x) and x > 0 for x in numbers), numbers
+    assert math.isclose(row["batch_gain"], row["single_us_per_sample"] / row["batch_us_per_sample"])
+
+    refused = subprocess.run(command[:-8] + ["--parts", "kinematics,rnea"], capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and "unknown ['rnea']" in refused.stderr
+
+
+def test_kinematics_by_component_equals_the_package_kinematics():
+    """The probe of ``benchmarks.batch_efficiency`` computes the same frames as
+    ``kinematics.forward_kinematics``, for one sample and under ``vmap``."""
+    import jax
+    import numpy as np
+
+    import spacegrasp_jax as sg
+    from benchmarks.batch_efficiency import forward_kinematics_by_component
+    from spacegrasp_jax.kinematics import forward_kinematics
+    from spacegrasp_jax.spatial import rotation_exp
+
+    robot, rng = sg.paper_robot(), np.random.default_rng(3)
+    q, p_base = rng.uniform(-np.pi, np.pi, (5, 7)), rng.normal(size=(5, 3))
+    R_base = np.stack([np.asarray(rotation_exp(v)) for v in rng.normal(size=(5, 3))])
+    expected = jax.vmap(lambda p, R, q: forward_kinematics(robot, p, R, q))(p_base, R_base, q)
+    batched = jax.vmap(lambda p, R, q: forward_kinematics_by_component(robot, p, R, q))(p_base, R_base, q)
+    single = forward_kinematics_by_component(robot, p_base[0], R_base[0], q[0])
+    for name in vars(expected):
+        np.testing.assert_allclose(getattr(batched, name), getattr(expected, name), atol=1e-14, err_msg=name)
+        np.testing.assert_allclose(getattr(single, name), getattr(expected, name)[0], atol=1e-14, err_msg=name)

@@ -1,0 +1,204 @@
+"""What batching buys per core, part by part of the closed-loop step.
+
+    python -m benchmarks.batch_efficiency [--out results/benchmarks] [--batch 128] [--iterations 1000] [--parts ...]
+
+Issue 5 asks a batch of 1,024 rollouts to run 10x the throughput of single rollouts one after
+another. On a CPU that can only come from the cores and from each core computing several
+samples at once (SIMD lanes). This measures the second factor where it is decided: each part
+of one closed-loop step runs ``--iterations`` times in a ``fori_loop`` compiled whole
+(``spacegrasp_jax.compilation``), once for a single sample and once ``vmap``-ped over
+``--batch`` samples of the default campaign, both pinned to one core. It reports the time per
+sample and their ratio: 1 means the batch computes no faster per sample than a single
+rollout; the SIMD width of a float64 vector (4 or 8 lanes) is the ceiling.
+
+Parts, each including the ones it needs (so the cost of a part alone is a difference):
+* ``kinematics``: ``dynamics.frames_at_base``, the poses of the DH frames;
+* ``kinematics_by_component``: the same poses from :func:`forward_kinematics_by_component`,
+  the kinematics written component by component (a probe, not the package's code);
+* ``mass_matrix``: kinematics and the mass matrix's blocks;
+* ``plant_kinematics``: everything computed once per state (``simulate.plant_kinematics``:
+  kinematics, mass matrix, EE Jacobian, satellite block solve, contact force);
+* ``plant_rate``: plant_kinematics and the state rate (``simulate.plant_rate``: Newton-Euler
+  bias, the block solve of the mass matrix), one RK4 stage;
+* ``controller``: plant_kinematics and one controller update (``simulate.control_step``);
+* ``step``: one whole closed-loop step (controller, four RK4 stages), the scan's body.
+
+A part's outputs are folded into the next iteration's joint angles (times 1e-12), so that no
+iteration can be skipped or hoisted; ``step`` carries its state as the rollout does. Writes
+``batch_efficiency.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+PARTS = ("kinematics", "kinematics_by_component", "mass_matrix", "plant_kinematics", "plant_rate", "controller", "step")
+
+
+def forward_kinematics_by_component(robot, p_base, R_base, q):
+    """:func:`spacegrasp_jax.kinematics.forward_kinematics` written component by component:
+    every vector a list of 3 arrays, every rotation a 3x3 list, ``R Rz(theta) Rx(alpha)``
+    column by column, stacked into the same :class:`~spacegrasp_jax.kinematics.Frames` only
+    at the end. Under ``vmap`` each component is an array of the batch's shape, so the chain's
+    arithmetic runs across the batch (the last axis). The probe for a batch-last rewrite of the
+    step (README, Performance); not used by the package."""
+    import jax.numpy as jnp
+
+    from spacegrasp_jax.kinematics import Frames
+
+    theta = q + robot.joint_offset
+    ct, st = jnp.cos(theta), jnp.sin(theta)
+    ca, sa = jnp.cos(robot.dh_alpha), jnp.sin(robot.dh_alpha)
+    R = [[R_base[i, j] for j in range(3)] for i in range(3)]
+    p = [p_base[i] + sum(R[i][j] * robot.mount_position[j] for j in range(3)) for i in range(3)]
+    R_link, origins, axes = [], [p], [[R[0][2], R[1][2], R[2][2]]]
+    for i in range(len(theta)):
+        c, s, length, offset = ct[i], st[i], robot.dh_length[i], robot.dh_lambda[i]
+        p = [p[r] + R[r][0] * (length * c) + R[r][1] * (length * s) + R[r][2] * offset for r in range(3)]
+        x = [R[r][0] * c + R[r][1] * s for r in range(3)]
+        y_rz = [R[r][1] * c - R[r][0] * s for r in range(3)]
+        y = [y_rz[r] * ca[i] + R[r][2] * sa[i] for r in range(3)]
+        z = [R[r][2] * ca[i] - y_rz[r] * sa[i] for r in range(3)]
+        R = [[x[r], y[r], z[r]] for r in range(3)]
+        R_link.append(R)
+        origins.append(p)
+        axes.append(z)
+    matrix = lambda M: jnp.stack([jnp.stack(row) for row in M])
+    vectors = lambda vs: jnp.stack([jnp.stack(v) for v in vs])
+    p_ee = [p[r] + sum(R[r][j] * robot.ee_offset[j] for j in range(3)) for r in range(3)]
+    return Frames(
+        joint_origin=vectors(origins[:-1]),
+        link_origin=vectors(origins[1:]),
+        joint_axis=vectors(axes[:-1]),
+        R_mount=R_base,
+        R_link=jnp.stack([matrix(M) for M in R_link]),
+        p_ee=jnp.stack(p_ee),
+        R_ee=matrix(R),
+    )
+
+
+def _part_functions(gains):
+    """name -> ``f(robot, scenario, state) -> outputs`` (``state`` a ``SimState``)."""
+    import jax.numpy as jnp
+
+    from spacegrasp_jax import simulate
+    from spacegrasp_jax.dynamics import frames_at_base, mass_matrix_parts_from_frames
+
+    def kinematics(robot, scenario, state):
+        return frames_at_base(robot, state.plant.R_base, state.plant.q)
+
+    def kinematics_by_component(robot, scenario, state):
+        R_base = state.plant.R_base
+        return forward_kinematics_by_component(robot, jnp.zeros(3, dtype=R_base.dtype), R_base, state.plant.q)
+
+    def mass_matrix(robot, scenario, state):
+        return mass_matrix_parts_from_frames(robot, kinematics(robot, scenario, state))
+
+    def plant_kinematics(robot, scenario, state):
+        return simulate.plant_kinematics(robot, scenario, state.plant)
+
+    def plant_rate(robot, scenario, state):
+        shared = simulate.plant_kinematics(robot, scenario, state.plant)
+        return simulate.plant_rate(robot, scenario, state.plant, shared, jnp.zeros_like(state.plant.qd))
+
+    def controller(robot, scenario, state):
+        shared = simulate.plant_kinematics(robot, scenario, state.plant)
+        return simulate.control_step(robot, scenario, gains, "admittance", state, 1.0, 0.0, shared)[:2]
+
+    return dict(kinematics=kinematics, kinematics_by_component=kinematics_by_component, mass_matrix=mass_matrix, plant_kinematics=plant_kinematics,
+                plant_rate=plant_rate, controller=controller)
+
+
+def _looped(part, name: str, iterations: int, gains):
+    """``(robot, scenario, state) -> state`` running ``part`` ``iterations`` times in one loop."""
+    import jax
+    import jax.numpy as jnp
+
+    from spacegrasp_jax import simulate
+
+    if name == "step":
+        def body(robot, scenario, state):
+            return simulate.closed_loop_step(robot, scenario, gains, "admittance")(state, jnp.ones((), state.plant.q.dtype))[0]
+    else:
+        def body(robot, scenario, state):
+            total = sum(jnp.sum(leaf) for leaf in jax.tree.leaves(part(robot, scenario, state)))
+            plant = dataclasses.replace(state.plant, q=state.plant.q + 1e-12 * total)
+            return dataclasses.replace(state, plant=plant)
+
+    def run(robot, scenario, state):
+        return jax.lax.fori_loop(0, iterations, lambda _, s: body(robot, scenario, s), state)
+
+    return run
+
+
+def measure(parts: list[str], batch: int, iterations: int, repeats: int) -> list[dict]:
+    import jax
+
+    import spacegrasp_jax as sg
+    from benchmarks.dynamics import timed
+    from spacegrasp_jax import compilation, simulate
+    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.perturbations import PerturbationRanges, sample
+    from spacegrasp_jax.scenario import paper_scenario
+
+    robot, gains = sg.paper_robot(), paper_gains()
+    scenario = paper_scenario(robot, duration=1.0)
+    robots, scenarios, _ = sample(robot, scenario, 0, range(batch), PerturbationRanges())
+    states = jax.vmap(simulate.initial_state)(scenarios)
+    batched = (robots, scenarios, states)
+    single = jax.tree.map(lambda x: x[0], batched)
+    functions = _part_functions(gains)
+    results = []
+    for name in parts:
+        row = {"part": name}
+        for label, function, arguments, samples in (
+            ("single", _looped(functions.get(name), name, iterations, gains), single, 1),
+            ("batch", jax.vmap(_looped(functions.get(name), name, iterations, gains)), batched, batch),
+        ):
+            compiled = compilation.jit(function).lower(*arguments).compile()
+            jax.block_until_ready(compiled(*arguments))
+            timing = timed(lambda: jax.block_until_ready(compiled(*arguments)), repeats)
+            row[f"{label}_us_per_sample"] = timing["median_s"] / iterations / samples * 1e6
+        row["batch_gain"] = row["single_us_per_sample"] / row["batch_us_per_sample"]
+        results.append(row)
+        print(f"{name:>23} {row['single_us_per_sample']:>10.3f} {row['batch_us_per_sample']:>10.3f} {row['batch_gain']:>9.2f}x", flush=True)
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="results/benchmarks")
+    parser.add_argument("--batch", type=int, default=128, help="samples in the vmapped batch (the campaign's sub-batch per CPU device)")
+    parser.add_argument("--iterations", type=int, default=1000, help="loop iterations per timed call")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated, from {', '.join(PARTS)}")
+    args = parser.parse_args(argv)
+    parts = [part for part in args.parts.split(",") if part]
+    unknown = sorted(set(parts) - set(PARTS))
+    if unknown:
+        parser.error(f"--parts: unknown {unknown}; expected some of {list(PARTS)}")
+    if args.batch < 1 or args.iterations < 1 or args.repeats < 1:
+        parser.error("--batch, --iterations and --repeats must be positive")
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core, before XLA starts its threads
+
+    print(f"{'part':>23} {'single':>10} {'batch':>10} {'gain':>10}   (us per sample, one core, batch {args.batch})")
+    results = measure(parts, args.batch, args.iterations, args.repeats)
+    from benchmarks.dynamics import machine
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"machine": machine(), "batch": args.batch, "iterations": args.iterations, "results": results}
+    (out / "batch_efficiency.json").write_text(json.dumps(report, indent=2))
+    print(f"wrote {out / 'batch_efficiency.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
