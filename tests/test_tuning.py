@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from spacegrasp_jax import compilation
 from spacegrasp_jax.control import load_gains
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
@@ -92,9 +93,16 @@ def test_objective_parts_on_a_synthetic_log(full_runs):
 
 @pytest.fixture(scope="module")
 def short_problem(robot, gains, full_runs):
-    """Loss of the admittance and Cartesian laws on a 1 s scenario with (smooth) contact."""
+    """``build(controller, scenario=None, segment=CHECKPOINT_SEGMENT) -> (loss, params,
+    value_and_grad)``: the loss of a law on a scenario (by default 1 s with smooth contact),
+    its initial parameters and its jitted reverse-mode gradient. The default scenario's are
+    built once per law, so the tests share one compiled gradient."""
+    built = {}
 
     def build(controller, scenario=None, segment=CHECKPOINT_SEGMENT):  # the tuning default (1,000 steps)
+        shared = scenario is None and segment == CHECKPOINT_SEGMENT
+        if shared and controller in built:
+            return built[controller]
         scenario = scenario or paper_scenario(robot, contact_law="smooth", **SHORT)
         config = TuneConfig(controller=controller, batch=1)  # the nominal scenario alone
         scale = tuple(float(x) for x in full_runs[controller].summary["max_abs_torque_Nm"])
@@ -102,15 +110,17 @@ def short_problem(robot, gains, full_runs):
         mask = make_mask(gains, controller)
         params = initial_params(gains, controller)
         loss = make_loss(robot, training_scenarios(scenario, config), gains, mask, config, objective, segment)
-        return loss, params
+        problem = loss, params, make_value_and_grad(loss, params, "reverse")
+        if shared:
+            built[controller] = problem
+        return problem
 
     return build
 
 
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])
 def test_gradient_of_each_gain_group_matches_central_differences(short_problem, controller):
-    loss, params = short_problem(controller)
-    value_and_grad = make_value_and_grad(loss, params, "reverse")
+    loss, params, value_and_grad = short_problem(controller)
     (value, aux), gradient = value_and_grad(params)
     assert float(aux["peak_contact_hard_N"]) > 0.0  # the scenario does include contact
     value_only = jax.jit(lambda p: loss(p)[0])
@@ -136,11 +146,16 @@ def batch_problem(robot, gains, full_runs):
     objective = Objective(weights=Weights(contact_force=0.1), torque_scale_Nm=scale)
     mask, params = make_mask(gains, "cartesian"), initial_params(gains, "cartesian")
     single, segment = TuneConfig(controller="cartesian", batch=1), tune.checkpoint_segment(nominal.n_steps)
+
+    # One program for both scenarios: the scenario is an argument, not a constant of the loss.
+    @compilation.jit
+    def one_scenario(scenario):
+        loss = make_loss(robot, scenario, gains, mask, single, objective, segment)
+        return jax.value_and_grad(loss, has_aux=True)(params)
+
     values, gradients = [], []
     for i in range(config.batch):
-        scenario = jax.tree.map(lambda leaf: leaf[i : i + 1], scenarios)
-        loss = make_loss(robot, scenario, gains, mask, single, objective, segment)
-        (value, _), gradient = make_value_and_grad(loss, params, "reverse")(params)
+        (value, _), gradient = one_scenario(jax.tree.map(lambda leaf: leaf[i : i + 1], scenarios))
         values.append(float(value))
         gradients.append(gradient)
     mean_gradient = {group: np.mean([g[group] for g in gradients], axis=0) for group in params}
@@ -165,8 +180,8 @@ def test_batch_gradient_is_the_mean_of_the_scenarios_gradients(robot, gains, bat
 
 def test_forward_mode_gradient_equals_reverse_mode(robot, short_problem):
     scenario = paper_scenario(robot, contact_law="smooth", duration=0.25, move_duration=1.0)
-    loss, params = short_problem("cartesian", scenario, segment=None)
-    (_, _), reverse = make_value_and_grad(loss, params, "reverse")(params)
+    loss, params, value_and_grad = short_problem("cartesian", scenario, segment=None)
+    (_, _), reverse = value_and_grad(params)
     (_, _), forward = make_value_and_grad(loss, params, "forward")(params)
     for group in params:
         np.testing.assert_allclose(forward[group], reverse[group], rtol=1e-8, atol=1e-12)
@@ -177,8 +192,8 @@ def test_gradient_finite_when_the_ee_passes_through_the_sphere_centre(robot, gai
     centre (it starts 65 mm below it and reaches it at about 6 s): no NaN or inf, although
     the contact force, far outside the sphere, underflows to exactly zero."""
     scenario = paper_scenario(robot, contact_law="smooth", contact_stiffness=1e-6, duration=7.0)
-    loss, params = short_problem("admittance", scenario, segment=100)
-    (value, aux), gradient = make_value_and_grad(loss, params, "reverse")(params)
+    _, params, value_and_grad = short_problem("admittance", scenario, segment=100)
+    (value, aux), gradient = value_and_grad(params)
     assert np.isfinite(float(value))
     assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(gradient))
     _, log = jax.jit(rollout, static_argnums=3)(robot, scenario, gains_from_params(params, gains, make_mask(gains, "admittance")), "admittance")
@@ -190,9 +205,9 @@ def test_divergence_guard_rejects_and_shrinks_the_step(short_problem):
     """A learning rate of 3 in log space multiplies gains by up to e^3 in one step: the
     closed loop blows up, the step is rejected, the step size halved and the event logged;
     the run goes on from finite gains."""
-    loss, params = short_problem("admittance")
+    _, params, value_and_grad = short_problem("admittance")  # shared with the central-differences test
     config = TuneConfig(steps=2, learning_rate=3.0, torque_guard_Nm=20.0)
-    state, status = optimise(make_value_and_grad(loss, params, "reverse"), params, config)
+    state, status = optimise(value_and_grad, params, config)
     assert status == "done" and state.step == 2
     assert len(state.events) >= 1 and all(event["event"] == "rejected" for event in state.events)
     assert state.scale < 1.0
