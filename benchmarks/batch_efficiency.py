@@ -2,9 +2,9 @@
 
     python -m benchmarks.batch_efficiency [--out results/benchmarks] [--batch 128] [--iterations 1000] [--parts ...]
 
-Issue 5 asks a batch of 1,024 rollouts to run 10x the throughput of single rollouts one after
-another. On a CPU that can only come from the cores and from each core computing several
-samples at once (SIMD lanes). This measures the second factor where it is decided: each part
+The Monte-Carlo target (README, Performance) is a batch of 1,024 rollouts at 10x the
+throughput of single rollouts run one after another. On a CPU that can only come from the
+cores and from each core computing several samples at once (SIMD lanes). This measures the second factor where it is decided: each part
 of one closed-loop step runs ``--iterations`` times in a ``fori_loop`` compiled whole
 (``spacegrasp_jax.compilation``), once for a single sample and once ``vmap``-ped over
 ``--batch`` samples of the default campaign, both pinned to one core. It reports the time per
