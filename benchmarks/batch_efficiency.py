@@ -4,12 +4,13 @@
 
 The Monte-Carlo target (README, Performance) is a batch of 1,024 rollouts at 10x the
 throughput of single rollouts run one after another. On a CPU that can only come from the
-cores and from each core computing several samples at once (SIMD lanes). This measures the second factor where it is decided: each part
-of one closed-loop step runs ``--iterations`` times in a ``fori_loop`` compiled whole
-(``spacegrasp_jax.compilation``), once for a single sample and once ``vmap``-ped over
-``--batch`` samples of the default campaign, both pinned to one core. It reports the time per
-sample and their ratio: 1 means the batch computes no faster per sample than a single
-rollout; the SIMD width of a float64 vector (4 or 8 lanes) is the ceiling.
+cores and from each core computing several samples at once (SIMD lanes). This measures the
+second factor where it is decided: each part of one closed-loop step runs ``--iterations``
+times in a ``fori_loop`` compiled whole (``spacegrasp_jax.compilation``), once for a single
+sample and once ``vmap``-ped over ``--batch`` samples of the default campaign, both pinned to
+one core. It reports the time per sample and their ratio: 1 means the batch computes no
+faster per sample than a single rollout; the SIMD width of a float64 vector (4 or 8 lanes)
+bounds it, except where one sample's code waits on latencies (divisions, square roots).
 
 Parts, each including the ones it needs (so the cost of a part alone is a difference):
 * ``kinematics``: ``dynamics.frames_at_base``, the poses of the DH frames;
@@ -35,7 +36,6 @@ import dataclasses
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 PARTS = ("kinematics", "kinematics_by_component", "mass_matrix", "plant_kinematics", "plant_rate", "controller", "step")
@@ -111,8 +111,8 @@ def _part_functions(gains):
         shared = simulate.plant_kinematics(robot, scenario, state.plant)
         return simulate.control_step(robot, scenario, gains, "admittance", state, 1.0, 0.0, shared)[:2]
 
-    return dict(kinematics=kinematics, kinematics_by_component=kinematics_by_component, mass_matrix=mass_matrix, plant_kinematics=plant_kinematics,
-                plant_rate=plant_rate, controller=controller)
+    return dict(kinematics=kinematics, kinematics_by_component=kinematics_by_component, mass_matrix=mass_matrix,
+                plant_kinematics=plant_kinematics, plant_rate=plant_rate, controller=controller)
 
 
 def _looped(part, name: str, iterations: int, gains):
