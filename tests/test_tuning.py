@@ -224,11 +224,16 @@ def tune_environment(tmp_path):
     return {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache"), "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
 
 
+#: Optimiser steps of the tune runs below: the interrupted run gets SIGINT after step 2, and
+#: the steps left after it absorb the delay before the signal is handled on a loaded machine.
+TUNE_STEPS = 8
+
+
 def tune_command(tmp_path, out, *extra):
     scenario = tmp_path / "short.toml"
     scenario.write_text("duration = 1.0\n[trajectory]\nduration = 1.0\n")
     return [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--scenario", str(scenario),
-            "--steps", "5", "--holdout", "3", "--batch", "2", *extra]
+            "--steps", str(TUNE_STEPS), "--holdout", "3", "--batch", "2", *extra]
 
 
 def run_until_step(command, history, step, env, timeout=600):
@@ -239,7 +244,7 @@ def run_until_step(command, history, step, env, timeout=600):
         if history.exists() and len(history.read_text().splitlines()) >= step + 2:  # header + step 0
             process.send_signal(signal.SIGINT)
             break
-        time.sleep(0.2)
+        time.sleep(0.05)
     _, err = process.communicate(timeout=timeout)
     return process.returncode, err
 
@@ -255,13 +260,13 @@ def uninterrupted(tmp_path_factory):
 
 def test_tune_writes_every_file(uninterrupted):
     _, out, result = uninterrupted
-    assert "step 5/5" in result.stderr  # the progress bar
+    assert f"step {TUNE_STEPS}/{TUNE_STEPS}" in result.stderr  # the progress bar
     for name in ("gains.json", "history.csv", "summary.json", "run.json", "checkpoint.npz", "loss.png", "peak_torques.png", "ee_pose.png"):
         assert (out / name).stat().st_size > 0, name
     gains = load_gains(out / "gains.json")  # loadable as simulate --gains takes it
     assert gains.kp.shape == (7,)
     rows = list(csv.DictReader((out / "history.csv").open()))
-    assert [int(row["step"]) for row in rows] == list(range(6))
+    assert [int(row["step"]) for row in rows] == list(range(TUNE_STEPS + 1))
     assert {"loss", "final_position_m", "peak_torque_smooth", "peak_torque_hard", "peak_torque_gap", "gradient_norm", "step_size"} <= set(rows[0])
     summary = json.loads((out / "summary.json").read_text())
     for key in ("paper_gains", "tuned_gains"):
@@ -279,11 +284,11 @@ def test_interrupted_run_resumes_to_the_same_result(uninterrupted):
     assert code == 130, err
     assert "--resume" in err
     steps_done = len((out / "history.csv").read_text().splitlines()) - 2
-    assert 2 <= steps_done < 5
+    assert 2 <= steps_done < TUNE_STEPS
     resume = [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--resume"]
     result = subprocess.run(resume, capture_output=True, text=True, timeout=900, env=tune_environment(tmp_path))
     assert result.returncode == 0, result.stderr
-    assert f"resuming after step {steps_done}/5" in result.stderr
+    assert f"resuming after step {steps_done}/{TUNE_STEPS}" in result.stderr
     assert json.loads((out / "gains.json").read_text()) == json.loads((full / "gains.json").read_text())
     history = list(csv.DictReader((out / "history.csv").open()))
     reference = list(csv.DictReader((full / "history.csv").open()))
