@@ -1,16 +1,9 @@
 """Tuning: the objective, the parameterisation, gradients against finite differences, the
-divergence guard, and resume after an interruption (a real SIGINT to a subprocess)."""
+divergence guard, and the shipped tuned gains. The ``spacegrasp tune`` command: test_tune_cli.py."""
 
 from __future__ import annotations
 
-import csv
-import json
 import math
-import os
-import signal
-import subprocess
-import sys
-import time
 
 import jax
 import jax.numpy as jnp
@@ -18,7 +11,6 @@ import numpy as np
 import pytest
 
 from spacegrasp_jax import compilation
-from spacegrasp_jax.control import load_gains
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
 from tuning.objective import Objective, Weights, objective_parts, smooth_max
@@ -213,96 +205,6 @@ def test_divergence_guard_rejects_and_shrinks_the_step(short_problem):
     assert state.scale < 1.0
     assert np.isfinite(state.loss) and state.aux["peak_torque_Nm"] <= 20.0
     assert sum(row["rejected_candidates"] for row in state.history) == len(state.events)
-
-
-# ---- the spacegrasp tune command: files, and resume after SIGINT ---------------------------
-
-
-def tune_environment(tmp_path):
-    """The tune subprocesses share JAX's persistent compilation cache: the first run
-    compiles, the interrupted and resumed runs reuse its executables."""
-    return {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache"), "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
-
-
-#: Optimiser steps of the tune runs below: the interrupted run gets SIGINT after step 2, and
-#: the steps left after it absorb the delay before the signal is handled on a loaded machine.
-TUNE_STEPS = 8
-
-
-def tune_command(tmp_path, out, *extra):
-    scenario = tmp_path / "short.toml"
-    scenario.write_text("duration = 1.0\n[trajectory]\nduration = 1.0\n")
-    return [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--scenario", str(scenario),
-            "--steps", str(TUNE_STEPS), "--holdout", "3", "--batch", "2", *extra]
-
-
-def run_until_step(command, history, step, env, timeout=600):
-    """Start ``command``, send SIGINT once ``history`` shows ``step`` completed steps."""
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    deadline = time.time() + timeout
-    while time.time() < deadline and process.poll() is None:
-        if history.exists() and len(history.read_text().splitlines()) >= step + 2:  # header + step 0
-            process.send_signal(signal.SIGINT)
-            break
-        time.sleep(0.05)
-    _, err = process.communicate(timeout=timeout)
-    return process.returncode, err
-
-
-@pytest.fixture(scope="module")
-def uninterrupted(tmp_path_factory):
-    tmp_path = tmp_path_factory.mktemp("tune")
-    out = tmp_path / "full"
-    result = subprocess.run(tune_command(tmp_path, out), capture_output=True, text=True, timeout=900, env=tune_environment(tmp_path))
-    assert result.returncode == 0, result.stderr
-    return tmp_path, out, result
-
-
-def test_tune_writes_every_file(uninterrupted):
-    _, out, result = uninterrupted
-    assert f"step {TUNE_STEPS}/{TUNE_STEPS}" in result.stderr  # the progress bar
-    for name in ("gains.json", "history.csv", "summary.json", "run.json", "checkpoint.npz", "loss.png", "peak_torques.png", "ee_pose.png"):
-        assert (out / name).stat().st_size > 0, name
-    gains = load_gains(out / "gains.json")  # loadable as simulate --gains takes it
-    assert gains.kp.shape == (7,)
-    rows = list(csv.DictReader((out / "history.csv").open()))
-    assert [int(row["step"]) for row in rows] == list(range(TUNE_STEPS + 1))
-    assert {"loss", "final_position_m", "peak_torque_smooth", "peak_torque_hard", "peak_torque_gap", "gradient_norm", "step_size"} <= set(rows[0])
-    summary = json.loads((out / "summary.json").read_text())
-    for key in ("paper_gains", "tuned_gains"):
-        assert {"max_abs_torque_Nm", "final_position_error_m", "final_orientation_error_rad", "rms_position_error_m", "max_contact_force_N"} <= set(summary[key])
-    assert summary["holdout"]["scenarios"] == 3
-    with np.load(out / "holdout.npz") as samples:
-        assert samples["start_loss"].shape == (3,) and samples["tuned_final_position_m"].shape == (3,)
-    assert summary["evaluated_with"].startswith("exact contact law")
-
-
-def test_interrupted_run_resumes_to_the_same_result(uninterrupted):
-    tmp_path, full, _ = uninterrupted
-    out = tmp_path / "interrupted"
-    code, err = run_until_step(tune_command(tmp_path, out), out / "history.csv", step=2, env=tune_environment(tmp_path))
-    assert code == 130, err
-    assert "--resume" in err
-    steps_done = len((out / "history.csv").read_text().splitlines()) - 2
-    assert 2 <= steps_done < TUNE_STEPS
-    resume = [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--resume"]
-    result = subprocess.run(resume, capture_output=True, text=True, timeout=900, env=tune_environment(tmp_path))
-    assert result.returncode == 0, result.stderr
-    assert f"resuming after step {steps_done}/{TUNE_STEPS}" in result.stderr
-    assert json.loads((out / "gains.json").read_text()) == json.loads((full / "gains.json").read_text())
-    history = list(csv.DictReader((out / "history.csv").open()))
-    reference = list(csv.DictReader((full / "history.csv").open()))
-    assert [row["loss"] for row in history] == [row["loss"] for row in reference]
-
-
-def test_tune_refuses_to_overwrite_and_rejects_bad_options(uninterrupted, tmp_path):
-    _, full, _ = uninterrupted
-    result = subprocess.run(tune_command(tmp_path, full), capture_output=True, text=True, timeout=300)
-    assert result.returncode == 2 and "already holds a tuning run" in result.stderr
-    result = subprocess.run(tune_command(tmp_path, tmp_path / "x", "--weights", "speed=1"), capture_output=True, text=True, timeout=300)
-    assert result.returncode == 2 and "unknown weight 'speed'" in result.stderr
-    result = subprocess.run([sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(tmp_path / "none"), "--resume"], capture_output=True, text=True, timeout=300)
-    assert result.returncode == 2 and "holds no tuning run" in result.stderr
 
 
 def test_shipped_tuned_gains_beat_the_paper_on_the_nominal_scenario(robot, full_runs):
