@@ -84,7 +84,8 @@ def forward_kinematics_by_component(robot, p_base, R_base, q):
 
 
 def _part_functions(gains):
-    """name -> ``f(robot, scenario, state) -> outputs`` (``state`` a ``SimState``)."""
+    """name -> ``f(robot, scenario, state) -> outputs`` (``state`` a ``SimState``); ``step``'s
+    output is the next ``SimState``."""
     import jax.numpy as jnp
 
     from spacegrasp_jax import simulate
@@ -111,25 +112,25 @@ def _part_functions(gains):
         shared = simulate.plant_kinematics(robot, scenario, state.plant)
         return simulate.control_step(robot, scenario, gains, "admittance", state, 1.0, 0.0, shared)[:2]
 
+    def step(robot, scenario, state):
+        return simulate.closed_loop_step(robot, scenario, gains, "admittance")(state, jnp.ones((), state.plant.q.dtype))[0]
+
     return dict(kinematics=kinematics, kinematics_by_component=kinematics_by_component, mass_matrix=mass_matrix,
-                plant_kinematics=plant_kinematics, plant_rate=plant_rate, controller=controller)
+                plant_kinematics=plant_kinematics, plant_rate=plant_rate, controller=controller, step=step)
 
 
-def _looped(part, name: str, iterations: int, gains):
-    """``(robot, scenario, state) -> state`` running ``part`` ``iterations`` times in one loop."""
+def _looped(part, carries_state: bool, iterations: int):
+    """``(robot, scenario, state) -> state`` running ``part`` ``iterations`` times in one loop:
+    its output is the next state if ``carries_state``, else folded into the joint angles."""
     import jax
     import jax.numpy as jnp
 
-    from spacegrasp_jax import simulate
-
-    if name == "step":
-        def body(robot, scenario, state):
-            return simulate.closed_loop_step(robot, scenario, gains, "admittance")(state, jnp.ones((), state.plant.q.dtype))[0]
-    else:
-        def body(robot, scenario, state):
-            total = sum(jnp.sum(leaf) for leaf in jax.tree.leaves(part(robot, scenario, state)))
-            plant = dataclasses.replace(state.plant, q=state.plant.q + 1e-12 * total)
-            return dataclasses.replace(state, plant=plant)
+    def body(robot, scenario, state):
+        output = part(robot, scenario, state)
+        if carries_state:
+            return output
+        total = sum(jnp.sum(leaf) for leaf in jax.tree.leaves(output))
+        return dataclasses.replace(state, plant=dataclasses.replace(state.plant, q=state.plant.q + 1e-12 * total))
 
     def run(robot, scenario, state):
         return jax.lax.fori_loop(0, iterations, lambda _, s: body(robot, scenario, s), state)
@@ -157,10 +158,8 @@ def measure(parts: list[str], batch: int, iterations: int, repeats: int) -> list
     results = []
     for name in parts:
         row = {"part": name}
-        for label, function, arguments, samples in (
-            ("single", _looped(functions.get(name), name, iterations, gains), single, 1),
-            ("batch", jax.vmap(_looped(functions.get(name), name, iterations, gains)), batched, batch),
-        ):
+        looped = _looped(functions[name], name == "step", iterations)
+        for label, function, arguments, samples in (("single", looped, single, 1), ("batch", jax.vmap(looped), batched, batch)):
             compiled = compilation.jit(function).lower(*arguments).compile()
             jax.block_until_ready(compiled(*arguments))
             timing = timed(lambda: jax.block_until_ready(compiled(*arguments)), repeats)

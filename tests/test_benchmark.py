@@ -37,9 +37,9 @@ def test_quick_benchmark_writes_every_key(tmp_path):
 def test_batch_efficiency_reports_each_part(tmp_path):
     """``benchmarks.batch_efficiency`` at toy size: a row per requested part with finite
     positive times; an unknown part is refused before anything compiles."""
-    command = [sys.executable, "-m", "benchmarks.batch_efficiency", "--out", str(tmp_path), "--parts", "kinematics",
-               "--batch", "4", "--iterations", "10", "--repeats", "1"]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    base = [sys.executable, "-m", "benchmarks.batch_efficiency", "--out", str(tmp_path)]
+    toy_size = ["--batch", "4", "--iterations", "10", "--repeats", "1"]
+    result = subprocess.run(base + ["--parts", "kinematics"] + toy_size, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads((tmp_path / "batch_efficiency.json").read_text())
     assert [row["part"] for row in report["results"]] == ["kinematics"]
@@ -48,7 +48,7 @@ def test_batch_efficiency_reports_each_part(tmp_path):
     assert all(math.isfinite(x) and x > 0 for x in numbers), numbers
     assert math.isclose(row["batch_gain"], row["single_us_per_sample"] / row["batch_us_per_sample"])
 
-    refused = subprocess.run(command[:-8] + ["--parts", "kinematics,rnea"], capture_output=True, text=True, timeout=60)
+    refused = subprocess.run(base + ["--parts", "kinematics,rnea"], capture_output=True, text=True, timeout=60)
     assert refused.returncode == 2 and "unknown ['rnea']" in refused.stderr
 
 
