@@ -1,6 +1,6 @@
 """What batching buys per core, part by part of the closed-loop step.
 
-    python -m benchmarks.batch_efficiency [--out results/benchmarks] [--batch 128] [--iterations 1000] [--parts ...]
+    python -m spacegrasp_jax.benchmarks.batch_efficiency [--out results/benchmarks] [--batch 128] [--iterations 1000] [--parts ...]
 
 The Monte-Carlo target (README, Performance) is a batch of 1,024 rollouts at 10x the
 throughput of single rollouts run one after another. On a CPU that can only come from the
@@ -142,7 +142,7 @@ def measure(parts: list[str], batch: int, iterations: int, repeats: int) -> list
     import jax
 
     import spacegrasp_jax as sg
-    from benchmarks.dynamics import timed
+    from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax import compilation, simulate
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.perturbations import PerturbationRanges, sample
@@ -189,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f"{'part':>23} {'single':>10} {'batch':>10} {'gain':>10}   (us per sample, one core, batch {args.batch})")
     results = measure(parts, args.batch, args.iterations, args.repeats)
-    from benchmarks.dynamics import machine
+    from spacegrasp_jax.benchmarks.dynamics import machine
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """Forward-dynamics benchmark: spacegrasp-jax against Pinocchio called from Python.
 
-    python -m benchmarks.dynamics [--out results/benchmarks] [--repeats 7] [--batch 1024]
+    python -m spacegrasp_jax.benchmarks.dynamics [--out results/benchmarks] [--repeats 7] [--batch 1024]
 
 Measures, after compilation, with the median (and spread) over repeats:
 * one ``forward_dynamics`` call from Python (jit, includes dispatch);

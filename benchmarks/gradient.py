@@ -1,11 +1,11 @@
 """Cost of one gradient of the tuning objective against one forward rollout.
 
-    python -m benchmarks.gradient [--out results/benchmarks] [--duration 17] [--repeats 3]
+    python -m spacegrasp_jax.benchmarks.gradient [--out results/benchmarks] [--duration 17] [--repeats 3]
 
 Modes, each in its own process so that peak memory is its own:
 * ``forward``: the objective alone (one rollout of the 17 s paper scenario, smooth contact);
 * ``reverse_checkpointed``: ``jax.value_and_grad`` with each step's parts under
-  ``jax.checkpoint``, in inner scans of 2 steps (``tuning.tune.checkpoint_segment``, the
+  ``jax.checkpoint``, in inner scans of 2 steps (``spacegrasp_jax.tuning.tune.checkpoint_segment``, the
   tuning default);
 * ``reverse_plain``: ``jax.value_and_grad`` through one plain scan;
 * ``forward_mode``: ``jax.jacfwd`` over the 39 admittance log-gains.
@@ -33,13 +33,13 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
     import jax
 
     import spacegrasp_jax as sg
-    from benchmarks.dynamics import timed
+    from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax import compilation
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.scenario import paper_scenario
-    from tuning.objective import Objective, Weights
-    from tuning.parameters import initial_params, make_mask
-    from tuning.tune import TuneConfig, checkpoint_segment, make_loss, make_value_and_grad, training_scenarios
+    from spacegrasp_jax.tuning.objective import Objective, Weights
+    from spacegrasp_jax.tuning.parameters import initial_params, make_mask
+    from spacegrasp_jax.tuning.tune import TuneConfig, checkpoint_segment, make_loss, make_value_and_grad, training_scenarios
 
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, contact_law="smooth", duration=duration)
@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
         environment |= {"JAX_COMPILATION_CACHE_DIR": args.compile_cache, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
     results = {}
     for mode in modes:
-        command = [sys.executable, "-m", "benchmarks.gradient", "--child", mode, "--duration", str(args.duration), "--repeats", str(args.repeats)]
+        command = [sys.executable, "-m", "spacegrasp_jax.benchmarks.gradient", "--child", mode, "--duration", str(args.duration), "--repeats", str(args.repeats)]
         output = subprocess.run(command, capture_output=True, text=True, check=True, env=environment).stdout
         results[mode] = json.loads(output.strip().splitlines()[-1])
         print(f"measured {mode}", flush=True)
@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         ratio = r["run_s"] / forward if forward else float("nan")
         r["over_forward"] = ratio
         print(f"{mode:22} {r['compile_s']:>11.1f} {r['run_s']:>9.2f} {ratio:>9.2f} {r['xla_temp_mb']:>13.1f} {r['peak_rss_mb']:>13.0f}")
-    from benchmarks.dynamics import machine
+    from spacegrasp_jax.benchmarks.dynamics import machine
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

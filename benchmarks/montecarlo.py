@@ -1,6 +1,6 @@
 """Monte-Carlo throughput: batches of perturbed captures against sequential single rollouts.
 
-    python -m benchmarks.montecarlo [--out results/benchmarks] [--batches 1,64,256,1024] [--sequential 8] [--duration 17]
+    python -m spacegrasp_jax.benchmarks.montecarlo [--out results/benchmarks] [--batches 1,64,256,1024] [--sequential 8] [--duration 17]
 
 Each measurement runs in its own process, so that its peak memory is its own:
 * ``sequential``: ``--sequential`` samples of the campaign, one after the other, each a call
@@ -41,7 +41,7 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
     if kind == "batch" and size % cores == 0:
         campaign.use_all_cpu_cores()  # as `spacegrasp montecarlo` does; before any device use
     import spacegrasp_jax as sg
-    from benchmarks.dynamics import timed
+    from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax import compilation
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.montecarlo import rollout_metrics
@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     runs = [("sequential", args.sequential)] + [("batch", size) for size in batches]
     results = []
     for kind, size in runs:
-        command = [sys.executable, "-m", "benchmarks.montecarlo", "--child", kind, str(size), "--duration", str(args.duration), "--repeats", str(args.repeats)]
+        command = [sys.executable, "-m", "spacegrasp_jax.benchmarks.montecarlo", "--child", kind, str(size), "--duration", str(args.duration), "--repeats", str(args.repeats)]
         output = subprocess.run(command, capture_output=True, text=True, check=True).stdout
         results.append(json.loads(output.strip().splitlines()[-1]))
         print(f"measured {kind} {size}", flush=True)
@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
         label = f"{r['kind']} {r['size']}"
         print(f"{label:>16} {r['compile_s']:>11.1f} {r['run_s']:>9.2f} {r['rollouts_per_s']:>10.2f} {r['simulated_s_per_wall_s']:>12.1f} "
               f"{r['scenario_steps_per_s']:>10.3g} {r['over_sequential']:>12.1f}x {r['xla_temp_mb']:>13.1f} {r['peak_rss_mb']:>13.0f}")
-    from benchmarks.dynamics import machine
+    from spacegrasp_jax.benchmarks.dynamics import machine
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from benchmarks.dynamics import timed
+from spacegrasp_jax.benchmarks.dynamics import timed
 
 
 def _cores() -> int:
@@ -94,7 +94,7 @@ def mujoco_rollout(robot, scenario, batch: int, segment: int = 250, threads: int
 def pinocchio_closed_loop(robot, scenario, gains, controller: str = "admittance") -> dict:
     """Time of one closed-loop rollout as a Python loop over Pinocchio, and the largest
     difference of its final EE pose from ``spacegrasp_jax``'s (checked by the caller)."""
-    from benchmarks.pinocchio_loop import PinocchioClosedLoop
+    from spacegrasp_jax.benchmarks.pinocchio_loop import PinocchioClosedLoop
 
     loop = PinocchioClosedLoop(robot, scenario, gains, controller)
     start = time.perf_counter()

@@ -10,7 +10,7 @@ to Pinocchio's (base twist in the base frame) at each call. Apart from reading t
 none of the package's code: the small rotation helpers and the control law are written again
 in NumPy, on purpose, as a user without this package would write them.
 
-Run alone: ``python -m benchmarks.pinocchio_loop [--duration S]`` prints the time of one
+Run alone: ``python -m spacegrasp_jax.benchmarks.pinocchio_loop [--duration S]`` prints the time of one
 rollout and its agreement with ``spacegrasp_jax``'s rollout of the same scenario.
 """
 

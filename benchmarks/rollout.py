@@ -1,10 +1,10 @@
 """Closed-loop rollout benchmark: compile time and run time of one 17 s rollout per controller.
 
-    python -m benchmarks.rollout [--out results/benchmarks] [--repeats 5] [--duration 17]
+    python -m spacegrasp_jax.benchmarks.rollout [--out results/benchmarks] [--repeats 5] [--duration 17]
 
 Run time is measured after compilation, as the median (and spread) of ``--repeats`` runs of
 the paper scenario (dt = 1 ms, 17,000 RK4 steps). For the figure "on one CPU core", run it
-pinned to one core: ``taskset -c 0 python -m benchmarks.rollout``. Batched throughput is
+pinned to one core: ``taskset -c 0 python -m spacegrasp_jax.benchmarks.rollout``. Batched throughput is
 ``benchmarks.montecarlo``'s. Writes ``rollout.json``.
 """
 
@@ -20,7 +20,7 @@ from pathlib import Path
 import jax
 
 import spacegrasp_jax as sg
-from benchmarks.dynamics import machine, timed
+from spacegrasp_jax.benchmarks.dynamics import machine, timed
 from spacegrasp_jax import compilation
 from spacegrasp_jax.control import CONTROLLERS, paper_gains
 from spacegrasp_jax.scenario import paper_scenario

@@ -44,7 +44,7 @@ RESULT_NAMES = {"admittance": "active", "cartesian": "cartesian"}
 def _child(module: str, out: Path, *options: str) -> dict:
     """Run ``python -m <module> --out <out> <options>`` and read the JSON it writes."""
     subprocess.run([sys.executable, "-m", module, "--out", str(out), *options], check=True, stdout=subprocess.DEVNULL)
-    name = {"benchmarks.rollout": "rollout.json", "benchmarks.montecarlo": "montecarlo.json", "benchmarks.gradient": "gradient.json"}[module]
+    name = {"spacegrasp_jax.benchmarks.rollout": "rollout.json", "spacegrasp_jax.benchmarks.montecarlo": "montecarlo.json", "spacegrasp_jax.benchmarks.gradient": "gradient.json"}[module]
     return json.loads((out / name).read_text())
 
 
@@ -100,8 +100,8 @@ def run(out: Path, quick: bool, repeats: int) -> dict:
 def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: list[int]) -> dict:
     """Every measurement; the parts' own JSON files go to ``parts`` (removed afterwards)."""
     import spacegrasp_jax as sg
-    from benchmarks import peers
-    from benchmarks.dynamics import machine
+    from spacegrasp_jax.benchmarks import peers
+    from spacegrasp_jax.benchmarks.dynamics import machine
     from spacegrasp_jax import experiment
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.scenario import paper_scenario
@@ -109,13 +109,13 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
     report = {"machine": machine(), "quick": quick, "duration_s": duration}
 
     print(f"1/5 single rollouts ({duration:g} s)...", flush=True)
-    rollout = _child("benchmarks.rollout", parts, "--duration", str(duration), "--repeats", str(repeats))
+    rollout = _child("spacegrasp_jax.benchmarks.rollout", parts, "--duration", str(duration), "--repeats", str(repeats))
     report["rollout_s"] = {RESULT_NAMES[c]: rollout[c]["run_s"] for c in RESULT_NAMES}
     report["compile_s"] = {RESULT_NAMES[c]: rollout[c]["compile_s"] for c in RESULT_NAMES}
     report["us_per_step"] = {RESULT_NAMES[c]: rollout[c]["us_per_step"] for c in RESULT_NAMES}
 
     print(f"2/5 batches {batches}...", flush=True)
-    montecarlo = _child("benchmarks.montecarlo", parts, "--duration", str(duration), "--batches", ",".join(map(str, batches)),
+    montecarlo = _child("spacegrasp_jax.benchmarks.montecarlo", parts, "--duration", str(duration), "--batches", ",".join(map(str, batches)),
                         "--sequential", "2" if quick else "8", "--repeats", str(repeats))
     batch_results = [r for r in montecarlo["results"] if r["kind"] == "batch"]
     report["batch_steps_per_s"] = {str(r["size"]): r["scenario_steps_per_s"] for r in batch_results}
@@ -124,7 +124,7 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
 
     print("3/5 gradients...", flush=True)
     gradient_duration = 0.2 if quick else 17.0
-    gradient = _child("benchmarks.gradient", parts, "--duration", str(gradient_duration), "--repeats", str(repeats),
+    gradient = _child("spacegrasp_jax.benchmarks.gradient", parts, "--duration", str(gradient_duration), "--repeats", str(repeats),
                       "--modes", "forward,reverse_checkpointed,forward_mode")["results"]
     report["gradient_over_forward"] = {"reverse": gradient["reverse_checkpointed"]["over_forward"], "forward": gradient["forward_mode"]["over_forward"]}
     report["gradient_peak_mb"] = {"reverse": gradient["reverse_checkpointed"]["peak_rss_mb"], "forward": gradient["forward_mode"]["peak_rss_mb"], "rollout": gradient["forward"]["peak_rss_mb"]}

@@ -21,9 +21,9 @@ from spacegrasp_jax import campaign, experiment, plots, spatial
 from spacegrasp_jax.control import CONTROLLERS, GainsError, load_gains, paper_gains
 from spacegrasp_jax.perturbations import PerturbationError, PerturbationRanges, load_ranges
 from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
-from tuning.objective import Weights
-from tuning.run import TuneSetupError, tune
-from tuning.tune import TuneConfig
+from spacegrasp_jax.tuning.objective import Weights
+from spacegrasp_jax.tuning.run import TuneSetupError, tune
+from spacegrasp_jax.tuning.tune import TuneConfig
 
 PAPER_MAX_TORQUE_NM = experiment.PAPER_MAX_TORQUE_NM
 
@@ -271,7 +271,7 @@ def _benchmark(args: argparse.Namespace) -> int:
         import mujoco  # noqa: F401
         import pinocchio  # noqa: F401
 
-        from benchmarks import suite
+        from spacegrasp_jax.benchmarks import suite
     except ImportError as error:  # the peers, or the benchmarks package outside a checkout
         raise UsageError(f"the benchmark needs the test extra (pip install -e '.[test]'): {error}") from None
     return suite.main([*(["--quick"] if args.quick else []), "--out", args.out, "--repeats", str(args.repeats)])

@@ -1,4 +1,4 @@
-"""tuning.analysis on functions whose slopes are known in closed form."""
+"""spacegrasp_jax.tuning.analysis on functions whose slopes are known in closed form."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tuning import analysis
+from spacegrasp_jax.tuning import analysis
 
 
 def _quartic(params):
-    # loss = sum(a^4) + sum(3 b^2) + a0 b1; an aux dict as tuning.tune's loss returns.
+    # loss = sum(a^4) + sum(3 b^2) + a0 b1; an aux dict as spacegrasp_jax.tuning.tune's loss returns.
     a, b = params["a"], params["b"]
     loss = jnp.sum(a**4) + 3.0 * jnp.sum(b**2) + a[0] * b[1]
     return loss, {"loss": loss}

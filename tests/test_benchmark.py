@@ -9,7 +9,7 @@ import math
 import subprocess
 import sys
 
-from benchmarks.suite import KEYS
+from spacegrasp_jax.benchmarks.suite import KEYS
 
 
 def test_quick_benchmark_writes_every_key(tmp_path):
@@ -37,7 +37,7 @@ def test_quick_benchmark_writes_every_key(tmp_path):
 def test_batch_efficiency_reports_each_part(tmp_path):
     """``benchmarks.batch_efficiency`` at toy size: a row per requested part with finite
     positive times; an unknown part is refused before anything compiles."""
-    base = [sys.executable, "-m", "benchmarks.batch_efficiency", "--out", str(tmp_path)]
+    base = [sys.executable, "-m", "spacegrasp_jax.benchmarks.batch_efficiency", "--out", str(tmp_path)]
     toy_size = ["--batch", "4", "--iterations", "10", "--repeats", "1"]
     result = subprocess.run(base + ["--parts", "kinematics"] + toy_size, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -59,7 +59,7 @@ def test_kinematics_by_component_equals_the_package_kinematics():
     import numpy as np
 
     import spacegrasp_jax as sg
-    from benchmarks.batch_efficiency import forward_kinematics_by_component
+    from spacegrasp_jax.benchmarks.batch_efficiency import forward_kinematics_by_component
     from spacegrasp_jax.kinematics import forward_kinematics
     from spacegrasp_jax.spatial import rotation_exp
 

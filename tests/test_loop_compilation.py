@@ -120,9 +120,9 @@ def compiled_hlo(robot, gains):
 
 
 def _gradient_hlo(robot, gains) -> str:
-    from tuning.objective import Objective, Weights
-    from tuning.parameters import initial_params, make_mask
-    from tuning.tune import TuneConfig, checkpoint_segment, make_loss, make_value_and_grad, training_scenarios
+    from spacegrasp_jax.tuning.objective import Objective, Weights
+    from spacegrasp_jax.tuning.parameters import initial_params, make_mask
+    from spacegrasp_jax.tuning.tune import TuneConfig, checkpoint_segment, make_loss, make_value_and_grad, training_scenarios
 
     scenario = paper_scenario(robot, contact_law="smooth", duration=0.1)
     config = TuneConfig(batch=1)

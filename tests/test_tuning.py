@@ -13,10 +13,10 @@ import pytest
 from spacegrasp_jax import compilation
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
-from tuning.objective import Objective, Weights, objective_parts, smooth_max
-from tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
-from tuning import tune
-from tuning.tune import CHECKPOINT_SEGMENT, TuneConfig, make_loss, make_value_and_grad, optimise, training_scenarios
+from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts, smooth_max
+from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
+from spacegrasp_jax.tuning import tune
+from spacegrasp_jax.tuning.tune import CHECKPOINT_SEGMENT, TuneConfig, make_loss, make_value_and_grad, optimise, training_scenarios
 
 SHORT = dict(duration=1.0, move_duration=1.0)  # contact starts at about 0.45 s
 

@@ -1,14 +1,14 @@
 """Gradient-based tuning of the admittance, Cartesian and joint PID gains with optax.
 
-* :mod:`tuning.objective` - the objective (final errors, RMS tracking, smooth peak torque).
-* :mod:`tuning.parameters` - log-gain parameters and the freeze mask.
-* :mod:`tuning.tune` - loss over a scenario batch, gradients, the resumable optimiser loop.
-* :mod:`tuning.run` - the ``spacegrasp tune`` job: files, evaluation, plots.
+* :mod:`spacegrasp_jax.tuning.objective` - the objective (final errors, RMS tracking, smooth peak torque).
+* :mod:`spacegrasp_jax.tuning.parameters` - log-gain parameters and the freeze mask.
+* :mod:`spacegrasp_jax.tuning.tune` - loss over a scenario batch, gradients, the resumable optimiser loop.
+* :mod:`spacegrasp_jax.tuning.run` - the ``spacegrasp tune`` job: files, evaluation, plots.
 """
 
-from tuning.objective import Objective, Weights, objective_parts, smooth_max
-from tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
-from tuning.tune import TuneConfig, make_optimizer, optimise, setup
+from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts, smooth_max
+from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
+from spacegrasp_jax.tuning.tune import TuneConfig, make_optimizer, optimise, setup
 
 __all__ = [
     "GROUPS",

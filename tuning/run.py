@@ -35,9 +35,9 @@ from spacegrasp_jax.model import robot_from_toml
 from spacegrasp_jax.perturbations import sample_scenarios
 from spacegrasp_jax.scenario import paper_scenario, scenario_from_mapping
 from spacegrasp_jax.simulate import rollout
-from tuning.objective import Objective, objective_parts
-from tuning.parameters import gains_from_params
-from tuning.tune import (
+from spacegrasp_jax.tuning.objective import Objective, objective_parts
+from spacegrasp_jax.tuning.parameters import gains_from_params
+from spacegrasp_jax.tuning.tune import (
     CHECKPOINT,
     TuneConfig,
     load_checkpoint,

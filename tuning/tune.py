@@ -31,8 +31,8 @@ from spacegrasp_jax.model import Robot
 from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import largest_divisor, rollout
-from tuning.objective import Objective, Weights, objective_parts
-from tuning.parameters import gains_from_params, initial_params, make_mask
+from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts
+from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
 
 CHECKPOINT = "checkpoint.npz"
 
