@@ -37,6 +37,7 @@ import json
 import os
 import sys
 from pathlib import Path
+from spacegrasp_jax.compilation import configure
 
 PARTS = ("kinematics", "kinematics_by_component", "mass_matrix", "plant_kinematics", "plant_rate", "controller", "step")
 
@@ -171,6 +172,7 @@ def measure(parts: list[str], batch: int, iterations: int, repeats: int) -> list
 
 
 def main(argv: list[str] | None = None) -> int:
+    configure()  # this process is the benchmark's: float64, loops compiled whole
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks")
     parser.add_argument("--batch", type=int, default=128, help="samples in the vmapped batch (the campaign's sub-batch per CPU device)")

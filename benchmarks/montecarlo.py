@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from spacegrasp_jax.compilation import configure
 
 
 def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
@@ -90,6 +91,7 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    configure()  # this process is the benchmark's: float64, loops compiled whole
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks")
     parser.add_argument("--batches", default="1,64,256,1024", help="comma-separated batch sizes")

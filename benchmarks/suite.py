@@ -30,6 +30,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from spacegrasp_jax.compilation import configure
 
 #: Keys of benchmark.json (seconds unless the name says otherwise).
 KEYS = (
@@ -182,6 +183,7 @@ def table(report: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    configure()  # this process is the benchmark's: float64, loops compiled whole
     parser = argparse.ArgumentParser(prog="spacegrasp benchmark", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="toy sizes: exercises every part in about two minutes; numbers mean nothing")
     parser.add_argument("--out", default="results/benchmarks", help="folder for benchmark.json")

@@ -1,19 +1,22 @@
 """spacegrasp-jax: a differentiable simulator of a free-floating space manipulator capturing
 a satellite (Basmadji et al., active 6-DoF force/torque control on the Dynamic Jacobian).
 
-Importing the package enables float64 in JAX (the dynamics need it, DESIGN.md) and asks
-XLA:CPU to compile small loops into single kernels (``spacegrasp_jax.compilation``).
+Importing the package changes no process-wide setting. The package computes in float64 and
+runs fastest on a CPU with loops compiled whole: call :func:`configure` once, before JAX runs
+anything (``spacegrasp_jax.compilation`` says what each setting does)::
+
+    import spacegrasp_jax as sg
+    sg.configure()
 """
 
-from spacegrasp_jax.compilation import request_loop_kernels
-
-request_loop_kernels()
-
-import jax  # noqa: E402
-
-jax.config.update("jax_enable_x64", True)
-
-from spacegrasp_jax.dynamics import (  # noqa: E402
+from spacegrasp_jax.compilation import (
+    Float64Required,
+    compile_loops_whole,
+    configure,
+    enable_float64,
+    use_compile_cache,
+)
+from spacegrasp_jax.dynamics import (
     bias_forces,
     dynamic_jacobian,
     dynamic_jacobian_ee,
@@ -27,8 +30,8 @@ from spacegrasp_jax.dynamics import (  # noqa: E402
     system_com,
     system_momentum,
 )
-from spacegrasp_jax.kinematics import ee_jacobians, ee_pose, forward_kinematics  # noqa: E402
-from spacegrasp_jax.model import (  # noqa: E402
+from spacegrasp_jax.kinematics import ee_jacobians, ee_pose, forward_kinematics
+from spacegrasp_jax.model import (
     PAPER_Q_INIT,
     Robot,
     RobotConfigError,
@@ -40,14 +43,18 @@ from spacegrasp_jax.model import (  # noqa: E402
 __version__ = "0.1.0"
 
 __all__ = [
+    "Float64Required",
     "PAPER_Q_INIT",
     "Robot",
     "RobotConfigError",
     "bias_forces",
+    "compile_loops_whole",
+    "configure",
     "dynamic_jacobian",
     "dynamic_jacobian_ee",
     "ee_jacobians",
     "ee_pose",
+    "enable_float64",
     "forward_dynamics",
     "inverse_dynamics",
     "forward_kinematics",
@@ -61,4 +68,5 @@ __all__ = [
     "paper_robot",
     "system_com",
     "system_momentum",
+    "use_compile_cache",
 ]

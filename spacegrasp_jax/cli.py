@@ -17,7 +17,7 @@ import numpy as np
 matplotlib.use("Agg")  # the command line only writes figures to files; before pyplot is imported
 
 import spacegrasp_jax as sg  # noqa: E402
-from spacegrasp_jax import campaign, experiment, plots, spatial
+from spacegrasp_jax import campaign, compilation, experiment, plots, spatial
 from spacegrasp_jax.control import CONTROLLERS, GainsError, load_gains, paper_gains
 from spacegrasp_jax.perturbations import PerturbationError, PerturbationRanges, load_ranges
 from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
@@ -124,30 +124,7 @@ class UsageError(ValueError):
     """A command-line option is invalid."""
 
 
-def default_compile_cache() -> Path:
-    """``$XDG_CACHE_HOME/spacegrasp-jax/xla`` (``~/.cache/...`` without it)."""
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "spacegrasp-jax" / "xla"
-
-
-def use_compile_cache(folder: str | None) -> Path | None:
-    """Turn on JAX's persistent compilation cache in ``folder`` and return it.
-
-    ``None``: a cache the user set already (``JAX_COMPILATION_CACHE_DIR``), else
-    :func:`default_compile_cache`; ``"none"``: leave it off. A cached program is loaded instead
-    of compiled: the 17 s tuning gradient is then ready in 5.7 s instead of 21 s, and its
-    process peaks at 0.93 GB instead of 1.56 GB (README, Performance)."""
-    if folder == "none":
-        return None
-    if folder is None:
-        folder = jax.config.jax_compilation_cache_dir or str(default_compile_cache())
-    jax.config.update("jax_compilation_cache_dir", str(folder))  # JAX caches programs that took >= 1 s
-    return Path(folder)
-
-
 def _tune(args: argparse.Namespace) -> int:
-    cache = use_compile_cache(args.compile_cache)
-    print(f"compilation cache: {cache if cache else 'off'}", file=sys.stderr)
     try:
         if args.resume:
             return tune(Path(args.out), resume=True)
@@ -312,6 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     reproduce = commands.add_parser("reproduce", help="run both controllers with the paper's gains: Table 5 and Figures 4-9")
     _add_run_options(reproduce, "results/reproduce")
+    _add_compile_cache_option(reproduce)
     reproduce.set_defaults(run=_reproduce)
 
     simulate = commands.add_parser("simulate", help="run one controller with any gains and scenario")
@@ -319,6 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--gains", help="gains JSON file (default: the paper's)")
     simulate.add_argument("--scenario", help="scenario TOML or JSON file (default: the paper's)")
     _add_run_options(simulate, "results/simulate")
+    _add_compile_cache_option(simulate)
     simulate.set_defaults(run=_simulate)
 
     tune = commands.add_parser("tune", help="tune the gains by gradient descent (resumable)")
@@ -339,9 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--scenario", help="scenario TOML/JSON (default: the paper's)")
     tune.add_argument("--robot", help="robot TOML (default: the paper's)")
     tune.add_argument("--resume", action="store_true", help="continue the run in --out from its last completed step")
-    tune.add_argument("--compile-cache", metavar="DIR",
-                      help="keep compiled programs here for later runs and --resume (default: $JAX_COMPILATION_CACHE_DIR, "
-                           "else ~/.cache/spacegrasp-jax/xla; 'none': off)")
+    _add_compile_cache_option(tune)
     tune.set_defaults(run=_tune)
 
     montecarlo = commands.add_parser("montecarlo", help="robustness campaign over perturbed captures (sharded, resumable)")
@@ -370,6 +347,7 @@ def build_parser() -> argparse.ArgumentParser:
     cluster.add_argument("--coordinator", help="HOST:PORT of process 0")
     cluster.add_argument("--num-processes", type=int, help="number of processes")
     cluster.add_argument("--process-id", type=int, help="this process's rank, 0 .. num-processes - 1")
+    _add_compile_cache_option(montecarlo)
     montecarlo.set_defaults(run=_montecarlo)
 
     benchmark = commands.add_parser("benchmark", help="speed and memory against MuJoCo and a Pinocchio loop (needs the test extra)")
@@ -380,8 +358,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _add_compile_cache_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--compile-cache", metavar="DIR|none",
+                        help="keep compiled programs in DIR for later runs (default: $JAX_COMPILATION_CACHE_DIR, "
+                             "else ~/.cache/spacegrasp-jax/xla; 'none': compile everything afresh)")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    # The command owns its process: float64 and loops compiled whole, before anything runs,
+    # and compiled programs kept on disk for the next run.
+    compilation.enable_float64()
+    compilation.compile_loops_whole()
+    if "compile_cache" in args:
+        cache = compilation.use_compile_cache(args.compile_cache)
+        print(f"compilation cache: {cache if cache else 'off'}", file=sys.stderr)
     try:
         return args.run(args)
     except (sg.RobotConfigError, GainsError, ScenarioError, PerturbationError, UsageError) as error:

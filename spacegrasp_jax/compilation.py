@@ -1,20 +1,25 @@
-"""How the package asks XLA to compile its programs: :func:`jit` is ``jax.jit`` with
-:func:`compiler_options`, and importing the package asks XLA:CPU to compile small loops
-whole (:func:`request_loop_kernels`).
+"""How the package's programs are compiled, and the process settings they want.
 
-**Loops compiled whole.** XLA:CPU normally runs a loop body as a sequence of separately
-compiled kernels, one launch each: some 430 per closed-loop step, whose launching cost
-more than their arithmetic. A while loop whose body touches fewer bytes per iteration than
-``xla_cpu_small_while_loop_byte_threshold`` and calls no library (no LAPACK, no custom
-fusion) is instead compiled into one function, loop included ("small while loop
-hoisting"). The threshold is a backend option that only ``XLA_FLAGS`` sets, read when XLA
-first compiles, so importing ``spacegrasp_jax`` adds it to ``XLA_FLAGS`` (unless the user
-already passes ``--xla_backend_extra_options``). It applies to every program of the process
-on a CPU, other backends ignore it. Hence the package's loops call no library: the small
-solves are unrolled (``spacegrasp_jax.linalg``), the 3x3 products are products and sums
-(``spacegrasp_jax.spatial``), and :data:`CPU_OPTIONS` turns off XLA's YNNPACK fusions of
-batched reductions (custom fusions). A 17 s rollout runs 2.4x faster, a gradient 3x; the
-programs take 2-3x longer to compile (README, Performance).
+Importing ``spacegrasp_jax`` changes nothing in the process: no environment variable, no
+XLA flag, no JAX option. Three settings are the caller's to choose, each by one explicit
+call, or all three at once by :func:`configure` (what the ``spacegrasp`` command does):
+
+* **float64** (:func:`enable_float64`). The dynamics need double precision; JAX computes in
+  float32 unless told otherwise. The constructors of robots, scenarios and gains raise
+  :class:`Float64Required` when it is off, before anything compiles.
+* **Loops compiled whole** (:func:`compile_loops_whole`). XLA:CPU normally runs a loop body
+  as a sequence of separately compiled kernels, one launch each: some 430 per closed-loop
+  step, whose launching costs more than their arithmetic. A while loop whose body touches
+  fewer bytes per iteration than ``xla_cpu_small_while_loop_byte_threshold`` and calls no
+  library (no LAPACK, no custom fusion) can instead be compiled into one function, loop
+  included. The threshold is a backend option that only ``XLA_FLAGS`` sets, and it applies
+  to every program of the process on a CPU (other backends ignore it), which is why it is
+  an opt-in. The package's loops are written to qualify: the small solves are unrolled
+  (``spacegrasp_jax.linalg``), the 3x3 products are products and sums
+  (``spacegrasp_jax.spatial``), and :data:`CPU_OPTIONS` turns off XLA's YNNPACK fusions of
+  batched reductions (custom fusions). Results are the same either way, to rounding.
+* **A persistent compilation cache** (:func:`use_compile_cache`): compiled programs are
+  kept on disk and loaded by later processes instead of compiled again.
 
 **Compile options.** :data:`CPU_OPTIONS` also keeps the loop-fusion emitters that predate
 XLA's MLIR-based "fusion emitters": half the compiler's peak memory on the closed loop's
@@ -27,6 +32,7 @@ from __future__ import annotations
 import functools
 import os
 import warnings
+from pathlib import Path
 from typing import Any, Callable
 
 import jax
@@ -40,20 +46,98 @@ CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_f
 #: make a loop over large arrays one kernel.
 LOOP_KERNEL_BYTES = 100_000_000
 
-_LOOP_FLAG = f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={LOOP_KERNEL_BYTES}"
+LOOP_FLAG = f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={LOOP_KERNEL_BYTES}"
 
 
-def request_loop_kernels() -> bool:
-    """Add the loop-kernel threshold (:data:`LOOP_KERNEL_BYTES`) to ``XLA_FLAGS``, unless
-    ``XLA_FLAGS`` already sets backend options (then the user's choice stands: set
-    ``xla_cpu_small_while_loop_byte_threshold=0`` there to compile loops kernel by kernel).
-    Takes effect if called before XLA first compiles; ``import spacegrasp_jax`` calls it.
-    Returns whether it changed ``XLA_FLAGS``."""
+class Float64Required(RuntimeError):
+    """JAX is in float32 (its default) where the package needs float64."""
+
+
+def enable_float64() -> None:
+    """Make JAX compute in float64 (``jax_enable_x64``), process-wide."""
+    jax.config.update("jax_enable_x64", True)
+
+
+def require_float64(what: str) -> None:
+    """Raise :class:`Float64Required`, naming ``what`` was being built, unless JAX is in
+    float64 (:func:`enable_float64`, ``JAX_ENABLE_X64=1`` or ``jax_enable_x64``)."""
+    if not jax.config.jax_enable_x64:
+        raise Float64Required(
+            f"{what}: spacegrasp_jax computes in float64, but JAX is in float32 (its default). "
+            "Call spacegrasp_jax.configure() (or jax.config.update('jax_enable_x64', True)) first."
+        )
+
+
+def _backends_initialised() -> bool:
+    try:
+        from jax._src import xla_bridge
+
+        return xla_bridge.backends_are_initialized()
+    except (ImportError, AttributeError):  # a JAX without the query: assume the worst
+        return True
+
+
+def compile_loops_whole() -> None:
+    """Ask XLA:CPU to compile small loops into one function (module docstring) by adding
+    :data:`LOOP_FLAG` to ``XLA_FLAGS``, process-wide.
+
+    If ``XLA_FLAGS`` already sets backend options, the user's choice stands (with
+    ``xla_cpu_small_while_loop_byte_threshold=0`` there, loops run kernel by kernel). Best
+    called before JAX first runs anything; if JAX has already started, a probe checks that
+    the option took effect and warns (``RuntimeWarning``) if it did not."""
     flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_backend_extra_options" in flags:
-        return False
-    os.environ["XLA_FLAGS"] = f"{flags} {_LOOP_FLAG}".strip()
-    return True
+    if "xla_backend_extra_options" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {LOOP_FLAG}".strip()
+    if _backends_initialised():
+        loops_compile_whole.cache_clear()
+        if jax.default_backend() == "cpu" and not loops_compile_whole():
+            warnings.warn(
+                "spacegrasp_jax.compile_loops_whole() came too late for this process: XLA compiles "
+                "loops kernel by kernel, so the closed loop runs about 2.4x slower on a CPU. Call it "
+                f"before JAX runs anything, or start Python with XLA_FLAGS={LOOP_FLAG}",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+
+
+def default_compile_cache() -> Path:
+    """``$XDG_CACHE_HOME/spacegrasp-jax/xla`` (``~/.cache/spacegrasp-jax/xla`` without it)."""
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "spacegrasp-jax" / "xla"
+
+
+def use_compile_cache(folder: str | Path | None = None) -> Path | None:
+    """Turn on JAX's persistent compilation cache in ``folder`` and return the folder.
+
+    ``None``: the folder the process already uses (``JAX_COMPILATION_CACHE_DIR``), else
+    :func:`default_compile_cache`; ``"none"``: leave the cache as it is and return ``None``.
+    Programs that took at least ``jax_persistent_cache_min_compile_time_secs`` (1 s by
+    default) to compile are written there; a later process with the same program, JAX
+    version and XLA flags loads it instead of compiling it. Takes effect for programs
+    compiled after the first compile of the process only if called before it."""
+    if folder == "none":
+        return None
+    if folder is None:
+        folder = jax.config.jax_compilation_cache_dir or default_compile_cache()
+    folder = Path(folder)
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    return folder
+
+
+def configure(*, float64: bool = True, loops_whole: bool = True, compile_cache: str | Path | None = "none") -> None:
+    """The process settings the package is built for, in one call (module docstring):
+    :func:`enable_float64`, :func:`compile_loops_whole` and, when ``compile_cache`` is not
+    ``"none"``, :func:`use_compile_cache` (``None``: the default folder). Call it once, at
+    the top of a script or notebook, before JAX runs anything::
+
+        import spacegrasp_jax as sg
+        sg.configure()
+    """
+    if float64:
+        enable_float64()
+    if loops_whole:
+        compile_loops_whole()
+    use_compile_cache(compile_cache)
 
 
 @functools.cache
@@ -69,16 +153,7 @@ def loops_compile_whole() -> bool:
 @functools.cache
 def compiler_options() -> dict[str, Any]:
     """:data:`CPU_OPTIONS` if this XLA accepts them, else ``{}``. Probed on first use (the
-    probe compiles a scalar program, so it initialises the JAX backend), together with
-    :func:`loops_compile_whole`, which warns if loops run kernel by kernel on a CPU."""
-    if jax.default_backend() == "cpu" and not loops_compile_whole():
-        warnings.warn(
-            "XLA compiles loops kernel by kernel in this process, so the closed loop runs about "
-            "2.4x slower on a CPU: import spacegrasp_jax before JAX compiles anything, or pass "
-            f"XLA_FLAGS={_LOOP_FLAG} (spacegrasp_jax.compilation)",
-            RuntimeWarning,
-            stacklevel=3,
-        )
+    probe compiles a scalar program, so it initialises the JAX backend)."""
     try:
         jax.jit(lambda x: x + 1.0, compiler_options=CPU_OPTIONS).lower(0.0).compile()
     except (jax.errors.JaxRuntimeError, TypeError):  # unknown option; a jit without the argument
@@ -89,6 +164,6 @@ def compiler_options() -> dict[str, Any]:
 def jit(fun: Callable, **jit_kwargs) -> Callable:
     """``jax.jit(fun, **jit_kwargs)`` compiled with :func:`compiler_options`. Call it when
     the program is about to be compiled, not at import: the options' probe initialises the
-    JAX backend (``campaign.use_all_cpu_cores`` must come before that)."""
+    JAX backend (``batching.use_all_cpu_cores`` must come before that)."""
     options = compiler_options()
     return jax.jit(fun, compiler_options=options, **jit_kwargs) if options else jax.jit(fun, **jit_kwargs)

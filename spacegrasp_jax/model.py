@@ -31,6 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from spacegrasp_jax.compilation import require_float64
+
 N_JOINTS = 7
 
 #: The paper's initial joint angles q_init [rad] (section 4).
@@ -132,6 +134,7 @@ def make_robot(**fields) -> Robot:
 
 
 def _validated(fields: dict, label) -> dict[str, jax.Array]:
+    require_float64("a Robot")
     unknown = sorted(set(fields) - set(_FIELDS))
     if unknown:
         raise RobotConfigError(f"unknown robot field(s): {', '.join(map(label, unknown))}")

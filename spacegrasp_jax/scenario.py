@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from spacegrasp_jax.compilation import require_float64
 from spacegrasp_jax.integrator import PlantState, plant_state
 from spacegrasp_jax.kinematics import ee_pose
 from spacegrasp_jax.model import PAPER_Q_INIT, Robot
@@ -90,6 +91,7 @@ def paper_scenario(
     Raises:
         ScenarioError: a value is out of range or not finite; the message names it.
     """
+    require_float64("a Scenario")
     _check_scenario_numbers(
         q_init=q_init, duration=duration, dt=dt, lar_offset=lar_offset, start_pose=start_pose,
         end_pose=end_pose, move_duration=move_duration, sphere_centre=sphere_centre,

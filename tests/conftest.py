@@ -1,14 +1,15 @@
-"""Shared fixtures: float64, the paper robot, its Pinocchio twin and random states."""
+"""Shared fixtures: the process settings, the paper robot, its Pinocchio twin and random states."""
 
 from __future__ import annotations
 
-import jax
 import pytest
 
-jax.config.update("jax_enable_x64", True)
+import spacegrasp_jax as sg
+from random_states import RandomState, make_random_states
 
-import spacegrasp_jax as sg  # noqa: E402
-from random_states import RandomState, make_random_states  # noqa: E402
+# As the command line does: float64, loops compiled whole (before anything compiles). No
+# persistent compilation cache: every test compiles what it runs.
+sg.configure()
 
 N_RANDOM_STATES = 20
 

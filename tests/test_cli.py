@@ -70,10 +70,10 @@ FIGURES = [f"fig{i}_{name}.png" for i, name in [(4, "ee_pose"), (5, "contact_for
 
 def test_reproduce_writes_every_file_and_field_and_is_deterministic(tmp_path, full_runs, capsys):
     first, second = tmp_path / "a", tmp_path / "b"
-    assert cli.main(["reproduce", "--out", str(first)]) == 0
+    assert cli.main(["reproduce", "--compile-cache", "none", "--out", str(first)]) == 0
     printed = capsys.readouterr().out
     assert "Table 5" in printed and "final position error" in printed
-    assert cli.main(["reproduce", "--out", str(second)]) == 0
+    assert cli.main(["reproduce", "--compile-cache", "none", "--out", str(second)]) == 0
     for name in ["table5.csv", "summary.json", "config.json", "timeseries_active.npz", "timeseries_cartesian.npz", *FIGURES]:
         assert (first / name).stat().st_size > 0, name
     rows = (first / "table5.csv").read_text().splitlines()
@@ -103,7 +103,7 @@ def test_simulate_one_controller_with_gains_and_scenario_files(tmp_path, gains):
     scenario_file = tmp_path / "scenario.toml"
     scenario_file.write_text("duration = 1.0\n")
     out = tmp_path / "sim"
-    args = ["simulate", "--controller", "admittance", "--gains", str(gains_file), "--scenario", str(scenario_file), "--out", str(out)]
+    args = ["simulate", "--compile-cache", "none", "--controller", "admittance", "--gains", str(gains_file), "--scenario", str(scenario_file), "--out", str(out)]
     assert cli.main(args) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary) == {"active"} and set(summary["active"]) >= SUMMARY_KEYS
@@ -114,19 +114,19 @@ def test_simulate_one_controller_with_gains_and_scenario_files(tmp_path, gains):
 def test_simulate_rejects_bad_files_before_running(tmp_path, gains, capsys):
     bad_gains = tmp_path / "gains.json"
     bad_gains.write_text(json.dumps({**gains.to_dict(), "Kd": -1.0}))
-    assert cli.main(["simulate", "--controller", "cartesian", "--gains", str(bad_gains), "--out", str(tmp_path / "x")]) == 2
+    assert cli.main(["simulate", "--compile-cache", "none", "--controller", "cartesian", "--gains", str(bad_gains), "--out", str(tmp_path / "x")]) == 2
     assert "gains.json: Kd: gains must be positive" in capsys.readouterr().err
     bad_scenario = tmp_path / "scenario.toml"
     bad_scenario.write_text("dt = 0.0\n")
-    assert cli.main(["simulate", "--controller", "cartesian", "--scenario", str(bad_scenario), "--out", str(tmp_path / "y")]) == 2
+    assert cli.main(["simulate", "--compile-cache", "none", "--controller", "cartesian", "--scenario", str(bad_scenario), "--out", str(tmp_path / "y")]) == 2
     assert "dt: must be positive" in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
 COMPILE_ONE = """
 import sys, jax
-from spacegrasp_jax import cli
-folder = cli.use_compile_cache(None if sys.argv[1] == "default" else sys.argv[1])
+from spacegrasp_jax import compilation
+folder = compilation.use_compile_cache(None if sys.argv[1] == "default" else sys.argv[1])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # cache even this toy program
 jax.jit(lambda x: 2.0 * x + 1.0)(1.0)
 print(folder)
@@ -134,7 +134,7 @@ print(folder)
 
 
 @pytest.mark.parametrize("case", ["explicit", "xdg_default", "jax_variable", "off"])
-def test_tune_compile_cache_folder_and_precedence(tmp_path, case):
+def test_compile_cache_folder_and_precedence(tmp_path, case):
     """``--compile-cache``: a folder given wins; without one, JAX's own variable, else the
     XDG cache folder; ``none`` writes nothing. The program must land in the folder chosen."""
     env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "XDG_CACHE_HOME")}

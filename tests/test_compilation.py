@@ -1,9 +1,10 @@
-"""The package's compile options and its loops compiled whole: in effect with the installed
-XLA, options dropped when XLA rejects them, and without effect on the results beyond
-rounding."""
+"""The package's process settings and compile options: nothing changed by importing the
+package, each setting in effect once asked for, options dropped when XLA rejects them, and
+loops compiled whole without effect on the results beyond rounding."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -48,6 +49,7 @@ def test_loops_compiled_whole_give_the_results_of_loops_run_kernel_by_kernel(rob
     script = (
         "import sys, numpy as np, spacegrasp_jax as sg\n"
         "from spacegrasp_jax import compilation\n"
+        "sg.configure()  # XLA_FLAGS already sets backend options: the user's choice stands\n"
         "from spacegrasp_jax.control import paper_gains\n"
         "from spacegrasp_jax.scenario import paper_scenario\n"
         "from spacegrasp_jax.simulate import rollout\n"
@@ -65,3 +67,83 @@ def test_loops_compiled_whole_give_the_results_of_loops_run_kernel_by_kernel(rob
     kernel_by_kernel = np.load(tmp_path / "log.npz")
     for name, value in vars(ours).items():
         np.testing.assert_allclose(value, kernel_by_kernel[name], rtol=1e-9, atol=1e-12, err_msg=name)
+
+
+# A user's program: a loop over 4,096 numbers, compiled whole only with the package's option
+# (XLA's own threshold is far smaller). It
+# prints its optimised HLO, the state of the JAX options the package cares about, and the
+# environment, before and after importing the package.
+USER_PROGRAM = """
+import json, os, sys
+before = dict(os.environ)
+if sys.argv[1] == "with-package":
+    import spacegrasp_jax
+import jax, jax.numpy as jnp
+loop = jax.jit(lambda x: jax.lax.fori_loop(0, 5, lambda i, y: jnp.sin(y) + 1.0, x))
+hlo = loop.lower(jnp.zeros(4096)).compile().as_text()
+print(json.dumps({
+    "environment_unchanged": dict(os.environ) == before,
+    "x64": bool(jax.config.jax_enable_x64),
+    "cache_dir": jax.config.jax_compilation_cache_dir,
+    "hlo": hlo,
+}))
+"""
+
+
+def test_importing_the_package_changes_nothing_in_the_process():
+    """``import spacegrasp_jax`` leaves os.environ, JAX's options and XLA's flags as they
+    were: a user's program compiles to the same code as in a process without the package."""
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_ENABLE_X64", "JAX_COMPILATION_CACHE_DIR")}
+    reports = {}
+    for case in ("with-package", "without"):
+        result = subprocess.run([sys.executable, "-c", USER_PROGRAM, case], capture_output=True, text=True, env=env, timeout=300)
+        assert result.returncode == 0, result.stderr
+        reports[case] = json.loads(result.stdout)
+    ours, theirs = reports["with-package"], reports["without"]
+    assert ours["environment_unchanged"]
+    assert ours["x64"] is False and ours["cache_dir"] == theirs["cache_dir"]
+    assert "xla_cpu_small_call" not in ours["hlo"]  # the loop runs kernel by kernel, as JAX's default
+    assert ours["hlo"] == theirs["hlo"]
+
+
+def test_configure_turns_on_each_setting_and_constructors_demand_float64(tmp_path):
+    script = """
+import os, sys, warnings, jax
+import spacegrasp_jax as sg
+from spacegrasp_jax import compilation
+try:
+    sg.paper_robot()
+except sg.Float64Required as error:
+    print("refused:", error)
+with warnings.catch_warnings():
+    warnings.simplefilter("error")  # nothing has run yet: no warning
+    sg.configure(compile_cache=sys.argv[1])
+print("x64", jax.config.jax_enable_x64)
+print("loops whole", compilation.loops_compile_whole())
+print("cache", jax.config.jax_compilation_cache_dir)
+print("robot dtype", sg.paper_robot().link_mass.dtype)
+"""
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_ENABLE_X64", "JAX_COMPILATION_CACHE_DIR")}
+    result = subprocess.run([sys.executable, "-c", script, str(tmp_path / "cache")], capture_output=True, text=True, env=env, timeout=300)
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[0].startswith("refused: a Robot: spacegrasp_jax computes in float64") and "configure()" in lines[0]
+    assert lines[1:] == ["x64 True", "loops whole True", f"cache {tmp_path / 'cache'}", "robot dtype float64"]
+
+
+def test_asking_for_loops_compiled_whole_after_xla_ignored_it_warns():
+    # A user who set the threshold to 0 and then asks the package for loops compiled whole
+    # keeps their setting; the package says the option is not in effect.
+    script = """
+import warnings, jax, jax.numpy as jnp
+jax.jit(lambda x: x + 1.0)(1.0)  # JAX has started
+import spacegrasp_jax as sg
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    sg.compile_loops_whole()
+print([str(w.message) for w in caught])
+"""
+    env = dict(os.environ, XLA_FLAGS="--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert "came too late" in result.stdout and "kernel by kernel" in result.stdout

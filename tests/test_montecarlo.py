@@ -190,17 +190,17 @@ def test_bad_campaign_setups_fail_before_compiling(robot, short_scenario, gains,
 def test_montecarlo_command_rejects_bad_input(tmp_path, capsys):
     from spacegrasp_jax.cli import main
 
-    assert main(["montecarlo", "--n", "0", "--out", str(tmp_path / "a")]) == 2
+    assert main(["montecarlo", "--compile-cache", "none", "--n", "0", "--out", str(tmp_path / "a")]) == 2
     assert "--n: must be at least 1" in capsys.readouterr().err
-    assert main(["montecarlo", "--n", "4", "--range", "q_init=0.1", "--out", str(tmp_path / "b")]) == 2
+    assert main(["montecarlo", "--compile-cache", "none", "--n", "4", "--range", "q_init=0.1", "--out", str(tmp_path / "b")]) == 2
     assert "unknown perturbation range 'q_init'" in capsys.readouterr().err
-    assert main(["montecarlo", "--n", "4", "--range", "radius_fraction=1.5", "--out", str(tmp_path / "c")]) == 2
+    assert main(["montecarlo", "--compile-cache", "none", "--n", "4", "--range", "radius_fraction=1.5", "--out", str(tmp_path / "c")]) == 2
     assert "radius_fraction: must be below 1" in capsys.readouterr().err
     ranges = tmp_path / "ranges.toml"
     ranges.write_text("q_init_rad = -1\n")
-    assert main(["montecarlo", "--n", "4", "--ranges", str(ranges), "--out", str(tmp_path / "d")]) == 2
+    assert main(["montecarlo", "--compile-cache", "none", "--n", "4", "--ranges", str(ranges), "--out", str(tmp_path / "d")]) == 2
     assert "ranges.toml: q_init_rad: must be non-negative" in capsys.readouterr().err
-    assert main(["montecarlo", "--n", "4", "--gains", str(tmp_path / "missing.json"), "--out", str(tmp_path / "e")]) == 2
+    assert main(["montecarlo", "--compile-cache", "none", "--n", "4", "--gains", str(tmp_path / "missing.json"), "--out", str(tmp_path / "e")]) == 2
     assert "missing.json" in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in "abcde")
 

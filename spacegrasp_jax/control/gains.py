@@ -27,6 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from spacegrasp_jax.compilation import require_float64
+
 GAIN_SHAPES = {"Md": 6, "Bd": 6, "Kd": 6, "K_lin": 3, "K_eul": 3, "kp": 7, "ki": 7, "kd": 7}
 # Gains that must be strictly positive (the rest may be zero, e.g. no integral action).
 _STRICTLY_POSITIVE = {"Md", "Bd", "Kd", "K_lin", "K_eul", "kp"}
@@ -65,6 +67,7 @@ def make_gains(**fields) -> Gains:
             zero where the law needs a positive gain (``Md``, ``Bd``, ``Kd``, ``K_lin``,
             ``K_eul``, ``kp``).
     """
+    require_float64("Gains")
     unknown = sorted(set(fields) - set(GAIN_SHAPES))
     if unknown:
         raise GainsError(f"unknown gain(s): {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")
