@@ -36,11 +36,11 @@ from spacegrasp_jax.compilation import configure
 def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
     import jax
 
-    from spacegrasp_jax import campaign
+    from spacegrasp_jax import batching, campaign
 
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     if kind == "batch" and size % cores == 0:
-        campaign.use_all_cpu_cores()  # as `spacegrasp montecarlo` does; before any device use
+        batching.use_all_cpu_cores()  # as `spacegrasp montecarlo` does; before any device use
     import spacegrasp_jax as sg
     from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax import compilation

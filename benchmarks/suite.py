@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from spacegrasp_jax.compilation import configure
+from spacegrasp_jax.control import CONTROLLERS
 
 #: Keys of benchmark.json (seconds unless the name says otherwise).
 KEYS = (
@@ -39,7 +40,6 @@ KEYS = (
     "achieved_gflops", "peak_gflops_estimate", "pinocchio_loop_rollout_s", "pinocchio_loop_max_pose_difference",
     "mujoco_mj_step_17s_s", "mujoco_us_per_step", "mujoco_rollout_steps_per_s", "mujoco_rollout_batches",
 )
-RESULT_NAMES = {"admittance": "active", "cartesian": "cartesian"}
 
 
 def _child(module: str, out: Path, *options: str) -> dict:
@@ -111,9 +111,9 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
 
     print(f"1/5 single rollouts ({duration:g} s)...", flush=True)
     rollout = _child("spacegrasp_jax.benchmarks.rollout", parts, "--duration", str(duration), "--repeats", str(repeats))
-    report["rollout_s"] = {RESULT_NAMES[c]: rollout[c]["run_s"] for c in RESULT_NAMES}
-    report["compile_s"] = {RESULT_NAMES[c]: rollout[c]["compile_s"] for c in RESULT_NAMES}
-    report["us_per_step"] = {RESULT_NAMES[c]: rollout[c]["us_per_step"] for c in RESULT_NAMES}
+    report["rollout_s"] = {c: rollout[c]["run_s"] for c in CONTROLLERS}
+    report["compile_s"] = {c: rollout[c]["compile_s"] for c in CONTROLLERS}
+    report["us_per_step"] = {c: rollout[c]["us_per_step"] for c in CONTROLLERS}
 
     print(f"2/5 batches {batches}...", flush=True)
     montecarlo = _child("spacegrasp_jax.benchmarks.montecarlo", parts, "--duration", str(duration), "--batches", ",".join(map(str, batches)),
@@ -133,7 +133,7 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
 
     print("4/5 cost analysis...", flush=True)
     report["flops_per_step"] = flops_per_step()
-    report["achieved_gflops"] = report["flops_per_step"] / (report["us_per_step"]["active"] * 1e-6) / 1e9
+    report["achieved_gflops"] = report["flops_per_step"] / (report["us_per_step"]["admittance"] * 1e-6) / 1e9
     report["peak_gflops_estimate"] = peak_gflops_estimate()
 
     print("5/5 peers: MuJoCo and a Python loop over Pinocchio...", flush=True)
@@ -158,15 +158,15 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
 def table(report: dict) -> str:
     """The report as one plain-text table, ratios as this project over the peer or target."""
     d, rows = report["duration_s"], []
-    active = report["rollout_s"]["active"]
+    admittance = report["rollout_s"]["admittance"]
 
     def row(what, ours, peer, ratio, target=""):
         rows.append(f"{what:<52} {ours:>14} {peer:>14} {ratio:>9} {target:>12}")
 
     row("measure", "spacegrasp-jax", "peer", "ratio", "target")
-    row(f"closed-loop rollout {d:g} s, active law [s]", f"{active:.3f}", f"{report['pinocchio_loop_rollout_s']:.3f}", f"{report['pinocchio_loop_rollout_s'] / active:.1f}x", ">= 10x")
+    row(f"closed-loop rollout {d:g} s, admittance law [s]", f"{admittance:.3f}", f"{report['pinocchio_loop_rollout_s']:.3f}", f"{report['pinocchio_loop_rollout_s'] / admittance:.1f}x", ">= 10x")
     row("  peer: Python loop over Pinocchio, same closed loop", "", "", "", "")
-    row(f"closed-loop rollout {d:g} s vs MuJoCo mj_step [s]", f"{active:.3f}", f"{report['mujoco_mj_step_17s_s'] * d / 17.0:.3f}", f"{report['mujoco_mj_step_17s_s'] * d / 17.0 / active:.2f}x", ">= 1x")
+    row(f"closed-loop rollout {d:g} s vs MuJoCo mj_step [s]", f"{admittance:.3f}", f"{report['mujoco_mj_step_17s_s'] * d / 17.0:.3f}", f"{report['mujoco_mj_step_17s_s'] * d / 17.0 / admittance:.2f}x", ">= 1x")
     row("  peer: open-loop mj_step, one thread", "", "", "", "")
     for batch, ours in report["batch_steps_per_s"].items():
         peer = report["mujoco_rollout_batches"][batch]
@@ -175,7 +175,7 @@ def table(report: dict) -> str:
     row("gradient / forward rollout, reverse (checkpointed)", f"{report['gradient_over_forward']['reverse']:.2f}", "", "", "<= 4")
     row("gradient / forward rollout, forward mode", f"{report['gradient_over_forward']['forward']:.2f}", "", "", "<= 4")
     row("gradient peak RSS, reverse [MB]", f"{report['gradient_peak_mb']['reverse']:.0f}", "", "", "<= 1000")
-    row("compile, active / Cartesian rollout [s]", f"{report['compile_s']['active']:.1f} / {report['compile_s']['cartesian']:.1f}", "", "", "< 30")
+    row("compile, admittance / Cartesian rollout [s]", f"{report['compile_s']['admittance']:.1f} / {report['compile_s']['cartesian']:.1f}", "", "", "< 30")
     peak = report["peak_gflops_estimate"]
     row("FLOPs per closed-loop step (XLA cost analysis)", f"{report['flops_per_step']:.3g}", "", "", "")
     row("achieved GFLOP/s, single rollout", f"{report['achieved_gflops']:.2f}", f"{peak:.0f}" if peak else "n/a", f"{100 * report['achieved_gflops'] / peak:.1f}%" if peak else "", "")

@@ -12,8 +12,8 @@ Files in ``out`` (written by process 0, atomically):
 * ``campaign.json``: the configuration, checked on ``resume``;
 * ``chunks/<controller>/<gains>/<first sample>.npz``: one file per finished chunk, so an
   interrupted run loses at most the chunk in flight and resumes chunk by chunk;
-* ``samples.npz``, ``summary.json``, ``timeseries_<controller>_<gains>.npz`` and the plots,
-  once every chunk is done (see :func:`run_campaign`).
+* ``samples.npz``, ``summary.json`` and ``timeseries_<controller>_<gains>.npz``, once every
+  chunk is done (see :func:`run_campaign`); the command line adds the figures.
 
 For several hosts, ``out`` must be a folder that every process can read (a shared file
 system): every process reads the finished chunks on resume so that all agree on what is left.
@@ -32,16 +32,15 @@ from typing import Callable
 
 import jax
 import numpy as np
-from jax.experimental import multihost_utils
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from spacegrasp_jax import compilation, experiment
+from spacegrasp_jax import batching, runfiles
 from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.metrics import METRICS
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.montecarlo import METRICS, evaluate_samples, over_torque_limit, success
+from spacegrasp_jax.montecarlo import evaluate_samples, over_torque_limit, success
 from spacegrasp_jax.perturbations import PerturbationRanges
-from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.scenario import Scenario, scenario_to_dict
 from spacegrasp_jax.simulate import Log
 
 PERCENTILES = (5, 50, 95)
@@ -152,77 +151,19 @@ class CampaignResult:
 # ---- the sharded, chunked evaluation --------------------------------------------------
 
 
-def use_all_cpu_cores() -> int | None:
-    """Expose one XLA CPU device per core (``jax_num_cpu_devices``), so that the batch axis
-    shards across the cores: one CPU device runs a batch on about one core. It takes effect
-    only if called before JAX initialises its backends (before the first array or device
-    query). Returns the device count requested, or ``None`` if the user already chose one
-    (``XLA_FLAGS`` with ``--xla_force_host_platform_device_count``, or
-    ``JAX_NUM_CPU_DEVICES``). Harmless on GPU hosts, whose default devices are the GPUs."""
-    import os
-
-    if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", "") or "JAX_NUM_CPU_DEVICES" in os.environ:
-        return None
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    try:
-        jax.config.update("jax_num_cpu_devices", cores)
-    except (AttributeError, RuntimeError):  # an older jax, or backends already initialised
-        return None
-    return cores
-
-
-def batch_mesh() -> Mesh:
-    """A 1-D mesh (axis ``"batch"``) over every device of every process."""
-    return Mesh(np.asarray(jax.devices()), ("batch",))
-
-
-_EXECUTABLES: dict = {}
-
-
 def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
-    """The compiled evaluation of one chunk of ``config.chunk`` samples, cached per process
-    by everything that shapes it, and its compile time (s; that of the original compile).
-    Inputs other than the sample indices are replicated on every device."""
-    arguments = (robot, scenario, variant.gains)
-    key = (
-        variant.controller,
-        config.ranges,
-        config.pinv_damping,
-        config.timeseries_every,
-        config.chunk,
-        config.device_batch,
-        tuple(jax.devices()),
-        jax.tree.structure(arguments),
-        tuple((np.shape(leaf), str(np.asarray(leaf).dtype)) for leaf in jax.tree.leaves(arguments)),
+    """The compiled evaluation of one chunk of ``config.chunk`` samples
+    (:func:`~spacegrasp_jax.batching.compile_chunk`) and its compile time (s; that of the
+    original compile)."""
+    function = functools.partial(
+        evaluate_samples, controller=variant.controller, ranges=config.ranges, pinv_damping=config.pinv_damping, every=config.timeseries_every
     )
-    if config.chunk % jax.device_count():
-        raise CampaignError(f"chunk: {config.chunk} is not a multiple of the {jax.device_count()} devices")
-    if key not in _EXECUTABLES:
-        mesh = batch_mesh()
-        function = functools.partial(
-            evaluate_samples,
-            controller=variant.controller,
-            ranges=config.ranges,
-            pinv_damping=config.pinv_damping,
-            every=config.timeseries_every,
-        )
-        share = config.chunk // jax.device_count()
-        sub_batch = config.device_batch if config.device_batch and share > config.device_batch and share % config.device_batch == 0 else None
-
-        def on_one_device(robot, scenario, gains, seed, indices):
-            if sub_batch is None:
-                return function(robot, scenario, gains, seed, indices)
-            blocks = jax.lax.map(lambda block: function(robot, scenario, gains, seed, block), indices.reshape(-1, sub_batch))
-            return jax.tree.map(lambda x: x.reshape((-1, *x.shape[2:])), blocks)
-
-        replicated, batched = PartitionSpec(), PartitionSpec("batch")
-        sharded = jax.shard_map(on_one_device, mesh=mesh, in_specs=(replicated,) * 4 + (batched,), out_specs=batched, check_vma=False)
-        indices = jax.ShapeDtypeStruct((config.chunk,), np.uint32, sharding=NamedSharding(mesh, batched))
-        seed = jax.ShapeDtypeStruct((), np.uint32, sharding=NamedSharding(mesh, replicated))
-        start = time.perf_counter()
-        executable = compilation.jit(sharded).lower(robot, scenario, variant.gains, seed, indices).compile()
-        _EXECUTABLES[key] = (executable, time.perf_counter() - start)
-    return _EXECUTABLES[key]
+    key = (variant.controller, config.ranges, config.pinv_damping, config.timeseries_every)
+    replicated = (robot, scenario, variant.gains, np.uint32(config.seed))
+    try:
+        return batching.compile_chunk("campaign", function, replicated, np.zeros(config.chunk, np.uint32), device_batch=config.device_batch, key=key)
+    except batching.BatchingError as error:
+        raise CampaignError(str(error)) from None
 
 
 def evaluate_indices(robot, scenario, variant: Variant, config: CampaignConfig, indices) -> dict[str, np.ndarray]:
@@ -233,14 +174,12 @@ def evaluate_indices(robot, scenario, variant: Variant, config: CampaignConfig, 
     indices = np.asarray(indices, dtype=np.uint32)
     if indices.shape != (config.chunk,):
         raise CampaignError(f"indices: expected {config.chunk} of them (the chunk size), got shape {indices.shape}")
-    batched = NamedSharding(batch_mesh(), PartitionSpec("batch"))
-    sharded = jax.make_array_from_callback(indices.shape, batched, lambda where: indices[where])
-    outputs = executable(robot, scenario, variant.gains, np.uint32(config.seed), sharded)
-    perturbations, sample_metrics, rows = multihost_utils.process_allgather(outputs, tiled=True)
-    arrays = {f"perturbation.{name}": np.asarray(value) for name, value in vars(perturbations).items()}
-    arrays |= {name: np.asarray(value) for name, value in sample_metrics.items()}
+    replicated = (robot, scenario, variant.gains, np.uint32(config.seed))
+    perturbations, sample_metrics, rows = batching.run_chunk(executable, replicated, indices)
+    arrays = {f"perturbation.{name}": value for name, value in vars(perturbations).items()}
+    arrays |= dict(sample_metrics)
     if rows is not None:
-        arrays |= {f"timeseries.{name}": np.asarray(value) for name, value in vars(rows).items()}
+        arrays |= {f"timeseries.{name}": value for name, value in vars(rows).items()}
     return arrays
 
 
@@ -256,7 +195,7 @@ def _record(config: CampaignConfig, variants, robot_source: str, scenario: Scena
         "config": config.to_dict(),
         "variants": [{"controller": v.controller, "gains_label": v.label, "gains": v.gains.to_dict()} for v in variants],
         "robot": robot_source,
-        "scenario": experiment.scenario_to_dict(scenario),
+        "scenario": scenario_to_dict(scenario),
     }
 
 
@@ -315,10 +254,9 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
         values = np.asarray(sample_metrics[name])
         if values.ndim == 2:  # per joint
             statistics[name] = [_statistics(values[ok, j]) for j in range(values.shape[1])]
-            statistics["max_abs_torque_any_joint_Nm"] = _statistics(values[ok].max(axis=1, initial=-np.inf))
         elif name != "first_nonfinite_s":
             statistics[name] = _statistics(values[ok])
-    peak = np.asarray(sample_metrics["max_abs_torque_Nm"]).max(axis=1)
+    peak = np.asarray(sample_metrics["largest_peak_torque_Nm"])
     unstable = np.flatnonzero(ok & over_torque_limit(sample_metrics, config.torque_limit_Nm))
 
     def worst(values):
@@ -342,10 +280,9 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
 # ---- the campaign -----------------------------------------------------------------------
 
 
-def _progress_line(done_chunks: int, total_chunks: int, variant: Variant, samples_done: int, n: int, rate: float | None, diverged: int, width: int = 24) -> str:
-    filled = int(width * done_chunks / total_chunks)
+def _progress_line(done_chunks: int, total_chunks: int, variant: Variant, samples_done: int, n: int, rate: float | None, diverged: int) -> str:
     speed = f"{rate:.2f} rollouts/s" if rate else "compiling or resuming"
-    return f"\r[{'#' * filled}{'.' * (width - filled)}] chunk {done_chunks}/{total_chunks} | {variant.key}: {samples_done}/{n} samples | {speed} | diverged {diverged}"
+    return runfiles.progress_bar(done_chunks, total_chunks, f"chunk {done_chunks}/{total_chunks} | {variant.key}: {samples_done}/{n} samples | {speed} | diverged {diverged}")
 
 
 def run_campaign(
@@ -358,7 +295,7 @@ def run_campaign(
     resume: bool = False,
     robot_source: str = "paper_robot()",
     progress=sys.stderr,
-    stop: experiment.StopRequest | None = None,
+    stop: runfiles.StopRequest | None = None,
     on_chunk: Callable[[Variant, int], None] | None = None,
 ) -> CampaignResult:
     """Run (or, with ``resume``, continue) a campaign; write its files to ``out`` if given.
@@ -392,7 +329,7 @@ def run_campaign(
     if out is not None:
         _check_resume(out, record, resume)
         if writer:
-            experiment.write_json(out / "campaign.json", record)
+            runfiles.write_json(out / "campaign.json", record)
 
     starts = list(range(0, config.n, config.chunk))
     total_chunks = len(starts) * len(variants)
@@ -416,7 +353,7 @@ def run_campaign(
                 run_s += time.perf_counter() - start
                 computed_samples += config.chunk
                 if writer:
-                    experiment.write_atomically(path, lambda target, a=arrays: np.savez(target, **a))
+                    runfiles.write_arrays(path, arrays, compressed=False)
             chunks[variant.key][first] = arrays
             diverged += int(np.isfinite(arrays["first_nonfinite_s"]).sum())
             done_chunks += 1
@@ -478,20 +415,21 @@ def run_campaign(
 
 
 def write_results(out: Path, result: CampaignResult) -> None:
-    """samples.npz, summary.json, the decimated time series and the comparison plots."""
-    from spacegrasp_jax import plots
-
+    """samples.npz, summary.json and the decimated time series (the figures are the
+    caller's: :func:`spacegrasp_jax.plots.save_campaign_figures`)."""
     arrays = {f"perturbation/{name}": value for name, value in result.perturbations.items()}
     for key, sample_metrics in result.metrics.items():
         arrays |= {f"{key}/{name}": value for name, value in sample_metrics.items()}
-    experiment.write_atomically(out / "samples.npz", lambda target: np.savez_compressed(target, **arrays))
-    experiment.write_json(out / "summary.json", result.summary)
+    runfiles.write_arrays(out / "samples.npz", arrays)
+    runfiles.write_json(out / "summary.json", result.summary)
     for key, log in result.timeseries.items():
-        experiment.write_timeseries(out / f"timeseries_{key.replace('/', '_')}.npz", log)
-    summary = result.summary
-    title = (f"Monte-Carlo: {summary['n']} perturbed captures, seed {summary['seed']}, "
-             f"{summary['duration_s']:g} s, {summary['contact_law']} contact law")
-    plots.save_campaign_figures(out, result.metrics, title, 1e3 * summary["tolerances"]["final_position_m"])
+        runfiles.write_timeseries(out / f"timeseries_{key.replace('/', '_')}.npz", log)
+
+
+def figure_title(summary: dict) -> str:
+    """The title of a campaign's figures, from its summary."""
+    return (f"Monte-Carlo: {summary['n']} perturbed captures, seed {summary['seed']}, "
+            f"{summary['duration_s']:g} s, {summary['contact_law']} contact law")
 
 
 def load_samples(path: Path) -> tuple[dict[str, np.ndarray], dict[str, dict[str, np.ndarray]]]:
@@ -521,12 +459,11 @@ __all__ = [
     "CampaignError",
     "CampaignResult",
     "Variant",
-    "batch_mesh",
     "compiled_chunk",
     "evaluate_indices",
     "load_samples",
     "replay_sample",
-    "use_all_cpu_cores",
+    "figure_title",
     "run_campaign",
     "variant_summary",
     "write_results",

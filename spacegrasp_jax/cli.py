@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import shlex
 import sys
+import warnings
 from pathlib import Path
 
 import jax
@@ -17,15 +17,13 @@ import numpy as np
 matplotlib.use("Agg")  # the command line only writes figures to files; before pyplot is imported
 
 import spacegrasp_jax as sg  # noqa: E402
-from spacegrasp_jax import campaign, compilation, experiment, plots, spatial
-from spacegrasp_jax.control import CONTROLLERS, GainsError, load_gains, paper_gains
+from spacegrasp_jax import batching, campaign, compilation, experiment, paper, plots, runfiles, spatial
+from spacegrasp_jax.control import CONTROLLERS, GainsError, UnusedGainsWarning, load_gains, paper_gains
 from spacegrasp_jax.perturbations import PerturbationError, PerturbationRanges, load_ranges
 from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
 from spacegrasp_jax.tuning.objective import Weights
 from spacegrasp_jax.tuning.run import TuneSetupError, tune
 from spacegrasp_jax.tuning.tune import TuneConfig
-
-PAPER_MAX_TORQUE_NM = experiment.PAPER_MAX_TORQUE_NM
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -55,7 +53,8 @@ def _load_inputs(args):
     """Robot, scenario and gains from the command line, validated before any compile."""
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     scenario = load_scenario(robot, args.scenario) if getattr(args, "scenario", None) else paper_scenario(robot)
-    gains = load_gains(args.gains) if getattr(args, "gains", None) else paper_gains()
+    controller = getattr(args, "controller", None)
+    gains = load_gains(args.gains, controller) if getattr(args, "gains", None) else paper_gains()
     if args.pinv_damping < 0.0:
         raise GainsError(f"--pinv-damping: must be non-negative, got {args.pinv_damping}")
     return robot, scenario, gains
@@ -63,13 +62,13 @@ def _load_inputs(args):
 
 def _print_table(results: dict) -> None:
     controllers = list(results)
-    header = "joint" + "".join(f"  {experiment.RESULT_KEYS[c] + ' [N m]':>16}  {'paper':>7}" for c in controllers)
+    header = "joint" + "".join(f"  {c + ' [N m]':>16}  {'paper':>7}" for c in controllers)
     print("\nTable 5: maximal absolute joint torques")
     print(header)
     for joint in range(7):
         row = f"{joint + 1:>5}"
         for c in controllers:
-            row += f"  {results[c].summary['max_abs_torque_Nm'][joint]:>16.3f}  {PAPER_MAX_TORQUE_NM[c][joint]:>7.3f}"
+            row += f"  {results[c].summary['max_abs_torque_Nm'][joint]:>16.3f}  {paper.MAX_ABS_TORQUE_NM[c][joint]:>7.3f}"
         print(row)
     print()
     for c in controllers:
@@ -84,18 +83,17 @@ def _print_table(results: dict) -> None:
 
 def _write_results(out: Path, results: dict, config: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    key = experiment.RESULT_KEYS
-    lines = ["joint," + ",".join(f"{key[c]}_Nm" for c in results) + "," + ",".join(f"paper_{key[c]}_Nm" for c in results)]
+    lines = ["joint," + ",".join(f"{c}_Nm" for c in results) + "," + ",".join(f"paper_{c}_Nm" for c in results)]
     for joint in range(7):
         ours = [f"{results[c].summary['max_abs_torque_Nm'][joint]:.6g}" for c in results]
-        paper = [f"{PAPER_MAX_TORQUE_NM[c][joint]:.6g}" for c in results]
-        lines.append(",".join([str(joint + 1)] + ours + paper))
-    experiment.write_atomically(out / "table5.csv", lambda target: target.write_text("\n".join(lines) + "\n"))
-    experiment.write_json(out / "summary.json", {key[c]: result.summary for c, result in results.items()})
+        reference = [f"{paper.MAX_ABS_TORQUE_NM[c][joint]:.6g}" for c in results]
+        lines.append(",".join([str(joint + 1)] + ours + reference))
+    runfiles.write_text(out / "table5.csv", "\n".join(lines) + "\n")
+    runfiles.write_json(out / "summary.json", {c: result.summary for c, result in results.items()})
     for c, result in results.items():
-        experiment.write_timeseries(out / f"timeseries_{key[c]}.npz", result.log)
-    plots.save_figures({c: result.log for c, result in results.items()}, out, experiment.write_atomically)
-    experiment.write_json(out / "config.json", config)
+        runfiles.write_timeseries(out / f"timeseries_{c}.npz", result.log)
+    plots.save_figures({c: result.log for c, result in results.items()}, out, runfiles.write_atomically)
+    runfiles.write_json(out / "config.json", config)
 
 
 def _run_controllers(args, controllers) -> int:
@@ -138,7 +136,7 @@ def _tune(args: argparse.Namespace) -> int:
     if args.scenario:
         load_scenario(robot, args.scenario)
     if args.gains:
-        load_gains(args.gains)
+        load_gains(args.gains, args.controller)
     try:
         return tune(Path(args.out), config=config, gains_file=args.gains, scenario_file=args.scenario, robot_file=args.robot, holdout=args.holdout)
     except TuneSetupError as error:
@@ -185,7 +183,7 @@ def _montecarlo_variants(args: argparse.Namespace) -> list[campaign.Variant]:
         label = Path(path).stem
         if label in {existing for existing, _ in gain_sets}:
             raise UsageError(f"--gains {path}: two gain sets would both be called {label!r}; rename one file")
-        gain_sets.append((label, load_gains(path)))
+        gain_sets.append((label, load_gains(path, None if args.controller == "both" else args.controller)))
     return [campaign.Variant(controller, gains, label) for controller in controllers for label, gains in gain_sets]
 
 
@@ -193,7 +191,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     # Both before anything touches a device.
     if args.distributed:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
-    campaign.use_all_cpu_cores()
+    batching.use_all_cpu_cores()
     for path in (*args.gains, args.scenario, args.robot, args.ranges):  # fail on bad files before compiling
         if path and not Path(path).is_file():
             raise UsageError(f"{path}: no such file")
@@ -205,8 +203,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
         if args.chunk < 1:
             raise UsageError(f"--chunk: must be at least 1, got {args.chunk}")
         devices = jax.device_count()
-        # A multiple of the device count, and no larger than n needs.
-        chunk = devices * math.ceil(min(args.chunk, args.n) / devices)
+        chunk = batching.chunk_size(args.chunk, args.n)
         config = campaign.CampaignConfig(
             n=args.n,
             seed=args.seed,
@@ -228,7 +225,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     print(f"Monte-Carlo: {args.n} samples x {len(variants)} variant(s) ({names}), {scenario.duration:g} s each, "
           f"chunks of {chunk} over {devices} device(s) in {jax.process_count()} process(es)", file=sys.stderr, flush=True)
     try:
-        with experiment.StopRequest("chunk") as stop:
+        with runfiles.StopRequest("chunk") as stop:
             result = campaign.run_campaign(robot, scenario, variants, config, out, resume=args.resume, robot_source=args.robot or "paper_robot()", stop=stop)
     except campaign.CampaignError as error:
         raise UsageError(str(error)) from None
@@ -237,6 +234,8 @@ def _montecarlo(args: argparse.Namespace) -> int:
         return 130
     _print_campaign(result)
     if jax.process_index() == 0:
+        tolerance_mm = 1e3 * result.summary["tolerances"]["final_position_m"]
+        plots.save_campaign_figures(out, result.metrics, campaign.figure_title(result.summary), tolerance_mm, runfiles.write_atomically)
         print(f"wrote {out}/: samples.npz, summary.json, histograms.png, torque_vs_error.png" + (", timeseries_*.npz" if config.timeseries_every else ""))
     return 0
 
@@ -266,7 +265,7 @@ def _print_campaign(result: campaign.CampaignResult) -> None:
 
         contact = stats["max_contact_force_N"]
         print(f"{key:24} {summary['success_rate']:>8.1%} {summary['diverged']:>8d} {summary['unstable']:>8d} {pair('final_position_error_m', 1e3):>23} "
-              f"{pair('max_abs_torque_any_joint_Nm'):>23} {contact['p95'] if contact.get('count') else float('nan'):>16.3f}")
+              f"{pair('largest_peak_torque_Nm'):>23} {contact['p95'] if contact.get('count') else float('nan'):>16.3f}")
     throughput = result.summary["throughput"]
     if throughput["rollouts_per_s"]:
         print(f"throughput: {throughput['rollouts_per_s']:.2f} rollouts/s, {throughput['simulated_s_per_wall_s']:.1f} simulated s per wall s "
@@ -374,7 +373,18 @@ def main(argv: list[str] | None = None) -> int:
         cache = compilation.use_compile_cache(args.compile_cache)
         print(f"compilation cache: {cache if cache else 'off'}", file=sys.stderr)
     try:
-        return args.run(args)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", UnusedGainsWarning)
+            show_warning = warnings.showwarning
+
+            def notice(message, category, *rest, **keywords):
+                if issubclass(category, UnusedGainsWarning):
+                    print(f"spacegrasp: notice: {message}", file=sys.stderr)
+                else:
+                    show_warning(message, category, *rest, **keywords)
+
+            warnings.showwarning = notice
+            return args.run(args)
     except (sg.RobotConfigError, GainsError, ScenarioError, PerturbationError, UsageError) as error:
         print(f"spacegrasp: error: {error}", file=sys.stderr)
         return 2

@@ -31,12 +31,14 @@ from __future__ import annotations
 
 import functools
 import os
+import time
 import warnings
 from pathlib import Path
 from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 #: Compile options for the closed-loop programs on a CPU (see the module docstring).
 CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": ""}
@@ -167,3 +169,34 @@ def jit(fun: Callable, **jit_kwargs) -> Callable:
     JAX backend (``batching.use_all_cpu_cores`` must come before that)."""
     options = compiler_options()
     return jax.jit(fun, compiler_options=options, **jit_kwargs) if options else jax.jit(fun, **jit_kwargs)
+
+
+def argument_signature(arguments) -> tuple:
+    """What a compiled program depends on in its arguments: their tree structure and each
+    leaf's shape, dtype and (for sharded placeholders) sharding. Hashable."""
+    leaves, structure = jax.tree.flatten(arguments)
+    specs = tuple((np.shape(leaf), str(np.dtype(getattr(leaf, "dtype", np.asarray(leaf).dtype))), getattr(leaf, "sharding", None)) for leaf in leaves)
+    return structure, specs
+
+
+_EXECUTABLES: dict = {}
+
+
+def compile_once(key, lower: Callable[[], Any]) -> tuple[Any, float]:
+    """The executable of ``lower().compile()``, compiled the first time ``key`` is asked for
+    in this process and reused after: the package's one cache of compiled programs (JAX's
+    persistent cache, :func:`use_compile_cache`, keeps them across processes).
+
+    Args:
+        key: hashable; everything that shapes the program (its name, static settings and
+            :func:`argument_signature` of its arguments).
+        lower: builds the program's ``jax.stages.Lowered`` (called on a miss only).
+
+    Returns:
+        ``(executable, compile_s)``, the time that of the original compile (s).
+    """
+    if key not in _EXECUTABLES:
+        start = time.perf_counter()
+        executable = lower().compile()
+        _EXECUTABLES[key] = (executable, time.perf_counter() - start)
+    return _EXECUTABLES[key]

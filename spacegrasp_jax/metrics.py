@@ -1,15 +1,46 @@
-"""Scalar measures of a rollout, from its :class:`~spacegrasp_jax.simulate.Log`.
+"""Scalar measures of a rollout, one definition each, from a whole
+:class:`~spacegrasp_jax.simulate.Log` or folded step by step inside the scan.
 
-Pure ``jnp`` functions of one (unbatched) log: they run on NumPy arrays too, and under
-``jit``/``vmap``/``grad``. "Final" means the last logged step, ``t = duration - dt``.
+Two views of the same definitions:
+
+* :data:`METRICS` are the per-run numbers of ``summary.json``, Monte-Carlo campaigns and
+  sweeps. They are computed by folding log rows into :class:`RunningMetrics`
+  (:func:`accumulate`, then :func:`finish`): a rollout that keeps no log folds each step's
+  row as it goes (``spacegrasp_jax.montecarlo.rollout_metrics``), and :func:`log_metrics`
+  folds a whole log at once. Both paths run the same functions. A metric with no value
+  ("never touched", "never diverged") is NaN (``null`` in JSON files).
+* The differentiable functions of a log (:func:`position_error`, :func:`final_position_error`,
+  :func:`rms_position_error`, :func:`contact_force_norm`, ...) are what the tuning objective
+  is built from. Their gradients are finite wherever the values are (:func:`safe_norm`).
+
+Pure ``jnp`` functions: they run on NumPy arrays too, and under ``jit``/``vmap``/``grad``.
+"Final" means the last logged step, ``t = duration - dt``.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import spatial
+
+#: The per-run metrics: name -> (shape, unit, meaning).
+METRICS = {
+    "final_position_error_m": ((), "m", "EE position error in LAR at the last step"),
+    "final_orientation_error_rad": ((), "rad", "angle between desired and actual EE orientation at the last step"),
+    "rms_position_error_m": ((), "m", "RMS EE position tracking error over the run"),
+    "max_abs_torque_Nm": ((7,), "N m", "peak |u_i| per joint (Table 5)"),
+    "largest_peak_torque_Nm": ((), "N m", "the largest peak |u_i| over the joints"),
+    "max_contact_force_N": ((), "N", "peak contact force magnitude"),
+    "max_linear_momentum_Ns": ((), "N s", "peak |P| of the whole system"),
+    "max_angular_momentum_Nms": ((), "N m s", "peak |L| about the inertial origin"),
+    "max_base_speed_mps": ((), "m/s", "peak satellite speed"),
+    "max_base_rate_radps": ((), "rad/s", "peak satellite angular rate"),
+    "first_contact_s": ((), "s", "first time the contact force is non-zero; NaN if never"),
+    "first_nonfinite_s": ((), "s", "first step with a non-finite value; NaN if none"),
+}
 
 
 def safe_norm(x, axis=-1):
@@ -22,19 +53,29 @@ def safe_norm(x, axis=-1):
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), squared)
 
 
+# ---- differentiable functions of a log (leading axis: the N rows) ----------------------
+
+
+def pose_position_error(pose_ee, pose_des):
+    """(...) m, norm of the position error between EE poses ``pose_ee`` and desired poses
+    ``pose_des`` (..., 6) ``[p (m); roll, pitch, yaw (rad)]`` in LAR."""
+    return safe_norm(pose_ee[..., :3] - pose_des[..., :3])
+
+
+def pose_orientation_error(pose_ee, pose_des):
+    """() rad, angle of the rotation between one EE pose and one desired pose (6,)."""
+    R_error = spatial.euler_zyx_to_rotation(pose_des[3:]).T @ spatial.euler_zyx_to_rotation(pose_ee[3:])
+    return safe_norm(spatial.rotation_log(R_error))
+
+
 def position_error(log):
     """(N,) m, norm of the EE position error in LAR at every step."""
-    return safe_norm(log.pose_ee[:, :3] - log.pose_des[:, :3])
+    return pose_position_error(log.pose_ee, log.pose_des)
 
 
 def orientation_error(log):
     """(N,) rad, angle of the rotation between the desired and the actual EE orientation."""
-
-    def angle(euler, euler_des):
-        R_error = spatial.euler_zyx_to_rotation(euler_des).T @ spatial.euler_zyx_to_rotation(euler)
-        return safe_norm(spatial.rotation_log(R_error))
-
-    return jax.vmap(angle)(log.pose_ee[:, 3:], log.pose_des[:, 3:])
+    return jax.vmap(pose_orientation_error)(log.pose_ee, log.pose_des)
 
 
 def final_position_error(log):
@@ -68,18 +109,128 @@ def first_contact_time(log):
     return jnp.where(jnp.any(touching), log.t[jnp.argmax(touching)], jnp.nan)
 
 
-def summary(log) -> dict:
-    """The per-controller numbers of ``summary.json`` (plain floats and lists)."""
-    first_contact = float(first_contact_time(log))
+# ---- the per-run metrics, folded over log rows -------------------------------------------
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class RunningMetrics:
+    """The metrics of the rows folded so far. Maxima ignore NaN, so a diverging run keeps
+    the peaks it reached before its first non-finite step.
+
+    Attributes:
+        rows: () number of rows folded. sum_squared_position_error: () m^2.
+        max_abs_torque: (7,) N m. max_contact_force: () N.
+        max_linear_momentum: () N s. max_angular_momentum: () N m s.
+        max_base_speed: () m/s. max_base_rate: () rad/s.
+        first_contact_s, first_nonfinite_s: () s, ``inf`` until it happens.
+        last_pose_ee, last_pose_des: (6,) the latest row's EE and desired pose in LAR.
+    """
+
+    rows: jax.Array
+    sum_squared_position_error: jax.Array
+    max_abs_torque: jax.Array
+    max_contact_force: jax.Array
+    max_linear_momentum: jax.Array
+    max_angular_momentum: jax.Array
+    max_base_speed: jax.Array
+    max_base_rate: jax.Array
+    first_contact_s: jax.Array
+    first_nonfinite_s: jax.Array
+    last_pose_ee: jax.Array
+    last_pose_des: jax.Array
+
+
+def start(dtype=jnp.float64) -> RunningMetrics:
+    """Nothing folded yet."""
+    zero, never = jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)
+    return RunningMetrics(zero, zero, jnp.zeros(7, dtype), zero, zero, zero, zero, zero, never, never, jnp.zeros(6, dtype), jnp.zeros(6, dtype))
+
+
+def _peak(running, values):
+    """``max(running, max over rows of values)``, NaN ignored."""
+    return jnp.fmax(running, jnp.max(jnp.where(jnp.isnan(values), -jnp.inf, values), axis=0))
+
+
+def _first(running, happened, t):
+    """The first time of ``t`` (rows,) where ``happened`` (rows,), unless one is known."""
+    return jnp.where(jnp.any(happened) & jnp.isinf(running), t[jnp.argmax(happened)], running)
+
+
+def accumulate(running: RunningMetrics, rows) -> RunningMetrics:
+    """Fold ``rows`` (a :class:`~spacegrasp_jax.simulate.Log` with a leading axis of one or
+    more rows, in time order) into ``running``."""
+    finite = jnp.stack([jnp.all(jnp.isfinite(leaf.reshape(leaf.shape[0], -1)), axis=1) for leaf in jax.tree.leaves(rows)]).all(axis=0)
+    force = contact_force_norm(rows)
+    r = running
+    return RunningMetrics(
+        rows=r.rows + rows.t.shape[0],
+        sum_squared_position_error=r.sum_squared_position_error + jnp.sum(position_error(rows) ** 2),
+        max_abs_torque=_peak(r.max_abs_torque, jnp.abs(rows.u)),
+        max_contact_force=_peak(r.max_contact_force, force),
+        max_linear_momentum=_peak(r.max_linear_momentum, safe_norm(rows.momentum[:, :3])),
+        max_angular_momentum=_peak(r.max_angular_momentum, safe_norm(rows.momentum[:, 3:])),
+        max_base_speed=_peak(r.max_base_speed, safe_norm(rows.V_base[:, :3])),
+        max_base_rate=_peak(r.max_base_rate, safe_norm(rows.V_base[:, 3:])),
+        first_contact_s=_first(r.first_contact_s, force > 0.0, rows.t),
+        first_nonfinite_s=_first(r.first_nonfinite_s, ~finite, rows.t),
+        last_pose_ee=rows.pose_ee[-1],
+        last_pose_des=rows.pose_des[-1],
+    )
+
+
+def finish(running: RunningMetrics, nonfinite_after_s=None) -> dict[str, jax.Array]:
+    """The :data:`METRICS` of everything folded into ``running`` (NaN where a time never
+    came). ``nonfinite_after_s``: a time (s) to report as ``first_nonfinite_s`` if no row
+    was non-finite (a state that turns non-finite in the last step shows in no row)."""
+    first_nonfinite = running.first_nonfinite_s
+    if nonfinite_after_s is not None:
+        first_nonfinite = jnp.where(jnp.isinf(first_nonfinite), nonfinite_after_s, first_nonfinite)
+    never = lambda s: jnp.where(jnp.isinf(s), jnp.nan, s)
     return {
-        "max_abs_torque_Nm": [float(x) for x in max_abs_torque(log)],
-        "final_position_error_m": float(final_position_error(log)),
-        "final_orientation_error_rad": float(final_orientation_error(log)),
-        "rms_position_error_m": float(rms_position_error(log)),
-        "max_contact_force_N": float(jnp.max(contact_force_norm(log))),
-        "first_contact_s": None if first_contact != first_contact else first_contact,
-        "max_linear_momentum_Ns": float(jnp.max(jnp.linalg.norm(log.momentum[:, :3], axis=-1))),
-        "max_angular_momentum_Nms": float(jnp.max(jnp.linalg.norm(log.momentum[:, 3:], axis=-1))),
-        "max_base_speed_mps": float(jnp.max(jnp.linalg.norm(log.V_base[:, :3], axis=-1))),
-        "max_base_rate_radps": float(jnp.max(jnp.linalg.norm(log.V_base[:, 3:], axis=-1))),
+        "final_position_error_m": pose_position_error(running.last_pose_ee, running.last_pose_des),
+        "final_orientation_error_rad": pose_orientation_error(running.last_pose_ee, running.last_pose_des),
+        "rms_position_error_m": jnp.sqrt(running.sum_squared_position_error / running.rows),
+        "max_abs_torque_Nm": running.max_abs_torque,
+        "largest_peak_torque_Nm": jnp.max(running.max_abs_torque),
+        "max_contact_force_N": running.max_contact_force,
+        "max_linear_momentum_Ns": running.max_linear_momentum,
+        "max_angular_momentum_Nms": running.max_angular_momentum,
+        "max_base_speed_mps": running.max_base_speed,
+        "max_base_rate_radps": running.max_base_rate,
+        "first_contact_s": never(running.first_contact_s),
+        "first_nonfinite_s": never(first_nonfinite),
     }
+
+
+def log_metrics(log) -> dict[str, jax.Array]:
+    """The :data:`METRICS` of a whole log (arrays)."""
+    return finish(accumulate(start(jnp.asarray(log.t).dtype), log))
+
+
+def summary(log) -> dict:
+    """The :data:`METRICS` of a whole log as plain floats and lists (``summary.json``;
+    NaN where a metric has no value)."""
+    return {name: jnp.asarray(value).tolist() for name, value in log_metrics(log).items()}
+
+
+__all__ = [
+    "METRICS",
+    "RunningMetrics",
+    "accumulate",
+    "contact_force_norm",
+    "final_orientation_error",
+    "final_position_error",
+    "finish",
+    "first_contact_time",
+    "log_metrics",
+    "max_abs_torque",
+    "orientation_error",
+    "pose_orientation_error",
+    "pose_position_error",
+    "position_error",
+    "rms_position_error",
+    "safe_norm",
+    "start",
+    "summary",
+]

@@ -1,7 +1,8 @@
 """The paper's Figures 4-9 from rollout logs (NumPy in, matplotlib figures out).
 
-Style of the paper: blue dashed line for the active 6-DoF F/T (admittance) law, red dotted for
-the Cartesian law, black solid for the desired trajectory. ``logs`` maps a controller name
+Style of the paper: blue dashed line for the admittance law (the paper's "active 6 DoF
+force/torque control"), red dotted for the Cartesian law, black solid for the desired
+trajectory. ``logs`` maps a controller name
 (``"admittance"``, ``"cartesian"``) to a log with NumPy fields; either may be missing.
 
 Every ``figure_*`` function returns a matplotlib figure and leaves the backend alone: a
@@ -15,7 +16,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 STYLES = {
-    "admittance": dict(color="tab:blue", linestyle="--", label="active 6 DoF F/T control"),
+    "admittance": dict(color="tab:blue", linestyle="--", label="admittance control"),
     "cartesian": dict(color="tab:red", linestyle=":", label="Cartesian control"),
     "desired": dict(color="black", linestyle="-", label="desired"),
     "start": dict(color="tab:gray", linestyle="--", label="starting gains"),
@@ -118,13 +119,19 @@ FIGURES = {
 }
 
 
-def save_figures(logs, out_dir, write_atomically) -> list[str]:
-    """Write Figures 4-9 into ``out_dir``; returns the file names."""
-    for name, build in FIGURES.items():
-        fig = build(logs)
+def save(figures: dict, out_dir, write_atomically) -> list[str]:
+    """Write each figure of ``figures`` (file name -> figure) into ``out_dir`` as a PNG with
+    ``write_atomically(path, write)`` (``spacegrasp_jax.runfiles.write_atomically``), then
+    close it; returns the file names."""
+    for name, fig in figures.items():
         write_atomically(out_dir / name, lambda target: fig.savefig(target, dpi=110, format="png"))
         plt.close(fig)
-    return list(FIGURES)
+    return list(figures)
+
+
+def save_figures(logs, out_dir, write_atomically) -> list[str]:
+    """Write Figures 4-9 into ``out_dir``; returns the file names."""
+    return save({name: build(logs) for name, build in FIGURES.items()}, out_dir, write_atomically)
 
 
 def figure_loss_curve(history: list[dict]):
@@ -171,9 +178,7 @@ def save_tuning_figures(history, log_before, log_after, out_dir, write_atomicall
         "peak_torques.png": figure_peak_torques(np.max(np.abs(log_before.u), axis=0), np.max(np.abs(log_after.u), axis=0)),
         "ee_pose.png": figure_ee_pose({"start": log_before, "tuned": log_after}, "EE pose in LAR before and after tuning (exact contact law)"),
     }
-    for name, fig in figures.items():
-        write_atomically(out_dir / name, lambda target: fig.savefig(target, dpi=110, format="png"))
-        plt.close(fig)
+    save(figures, out_dir, write_atomically)
 
 
 # ---- Monte-Carlo campaigns: ``metrics`` maps a variant key ("admittance/paper") to its
@@ -192,7 +197,7 @@ def _campaign_values(sample_metrics: dict) -> tuple[np.ndarray, np.ndarray]:
     that did not diverge."""
     ok = ~np.isfinite(sample_metrics["first_nonfinite_s"])
     error_mm = 1e3 * np.asarray(sample_metrics["final_position_error_m"])[ok]
-    peak = np.asarray(sample_metrics["max_abs_torque_Nm"])[ok].max(axis=1, initial=-np.inf)
+    peak = np.asarray(sample_metrics["largest_peak_torque_Nm"])[ok]
     return error_mm, peak
 
 
@@ -259,17 +264,13 @@ def figure_campaign_scatter(metrics: dict, title: str = "Monte-Carlo campaign"):
     return fig
 
 
-def save_campaign_figures(out_dir, metrics: dict, title: str, tolerance_mm: float) -> None:
+def save_campaign_figures(out_dir, metrics: dict, title: str, tolerance_mm: float, write_atomically) -> None:
     """``histograms.png`` and ``torque_vs_error.png`` of a Monte-Carlo campaign."""
-    from spacegrasp_jax.experiment import write_atomically
-
     figures = {
         "histograms.png": figure_campaign_histograms(metrics, title, tolerance_mm),
         "torque_vs_error.png": figure_campaign_scatter(metrics, title),
     }
-    for name, fig in figures.items():
-        write_atomically(out_dir / name, lambda target: fig.savefig(target, dpi=110, format="png"))
-        plt.close(fig)
+    save(figures, out_dir, write_atomically)
 
 
 # ---- the EE path around the contact sphere, and gain sweeps ----------------------------

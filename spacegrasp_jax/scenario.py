@@ -187,6 +187,18 @@ def scenario_from_mapping(robot: Robot, document: dict) -> Scenario:
     return paper_scenario(robot, **kwargs)
 
 
+def scenario_to_dict(scenario: Scenario) -> dict:
+    """The scenario's numbers as plain JSON (initial state, LAR pose, trajectory, contact)."""
+    leaves = dataclasses.asdict(scenario)  # nested dataclasses become dicts of arrays
+
+    def plain(value):
+        if isinstance(value, dict):
+            return {key: plain(item) for key, item in value.items()}
+        return np.asarray(value).tolist() if not isinstance(value, (str, float, int)) else value
+
+    return plain(leaves)
+
+
 def load_scenario(robot: Robot, path: str | Path) -> Scenario:
     """Read a scenario (TOML or JSON, by extension) as :func:`scenario_from_mapping`.
 

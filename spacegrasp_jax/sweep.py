@@ -4,7 +4,7 @@ in one vmapped program sharded over the local devices, and the Pareto front of t
 A sweep answers "what happens to peak torque, accuracy and contact force if the admittance
 is stiffer, softer, more damped..." on one scenario. Each gain set runs the same closed loop
 as :func:`~spacegrasp_jax.simulate.rollout`, reduced to the per-run metrics of
-:data:`~spacegrasp_jax.montecarlo.METRICS` inside the scan, so a batch of full 17 s runs
+:data:`~spacegrasp_jax.metrics.METRICS` inside the scan, so a batch of full 17 s runs
 needs memory for its states only.
 
 Example (scale Kd and Bd of the paper's admittance by 1/2, 1 and 2)::
@@ -18,16 +18,12 @@ from __future__ import annotations
 
 import functools
 import itertools
-import math
 import sys
-import time
 
 import jax
 import numpy as np
-from jax.sharding import PartitionSpec
 
-from spacegrasp_jax import compilation
-from spacegrasp_jax.campaign import batch_mesh
+from spacegrasp_jax import batching
 from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import GAIN_SHAPES, Gains
 from spacegrasp_jax.model import Robot
@@ -103,16 +99,9 @@ def _check_factors(name: str, values: np.ndarray) -> None:
         raise SweepError(f"{name}: scale factors must be finite and positive, got {values.tolist()}")
 
 
-@functools.lru_cache(maxsize=None)
-def _sharded_metrics(controller: str, pinv_damping: float, devices: tuple):
-    """jit of the per-device vmapped metrics, the gains batch sharded over ``devices``."""
-    mesh = batch_mesh()
-
-    def on_one_device(robot, scenario, gains):
-        return jax.vmap(lambda g: rollout_metrics(robot, scenario, g, controller, pinv_damping)[0])(gains)
-
-    replicated, batched = PartitionSpec(), PartitionSpec("batch")
-    return compilation.jit(jax.shard_map(on_one_device, mesh=mesh, in_specs=(replicated, replicated, batched), out_specs=batched, check_vma=False))
+def _metrics_of_gain_sets(robot, scenario, gains, *, controller, pinv_damping):
+    """The per-run metrics of each gain set of the batch ``gains`` (vmapped)."""
+    return jax.vmap(lambda g: rollout_metrics(robot, scenario, g, controller, pinv_damping)[0])(gains)
 
 
 def evaluate_gains(
@@ -129,8 +118,8 @@ def evaluate_gains(
 
     The batch is split into chunks of ``chunk`` sets (rounded up to a multiple of the device
     count; the last chunk is padded with copies of the final set, dropped from the results),
-    each chunk one call of one compiled program sharded over ``jax.devices()``. Single
-    process: for multi-host campaigns use :mod:`spacegrasp_jax.campaign`.
+    each chunk one call of one compiled program sharded over ``jax.devices()``
+    (:func:`spacegrasp_jax.batching.map_in_chunks`).
 
     Args:
         robot, scenario: the system and the scenario, the same for every run.
@@ -141,8 +130,7 @@ def evaluate_gains(
         progress: stream for one line per chunk (``None``: silent).
 
     Returns:
-        Each metric of :data:`~spacegrasp_jax.montecarlo.METRICS` as an (N, ...) array, plus
-        ``largest_peak_torque_Nm`` (N,), the largest ``max_abs_torque_Nm`` over the joints, and
+        Each metric of :data:`~spacegrasp_jax.metrics.METRICS` as an (N, ...) array, plus
         ``diverged`` (N,) bool, true where the run became non-finite.
     """
     if controller not in CONTROLLERS:
@@ -156,21 +144,11 @@ def evaluate_gains(
     n = leaves[0].shape[0]
     if any(leaf.shape[0] != n for leaf in leaves):
         raise SweepError(f"gains: every field needs the same batch size, got {[leaf.shape[0] for leaf in leaves]}")
-    devices = jax.device_count()
-    chunk = devices * math.ceil(min(chunk, n) / devices)
-    function = _sharded_metrics(controller, float(pinv_damping), tuple(jax.devices()))
-    pieces = []
-    for first in range(0, n, chunk):
-        rows = np.minimum(np.arange(first, first + chunk), n - 1)  # pad with the last set
-        block = Gains(**{name: leaf[rows] for name, leaf in zip(GAIN_SHAPES, leaves)})
-        start = time.perf_counter()
-        metrics = jax.tree.map(np.asarray, function(robot, scenario, block))
-        pieces.append({name: value[: min(chunk, n - first)] for name, value in metrics.items()})
-        if progress is not None:
-            done = min(first + chunk, n)
-            print(f"gain sets {done}/{n} ({time.perf_counter() - start:.1f} s for this chunk)", file=progress, flush=True)
-    results = {name: np.concatenate([piece[name] for piece in pieces]) for name in pieces[0]}
-    results["largest_peak_torque_Nm"] = np.max(results["max_abs_torque_Nm"], axis=1)
+    function = functools.partial(_metrics_of_gain_sets, controller=controller, pinv_damping=float(pinv_damping))
+    batch = Gains(**dict(zip(GAIN_SHAPES, leaves)))
+    results = batching.map_in_chunks(
+        "sweep", function, (robot, scenario), batch, chunk=chunk, key=(controller, float(pinv_damping)), progress=progress, label="gain sets"
+    )
     results["diverged"] = np.isfinite(results["first_nonfinite_s"])
     return results
 

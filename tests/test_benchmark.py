@@ -20,7 +20,7 @@ def test_quick_benchmark_writes_every_key(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads((tmp_path / "benchmark.json").read_text())
     assert set(KEYS) <= set(report), set(KEYS) - set(report)
-    assert set(report["rollout_s"]) == {"active", "cartesian"}
+    assert set(report["rollout_s"]) == {"admittance", "cartesian"}
     assert set(report["batch_steps_per_s"]) == {"1", "4"}
     assert set(report["gradient_over_forward"]) == {"reverse", "forward"}
     numbers = [

@@ -74,14 +74,14 @@ def test_reproduce_writes_every_file_and_field_and_is_deterministic(tmp_path, fu
     printed = capsys.readouterr().out
     assert "Table 5" in printed and "final position error" in printed
     assert cli.main(["reproduce", "--compile-cache", "none", "--out", str(second)]) == 0
-    for name in ["table5.csv", "summary.json", "config.json", "timeseries_active.npz", "timeseries_cartesian.npz", *FIGURES]:
+    for name in ["table5.csv", "summary.json", "config.json", "timeseries_admittance.npz", "timeseries_cartesian.npz", *FIGURES]:
         assert (first / name).stat().st_size > 0, name
     rows = (first / "table5.csv").read_text().splitlines()
-    assert rows[0] == "joint,active_Nm,cartesian_Nm,paper_active_Nm,paper_cartesian_Nm"
+    assert rows[0] == "joint,admittance_Nm,cartesian_Nm,paper_admittance_Nm,paper_cartesian_Nm"
     assert rows[2].split(",")[3:] == ["2.45", "4.21"] and len(rows) == 8
     assert (first / "table5.csv").read_text() == (second / "table5.csv").read_text()
     summaries = [json.loads((folder / "summary.json").read_text()) for folder in (first, second)]
-    for key in ("active", "cartesian"):
+    for key in ("admittance", "cartesian"):
         assert set(summaries[0][key]) >= SUMMARY_KEYS
         assert len(summaries[0][key]["max_abs_torque_Nm"]) == 7
         for field in SUMMARY_KEYS - {"compile_time_s", "run_time_s"}:
@@ -91,7 +91,7 @@ def test_reproduce_writes_every_file_and_field_and_is_deterministic(tmp_path, fu
             for name in a.files:
                 np.testing.assert_array_equal(a[name], b[name])
     # The numbers on disk are the library's.
-    np.testing.assert_allclose(summaries[0]["active"]["max_abs_torque_Nm"], full_runs["admittance"].summary["max_abs_torque_Nm"], rtol=1e-12)
+    np.testing.assert_allclose(summaries[0]["admittance"]["max_abs_torque_Nm"], full_runs["admittance"].summary["max_abs_torque_Nm"], rtol=1e-12)
     config = json.loads((first / "config.json").read_text())
     assert {"gains", "scenario", "spacegrasp_jax_version", "jax_version", "git_revision"} <= set(config)
     assert config["gains"]["kp"] == [140.0, 210.0, 140.0, 105.0, 105.0, 21.0, 21.0]
@@ -106,8 +106,8 @@ def test_simulate_one_controller_with_gains_and_scenario_files(tmp_path, gains):
     args = ["simulate", "--compile-cache", "none", "--controller", "admittance", "--gains", str(gains_file), "--scenario", str(scenario_file), "--out", str(out)]
     assert cli.main(args) == 0
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary) == {"active"} and set(summary["active"]) >= SUMMARY_KEYS
-    assert (out / "timeseries_active.npz").exists() and all((out / name).exists() for name in FIGURES)
+    assert set(summary) == {"admittance"} and set(summary["admittance"]) >= SUMMARY_KEYS
+    assert (out / "timeseries_admittance.npz").exists() and all((out / name).exists() for name in FIGURES)
     assert json.loads((out / "config.json").read_text())["gains"]["Kd"] == [300.0] * 6
 
 
@@ -156,3 +156,24 @@ def test_compile_cache_folder_and_precedence(tmp_path, case):
         assert written == []
     else:
         assert written and all(expected in p.parents for p in written), written
+
+
+def test_a_command_keeps_its_programs_in_the_compile_cache_and_loads_them_the_second_time(tmp_path):
+    scenario = tmp_path / "short.toml"
+    scenario.write_text("duration = 0.2\n")
+    cache = tmp_path / "cache"
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+
+    def simulate(out):
+        command = [sys.executable, "-m", "spacegrasp_jax.cli", "simulate", "--controller", "cartesian", "--scenario", str(scenario),
+                   "--out", str(tmp_path / out), "--compile-cache", str(cache)]
+        result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
+        assert result.returncode == 0, result.stderr
+        assert f"compilation cache: {cache}" in result.stderr
+        return sorted(path.name for path in cache.iterdir())
+
+    first = simulate("a")
+    assert any(name.startswith("jit_rollout") for name in first)  # the closed loop, compiled once
+    assert simulate("b") == first  # the second run loads every program: nothing new to write
+    summaries = [json.loads((tmp_path / out / "summary.json").read_text())["cartesian"] for out in ("a", "b")]
+    assert summaries[0]["max_abs_torque_Nm"] == summaries[1]["max_abs_torque_Nm"]

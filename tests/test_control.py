@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax.control import GainsError, load_gains, make_gains, paper_gains
+from spacegrasp_jax.control import GainsError, UnusedGainsWarning, load_gains, make_gains, paper_gains
 from spacegrasp_jax.control import admittance, cartesian
 from spacegrasp_jax.control.pid import pid_init, pid_torque
 from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
@@ -48,14 +49,33 @@ def test_gains_json_round_trip_and_errors(tmp_path):
     path = tmp_path / "gains.json"
     path.write_text(json.dumps(paper_gains().to_dict()))
     assert load_gains(path).to_dict() == paper_gains().to_dict()
-    fields = paper_gains().to_dict()
-    del fields["kd"]
-    path.write_text(json.dumps(fields))
-    with pytest.raises(GainsError, match=r"gains.json: missing gain\(s\): kd"):
+    path.write_text(json.dumps({"kd": -1.0}))
+    with pytest.raises(GainsError, match=r"gains.json: kd: gains must be non-negative"):
+        load_gains(path)
+    path.write_text(json.dumps({"kq": 1.0}))
+    with pytest.raises(GainsError, match=r"gains.json: unknown gain\(s\): kq"):
         load_gains(path)
     path.write_text("{not json")
     with pytest.raises(GainsError, match="not valid JSON"):
         load_gains(path)
+
+
+def test_a_gains_file_holds_what_its_controller_uses(tmp_path):
+    # Written for one controller: only that law's groups and the PID's.
+    tuned = make_gains(**(paper_gains().to_dict() | {"Kd": 300.0, "K_lin": 2.0}))
+    assert set(tuned.to_dict("admittance")) == {"Md", "Bd", "Kd", "kp", "ki", "kd"}
+    assert set(tuned.to_dict("cartesian")) == {"K_lin", "K_eul", "kp", "ki", "kd"}
+    path = tmp_path / "admittance.json"
+    path.write_text(json.dumps(tuned.to_dict("admittance")))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no notice for a file that holds the law's own groups
+        read = load_gains(path, "admittance")
+    assert read.to_dict("admittance") == tuned.to_dict("admittance")
+    assert read.K_lin.tolist() == [3.0] * 3  # the groups the file leaves out are the paper's
+    # The other law's groups are accepted, and named.
+    with pytest.warns(UnusedGainsWarning, match=r"admittance.json: Md, Bd, Kd not used by the cartesian controller"):
+        read = load_gains(path, "cartesian")
+    assert read.Kd.tolist() == [300.0] * 6
 
 
 def test_pid_hand_computed():

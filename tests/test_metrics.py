@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
-from types import SimpleNamespace
+import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax import metrics
+from spacegrasp_jax.simulate import Log
 
 
 def hand_log():
@@ -19,8 +21,9 @@ def hand_log():
     pose_ee[-1, 5] = 0.1  # 0.1 rad of yaw at the end
     u = np.array([[0.0] * 7, [1.0, -2.0, 0, 0, 0, 0, 0], [0.5, 3.0, 0, 0, 0, 0, -0.1], [0.0] * 7])
     contact = np.array([[0, 0, 0], [0, 0, 0], [3.0, 4.0, 0.0], [0, 0, 0]], dtype=float)
-    return SimpleNamespace(t=t, pose_ee=pose_ee, pose_des=pose_des, u=u, contact_force=contact,
-                           momentum=np.zeros((4, 6)), V_base=np.zeros((4, 6)))
+    zeros = lambda width: np.zeros((4, width))  # noqa: E731
+    return Log(t=t, pose_ee=pose_ee, pose_des=pose_des, twist_ee=zeros(6), contact_force=contact, momentum=zeros(6),
+               V_base=zeros(6), u=u, fts_force=zeros(3), fts_torque=zeros(3), V_ref=zeros(6), qd_des=zeros(7), q=zeros(7), qd=zeros(7))
 
 
 def test_hand_computed_measures():
@@ -30,14 +33,45 @@ def test_hand_computed_measures():
     np.testing.assert_allclose(metrics.rms_position_error(log), np.sqrt((0.003**2 + 0.004**2) / 4))
     np.testing.assert_array_equal(metrics.max_abs_torque(log), [1.0, 3.0, 0, 0, 0, 0, 0.1])
     assert float(metrics.first_contact_time(log)) == 1.0
-    assert metrics.summary(log)["max_contact_force_N"] == 5.0
+    summary = metrics.summary(log)
+    assert summary["max_contact_force_N"] == 5.0 and summary["first_contact_s"] == 1.0
+    assert summary["largest_peak_torque_Nm"] == 3.0 and summary["max_abs_torque_Nm"] == [1.0, 3.0, 0, 0, 0, 0, 0.1]
+    np.testing.assert_allclose(summary["final_position_error_m"], 0.004)
+    np.testing.assert_allclose(summary["final_orientation_error_rad"], 0.1, rtol=1e-12)
+    np.testing.assert_allclose(summary["rms_position_error_m"], np.sqrt((0.003**2 + 0.004**2) / 4))
+    assert np.isnan(summary["first_nonfinite_s"])
 
 
-def test_no_contact_gives_nan_first_contact_and_null_in_summary():
+def test_folding_rows_one_by_one_gives_the_whole_log_metrics():
+    # The in-scan path (one row at a time) and the whole-log path share one definition.
     log = hand_log()
-    log.contact_force = np.zeros((4, 3))
+    running = metrics.start()
+    for k in range(4):
+        running = metrics.accumulate(running, jax.tree.map(lambda x: x[k : k + 1], log))
+    one_by_one, whole = metrics.finish(running), metrics.log_metrics(log)
+    for name in metrics.METRICS:
+        np.testing.assert_allclose(one_by_one[name], whole[name], rtol=1e-15, err_msg=name)
+
+
+def test_missing_values_are_nan_in_both_paths_and_null_in_json(tmp_path):
+    from spacegrasp_jax import runfiles
+
+    log = dataclasses.replace(hand_log(), contact_force=np.zeros((4, 3)))
     assert np.isnan(float(metrics.first_contact_time(log)))
-    assert metrics.summary(log)["first_contact_s"] is None
+    summary = metrics.summary(log)
+    assert np.isnan(summary["first_contact_s"]) and np.isnan(summary["first_nonfinite_s"])
+    runfiles.write_json(tmp_path / "summary.json", summary)
+    written = json.loads((tmp_path / "summary.json").read_text())
+    assert written["first_contact_s"] is None and written["max_contact_force_N"] == 0.0
+
+
+def test_a_non_finite_row_is_reported_and_the_peaks_before_it_kept():
+    log = hand_log()
+    u = log.u.copy()
+    u[3, 2] = np.nan
+    summary = metrics.summary(dataclasses.replace(log, u=u))
+    assert summary["first_nonfinite_s"] == 1.5
+    assert summary["max_abs_torque_Nm"] == [1.0, 3.0, 0, 0, 0, 0, 0.1]
 
 
 def test_safe_norm_has_zero_gradient_at_zero():

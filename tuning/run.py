@@ -25,17 +25,15 @@ import tomllib
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import compilation, experiment, plots
+from spacegrasp_jax import batching, experiment, plots, runfiles
 from spacegrasp_jax.control import load_gains, make_gains, paper_gains
 from spacegrasp_jax.model import robot_from_toml
 from spacegrasp_jax.perturbations import sample_scenarios
 from spacegrasp_jax.scenario import paper_scenario, scenario_from_mapping
-from spacegrasp_jax.simulate import rollout
-from spacegrasp_jax.tuning.objective import Objective, objective_parts
+from spacegrasp_jax.tuning.objective import Objective
 from spacegrasp_jax.tuning.parameters import gains_from_params
 from spacegrasp_jax.tuning.tune import (
     CHECKPOINT,
@@ -44,6 +42,7 @@ from spacegrasp_jax.tuning.tune import (
     make_optimizer,
     optimise,
     progress_line,
+    scenario_parts,
     setup,
 )
 
@@ -74,7 +73,7 @@ def _scenario(robot, record: dict):
 
 def new_record(config: TuneConfig, gains_file, scenario_file, robot_file, holdout: int) -> dict:
     """The run's definition, with the sources' contents so the run can be redone anywhere."""
-    base = load_gains(gains_file) if gains_file else paper_gains()
+    base = load_gains(gains_file, config.controller) if gains_file else paper_gains()
     return {
         "config": config.to_dict(),
         "base_gains": base.to_dict(),
@@ -88,37 +87,18 @@ def new_record(config: TuneConfig, gains_file, scenario_file, robot_file, holdou
     }
 
 
-def _batch_parts(robot, batch, gains, controller: str, objective: Objective):
-    """Objective parts (and the hard peak |u|) of each scenario of ``batch``, vmapped."""
-
-    def one(scenario):
-        _, log = rollout(robot, scenario, gains, controller)
-        parts = objective_parts(log, objective)
-        parts["peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
-        return parts
-
-    return jax.vmap(one)(batch)
-
-
-@functools.cache
-def _compiled_batch_parts():
-    return compilation.jit(_batch_parts, static_argnames=("controller", "objective"))
+def _scenarios_parts(robot, gains, scenarios, *, controller: str, objective: Objective):
+    """:func:`~spacegrasp_jax.tuning.tune.scenario_parts` of each scenario of a batch (vmapped)."""
+    return jax.vmap(lambda scenario: scenario_parts(robot, scenario, gains, controller, objective))(scenarios)
 
 
 def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chunk: int = 10) -> dict[str, np.ndarray]:
     """Objective parts for each scenario of a batch (exact or smooth per the scenarios),
-    by vmapped rollouts in chunks of ``chunk``; NaN marks a diverged sample. The gains are
-    an argument of the compiled function, so evaluating another gain set reuses it."""
-    count = int(np.shape(scenarios.contact_stiffness)[0])
-
-    results = []
-    for start in range(0, count, chunk):
-        indices = np.arange(start, start + chunk) % count  # pad the last chunk: one compile
-        batch = jax.tree.map(lambda leaf: leaf[indices], scenarios)
-        parts = jax.tree.map(np.asarray, _compiled_batch_parts()(robot, batch, gains, controller, objective))
-        keep = min(chunk, count - start)
-        results.append({name: value[:keep] for name, value in parts.items()})
-    return {name: np.concatenate([r[name] for r in results]) for name in results[0]}
+    by vmapped rollouts in chunks of ``chunk`` (:func:`spacegrasp_jax.batching.map_in_chunks`);
+    NaN marks a diverged sample. The gains are an argument of the compiled program, so
+    evaluating another gain set reuses it."""
+    function = functools.partial(_scenarios_parts, controller=controller, objective=objective)
+    return batching.map_in_chunks("tuning.evaluate", function, (robot, gains), scenarios, chunk=chunk, key=(controller, objective), progress=None)
 
 
 def _write_history(path: Path, history: list) -> None:
@@ -126,14 +106,14 @@ def _write_history(path: Path, history: list) -> None:
     writer = csv.DictWriter(buffer, fieldnames=list(history[0]))
     writer.writeheader()
     writer.writerows(history)
-    experiment.write_atomically(path, lambda target: target.write_text(buffer.getvalue()))
+    runfiles.write_text(path, buffer.getvalue())
 
 
 def _comparison(result: experiment.RunResult) -> dict:
     summary = result.summary
     return {
         "max_abs_torque_Nm": summary["max_abs_torque_Nm"],
-        "largest_peak_torque_Nm": max(summary["max_abs_torque_Nm"]),
+        "largest_peak_torque_Nm": summary["largest_peak_torque_Nm"],
         "final_position_error_m": summary["final_position_error_m"],
         "final_orientation_error_rad": summary["final_orientation_error_rad"],
         "rms_position_error_m": summary["rms_position_error_m"],
@@ -169,7 +149,7 @@ def tune(
         record = new_record(config or TuneConfig(), gains_file, scenario_file, robot_file, holdout)
         config = TuneConfig.from_dict(record["config"])
         out.mkdir(parents=True, exist_ok=True)
-        experiment.write_json(record_path, record)
+        runfiles.write_json(record_path, record)
 
     robot = _robot(record)
     base = make_gains(**record["base_gains"])
@@ -189,21 +169,21 @@ def tune(
         _write_history(out / "history.csv", state.history)
 
     print(f"compiling the {config.gradient}-mode gradient of the {config.controller} objective over {config.batch} scenario(s)...", file=progress, flush=True)
-    with experiment.StopRequest() as stop:
+    with runfiles.StopRequest() as stop:
         state, status = optimise(
             value_and_grad,
             params,
             config,
             checkpoint_path=checkpoint_path,
             resume_state=resume_state,
-            write_atomically=experiment.write_atomically,
+            write_atomically=runfiles.write_atomically,
             on_step=on_step,
             stop=stop,
         )
     print(file=progress)
     _write_history(out / "history.csv", state.history)
     tuned = gains_from_params(state.params, base, mask)
-    experiment.write_json(out / "gains.json", tuned.to_dict())
+    runfiles.write_json(out / "gains.json", tuned.to_dict(config.controller))
     if status == "interrupted":
         print(f"interrupted after step {state.step}/{config.steps}; continue with: spacegrasp tune --out {out} --resume", file=progress)
         return 130
@@ -241,10 +221,10 @@ def tune(
             "median_objective_start": float(np.nanmedian(before_parts["loss"])),
             "median_objective_tuned": float(np.nanmedian(after_parts["loss"])),
             "tuned_better_fraction": float(np.mean(after_parts["loss"] < before_parts["loss"])),
-            "mean_largest_peak_torque_Nm_start": float(np.nanmean(before_parts["peak_torque_Nm"])),
-            "mean_largest_peak_torque_Nm_tuned": float(np.nanmean(after_parts["peak_torque_Nm"])),
-            "median_largest_peak_torque_Nm_start": float(np.nanmedian(before_parts["peak_torque_Nm"])),
-            "median_largest_peak_torque_Nm_tuned": float(np.nanmedian(after_parts["peak_torque_Nm"])),
+            "mean_largest_peak_torque_Nm_start": float(np.nanmean(before_parts["largest_peak_torque_Nm"])),
+            "mean_largest_peak_torque_Nm_tuned": float(np.nanmean(after_parts["largest_peak_torque_Nm"])),
+            "median_largest_peak_torque_Nm_start": float(np.nanmedian(before_parts["largest_peak_torque_Nm"])),
+            "median_largest_peak_torque_Nm_tuned": float(np.nanmedian(after_parts["largest_peak_torque_Nm"])),
             "mean_final_position_error_m_start": float(np.nanmean(before_parts["final_position_m"])),
             "mean_final_position_error_m_tuned": float(np.nanmean(after_parts["final_position_m"])),
             "median_final_position_error_m_start": float(np.nanmedian(before_parts["final_position_m"])),
@@ -255,8 +235,8 @@ def tune(
         }
         samples = {f"start_{name}": value for name, value in before_parts.items()}
         samples.update({f"tuned_{name}": value for name, value in after_parts.items()})
-        experiment.write_atomically(out / "holdout.npz", lambda target: np.savez_compressed(target, **samples))
-    experiment.write_json(out / "summary.json", summary)
-    plots.save_tuning_figures(state.history, before.log, after.log, out, experiment.write_atomically)
+        runfiles.write_arrays(out / "holdout.npz", samples)
+    runfiles.write_json(out / "summary.json", summary)
+    plots.save_tuning_figures(state.history, before.log, after.log, out, runfiles.write_atomically)
     print(f"wrote {out}/: gains.json, history.csv, summary.json, loss.png, peak_torques.png, ee_pose.png", file=progress)
     return 0

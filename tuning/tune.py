@@ -26,7 +26,7 @@ from jax.flatten_util import ravel_pytree
 
 from spacegrasp_jax import compilation
 from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.experiment import StopRequest
+from spacegrasp_jax.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
 from spacegrasp_jax.scenario import Scenario
@@ -164,6 +164,16 @@ def training_scenarios(nominal: Scenario, config: TuneConfig) -> Scenario:
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), stacked, perturbed)
 
 
+def scenario_parts(robot: Robot, scenario: Scenario, gains: Gains, controller: str, objective: Objective, segment: int | None = None) -> dict:
+    """Every part of the objective on one scenario (:func:`~spacegrasp_jax.tuning.objective.objective_parts`),
+    plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m). ``segment``: the
+    rollout's ``checkpoint_segment`` (for reverse-mode gradients)."""
+    _, log = rollout(robot, scenario, gains, controller, checkpoint_segment=segment)
+    parts = objective_parts(log, objective)
+    parts["largest_peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
+    return parts
+
+
 def make_loss(robot: Robot, scenarios: Scenario, base: Gains, mask, config: TuneConfig, objective: Objective, segment: int | None):
     """``loss(params) -> (loss, aux)``: the batch mean (or CVaR) of the objective, and the
     batch-mean parts plus the worst hard peak torque (N m) for the divergence guard. The
@@ -173,10 +183,7 @@ def make_loss(robot: Robot, scenarios: Scenario, base: Gains, mask, config: Tune
         gains = gains_from_params(params, base, mask)
 
         def one(scenario):
-            _, log = rollout(robot, scenario, gains, config.controller, checkpoint_segment=segment)
-            parts = objective_parts(log, objective)
-            parts["peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
-            return parts
+            return scenario_parts(robot, scenario, gains, config.controller, objective, segment)
 
         count = jax.tree.leaves(scenarios)[0].shape[0]
         if count == 1:  # one scenario: the unbatched program
@@ -192,7 +199,7 @@ def make_loss(robot: Robot, scenarios: Scenario, base: Gains, mask, config: Tune
             worst = max(1, math.ceil((1.0 - config.cvar_alpha) * losses.shape[0]))
             total = jnp.mean(jnp.sort(losses)[-worst:])
         aux = {name: jnp.mean(value) for name, value in parts.items()}
-        aux["peak_torque_Nm"] = jnp.max(parts["peak_torque_Nm"])
+        aux["largest_peak_torque_Nm"] = jnp.max(parts["largest_peak_torque_Nm"])
         return total, aux
 
     return loss
@@ -232,7 +239,7 @@ class RunState:
 
 def _is_acceptable(loss, aux, gradient, guard_Nm: float) -> bool:
     finite = math.isfinite(float(loss)) and all(bool(np.all(np.isfinite(g))) for g in jax.tree.leaves(gradient))
-    return finite and float(aux["peak_torque_Nm"]) <= guard_Nm
+    return finite and float(aux["largest_peak_torque_Nm"]) <= guard_Nm
 
 
 def save_checkpoint(path: Path, state: RunState, config: TuneConfig, write_atomically) -> None:
@@ -291,11 +298,12 @@ def history_row(step: int, loss: float, aux: dict, gradient, step_size: float, r
     }
 
 
-def progress_line(state: RunState, total: int, width: int = 24) -> str:
-    done = int(width * state.step / total)
+def progress_line(state: RunState, total: int) -> str:
     aux = state.aux
-    return (
-        f"\r[{'#' * done}{'.' * (width - done)}] step {state.step}/{total} loss {state.loss:.4f} | "
+    return progress_bar(
+        state.step,
+        total,
+        f"step {state.step}/{total} loss {state.loss:.4f} | "
         f"final pos {1e3 * aux['final_position_m']:.3f} mm | peak torque {aux['peak_torque_smooth']:.3f} "
         f"(hard {aux['peak_torque_hard']:.3f}, gap {aux['peak_torque_gap']:.3f}) | rms {1e3 * aux['rms_tracking_m']:.2f} mm"
     )
@@ -337,7 +345,7 @@ def optimise(
                 break
             rejected += 1
             state.events.append(
-                {"step": state.step + 1, "event": "rejected", "loss": float(loss), "peak_torque_Nm": float(aux["peak_torque_Nm"]), "new_scale": state.scale / 2}
+                {"step": state.step + 1, "event": "rejected", "loss": float(loss), "largest_peak_torque_Nm": float(aux["largest_peak_torque_Nm"]), "new_scale": state.scale / 2}
             )
             state.scale /= 2.0
             if state.scale < 1e-6:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import warnings
 from pathlib import Path
 
 import jax
@@ -30,6 +31,12 @@ import numpy as np
 from spacegrasp_jax.compilation import require_float64
 
 GAIN_SHAPES = {"Md": 6, "Bd": 6, "Kd": 6, "K_lin": 3, "K_eul": 3, "kp": 7, "ki": 7, "kd": 7}
+
+#: The gain groups each controller uses (the joint PID stage's with its law's).
+GAINS_USED = {
+    "admittance": ("Md", "Bd", "Kd", "kp", "ki", "kd"),
+    "cartesian": ("K_lin", "K_eul", "kp", "ki", "kd"),
+}
 # Gains that must be strictly positive (the rest may be zero, e.g. no integral action).
 _STRICTLY_POSITIVE = {"Md", "Bd", "Kd", "K_lin", "K_eul", "kp"}
 
@@ -54,9 +61,11 @@ class Gains:
     ki: jax.Array
     kd: jax.Array
 
-    def to_dict(self) -> dict[str, list[float]]:
-        """Plain lists, for JSON."""
-        return {name: np.asarray(getattr(self, name)).tolist() for name in GAIN_SHAPES}
+    def to_dict(self, controller: str | None = None) -> dict[str, list[float]]:
+        """Plain lists, for JSON: the groups ``controller`` uses (:data:`GAINS_USED`), or
+        every group (``None``)."""
+        names = GAINS_USED[controller] if controller is not None else GAIN_SHAPES
+        return {name: np.asarray(getattr(self, name)).tolist() for name in names}
 
 
 def make_gains(**fields) -> Gains:
@@ -110,14 +119,22 @@ def paper_gains() -> Gains:
 
 def tuned_gains() -> Gains:
     """The admittance gains found by ``spacegrasp tune`` with its defaults, starting from the
-    paper's (README, "Tuning the gains": 43% lower largest peak torque on the nominal
-    scenario). Shipped as ``spacegrasp_jax/data/tuned_admittance_gains.json``; ``K_lin`` and
-    ``K_eul`` are the paper's (the admittance law does not use them)."""
+    paper's. Shipped as ``spacegrasp_jax/data/tuned_admittance_gains.json``, which holds
+    the groups the admittance law uses; ``K_lin`` and ``K_eul`` are the paper's."""
     return load_gains(Path(__file__).resolve().parents[1] / "data" / "tuned_admittance_gains.json")
 
 
-def load_gains(path: str | Path) -> Gains:
-    """Read gains from a JSON file ``{"Md": [...], ..., "kd": [...]}`` (scalars allowed).
+class UnusedGainsWarning(UserWarning):
+    """A gains file holds groups the chosen controller does not use (they are ignored)."""
+
+
+def load_gains(path: str | Path, controller: str | None = None) -> Gains:
+    """Read gains from a JSON file ``{"Md": [...], "kp": [...], ...}`` (scalars allowed).
+
+    A file may hold any subset of the groups: the others take the paper's values
+    (:func:`paper_gains`). A file written for one controller holds the groups that
+    controller uses (:data:`GAINS_USED`); given ``controller``, groups it does not use are
+    accepted and named in an :class:`UnusedGainsWarning`.
 
     Raises:
         GainsError: unreadable JSON or invalid gains; the message names the file.
@@ -130,6 +147,10 @@ def load_gains(path: str | Path) -> Gains:
     if not isinstance(document, dict):
         raise GainsError(f"{path}: expected a JSON object of gains")
     try:
-        return make_gains(**document)
+        gains = make_gains(**(paper_gains().to_dict() | document))
     except GainsError as error:
         raise GainsError(f"{path}: {error}") from None
+    unused = [name for name in GAIN_SHAPES if name in document and controller is not None and name not in GAINS_USED[controller]]
+    if unused:
+        warnings.warn(f"{path}: {', '.join(unused)} not used by the {controller} controller (ignored)", UnusedGainsWarning, stacklevel=2)
+    return gains

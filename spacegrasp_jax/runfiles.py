@@ -1,0 +1,178 @@
+"""Run files on the host, written once for every job (``reproduce``, ``simulate``,
+``montecarlo``, ``tune``): atomic writes, JSON, time series, the provenance of a run, and
+interrupts that stop a long run at a safe point.
+
+Missing values: a metric that has no value (no contact, no divergence) is NaN in arrays and
+``null`` in JSON files (:func:`write_json` converts every non-finite float).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import jax
+import numpy as np
+
+
+class OutputFolderError(ValueError):
+    """An output folder that cannot be created or written; names the folder."""
+
+
+def check_output_folder(out: Path) -> None:
+    """Create ``out`` if needed and check that files can be written in it, so that a run
+    fails before it computes anything rather than after.
+
+    Raises:
+        OutputFolderError: ``out`` (or a parent) is a file, or the folder is not writable.
+    """
+    out = Path(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        descriptor, probe = tempfile.mkstemp(dir=out, prefix=".write-test.")
+        os.close(descriptor)
+        os.unlink(probe)
+    except OSError as error:
+        raise OutputFolderError(f"{out}: cannot write results there ({error.strerror or error})") from None
+
+
+def write_atomically(path: Path, write) -> None:
+    """Call ``write(handle_path)`` on a temporary file beside ``path``, then rename it into
+    place, so an interrupted run never leaves a half-written file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
+    os.close(descriptor)
+    try:
+        write(Path(temporary))
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(temporary, 0o666 & ~umask)  # mkstemp makes 0600; results are ordinary files
+        os.replace(temporary, path)
+    finally:
+        if os.path.exists(temporary):
+            os.unlink(temporary)
+
+
+def plain(value):
+    """``value`` as plain JSON data: arrays and NumPy numbers as lists and floats, non-finite
+    floats as ``None``, dataclasses and mappings as dicts."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = dataclasses.asdict(value)
+    if isinstance(value, dict):
+        return {str(key): plain(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(item) for item in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, (np.ndarray, jax.Array)):
+        return plain(np.asarray(value).tolist())
+    return value
+
+
+def write_json(path: Path, document) -> None:
+    """``document`` as indented JSON (:func:`plain`: non-finite numbers become ``null``)."""
+    text = json.dumps(plain(document), indent=2, allow_nan=False) + "\n"
+    write_atomically(path, lambda target: target.write_text(text))
+
+
+def write_text(path: Path, text: str) -> None:
+    write_atomically(path, lambda target: target.write_text(text))
+
+
+def write_arrays(path: Path, arrays: dict, *, compressed: bool = True) -> None:
+    """A ``.npz`` file of ``arrays`` (name -> array)."""
+    save = np.savez_compressed if compressed else np.savez
+    write_atomically(path, lambda target: save(target, **{name: np.asarray(value) for name, value in arrays.items()}))
+
+
+def write_timeseries(path: Path, log) -> None:
+    """A log (:class:`~spacegrasp_jax.simulate.Log`) as a compressed ``.npz``, one array per field."""
+    write_arrays(path, vars(log))
+
+
+def git_revision() -> str | None:
+    """The checkout's commit (with ``-dirty`` for uncommitted changes), or None."""
+    here = Path(__file__).resolve().parent
+    try:
+        revision = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
+        if revision.returncode != 0:
+            return None
+        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=here, capture_output=True, text=True, timeout=10)
+        return revision.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def provenance() -> dict:
+    """Versions, backend and git revision: what every ``config.json`` records beside the
+    run's own settings."""
+    from spacegrasp_jax import __version__
+
+    return {
+        "spacegrasp_jax_version": __version__,
+        "jax_version": jax.__version__,
+        "numpy_version": np.__version__,
+        "backend": jax.default_backend(),
+        "git_revision": git_revision(),
+    }
+
+
+class StopRequest:
+    """Context manager for long runs: SIGINT/SIGTERM set ``requested``, which the loop checks
+    after each unit of work (a tuning step, a Monte-Carlo chunk) before stopping cleanly; a
+    second signal interrupts at once (completed units are on disk either way)."""
+
+    def __init__(self, unit: str = "step"):
+        self.requested = False
+        self.unit = unit
+        self._previous = {}
+
+    def __enter__(self):
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print(f"\n{signal.Signals(signum).name} received: stopping after this {self.unit} (send again to stop now)", file=sys.stderr, flush=True)
+
+    def __exit__(self, *exc):
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        return False
+
+
+def progress_bar(done: int, total: int, text: str, width: int = 24) -> str:
+    """``"\\r[####....] text"``: one line of a progress display that rewrites itself."""
+    filled = int(width * done / total) if total else width
+    return f"\r[{'#' * filled}{'.' * (width - filled)}] {text}"
+
+
+__all__ = [
+    "OutputFolderError",
+    "StopRequest",
+    "check_output_folder",
+    "git_revision",
+    "plain",
+    "progress_bar",
+    "provenance",
+    "write_arrays",
+    "write_atomically",
+    "write_json",
+    "write_text",
+    "write_timeseries",
+]
