@@ -37,6 +37,7 @@ import json
 import os
 import sys
 from pathlib import Path
+
 from spacegrasp_jax.compilation import configure
 
 PARTS = ("kinematics", "kinematics_by_component", "mass_matrix", "plant_kinematics", "plant_rate", "controller", "step")
@@ -114,10 +115,19 @@ def _part_functions(gains):
         return simulate.control_step(robot, scenario, gains, "admittance", state, 1.0, 0.0, shared)[:2]
 
     def step(robot, scenario, state):
-        return simulate.closed_loop_step(robot, scenario, gains, "admittance")(state, jnp.ones((), state.plant.q.dtype))[0]
+        return simulate.closed_loop_step(robot, scenario, gains, "admittance")(
+            state, jnp.ones((), state.plant.q.dtype)
+        )[0]
 
-    return dict(kinematics=kinematics, kinematics_by_component=kinematics_by_component, mass_matrix=mass_matrix,
-                plant_kinematics=plant_kinematics, plant_rate=plant_rate, controller=controller, step=step)
+    return dict(
+        kinematics=kinematics,
+        kinematics_by_component=kinematics_by_component,
+        mass_matrix=mass_matrix,
+        plant_kinematics=plant_kinematics,
+        plant_rate=plant_rate,
+        controller=controller,
+        step=step,
+    )
 
 
 def _looped(part, carries_state: bool, iterations: int):
@@ -143,8 +153,8 @@ def measure(parts: list[str], batch: int, iterations: int, repeats: int) -> list
     import jax
 
     import spacegrasp_jax as sg
-    from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax import compilation, simulate
+    from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.perturbations import PerturbationRanges, sample
     from spacegrasp_jax.scenario import paper_scenario
@@ -160,14 +170,20 @@ def measure(parts: list[str], batch: int, iterations: int, repeats: int) -> list
     for name in parts:
         row = {"part": name}
         looped = _looped(functions[name], name == "step", iterations)
-        for label, function, arguments, samples in (("single", looped, single, 1), ("batch", jax.vmap(looped), batched, batch)):
+        for label, function, arguments, samples in (
+            ("single", looped, single, 1),
+            ("batch", jax.vmap(looped), batched, batch),
+        ):
             compiled = compilation.jit(function).lower(*arguments).compile()
             jax.block_until_ready(compiled(*arguments))
             timing = timed(lambda: jax.block_until_ready(compiled(*arguments)), repeats)
             row[f"{label}_us_per_sample"] = timing["median_s"] / iterations / samples * 1e6
         row["batch_gain"] = row["single_us_per_sample"] / row["batch_us_per_sample"]
         results.append(row)
-        print(f"{name:>23} {row['single_us_per_sample']:>10.3f} {row['batch_us_per_sample']:>10.3f} {row['batch_gain']:>9.2f}x", flush=True)
+        print(
+            f"{name:>23} {row['single_us_per_sample']:>10.3f} {row['batch_us_per_sample']:>10.3f} {row['batch_gain']:>9.2f}x",
+            flush=True,
+        )
     return results
 
 
@@ -175,7 +191,9 @@ def main(argv: list[str] | None = None) -> int:
     configure()  # this process is the benchmark's: float64, loops compiled whole
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks")
-    parser.add_argument("--batch", type=int, default=128, help="samples in the vmapped batch (the campaign's sub-batch per CPU device)")
+    parser.add_argument(
+        "--batch", type=int, default=128, help="samples in the vmapped batch (the campaign's sub-batch per CPU device)"
+    )
     parser.add_argument("--iterations", type=int, default=1000, help="loop iterations per timed call")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated, from {', '.join(PARTS)}")

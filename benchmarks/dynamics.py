@@ -165,9 +165,21 @@ def main(argv: list[str] | None = None) -> int:
 
     ours, peer = result["jax"], result["pinocchio"]
     rows = [
-        ("forward dynamics, one call from Python", f"{ours['single_call_us']:.1f} us", peer and f"{peer['crba_nle_solve_us']:.1f} us (crba+nle+solve)"),
-        ("forward dynamics, inside lax.scan", f"{ours['in_scan_us']:.2f} us", peer and f"{peer['aba_us']:.1f} us (aba)"),
-        (f"batch of {args.batch}", f"{1e3 * ours['batch_s']:.2f} ms", peer and f"{1e3 * peer['batch_crba_nle_s']:.2f} ms (crba+nle loop)"),
+        (
+            "forward dynamics, one call from Python",
+            f"{ours['single_call_us']:.1f} us",
+            peer and f"{peer['crba_nle_solve_us']:.1f} us (crba+nle+solve)",
+        ),
+        (
+            "forward dynamics, inside lax.scan",
+            f"{ours['in_scan_us']:.2f} us",
+            peer and f"{peer['aba_us']:.1f} us (aba)",
+        ),
+        (
+            f"batch of {args.batch}",
+            f"{1e3 * ours['batch_s']:.2f} ms",
+            peer and f"{1e3 * peer['batch_crba_nle_s']:.2f} ms (crba+nle loop)",
+        ),
         ("compile (jit, first call)", f"{ours['compile_s']:.2f} s", "-"),
     ]
     info = result["machine"]

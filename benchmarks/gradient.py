@@ -25,6 +25,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
 from spacegrasp_jax.compilation import configure
 
 MODES = ("forward", "reverse_checkpointed", "reverse_plain", "forward_mode")
@@ -34,13 +35,19 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
     import jax
 
     import spacegrasp_jax as sg
-    from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax import compilation
+    from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.scenario import paper_scenario
     from spacegrasp_jax.tuning.objective import Objective, Weights
     from spacegrasp_jax.tuning.parameters import initial_params, make_mask
-    from spacegrasp_jax.tuning.tune import TuneConfig, checkpoint_segment, make_loss, make_value_and_grad, training_scenarios
+    from spacegrasp_jax.tuning.tune import (
+        TuneConfig,
+        checkpoint_segment,
+        make_loss,
+        make_value_and_grad,
+        training_scenarios,
+    )
 
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, contact_law="smooth", duration=duration)
@@ -48,7 +55,9 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
     objective = Objective(weights=Weights(), torque_scale_Nm=(0.80, 2.71, 1.82, 0.77, 1.11, 0.24, 0.028))
     params = initial_params(gains, "admittance")
     segment = checkpoint_segment(scenario.n_steps) if mode == "reverse_checkpointed" else None
-    loss = make_loss(robot, training_scenarios(scenario, config), gains, make_mask(gains, "admittance"), config, objective, segment)
+    loss = make_loss(
+        robot, training_scenarios(scenario, config), gains, make_mask(gains, "admittance"), config, objective, segment
+    )
     if mode == "forward":
         function = compilation.jit(lambda p: loss(p)[0])
     else:
@@ -80,9 +89,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=17.0)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--modes", default=",".join(MODES), help=f"comma-separated subset of {', '.join(MODES)}")
-    parser.add_argument("--compile-cache", metavar="DIR",
-                        help="JAX persistent compilation cache for the children: run twice with the same DIR and the "
-                             "second run loads the programs instead of compiling them ('compile' is then the load time)")
+    parser.add_argument(
+        "--compile-cache",
+        metavar="DIR",
+        help="JAX persistent compilation cache for the children: run twice with the same DIR and the "
+        "second run loads the programs instead of compiling them ('compile' is then the load time)",
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
@@ -94,24 +106,51 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown mode(s): {', '.join(sorted(unknown))}")
     environment = dict(os.environ)
     if args.compile_cache:
-        environment |= {"JAX_COMPILATION_CACHE_DIR": args.compile_cache, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+        environment |= {
+            "JAX_COMPILATION_CACHE_DIR": args.compile_cache,
+            "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+        }
     results = {}
     for mode in modes:
-        command = [sys.executable, "-m", "spacegrasp_jax.benchmarks.gradient", "--child", mode, "--duration", str(args.duration), "--repeats", str(args.repeats)]
+        command = [
+            sys.executable,
+            "-m",
+            "spacegrasp_jax.benchmarks.gradient",
+            "--child",
+            mode,
+            "--duration",
+            str(args.duration),
+            "--repeats",
+            str(args.repeats),
+        ]
         output = subprocess.run(command, capture_output=True, text=True, check=True, env=environment).stdout
         results[mode] = json.loads(output.strip().splitlines()[-1])
         print(f"measured {mode}", flush=True)
     forward = results.get("forward", {}).get("run_s")
-    print(f"\n{'mode':22} {'compile [s]':>11} {'run [s]':>9} {'/ forward':>9} {'XLA temp [MB]':>13} {'peak RSS [MB]':>13}")
+    print(
+        f"\n{'mode':22} {'compile [s]':>11} {'run [s]':>9} {'/ forward':>9} {'XLA temp [MB]':>13} {'peak RSS [MB]':>13}"
+    )
     for mode, r in results.items():
         ratio = r["run_s"] / forward if forward else float("nan")
         r["over_forward"] = ratio
-        print(f"{mode:22} {r['compile_s']:>11.1f} {r['run_s']:>9.2f} {ratio:>9.2f} {r['xla_temp_mb']:>13.1f} {r['peak_rss_mb']:>13.0f}")
+        print(
+            f"{mode:22} {r['compile_s']:>11.1f} {r['run_s']:>9.2f} {ratio:>9.2f} {r['xla_temp_mb']:>13.1f} {r['peak_rss_mb']:>13.0f}"
+        )
     from spacegrasp_jax.benchmarks.dynamics import machine
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "gradient.json").write_text(json.dumps({"machine": machine(), "duration_s": args.duration, "compile_cache": args.compile_cache, "results": results}, indent=2))
+    (out / "gradient.json").write_text(
+        json.dumps(
+            {
+                "machine": machine(),
+                "duration_s": args.duration,
+                "compile_cache": args.compile_cache,
+                "results": results,
+            },
+            indent=2,
+        )
+    )
     print(f"wrote {out / 'gradient.json'}")
     return 0
 

@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from spacegrasp_jax.compilation import configure
 
 
@@ -42,8 +43,8 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
     if kind == "batch" and size % cores == 0:
         batching.use_all_cpu_cores()  # as `spacegrasp montecarlo` does; before any device use
     import spacegrasp_jax as sg
-    from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax import compilation
+    from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.montecarlo import rollout_metrics
     from spacegrasp_jax.perturbations import PerturbationRanges, sample
@@ -65,7 +66,9 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
 
     else:
         variant = campaign.Variant("admittance", gains)
-        config = campaign.CampaignConfig(n=size, chunk=size, device_batch=128 if jax.default_backend() == "cpu" else None)
+        config = campaign.CampaignConfig(
+            n=size, chunk=size, device_batch=128 if jax.default_backend() == "cpu" else None
+        )
         compiled, compile_s = campaign.compiled_chunk(robot, scenario, variant, config)
 
         def run():
@@ -113,23 +116,40 @@ def main(argv: list[str] | None = None) -> int:
     runs = [("sequential", args.sequential)] + [("batch", size) for size in batches]
     results = []
     for kind, size in runs:
-        command = [sys.executable, "-m", "spacegrasp_jax.benchmarks.montecarlo", "--child", kind, str(size), "--duration", str(args.duration), "--repeats", str(args.repeats)]
+        command = [
+            sys.executable,
+            "-m",
+            "spacegrasp_jax.benchmarks.montecarlo",
+            "--child",
+            kind,
+            str(size),
+            "--duration",
+            str(args.duration),
+            "--repeats",
+            str(args.repeats),
+        ]
         output = subprocess.run(command, capture_output=True, text=True, check=True).stdout
         results.append(json.loads(output.strip().splitlines()[-1]))
         print(f"measured {kind} {size}", flush=True)
 
     sequential = results[0]["rollouts_per_s"]
-    print(f"\n{'run':>16} {'compile [s]':>11} {'run [s]':>9} {'rollouts/s':>10} {'sim s/wall s':>12} {'steps/s':>10} {'vs sequential':>13} {'XLA temp [MB]':>13} {'peak RSS [MB]':>13}")
+    print(
+        f"\n{'run':>16} {'compile [s]':>11} {'run [s]':>9} {'rollouts/s':>10} {'sim s/wall s':>12} {'steps/s':>10} {'vs sequential':>13} {'XLA temp [MB]':>13} {'peak RSS [MB]':>13}"
+    )
     for r in results:
         r["over_sequential"] = r["rollouts_per_s"] / sequential
         label = f"{r['kind']} {r['size']}"
-        print(f"{label:>16} {r['compile_s']:>11.1f} {r['run_s']:>9.2f} {r['rollouts_per_s']:>10.2f} {r['simulated_s_per_wall_s']:>12.1f} "
-              f"{r['scenario_steps_per_s']:>10.3g} {r['over_sequential']:>12.1f}x {r['xla_temp_mb']:>13.1f} {r['peak_rss_mb']:>13.0f}")
+        print(
+            f"{label:>16} {r['compile_s']:>11.1f} {r['run_s']:>9.2f} {r['rollouts_per_s']:>10.2f} {r['simulated_s_per_wall_s']:>12.1f} "
+            f"{r['scenario_steps_per_s']:>10.3g} {r['over_sequential']:>12.1f}x {r['xla_temp_mb']:>13.1f} {r['peak_rss_mb']:>13.0f}"
+        )
     from spacegrasp_jax.benchmarks.dynamics import machine
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "montecarlo.json").write_text(json.dumps({"machine": machine(), "duration_s": args.duration, "results": results}, indent=2))
+    (out / "montecarlo.json").write_text(
+        json.dumps({"machine": machine(), "duration_s": args.duration, "results": results}, indent=2)
+    )
     print(f"wrote {out / 'montecarlo.json'}")
     return 0
 

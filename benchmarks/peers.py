@@ -59,7 +59,11 @@ def mujoco_mj_step(robot, scenario, repeats: int = 3) -> dict:
 
     run()  # warm-up
     timing = timed(run, repeats)
-    return {"run_s": timing["median_s"], "run_spread_s": [timing["min_s"], timing["max_s"]], "us_per_step": 1e6 * timing["median_s"] / scenario.n_steps}
+    return {
+        "run_s": timing["median_s"],
+        "run_spread_s": [timing["min_s"], timing["max_s"]],
+        "us_per_step": 1e6 * timing["median_s"] / scenario.n_steps,
+    }
 
 
 def mujoco_rollout(robot, scenario, batch: int, segment: int = 250, threads: int | None = None) -> dict:
@@ -72,12 +76,15 @@ def mujoco_rollout(robot, scenario, batch: int, segment: int = 250, threads: int
     model, data = _mujoco_model(robot, scenario.dt)
     state = _initial_state(model, data, scenario)
     states = np.tile(state, (batch, 1))
-    states[:, 1 + 7 : 1 + 14] += np.random.default_rng(0).uniform(-0.02, 0.02, size=(batch, 7))  # qpos joints: time, then qpos
+    states[:, 1 + 7 : 1 + 14] += np.random.default_rng(0).uniform(
+        -0.02, 0.02, size=(batch, 7)
+    )  # qpos joints: time, then qpos
     threads = threads or _cores()
     datas = [mujoco.MjData(model) for _ in range(threads)]
     control = np.zeros((batch, segment, model.nu))
     output = np.zeros((batch, segment, states.shape[1]))
     with rollout.Rollout(nthread=threads) as runner:
+
         def run():
             current = states
             for _ in range(scenario.n_steps // segment):
@@ -88,7 +95,13 @@ def mujoco_rollout(robot, scenario, batch: int, segment: int = 250, threads: int
         run()
         seconds = time.perf_counter() - start
     steps = batch * (scenario.n_steps // segment) * segment
-    return {"batch": batch, "threads": threads, "run_s": seconds, "scenario_steps_per_s": steps / seconds, "finite": bool(np.all(np.isfinite(output)))}
+    return {
+        "batch": batch,
+        "threads": threads,
+        "run_s": seconds,
+        "scenario_steps_per_s": steps / seconds,
+        "finite": bool(np.all(np.isfinite(output))),
+    }
 
 
 def pinocchio_closed_loop(robot, scenario, gains, controller: str = "admittance") -> dict:
@@ -100,4 +113,9 @@ def pinocchio_closed_loop(robot, scenario, gains, controller: str = "admittance"
     start = time.perf_counter()
     pose, peak = loop.run()
     seconds = time.perf_counter() - start
-    return {"run_s": seconds, "us_per_step": 1e6 * seconds / scenario.n_steps, "final_pose": pose.tolist(), "peak_abs_torque_Nm": peak.tolist()}
+    return {
+        "run_s": seconds,
+        "us_per_step": 1e6 * seconds / scenario.n_steps,
+        "final_pose": pose.tolist(),
+        "peak_abs_torque_Nm": peak.tolist(),
+    }

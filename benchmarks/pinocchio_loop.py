@@ -22,8 +22,8 @@ import time
 import numpy as np
 import pinocchio as pin
 
-from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
 from spacegrasp_jax.compilation import configure
+from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
 
 
 def build_model(robot: Robot) -> tuple[pin.Model, int]:
@@ -33,10 +33,17 @@ def build_model(robot: Robot) -> tuple[pin.Model, int]:
     model = pin.Model()
     model.gravity = pin.Motion.Zero()
     base = model.addJoint(0, pin.JointModelFreeFlyer(), pin.SE3.Identity(), "satellite")
-    model.appendBodyToJoint(base, pin.Inertia(float(robot.satellite_mass), np.zeros(3), np.asarray(robot.satellite_inertia, dtype=float)), pin.SE3.Identity())
+    model.appendBodyToJoint(
+        base,
+        pin.Inertia(float(robot.satellite_mass), np.zeros(3), np.asarray(robot.satellite_inertia, dtype=float)),
+        pin.SE3.Identity(),
+    )
     parent, placement = base, pin.SE3(np.eye(3), np.asarray(robot.mount_position, dtype=float))
     for i in range(N_JOINTS):
-        offset, lam, length, alpha = (float(np.asarray(getattr(robot, name))[i]) for name in ("joint_offset", "dh_lambda", "dh_length", "dh_alpha"))
+        offset, lam, length, alpha = (
+            float(np.asarray(getattr(robot, name))[i])
+            for name in ("joint_offset", "dh_lambda", "dh_length", "dh_alpha")
+        )
         joint = model.addJoint(parent, pin.JointModelRZ(), placement, f"joint{i + 1}")
         # Frame i seen from the joint frame: Rz(offset) Tz(lambda) Tx(L) Rx(alpha).
         frame_i = (
@@ -47,21 +54,32 @@ def build_model(robot: Robot) -> tuple[pin.Model, int]:
         )
         model.appendBodyToJoint(joint, pin.Inertia(mass[i], com[i], inertia[i]), frame_i)
         parent, placement = joint, frame_i
-    ee = model.addFrame(pin.Frame("ee", parent, placement * pin.SE3(np.eye(3), np.asarray(robot.ee_offset, dtype=float)), pin.FrameType.OP_FRAME))
+    ee = model.addFrame(
+        pin.Frame(
+            "ee",
+            parent,
+            placement * pin.SE3(np.eye(3), np.asarray(robot.ee_offset, dtype=float)),
+            pin.FrameType.OP_FRAME,
+        )
+    )
     return model, ee
 
 
 def _rotation(quat_wxyz: np.ndarray) -> np.ndarray:
     w, x, y, z = quat_wxyz
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _euler_zyx(R: np.ndarray) -> np.ndarray:
-    return np.array([np.arctan2(R[2, 1], R[2, 2]), -np.arcsin(np.clip(R[2, 0], -1.0, 1.0)), np.arctan2(R[1, 0], R[0, 0])])
+    return np.array(
+        [np.arctan2(R[2, 1], R[2, 2]), -np.arcsin(np.clip(R[2, 0], -1.0, 1.0)), np.arctan2(R[1, 0], R[0, 0])]
+    )
 
 
 def _euler_rates_to_body(angles: np.ndarray) -> np.ndarray:
@@ -73,11 +91,13 @@ def _euler_rates_to_body_rate(angles: np.ndarray, angle_rates: np.ndarray) -> np
     """Time derivative of ``_euler_rates_to_body(angles)`` along ``angle_rates``."""
     cr, sr, cp, sp = np.cos(angles[0]), np.sin(angles[0]), np.cos(angles[1]), np.sin(angles[1])
     dr, dp = angle_rates[0], angle_rates[1]
-    return np.array([
-        [0.0, 0.0, -cp * dp],
-        [0.0, -sr * dr, cr * cp * dr - sr * sp * dp],
-        [0.0, -cr * dr, -sr * cp * dr - cr * sp * dp],
-    ])
+    return np.array(
+        [
+            [0.0, 0.0, -cp * dp],
+            [0.0, -sr * dr, cr * cp * dr - sr * sp * dp],
+            [0.0, -cr * dr, -sr * cp * dr - cr * sp * dp],
+        ]
+    )
 
 
 def _euler_to_rotation(angles: np.ndarray) -> np.ndarray:
@@ -92,12 +112,19 @@ class PinocchioClosedLoop:
         self.model, self.ee = build_model(robot)
         self.data = self.model.createData()
         self.scenario, self.controller = scenario, controller
-        self.gains = {name: np.asarray(getattr(gains, name), dtype=float) for name in ("Md", "Bd", "Kd", "K_lin", "K_eul", "kp", "ki", "kd")}
+        self.gains = {
+            name: np.asarray(getattr(gains, name), dtype=float)
+            for name in ("Md", "Bd", "Kd", "K_lin", "K_eul", "kp", "ki", "kd")
+        }
         self.p_lar, self.R_lar = np.asarray(scenario.p_lar, dtype=float), np.asarray(scenario.R_lar, dtype=float)
         self.centre, self.radius = np.asarray(scenario.sphere_centre, dtype=float), float(scenario.sphere_radius)
         self.stiffness = float(scenario.contact_stiffness)
         trajectory = scenario.trajectory
-        self.start, self.end, self.move = np.asarray(trajectory.start_pose, dtype=float), np.asarray(trajectory.end_pose, dtype=float), float(trajectory.duration)
+        self.start, self.end, self.move = (
+            np.asarray(trajectory.start_pose, dtype=float),
+            np.asarray(trajectory.end_pose, dtype=float),
+            float(trajectory.duration),
+        )
         if scenario.contact_law != "exact":
             raise ValueError("the Pinocchio peer implements the exact contact law only")
 
@@ -177,7 +204,9 @@ class PinocchioClosedLoop:
             twist_ref_rate = twist_rate_des + (wrench + g["Bd"] * (twist_des - twist) + g["Kd"] * error) / g["Md"]
             V_ref = V_ref + self.scenario.dt * twist_ref_rate
         else:
-            command = np.concatenate([R_lar_ee.T @ (g["K_lin"] * error[:3]), _euler_rates_to_body(pose[3:]) @ (g["K_eul"] * error[3:])])
+            command = np.concatenate(
+                [R_lar_ee.T @ (g["K_lin"] * error[:3]), _euler_rates_to_body(pose[3:]) @ (g["K_eul"] * error[3:])]
+            )
             qd_des = J_dyn_ee.T @ np.linalg.solve(J_dyn_ee @ J_dyn_ee.T, command)
         rate_error = qd_des - qd
         integral = integral + rate_error * self.scenario.dt
@@ -187,7 +216,10 @@ class PinocchioClosedLoop:
 
     def run(self):
         initial = self.scenario.initial
-        state = tuple(np.asarray(x, dtype=float) for x in (initial.p_base, initial.quat_base, initial.q, initial.V_base, initial.qd))
+        state = tuple(
+            np.asarray(x, dtype=float)
+            for x in (initial.p_base, initial.quat_base, initial.q, initial.V_base, initial.qd)
+        )
         V_ref, integral, previous_error = np.zeros(6), np.zeros(7), np.zeros(7)
         dt, peak, pose = self.scenario.dt, np.zeros(7), None
         for k in range(self.scenario.n_steps):
@@ -220,9 +252,15 @@ def main(argv=None) -> int:
     pose, peak = loop.run()
     seconds = time.perf_counter() - start
     ours = experiment.run(robot, scenario, paper_gains(), args.controller)
-    print(f"Pinocchio loop: {seconds:.2f} s for {scenario.n_steps} steps ({1e6 * seconds / scenario.n_steps:.0f} us/step)")
-    print(f"final EE pose, last logged step: max |difference| to spacegrasp_jax {np.abs(pose - ours.log.pose_ee[-1]).max():.3e}")
-    print(f"peak |u| per joint: max relative difference {np.max(np.abs(peak / np.asarray(ours.summary['max_abs_torque_Nm']) - 1)):.3e}")
+    print(
+        f"Pinocchio loop: {seconds:.2f} s for {scenario.n_steps} steps ({1e6 * seconds / scenario.n_steps:.0f} us/step)"
+    )
+    print(
+        f"final EE pose, last logged step: max |difference| to spacegrasp_jax {np.abs(pose - ours.log.pose_ee[-1]).max():.3e}"
+    )
+    print(
+        f"peak |u| per joint: max relative difference {np.max(np.abs(peak / np.asarray(ours.summary['max_abs_torque_Nm']) - 1)):.3e}"
+    )
     return 0
 
 

@@ -20,12 +20,12 @@ from pathlib import Path
 import jax
 
 import spacegrasp_jax as sg
-from spacegrasp_jax.benchmarks.dynamics import machine, timed
 from spacegrasp_jax import compilation
+from spacegrasp_jax.benchmarks.dynamics import machine, timed
+from spacegrasp_jax.compilation import configure
 from spacegrasp_jax.control import CONTROLLERS, paper_gains
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
-from spacegrasp_jax.compilation import configure
 
 
 def bench_controller(robot, scenario, gains, controller: str, repeats: int) -> dict:
@@ -63,12 +63,18 @@ def main(argv: list[str] | None = None) -> int:
         result[controller] = bench_controller(robot, scenario, gains, controller, args.repeats)
 
     info = result["machine"]
-    print(f"machine: {info['cpu']}, {info['cores']} cores (pinned to {affinity}), backend {info['backend']}, jax {info['jax']}")
-    print(f"{'controller':12} {'compile [s]':>12} {'run [s]':>10} {'spread [s]':>16} {'us/step':>9} {'sim s / wall s':>15}")
+    print(
+        f"machine: {info['cpu']}, {info['cores']} cores (pinned to {affinity}), backend {info['backend']}, jax {info['jax']}"
+    )
+    print(
+        f"{'controller':12} {'compile [s]':>12} {'run [s]':>10} {'spread [s]':>16} {'us/step':>9} {'sim s / wall s':>15}"
+    )
     for controller in CONTROLLERS:
         r = result[controller]
         spread = f"{r['run_spread_s'][0]:.3f}-{r['run_spread_s'][1]:.3f}"
-        print(f"{controller:12} {r['compile_s']:>12.2f} {r['run_s']:>10.3f} {spread:>16} {r['us_per_step']:>9.1f} {r['simulated_s_per_wall_s']:>15.1f}")
+        print(
+            f"{controller:12} {r['compile_s']:>12.2f} {r['run_s']:>10.3f} {spread:>16} {r['us_per_step']:>9.1f} {r['simulated_s_per_wall_s']:>15.1f}"
+        )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "rollout.json").write_text(json.dumps(result, indent=2))

@@ -30,22 +30,44 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+
 from spacegrasp_jax.compilation import configure
 from spacegrasp_jax.control import CONTROLLERS
 
 #: Keys of benchmark.json (seconds unless the name says otherwise).
 KEYS = (
-    "machine", "quick", "duration_s", "rollout_s", "compile_s", "us_per_step", "batch_steps_per_s", "batch_peak_rss_mb",
-    "sequential_steps_per_s", "gradient_over_forward", "gradient_peak_mb", "gradient_xla_temp_mb", "flops_per_step",
-    "achieved_gflops", "peak_gflops_estimate", "pinocchio_loop_rollout_s", "pinocchio_loop_max_pose_difference",
-    "mujoco_mj_step_17s_s", "mujoco_us_per_step", "mujoco_rollout_steps_per_s", "mujoco_rollout_batches",
+    "machine",
+    "quick",
+    "duration_s",
+    "rollout_s",
+    "compile_s",
+    "us_per_step",
+    "batch_steps_per_s",
+    "batch_peak_rss_mb",
+    "sequential_steps_per_s",
+    "gradient_over_forward",
+    "gradient_peak_mb",
+    "gradient_xla_temp_mb",
+    "flops_per_step",
+    "achieved_gflops",
+    "peak_gflops_estimate",
+    "pinocchio_loop_rollout_s",
+    "pinocchio_loop_max_pose_difference",
+    "mujoco_mj_step_17s_s",
+    "mujoco_us_per_step",
+    "mujoco_rollout_steps_per_s",
+    "mujoco_rollout_batches",
 )
 
 
 def _child(module: str, out: Path, *options: str) -> dict:
     """Run ``python -m <module> --out <out> <options>`` and read the JSON it writes."""
     subprocess.run([sys.executable, "-m", module, "--out", str(out), *options], check=True, stdout=subprocess.DEVNULL)
-    name = {"spacegrasp_jax.benchmarks.rollout": "rollout.json", "spacegrasp_jax.benchmarks.montecarlo": "montecarlo.json", "spacegrasp_jax.benchmarks.gradient": "gradient.json"}[module]
+    name = {
+        "spacegrasp_jax.benchmarks.rollout": "rollout.json",
+        "spacegrasp_jax.benchmarks.montecarlo": "montecarlo.json",
+        "spacegrasp_jax.benchmarks.gradient": "gradient.json",
+    }[module]
     return json.loads((out / name).read_text())
 
 
@@ -101,9 +123,9 @@ def run(out: Path, quick: bool, repeats: int) -> dict:
 def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: list[int]) -> dict:
     """Every measurement; the parts' own JSON files go to ``parts`` (removed afterwards)."""
     import spacegrasp_jax as sg
+    from spacegrasp_jax import experiment
     from spacegrasp_jax.benchmarks import peers
     from spacegrasp_jax.benchmarks.dynamics import machine
-    from spacegrasp_jax import experiment
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.scenario import paper_scenario
 
@@ -116,8 +138,18 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
     report["us_per_step"] = {c: rollout[c]["us_per_step"] for c in CONTROLLERS}
 
     print(f"2/5 batches {batches}...", flush=True)
-    montecarlo = _child("spacegrasp_jax.benchmarks.montecarlo", parts, "--duration", str(duration), "--batches", ",".join(map(str, batches)),
-                        "--sequential", "2" if quick else "8", "--repeats", str(repeats))
+    montecarlo = _child(
+        "spacegrasp_jax.benchmarks.montecarlo",
+        parts,
+        "--duration",
+        str(duration),
+        "--batches",
+        ",".join(map(str, batches)),
+        "--sequential",
+        "2" if quick else "8",
+        "--repeats",
+        str(repeats),
+    )
     batch_results = [r for r in montecarlo["results"] if r["kind"] == "batch"]
     report["batch_steps_per_s"] = {str(r["size"]): r["scenario_steps_per_s"] for r in batch_results}
     report["batch_peak_rss_mb"] = {str(r["size"]): r["peak_rss_mb"] for r in batch_results}
@@ -125,11 +157,29 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
 
     print("3/5 gradients...", flush=True)
     gradient_duration = 0.2 if quick else 17.0
-    gradient = _child("spacegrasp_jax.benchmarks.gradient", parts, "--duration", str(gradient_duration), "--repeats", str(repeats),
-                      "--modes", "forward,reverse_checkpointed,forward_mode")["results"]
-    report["gradient_over_forward"] = {"reverse": gradient["reverse_checkpointed"]["over_forward"], "forward": gradient["forward_mode"]["over_forward"]}
-    report["gradient_peak_mb"] = {"reverse": gradient["reverse_checkpointed"]["peak_rss_mb"], "forward": gradient["forward_mode"]["peak_rss_mb"], "rollout": gradient["forward"]["peak_rss_mb"]}
-    report["gradient_xla_temp_mb"] = {"reverse": gradient["reverse_checkpointed"]["xla_temp_mb"], "forward": gradient["forward_mode"]["xla_temp_mb"]}
+    gradient = _child(
+        "spacegrasp_jax.benchmarks.gradient",
+        parts,
+        "--duration",
+        str(gradient_duration),
+        "--repeats",
+        str(repeats),
+        "--modes",
+        "forward,reverse_checkpointed,forward_mode",
+    )["results"]
+    report["gradient_over_forward"] = {
+        "reverse": gradient["reverse_checkpointed"]["over_forward"],
+        "forward": gradient["forward_mode"]["over_forward"],
+    }
+    report["gradient_peak_mb"] = {
+        "reverse": gradient["reverse_checkpointed"]["peak_rss_mb"],
+        "forward": gradient["forward_mode"]["peak_rss_mb"],
+        "rollout": gradient["forward"]["peak_rss_mb"],
+    }
+    report["gradient_xla_temp_mb"] = {
+        "reverse": gradient["reverse_checkpointed"]["xla_temp_mb"],
+        "forward": gradient["forward_mode"]["xla_temp_mb"],
+    }
 
     print("4/5 cost analysis...", flush=True)
     report["flops_per_step"] = flops_per_step()
@@ -151,7 +201,9 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
     report["pinocchio_loop_rollout_s"] = pinocchio["run_s"]
     report["pinocchio_loop_max_pose_difference"] = difference
     if not difference < 1e-6:
-        raise RuntimeError(f"the Pinocchio loop ends {difference:.3g} from our rollout: the peers do not simulate the same thing")
+        raise RuntimeError(
+            f"the Pinocchio loop ends {difference:.3g} from our rollout: the peers do not simulate the same thing"
+        )
     return report
 
 
@@ -164,28 +216,68 @@ def table(report: dict) -> str:
         rows.append(f"{what:<52} {ours:>14} {peer:>14} {ratio:>9} {target:>12}")
 
     row("measure", "spacegrasp-jax", "peer", "ratio", "target")
-    row(f"closed-loop rollout {d:g} s, admittance law [s]", f"{admittance:.3f}", f"{report['pinocchio_loop_rollout_s']:.3f}", f"{report['pinocchio_loop_rollout_s'] / admittance:.1f}x", ">= 10x")
+    row(
+        f"closed-loop rollout {d:g} s, admittance law [s]",
+        f"{admittance:.3f}",
+        f"{report['pinocchio_loop_rollout_s']:.3f}",
+        f"{report['pinocchio_loop_rollout_s'] / admittance:.1f}x",
+        ">= 10x",
+    )
     row("  peer: Python loop over Pinocchio, same closed loop", "", "", "", "")
-    row(f"closed-loop rollout {d:g} s vs MuJoCo mj_step [s]", f"{admittance:.3f}", f"{report['mujoco_mj_step_17s_s'] * d / 17.0:.3f}", f"{report['mujoco_mj_step_17s_s'] * d / 17.0 / admittance:.2f}x", ">= 1x")
+    row(
+        f"closed-loop rollout {d:g} s vs MuJoCo mj_step [s]",
+        f"{admittance:.3f}",
+        f"{report['mujoco_mj_step_17s_s'] * d / 17.0:.3f}",
+        f"{report['mujoco_mj_step_17s_s'] * d / 17.0 / admittance:.2f}x",
+        ">= 1x",
+    )
     row("  peer: open-loop mj_step, one thread", "", "", "", "")
     for batch, ours in report["batch_steps_per_s"].items():
         peer = report["mujoco_rollout_batches"][batch]
-        row(f"batch {batch}, scenario-steps/s", f"{ours:.3g}", f"{peer:.3g}", f"{ours / peer:.2f}x", ">= 1x" if batch == "1024" else "")
+        row(
+            f"batch {batch}, scenario-steps/s",
+            f"{ours:.3g}",
+            f"{peer:.3g}",
+            f"{ours / peer:.2f}x",
+            ">= 1x" if batch == "1024" else "",
+        )
     row("  peer: mujoco.rollout open loop, a thread per core", "", "", "", "")
-    row("gradient / forward rollout, reverse (checkpointed)", f"{report['gradient_over_forward']['reverse']:.2f}", "", "", "<= 4")
+    row(
+        "gradient / forward rollout, reverse (checkpointed)",
+        f"{report['gradient_over_forward']['reverse']:.2f}",
+        "",
+        "",
+        "<= 4",
+    )
     row("gradient / forward rollout, forward mode", f"{report['gradient_over_forward']['forward']:.2f}", "", "", "<= 4")
     row("gradient peak RSS, reverse [MB]", f"{report['gradient_peak_mb']['reverse']:.0f}", "", "", "<= 1000")
-    row("compile, admittance / Cartesian rollout [s]", f"{report['compile_s']['admittance']:.1f} / {report['compile_s']['cartesian']:.1f}", "", "", "< 30")
+    row(
+        "compile, admittance / Cartesian rollout [s]",
+        f"{report['compile_s']['admittance']:.1f} / {report['compile_s']['cartesian']:.1f}",
+        "",
+        "",
+        "< 30",
+    )
     peak = report["peak_gflops_estimate"]
     row("FLOPs per closed-loop step (XLA cost analysis)", f"{report['flops_per_step']:.3g}", "", "", "")
-    row("achieved GFLOP/s, single rollout", f"{report['achieved_gflops']:.2f}", f"{peak:.0f}" if peak else "n/a", f"{100 * report['achieved_gflops'] / peak:.1f}%" if peak else "", "")
+    row(
+        "achieved GFLOP/s, single rollout",
+        f"{report['achieved_gflops']:.2f}",
+        f"{peak:.0f}" if peak else "n/a",
+        f"{100 * report['achieved_gflops'] / peak:.1f}%" if peak else "",
+        "",
+    )
     return "\n".join(rows)
 
 
 def main(argv: list[str] | None = None) -> int:
     configure()  # this process is the benchmark's: float64, loops compiled whole
     parser = argparse.ArgumentParser(prog="spacegrasp benchmark", description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="toy sizes: exercises every part in about two minutes; numbers mean nothing")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="toy sizes: exercises every part in about two minutes; numbers mean nothing",
+    )
     parser.add_argument("--out", default="results/benchmarks", help="folder for benchmark.json")
     parser.add_argument("--repeats", type=int, default=3, help="repeats per timing (median reported)")
     args = parser.parse_args(argv)
@@ -195,7 +287,10 @@ def main(argv: list[str] | None = None) -> int:
     report = run(out, args.quick, 1 if args.quick else args.repeats)
     info = report["machine"]
     loops = "loops compiled whole" if info["loops_compiled_whole"] else "loops kernel by kernel"
-    print(f"\nmachine: {info['cpu']}, {info['cores']} cores, {info['backend']} backend, jax {info['jax']}, {loops}" + (" (--quick: sizes too small to mean anything)" if args.quick else ""))
+    print(
+        f"\nmachine: {info['cpu']}, {info['cores']} cores, {info['backend']} backend, jax {info['jax']}, {loops}"
+        + (" (--quick: sizes too small to mean anything)" if args.quick else "")
+    )
     print(table(report))
     (out / "benchmark.json").write_text(json.dumps(report, indent=2))
     print(f"wrote {out / 'benchmark.json'}")

@@ -18,7 +18,7 @@ import math
 import os
 import sys
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import numpy as np
@@ -105,7 +105,9 @@ def compile_chunk(
     chunk = batch_size(chunk_example)
     devices = jax.device_count()
     if chunk % devices:
-        raise BatchingError(f"chunk: {chunk} is not a multiple of the {devices} devices; use a multiple such as {devices * max(1, round(chunk / devices))}")
+        raise BatchingError(
+            f"chunk: {chunk} is not a multiple of the {devices} devices; use a multiple such as {devices * max(1, round(chunk / devices))}"
+        )
     share = chunk // devices
     sub_batch = device_batch if device_batch and share > device_batch and share % device_batch == 0 else None
     mesh = batch_mesh()
@@ -121,8 +123,12 @@ def compile_chunk(
 
     def lower():
         specs = (PartitionSpec(),) * len(replicated) + (PartitionSpec("batch"),)
-        sharded = jax.shard_map(on_one_device, mesh=mesh, in_specs=specs, out_specs=PartitionSpec("batch"), check_vma=False)
-        placeholder = jax.tree.map(lambda x: jax.ShapeDtypeStruct(np.shape(x), np.asarray(x).dtype, sharding=batched_sharding), chunk_example)
+        sharded = jax.shard_map(
+            on_one_device, mesh=mesh, in_specs=specs, out_specs=PartitionSpec("batch"), check_vma=False
+        )
+        placeholder = jax.tree.map(
+            lambda x: jax.ShapeDtypeStruct(np.shape(x), np.asarray(x).dtype, sharding=batched_sharding), chunk_example
+        )
         return compilation.jit(sharded).lower(*replicated, placeholder)
 
     signature = compilation.argument_signature((replicated, take(chunk_example, slice(0, 0))))
@@ -133,7 +139,10 @@ def run_chunk(executable: Callable, replicated: tuple, block) -> object:
     """Run one compiled chunk on ``block`` (NumPy, leading axis the chunk) and return its
     outputs on every host as NumPy arrays (gathered across processes)."""
     batched_sharding = NamedSharding(batch_mesh(), PartitionSpec("batch"))
-    sharded = jax.tree.map(lambda x: jax.make_array_from_callback(np.shape(x), batched_sharding, lambda where, x=x: np.asarray(x)[where]), block)
+    sharded = jax.tree.map(
+        lambda x: jax.make_array_from_callback(np.shape(x), batched_sharding, lambda where, x=x: np.asarray(x)[where]),
+        block,
+    )
     outputs = executable(*replicated, sharded)
     return jax.tree.map(np.asarray, multihost_utils.process_allgather(outputs, tiled=True))
 
@@ -158,7 +167,14 @@ def map_in_chunks(
         raise BatchingError(f"chunk: expected a positive integer, got {chunk!r}")
     n = batch_size(batched)
     chunk = chunk_size(chunk, n)
-    executable, _ = compile_chunk(name, function, replicated, take(batched, np.minimum(np.arange(chunk), n - 1)), device_batch=device_batch, key=key)
+    executable, _ = compile_chunk(
+        name,
+        function,
+        replicated,
+        take(batched, np.minimum(np.arange(chunk), n - 1)),
+        device_batch=device_batch,
+        key=key,
+    )
     pieces = []
     for first in range(0, n, chunk):
         start = time.perf_counter()
@@ -167,7 +183,12 @@ def map_in_chunks(
         if progress is not None:
             done = min(first + chunk, n)
             end = "\n" if done == n else ""
-            print(progress_bar(done, n, f"{label} {done}/{n} ({time.perf_counter() - start:.1f} s for the last chunk)"), end=end, file=progress, flush=True)
+            print(
+                progress_bar(done, n, f"{label} {done}/{n} ({time.perf_counter() - start:.1f} s for the last chunk)"),
+                end=end,
+                file=progress,
+                flush=True,
+            )
     return jax.tree.map(lambda *parts: np.concatenate(parts), *pieces)
 
 

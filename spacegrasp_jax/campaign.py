@@ -27,8 +27,8 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import jax
 import numpy as np
@@ -96,12 +96,16 @@ class CampaignConfig:
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0.0):
                 raise CampaignError(f"{name}: must be positive and finite, got {value!r}")
         if self.torque_limit_Nm is not None and not (
-            isinstance(self.torque_limit_Nm, (int, float)) and math.isfinite(self.torque_limit_Nm) and self.torque_limit_Nm > 0.0
+            isinstance(self.torque_limit_Nm, (int, float))
+            and math.isfinite(self.torque_limit_Nm)
+            and self.torque_limit_Nm > 0.0
         ):
             raise CampaignError(f"torque_limit_Nm: must be positive and finite, or None, got {self.torque_limit_Nm!r}")
         if self.timeseries_every is not None and self.timeseries_every < 1:
             raise CampaignError(f"timeseries_every: must be at least 1, got {self.timeseries_every}")
-        if self.device_batch is not None and (isinstance(self.device_batch, bool) or not isinstance(self.device_batch, int) or self.device_batch < 1):
+        if self.device_batch is not None and (
+            isinstance(self.device_batch, bool) or not isinstance(self.device_batch, int) or self.device_batch < 1
+        ):
             raise CampaignError(f"device_batch: must be a positive integer or None, got {self.device_batch!r}")
         if not (math.isfinite(self.pinv_damping) and self.pinv_damping >= 0.0):
             raise CampaignError(f"pinv_damping: must be non-negative, got {self.pinv_damping}")
@@ -156,12 +160,23 @@ def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
     (:func:`~spacegrasp_jax.batching.compile_chunk`) and its compile time (s; that of the
     original compile)."""
     function = functools.partial(
-        evaluate_samples, controller=variant.controller, ranges=config.ranges, pinv_damping=config.pinv_damping, every=config.timeseries_every
+        evaluate_samples,
+        controller=variant.controller,
+        ranges=config.ranges,
+        pinv_damping=config.pinv_damping,
+        every=config.timeseries_every,
     )
     key = (variant.controller, config.ranges, config.pinv_damping, config.timeseries_every)
     replicated = (robot, scenario, variant.gains, np.uint32(config.seed))
     try:
-        return batching.compile_chunk("campaign", function, replicated, np.zeros(config.chunk, np.uint32), device_batch=config.device_batch, key=key)
+        return batching.compile_chunk(
+            "campaign",
+            function,
+            replicated,
+            np.zeros(config.chunk, np.uint32),
+            device_batch=config.device_batch,
+            key=key,
+        )
     except batching.BatchingError as error:
         raise CampaignError(str(error)) from None
 
@@ -193,7 +208,9 @@ def _chunk_path(out: Path, variant: Variant, first: int) -> Path:
 def _record(config: CampaignConfig, variants, robot_source: str, scenario: Scenario) -> dict:
     return {
         "config": config.to_dict(),
-        "variants": [{"controller": v.controller, "gains_label": v.label, "gains": v.gains.to_dict()} for v in variants],
+        "variants": [
+            {"controller": v.controller, "gains_label": v.label, "gains": v.gains.to_dict()} for v in variants
+        ],
         "robot": robot_source,
         "scenario": scenario_to_dict(scenario),
     }
@@ -204,7 +221,9 @@ def _check_resume(out: Path, record: dict, resume: bool) -> None:
     if not path.exists():
         return
     if not resume:
-        raise CampaignError(f"{out} already holds a campaign: pass --resume (resume=True) to continue it, or choose another output folder")
+        raise CampaignError(
+            f"{out} already holds a campaign: pass --resume (resume=True) to continue it, or choose another output folder"
+        )
     previous = json.loads(path.read_text())
     for key in ("config", "variants", "robot", "scenario"):
         if json.dumps(previous.get(key), sort_keys=True) != json.dumps(record[key], sort_keys=True):
@@ -280,9 +299,15 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
 # ---- the campaign -----------------------------------------------------------------------
 
 
-def _progress_line(done_chunks: int, total_chunks: int, variant: Variant, samples_done: int, n: int, rate: float | None, diverged: int) -> str:
+def _progress_line(
+    done_chunks: int, total_chunks: int, variant: Variant, samples_done: int, n: int, rate: float | None, diverged: int
+) -> str:
     speed = f"{rate:.2f} rollouts/s" if rate else "compiling or resuming"
-    return runfiles.progress_bar(done_chunks, total_chunks, f"chunk {done_chunks}/{total_chunks} | {variant.key}: {samples_done}/{n} samples | {speed} | diverged {diverged}")
+    return runfiles.progress_bar(
+        done_chunks,
+        total_chunks,
+        f"chunk {done_chunks}/{total_chunks} | {variant.key}: {samples_done}/{n} samples | {speed} | diverged {diverged}",
+    )
 
 
 def run_campaign(
@@ -321,7 +346,9 @@ def run_campaign(
         raise CampaignError(f"variants must differ in controller or gains label, got {keys}")
     devices = jax.device_count()
     if config.chunk % devices:
-        raise CampaignError(f"chunk: {config.chunk} is not a multiple of the {devices} devices; use a multiple such as {devices * max(1, round(config.chunk / devices))}")
+        raise CampaignError(
+            f"chunk: {config.chunk} is not a multiple of the {devices} devices; use a multiple such as {devices * max(1, round(config.chunk / devices))}"
+        )
     if config.timeseries_every is not None and scenario.n_steps % config.timeseries_every:
         raise CampaignError(f"timeseries_every: {config.timeseries_every} does not divide the {scenario.n_steps} steps")
     writer = out is not None and jax.process_index() == 0
@@ -361,7 +388,20 @@ def run_campaign(
                 on_chunk(variant, first)
             if progress is not None:
                 rate = computed_samples / run_s if run_s > 0 else None
-                print(_progress_line(done_chunks, total_chunks, variant, min(first + config.chunk, config.n), config.n, rate, diverged), end="", file=progress, flush=True)
+                print(
+                    _progress_line(
+                        done_chunks,
+                        total_chunks,
+                        variant,
+                        min(first + config.chunk, config.n),
+                        config.n,
+                        rate,
+                        diverged,
+                    ),
+                    end="",
+                    file=progress,
+                    flush=True,
+                )
             if stop is not None and stop.requested:
                 status = "interrupted"
                 break
@@ -387,13 +427,26 @@ def run_campaign(
 
     perturbations, all_metrics, timeseries, summaries = {}, {}, {}, {}
     for variant in variants:
-        merged = {name: np.concatenate([chunks[variant.key][first][name] for first in starts]) for name in chunks[variant.key][starts[0]]}
-        perturbations = {name.removeprefix("perturbation."): value for name, value in merged.items() if name.startswith("perturbation.")}
+        merged = {
+            name: np.concatenate([chunks[variant.key][first][name] for first in starts])
+            for name in chunks[variant.key][starts[0]]
+        }
+        perturbations = {
+            name.removeprefix("perturbation."): value
+            for name, value in merged.items()
+            if name.startswith("perturbation.")
+        }
         sample_metrics = {name: merged[name] for name in METRICS}
-        sample_metrics["success"] = success(sample_metrics, config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm)
+        sample_metrics["success"] = success(
+            sample_metrics, config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm
+        )
         all_metrics[variant.key] = sample_metrics
         if config.timeseries_every is not None:
-            fields = {name.removeprefix("timeseries."): value for name, value in merged.items() if name.startswith("timeseries.")}
+            fields = {
+                name.removeprefix("timeseries."): value
+                for name, value in merged.items()
+                if name.startswith("timeseries.")
+            }
             timeseries[variant.key] = Log(**fields)
         summaries[variant.key] = variant_summary(sample_metrics, config)
     summary = {
@@ -403,7 +456,11 @@ def run_campaign(
         "duration_s": scenario.duration,
         "dt_s": scenario.dt,
         "contact_law": scenario.contact_law,
-        "tolerances": {"final_position_m": config.position_tolerance_m, "final_orientation_rad": config.orientation_tolerance_rad, "torque_limit_Nm": config.torque_limit_Nm},
+        "tolerances": {
+            "final_position_m": config.position_tolerance_m,
+            "final_orientation_rad": config.orientation_tolerance_rad,
+            "torque_limit_Nm": config.torque_limit_Nm,
+        },
         "ranges": config.ranges.to_dict(),
         "throughput": throughput,
         "variants": summaries,
@@ -428,8 +485,10 @@ def write_results(out: Path, result: CampaignResult) -> None:
 
 def figure_title(summary: dict) -> str:
     """The title of a campaign's figures, from its summary."""
-    return (f"Monte-Carlo: {summary['n']} perturbed captures, seed {summary['seed']}, "
-            f"{summary['duration_s']:g} s, {summary['contact_law']} contact law")
+    return (
+        f"Monte-Carlo: {summary['n']} perturbed captures, seed {summary['seed']}, "
+        f"{summary['duration_s']:g} s, {summary['contact_law']} contact law"
+    )
 
 
 def load_samples(path: Path) -> tuple[dict[str, np.ndarray], dict[str, dict[str, np.ndarray]]]:

@@ -68,7 +68,9 @@ def _print_table(results: dict) -> None:
     for joint in range(7):
         row = f"{joint + 1:>5}"
         for c in controllers:
-            row += f"  {results[c].summary['max_abs_torque_Nm'][joint]:>16.3f}  {paper.MAX_ABS_TORQUE_NM[c][joint]:>7.3f}"
+            row += (
+                f"  {results[c].summary['max_abs_torque_Nm'][joint]:>16.3f}  {paper.MAX_ABS_TORQUE_NM[c][joint]:>7.3f}"
+            )
         print(row)
     print()
     for c in controllers:
@@ -100,7 +102,9 @@ def _run_controllers(args, controllers) -> int:
     robot, scenario, gains = _load_inputs(args)
     results = {}
     for controller in controllers:
-        print(f"running the {controller} controller over {scenario.duration:g} s (dt = {scenario.dt:g} s)...", flush=True)
+        print(
+            f"running the {controller} controller over {scenario.duration:g} s (dt = {scenario.dt:g} s)...", flush=True
+        )
         results[controller] = experiment.run(robot, scenario, gains, controller, pinv_damping=args.pinv_damping)
     _print_table(results)
     config = experiment.run_config(args.robot or "paper_robot()", scenario, gains, controllers, args.pinv_damping)
@@ -125,7 +129,7 @@ class UsageError(ValueError):
 def _tune(args: argparse.Namespace) -> int:
     try:
         if args.resume:
-            return tune(Path(args.out), resume=True)
+            return _tune_finished(Path(args.out), tune(Path(args.out), resume=True))
         config = _tune_config(args)
     except (TuneSetupError, ValueError) as error:
         raise UsageError(str(error)) from None
@@ -138,9 +142,28 @@ def _tune(args: argparse.Namespace) -> int:
     if args.gains:
         load_gains(args.gains, args.controller)
     try:
-        return tune(Path(args.out), config=config, gains_file=args.gains, scenario_file=args.scenario, robot_file=args.robot, holdout=args.holdout)
+        result = tune(
+            Path(args.out),
+            config=config,
+            gains_file=args.gains,
+            scenario_file=args.scenario,
+            robot_file=args.robot,
+            holdout=args.holdout,
+        )
     except TuneSetupError as error:
         raise UsageError(str(error)) from None
+    return _tune_finished(Path(args.out), result)
+
+
+def _tune_finished(out: Path, result) -> int:
+    """The figures of a finished tuning run; the exit code (130: interrupted)."""
+    if result.status == "interrupted":
+        return 130
+    plots.save_tuning_figures(result.history, result.log_before, result.log_after, out, runfiles.write_atomically)
+    print(
+        f"wrote {out}/: gains.json, history.csv, summary.json, loss.png, peak_torques.png, ee_pose.png", file=sys.stderr
+    )
+    return 0
 
 
 def _tune_config(args: argparse.Namespace) -> TuneConfig:
@@ -214,7 +237,9 @@ def _montecarlo(args: argparse.Namespace) -> int:
             torque_limit_Nm=args.torque_limit if args.torque_limit > 0 else None,
             timeseries_every=args.timeseries_every,
             pinv_damping=args.pinv_damping,
-            device_batch=args.device_batch if args.device_batch is not None else (128 if jax.default_backend() == "cpu" else None),
+            device_batch=args.device_batch
+            if args.device_batch is not None
+            else (128 if jax.default_backend() == "cpu" else None),
         )
     except (PerturbationError, campaign.CampaignError) as error:
         raise UsageError(str(error)) from None
@@ -222,21 +247,42 @@ def _montecarlo(args: argparse.Namespace) -> int:
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
     out = Path(args.out)
     names = ", ".join(variant.key for variant in variants)
-    print(f"Monte-Carlo: {args.n} samples x {len(variants)} variant(s) ({names}), {scenario.duration:g} s each, "
-          f"chunks of {chunk} over {devices} device(s) in {jax.process_count()} process(es)", file=sys.stderr, flush=True)
+    print(
+        f"Monte-Carlo: {args.n} samples x {len(variants)} variant(s) ({names}), {scenario.duration:g} s each, "
+        f"chunks of {chunk} over {devices} device(s) in {jax.process_count()} process(es)",
+        file=sys.stderr,
+        flush=True,
+    )
     try:
         with runfiles.StopRequest("chunk") as stop:
-            result = campaign.run_campaign(robot, scenario, variants, config, out, resume=args.resume, robot_source=args.robot or "paper_robot()", stop=stop)
+            result = campaign.run_campaign(
+                robot,
+                scenario,
+                variants,
+                config,
+                out,
+                resume=args.resume,
+                robot_source=args.robot or "paper_robot()",
+                stop=stop,
+            )
     except campaign.CampaignError as error:
         raise UsageError(str(error)) from None
     if result.status == "interrupted":
-        print(f"interrupted; finished chunks are in {out}/chunks. Continue with: spacegrasp montecarlo {shlex.join(sys.argv[2:]) if sys.argv[1:2] == ['montecarlo'] else '...'} --resume", file=sys.stderr)
+        print(
+            f"interrupted; finished chunks are in {out}/chunks. Continue with: spacegrasp montecarlo {shlex.join(sys.argv[2:]) if sys.argv[1:2] == ['montecarlo'] else '...'} --resume",
+            file=sys.stderr,
+        )
         return 130
     _print_campaign(result)
     if jax.process_index() == 0:
         tolerance_mm = 1e3 * result.summary["tolerances"]["final_position_m"]
-        plots.save_campaign_figures(out, result.metrics, campaign.figure_title(result.summary), tolerance_mm, runfiles.write_atomically)
-        print(f"wrote {out}/: samples.npz, summary.json, histograms.png, torque_vs_error.png" + (", timeseries_*.npz" if config.timeseries_every else ""))
+        plots.save_campaign_figures(
+            out, result.metrics, campaign.figure_title(result.summary), tolerance_mm, runfiles.write_atomically
+        )
+        print(
+            f"wrote {out}/: samples.npz, summary.json, histograms.png, torque_vs_error.png"
+            + (", timeseries_*.npz" if config.timeseries_every else "")
+        )
     return 0
 
 
@@ -264,18 +310,24 @@ def _print_campaign(result: campaign.CampaignResult) -> None:
             return f"{scale * s['p50']:.3f}/{scale * s['p95']:.3f}" if s.get("count") else "-"
 
         contact = stats["max_contact_force_N"]
-        print(f"{key:24} {summary['success_rate']:>8.1%} {summary['diverged']:>8d} {summary['unstable']:>8d} {pair('final_position_error_m', 1e3):>23} "
-              f"{pair('largest_peak_torque_Nm'):>23} {contact['p95'] if contact.get('count') else float('nan'):>16.3f}")
+        print(
+            f"{key:24} {summary['success_rate']:>8.1%} {summary['diverged']:>8d} {summary['unstable']:>8d} {pair('final_position_error_m', 1e3):>23} "
+            f"{pair('largest_peak_torque_Nm'):>23} {contact['p95'] if contact.get('count') else float('nan'):>16.3f}"
+        )
     throughput = result.summary["throughput"]
     if throughput["rollouts_per_s"]:
-        print(f"throughput: {throughput['rollouts_per_s']:.2f} rollouts/s, {throughput['simulated_s_per_wall_s']:.1f} simulated s per wall s "
-              f"on {throughput['devices']} {throughput['platform']} device(s); compile {throughput['compile_s']:.1f} s")
+        print(
+            f"throughput: {throughput['rollouts_per_s']:.2f} rollouts/s, {throughput['simulated_s_per_wall_s']:.1f} simulated s per wall s "
+            f"on {throughput['devices']} {throughput['platform']} device(s); compile {throughput['compile_s']:.1f} s"
+        )
 
 
 def _add_run_options(parser: argparse.ArgumentParser, default_out: str) -> None:
     parser.add_argument("--out", default=default_out, help=f"output folder (default {default_out})")
     parser.add_argument("--robot", help="robot TOML file (default: the paper's robot)")
-    parser.add_argument("--pinv-damping", type=float, default=0.0, help="damping of the pseudoinverse (0: exact, the paper)")
+    parser.add_argument(
+        "--pinv-damping", type=float, default=0.0, help="damping of the pseudoinverse (0: exact, the paper)"
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -286,7 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--robot", help="robot TOML file (default: the paper's robot)")
     info.set_defaults(run=_info)
 
-    reproduce = commands.add_parser("reproduce", help="run both controllers with the paper's gains: Table 5 and Figures 4-9")
+    reproduce = commands.add_parser(
+        "reproduce", help="run both controllers with the paper's gains: Table 5 and Figures 4-9"
+    )
     _add_run_options(reproduce, "results/reproduce")
     _add_compile_cache_option(reproduce)
     reproduce.set_defaults(run=_reproduce)
@@ -304,14 +358,22 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--controller", choices=CONTROLLERS, default="admittance")
     tune.add_argument("--steps", type=int, default=60, help="optimiser steps (default 60)")
     tune.add_argument("--lr", type=float, default=0.15, help="initial step size in log-gain space (default 0.15)")
-    tune.add_argument("--weights", default="", help="objective weights, e.g. final_position=1,peak_torque=4 (see README)")
-    tune.add_argument("--batch", type=int, default=4, help="scenarios per step: nominal + batch-1 perturbed (default 4)")
-    tune.add_argument("--cvar", type=float, default=None, help="optimise CVaR at this level over the batch instead of the mean")
+    tune.add_argument(
+        "--weights", default="", help="objective weights, e.g. final_position=1,peak_torque=4 (see README)"
+    )
+    tune.add_argument(
+        "--batch", type=int, default=4, help="scenarios per step: nominal + batch-1 perturbed (default 4)"
+    )
+    tune.add_argument(
+        "--cvar", type=float, default=None, help="optimise CVaR at this level over the batch instead of the mean"
+    )
     tune.add_argument("--seed", type=int, default=0, help="seed of the perturbed scenarios")
     tune.add_argument("--optimizer", default="adam", help="any optax optimiser taking a learning rate (default adam)")
     tune.add_argument("--freeze", default="", help="gain groups to keep fixed, e.g. kd,ki")
     tune.add_argument("--gradient", choices=("reverse", "forward"), default="reverse")
-    tune.add_argument("--torque-guard", type=float, default=100.0, help="reject steps whose peak torque exceeds this (N m)")
+    tune.add_argument(
+        "--torque-guard", type=float, default=100.0, help="reject steps whose peak torque exceeds this (N m)"
+    )
     tune.add_argument("--holdout", type=int, default=100, help="held-out perturbed scenarios for the final evaluation")
     tune.add_argument("--gains", help="starting gains JSON (default: the paper's)")
     tune.add_argument("--scenario", help="scenario TOML/JSON (default: the paper's)")
@@ -320,47 +382,95 @@ def build_parser() -> argparse.ArgumentParser:
     _add_compile_cache_option(tune)
     tune.set_defaults(run=_tune)
 
-    montecarlo = commands.add_parser("montecarlo", help="robustness campaign over perturbed captures (sharded, resumable)")
+    montecarlo = commands.add_parser(
+        "montecarlo", help="robustness campaign over perturbed captures (sharded, resumable)"
+    )
     montecarlo.add_argument("--n", type=int, required=True, help="number of perturbed samples")
     montecarlo.add_argument("--controller", choices=(*CONTROLLERS, "both"), default="both")
-    montecarlo.add_argument("--gains", action="append", default=[], metavar="FILE",
-                            help="gains JSON to compare with the paper's (repeatable; labelled by file name)")
+    montecarlo.add_argument(
+        "--gains",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="gains JSON to compare with the paper's (repeatable; labelled by file name)",
+    )
     montecarlo.add_argument("--seed", type=int, default=0, help="campaign seed (default 0)")
-    montecarlo.add_argument("--chunk", type=int, default=256, help="samples per compiled call, a multiple of the device count (default 256)")
-    montecarlo.add_argument("--device-batch", type=int, default=None, metavar="K",
-                            help="samples each device simulates at once (default 128 on CPU, its whole share on GPU)")
+    montecarlo.add_argument(
+        "--chunk", type=int, default=256, help="samples per compiled call, a multiple of the device count (default 256)"
+    )
+    montecarlo.add_argument(
+        "--device-batch",
+        type=int,
+        default=None,
+        metavar="K",
+        help="samples each device simulates at once (default 128 on CPU, its whole share on GPU)",
+    )
     montecarlo.add_argument("--out", default="results/montecarlo", help="output folder (default results/montecarlo)")
     montecarlo.add_argument("--ranges", help="TOML file of perturbation half-widths (see README)")
-    montecarlo.add_argument("--range", action="append", default=[], metavar="NAME=VALUE", help="override one half-width, e.g. q_init_rad=0.05 (repeatable)")
-    montecarlo.add_argument("--tolerance-mm", type=float, default=5.0, help="success: final position error at most this (default 5 mm)")
-    montecarlo.add_argument("--tolerance-deg", type=float, default=1.0, help="success: final orientation error at most this (default 1 deg)")
-    montecarlo.add_argument("--torque-limit", type=float, default=100.0, metavar="NM",
-                            help="success: peak |u_i| at most this, else the sample counts as unstable (default 100 N m; 0: no limit)")
-    montecarlo.add_argument("--timeseries-every", type=int, default=None, metavar="K", help="also keep every K-th log row of every sample")
+    montecarlo.add_argument(
+        "--range",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="override one half-width, e.g. q_init_rad=0.05 (repeatable)",
+    )
+    montecarlo.add_argument(
+        "--tolerance-mm", type=float, default=5.0, help="success: final position error at most this (default 5 mm)"
+    )
+    montecarlo.add_argument(
+        "--tolerance-deg", type=float, default=1.0, help="success: final orientation error at most this (default 1 deg)"
+    )
+    montecarlo.add_argument(
+        "--torque-limit",
+        type=float,
+        default=100.0,
+        metavar="NM",
+        help="success: peak |u_i| at most this, else the sample counts as unstable (default 100 N m; 0: no limit)",
+    )
+    montecarlo.add_argument(
+        "--timeseries-every", type=int, default=None, metavar="K", help="also keep every K-th log row of every sample"
+    )
     montecarlo.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
     montecarlo.add_argument("--robot", help="robot TOML (default: the paper's)")
-    montecarlo.add_argument("--pinv-damping", type=float, default=0.0, help="damping of the pseudoinverse (0: exact, the paper)")
+    montecarlo.add_argument(
+        "--pinv-damping", type=float, default=0.0, help="damping of the pseudoinverse (0: exact, the paper)"
+    )
     montecarlo.add_argument("--resume", action="store_true", help="continue the campaign in --out chunk by chunk")
     cluster = montecarlo.add_argument_group("several hosts (jax.distributed; run the same command on every host)")
-    cluster.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize (auto-detects SLURM and similar without the options below)")
+    cluster.add_argument(
+        "--distributed",
+        action="store_true",
+        help="call jax.distributed.initialize (auto-detects SLURM and similar without the options below)",
+    )
     cluster.add_argument("--coordinator", help="HOST:PORT of process 0")
     cluster.add_argument("--num-processes", type=int, help="number of processes")
     cluster.add_argument("--process-id", type=int, help="this process's rank, 0 .. num-processes - 1")
     _add_compile_cache_option(montecarlo)
     montecarlo.set_defaults(run=_montecarlo)
 
-    benchmark = commands.add_parser("benchmark", help="speed and memory against MuJoCo and a Pinocchio loop (needs the test extra)")
-    benchmark.add_argument("--quick", action="store_true", help="toy sizes: exercises every part in about two minutes; numbers mean nothing")
-    benchmark.add_argument("--out", default="results/benchmarks", help="folder for benchmark.json (default results/benchmarks)")
+    benchmark = commands.add_parser(
+        "benchmark", help="speed and memory against MuJoCo and a Pinocchio loop (needs the test extra)"
+    )
+    benchmark.add_argument(
+        "--quick",
+        action="store_true",
+        help="toy sizes: exercises every part in about two minutes; numbers mean nothing",
+    )
+    benchmark.add_argument(
+        "--out", default="results/benchmarks", help="folder for benchmark.json (default results/benchmarks)"
+    )
     benchmark.add_argument("--repeats", type=int, default=3, help="repeats per timing, median reported (default 3)")
     benchmark.set_defaults(run=_benchmark)
     return parser
 
 
 def _add_compile_cache_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--compile-cache", metavar="DIR|none",
-                        help="keep compiled programs in DIR for later runs (default: $JAX_COMPILATION_CACHE_DIR, "
-                             "else ~/.cache/spacegrasp-jax/xla; 'none': compile everything afresh)")
+    parser.add_argument(
+        "--compile-cache",
+        metavar="DIR|none",
+        help="keep compiled programs in DIR for later runs (default: $JAX_COMPILATION_CACHE_DIR, "
+        "else ~/.cache/spacegrasp-jax/xla; 'none': compile everything afresh)",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

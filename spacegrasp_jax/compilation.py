@@ -33,8 +33,9 @@ import functools
 import os
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -175,7 +176,10 @@ def argument_signature(arguments) -> tuple:
     """What a compiled program depends on in its arguments: their tree structure and each
     leaf's shape, dtype and (for sharded placeholders) sharding. Hashable."""
     leaves, structure = jax.tree.flatten(arguments)
-    specs = tuple((np.shape(leaf), str(np.dtype(getattr(leaf, "dtype", np.asarray(leaf).dtype))), getattr(leaf, "sharding", None)) for leaf in leaves)
+    specs = tuple(
+        (np.shape(leaf), str(np.dtype(getattr(leaf, "dtype", np.asarray(leaf).dtype))), getattr(leaf, "sharding", None))
+        for leaf in leaves
+    )
     return structure, specs
 
 

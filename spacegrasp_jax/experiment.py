@@ -50,7 +50,9 @@ def compiled_rollout(robot: Robot, scenario: Scenario, gains: Gains, controller:
         function = compilation.jit(rollout, static_argnames=("controller", "pinv_damping"))
         return function.lower(robot, scenario, gains, controller=controller, pinv_damping=pinv_damping)
 
-    return compilation.compile_once(("rollout", controller, pinv_damping, compilation.argument_signature(arguments)), lower)
+    return compilation.compile_once(
+        ("rollout", controller, pinv_damping, compilation.argument_signature(arguments)), lower
+    )
 
 
 def run(
@@ -109,7 +111,10 @@ def summary_markdown(results: dict) -> str:
     lines = ["| |" + "".join(f" {c} |" for c in results), "|" + " --- |" * (1 + len(results))]
     for label, key, scale, number in _SUMMARY_ROWS:
         values = [result.summary.get(key) for result in results.values()]
-        lines.append(f"| {label} |" + "".join(" never |" if v is None or math.isnan(v) else f" {number.format(scale * v)} |" for v in values))
+        lines.append(
+            f"| {label} |"
+            + "".join(" never |" if v is None or math.isnan(v) else f" {number.format(scale * v)} |" for v in values)
+        )
     return "\n".join(lines)
 
 

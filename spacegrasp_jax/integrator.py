@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -118,7 +118,9 @@ def rk4_step(
     return dataclasses.replace(new, quat_base=new.quat_base / jnp.linalg.norm(new.quat_base))
 
 
-def simulate_free_floating(robot: Robot, state: PlantState, joint_torques: jax.Array, dt) -> tuple[PlantState, PlantState]:
+def simulate_free_floating(
+    robot: Robot, state: PlantState, joint_torques: jax.Array, dt
+) -> tuple[PlantState, PlantState]:
     """Integrate the free-floating system (no force on the satellite) with the joint
     torques ``joint_torques`` (N, 7) N m, each held over one step of ``dt`` s.
 

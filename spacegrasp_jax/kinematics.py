@@ -127,7 +127,9 @@ def body_com_positions(robot: Robot, frames: Frames) -> jax.Array:
     return frames.link_origin + spatial.matvec(frames.R_link, com_local)
 
 
-def point_jacobian_blocks(frames: Frames, p_base: jax.Array, point: jax.Array, last_joint: int) -> tuple[jax.Array, jax.Array]:
+def point_jacobian_blocks(
+    frames: Frames, p_base: jax.Array, point: jax.Array, last_joint: int
+) -> tuple[jax.Array, jax.Array]:
     """:func:`point_jacobian` as its satellite block (6, 6), for ``[v_s, w_s]``, and its
     joint block (6, 7), for ``qd``."""
     r_base = point - p_base

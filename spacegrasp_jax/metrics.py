@@ -144,7 +144,20 @@ class RunningMetrics:
 def start(dtype=jnp.float64) -> RunningMetrics:
     """Nothing folded yet."""
     zero, never = jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)
-    return RunningMetrics(zero, zero, jnp.zeros(7, dtype), zero, zero, zero, zero, zero, never, never, jnp.zeros(6, dtype), jnp.zeros(6, dtype))
+    return RunningMetrics(
+        zero,
+        zero,
+        jnp.zeros(7, dtype),
+        zero,
+        zero,
+        zero,
+        zero,
+        zero,
+        never,
+        never,
+        jnp.zeros(6, dtype),
+        jnp.zeros(6, dtype),
+    )
 
 
 def _peak(running, values):
@@ -160,7 +173,9 @@ def _first(running, happened, t):
 def accumulate(running: RunningMetrics, rows) -> RunningMetrics:
     """Fold ``rows`` (a :class:`~spacegrasp_jax.simulate.Log` with a leading axis of one or
     more rows, in time order) into ``running``."""
-    finite = jnp.stack([jnp.all(jnp.isfinite(leaf.reshape(leaf.shape[0], -1)), axis=1) for leaf in jax.tree.leaves(rows)]).all(axis=0)
+    finite = jnp.stack(
+        [jnp.all(jnp.isfinite(leaf.reshape(leaf.shape[0], -1)), axis=1) for leaf in jax.tree.leaves(rows)]
+    ).all(axis=0)
     force = contact_force_norm(rows)
     r = running
     return RunningMetrics(

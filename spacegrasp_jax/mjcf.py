@@ -47,7 +47,9 @@ def _full_inertia(I: np.ndarray) -> str:
 def robot_to_mjcf(robot: Robot, dt: float = 1e-3) -> str:
     """MJCF text of ``robot`` (unbatched) with the RK4 integrator at ``dt`` (s)."""
     mass, com, inertia = (np.asarray(x, dtype=float) for x in body_inertials(robot))
-    lam, length, alpha, offset = (np.asarray(getattr(robot, name), dtype=float) for name in ("dh_lambda", "dh_length", "dh_alpha", "joint_offset"))
+    lam, length, alpha, offset = (
+        np.asarray(getattr(robot, name), dtype=float) for name in ("dh_lambda", "dh_length", "dh_alpha", "joint_offset")
+    )
     lines = [
         '<mujoco model="spacegrasp">',
         '  <compiler angle="radian" autolimits="true" inertiafromgeom="false"/>',
@@ -62,7 +64,9 @@ def robot_to_mjcf(robot: Robot, dt: float = 1e-3) -> str:
         p, R = _dh_at_zero(offset[i], lam[i], length[i], alpha[i])
         if i == 0:
             p = np.asarray(robot.mount_position, dtype=float) + p  # frame 0: the mount, satellite axes
-        hinge = -np.array([length[i], lam[i] * np.sin(alpha[i]), lam[i] * np.cos(alpha[i])])  # origin of frame i-1, frame i axes
+        hinge = -np.array(
+            [length[i], lam[i] * np.sin(alpha[i]), lam[i] * np.cos(alpha[i])]
+        )  # origin of frame i-1, frame i axes
         axis = np.array([0.0, np.sin(alpha[i]), np.cos(alpha[i])])  # z_{i-1} in frame i axes
         lines += [
             f'{indent}<body name="link{i + 1}" pos="{_numbers(p)}" quat="{_numbers(_rotation_to_quat(R))}">',
@@ -82,7 +86,13 @@ def robot_to_mjcf(robot: Robot, dt: float = 1e-3) -> str:
 
 def qpos_from_state(p_base, R_base, q) -> np.ndarray:
     """MuJoCo ``qpos`` (14,): satellite position, quaternion ``[w, x, y, z]``, joint angles."""
-    return np.concatenate([np.asarray(p_base, dtype=float), _rotation_to_quat(np.asarray(R_base, dtype=float)), np.asarray(q, dtype=float)])
+    return np.concatenate(
+        [
+            np.asarray(p_base, dtype=float),
+            _rotation_to_quat(np.asarray(R_base, dtype=float)),
+            np.asarray(q, dtype=float),
+        ]
+    )
 
 
 def qvel_from_state(R_base, V_base, qd) -> np.ndarray:

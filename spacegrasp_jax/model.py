@@ -110,8 +110,7 @@ def _check_inertia(name: str, tensor: np.ndarray) -> None:
     principal = np.linalg.eigvalsh(tensor)
     if principal[0] <= _INERTIA_RTOL * scale:
         raise RobotConfigError(
-            f"{name}: inertia tensor is not positive definite (principal moments "
-            f"{principal.tolist()} kg m^2)"
+            f"{name}: inertia tensor is not positive definite (principal moments {principal.tolist()} kg m^2)"
         )
     # A rigid body's principal moments satisfy I_a + I_b >= I_c for every permutation.
     if principal[0] + principal[1] < principal[2] * (1.0 - _INERTIA_RTOL):

@@ -24,6 +24,7 @@ from spacegrasp_jax.perturbations import PerturbationRanges, sample
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import Log, closed_loop_step, initial_state
 
+
 def rollout_metrics(
     robot: Robot,
     scenario: Scenario,
@@ -56,7 +57,9 @@ def rollout_metrics(
 
     carry = (initial_state(scenario), metrics.start(dtype), jnp.zeros((), dtype))
     if every is None:
-        (final, running, _), _ = jax.lax.scan(lambda c, _: (step_and_fold(c, None)[0], None), carry, None, length=n_steps)
+        (final, running, _), _ = jax.lax.scan(
+            lambda c, _: (step_and_fold(c, None)[0], None), carry, None, length=n_steps
+        )
         rows = None
     else:
         if every < 1 or n_steps % every:
@@ -108,7 +111,12 @@ def over_torque_limit(sample_metrics: dict, torque_limit_Nm: float | None):
         return peak > limit
 
 
-def success(sample_metrics: dict, position_tolerance_m: float, orientation_tolerance_rad: float, torque_limit_Nm: float | None = None):
+def success(
+    sample_metrics: dict,
+    position_tolerance_m: float,
+    orientation_tolerance_rad: float,
+    torque_limit_Nm: float | None = None,
+):
     """(n,) bool: the sample did not diverge, its peak |u_i| stayed at or below
     ``torque_limit_Nm`` (N m; ``None``: no limit), and it ended within both tolerances (NumPy)."""
     position = np.asarray(sample_metrics["final_position_error_m"])

@@ -68,10 +68,14 @@ class PerturbationRanges:
             if value < 0.0:
                 raise PerturbationError(f"{field.name}: must be non-negative, got {value}")
         if self.stiffness_factor < 1.0:
-            raise PerturbationError(f"stiffness_factor: must be >= 1 (1 leaves the stiffness unchanged), got {self.stiffness_factor}")
+            raise PerturbationError(
+                f"stiffness_factor: must be >= 1 (1 leaves the stiffness unchanged), got {self.stiffness_factor}"
+            )
         for name in ("radius_fraction", "satellite_mass_fraction", "satellite_inertia_fraction"):
             if getattr(self, name) >= 1.0:
-                raise PerturbationError(f"{name}: must be below 1 (the quantity must stay positive), got {getattr(self, name)}")
+                raise PerturbationError(
+                    f"{name}: must be below 1 (the quantity must stay positive), got {getattr(self, name)}"
+                )
 
     @classmethod
     def nominal(cls) -> PerturbationRanges:
@@ -153,7 +157,9 @@ def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Pertu
         dp_lar=ranges.lar_position_m * uniform(k_p, (3,)),
         dr_lar=ranges.lar_angle_rad * uniform(k_r, (3,)),
         stiffness_scale=jnp.asarray(ranges.stiffness_factor, dtype) ** uniform(k_k, ()),
-        V_base_init=jnp.concatenate([ranges.base_speed_mps * uniform(k_v, (3,)), ranges.base_rate_radps * uniform(k_w, (3,))]),
+        V_base_init=jnp.concatenate(
+            [ranges.base_speed_mps * uniform(k_v, (3,)), ranges.base_rate_radps * uniform(k_w, (3,))]
+        ),
         qd_init=ranges.joint_rate_radps * uniform(k_qd, (N_JOINTS,)),
         radius_scale=1.0 + ranges.radius_fraction * uniform(k_radius, ()),
         satellite_mass_scale=1.0 + ranges.satellite_mass_fraction * uniform(k_mass, ()),
@@ -176,7 +182,9 @@ def apply_to_scenario(scenario: Scenario, perturbation: Perturbation) -> Scenari
     p, initial = perturbation, scenario.initial
     return dataclasses.replace(
         scenario,
-        initial=dataclasses.replace(initial, q=initial.q + p.dq_init, V_base=initial.V_base + p.V_base_init, qd=initial.qd + p.qd_init),
+        initial=dataclasses.replace(
+            initial, q=initial.q + p.dq_init, V_base=initial.V_base + p.V_base_init, qd=initial.qd + p.qd_init
+        ),
         p_lar=scenario.p_lar + scenario.R_lar @ p.dp_lar,
         R_lar=scenario.R_lar @ spatial.rotation_exp(p.dr_lar),
         sphere_radius=scenario.sphere_radius * p.radius_scale,
@@ -190,7 +198,9 @@ def sample_keys(seed: int, indices) -> jax.Array:
     return jax.vmap(lambda i: jax.random.fold_in(base_key, i))(jnp.asarray(indices, dtype=jnp.uint32))
 
 
-def sample(robot: Robot, scenario: Scenario, seed: int, indices, ranges: PerturbationRanges) -> tuple[Robot, Scenario, Perturbation]:
+def sample(
+    robot: Robot, scenario: Scenario, seed: int, indices, ranges: PerturbationRanges
+) -> tuple[Robot, Scenario, Perturbation]:
     """Samples ``indices`` of the campaign ``seed``: the perturbed robots and scenarios and
     the drawn perturbations, each with a leading batch axis."""
     perturbations = jax.vmap(lambda key: draw(key, ranges, scenario.initial.q.dtype))(sample_keys(seed, indices))
@@ -203,6 +213,8 @@ def sample_scenarios(scenario: Scenario, seed: int, indices, ranges: Perturbatio
     """The perturbed scenarios alone (leading axis over ``indices``), for ranges that leave
     the robot unchanged (tuning vmaps over scenarios with one robot)."""
     if ranges.perturbs_robot:
-        raise PerturbationError("these ranges perturb the satellite's mass or inertia: use sample(), which returns the robots too")
+        raise PerturbationError(
+            "these ranges perturb the satellite's mass or inertia: use sample(), which returns the robots too"
+        )
     perturbations = jax.vmap(lambda key: draw(key, ranges, scenario.initial.q.dtype))(sample_keys(seed, indices))
     return jax.vmap(lambda p: apply_to_scenario(scenario, p))(perturbations)

@@ -71,14 +71,21 @@ def figure_ee_pose(logs, title: str = "Fig. 4  End-effector position and orienta
 def figure_contact_force(logs):
     """Figure 5: the contact model's force on the EE, LAR axes, and its magnitude."""
     fig, axes = _grid(2, 2, "Fig. 5  External forces from the contact model (LAR axes)")
-    _plot_columns(axes, logs, lambda log: np.column_stack([log.contact_force, np.linalg.norm(log.contact_force, axis=1)]), range(4))
+    _plot_columns(
+        axes,
+        logs,
+        lambda log: np.column_stack([log.contact_force, np.linalg.norm(log.contact_force, axis=1)]),
+        range(4),
+    )
     return _finish(fig, axes, ["F_x [N]", "F_y [N]", "F_z [N]", "|F| [N]"])
 
 
 def figure_momentum(logs):
     """Figure 6: resultant linear and angular momentum of the whole system."""
     fig, axes = _grid(1, 2, "Fig. 6  Momentum and angular momentum of the satellite-manipulator system", height=3.0)
-    norms = lambda log: np.column_stack([np.linalg.norm(log.momentum[:, :3], axis=1), np.linalg.norm(log.momentum[:, 3:], axis=1)])  # noqa: E731
+    norms = lambda log: np.column_stack(
+        [np.linalg.norm(log.momentum[:, :3], axis=1), np.linalg.norm(log.momentum[:, 3:], axis=1)]
+    )  # noqa: E731
     _plot_columns(axes, logs, norms, range(2))
     return _finish(fig, axes, ["|P| [N s]", "|L| (about the inertial origin) [N m s]"])
 
@@ -86,7 +93,9 @@ def figure_momentum(logs):
 def figure_base_velocity(logs):
     """Figure 7: resultant linear and angular velocity of the servicing satellite."""
     fig, axes = _grid(1, 2, "Fig. 7  Servicing satellite velocities", height=3.0)
-    norms = lambda log: np.column_stack([1e3 * np.linalg.norm(log.V_base[:, :3], axis=1), np.degrees(np.linalg.norm(log.V_base[:, 3:], axis=1))])  # noqa: E731
+    norms = lambda log: np.column_stack(
+        [1e3 * np.linalg.norm(log.V_base[:, :3], axis=1), np.degrees(np.linalg.norm(log.V_base[:, 3:], axis=1))]
+    )  # noqa: E731
     _plot_columns(axes, logs, norms, range(2))
     return _finish(fig, axes, ["|v_s| [mm/s]", "|w_s| [deg/s]"])
 
@@ -140,11 +149,29 @@ def figure_loss_curve(history: list[dict]):
     fig, axes = plt.subplots(1, 3, figsize=(15, 3.6))
     axes[0].plot(steps, [row["loss"] for row in history], color="black", marker=".")
     axes[0].set_ylabel("loss [-]")
-    axes[1].plot(steps, [1e3 * row["final_position_m"] for row in history], color="tab:blue", marker=".", label="final position error")
-    axes[1].plot(steps, [1e3 * row["rms_tracking_m"] for row in history], color="tab:orange", marker=".", label="RMS tracking error")
+    axes[1].plot(
+        steps,
+        [1e3 * row["final_position_m"] for row in history],
+        color="tab:blue",
+        marker=".",
+        label="final position error",
+    )
+    axes[1].plot(
+        steps,
+        [1e3 * row["rms_tracking_m"] for row in history],
+        color="tab:orange",
+        marker=".",
+        label="RMS tracking error",
+    )
     axes[1].set_ylabel("error [mm]")
     axes[1].legend()
-    axes[2].plot(steps, [row["peak_torque_smooth"] for row in history], color="tab:red", marker=".", label="smooth max (optimised)")
+    axes[2].plot(
+        steps,
+        [row["peak_torque_smooth"] for row in history],
+        color="tab:red",
+        marker=".",
+        label="smooth max (optimised)",
+    )
     axes[2].plot(steps, [row["peak_torque_hard"] for row in history], color="tab:red", linestyle=":", label="hard max")
     axes[2].set_ylabel("peak |u_i| / start peak_i [-]")
     axes[2].legend()
@@ -175,8 +202,12 @@ def save_tuning_figures(history, log_before, log_after, out_dir, write_atomicall
     """``loss.png``, ``peak_torques.png`` and ``ee_pose.png`` of a tuning run."""
     figures = {
         "loss.png": figure_loss_curve(history),
-        "peak_torques.png": figure_peak_torques(np.max(np.abs(log_before.u), axis=0), np.max(np.abs(log_after.u), axis=0)),
-        "ee_pose.png": figure_ee_pose({"start": log_before, "tuned": log_after}, "EE pose in LAR before and after tuning (exact contact law)"),
+        "peak_torques.png": figure_peak_torques(
+            np.max(np.abs(log_before.u), axis=0), np.max(np.abs(log_after.u), axis=0)
+        ),
+        "ee_pose.png": figure_ee_pose(
+            {"start": log_before, "tuned": log_after}, "EE pose in LAR before and after tuning (exact contact law)"
+        ),
     }
     save(figures, out_dir, write_atomically)
 
@@ -220,20 +251,30 @@ def figure_campaign_histograms(metrics: dict, title: str = "Monte-Carlo campaign
     the largest peak joint torque."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
     values = {key: _campaign_values(m) for key, m in metrics.items()}
-    for column, (ax, xlabel, panel_title) in enumerate(zip(
-        axes,
-        ["final EE position error [mm]", "max over joints of max |u_i| [N m]"],
-        ["Final positioning error", "Peak joint torque"],
-    )):
+    for column, (ax, xlabel, panel_title) in enumerate(
+        zip(
+            axes,
+            ["final EE position error [mm]", "max over joints of max |u_i| [N m]"],
+            ["Final positioning error", "Peak joint torque"],
+        )
+    ):
         pooled = np.concatenate([v[column] for v in values.values()])
         bins = _bins(pooled)
         if _spans_decades(pooled):
             ax.set_xscale("log")
         for index, (key, v) in enumerate(values.items()):
             n_samples = len(metrics[key]["first_nonfinite_s"])
-            ax.hist(v[column], bins=bins, alpha=0.55, color=_variant_colour(index, key), label=f"{key} ({v[column].size}/{n_samples} finite)")
+            ax.hist(
+                v[column],
+                bins=bins,
+                alpha=0.55,
+                color=_variant_colour(index, key),
+                label=f"{key} ({v[column].size}/{n_samples} finite)",
+            )
         if column == 0 and tolerance_mm is not None:
-            ax.axvline(tolerance_mm, color="black", linestyle="--", linewidth=1, label=f"success tolerance {tolerance_mm:g} mm")
+            ax.axvline(
+                tolerance_mm, color="black", linestyle="--", linewidth=1, label=f"success tolerance {tolerance_mm:g} mm"
+            )
         ax.set_xlabel(xlabel)
         ax.set_ylabel("samples")
         ax.set_title(panel_title)
@@ -282,7 +323,9 @@ def _sphere_outline(centre_mm, radius_mm, axes_pair, n: int = 181):
     return centre_mm[i] + radius_mm * np.cos(angle), centre_mm[j] + radius_mm * np.sin(angle)
 
 
-def figure_ee_path(logs, sphere_centre, sphere_radius, title: str = "End-effector path around the contact sphere (LAR frame)"):
+def figure_ee_path(
+    logs, sphere_centre, sphere_radius, title: str = "End-effector path around the contact sphere (LAR frame)"
+):
     """The EE position in the LAR frame in 3-D, and its side (x-z) and top (x-y) views, with
     the desired path and the contact sphere (eq 20).
 
@@ -296,8 +339,12 @@ def figure_ee_path(logs, sphere_centre, sphere_radius, title: str = "End-effecto
     side, top = fig.add_subplot(1, 3, 2), fig.add_subplot(1, 3, 3)
     u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 25), np.linspace(0, np.pi, 13))
     ax3d.plot_wireframe(
-        centre[0] + radius * np.cos(u) * np.sin(v), centre[1] + radius * np.sin(u) * np.sin(v), centre[2] + radius * np.cos(v),
-        color="tab:gray", linewidth=0.4, alpha=0.5,
+        centre[0] + radius * np.cos(u) * np.sin(v),
+        centre[1] + radius * np.sin(u) * np.sin(v),
+        centre[2] + radius * np.cos(v),
+        color="tab:gray",
+        linewidth=0.4,
+        alpha=0.5,
     )
     desired = 1e3 * next(iter(logs.values())).pose_des[:, :3]
     paths = {name: 1e3 * log.pose_ee[:, :3] for name, log in logs.items()} | {"desired": desired}
@@ -309,7 +356,10 @@ def figure_ee_path(logs, sphere_centre, sphere_radius, title: str = "End-effecto
         if name != "desired":
             for ax, (a, b) in ((side, (0, 2)), (top, (0, 1))):
                 ax.plot(p[-1, a], p[-1, b], marker="o", color=style["color"], markersize=4)
-    for ax, pair, xlabel, ylabel, view in ((side, (0, 2), "x [mm]", "z [mm]", "side view (x-z)"), (top, (0, 1), "x [mm]", "y [mm]", "top view (x-y)")):
+    for ax, pair, xlabel, ylabel, view in (
+        (side, (0, 2), "x [mm]", "z [mm]", "side view (x-z)"),
+        (top, (0, 1), "x [mm]", "y [mm]", "top view (x-y)"),
+    ):
         ax.fill(*_sphere_outline(centre, radius, pair), color="tab:gray", alpha=0.15, label="contact sphere")
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
@@ -350,15 +400,34 @@ def figure_tradeoff(
     points = ax.scatter(error_mm[finite], torque[finite], c=force[finite], cmap="viridis", s=22, edgecolors="none")
     fig.colorbar(points, ax=ax, label="peak contact force [N]")
     order = np.argsort(error_mm[front])
-    ax.plot(error_mm[front][order], torque[front][order], color="black", linewidth=1.2, drawstyle="steps-post", label="Pareto front")
+    ax.plot(
+        error_mm[front][order],
+        torque[front][order],
+        color="black",
+        linewidth=1.2,
+        drawstyle="steps-post",
+        label="Pareto front",
+    )
     for (label, (peak, error)), marker in zip((highlights or {}).items(), ["*", "P", "D", "X", "s"]):
-        ax.plot(1e3 * error, peak, marker=marker, markersize=14, markeredgecolor="black", color="white", linestyle="none", label=label)
+        ax.plot(
+            1e3 * error,
+            peak,
+            marker=marker,
+            markersize=14,
+            markeredgecolor="black",
+            color="white",
+            linestyle="none",
+            label=label,
+        )
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("final EE position error [mm]")
     ax.set_ylabel("max over joints of max |u_i| [N m]")
     dropped = int(np.sum(~finite))
-    ax.set_title(title + (f"\n({dropped} diverged gain set{'s' if dropped != 1 else ''} not shown)" if dropped else ""), fontsize=11)
+    ax.set_title(
+        title + (f"\n({dropped} diverged gain set{'s' if dropped != 1 else ''} not shown)" if dropped else ""),
+        fontsize=11,
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=9)
     fig.tight_layout()

@@ -93,10 +93,18 @@ def paper_scenario(
     """
     require_float64("a Scenario")
     _check_scenario_numbers(
-        q_init=q_init, duration=duration, dt=dt, lar_offset=lar_offset, start_pose=start_pose,
-        end_pose=end_pose, move_duration=move_duration, sphere_centre=sphere_centre,
-        sphere_radius=sphere_radius, contact_stiffness=contact_stiffness,
-        contact_sharpness=contact_sharpness, contact_law=contact_law,
+        q_init=q_init,
+        duration=duration,
+        dt=dt,
+        lar_offset=lar_offset,
+        start_pose=start_pose,
+        end_pose=end_pose,
+        move_duration=move_duration,
+        sphere_centre=sphere_centre,
+        sphere_radius=sphere_radius,
+        contact_stiffness=contact_stiffness,
+        contact_sharpness=contact_sharpness,
+        contact_law=contact_law,
     )
     q = jnp.asarray(q_init, dtype=jnp.float64)
     p_base, R_base = jnp.zeros(3), jnp.eye(3)
@@ -121,8 +129,16 @@ def paper_scenario(
 
 
 _SHAPES = {
-    "q_init": (7,), "duration": (), "dt": (), "lar_offset": (), "start_pose": (6,), "end_pose": (6,),
-    "move_duration": (), "sphere_centre": (3,), "sphere_radius": (), "contact_stiffness": (),
+    "q_init": (7,),
+    "duration": (),
+    "dt": (),
+    "lar_offset": (),
+    "start_pose": (6,),
+    "end_pose": (6,),
+    "move_duration": (),
+    "sphere_centre": (3,),
+    "sphere_radius": (),
+    "contact_stiffness": (),
     "contact_sharpness": (),
 }
 _POSITIVE = {"duration", "dt", "move_duration", "sphere_radius", "contact_sharpness"}

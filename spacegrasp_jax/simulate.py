@@ -160,13 +160,17 @@ def plant_kinematics(robot: Robot, scenario: Scenario, state: PlantState) -> Pla
     )
 
 
-def plant_rate(robot: Robot, scenario: Scenario, state: PlantState, kinematics: PlantKinematics, u: jax.Array) -> PlantState:
+def plant_rate(
+    robot: Robot, scenario: Scenario, state: PlantState, kinematics: PlantKinematics, u: jax.Array
+) -> PlantState:
     """State rate under joint torques ``u`` (7,) N m and the contact force, given
     ``kinematics = plant_kinematics(robot, scenario, state)``."""
     k = kinematics
     force = spatial.matvec(scenario.R_lar, k.contact_force_lar)
     # The contact force acts at the EE point: generalised force J_point^T [f; 0].
-    Q = jnp.concatenate([force, spatial.cross(k.frames.p_ee, force), spatial.matvec(jnp.split(k.J_joints, 2)[0].T, force) + u])
+    Q = jnp.concatenate(
+        [force, spatial.cross(k.frames.p_ee, force), spatial.matvec(jnp.split(k.J_joints, 2)[0].T, force) + u]
+    )
     mass_blocks = (k.base, k.M_coupling, k.M_joints, k.base_per_joint)
     return state_rate(state, forward_dynamics_from_frames(robot, k.frames, state.V_base, state.qd, Q, mass_blocks))
 
@@ -190,7 +194,9 @@ def momentum_at(kinematics: PlantKinematics, plant: PlantState) -> jax.Array:
 def initial_state(scenario: Scenario) -> SimState:
     """The scan's initial carry: the scenario's plant state, ``V_ref(0) = 0``, PID at rest."""
     dtype = scenario.initial.q.dtype
-    return SimState(plant=scenario.initial, controller=ControllerState(V_ref=jnp.zeros(6, dtype=dtype), pid=pid_init(dtype)))
+    return SimState(
+        plant=scenario.initial, controller=ControllerState(V_ref=jnp.zeros(6, dtype=dtype), pid=pid_init(dtype))
+    )
 
 
 def control_step(
@@ -216,7 +222,9 @@ def control_step(
     pose = jnp.concatenate([spatial.matvec(R_lar.T, p_ee - scenario.p_lar), spatial.euler_zyx(R_lar_ee)])
     r_ee = frames.p_ee  # EE point from the satellite CoM
     v_s, w_s = jnp.split(plant.V_base, 2)
-    twist_inertial = jnp.concatenate([v_s + spatial.cross(w_s, r_ee), w_s]) + spatial.matvec(kinematics.J_joints, plant.qd)
+    twist_inertial = jnp.concatenate([v_s + spatial.cross(w_s, r_ee), w_s]) + spatial.matvec(
+        kinematics.J_joints, plant.qd
+    )
     # Both 3-vectors of a twist (wrench, Jacobian) rotate at once as a (2, 3) array.
     twist = spatial.matvec(R_lar.T, twist_inertial.reshape(2, 3)).reshape(6)
 

@@ -122,27 +122,21 @@ def rot_x(angle):
     """Rotation (3, 3) by ``angle`` [rad] about the x axis."""
     c, s = jnp.cos(angle), jnp.sin(angle)
     one, zero = jnp.ones_like(c), jnp.zeros_like(c)
-    return jnp.stack(
-        [jnp.stack([one, zero, zero]), jnp.stack([zero, c, -s]), jnp.stack([zero, s, c])]
-    )
+    return jnp.stack([jnp.stack([one, zero, zero]), jnp.stack([zero, c, -s]), jnp.stack([zero, s, c])])
 
 
 def rot_y(angle):
     """Rotation (3, 3) by ``angle`` [rad] about the y axis."""
     c, s = jnp.cos(angle), jnp.sin(angle)
     one, zero = jnp.ones_like(c), jnp.zeros_like(c)
-    return jnp.stack(
-        [jnp.stack([c, zero, s]), jnp.stack([zero, one, zero]), jnp.stack([-s, zero, c])]
-    )
+    return jnp.stack([jnp.stack([c, zero, s]), jnp.stack([zero, one, zero]), jnp.stack([-s, zero, c])])
 
 
 def rot_z(angle):
     """Rotation (3, 3) by ``angle`` [rad] about the z axis."""
     c, s = jnp.cos(angle), jnp.sin(angle)
     one, zero = jnp.ones_like(c), jnp.zeros_like(c)
-    return jnp.stack(
-        [jnp.stack([c, -s, zero]), jnp.stack([s, c, zero]), jnp.stack([zero, zero, one])]
-    )
+    return jnp.stack([jnp.stack([c, -s, zero]), jnp.stack([s, c, zero]), jnp.stack([zero, zero, one])])
 
 
 def quat_to_rotation(quat):
@@ -186,9 +180,7 @@ def quat_multiply(a, b):
     """Hamilton product ``a * b`` of two quaternions ``[w, x, y, z]`` (4,)."""
     aw, av = jnp.split(a, [1])
     bw, bv = jnp.split(b, [1])
-    return jnp.concatenate(
-        [aw * bw - jnp.sum(av * bv, keepdims=True), aw * bv + bw * av + cross(av, bv)]
-    )
+    return jnp.concatenate([aw * bw - jnp.sum(av * bv, keepdims=True), aw * bv + bw * av + cross(av, bv)])
 
 
 def quat_derivative(quat, omega_inertial):

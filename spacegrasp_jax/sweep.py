@@ -147,7 +147,14 @@ def evaluate_gains(
     function = functools.partial(_metrics_of_gain_sets, controller=controller, pinv_damping=float(pinv_damping))
     batch = Gains(**dict(zip(GAIN_SHAPES, leaves)))
     results = batching.map_in_chunks(
-        "sweep", function, (robot, scenario), batch, chunk=chunk, key=(controller, float(pinv_damping)), progress=progress, label="gain sets"
+        "sweep",
+        function,
+        (robot, scenario),
+        batch,
+        chunk=chunk,
+        key=(controller, float(pinv_damping)),
+        progress=progress,
+        label="gain sets",
     )
     results["diverged"] = np.isfinite(results["first_nonfinite_s"])
     return results

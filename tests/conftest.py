@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import pytest
+from random_states import RandomState, make_random_states
 
 import spacegrasp_jax as sg
-from random_states import RandomState, make_random_states
 
 # As the command line does: float64, loops compiled whole (before anything compiles). No
 # persistent compilation cache: every test compiles what it runs.
@@ -50,7 +50,9 @@ def full_runs(robot, gains):
     from spacegrasp_jax.scenario import paper_scenario
 
     scenario = paper_scenario(robot)
-    return {controller: experiment.run(robot, scenario, gains, controller) for controller in ("admittance", "cartesian")}
+    return {
+        controller: experiment.run(robot, scenario, gains, controller) for controller in ("admittance", "cartesian")
+    }
 
 
 @pytest.fixture(scope="session")

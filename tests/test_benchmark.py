@@ -15,7 +15,9 @@ from spacegrasp_jax.benchmarks.suite import KEYS
 def test_quick_benchmark_writes_every_key(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "spacegrasp_jax.cli", "benchmark", "--quick", "--out", str(tmp_path)],
-        capture_output=True, text=True, timeout=900,
+        capture_output=True,
+        text=True,
+        timeout=900,
     )
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads((tmp_path / "benchmark.json").read_text())
@@ -24,9 +26,15 @@ def test_quick_benchmark_writes_every_key(tmp_path):
     assert set(report["batch_steps_per_s"]) == {"1", "4"}
     assert set(report["gradient_over_forward"]) == {"reverse", "forward"}
     numbers = [
-        *report["rollout_s"].values(), *report["compile_s"].values(), *report["batch_steps_per_s"].values(),
-        *report["gradient_over_forward"].values(), report["gradient_peak_mb"]["reverse"], report["flops_per_step"],
-        report["pinocchio_loop_rollout_s"], report["mujoco_mj_step_17s_s"], report["mujoco_rollout_steps_per_s"],
+        *report["rollout_s"].values(),
+        *report["compile_s"].values(),
+        *report["batch_steps_per_s"].values(),
+        *report["gradient_over_forward"].values(),
+        report["gradient_peak_mb"]["reverse"],
+        report["flops_per_step"],
+        report["pinocchio_loop_rollout_s"],
+        report["mujoco_mj_step_17s_s"],
+        report["mujoco_rollout_steps_per_s"],
     ]
     assert all(math.isfinite(x) and x > 0 for x in numbers), numbers
     assert report["pinocchio_loop_max_pose_difference"] < 1e-6

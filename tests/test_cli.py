@@ -15,7 +15,9 @@ import spacegrasp_jax as sg
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "spacegrasp_jax.cli", *args], capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "spacegrasp_jax.cli", *args], capture_output=True, text=True, timeout=300
+    )
 
 
 def numbers_after(label: str, text: str) -> np.ndarray:
@@ -32,7 +34,9 @@ def test_info_prints_the_paper_robot(robot):
     q = jnp.asarray(sg.PAPER_Q_INIT)
     p_ee, _ = sg.ee_pose(robot, jnp.zeros(3), jnp.eye(3), q)
     np.testing.assert_allclose(numbers_after("EE position", out), p_ee, atol=1e-6)
-    np.testing.assert_allclose(numbers_after("system CoM", out), sg.system_com(robot, jnp.zeros(3), jnp.eye(3), q), atol=1e-6)
+    np.testing.assert_allclose(
+        numbers_after("system CoM", out), sg.system_com(robot, jnp.zeros(3), jnp.eye(3), q), atol=1e-6
+    )
     condition = numbers_after("mass matrix (13x13) condition number", out)[-1]
     np.testing.assert_allclose(condition, np.linalg.cond(sg.mass_matrix(robot, jnp.eye(3), q)), rtol=1e-5)
 
@@ -61,11 +65,29 @@ import json  # noqa: E402
 from spacegrasp_jax import cli  # noqa: E402
 
 SUMMARY_KEYS = {
-    "max_abs_torque_Nm", "final_position_error_m", "final_orientation_error_rad", "max_contact_force_N",
-    "first_contact_s", "max_linear_momentum_Ns", "max_angular_momentum_Nms", "max_base_speed_mps",
-    "max_base_rate_radps", "compile_time_s", "run_time_s",
+    "max_abs_torque_Nm",
+    "final_position_error_m",
+    "final_orientation_error_rad",
+    "max_contact_force_N",
+    "first_contact_s",
+    "max_linear_momentum_Ns",
+    "max_angular_momentum_Nms",
+    "max_base_speed_mps",
+    "max_base_rate_radps",
+    "compile_time_s",
+    "run_time_s",
 }
-FIGURES = [f"fig{i}_{name}.png" for i, name in [(4, "ee_pose"), (5, "contact_force"), (6, "momentum"), (7, "base_velocity"), (8, "joint_torques"), (9, "fts_loads")]]
+FIGURES = [
+    f"fig{i}_{name}.png"
+    for i, name in [
+        (4, "ee_pose"),
+        (5, "contact_force"),
+        (6, "momentum"),
+        (7, "base_velocity"),
+        (8, "joint_torques"),
+        (9, "fts_loads"),
+    ]
+]
 
 
 def test_reproduce_writes_every_file_and_field_and_is_deterministic(tmp_path, full_runs, capsys):
@@ -74,7 +96,14 @@ def test_reproduce_writes_every_file_and_field_and_is_deterministic(tmp_path, fu
     printed = capsys.readouterr().out
     assert "Table 5" in printed and "final position error" in printed
     assert cli.main(["reproduce", "--compile-cache", "none", "--out", str(second)]) == 0
-    for name in ["table5.csv", "summary.json", "config.json", "timeseries_admittance.npz", "timeseries_cartesian.npz", *FIGURES]:
+    for name in [
+        "table5.csv",
+        "summary.json",
+        "config.json",
+        "timeseries_admittance.npz",
+        "timeseries_cartesian.npz",
+        *FIGURES,
+    ]:
         assert (first / name).stat().st_size > 0, name
     rows = (first / "table5.csv").read_text().splitlines()
     assert rows[0] == "joint,admittance_Nm,cartesian_Nm,paper_admittance_Nm,paper_cartesian_Nm"
@@ -87,11 +116,27 @@ def test_reproduce_writes_every_file_and_field_and_is_deterministic(tmp_path, fu
         for field in SUMMARY_KEYS - {"compile_time_s", "run_time_s"}:
             assert summaries[0][key][field] == summaries[1][key][field], field
         with np.load(first / f"timeseries_{key}.npz") as a, np.load(second / f"timeseries_{key}.npz") as b:
-            assert set(a.files) >= {"t", "pose_ee", "pose_des", "contact_force", "momentum", "V_base", "u", "fts_force", "fts_torque", "V_ref", "qd_des"}
+            assert set(a.files) >= {
+                "t",
+                "pose_ee",
+                "pose_des",
+                "contact_force",
+                "momentum",
+                "V_base",
+                "u",
+                "fts_force",
+                "fts_torque",
+                "V_ref",
+                "qd_des",
+            }
             for name in a.files:
                 np.testing.assert_array_equal(a[name], b[name])
     # The numbers on disk are the library's.
-    np.testing.assert_allclose(summaries[0]["admittance"]["max_abs_torque_Nm"], full_runs["admittance"].summary["max_abs_torque_Nm"], rtol=1e-12)
+    np.testing.assert_allclose(
+        summaries[0]["admittance"]["max_abs_torque_Nm"],
+        full_runs["admittance"].summary["max_abs_torque_Nm"],
+        rtol=1e-12,
+    )
     config = json.loads((first / "config.json").read_text())
     assert {"gains", "scenario", "spacegrasp_jax_version", "jax_version", "git_revision"} <= set(config)
     assert config["gains"]["kp"] == [140.0, 210.0, 140.0, 105.0, 105.0, 21.0, 21.0]
@@ -103,7 +148,19 @@ def test_simulate_one_controller_with_gains_and_scenario_files(tmp_path, gains):
     scenario_file = tmp_path / "scenario.toml"
     scenario_file.write_text("duration = 1.0\n")
     out = tmp_path / "sim"
-    args = ["simulate", "--compile-cache", "none", "--controller", "admittance", "--gains", str(gains_file), "--scenario", str(scenario_file), "--out", str(out)]
+    args = [
+        "simulate",
+        "--compile-cache",
+        "none",
+        "--controller",
+        "admittance",
+        "--gains",
+        str(gains_file),
+        "--scenario",
+        str(scenario_file),
+        "--out",
+        str(out),
+    ]
     assert cli.main(args) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary) == {"admittance"} and set(summary["admittance"]) >= SUMMARY_KEYS
@@ -114,11 +171,41 @@ def test_simulate_one_controller_with_gains_and_scenario_files(tmp_path, gains):
 def test_simulate_rejects_bad_files_before_running(tmp_path, gains, capsys):
     bad_gains = tmp_path / "gains.json"
     bad_gains.write_text(json.dumps({**gains.to_dict(), "Kd": -1.0}))
-    assert cli.main(["simulate", "--compile-cache", "none", "--controller", "cartesian", "--gains", str(bad_gains), "--out", str(tmp_path / "x")]) == 2
+    assert (
+        cli.main(
+            [
+                "simulate",
+                "--compile-cache",
+                "none",
+                "--controller",
+                "cartesian",
+                "--gains",
+                str(bad_gains),
+                "--out",
+                str(tmp_path / "x"),
+            ]
+        )
+        == 2
+    )
     assert "gains.json: Kd: gains must be positive" in capsys.readouterr().err
     bad_scenario = tmp_path / "scenario.toml"
     bad_scenario.write_text("dt = 0.0\n")
-    assert cli.main(["simulate", "--compile-cache", "none", "--controller", "cartesian", "--scenario", str(bad_scenario), "--out", str(tmp_path / "y")]) == 2
+    assert (
+        cli.main(
+            [
+                "simulate",
+                "--compile-cache",
+                "none",
+                "--controller",
+                "cartesian",
+                "--scenario",
+                str(bad_scenario),
+                "--out",
+                str(tmp_path / "y"),
+            ]
+        )
+        == 2
+    )
     assert "dt: must be positive" in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
@@ -148,7 +235,9 @@ def test_compile_cache_folder_and_precedence(tmp_path, case):
     }[case]
     if case == "jax_variable":
         env["JAX_COMPILATION_CACHE_DIR"] = str(tmp_path / "jax")
-    result = subprocess.run([sys.executable, "-c", COMPILE_ONE, argument], capture_output=True, text=True, env=env, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-c", COMPILE_ONE, argument], capture_output=True, text=True, env=env, timeout=120
+    )
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == str(expected)
     written = [p for p in tmp_path.rglob("*") if p.is_file()]
@@ -165,8 +254,20 @@ def test_a_command_keeps_its_programs_in_the_compile_cache_and_loads_them_the_se
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
 
     def simulate(out):
-        command = [sys.executable, "-m", "spacegrasp_jax.cli", "simulate", "--controller", "cartesian", "--scenario", str(scenario),
-                   "--out", str(tmp_path / out), "--compile-cache", str(cache)]
+        command = [
+            sys.executable,
+            "-m",
+            "spacegrasp_jax.cli",
+            "simulate",
+            "--controller",
+            "cartesian",
+            "--scenario",
+            str(scenario),
+            "--out",
+            str(tmp_path / out),
+            "--compile-cache",
+            str(cache),
+        ]
         result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
         assert result.returncode == 0, result.stderr
         assert f"compilation cache: {cache}" in result.stderr

@@ -63,7 +63,9 @@ def test_loops_compiled_whole_give_the_results_of_loops_run_kernel_by_kernel(rob
     env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
     subprocess.run([sys.executable, "-c", script, str(tmp_path / "log.npz")], env=env, check=True, timeout=600)
     assert compilation.loops_compile_whole()
-    ours = compilation.jit(rollout, static_argnames=("controller",))(robot, paper_scenario(robot, duration=0.3), gains, controller="admittance")[1]
+    ours = compilation.jit(rollout, static_argnames=("controller",))(
+        robot, paper_scenario(robot, duration=0.3), gains, controller="admittance"
+    )[1]
     kernel_by_kernel = np.load(tmp_path / "log.npz")
     for name, value in vars(ours).items():
         np.testing.assert_allclose(value, kernel_by_kernel[name], rtol=1e-9, atol=1e-12, err_msg=name)
@@ -96,7 +98,9 @@ def test_importing_the_package_changes_nothing_in_the_process():
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_ENABLE_X64", "JAX_COMPILATION_CACHE_DIR")}
     reports = {}
     for case in ("with-package", "without"):
-        result = subprocess.run([sys.executable, "-c", USER_PROGRAM, case], capture_output=True, text=True, env=env, timeout=300)
+        result = subprocess.run(
+            [sys.executable, "-c", USER_PROGRAM, case], capture_output=True, text=True, env=env, timeout=300
+        )
         assert result.returncode == 0, result.stderr
         reports[case] = json.loads(result.stdout)
     ours, theirs = reports["with-package"], reports["without"]
@@ -124,7 +128,9 @@ print("cache", jax.config.jax_compilation_cache_dir)
 print("robot dtype", sg.paper_robot().link_mass.dtype)
 """
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_ENABLE_X64", "JAX_COMPILATION_CACHE_DIR")}
-    result = subprocess.run([sys.executable, "-c", script, str(tmp_path / "cache")], capture_output=True, text=True, env=env, timeout=300)
+    result = subprocess.run(
+        [sys.executable, "-c", script, str(tmp_path / "cache")], capture_output=True, text=True, env=env, timeout=300
+    )
     assert result.returncode == 0, result.stderr
     lines = result.stdout.splitlines()
     assert lines[0].startswith("refused: a Robot: spacegrasp_jax computes in float64") and "configure()" in lines[0]

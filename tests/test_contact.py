@@ -66,7 +66,10 @@ def test_gradient_of_smooth_law_matches_finite_differences():
     jacobian = jax.jacfwd(lambda x: contact_force_smooth(x, R, K, 1e4))(p)
     h = 1e-8
     numeric = np.column_stack(
-        [(contact_force_smooth(p + h * e, R, K, 1e4) - contact_force_smooth(p - h * e, R, K, 1e4)) / (2 * h) for e in np.eye(3)]
+        [
+            (contact_force_smooth(p + h * e, R, K, 1e4) - contact_force_smooth(p - h * e, R, K, 1e4)) / (2 * h)
+            for e in np.eye(3)
+        ]
     )
     np.testing.assert_allclose(jacobian, numeric, rtol=1e-6, atol=1e-6)
 

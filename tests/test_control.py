@@ -10,8 +10,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax.control import GainsError, UnusedGainsWarning, load_gains, make_gains, paper_gains
-from spacegrasp_jax.control import admittance, cartesian
+from spacegrasp_jax.control import (
+    GainsError,
+    UnusedGainsWarning,
+    admittance,
+    cartesian,
+    load_gains,
+    make_gains,
+    paper_gains,
+)
 from spacegrasp_jax.control.pid import pid_init, pid_torque
 from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
 

@@ -287,12 +287,16 @@ def test_gradients_with_respect_to_robot_parameters(robot, random_states):
     grad_sat, grad_links = jax.jit(jax.grad(scalar, argnums=(0, 1)))(robot.satellite_mass, robot.link_mass)
     scalar = jax.jit(scalar)
     h = 1e-4 * robot.satellite_mass  # steps relative to the parameter: round-off stays small
-    numeric_sat = (scalar(robot.satellite_mass + h, robot.link_mass) - scalar(robot.satellite_mass - h, robot.link_mass)) / (2 * h)
+    numeric_sat = (
+        scalar(robot.satellite_mass + h, robot.link_mass) - scalar(robot.satellite_mass - h, robot.link_mass)
+    ) / (2 * h)
     np.testing.assert_allclose(grad_sat, numeric_sat, rtol=1e-6)
     for i in range(7):
         e = np.zeros(7)
         e[i] = h = 1e-4 * robot.link_mass[i]
-        numeric = (scalar(robot.satellite_mass, robot.link_mass + e) - scalar(robot.satellite_mass, robot.link_mass - e)) / (2 * h)
+        numeric = (
+            scalar(robot.satellite_mass, robot.link_mass + e) - scalar(robot.satellite_mass, robot.link_mass - e)
+        ) / (2 * h)
         np.testing.assert_allclose(grad_links[i], numeric, rtol=1e-6, atol=1e-10)
 
 
@@ -339,7 +343,11 @@ def test_property_mass_matrix_spd_and_matches_pinocchio(robot, pinocchio_model, 
 
 
 @settings(max_examples=40, deadline=None)
-@given(q=st.lists(angles, min_size=7, max_size=7), velocity=st.lists(rates, min_size=13, max_size=13), acceleration=st.lists(rates, min_size=13, max_size=13))
+@given(
+    q=st.lists(angles, min_size=7, max_size=7),
+    velocity=st.lists(rates, min_size=13, max_size=13),
+    acceleration=st.lists(rates, min_size=13, max_size=13),
+)
 def test_property_forward_dynamics_inverts_the_equation_of_motion(robot, q, velocity, acceleration):
     """forward_dynamics(Q = M a + bias) returns a, for any state and acceleration."""
     R_base = np.eye(3)

@@ -28,8 +28,16 @@ def test_factor_and_solves_match_numpy_alone_and_batched(n):
         np.testing.assert_allclose(jax.jit(jax.vmap(linalg.solve_spd))(As, rhs), expected, rtol=1e-10)
         np.testing.assert_allclose(linalg.solve_spd(jnp.asarray(As[0]), jnp.asarray(rhs[0])), expected[0], rtol=1e-10)
         # One matrix, a batch of right-hand sides, and the converse.
-        np.testing.assert_allclose(jax.vmap(linalg.solve_spd, in_axes=(None, 0))(As[0], rhs), np.stack([np.linalg.solve(As[0], b) for b in rhs]), rtol=1e-10)
-        np.testing.assert_allclose(jax.vmap(linalg.solve_spd, in_axes=(0, None))(As, rhs[0]), np.stack([np.linalg.solve(A, rhs[0]) for A in As]), rtol=1e-10)
+        np.testing.assert_allclose(
+            jax.vmap(linalg.solve_spd, in_axes=(None, 0))(As[0], rhs),
+            np.stack([np.linalg.solve(As[0], b) for b in rhs]),
+            rtol=1e-10,
+        )
+        np.testing.assert_allclose(
+            jax.vmap(linalg.solve_spd, in_axes=(0, None))(As, rhs[0]),
+            np.stack([np.linalg.solve(A, rhs[0]) for A in As]),
+            rtol=1e-10,
+        )
 
 
 def test_not_positive_definite_gives_nan():

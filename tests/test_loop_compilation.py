@@ -53,7 +53,10 @@ def array_bytes(instruction: str) -> list[int]:
     match = re.match(r"\s*(?:ROOT )?%[\w.\-]+ = (.*?) [\w\-]+\(", instruction)
     if not match:
         return []
-    return [BYTES[dtype] * math.prod(int(n) for n in dims.split(",") if n) for dtype, dims in re.findall(r"(\w+)\[([\d,]*)\]", match.group(1))]
+    return [
+        BYTES[dtype] * math.prod(int(n) for n in dims.split(",") if n)
+        for dtype, dims in re.findall(r"(\w+)\[([\d,]*)\]", match.group(1))
+    ]
 
 
 def loops_within(name: str, bodies: dict[str, list[str]]) -> list[str]:
@@ -113,7 +116,9 @@ def compiled_hlo(robot, gains):
                 scenario = paper_scenario(robot, duration=0.1)
                 function = {"rollout": rollout, "rollout_metrics": rollout_metrics}[program]
                 jitted = compilation.jit(function, static_argnames=("controller",))
-                texts[program, controller] = jitted.lower(robot, scenario, gains, controller=controller).compile().as_text()
+                texts[program, controller] = (
+                    jitted.lower(robot, scenario, gains, controller=controller).compile().as_text()
+                )
         return texts[program, controller]
 
     return get
@@ -122,13 +127,26 @@ def compiled_hlo(robot, gains):
 def _gradient_hlo(robot, gains) -> str:
     from spacegrasp_jax.tuning.objective import Objective, Weights
     from spacegrasp_jax.tuning.parameters import initial_params, make_mask
-    from spacegrasp_jax.tuning.tune import TuneConfig, checkpoint_segment, make_loss, make_value_and_grad, training_scenarios
+    from spacegrasp_jax.tuning.tune import (
+        TuneConfig,
+        checkpoint_segment,
+        make_loss,
+        make_value_and_grad,
+        training_scenarios,
+    )
 
     scenario = paper_scenario(robot, contact_law="smooth", duration=0.1)
     config = TuneConfig(batch=1)
     objective = Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 7)
-    loss = make_loss(robot, training_scenarios(scenario, config), gains, make_mask(gains, "admittance"), config,
-                     objective, checkpoint_segment(scenario.n_steps))
+    loss = make_loss(
+        robot,
+        training_scenarios(scenario, config),
+        gains,
+        make_mask(gains, "admittance"),
+        config,
+        objective,
+        checkpoint_segment(scenario.n_steps),
+    )
     params = initial_params(gains, "admittance")
     return make_value_and_grad(loss, params, "reverse").lower(params).compile().as_text()
 
@@ -147,7 +165,9 @@ def test_the_hlo_reader_finds_loops_compiled_whole():
         return jax.lax.fori_loop(0, n, lambda i, y: y * 0.5 + 1.0, x)
 
     def loop_with_lapack(x, n):
-        return jax.lax.fori_loop(0, n, lambda i, y: y * 0.5 + jax.numpy.linalg.cholesky(jax.numpy.diag(2.0 + y * y))[0], x)
+        return jax.lax.fori_loop(
+            0, n, lambda i, y: y * 0.5 + jax.numpy.linalg.cholesky(jax.numpy.diag(2.0 + y * y))[0], x
+        )
 
     assert len(loops_compiled_whole(jax.jit(loop).lower(jax.numpy.ones(3), 10).compile().as_text())) == 1
     assert loops_compiled_whole(jax.jit(loop_with_lapack).lower(jax.numpy.ones(3), 10).compile().as_text()) == set()
@@ -194,4 +214,6 @@ def test_the_gradient_step_loops_hold_no_array_over_512_bytes(compiled_hlo):
     assert len(step_loops) >= 4
     lines = [line for body in step_loops for line in bodies[body]]
     too_big = [line.strip()[:160] for line in lines if any(size > SEQUENTIAL_LIMIT_BYTES for size in array_bytes(line))]
-    assert too_big == [], f"{len(too_big)} arrays over {SEQUENTIAL_LIMIT_BYTES} B in the gradient's step loops: {too_big[:5]}"
+    assert too_big == [], (
+        f"{len(too_big)} arrays over {SEQUENTIAL_LIMIT_BYTES} B in the gradient's step loops: {too_big[:5]}"
+    )

@@ -22,8 +22,22 @@ def hand_log():
     u = np.array([[0.0] * 7, [1.0, -2.0, 0, 0, 0, 0, 0], [0.5, 3.0, 0, 0, 0, 0, -0.1], [0.0] * 7])
     contact = np.array([[0, 0, 0], [0, 0, 0], [3.0, 4.0, 0.0], [0, 0, 0]], dtype=float)
     zeros = lambda width: np.zeros((4, width))  # noqa: E731
-    return Log(t=t, pose_ee=pose_ee, pose_des=pose_des, twist_ee=zeros(6), contact_force=contact, momentum=zeros(6),
-               V_base=zeros(6), u=u, fts_force=zeros(3), fts_torque=zeros(3), V_ref=zeros(6), qd_des=zeros(7), q=zeros(7), qd=zeros(7))
+    return Log(
+        t=t,
+        pose_ee=pose_ee,
+        pose_des=pose_des,
+        twist_ee=zeros(6),
+        contact_force=contact,
+        momentum=zeros(6),
+        V_base=zeros(6),
+        u=u,
+        fts_force=zeros(3),
+        fts_torque=zeros(3),
+        V_ref=zeros(6),
+        qd_des=zeros(7),
+        q=zeros(7),
+        qd=zeros(7),
+    )
 
 
 def test_hand_computed_measures():

@@ -89,12 +89,29 @@ BAD_FIELDS = [
     ("nan", lambda f: {**f, "dh_lambda": np.r_[np.nan, f["dh_lambda"][1:]]}, r"dh_lambda: contains non-finite"),
     ("inf", lambda f: {**f, "mount_position": [0.2, np.inf, 0.2]}, r"mount_position: contains non-finite"),
     ("zero mass", lambda f: {**f, "satellite_mass": 0.0}, r"satellite_mass: masses must be positive"),
-    ("negative mass", lambda f: {**f, "link_mass": np.r_[f["link_mass"][:3], -1.0, f["link_mass"][4:]]}, r"link_mass: masses must be positive"),
-    ("asymmetric", lambda f: {**f, "ee_inertia": f["ee_inertia"] + np.triu(np.ones((3, 3)), 1) * 0.01}, r"ee_inertia: inertia tensor is not symmetric"),
-    ("not positive definite", lambda f: {**f, "satellite_inertia": np.diag([79.0, -1.0, 117.0])}, r"satellite_inertia: inertia tensor is not positive definite"),
+    (
+        "negative mass",
+        lambda f: {**f, "link_mass": np.r_[f["link_mass"][:3], -1.0, f["link_mass"][4:]]},
+        r"link_mass: masses must be positive",
+    ),
+    (
+        "asymmetric",
+        lambda f: {**f, "ee_inertia": f["ee_inertia"] + np.triu(np.ones((3, 3)), 1) * 0.01},
+        r"ee_inertia: inertia tensor is not symmetric",
+    ),
+    (
+        "not positive definite",
+        lambda f: {**f, "satellite_inertia": np.diag([79.0, -1.0, 117.0])},
+        r"satellite_inertia: inertia tensor is not positive definite",
+    ),
     (
         "triangle inequality",
-        lambda f: {**f, "link_inertia": np.concatenate([f["link_inertia"][:4], np.diag([0.1, 0.1, 0.5])[None], f["link_inertia"][5:]])},
+        lambda f: {
+            **f,
+            "link_inertia": np.concatenate(
+                [f["link_inertia"][:4], np.diag([0.1, 0.1, 0.5])[None], f["link_inertia"][5:]]
+            ),
+        },
         r"link_inertia\[4\]: principal moments .* break the triangle inequality",
     ),
 ]
@@ -122,12 +139,32 @@ BAD_TOML = [
     ("missing key", "mass = 7.0", "", r"missing robot field\(s\): end_effector.mass"),
     ("unknown key", "[end_effector]", "[end_effector]\ncolour = 1.0", r"unknown robot key end_effector.colour"),
     ("unknown table", "[arm]", "[gripper]\nsize = 1.0\n[arm]", r"unknown robot key gripper.size"),
-    ("wrong length", "link_mass = [15.0, 13.0, 18.0, 10.0, 8.5, 10.5, 5.0]", "link_mass = [15.0, 13.0]", r"arm.link_mass: expected shape \(7,\), got \(2,\)"),
+    (
+        "wrong length",
+        "link_mass = [15.0, 13.0, 18.0, 10.0, 8.5, 10.5, 5.0]",
+        "link_mass = [15.0, 13.0]",
+        r"arm.link_mass: expected shape \(7,\), got \(2,\)",
+    ),
     ("nan", "mass = 500.0", "mass = nan", r"satellite.mass: contains non-finite"),
     ("negative mass", "mass = 7.0", "mass = -7.0", r"end_effector.mass: masses must be positive"),
-    ("not positive definite", "[[79.0, 0.0, 0.0], [0.0, 79.0, 0.0], [0.0, 0.0, 117.0]]", "[[79.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 117.0]]", r"satellite.inertia: inertia tensor is not positive definite"),
-    ("triangle", "[[0.09, 0.0, 0.0], [0.0, 0.05, 0.0], [0.0, 0.0, 0.12]]", "[[0.01, 0.0, 0.0], [0.0, 0.05, 0.0], [0.0, 0.0, 0.12]]", r"end_effector.inertia: principal moments"),
-    ("asymmetric", "[[0.3, 0.0, 0.2], [0.0, 1.0, 0.0], [0.2, 0.0, 1.0]]", "[[0.3, 0.0, 0.2], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]", r"arm.link_inertia\[2\]: inertia tensor is not symmetric"),
+    (
+        "not positive definite",
+        "[[79.0, 0.0, 0.0], [0.0, 79.0, 0.0], [0.0, 0.0, 117.0]]",
+        "[[79.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 117.0]]",
+        r"satellite.inertia: inertia tensor is not positive definite",
+    ),
+    (
+        "triangle",
+        "[[0.09, 0.0, 0.0], [0.0, 0.05, 0.0], [0.0, 0.0, 0.12]]",
+        "[[0.01, 0.0, 0.0], [0.0, 0.05, 0.0], [0.0, 0.0, 0.12]]",
+        r"end_effector.inertia: principal moments",
+    ),
+    (
+        "asymmetric",
+        "[[0.3, 0.0, 0.2], [0.0, 1.0, 0.0], [0.2, 0.0, 1.0]]",
+        "[[0.3, 0.0, 0.2], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]",
+        r"arm.link_inertia\[2\]: inertia tensor is not symmetric",
+    ),
     ("syntax", "mass = 500.0", "mass = = 500.0", r"not valid TOML"),
 ]
 

@@ -40,8 +40,14 @@ def variant(gains):
 def five_samples(robot, short_scenario, variant):
     """n = 5 with the default ranges in chunks of 2 and of 4 (the last chunk padded), and in
     chunks of 4 run as sub-batches of 2 (``device_batch``)."""
-    configs = {2: CampaignConfig(n=5, chunk=2), 4: CampaignConfig(n=5, chunk=4), "4/2": CampaignConfig(n=5, chunk=4, device_batch=2)}
-    return {name: run_campaign(robot, short_scenario, [variant], config, progress=None) for name, config in configs.items()}
+    configs = {
+        2: CampaignConfig(n=5, chunk=2),
+        4: CampaignConfig(n=5, chunk=4),
+        "4/2": CampaignConfig(n=5, chunk=4, device_batch=2),
+    }
+    return {
+        name: run_campaign(robot, short_scenario, [variant], config, progress=None) for name, config in configs.items()
+    }
 
 
 def test_zero_perturbation_reproduces_the_nominal_rollout(robot, short_scenario, gains, variant):
@@ -62,7 +68,9 @@ def test_zero_perturbation_reproduces_the_nominal_rollout(robot, short_scenario,
         np.testing.assert_allclose(getattr(rows, name)[1], series[::10], rtol=1e-11, atol=1e-12, err_msg=name)
 
 
-def test_running_metrics_match_the_metrics_module_on_a_perturbed_sample(robot, short_scenario, gains, variant, five_samples):
+def test_running_metrics_match_the_metrics_module_on_a_perturbed_sample(
+    robot, short_scenario, gains, variant, five_samples
+):
     # An independent route: rebuild sample 3, run it with its full log, apply metrics.summary.
     sample_robot, sample_scenario = campaign.replay_sample(robot, short_scenario, CampaignConfig(n=5), 3)
     full = experiment.run(sample_robot, sample_scenario, gains, "admittance")
@@ -86,8 +94,24 @@ def test_four_devices_give_the_results_of_one(tmp_path, five_samples, variant):
     scenario_file = tmp_path / "short.toml"
     scenario_file.write_text(SHORT_SCENARIO_TOML)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
-    command = [sys.executable, "-m", "spacegrasp_jax.cli", "montecarlo", "--n", "5", "--chunk", "4", "--controller", "admittance",
-               "--scenario", str(scenario_file), "--out", str(tmp_path / "mc"), "--compile-cache", "none"]
+    command = [
+        sys.executable,
+        "-m",
+        "spacegrasp_jax.cli",
+        "montecarlo",
+        "--n",
+        "5",
+        "--chunk",
+        "4",
+        "--controller",
+        "admittance",
+        "--scenario",
+        str(scenario_file),
+        "--out",
+        str(tmp_path / "mc"),
+        "--compile-cache",
+        "none",
+    ]
     finished = subprocess.run(command, capture_output=True, text=True, env=env, timeout=600)
     assert finished.returncode == 0, finished.stderr
     assert "over 4 device(s)" in finished.stderr
@@ -133,7 +157,9 @@ def test_interrupted_campaign_resumes_chunk_by_chunk(tmp_path, robot, short_scen
         stop.requested = True
 
     out = tmp_path / "mc"
-    first = run_campaign(robot, short_scenario, [variant], config, out, progress=None, stop=stop, on_chunk=stop_after_first)
+    first = run_campaign(
+        robot, short_scenario, [variant], config, out, progress=None, stop=stop, on_chunk=stop_after_first
+    )
     assert first.status == "interrupted" and computed == [0]
     assert not (out / "samples.npz").exists()
     assert sorted(p.name for p in (out / "chunks" / "admittance" / "paper").iterdir()) == ["000000000.npz"]
@@ -141,7 +167,9 @@ def test_interrupted_campaign_resumes_chunk_by_chunk(tmp_path, robot, short_scen
     with pytest.raises(CampaignError, match="already holds a campaign"):
         run_campaign(robot, short_scenario, [variant], config, out, progress=None)
     with pytest.raises(CampaignError, match=r"the config differs .*\(seed\)"):
-        run_campaign(robot, short_scenario, [variant], dataclasses.replace(config, seed=1), out, resume=True, progress=None)
+        run_campaign(
+            robot, short_scenario, [variant], dataclasses.replace(config, seed=1), out, resume=True, progress=None
+        )
 
     resumed = run_campaign(robot, short_scenario, [variant], config, out, resume=True, progress=None)
     assert resumed.status == "done"
@@ -159,22 +187,27 @@ def test_summary_statistics_are_those_of_the_samples(five_samples, variant):
     errors = result.metrics[variant.key]["final_position_error_m"]
     stats = result.summary["variants"][variant.key]["statistics_over_non_diverged"]["final_position_error_m"]
     assert stats["count"] == 5
-    np.testing.assert_allclose([stats["mean"], stats["p50"], stats["max"]], [errors.mean(), np.median(errors), errors.max()], rtol=1e-12)
+    np.testing.assert_allclose(
+        [stats["mean"], stats["p50"], stats["max"]], [errors.mean(), np.median(errors), errors.max()], rtol=1e-12
+    )
     success = result.metrics[variant.key]["success"]
     np.testing.assert_array_equal(success, errors <= 0.005)  # orientation is well inside 1 deg here
     assert result.summary["variants"][variant.key]["worst_by_final_position_error"][0] == int(np.argmax(errors))
 
 
-@pytest.mark.parametrize("change, message", [
-    (dict(n=0), "n: must be at least 1"),
-    (dict(chunk=0), "chunk: must be at least 1"),
-    (dict(seed=-1), "seed: must be in"),
-    (dict(position_tolerance_m=0.0), "position_tolerance_m: must be positive"),
-    (dict(torque_limit_Nm=-1.0), "torque_limit_Nm: must be positive and finite, or None"),
-    (dict(torque_limit_Nm=float("inf")), "torque_limit_Nm: must be positive and finite, or None"),
-    (dict(timeseries_every=0), "timeseries_every: must be at least 1"),
-    (dict(device_batch=0), "device_batch: must be a positive integer"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(n=0), "n: must be at least 1"),
+        (dict(chunk=0), "chunk: must be at least 1"),
+        (dict(seed=-1), "seed: must be in"),
+        (dict(position_tolerance_m=0.0), "position_tolerance_m: must be positive"),
+        (dict(torque_limit_Nm=-1.0), "torque_limit_Nm: must be positive and finite, or None"),
+        (dict(torque_limit_Nm=float("inf")), "torque_limit_Nm: must be positive and finite, or None"),
+        (dict(timeseries_every=0), "timeseries_every: must be at least 1"),
+        (dict(device_batch=0), "device_batch: must be a positive integer"),
+    ],
+)
 def test_campaign_config_is_validated(change, message):
     with pytest.raises(CampaignError, match=message):
         CampaignConfig(**{"n": 4} | change)
@@ -194,15 +227,55 @@ def test_montecarlo_command_rejects_bad_input(tmp_path, capsys):
 
     assert main(["montecarlo", "--compile-cache", "none", "--n", "0", "--out", str(tmp_path / "a")]) == 2
     assert "--n: must be at least 1" in capsys.readouterr().err
-    assert main(["montecarlo", "--compile-cache", "none", "--n", "4", "--range", "q_init=0.1", "--out", str(tmp_path / "b")]) == 2
+    assert (
+        main(
+            ["montecarlo", "--compile-cache", "none", "--n", "4", "--range", "q_init=0.1", "--out", str(tmp_path / "b")]
+        )
+        == 2
+    )
     assert "unknown perturbation range 'q_init'" in capsys.readouterr().err
-    assert main(["montecarlo", "--compile-cache", "none", "--n", "4", "--range", "radius_fraction=1.5", "--out", str(tmp_path / "c")]) == 2
+    assert (
+        main(
+            [
+                "montecarlo",
+                "--compile-cache",
+                "none",
+                "--n",
+                "4",
+                "--range",
+                "radius_fraction=1.5",
+                "--out",
+                str(tmp_path / "c"),
+            ]
+        )
+        == 2
+    )
     assert "radius_fraction: must be below 1" in capsys.readouterr().err
     ranges = tmp_path / "ranges.toml"
     ranges.write_text("q_init_rad = -1\n")
-    assert main(["montecarlo", "--compile-cache", "none", "--n", "4", "--ranges", str(ranges), "--out", str(tmp_path / "d")]) == 2
+    assert (
+        main(
+            ["montecarlo", "--compile-cache", "none", "--n", "4", "--ranges", str(ranges), "--out", str(tmp_path / "d")]
+        )
+        == 2
+    )
     assert "ranges.toml: q_init_rad: must be non-negative" in capsys.readouterr().err
-    assert main(["montecarlo", "--compile-cache", "none", "--n", "4", "--gains", str(tmp_path / "missing.json"), "--out", str(tmp_path / "e")]) == 2
+    assert (
+        main(
+            [
+                "montecarlo",
+                "--compile-cache",
+                "none",
+                "--n",
+                "4",
+                "--gains",
+                str(tmp_path / "missing.json"),
+                "--out",
+                str(tmp_path / "e"),
+            ]
+        )
+        == 2
+    )
     assert "missing.json" in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in "abcde")
 

@@ -46,8 +46,15 @@ def test_same_seed_same_samples_whatever_the_batch(robot, nominal):
 
 def test_samples_stay_within_their_ranges(robot, nominal):
     ranges = PerturbationRanges(
-        q_init_rad=0.02, lar_position_m=0.004, lar_angle_rad=0.01, stiffness_factor=3.0, base_speed_mps=0.002,
-        base_rate_radps=0.003, joint_rate_radps=0.01, radius_fraction=0.2, satellite_mass_fraction=0.1,
+        q_init_rad=0.02,
+        lar_position_m=0.004,
+        lar_angle_rad=0.01,
+        stiffness_factor=3.0,
+        base_speed_mps=0.002,
+        base_rate_radps=0.003,
+        joint_rate_radps=0.01,
+        radius_fraction=0.2,
+        satellite_mass_fraction=0.1,
         satellite_inertia_fraction=0.3,
     )
     robots, batch, _ = sample(robot, nominal, 0, range(200), ranges)
@@ -83,14 +90,17 @@ def test_scenario_only_sampler_refuses_model_perturbations(nominal):
     assert sample_scenarios(nominal, 0, range(2), ranges).initial.q.shape == (2, 7)
 
 
-@pytest.mark.parametrize("change, message", [
-    (dict(q_init_rad=-0.1), "q_init_rad: must be non-negative"),
-    (dict(lar_position_m=float("nan")), "lar_position_m: must be a finite number"),
-    (dict(stiffness_factor=0.5), "stiffness_factor: must be >= 1"),
-    (dict(radius_fraction=1.0), "radius_fraction: must be below 1"),
-    (dict(satellite_mass_fraction=2.0), "satellite_mass_fraction: must be below 1"),
-    (dict(base_speed_mps="fast"), "base_speed_mps: must be a finite number"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(q_init_rad=-0.1), "q_init_rad: must be non-negative"),
+        (dict(lar_position_m=float("nan")), "lar_position_m: must be a finite number"),
+        (dict(stiffness_factor=0.5), "stiffness_factor: must be >= 1"),
+        (dict(radius_fraction=1.0), "radius_fraction: must be below 1"),
+        (dict(satellite_mass_fraction=2.0), "satellite_mass_fraction: must be below 1"),
+        (dict(base_speed_mps="fast"), "base_speed_mps: must be a finite number"),
+    ],
+)
 def test_ranges_are_validated(change, message):
     with pytest.raises(PerturbationError, match=message):
         PerturbationRanges(**change)

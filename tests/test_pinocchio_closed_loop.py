@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spacegrasp_jax.benchmarks.pinocchio_loop import PinocchioClosedLoop
 from spacegrasp_jax import experiment
+from spacegrasp_jax.benchmarks.pinocchio_loop import PinocchioClosedLoop
 from spacegrasp_jax.scenario import paper_scenario
 
 

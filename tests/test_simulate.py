@@ -95,7 +95,9 @@ def test_vmap_over_scenarios_equals_loop(robot, gains):
     for i, scenario in enumerate(scenarios):
         single = experiment.run(robot, scenario, gains, "admittance").log
         for name in ("u", "pose_ee", "contact_force", "momentum"):
-            np.testing.assert_allclose(getattr(logs, name)[i], getattr(single, name), rtol=1e-9, atol=1e-12, err_msg=name)
+            np.testing.assert_allclose(
+                getattr(logs, name)[i], getattr(single, name), rtol=1e-9, atol=1e-12, err_msg=name
+            )
     assert np.max(np.linalg.norm(logs.contact_force, axis=-1)) > 0.0
 
 

@@ -69,7 +69,11 @@ def test_cross_matches_numpy_with_broadcasting_and_its_derivatives_match_finite_
     for shape_a, shape_b in shapes:
         a, b = rng.normal(size=shape_a), rng.normal(size=shape_b)
         np.testing.assert_allclose(spatial.cross(a, b), np.cross(a, b), atol=1e-15)
-        np.testing.assert_allclose((spatial.skew(a) @ np.broadcast_to(b, np.broadcast_shapes(a.shape, b.shape))[..., None])[..., 0], np.cross(a, b), atol=1e-15)
+        np.testing.assert_allclose(
+            (spatial.skew(a) @ np.broadcast_to(b, np.broadcast_shapes(a.shape, b.shape))[..., None])[..., 0],
+            np.cross(a, b),
+            atol=1e-15,
+        )
         # Both modes, both arguments and each alone (the other a constant: a symbolic zero
         # tangent), against central finite differences.
         jax.test_util.check_grads(spatial.cross, (a, b), order=1, modes=("fwd", "rev"), eps=1e-6)
@@ -90,7 +94,9 @@ def test_matvec_and_matmul_match_numpy_alone_and_under_vmap_with_their_derivativ
         a = batch_A if in_axes[0] == 0 else A[0]
         v = batch_x if in_axes[1] == 0 else x
         m = batch_B if in_axes[1] == 0 else B
-        np.testing.assert_allclose(jax.vmap(spatial.matvec, in_axes)(a, v), np.einsum("...ij,...kj->...ki", a, v), atol=1e-14)
+        np.testing.assert_allclose(
+            jax.vmap(spatial.matvec, in_axes)(a, v), np.einsum("...ij,...kj->...ki", a, v), atol=1e-14
+        )
         np.testing.assert_allclose(jax.vmap(spatial.matmul, in_axes)(a, m), a @ m, atol=1e-14)
     for function, args in [(spatial.matvec, (A, x[0])), (spatial.matmul, (A, B))]:
         jax.test_util.check_grads(function, args, order=1, modes=("fwd", "rev"), eps=1e-6)

@@ -55,24 +55,34 @@ def test_bad_sweep_input_fails_before_compiling(robot, short_scenario, gains):
 def test_a_sweep_equals_single_rollouts_of_each_gain_set(robot, short_scenario, gains):
     # 3 sets in chunks of 2: the second chunk is padded, and the padding must not leak.
     scales = {"Kd": [0.5, 1.0, 2.0], "kp": [1.5, 1.0, 0.5]}
-    results = sweep.evaluate_gains(robot, short_scenario, sweep.scaled_gains(gains, scales), "admittance", chunk=2, progress=None)
+    results = sweep.evaluate_gains(
+        robot, short_scenario, sweep.scaled_gains(gains, scales), "admittance", chunk=2, progress=None
+    )
     assert results["final_position_error_m"].shape == (3,) and results["max_abs_torque_Nm"].shape == (3, 7)
     for n in range(3):
         single = dataclasses.replace(gains, Kd=gains.Kd * scales["Kd"][n], kp=gains.kp * scales["kp"][n])
         summary = experiment.run(robot, short_scenario, single, "admittance").summary
         np.testing.assert_allclose(results["max_abs_torque_Nm"][n], summary["max_abs_torque_Nm"], rtol=1e-10)
         np.testing.assert_allclose(results["largest_peak_torque_Nm"][n], max(summary["max_abs_torque_Nm"]), rtol=1e-10)
-        for name in ("final_position_error_m", "final_orientation_error_rad", "rms_position_error_m", "max_contact_force_N"):
+        for name in (
+            "final_position_error_m",
+            "final_orientation_error_rad",
+            "rms_position_error_m",
+            "max_contact_force_N",
+        ):
             np.testing.assert_allclose(results[name][n], summary[name], rtol=1e-9, atol=1e-15, err_msg=name)
     assert not results["diverged"].any()
 
 
 def _brute_force_front(a, b):
     points = np.column_stack([a, b])
-    return np.array([
-        np.all(np.isfinite(p)) and not any(np.all(np.isfinite(o)) and np.all(o <= p) and np.any(o < p) for o in points)
-        for p in points
-    ])
+    return np.array(
+        [
+            np.all(np.isfinite(p))
+            and not any(np.all(np.isfinite(o)) and np.all(o <= p) and np.any(o < p) for o in points)
+            for p in points
+        ]
+    )
 
 
 def test_pareto_front_matches_brute_force_and_ignores_non_finite_points():

@@ -20,7 +20,11 @@ from spacegrasp_jax.control import load_gains
 def tune_environment(tmp_path):
     """The tune subprocesses share JAX's persistent compilation cache: the first run
     compiles, the interrupted and resumed runs reuse its executables."""
-    return {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache"), "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+    return {
+        **os.environ,
+        "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache"),
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+    }
 
 
 #: Optimiser steps of the tune runs below: the interrupted run gets SIGINT after step 2, and
@@ -31,8 +35,23 @@ TUNE_STEPS = 8
 def tune_command(tmp_path, out, *extra):
     scenario = tmp_path / "short.toml"
     scenario.write_text("duration = 1.0\n[trajectory]\nduration = 1.0\n")
-    return [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--scenario", str(scenario),
-            "--steps", str(TUNE_STEPS), "--holdout", "3", "--batch", "2", *extra]
+    return [
+        sys.executable,
+        "-m",
+        "spacegrasp_jax.cli",
+        "tune",
+        "--out",
+        str(out),
+        "--scenario",
+        str(scenario),
+        "--steps",
+        str(TUNE_STEPS),
+        "--holdout",
+        "3",
+        "--batch",
+        "2",
+        *extra,
+    ]
 
 
 def run_until_step(command, history, step, env, timeout=600):
@@ -52,7 +71,9 @@ def run_until_step(command, history, step, env, timeout=600):
 def uninterrupted(tmp_path_factory):
     tmp_path = tmp_path_factory.mktemp("tune")
     out = tmp_path / "full"
-    result = subprocess.run(tune_command(tmp_path, out), capture_output=True, text=True, timeout=900, env=tune_environment(tmp_path))
+    result = subprocess.run(
+        tune_command(tmp_path, out), capture_output=True, text=True, timeout=900, env=tune_environment(tmp_path)
+    )
     assert result.returncode == 0, result.stderr
     return tmp_path, out, result
 
@@ -60,16 +81,39 @@ def uninterrupted(tmp_path_factory):
 def test_tune_writes_every_file(uninterrupted):
     _, out, result = uninterrupted
     assert f"step {TUNE_STEPS}/{TUNE_STEPS}" in result.stderr  # the progress bar
-    for name in ("gains.json", "history.csv", "summary.json", "run.json", "checkpoint.npz", "loss.png", "peak_torques.png", "ee_pose.png"):
+    for name in (
+        "gains.json",
+        "history.csv",
+        "summary.json",
+        "run.json",
+        "checkpoint.npz",
+        "loss.png",
+        "peak_torques.png",
+        "ee_pose.png",
+    ):
         assert (out / name).stat().st_size > 0, name
     gains = load_gains(out / "gains.json")  # loadable as simulate --gains takes it
     assert gains.kp.shape == (7,)
     rows = list(csv.DictReader((out / "history.csv").open()))
     assert [int(row["step"]) for row in rows] == list(range(TUNE_STEPS + 1))
-    assert {"loss", "final_position_m", "peak_torque_smooth", "peak_torque_hard", "peak_torque_gap", "gradient_norm", "step_size"} <= set(rows[0])
+    assert {
+        "loss",
+        "final_position_m",
+        "peak_torque_smooth",
+        "peak_torque_hard",
+        "peak_torque_gap",
+        "gradient_norm",
+        "step_size",
+    } <= set(rows[0])
     summary = json.loads((out / "summary.json").read_text())
     for key in ("paper_gains", "tuned_gains"):
-        assert {"max_abs_torque_Nm", "final_position_error_m", "final_orientation_error_rad", "rms_position_error_m", "max_contact_force_N"} <= set(summary[key])
+        assert {
+            "max_abs_torque_Nm",
+            "final_position_error_m",
+            "final_orientation_error_rad",
+            "rms_position_error_m",
+            "max_contact_force_N",
+        } <= set(summary[key])
     assert summary["holdout"]["scenarios"] == 3
     with np.load(out / "holdout.npz") as samples:
         assert samples["start_loss"].shape == (3,) and samples["tuned_final_position_m"].shape == (3,)
@@ -98,7 +142,14 @@ def test_tune_refuses_to_overwrite_and_rejects_bad_options(uninterrupted, tmp_pa
     _, full, _ = uninterrupted
     result = subprocess.run(tune_command(tmp_path, full), capture_output=True, text=True, timeout=300)
     assert result.returncode == 2 and "already holds a tuning run" in result.stderr
-    result = subprocess.run(tune_command(tmp_path, tmp_path / "x", "--weights", "speed=1"), capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        tune_command(tmp_path, tmp_path / "x", "--weights", "speed=1"), capture_output=True, text=True, timeout=300
+    )
     assert result.returncode == 2 and "unknown weight 'speed'" in result.stderr
-    result = subprocess.run([sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(tmp_path / "none"), "--resume"], capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(tmp_path / "none"), "--resume"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == 2 and "holds no tuning run" in result.stderr

@@ -13,10 +13,17 @@ import pytest
 from spacegrasp_jax import compilation
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
+from spacegrasp_jax.tuning import tune
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts, smooth_max
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
-from spacegrasp_jax.tuning import tune
-from spacegrasp_jax.tuning.tune import CHECKPOINT_SEGMENT, TuneConfig, make_loss, make_value_and_grad, optimise, training_scenarios
+from spacegrasp_jax.tuning.tune import (
+    CHECKPOINT_SEGMENT,
+    TuneConfig,
+    make_loss,
+    make_value_and_grad,
+    optimise,
+    training_scenarios,
+)
 
 SHORT = dict(duration=1.0, move_duration=1.0)  # contact starts at about 0.45 s
 
@@ -34,7 +41,11 @@ def test_smooth_max_bounds_the_hard_max():
 def test_weights_parse():
     assert Weights.parse("peak_torque=4, final_position=2") == Weights(final_position=2.0, peak_torque=4.0)
     assert Weights.parse("") == Weights()
-    for bad, message in [("speed=1", "unknown weight 'speed'"), ("peak_torque=x", "needs a number"), ("rms_tracking=-1", "non-negative")]:
+    for bad, message in [
+        ("speed=1", "unknown weight 'speed'"),
+        ("peak_torque=x", "needs a number"),
+        ("rms_tracking=-1", "non-negative"),
+    ]:
         with pytest.raises(ValueError, match=message):
             Weights.parse(bad)
 
@@ -151,8 +162,16 @@ def batch_problem(robot, gains, full_runs):
         values.append(float(value))
         gradients.append(gradient)
     mean_gradient = {group: np.mean([g[group] for g in gradients], axis=0) for group in params}
-    return dict(scenarios=scenarios, config=config, objective=objective, mask=mask, params=params,
-                one_scenario_segment=segment, mean_value=float(np.mean(values)), mean_gradient=mean_gradient)
+    return dict(
+        scenarios=scenarios,
+        config=config,
+        objective=objective,
+        mask=mask,
+        params=params,
+        one_scenario_segment=segment,
+        mean_value=float(np.mean(values)),
+        mean_gradient=mean_gradient,
+    )
 
 
 @pytest.mark.parametrize("in_sequence", [True, False], ids=["one-after-another", "vmapped"])
@@ -188,7 +207,9 @@ def test_gradient_finite_when_the_ee_passes_through_the_sphere_centre(robot, gai
     (value, aux), gradient = value_and_grad(params)
     assert np.isfinite(float(value))
     assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(gradient))
-    _, log = jax.jit(rollout, static_argnums=3)(robot, scenario, gains_from_params(params, gains, make_mask(gains, "admittance")), "admittance")
+    _, log = jax.jit(rollout, static_argnums=3)(
+        robot, scenario, gains_from_params(params, gains, make_mask(gains, "admittance")), "admittance"
+    )
     distance = np.linalg.norm(np.asarray(log.pose_ee[:, :3]) - np.asarray(scenario.sphere_centre), axis=1)
     assert distance.min() < 1e-3  # within a millimetre of the centre
 

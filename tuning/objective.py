@@ -38,7 +38,7 @@ class Weights:
     contact_force: float = 0.0
 
     @classmethod
-    def parse(cls, text: str) -> "Weights":
+    def parse(cls, text: str) -> Weights:
         """``"final_position=1,peak_torque=2"`` -> Weights; unknown names or negative or
         non-finite values raise ``ValueError`` naming them."""
         values = {}

@@ -9,8 +9,9 @@ Files in ``--out`` (all written atomically):
 * ``summary.json`` - starting vs tuned gains on the nominal scenario with the EXACT contact
   law, and their mean and median objective over held-out perturbed scenarios;
   ``holdout.npz`` - every part of the objective for each held-out sample, both gain sets.
-* ``loss.png``, ``peak_torques.png``, ``ee_pose.png`` - loss curve, per-joint peak torque and
-  EE pose before/after.
+
+The command line adds the figures (``loss.png``, ``peak_torques.png``, ``ee_pose.png``) from
+the :class:`TuneResult` that :func:`tune` returns.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import jax
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import batching, experiment, plots, runfiles
+from spacegrasp_jax import batching, experiment, runfiles
 from spacegrasp_jax.control import load_gains, make_gains, paper_gains
 from spacegrasp_jax.model import robot_from_toml
 from spacegrasp_jax.perturbations import sample_scenarios
@@ -98,7 +99,9 @@ def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chu
     NaN marks a diverged sample. The gains are an argument of the compiled program, so
     evaluating another gain set reuses it."""
     function = functools.partial(_scenarios_parts, controller=controller, objective=objective)
-    return batching.map_in_chunks("tuning.evaluate", function, (robot, gains), scenarios, chunk=chunk, key=(controller, objective), progress=None)
+    return batching.map_in_chunks(
+        "tuning.evaluate", function, (robot, gains), scenarios, chunk=chunk, key=(controller, objective), progress=None
+    )
 
 
 def _write_history(path: Path, history: list) -> None:
@@ -121,6 +124,23 @@ def _comparison(result: experiment.RunResult) -> dict:
     }
 
 
+@dataclasses.dataclass(frozen=True)
+class TuneResult:
+    """What a tuning run leaves besides its files.
+
+    Attributes:
+        status: ``"done"`` or ``"interrupted"``.
+        history: one dict per step (the rows of ``history.csv``).
+        log_before, log_after: the nominal rollouts (exact contact law) with the starting and
+            the tuned gains (``log_after`` is ``None`` when interrupted).
+    """
+
+    status: str
+    history: list
+    log_before: object
+    log_after: object | None = None
+
+
 def tune(
     out: Path,
     *,
@@ -131,8 +151,8 @@ def tune(
     holdout: int = 100,
     resume: bool = False,
     progress=sys.stderr,
-) -> int:
-    """Run the job; returns the exit code (0 done, 130 interrupted)."""
+) -> TuneResult:
+    """Run the job (or, with ``resume``, continue it) and write its files in ``out``."""
     out = Path(out)
     record_path, checkpoint_path = out / "run.json", out / CHECKPOINT
     if resume:
@@ -143,7 +163,9 @@ def tune(
         holdout = record["holdout"]
     else:
         if record_path.exists():
-            raise TuneSetupError(f"{out} already holds a tuning run: pass --resume to continue it, or choose another --out")
+            raise TuneSetupError(
+                f"{out} already holds a tuning run: pass --resume to continue it, or choose another --out"
+            )
         if holdout < 0:
             raise TuneSetupError(f"--holdout: must be >= 0, got {holdout}")
         record = new_record(config or TuneConfig(), gains_file, scenario_file, robot_file, holdout)
@@ -156,7 +178,11 @@ def tune(
     exact = dataclasses.replace(_scenario(robot, record), contact_law="exact")
     smooth = dataclasses.replace(exact, contact_law="smooth")  # gradients need the smooth law
 
-    print(f"evaluating the starting gains ({record['gains_source']}) on the nominal scenario...", file=progress, flush=True)
+    print(
+        f"evaluating the starting gains ({record['gains_source']}) on the nominal scenario...",
+        file=progress,
+        flush=True,
+    )
     before = experiment.run(robot, exact, base, config.controller)
     objective, mask, params, value_and_grad = setup(robot, smooth, base, config, before.summary["max_abs_torque_Nm"])
     resume_state = None
@@ -168,7 +194,11 @@ def tune(
         print(progress_line(state, config.steps), end="", file=progress, flush=True)
         _write_history(out / "history.csv", state.history)
 
-    print(f"compiling the {config.gradient}-mode gradient of the {config.controller} objective over {config.batch} scenario(s)...", file=progress, flush=True)
+    print(
+        f"compiling the {config.gradient}-mode gradient of the {config.controller} objective over {config.batch} scenario(s)...",
+        file=progress,
+        flush=True,
+    )
     with runfiles.StopRequest() as stop:
         state, status = optimise(
             value_and_grad,
@@ -185,8 +215,11 @@ def tune(
     tuned = gains_from_params(state.params, base, mask)
     runfiles.write_json(out / "gains.json", tuned.to_dict(config.controller))
     if status == "interrupted":
-        print(f"interrupted after step {state.step}/{config.steps}; continue with: spacegrasp tune --out {out} --resume", file=progress)
-        return 130
+        print(
+            f"interrupted after step {state.step}/{config.steps}; continue with: spacegrasp tune --out {out} --resume",
+            file=progress,
+        )
+        return TuneResult(status, state.history, before.log)
 
     print("evaluating the tuned gains with the exact contact law...", file=progress, flush=True)
     after = experiment.run(robot, exact, tuned, config.controller)
@@ -201,10 +234,14 @@ def tune(
         "objective": dataclasses.asdict(objective),
     }
     start_key = next(key for key in summary if key in ("paper_gains", "starting_gains"))
-    summary["largest_peak_torque_change"] = summary["tuned_gains"]["largest_peak_torque_Nm"] / summary[start_key]["largest_peak_torque_Nm"] - 1.0
+    summary["largest_peak_torque_change"] = (
+        summary["tuned_gains"]["largest_peak_torque_Nm"] / summary[start_key]["largest_peak_torque_Nm"] - 1.0
+    )
     summary["joints_with_higher_peak"] = [
         joint + 1
-        for joint, (old, new) in enumerate(zip(summary[start_key]["max_abs_torque_Nm"], summary["tuned_gains"]["max_abs_torque_Nm"]))
+        for joint, (old, new) in enumerate(
+            zip(summary[start_key]["max_abs_torque_Nm"], summary["tuned_gains"]["max_abs_torque_Nm"])
+        )
         if new > old
     ]
     if holdout:
@@ -237,6 +274,4 @@ def tune(
         samples.update({f"tuned_{name}": value for name, value in after_parts.items()})
         runfiles.write_arrays(out / "holdout.npz", samples)
     runfiles.write_json(out / "summary.json", summary)
-    plots.save_tuning_figures(state.history, before.log, after.log, out, runfiles.write_atomically)
-    print(f"wrote {out}/: gains.json, history.csv, summary.json, loss.png, peak_torques.png, ee_pose.png", file=progress)
-    return 0
+    return TuneResult(status, state.history, before.log, after.log)

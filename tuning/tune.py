@@ -15,8 +15,8 @@ import dataclasses
 import json
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -26,9 +26,9 @@ from jax.flatten_util import ravel_pytree
 
 from spacegrasp_jax import compilation
 from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
+from spacegrasp_jax.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import largest_divisor, rollout
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts
@@ -40,8 +40,15 @@ CHECKPOINT = "checkpoint.npz"
 #: The robust batch's perturbations: initial joint angles, LAR pose and contact stiffness,
 #: the model and the initial velocities left nominal (the Monte-Carlo defaults vary those too).
 TUNING_RANGES = PerturbationRanges(
-    q_init_rad=0.01, lar_position_m=0.003, lar_angle_rad=0.005, stiffness_factor=2.0, base_speed_mps=0.0,
-    base_rate_radps=0.0, joint_rate_radps=0.0, radius_fraction=0.0, satellite_mass_fraction=0.0,
+    q_init_rad=0.01,
+    lar_position_m=0.003,
+    lar_angle_rad=0.005,
+    stiffness_factor=2.0,
+    base_speed_mps=0.0,
+    base_rate_radps=0.0,
+    joint_rate_radps=0.0,
+    radius_fraction=0.0,
+    satellite_mass_fraction=0.0,
     satellite_inertia_fraction=0.0,
 )
 
@@ -107,7 +114,7 @@ class TuneConfig:
         return document
 
     @classmethod
-    def from_dict(cls, document: dict) -> "TuneConfig":
+    def from_dict(cls, document: dict) -> TuneConfig:
         document = dict(document)
         document["weights"] = Weights(**document["weights"])
         document["ranges"] = PerturbationRanges.from_mapping(document["ranges"], base=TUNING_RANGES)
@@ -118,7 +125,9 @@ class TuneConfig:
 def make_optimizer(config: TuneConfig):
     """``chain(clip_by_global_norm, <optimizer>(cosine schedule))`` and its schedule."""
     schedule = optax.cosine_decay_schedule(config.learning_rate, decay_steps=config.steps, alpha=0.1)
-    return optax.chain(optax.clip_by_global_norm(config.clip_norm), getattr(optax, config.optimizer)(schedule)), schedule
+    return optax.chain(
+        optax.clip_by_global_norm(config.clip_norm), getattr(optax, config.optimizer)(schedule)
+    ), schedule
 
 
 #: Steps per inner scan of a one-scenario reverse-mode gradient (``simulate.rollout``'s
@@ -164,7 +173,9 @@ def training_scenarios(nominal: Scenario, config: TuneConfig) -> Scenario:
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), stacked, perturbed)
 
 
-def scenario_parts(robot: Robot, scenario: Scenario, gains: Gains, controller: str, objective: Objective, segment: int | None = None) -> dict:
+def scenario_parts(
+    robot: Robot, scenario: Scenario, gains: Gains, controller: str, objective: Objective, segment: int | None = None
+) -> dict:
     """Every part of the objective on one scenario (:func:`~spacegrasp_jax.tuning.objective.objective_parts`),
     plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m). ``segment``: the
     rollout's ``checkpoint_segment`` (for reverse-mode gradients)."""
@@ -174,7 +185,9 @@ def scenario_parts(robot: Robot, scenario: Scenario, gains: Gains, controller: s
     return parts
 
 
-def make_loss(robot: Robot, scenarios: Scenario, base: Gains, mask, config: TuneConfig, objective: Objective, segment: int | None):
+def make_loss(
+    robot: Robot, scenarios: Scenario, base: Gains, mask, config: TuneConfig, objective: Objective, segment: int | None
+):
     """``loss(params) -> (loss, aux)``: the batch mean (or CVaR) of the objective, and the
     batch-mean parts plus the worst hard peak torque (N m) for the divergence guard. The
     scenarios run one after another or vmapped, as :func:`batch_in_sequence` says."""
@@ -305,7 +318,7 @@ def progress_line(state: RunState, total: int) -> str:
         total,
         f"step {state.step}/{total} loss {state.loss:.4f} | "
         f"final pos {1e3 * aux['final_position_m']:.3f} mm | peak torque {aux['peak_torque_smooth']:.3f} "
-        f"(hard {aux['peak_torque_hard']:.3f}, gap {aux['peak_torque_gap']:.3f}) | rms {1e3 * aux['rms_tracking_m']:.2f} mm"
+        f"(hard {aux['peak_torque_hard']:.3f}, gap {aux['peak_torque_gap']:.3f}) | rms {1e3 * aux['rms_tracking_m']:.2f} mm",
     )
 
 
@@ -345,16 +358,30 @@ def optimise(
                 break
             rejected += 1
             state.events.append(
-                {"step": state.step + 1, "event": "rejected", "loss": float(loss), "largest_peak_torque_Nm": float(aux["largest_peak_torque_Nm"]), "new_scale": state.scale / 2}
+                {
+                    "step": state.step + 1,
+                    "event": "rejected",
+                    "loss": float(loss),
+                    "largest_peak_torque_Nm": float(aux["largest_peak_torque_Nm"]),
+                    "new_scale": state.scale / 2,
+                }
             )
             state.scale /= 2.0
             if state.scale < 1e-6:
                 raise RuntimeError("every candidate step diverges even at 1e-6 of the step size")
         step_size = float(schedule(state.step)) * state.scale
         state = dataclasses.replace(
-            state, step=state.step + 1, params=candidate, opt_state=new_opt_state, loss=float(loss), aux=aux, gradient=gradient
+            state,
+            step=state.step + 1,
+            params=candidate,
+            opt_state=new_opt_state,
+            loss=float(loss),
+            aux=aux,
+            gradient=gradient,
         )
-        state.history.append(history_row(state.step, loss, aux, gradient, step_size, rejected, time.perf_counter() - start))
+        state.history.append(
+            history_row(state.step, loss, aux, gradient, step_size, rejected, time.perf_counter() - start)
+        )
         if checkpoint_path is not None:
             save_checkpoint(checkpoint_path, state, config, write_atomically)
         if on_step is not None:
@@ -364,7 +391,9 @@ def optimise(
 
 def setup(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torque_scale_Nm):
     """Objective, initial parameters, mask and the jitted loss gradient for a run."""
-    objective = Objective(weights=config.weights, torque_scale_Nm=tuple(float(x) for x in torque_scale_Nm), temperature=config.temperature)
+    objective = Objective(
+        weights=config.weights, torque_scale_Nm=tuple(float(x) for x in torque_scale_Nm), temperature=config.temperature
+    )
     mask = make_mask(base, config.controller, config.frozen)
     params = initial_params(base, config.controller)
     scenarios = training_scenarios(nominal, config)

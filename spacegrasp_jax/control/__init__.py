@@ -14,4 +14,14 @@ from spacegrasp_jax.control.gains import (
 #: The controllers' names, everywhere (command line, files, tables, figures).
 CONTROLLERS = ("admittance", "cartesian")
 
-__all__ = ["CONTROLLERS", "GAINS_USED", "Gains", "GainsError", "UnusedGainsWarning", "load_gains", "make_gains", "paper_gains", "tuned_gains"]
+__all__ = [
+    "CONTROLLERS",
+    "GAINS_USED",
+    "Gains",
+    "GainsError",
+    "UnusedGainsWarning",
+    "load_gains",
+    "make_gains",
+    "paper_gains",
+    "tuned_gains",
+]

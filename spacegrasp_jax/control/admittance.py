@@ -22,9 +22,7 @@ def pose_error(pose_des: jax.Array, pose: jax.Array) -> jax.Array:
     return jnp.concatenate([position, jnp.arctan2(jnp.sin(angles), jnp.cos(angles))])
 
 
-def reference_twist_rate(
-    gains: Gains, pose, twist, pose_des, twist_des, twist_rate_des, wrench_lar
-) -> jax.Array:
+def reference_twist_rate(gains: Gains, pose, twist, pose_des, twist_des, twist_rate_des, wrench_lar) -> jax.Array:
     """Eq 14: the reference twist rate ``dV_ref/dt`` (6,) in the LAR frame.
 
     Args:

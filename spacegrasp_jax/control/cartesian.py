@@ -12,7 +12,9 @@ from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
 
 
-def desired_joint_rates(gains: Gains, J_dyn_ee: jax.Array, R_lar_ee: jax.Array, pose, pose_des, damping=0.0) -> jax.Array:
+def desired_joint_rates(
+    gains: Gains, J_dyn_ee: jax.Array, R_lar_ee: jax.Array, pose, pose_des, damping=0.0
+) -> jax.Array:
     """Eqs 21-22: ``qd_des`` (7,) rad/s.
 
     The position error (LAR) times ``K_lin`` is a velocity command rotated into the EE frame

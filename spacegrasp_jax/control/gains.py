@@ -150,7 +150,15 @@ def load_gains(path: str | Path, controller: str | None = None) -> Gains:
         gains = make_gains(**(paper_gains().to_dict() | document))
     except GainsError as error:
         raise GainsError(f"{path}: {error}") from None
-    unused = [name for name in GAIN_SHAPES if name in document and controller is not None and name not in GAINS_USED[controller]]
+    unused = [
+        name
+        for name in GAIN_SHAPES
+        if name in document and controller is not None and name not in GAINS_USED[controller]
+    ]
     if unused:
-        warnings.warn(f"{path}: {', '.join(unused)} not used by the {controller} controller (ignored)", UnusedGainsWarning, stacklevel=2)
+        warnings.warn(
+            f"{path}: {', '.join(unused)} not used by the {controller} controller (ignored)",
+            UnusedGainsWarning,
+            stacklevel=2,
+        )
     return gains

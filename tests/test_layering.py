@@ -1,0 +1,64 @@
+"""The package's layers, read from its import statements: the core imports no host module,
+nothing below the faces imports a face, and the plots run nothing of the package."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: The command line, the figures and the benchmarks: they may import anything.
+FACES = {"spacegrasp_jax.cli", "spacegrasp_jax.plots", "spacegrasp_jax.benchmarks"}
+#: The host side: runs, batches, files, campaigns, sweeps, tuning.
+HOST = {
+    "spacegrasp_jax.batching",
+    "spacegrasp_jax.campaign",
+    "spacegrasp_jax.experiment",
+    "spacegrasp_jax.runfiles",
+    "spacegrasp_jax.sweep",
+    "spacegrasp_jax.tuning",
+}
+
+
+def module_files():
+    for path in sorted((ROOT / "spacegrasp_jax").rglob("*.py")):
+        yield ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__"), path
+    for folder in ("tuning", "benchmarks"):
+        for path in sorted((ROOT / folder).glob("*.py")):
+            yield f"spacegrasp_jax.{folder}.{path.stem}".removesuffix(".__init__"), path
+
+
+def imported(path: Path) -> set[str]:
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            names.add(node.module)
+            names |= {f"{node.module}.{alias.name}" for alias in node.names}
+    return {name for name in names if name.startswith("spacegrasp_jax")}
+
+
+def within(name: str, groups: set[str]) -> bool:
+    return any(name == group or name.startswith(group + ".") for group in groups)
+
+
+def test_the_core_imports_no_host_module_and_no_face():
+    for module, path in module_files():
+        if within(module, FACES | HOST) or module == "spacegrasp_jax":
+            continue
+        wrong = {name for name in imported(path) if within(name, FACES | HOST)}
+        assert not wrong, f"{module} imports {sorted(wrong)}"
+
+
+def test_nothing_below_the_faces_imports_a_face():
+    for module, path in module_files():
+        if within(module, FACES):
+            continue
+        wrong = {name for name in imported(path) if within(name, FACES)}
+        assert not wrong, f"{module} imports {sorted(wrong)}"
+
+
+def test_the_plots_draw_data_and_run_nothing_of_the_package():
+    assert imported(ROOT / "spacegrasp_jax" / "plots.py") == set()
