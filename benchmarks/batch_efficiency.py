@@ -2,7 +2,7 @@
 
     python -m spacegrasp_jax.benchmarks.batch_efficiency [--out results/benchmarks] [--batch 128] [--iterations 1000] [--parts ...]
 
-The Monte-Carlo target (README, Performance) is a batch of 1,024 rollouts at 10x the
+The Monte-Carlo target (documentation, Performance) is a batch of 1,024 rollouts at 10x the
 throughput of single rollouts run one after another. On a CPU that can only come from the
 cores and from each core computing several samples at once (SIMD lanes). This measures the
 second factor where it is decided: each part of one closed-loop step runs ``--iterations``
@@ -49,7 +49,7 @@ def forward_kinematics_by_component(robot, p_base, R_base, q):
     column by column, stacked into the same :class:`~spacegrasp_jax.kinematics.Frames` only
     at the end. Under ``vmap`` each component is an array of the batch's shape, so the chain's
     arithmetic runs across the batch (the last axis). The probe for a batch-last rewrite of the
-    step (README, Performance); not used by the package."""
+    step (documentation, Performance); not used by the package."""
     import jax.numpy as jnp
 
     from spacegrasp_jax.kinematics import Frames

@@ -1,7 +1,7 @@
 """Free-floating dynamics: mass matrix, bias forces, forward dynamics, momentum and the
 Dynamic Jacobian (paper eqs 3-8).
 
-Equation of motion (DESIGN.md): ``M(x) xdot_v + bias(x, x_v) = Q`` with the generalised
+Equation of motion (modelling notes): ``M(x) xdot_v + bias(x, x_v) = Q`` with the generalised
 velocity ``x_v = [v_s, w_s, qd]`` (13,), ``v_s`` the satellite CoM velocity and ``w_s`` its
 angular velocity, both in the inertial frame, and ``Q = [f_s, tau_s, u]`` (13,) the force
 on the satellite CoM, the torque on the satellite (inertial frame) and the joint torques.
@@ -77,7 +77,7 @@ def _prefix_unrolled(x: jax.Array, reverse: bool) -> jax.Array:
 def _prefix_sums(x: jax.Array, reverse: bool) -> jax.Array:
     """Cumulative sums of ``x`` (n, ...) down (or, if ``reverse``, up) its first axis,
     n <= 8. The values are written out as n - 1 additions, which XLA fuses into one loop
-    (``lax.cumsum`` lowers to a reduce-window, 3x slower per call on a CPU under vmap). The
+    (``lax.cumsum`` lowers to a reduce-window, slower on a CPU under vmap). The
     derivative is ``lax.cumsum``: one kernel each way, where the additions' derivative would
     be one kernel per row (the transposes of the row slices)."""
     return _prefix_unrolled(x, reverse)

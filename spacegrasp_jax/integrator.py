@@ -93,12 +93,12 @@ def rk4_step(
     Stages 2-4 are one ``lax.scan`` over their coefficients, its body under
     ``jax.checkpoint``: the compiled step holds one copy of ``derivative`` for them instead
     of three, and its derivative one copy of the stage's adjoint. XLA's CPU runtime pays
-    for every distinct kernel of a loop body: with three copies a reverse-mode gradient
-    took 1.3x to 1.7x as long (README, Performance). The checkpoint limits what the loop
+    for every distinct kernel of a loop body, so one copy makes a faster gradient
+    (documentation, Performance). The checkpoint limits what the loop
     saves to the stage's input state, so the backward loop's arrays stay within 64
     numbers, like the forward step's. ``prevent_cse=False``: inside a loop there is nothing
     for XLA to merge the recomputation with, and the optimisation barriers that the default
-    inserts kept XLA from fusing across them (a gradient 1.1x slower).
+    inserts would keep XLA from fusing across them.
     """
 
     def advance(base, rate, h):

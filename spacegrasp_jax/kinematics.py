@@ -1,7 +1,7 @@
 """Forward kinematics and Jacobians of the free-floating arm, in the inertial frame.
 
 Naming: ``p_*`` positions (m), ``R_*`` rotation matrices (body to inertial), ``J*`` Jacobians
-mapping the generalised velocity ``x_v = [v_s, w_s, qd]`` (13,) of DESIGN.md (``v_s`` the
+mapping the generalised velocity ``x_v = [v_s, w_s, qd]`` (13,) (``v_s`` the
 satellite CoM velocity and ``w_s`` its angular velocity, both in the inertial frame) to
 velocities in the inertial frame. Bodies are numbered 0 (satellite) to 7 (link 7 with the
 EE body merged into it).
@@ -27,7 +27,8 @@ class Frames:
 
     The rotations are kept as frame 0's and frames 1..7's, not as one (8, 3, 3) stack: no
     array of the closed loop's step exceeds 64 numbers, which lets XLA's CPU runtime run the
-    step's kernels one after the other instead of as a task graph (README, Performance).
+    step's kernels one after the other instead of as a task graph where loops run kernel by
+    kernel (documentation, Performance).
     The origins and axes the dynamics read are stacked as they are built, not sliced out of
     larger arrays: the derivative of a slice is a zero-padding, a kernel of its own.
 

@@ -5,10 +5,9 @@ the pseudoinverse.
 All of it is unrolled code written entry by entry (a 7x7 factor is 28 scalar expressions),
 for one system or, under ``vmap``, for a batch. No LAPACK call: a custom call is a kernel
 XLA:CPU cannot compile into a loop, and without any the closed loop's step loops compile
-to single kernels (``spacegrasp_jax.compilation``; 2.4x faster rollouts). Under ``vmap``
-XLA vectorises the same code across the batch (batched LAPACK is an opaque call per
-system, and with jax 0.10.2 on a 2-core CPU it deadlocked for batches of about 512 and
-more: README, modelling notes).
+to single kernels (``spacegrasp_jax.compilation``). Under ``vmap`` XLA vectorises the
+same code across the batch (batched LAPACK is an opaque call per system; documentation,
+modelling notes).
 
 ``solve_spd`` has its own derivative rule, ``dX = A^-1 (dB - dA X)``, built from the
 factor and the substitutions of :func:`cho_solve`, which are linear in the right-hand side

@@ -1,6 +1,6 @@
 """The robot: a 7-joint arm on a free-floating satellite, as a static pytree.
 
-Frames and conventions (``../shared/DESIGN.md``)
+Frames and conventions (the modelling notes of the documentation)
 ------------------------------------------------
 * Satellite (base) frame: origin at the satellite CoM.
 * Frame 0 is the mounting point ``mount_position`` (satellite frame), axes parallel to
@@ -208,7 +208,7 @@ def inertia_from_table(row) -> np.ndarray:
 
 
 def load_robot(path: str | Path) -> Robot:
-    """Read a robot from a TOML file (schema in the README and ``configs/paper_robot.toml``).
+    """Read a robot from a TOML file (schema in the documentation's File formats and ``configs/paper_robot.toml``).
 
     The file has three tables, ``[satellite]``, ``[arm]`` and ``[end_effector]``; each key
     maps to one :class:`Robot` field (``satellite.mass`` -> ``satellite_mass``,

@@ -1,7 +1,7 @@
 """Per-sample metrics of closed-loop rollouts, accumulated inside the scan, and the batched
 evaluation of a Monte-Carlo campaign's samples.
 
-A full :class:`~spacegrasp_jax.simulate.Log` of a 17 s rollout is about 11 MB; a campaign
+A full :class:`~spacegrasp_jax.simulate.Log` of a 17 s rollout holds some 1.4 million numbers; a campaign
 needs a few numbers per sample. :func:`rollout_metrics` runs the same scan body as
 :func:`~spacegrasp_jax.simulate.rollout` but folds every log row into the running metrics of
 :mod:`spacegrasp_jax.metrics` as it goes (the functions that give a whole log's metrics), so

@@ -47,7 +47,8 @@ class PerturbationError(ValueError):
 @dataclasses.dataclass(frozen=True)
 class PerturbationRanges:
     """Half-widths of the uniform perturbations (module docstring). The defaults are the
-    Monte-Carlo campaign's (README, "Monte-Carlo"); all zeros give the nominal scenario."""
+    Monte-Carlo campaign's (documentation, Monte-Carlo campaigns); all zeros give the
+    nominal scenario."""
 
     q_init_rad: float = 0.02
     lar_position_m: float = 0.005

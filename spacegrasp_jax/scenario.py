@@ -80,7 +80,7 @@ def paper_scenario(
     contact_sharpness: float = 1e4,
     contact_law: str = "exact",
 ) -> Scenario:
-    """The paper's grasping scenario (section 4, DESIGN.md), every number overridable.
+    """The paper's grasping scenario (section 4; modelling notes), every number overridable.
 
     The satellite starts at the origin with identity attitude and the system at rest at
     ``q_init``. The LAR frame has the orientation of the initial EE frame and its origin
@@ -188,7 +188,7 @@ _FILE_KEYS = {
 
 def scenario_from_mapping(robot: Robot, document: dict) -> Scenario:
     """The paper scenario with the values given in ``document`` replaced; every key is
-    optional (see the README's scenario schema) and unknown keys are rejected."""
+    optional (documentation, File formats) and unknown keys are rejected."""
     kwargs = {}
     for key, value in document.items():
         if isinstance(value, dict):

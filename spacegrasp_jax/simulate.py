@@ -1,6 +1,6 @@
 """The closed loop: contact -> sensor -> controller -> joint PID -> RK4, as one ``lax.scan``.
 
-Each step of length ``dt`` (DESIGN.md):
+Each step of length ``dt`` (modelling notes):
 1. the controller reads the state and the F/T sensor once (eqs 18-19), computes the desired
    joint rates (admittance eqs 9-17 or Cartesian eqs 21-22) and the PID joint torques;
 2. the torques are held over the step (zero-order hold) while RK4 integrates the plant, the
@@ -118,8 +118,8 @@ class PlantKinematics:
     """What both the controller and the plant's rate need at one state, computed once.
 
     Matrices are kept as blocks (satellite, joints), none larger than 64 numbers: XLA's CPU
-    runtime then runs the step's kernels in sequence instead of as a task graph (a 17 s
-    rollout 1.5-1.7x faster; README, Performance).
+    runtime then runs the step's kernels in sequence instead of as a task graph where loops
+    run kernel by kernel (documentation, Performance).
 
     Attributes:
         frames: :class:`~spacegrasp_jax.kinematics.Frames` with the satellite CoM at the
@@ -331,8 +331,8 @@ def rollout(
             every step, and the backward pass recomputes each part just before
             differentiating it. A stage's rate is at most 7 numbers a field, so the three
             of one step are (3, 7) and inner scans of 2 steps hold no array over 64
-            numbers, which matters where XLA runs loops kernel by kernel (README,
-            Performance; with loops compiled whole the length does not).
+            numbers, which matters where XLA runs loops kernel by kernel (with loops
+            compiled whole the length does not).
             ``None``: blocks of :data:`LOG_BLOCK` steps, nothing checkpointed.
 
     Returns:
@@ -349,7 +349,7 @@ def rollout(
     # within 64 numbers a field. Where XLA runs loops kernel by kernel, it then runs that
     # inner loop's kernels in sequence, where a loop that writes into the whole log runs as
     # a task graph; compiled whole (spacegrasp_jax.compilation), the inner loop is one
-    # kernel (README, Performance).
+    # kernel.
     steps = jnp.arange(n_steps, dtype=scenario.initial.q.dtype).reshape(-1, block)
     final, rows = jax.lax.scan(lambda s, ks: jax.lax.scan(step, s, ks), initial_state(scenario), steps)
     return final, jax.tree.map(lambda x: x.reshape((n_steps,) + x.shape[2:]), rows)

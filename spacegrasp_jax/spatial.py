@@ -7,7 +7,7 @@ Conventions
 * Unit quaternions are scalar-first ``[w, x, y, z]`` (4,) and represent the same
   body-to-inertial rotation as the matrix built by :func:`quat_to_rotation`.
 * ZYX Euler angles are returned ordered ``[roll (about x), pitch (about y), yaw (about z)]``
-  with ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (DESIGN.md, eq 14 pairing).
+  with ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (modelling notes, eq 14 pairing).
 
 All functions are pure and work on a single element (:func:`skew`, :func:`cross`,
 :func:`matvec` and :func:`matmul` also broadcast over leading axes); use ``jax.vmap`` for
@@ -55,8 +55,8 @@ def matvec(A, x):
     It is written as a product and a sum, which XLA fuses with its neighbours, where a
     ``dot`` is a library call of its own on a CPU when loops run kernel by kernel (about 150
     of them per closed-loop step). Under ``vmap`` too: with loops compiled whole
-    (``spacegrasp_jax.compilation``) a batch runs faster so than with batched ``dot`` calls
-    (README, Performance). The derivative is products and sums too (its own rule, so that
+    (``spacegrasp_jax.compilation``) a batch runs faster so than with batched ``dot`` calls.
+    The derivative is products and sums too (its own rule, so that
     the transposes stay fused).
     """
     return _summed_matvec(A, x)

@@ -1,4 +1,4 @@
-"""The paper's robot in Pinocchio, built from Tables 1-3 and DESIGN.md's conventions alone.
+"""The paper's robot in Pinocchio, built from Tables 1-3 and the documented conventions alone (docs/modelling-notes.md).
 
 Deliberately independent of ``spacegrasp_jax``: the tables are typed again here and the
 model is assembled with Pinocchio's own joint, inertia and frame types, so that the

@@ -52,7 +52,7 @@ def test_body_inertials_merge_link7_and_ee(robot):
     d7, de = -0.15 - com[-1, 2], 0.1 - com[-1, 2]
     np.testing.assert_allclose(inertia[-1, 0, 0], 0.3 + 0.09 + 5 * d7**2 + 7 * de**2, rtol=1e-14)
     np.testing.assert_allclose(inertia[-1, 2, 2], 0.3 + 0.12, rtol=1e-14)
-    # DESIGN.md's reading, by hand: link 3 (L = 0.6, lambda = -0.3) has its CoM halfway
+    # The modelling notes' reading, by hand: link 3 (L = 0.6, lambda = -0.3) has its CoM halfway
     # along its 0.6 m length, at (0.3 - 0.6, 0, -0.2 + 0.3) from frame 3's origin.
     np.testing.assert_allclose(com[2], [-0.3, 0.0, -0.2 - (-0.3)], atol=1e-15)
 

@@ -1,4 +1,4 @@
-"""The paper scenario: the LAR frame of DESIGN.md, validation and scenario files."""
+"""The paper scenario: the LAR frame of the modelling notes, validation and scenario files."""
 
 from __future__ import annotations
 

@@ -229,7 +229,7 @@ def test_divergence_guard_rejects_and_shrinks_the_step(short_problem):
 
 
 def test_shipped_tuned_gains_beat_the_paper_on_the_nominal_scenario(robot, full_runs):
-    """``tuned_gains()`` (the data file the notebooks use) still does what the README says the
+    """``tuned_gains()`` (the data file the notebooks use) still does what the documentation says the
     default tuning run achieved, on today's simulator, with the exact contact law: the largest
     peak torque at least 30% lower, no joint's peak higher, the final position error no larger."""
     from spacegrasp_jax import experiment

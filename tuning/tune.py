@@ -71,7 +71,7 @@ class TuneConfig:
             fraction of the batch (conditional value at risk).
         seed: seed of the training perturbations.
         frozen: gain groups kept at their initial values.
-        gradient: ``"reverse"`` (checkpointed; measured faster) or ``"forward"``.
+        gradient: ``"reverse"`` (checkpointed; the faster) or ``"forward"``.
         torque_guard_Nm: a candidate whose peak torque exceeds this is rejected.
         ranges: perturbation half-widths for the robust batch (:data:`TUNING_RANGES`).
     """
@@ -132,19 +132,16 @@ def make_optimizer(config: TuneConfig):
 
 #: Steps per inner scan of a one-scenario reverse-mode gradient (``simulate.rollout``'s
 #: ``checkpoint_segment``). The tape holds each step's state and RK4's stage rates, (3, 7)
-#: numbers a field per step. With loops compiled whole (``spacegrasp_jax.compilation``, the
-#: default on a CPU) the length does not matter: 1, 2, 4 and 8 steps give the same 4 s
-#: gradient (0.11 s, 2-core Xeon). Where XLA runs loops kernel by kernel, 2 steps keep the
-#: inner loops within 64 numbers an array, in XLA's sequential mode (0.35 s, against 0.48 s
-#: with 1 step and 0.51 s with 8; README, Performance, and benchmarks/HISTORY.md).
+#: numbers a field per step. With loops compiled whole (``spacegrasp_jax.compilation``) the
+#: length does not matter; where XLA runs loops kernel by kernel, 2 steps keep the inner
+#: loops within 64 numbers an array, in XLA's faster sequential mode (documentation,
+#: changelog).
 CHECKPOINT_SEGMENT = 2
 
 
 #: The largest batch whose scenarios a gradient on a CPU runs one after another
-#: (``lax.map``) instead of vmapping them. Default tuning gradient (batch 4, 17 s, 2-core
-#: Xeon, loops compiled whole): 1.86 s one after another, 1.79 s vmapped, but the vmapped
-#: program compiles in 50 s against 32 s. Earlier measurements, kernel by kernel, in
-#: benchmarks/HISTORY.md.
+#: (``lax.map``) instead of vmapping them: up to this size the two run about as fast and the
+#: sequential program compiles faster (documentation, changelog).
 SEQUENTIAL_BATCH = 8
 
 

@@ -28,7 +28,7 @@ def reference_twist_rate(gains: Gains, pose, twist, pose_des, twist_des, twist_r
     Args:
         pose, pose_des: (6,) ``[p (m); roll, pitch, yaw (rad)]`` of the EE in LAR.
         twist, twist_des: (6,) ``[v (m/s); w (rad/s)]`` in LAR; the orientation rows pair
-            ``[roll, pitch, yaw]`` errors with ``[w_x, w_y, w_z]`` (DESIGN.md).
+            ``[roll, pitch, yaw]`` errors with ``[w_x, w_y, w_z]`` (modelling notes).
         twist_rate_des: (6,) desired ``[a; dw/dt]`` in LAR.
         wrench_lar: (6,) ``[f (N); n (N m)]`` the contact exerts on the EE, LAR axes.
     """

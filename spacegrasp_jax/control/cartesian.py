@@ -21,7 +21,7 @@ def desired_joint_rates(
     by ``R_ee_lar``. The Euler-angle error times ``K_eul`` is an Euler-rate command, which
     ``T_eul`` (eq 10) turns into an angular velocity in the EE frame. (Eq 22 writes
     ``R_LAR^EE T_eul``; with eq 10's ``T_eul``, which already yields EE-frame rates, the extra
-    rotation would apply twice, so the command is ``T_eul K_eul e`` - see the README.)
+    rotation would apply twice, so the command is ``T_eul K_eul e``; documentation, modelling notes.)
 
     Args:
         J_dyn_ee: (6, 7) Dynamic Jacobian in the EE frame. R_lar_ee: (3, 3) EE to LAR.

@@ -23,7 +23,7 @@ class PIDState:
 
 
 def pid_init(dtype=jnp.float64) -> PIDState:
-    """Integral and previous error start at zero (DESIGN.md)."""
+    """Integral and previous error start at zero (modelling notes)."""
     return PIDState(integral=jnp.zeros(7, dtype=dtype), previous_error=jnp.zeros(7, dtype=dtype))
 
 

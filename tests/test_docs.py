@@ -1,0 +1,56 @@
+"""The documentation cannot rot: the site builds with ``mkdocs build --strict`` (broken
+links, missing API objects and warnings fail it), and every Python block of every page and
+of the README runs, page by page, in a fresh process."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+PYTHON_BLOCK = re.compile(r"^```python\n(.*?)^```", re.MULTILINE | re.DOTALL)
+
+
+def python_blocks(page: Path) -> list[str]:
+    return PYTHON_BLOCK.findall(page.read_text())
+
+
+def test_the_site_builds_strictly(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert (tmp_path / "site" / "reference" / "simulation" / "index.html").exists()
+
+
+def test_the_pages_with_examples_are_the_ones_expected():
+    # A page that gains or loses its examples is noticed (each is run below).
+    with_examples = {page.name for page in PAGES if python_blocks(page)}
+    assert with_examples == {
+        "README.md",
+        "getting-started.md",
+        "python-api.md",
+        "tuning.md",
+        "monte-carlo.md",
+        "file-formats.md",
+    }
+
+
+@pytest.mark.parametrize("page", [page for page in PAGES if python_blocks(page)], ids=lambda page: page.name)
+def test_every_python_block_runs(page, tmp_path_factory):
+    script = "\n\n".join(python_blocks(page))
+    # The pages share one compilation cache: a program that two pages compile compiles once.
+    cache = tmp_path_factory.getbasetemp() / "docs-compile-cache"
+    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(cache), MPLBACKEND="Agg")
+    result = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, env=env, timeout=900)
+    assert result.returncode == 0, f"{page.name}:\n{result.stderr[-4000:]}"
