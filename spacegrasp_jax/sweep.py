@@ -7,11 +7,19 @@ as :func:`~spacegrasp_jax.simulate.rollout`, reduced to the per-run metrics of
 :data:`~spacegrasp_jax.metrics.METRICS` inside the scan, so a batch of full 17 s runs
 needs memory for its states only.
 
-Example (scale Kd and Bd of the paper's admittance by 1/2, 1 and 2)::
+Example (scale Kd and Bd of the paper's admittance by 1/2, 1 and 2, on a 2 s approach)::
 
-    scales = scale_grid(Kd=[0.5, 1, 2], Bd=[0.5, 1, 2])        # 9 combinations
-    results = evaluate_gains(robot, scenario, scaled_gains(paper_gains(), scales), "admittance")
-    front = pareto_front(results["largest_peak_torque_Nm"], results["final_position_error_m"])
+    import spacegrasp_jax as sg
+    from spacegrasp_jax import sweep
+    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.scenario import paper_scenario
+
+    sg.configure()
+    robot = sg.paper_robot()
+    scenario = paper_scenario(robot, duration=2.0, move_duration=2.0)
+    scales = sweep.scale_grid(Kd=[0.5, 1, 2], Bd=[0.5, 1, 2])  # 9 combinations
+    results = sweep.evaluate_gains(robot, scenario, sweep.scaled_gains(paper_gains(), scales), "admittance")
+    front = sweep.pareto_front(results["largest_peak_torque_Nm"], results["final_position_error_m"])
 """
 
 from __future__ import annotations

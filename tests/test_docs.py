@@ -1,11 +1,13 @@
 """The documentation cannot rot: the site builds with ``mkdocs build --strict`` (broken
-links, missing API objects and warnings fail it), and every Python block of every page and
-of the README runs, page by page, in a fresh process."""
+links, missing API objects and warnings fail it), and every Python block of every page, of
+the README and of the docstrings' examples runs, page by page, in a fresh process."""
 
 from __future__ import annotations
 
+import ast
 import os
 import re
+import textwrap
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +21,29 @@ PYTHON_BLOCK = re.compile(r"^```python\n(.*?)^```", re.MULTILINE | re.DOTALL)
 
 def python_blocks(page: Path) -> list[str]:
     return PYTHON_BLOCK.findall(page.read_text())
+
+
+def docstring_examples() -> dict[str, str]:
+    """The literal blocks (after a line ending in ``::``) of every docstring of the package,
+    by ``module:object``; each is a complete example."""
+    examples = {}
+    for path in [*sorted((ROOT / "spacegrasp_jax").rglob("*.py")), *sorted((ROOT / "tuning").glob("*.py"))]:
+        tree = ast.parse(path.read_text())
+        for node in [tree, *ast.walk(tree)]:
+            if not isinstance(node, (ast.Module, ast.FunctionDef, ast.ClassDef)):
+                continue
+            docstring = ast.get_docstring(node)
+            if not docstring or "::\n" not in docstring:
+                continue
+            block = docstring.split("::\n", 1)[1]
+            lines = []
+            for line in block.splitlines()[1:] if block.startswith("\n") else block.splitlines():
+                if line and not line.startswith("    "):
+                    break
+                lines.append(line)
+            name = f"{path.relative_to(ROOT)}:{getattr(node, 'name', 'module')}"
+            examples[name] = textwrap.dedent("\n".join(lines))
+    return examples
 
 
 def test_the_site_builds_strictly(tmp_path):
@@ -54,3 +79,19 @@ def test_every_python_block_runs(page, tmp_path_factory):
     env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(cache), MPLBACKEND="Agg")
     result = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, env=env, timeout=900)
     assert result.returncode == 0, f"{page.name}:\n{result.stderr[-4000:]}"
+
+
+def test_the_docstrings_examples_are_the_ones_expected():
+    assert set(docstring_examples()) == {
+        "spacegrasp_jax/__init__.py:module",
+        "spacegrasp_jax/compilation.py:configure",
+        "spacegrasp_jax/sweep.py:module",
+    }
+
+
+@pytest.mark.parametrize("name", sorted(docstring_examples()))
+def test_every_docstring_example_runs(name):
+    script = docstring_examples()[name]
+    assert "sg.configure()" in script
+    result = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, f"{name}:\n{script}\n{result.stderr[-4000:]}"
