@@ -359,7 +359,9 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--steps", type=int, default=60, help="optimiser steps (default 60)")
     tune.add_argument("--lr", type=float, default=0.15, help="initial step size in log-gain space (default 0.15)")
     tune.add_argument(
-        "--weights", default="", help="objective weights, e.g. final_position=1,peak_torque=4 (documentation: Tuning the gains)"
+        "--weights",
+        default="",
+        help="objective weights, e.g. final_position=1,peak_torque=4 (documentation: Tuning the gains)",
     )
     tune.add_argument(
         "--batch", type=int, default=4, help="scenarios per step: nominal + batch-1 perturbed (default 4)"

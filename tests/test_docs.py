@@ -7,9 +7,9 @@ from __future__ import annotations
 import ast
 import os
 import re
-import textwrap
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -77,7 +77,9 @@ def test_every_python_block_runs(page, tmp_path_factory):
     # The pages share one compilation cache: a program that two pages compile compiles once.
     cache = tmp_path_factory.getbasetemp() / "docs-compile-cache"
     env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(cache), MPLBACKEND="Agg")
-    result = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, env=env, timeout=900)
+    result = subprocess.run(
+        [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, env=env, timeout=900
+    )
     assert result.returncode == 0, f"{page.name}:\n{result.stderr[-4000:]}"
 
 
