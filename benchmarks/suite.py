@@ -108,7 +108,7 @@ def flops_per_step(controller: str = "admittance") -> float:
     scenario = paper_scenario(robot, duration=1.0)
     step = closed_loop_step(robot, scenario, paper_gains(), controller)
     stage = flops(lambda plant, u: plant_derivative(robot, scenario, plant, u), scenario.initial, jax.numpy.zeros(7))
-    return flops(step, initial_state(scenario), 0.0) + 2 * stage
+    return flops(step, initial_state(scenario, controller), 0.0) + 2 * stage
 
 
 def run(out: Path, quick: bool, repeats: int) -> dict:

@@ -55,7 +55,7 @@ def rollout_metrics(
         state, row = step(state, k)
         return (state, metrics.accumulate(running, jax.tree.map(lambda x: x[None], row)), k + 1), row
 
-    carry = (initial_state(scenario), metrics.start(dtype), jnp.zeros((), dtype))
+    carry = (initial_state(scenario, controller), metrics.start(dtype), jnp.zeros((), dtype))
     if every is None:
         (final, running, _), _ = jax.lax.scan(
             lambda c, _: (step_and_fold(c, None)[0], None), carry, None, length=n_steps

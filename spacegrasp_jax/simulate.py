@@ -25,9 +25,9 @@ from spacegrasp_jax.contact import (
     sensor_wrench,
     wrench_at_ee,
 )
-from spacegrasp_jax.control import CONTROLLERS, admittance, cartesian
 from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.control.pid import PIDState, pid_init, pid_torque
+from spacegrasp_jax.control.law import ControlInputs, law_named
+from spacegrasp_jax.control.pid import PID, PIDState
 from spacegrasp_jax.dynamics import (
     dynamic_jacobian_from_parts,
     forward_dynamics_from_frames,
@@ -46,12 +46,26 @@ from spacegrasp_jax.trajectory import desired_state
 @dataclasses.dataclass(frozen=True)
 class ControllerState:
     """Attributes:
-    V_ref: (6,) reference EE twist in LAR, the integrator of eq 15 (admittance only).
+    law: the law's own state (``AdmittanceState`` with its ``V_ref``, or the Cartesian law's
+        empty one).
     pid: the joint PID loops' memory.
     """
 
-    V_ref: jax.Array
+    law: object
     pid: PIDState
+
+
+def as_law(controller, pinv_damping: float = 0.0):
+    """The law object of ``controller``: a name (``"admittance"``, ``"cartesian"``), built
+    with ``pinv_damping``, or a law object (``control.Admittance``, ``control.Cartesian``),
+    which carries its own damping."""
+    if isinstance(controller, str):
+        return law_named(controller, pinv_damping)
+    if pinv_damping:
+        raise ValueError("pinv_damping: give it to the law object, not beside it")
+    if not (hasattr(controller, "init") and hasattr(controller, "update")):
+        raise ValueError(f"controller: expected a name or a law with init and update, got {controller!r}")
+    return controller
 
 
 @jax.tree_util.register_dataclass
@@ -191,19 +205,19 @@ def momentum_at(kinematics: PlantKinematics, plant: PlantState) -> jax.Array:
     return jnp.concatenate([P, L + spatial.cross(plant.p_base, P)])
 
 
-def initial_state(scenario: Scenario) -> SimState:
-    """The scan's initial carry: the scenario's plant state, ``V_ref(0) = 0``, PID at rest."""
+def initial_state(scenario: Scenario, controller="admittance") -> SimState:
+    """The scan's initial carry: the scenario's plant state, the law's initial state
+    (``V_ref(0) = 0`` for the admittance law), the PID at rest."""
     dtype = scenario.initial.q.dtype
-    return SimState(
-        plant=scenario.initial, controller=ControllerState(V_ref=jnp.zeros(6, dtype=dtype), pid=pid_init(dtype))
-    )
+    law = as_law(controller)
+    return SimState(plant=scenario.initial, controller=ControllerState(law=law.init(dtype), pid=PID().init(dtype)))
 
 
 def control_step(
     robot: Robot,
     scenario: Scenario,
     gains: Gains,
-    controller: str,
+    controller,
     state: SimState,
     t,
     pinv_damping=0.0,
@@ -211,7 +225,9 @@ def control_step(
 ):
     """One controller update at time ``t``: returns ``(u (7,), new ControllerState, log row)``.
 
-    ``kinematics``: :func:`plant_kinematics` of ``state.plant`` if the caller has it."""
+    ``controller``: a law's name or object (:func:`as_law`). ``kinematics``:
+    :func:`plant_kinematics` of ``state.plant`` if the caller has it."""
+    law = as_law(controller, pinv_damping)
     plant = state.plant
     if kinematics is None:
         kinematics = plant_kinematics(robot, scenario, plant)
@@ -237,15 +253,10 @@ def control_step(
     pose_des, twist_des, twist_rate_des = desired_state(scenario.trajectory, t)
     J_dyn = dynamic_jacobian_from_parts(kinematics.base_per_joint, kinematics.J_joints, r_ee)  # eq 8
     J_dyn_ee = spatial.matmul(frames.R_ee.T, J_dyn.reshape(2, 3, N_JOINTS)).reshape(6, N_JOINTS)
-    V_ref = state.controller.V_ref
-    if controller == "admittance":
-        qd_des = admittance.desired_joint_rates(J_dyn_ee, R_lar_ee, V_ref, pinv_damping)
-        rate = admittance.reference_twist_rate(gains, pose, twist, pose_des, twist_des, twist_rate_des, wrench_lar)
-        V_ref_next = V_ref + scenario.dt * rate  # eq 15, forward Euler at the control rate
-    else:
-        qd_des = cartesian.desired_joint_rates(gains, J_dyn_ee, R_lar_ee, pose, pose_des, pinv_damping)
-        V_ref_next = V_ref
-    u, pid = pid_torque(gains, state.controller.pid, qd_des - plant.qd, t, scenario.dt)
+    inputs = ControlInputs(pose, twist, wrench_lar, pose_des, twist_des, twist_rate_des, J_dyn_ee, R_lar_ee)
+    qd_des, law_state = law.update(gains, inputs, state.controller.law, scenario.dt)
+    u, pid = PID().update(gains, state.controller.pid, qd_des - plant.qd, t, scenario.dt)
+    V_ref = law.reference_twist(state.controller.law)
 
     row = Log(
         t=t,
@@ -258,16 +269,16 @@ def control_step(
         u=u,
         fts_force=force_fts,
         fts_torque=torque_fts,
-        V_ref=V_ref,
+        V_ref=jnp.zeros(6, dtype=pose.dtype) if V_ref is None else V_ref,
         qd_des=qd_des,
         q=plant.q,
         qd=plant.qd,
     )
-    return u, ControllerState(V_ref=V_ref_next, pid=pid), row
+    return u, ControllerState(law=law_state, pid=pid), row
 
 
 def closed_loop_step(
-    robot: Robot, scenario: Scenario, gains: Gains, controller: str, pinv_damping: float = 0.0, checkpoint: bool = False
+    robot: Robot, scenario: Scenario, gains: Gains, controller, pinv_damping: float = 0.0, checkpoint: bool = False
 ):
     """The scan body ``step(state: SimState, k) -> (next SimState, Log row)`` for step
     number ``k`` (a float, t = k dt): one controller update, then one RK4 step of the plant
@@ -277,13 +288,12 @@ def closed_loop_step(
     ``jax.checkpoint`` (RK4's later stages always are, one by one: ``integrator.rk4_step``).
     A reverse-mode gradient then keeps, per step, the state and the rates RK4's stages
     start from, and recomputes each part just before differentiating it."""
-    if controller not in CONTROLLERS:
-        raise ValueError(f"controller: expected one of {CONTROLLERS}, got {controller!r}")
+    law = as_law(controller, pinv_damping)
 
     def control_and_first_rate(state: SimState, t):
         # The controller reads the state RK4's first stage starts from: share the kinematics.
         kinematics = plant_kinematics(robot, scenario, state.plant)
-        u, controller_state, row = control_step(robot, scenario, gains, controller, state, t, pinv_damping, kinematics)
+        u, controller_state, row = control_step(robot, scenario, gains, law, state, t, kinematics=kinematics)
         return u, controller_state, row, plant_rate(robot, scenario, state.plant, kinematics, u)
 
     if checkpoint:
@@ -313,7 +323,7 @@ def rollout(
     robot: Robot,
     scenario: Scenario,
     gains: Gains,
-    controller: str,
+    controller,
     pinv_damping: float = 0.0,
     checkpoint_segment: int | None = None,
 ) -> tuple[SimState, Log]:
@@ -321,9 +331,10 @@ def rollout(
 
     Args:
         robot, scenario, gains: pytrees (any leaf may carry a vmap batch axis).
-        controller: ``"admittance"`` (eqs 9-17) or ``"cartesian"`` (eqs 21-22); static.
+        controller: the law, static: ``"admittance"`` (eqs 9-17) or ``"cartesian"`` (eqs
+            21-22), or a law object (``control.Admittance``, ``control.Cartesian``).
         pinv_damping: 0 for the exact pseudoinverse (the paper), > 0 for damped least
-            squares; static.
+            squares, with a law's name; static.
         checkpoint_segment: for reverse-mode gradients, the number of steps per inner
             scan (static; must divide ``n_steps``), each step's parts under
             ``jax.checkpoint`` (:func:`closed_loop_step`): the tape holds, per step, the
@@ -351,7 +362,7 @@ def rollout(
     # a task graph; compiled whole (spacegrasp_jax.compilation), the inner loop is one
     # kernel.
     steps = jnp.arange(n_steps, dtype=scenario.initial.q.dtype).reshape(-1, block)
-    final, rows = jax.lax.scan(lambda s, ks: jax.lax.scan(step, s, ks), initial_state(scenario), steps)
+    final, rows = jax.lax.scan(lambda s, ks: jax.lax.scan(step, s, ks), initial_state(scenario, controller), steps)
     return final, jax.tree.map(lambda x: x.reshape((n_steps,) + x.shape[2:]), rows)
 
 

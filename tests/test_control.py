@@ -11,6 +11,9 @@ import numpy as np
 import pytest
 
 from spacegrasp_jax.control import (
+    Admittance,
+    AdmittanceState,
+    ControlInputs,
     GainsError,
     UnusedGainsWarning,
     admittance,
@@ -134,6 +137,15 @@ def test_admittance_reference_rate_eq14_by_hand():
     # Euler-angle errors wrap: a yaw error of 2 pi - 0.1 acts as -0.1.
     wrapped = admittance.pose_error(jnp.zeros(6), jnp.array([0, 0, 0, 0, 0, 2 * np.pi - 0.1]))
     np.testing.assert_allclose(wrapped[5], 0.1, atol=1e-12)
+    # The law object: the command from V_ref(k), then eq 15 by forward Euler over dt.
+    J = jnp.eye(6, 7) + 0.1
+    inputs = ControlInputs(pose, twist, wrench, pose_des, twist_des, rate_des, J, jnp.eye(3))
+    law, dt = Admittance(), 1e-3
+    state = AdmittanceState(V_ref=jnp.array([0.01, 0.0, 0.002, 0.0, 0.0, 0.001]))
+    qd_des, after = law.update(gains, inputs, state, dt)
+    np.testing.assert_allclose(after.V_ref, state.V_ref + dt * expected, rtol=1e-14)
+    np.testing.assert_allclose(J @ qd_des, state.V_ref, atol=1e-14)  # a right inverse of J
+    np.testing.assert_array_equal(law.init().V_ref, np.zeros(6))
 
 
 def test_laws_drive_the_ee_towards_the_target():

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from spacegrasp_jax import experiment, metrics
-from spacegrasp_jax.control import make_gains
+from spacegrasp_jax.control import Admittance, Cartesian, make_gains
 from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import first_nonfinite_time, rollout
+from spacegrasp_jax.simulate import first_nonfinite_time, initial_state, rollout
 
 # Table 5 of the paper, N m.
 PAPER_TABLE5 = {
@@ -131,3 +131,21 @@ def test_rollout_rejects_a_checkpoint_segment_that_does_not_divide_the_steps(rob
     for segment in (0, 3):
         with pytest.raises(ValueError, match="checkpoint_segment"):
             rollout(robot, scenario, gains, "admittance", checkpoint_segment=segment)
+
+
+@pytest.mark.parametrize("law", [Admittance(), Cartesian(pinv_damping=0.01)], ids=["admittance", "cartesian-damped"])
+def test_a_law_object_runs_the_loop_its_name_runs(robot, gains, short_scenario, law):
+    """The law is chosen by its object (static), and the name with ``pinv_damping`` builds the
+    same object: the two rollouts are the same program, bit for bit."""
+    simulate = jax.jit(rollout, static_argnames=("controller", "pinv_damping"))
+    by_object = simulate(robot, short_scenario, gains, controller=law)[1]
+    by_name = simulate(robot, short_scenario, gains, controller=law.name, pinv_damping=law.pinv_damping)[1]
+    for name, value in vars(by_name).items():
+        np.testing.assert_array_equal(getattr(by_object, name), value, err_msg=name)
+    if law.name == "cartesian":  # memoryless: no reference twist carried, zeros logged
+        np.testing.assert_array_equal(by_object.V_ref, 0.0)
+        assert jax.tree.leaves(initial_state(short_scenario, law).controller.law) == []
+    else:
+        assert np.max(np.abs(by_object.V_ref)) > 1e-3
+    with pytest.raises(ValueError, match="give it to the law object"):
+        rollout(robot, short_scenario, gains, law, pinv_damping=0.1)

@@ -1,5 +1,11 @@
-"""Controllers: the admittance (active 6-DoF F/T) law, the Cartesian law, joint PID, gains."""
+"""Controllers: the admittance (active 6-DoF F/T) law, the Cartesian law, joint PID, gains.
 
+Each law is an object with ``init`` and ``update`` (:mod:`spacegrasp_jax.control.law`):
+:class:`Admittance`, :class:`Cartesian`, and the joint :class:`PID` stage after them.
+"""
+
+from spacegrasp_jax.control.admittance import Admittance, AdmittanceState
+from spacegrasp_jax.control.cartesian import Cartesian, CartesianState
 from spacegrasp_jax.control.gains import (
     GAINS_USED,
     Gains,
@@ -10,6 +16,8 @@ from spacegrasp_jax.control.gains import (
     paper_gains,
     tuned_gains,
 )
+from spacegrasp_jax.control.law import ControlInputs, law_named
+from spacegrasp_jax.control.pid import PID, PIDState
 
 #: The controllers' names, everywhere (command line, files, tables, figures).
 CONTROLLERS = ("admittance", "cartesian")
@@ -17,6 +25,14 @@ CONTROLLERS = ("admittance", "cartesian")
 __all__ = [
     "CONTROLLERS",
     "GAINS_USED",
+    "PID",
+    "Admittance",
+    "AdmittanceState",
+    "Cartesian",
+    "CartesianState",
+    "ControlInputs",
+    "PIDState",
+    "law_named",
     "Gains",
     "GainsError",
     "UnusedGainsWarning",

@@ -8,11 +8,15 @@ and eq 17 maps it to desired joint rates through the pseudoinverse of ``J_dyn^(E
 
 from __future__ import annotations
 
+import dataclasses
+from typing import ClassVar
+
 import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import spatial
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.law import ControlInputs
 from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
 
 
@@ -46,3 +50,43 @@ def desired_joint_rates(J_dyn_ee: jax.Array, R_lar_ee: jax.Array, V_ref_lar: jax
     """
     V_ref_ee = spatial.matvec(R_lar_ee.T, V_ref_lar.reshape(2, 3)).reshape(6)
     return pseudoinverse_apply(J_dyn_ee, V_ref_ee, damping)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class AdmittanceState:
+    """Attributes:
+    V_ref: (6,) reference EE twist in LAR, the integrator of eq 15 (``V_ref(0) = 0``).
+    """
+
+    V_ref: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class Admittance:
+    """The admittance law as a controller (eqs 9-17).
+
+    Attributes:
+        pinv_damping: damping of the pseudoinverse (0: exact, the paper; static).
+    """
+
+    pinv_damping: float = 0.0
+    name: ClassVar[str] = "admittance"
+
+    def init(self, dtype=jnp.float64) -> AdmittanceState:
+        return AdmittanceState(V_ref=jnp.zeros(6, dtype=dtype))
+
+    def update(
+        self, gains: Gains, inputs: ControlInputs, state: AdmittanceState, dt
+    ) -> tuple[jax.Array, AdmittanceState]:
+        """``(qd_des (7,) rad/s, next state)``: the command from ``V_ref(k)`` (eqs 16-17), then
+        eq 15 by forward Euler over the control period ``dt`` (s)."""
+        qd_des = desired_joint_rates(inputs.J_dyn_ee, inputs.R_lar_ee, state.V_ref, self.pinv_damping)
+        rate = reference_twist_rate(
+            gains, inputs.pose, inputs.twist, inputs.pose_des, inputs.twist_des, inputs.twist_rate_des, inputs.wrench
+        )
+        return qd_des, AdmittanceState(V_ref=state.V_ref + dt * rate)
+
+    def reference_twist(self, state: AdmittanceState) -> jax.Array:
+        """(6,) the reference twist in LAR the command was computed from (the log's ``V_ref``)."""
+        return state.V_ref

@@ -3,12 +3,16 @@ mapped to joint rates through the pseudoinverse of ``J_dyn^(EE)``."""
 
 from __future__ import annotations
 
+import dataclasses
+from typing import ClassVar
+
 import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import spatial
 from spacegrasp_jax.control.admittance import pose_error
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.law import ControlInputs
 from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
 
 
@@ -31,3 +35,37 @@ def desired_joint_rates(
     v_ee = spatial.matvec(R_lar_ee.T, gains.K_lin * error[:3])
     w_ee = spatial.matvec(spatial.euler_rates_to_body(pose[3:]), gains.K_eul * error[3:])
     return pseudoinverse_apply(J_dyn_ee, jnp.concatenate([v_ee, w_ee]), damping)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class CartesianState:
+    """The Cartesian law is memoryless: its state has no field."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Cartesian:
+    """The Cartesian law as a controller (eqs 21-22).
+
+    Attributes:
+        pinv_damping: damping of the pseudoinverse (0: exact, the paper; static).
+    """
+
+    pinv_damping: float = 0.0
+    name: ClassVar[str] = "cartesian"
+
+    def init(self, dtype=jnp.float64) -> CartesianState:
+        return CartesianState()
+
+    def update(
+        self, gains: Gains, inputs: ControlInputs, state: CartesianState, dt
+    ) -> tuple[jax.Array, CartesianState]:
+        """``(qd_des (7,) rad/s, state)`` from the pose error (``dt`` unused)."""
+        qd_des = desired_joint_rates(
+            gains, inputs.J_dyn_ee, inputs.R_lar_ee, inputs.pose, inputs.pose_des, self.pinv_damping
+        )
+        return qd_des, state
+
+    def reference_twist(self, state: CartesianState) -> None:
+        """The Cartesian law has no reference twist (the log's ``V_ref`` holds zeros)."""
+        return None

@@ -43,3 +43,15 @@ def pid_torque(gains: Gains, state: PIDState, rate_error: jax.Array, t, dt) -> t
     derivative = (rate_error - state.previous_error) / dt
     torque = gain_ramp(t) * (gains.kp * rate_error + gains.ki * integral + gains.kd * derivative)
     return torque, PIDState(integral=integral, previous_error=rate_error)
+
+
+@dataclasses.dataclass(frozen=True)
+class PID:
+    """The joint PID stage as a controller: ``init`` and ``update`` around :func:`pid_torque`."""
+
+    def init(self, dtype=jnp.float64) -> PIDState:
+        return pid_init(dtype)
+
+    def update(self, gains: Gains, state: PIDState, rate_error: jax.Array, t, dt) -> tuple[jax.Array, PIDState]:
+        """``(torque (7,) N m, next state)`` from the rate error ``qd_des - qd`` (7,) rad/s."""
+        return pid_torque(gains, state, rate_error, t, dt)
