@@ -194,7 +194,7 @@ def evaluate_indices(robot, scenario, variant: Variant, config: CampaignConfig, 
     arrays = {f"perturbation.{name}": value for name, value in vars(perturbations).items()}
     arrays |= dict(sample_metrics)
     if rows is not None:
-        arrays |= {f"timeseries.{name}": value for name, value in vars(rows).items()}
+        arrays |= {f"timeseries.{name}": value for name, value in vars(rows).items() if value is not None}
     return arrays
 
 

@@ -98,8 +98,9 @@ def write_arrays(path: Path, arrays: dict, *, compressed: bool = True) -> None:
 
 
 def write_timeseries(path: Path, log) -> None:
-    """A log (:class:`~spacegrasp_jax.simulate.Log`) as a compressed ``.npz``, one array per field."""
-    write_arrays(path, vars(log))
+    """A log (:class:`~spacegrasp_jax.simulate.Log`) as a compressed ``.npz``, one array per
+    field (fields a loop does not fill, ``None``, are left out)."""
+    write_arrays(path, {name: value for name, value in vars(log).items() if value is not None})
 
 
 def git_revision() -> str | None:

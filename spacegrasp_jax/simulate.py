@@ -12,6 +12,7 @@ Each step of length ``dt`` (modelling notes):
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -38,6 +39,7 @@ from spacegrasp_jax.dynamics import (
 from spacegrasp_jax.integrator import PlantState, rk4_step, state_rate
 from spacegrasp_jax.kinematics import Frames, point_jacobian_blocks
 from spacegrasp_jax.model import N_JOINTS, Robot
+from spacegrasp_jax.realism import Realism
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.trajectory import desired_state
 
@@ -95,8 +97,16 @@ class Log:
         fts_force: (N, 3) N, F/T sensor force, sensor (frame 7) axes.
         fts_torque: (N, 3) N m, F/T sensor torque about the sensor point, sensor axes.
         V_ref: (N, 6) reference twist in LAR (admittance; zeros for the Cartesian law).
-        qd_des: (N, 7) rad/s, desired joint rates.
+        qd_des: (N, 7) rad/s, desired joint rates (with a delay: those the PID applies).
         q: (N, 7) rad. qd: (N, 7) rad/s.
+        fts_force_measured, fts_torque_measured: (N, 3) N, N m, the F/T sensor's reading
+            the controller used (noise, bias, low-pass; held over the control period),
+            sensor axes; ``None`` in the ideal loop, where it is ``fts_force``/``fts_torque``.
+        q_measured, qd_measured: (N, 7) rad, rad/s, the joint sensors' readings the
+            controller used; ``None`` in the ideal loop.
+        qd_des_computed: (N, 7) rad/s, the desired joint rates the law computed in this
+            control period (they reach the PID ``delay_periods`` later); ``None`` in the
+            ideal loop, where they are ``qd_des``.
     """
 
     t: jax.Array
@@ -113,6 +123,11 @@ class Log:
     qd_des: jax.Array
     q: jax.Array
     qd: jax.Array
+    fts_force_measured: jax.Array | None = None
+    fts_torque_measured: jax.Array | None = None
+    q_measured: jax.Array | None = None
+    qd_measured: jax.Array | None = None
+    qd_des_computed: jax.Array | None = None
 
 
 def contact_force_lar(scenario: Scenario, p_ee: jax.Array) -> jax.Array:
@@ -158,11 +173,15 @@ class PlantKinematics:
     contact_force_lar: jax.Array
 
 
-def plant_kinematics(robot: Robot, scenario: Scenario, state: PlantState) -> PlantKinematics:
-    """One kinematics pass, the mass matrix, the EE Jacobian and the contact force at ``state``."""
+def plant_kinematics(robot: Robot, scenario: Scenario, state: PlantState, with_contact: bool = True) -> PlantKinematics:
+    """One kinematics pass, the mass matrix, the EE Jacobian and (``with_contact``, else
+    zeros) the contact force at ``state``."""
     frames = frames_at_base(robot, state.R_base, state.q)  # satellite CoM at the origin
     m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
     _, J_joints = point_jacobian_blocks(frames, jnp.zeros(3, dtype=state.q.dtype), frames.p_ee, N_JOINTS)
+    force = (
+        contact_force_lar(scenario, state.p_base + frames.p_ee) if with_contact else jnp.zeros(3, dtype=state.q.dtype)
+    )
     return PlantKinematics(
         frames=frames,
         base=(m, h, I_O),
@@ -170,7 +189,7 @@ def plant_kinematics(robot: Robot, scenario: Scenario, state: PlantState) -> Pla
         M_joints=M_joints,
         base_per_joint=solve_base(m, h, I_O, M_coupling),
         J_joints=J_joints,
-        contact_force_lar=contact_force_lar(scenario, state.p_base + frames.p_ee),
+        contact_force_lar=force,
     )
 
 
@@ -231,29 +250,20 @@ def control_step(
     plant = state.plant
     if kinematics is None:
         kinematics = plant_kinematics(robot, scenario, plant)
-    frames, force_lar = kinematics.frames, kinematics.contact_force_lar
-    p_ee = plant.p_base + frames.p_ee
-    R_lar = scenario.R_lar
-    R_lar_ee = spatial.matmul(R_lar.T, frames.R_ee)
-    pose = jnp.concatenate([spatial.matvec(R_lar.T, p_ee - scenario.p_lar), spatial.euler_zyx(R_lar_ee)])
-    r_ee = frames.p_ee  # EE point from the satellite CoM
-    v_s, w_s = jnp.split(plant.V_base, 2)
-    twist_inertial = jnp.concatenate([v_s + spatial.cross(w_s, r_ee), w_s]) + spatial.matvec(
-        kinematics.J_joints, plant.qd
+    force_fts, torque_fts = sensor_reading(robot, scenario, kinematics)
+    inputs, (pose, twist) = controller_inputs(
+        robot,
+        scenario.trajectory,
+        plant.p_base,
+        plant.V_base,
+        plant.qd,
+        kinematics,
+        scenario.p_lar,
+        scenario.R_lar,
+        force_fts,
+        torque_fts,
+        t,
     )
-    # Both 3-vectors of a twist (wrench, Jacobian) rotate at once as a (2, 3) array.
-    twist = spatial.matvec(R_lar.T, twist_inertial.reshape(2, 3)).reshape(6)
-
-    # F/T sensor between link 7 and the EE (frame 7 axes), read once per step (eqs 18-19).
-    R_fts = frames.R_ee  # frame 7's rotation
-    force_fts, torque_fts = sensor_wrench(spatial.matvec(R_fts.T, spatial.matvec(R_lar, force_lar)), robot.ee_offset)
-    wrench_ee = wrench_at_ee(force_fts, torque_fts, robot.ee_offset)
-    wrench_lar = rotate_wrench(spatial.matmul(R_lar.T, R_fts), wrench_ee)
-
-    pose_des, twist_des, twist_rate_des = desired_state(scenario.trajectory, t)
-    J_dyn = dynamic_jacobian_from_parts(kinematics.base_per_joint, kinematics.J_joints, r_ee)  # eq 8
-    J_dyn_ee = spatial.matmul(frames.R_ee.T, J_dyn.reshape(2, 3, N_JOINTS)).reshape(6, N_JOINTS)
-    inputs = ControlInputs(pose, twist, wrench_lar, pose_des, twist_des, twist_rate_des, J_dyn_ee, R_lar_ee)
     qd_des, law_state = law.update(gains, inputs, state.controller.law, scenario.dt)
     u, pid = PID().update(gains, state.controller.pid, qd_des - plant.qd, t, scenario.dt)
     V_ref = law.reference_twist(state.controller.law)
@@ -261,9 +271,9 @@ def control_step(
     row = Log(
         t=t,
         pose_ee=pose,
-        pose_des=pose_des,
+        pose_des=inputs.pose_des,
         twist_ee=twist,
-        contact_force=force_lar,
+        contact_force=kinematics.contact_force_lar,
         momentum=momentum_at(kinematics, plant),
         V_base=plant.V_base,
         u=u,
@@ -275,6 +285,42 @@ def control_step(
         qd=plant.qd,
     )
     return u, ControllerState(law=law_state, pid=pid), row
+
+
+def sensor_reading(robot: Robot, scenario: Scenario, kinematics: PlantKinematics) -> tuple[jax.Array, jax.Array]:
+    """The ideal F/T sensor between link 7 and the EE: the contact's force (3,) N and its
+    torque about the sensor point (3,) N m, in sensor (frame 7) axes (eqs 18-19)."""
+    R_fts = kinematics.frames.R_ee  # frame 7's rotation
+    force = spatial.matvec(R_fts.T, spatial.matvec(scenario.R_lar, kinematics.contact_force_lar))
+    return sensor_wrench(force, robot.ee_offset)
+
+
+def controller_inputs(robot, trajectory, p_base, V_base, qd, kinematics, p_lar, R_lar, force_fts, torque_fts, t):
+    """What the law reads (:class:`~spacegrasp_jax.control.law.ControlInputs`), and the EE
+    pose and twist in LAR, from a view of the state: the satellite's position ``p_base`` (3,)
+    m and twist ``V_base`` (6,), the joint rates ``qd`` (7,) rad/s, ``kinematics`` of the
+    robot the controller believes at the joint angles it measured, the LAR frame it believes
+    (``p_lar`` (3,) m, ``R_lar`` (3, 3), inertial), and the F/T reading ``force_fts``,
+    ``torque_fts`` (3,) in sensor axes, at time ``t`` (s)."""
+    frames = kinematics.frames
+    p_ee = p_base + frames.p_ee
+    R_lar_ee = spatial.matmul(R_lar.T, frames.R_ee)
+    pose = jnp.concatenate([spatial.matvec(R_lar.T, p_ee - p_lar), spatial.euler_zyx(R_lar_ee)])
+    r_ee = frames.p_ee  # EE point from the satellite CoM
+    v_s, w_s = jnp.split(V_base, 2)
+    twist_inertial = jnp.concatenate([v_s + spatial.cross(w_s, r_ee), w_s]) + spatial.matvec(kinematics.J_joints, qd)
+    # Both 3-vectors of a twist (wrench, Jacobian) rotate at once as a (2, 3) array.
+    twist = spatial.matvec(R_lar.T, twist_inertial.reshape(2, 3)).reshape(6)
+
+    R_fts = frames.R_ee  # frame 7's rotation
+    wrench_ee = wrench_at_ee(force_fts, torque_fts, robot.ee_offset)
+    wrench_lar = rotate_wrench(spatial.matmul(R_lar.T, R_fts), wrench_ee)
+
+    pose_des, twist_des, twist_rate_des = desired_state(trajectory, t)
+    J_dyn = dynamic_jacobian_from_parts(kinematics.base_per_joint, kinematics.J_joints, r_ee)  # eq 8
+    J_dyn_ee = spatial.matmul(frames.R_ee.T, J_dyn.reshape(2, 3, N_JOINTS)).reshape(6, N_JOINTS)
+    inputs = ControlInputs(pose, twist, wrench_lar, pose_des, twist_des, twist_rate_des, J_dyn_ee, R_lar_ee)
+    return inputs, (pose, twist)
 
 
 def closed_loop_step(
@@ -326,6 +372,8 @@ def rollout(
     controller,
     pinv_damping: float = 0.0,
     checkpoint_segment: int | None = None,
+    realism: Realism | None = None,
+    key: jax.Array | None = None,
 ) -> tuple[SimState, Log]:
     """Simulate the closed loop over ``scenario.duration`` with one ``jax.lax.scan``.
 
@@ -345,12 +393,24 @@ def rollout(
             numbers, which matters where XLA runs loops kernel by kernel (with loops
             compiled whole the length does not).
             ``None``: blocks of :data:`LOG_BLOCK` steps, nothing checkpointed.
+        realism: ``None`` or an ideal :class:`~spacegrasp_jax.realism.Realism`: the paper's
+            loop. Otherwise the flight-like loop of :func:`flight_rollout` (static fields
+            fix the program; no ``checkpoint_segment``).
+        key: the ``jax.random`` key of the sensors' noise (flight-like loop with noise).
 
     Returns:
         ``(final_state, log)``: the state after ``scenario.n_steps`` steps and the
         :class:`Log`. A diverging rollout carries non-finite values from the first bad
         step on; :func:`first_nonfinite_time` finds it (``experiment.run`` reports it).
     """
+    if realism is not None and not realism.is_ideal(scenario.dt):
+        if checkpoint_segment is not None:
+            raise ValueError("checkpoint_segment: the flight-like loop is not checkpointed")
+        if key is None:
+            if "sensors" in realism.stages:
+                raise ValueError("key: a realism with noisy sensors needs a jax.random key")
+            key = jax.random.PRNGKey(0)  # drawn from by no stage
+        return flight_rollout(robot, scenario, gains, controller, realism, key, pinv_damping=pinv_damping)
     n_steps = scenario.n_steps
     if checkpoint_segment is not None and (checkpoint_segment < 1 or n_steps % checkpoint_segment):
         raise ValueError(f"checkpoint_segment: {checkpoint_segment} must be a positive divisor of the {n_steps} steps")
@@ -366,11 +426,185 @@ def rollout(
     return final, jax.tree.map(lambda x: x.reshape((n_steps,) + x.shape[2:]), rows)
 
 
+# ---- the flight-like loop (spacegrasp_jax.realism) -----------------------------------------
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class FlightState:
+    """The flight-like loop's carry.
+
+    Attributes:
+        plant: the true state. controller: the law's and the PID's memory.
+        wrench_reading: (6,) the low-passed F/T reading ``[f (N); n (N m)]``, sensor axes.
+        commands_in_flight: (delay_periods, 7) rad/s, the desired joint rates computed but
+            not yet applied, oldest first.
+    """
+
+    plant: PlantState
+    controller: ControllerState
+    wrench_reading: jax.Array
+    commands_in_flight: jax.Array
+
+
+def believed_robot(robot: Robot, realism: Realism) -> Robot:
+    """The robot the controller believes: ``robot`` with the satellite's mass and inertia
+    times the realism's factors."""
+    return dataclasses.replace(
+        robot,
+        satellite_mass=robot.satellite_mass * realism.satellite_mass_factor,
+        satellite_inertia=robot.satellite_inertia * realism.satellite_inertia_factor,
+    )
+
+
+def flight_rollout(
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller,
+    realism: Realism,
+    key: jax.Array,
+    *,
+    model_robot: Robot | None = None,
+    pinv_damping: float = 0.0,
+) -> tuple[FlightState, Log]:
+    """The closed loop with the realism model (module :mod:`spacegrasp_jax.realism`), one
+    ``jax.lax.scan`` over control periods, each an inner scan over the plant's steps.
+
+    At the start of control period k (``t_k = k T``, ``T = realism.control_period``): the
+    sensors read the true state (noise drawn from ``fold_in(key, k)``), the controller runs
+    with its own model and LAR estimate, its desired joint rates enter the delay line, the
+    PID turns the rates leaving it into torques (anti-windup, saturation), and the torques
+    are held over the period's plant steps (RK4 at ``scenario.dt``, the contact force at
+    every stage). The log has one row per plant step, as :func:`rollout`'s.
+
+    Args:
+        robot, scenario, gains, controller, pinv_damping: as :func:`rollout`.
+        realism: the realism settings (static fields fix the program).
+        key: a ``jax.random`` key; same key, same rollout.
+        model_robot: the robot the controller's model starts from (default ``robot``);
+            its satellite mass and inertia are scaled by the realism's factors.
+    """
+    law = as_law(controller, pinv_damping)
+    per_period = realism.steps_per_period(scenario.dt)
+    if scenario.n_steps % per_period:
+        raise ValueError(
+            f"timing.control_period: {realism.control_period} s does not divide the scenario's {scenario.duration} s"
+        )
+    periods = scenario.n_steps // per_period
+    period = per_period * scenario.dt
+    dtype = scenario.initial.q.dtype
+    pid = PID(saturation=realism.saturation, anti_windup=realism.anti_windup)
+    limit = realism.torque_limit_Nm if "actuators" in realism.stages else None
+    own_model = bool(realism.stages & {"sensors", "model"}) or model_robot is not None
+    model = believed_robot(robot if model_robot is None else model_robot, realism) if own_model else robot
+    # First-order low-pass, discretised exactly at the control period.
+    smoothing = 1.0 - math.exp(-2.0 * math.pi * realism.cutoff_hz * period) if realism.cutoff_hz > 0.0 else 1.0
+
+    def control(state: FlightState, k):
+        plant, t = state.plant, k * period
+        truth = plant_kinematics(robot, scenario, plant)
+        force_fts, torque_fts = sensor_reading(robot, scenario, truth)
+        q, qd = plant.q, plant.qd
+        if "sensors" in realism.stages:
+            noise = jax.random.normal(jax.random.fold_in(key, k.astype(jnp.uint32)), (13,), dtype)
+            force_fts = force_fts + realism.force_bias + realism.force_noise_std * noise[:3]
+            torque_fts = torque_fts + realism.torque_bias + realism.torque_noise_std * noise[3:6]
+            quantum = realism.angle_resolution_rad
+            safe = jnp.where(quantum > 0.0, quantum, 1.0)
+            q = jnp.where(quantum > 0.0, jnp.round(q / safe) * safe, q)
+            qd = qd + realism.rate_noise_std_radps * noise[6:]
+        reading = jnp.concatenate([force_fts, torque_fts])
+        if realism.cutoff_hz > 0.0:
+            reading = state.wrench_reading + smoothing * (reading - state.wrench_reading)
+        view = (
+            plant_kinematics(model, scenario, dataclasses.replace(plant, q=q), with_contact=False)
+            if own_model
+            else truth
+        )
+        p_lar, R_lar = scenario.p_lar, scenario.R_lar
+        if "estimate" in realism.stages:
+            p_lar = p_lar + spatial.matvec(R_lar, realism.lar_position_error_m)
+            R_lar = spatial.matmul(R_lar, spatial.rotation_exp(realism.lar_angle_error_rad))
+        inputs, _ = controller_inputs(
+            robot, scenario.trajectory, plant.p_base, plant.V_base, qd, view, p_lar, R_lar, reading[:3], reading[3:], t
+        )
+        computed, law_state = law.update(gains, inputs, state.controller.law, period)
+        if realism.delay_periods:
+            queue = jnp.concatenate([state.commands_in_flight, computed[None]])
+            qd_des, in_flight = queue[0], queue[1:]
+        else:
+            qd_des, in_flight = computed, state.commands_in_flight
+        u, pid_state = pid.update(gains, state.controller.pid, qd_des - qd, t, period, limit)
+        V_ref = law.reference_twist(state.controller.law)
+        held = dict(
+            u=u,
+            V_ref=jnp.zeros(6, dtype) if V_ref is None else V_ref,
+            qd_des=qd_des,
+            qd_des_computed=computed,
+            fts_force_measured=reading[:3],
+            fts_torque_measured=reading[3:],
+            q_measured=q,
+            qd_measured=qd,
+        )
+        return FlightState(plant, ControllerState(law_state, pid_state), reading, in_flight), held
+
+    def plant_step(plant: PlantState, k, held):
+        t = k * scenario.dt
+        kinematics = plant_kinematics(robot, scenario, plant)
+        force_fts, torque_fts = sensor_reading(robot, scenario, kinematics)
+        _, (pose, twist) = controller_inputs(
+            robot,
+            scenario.trajectory,
+            plant.p_base,
+            plant.V_base,
+            plant.qd,
+            kinematics,
+            scenario.p_lar,
+            scenario.R_lar,
+            force_fts,
+            torque_fts,
+            t,
+        )
+        row = Log(
+            t=t,
+            pose_ee=pose,
+            pose_des=desired_state(scenario.trajectory, t)[0],
+            twist_ee=twist,
+            contact_force=kinematics.contact_force_lar,
+            momentum=momentum_at(kinematics, plant),
+            V_base=plant.V_base,
+            fts_force=force_fts,
+            fts_torque=torque_fts,
+            q=plant.q,
+            qd=plant.qd,
+            **held,
+        )
+        u = held["u"]
+        k1 = plant_rate(robot, scenario, plant, kinematics, u)
+        return rk4_step(lambda s: plant_derivative(robot, scenario, s, u), plant, scenario.dt, rate_at_start=k1), row
+
+    def one_period(state: FlightState, k):
+        state, held = control(state, k)
+        steps = k * per_period + jnp.arange(per_period, dtype=dtype)
+        plant, rows = jax.lax.scan(lambda p, j: plant_step(p, j, held), state.plant, steps)
+        return dataclasses.replace(state, plant=plant), rows
+
+    start = FlightState(
+        plant=scenario.initial,
+        controller=ControllerState(law=law.init(dtype), pid=pid.init(dtype)),
+        wrench_reading=jnp.zeros(6, dtype),
+        commands_in_flight=jnp.zeros((realism.delay_periods, N_JOINTS), dtype),
+    )
+    final, rows = jax.lax.scan(one_period, start, jnp.arange(periods, dtype=dtype))
+    return final, jax.tree.map(lambda x: x.reshape((scenario.n_steps,) + x.shape[2:]), rows)
+
+
 def first_nonfinite_time(log: Log):
     """Time (s) of the first log row holding a non-finite value, or ``None`` (host side)."""
     bad = np.zeros(np.shape(log.t), dtype=bool)
     for name, series in vars(log).items():
-        if name != "t":
+        if name != "t" and series is not None:
             values = np.asarray(series)
             bad |= ~np.all(np.isfinite(values.reshape(values.shape[0], -1)), axis=1)
     return float(np.asarray(log.t)[np.argmax(bad)]) if bad.any() else None

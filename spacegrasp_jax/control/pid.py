@@ -45,13 +45,49 @@ def pid_torque(gains: Gains, state: PIDState, rate_error: jax.Array, t, dt) -> t
     return torque, PIDState(integral=integral, previous_error=rate_error)
 
 
+def saturate(torque: jax.Array, limit: jax.Array, law: str = "hard") -> jax.Array:
+    """Joint torques (7,) N m limited to ``[-limit, limit]`` (7,) N m (``inf``: none).
+
+    ``law``: ``"hard"`` clips; ``"smooth"`` is ``limit tanh(torque / limit)``, which has a
+    gradient everywhere and tends to the clip as the torque moves away from the limit."""
+    if law == "hard":
+        return jnp.clip(torque, -limit, limit)
+    finite = jnp.isfinite(limit)
+    safe = jnp.where(finite, limit, 1.0)
+    return jnp.where(finite, safe * jnp.tanh(torque / safe), torque)
+
+
 @dataclasses.dataclass(frozen=True)
 class PID:
-    """The joint PID stage as a controller: ``init`` and ``update`` around :func:`pid_torque`."""
+    """The joint PID stage as a controller: ``init`` and ``update``.
+
+    Attributes:
+        saturation: ``"hard"`` or ``"smooth"`` (:func:`saturate`), when ``update`` gets a
+            torque limit (static).
+        anti_windup: with a limit, hold the integral while the unlimited torque exceeds the
+            limit and the error drives it further out (conditional integration; static).
+    """
+
+    saturation: str = "hard"
+    anti_windup: bool = True
 
     def init(self, dtype=jnp.float64) -> PIDState:
         return pid_init(dtype)
 
-    def update(self, gains: Gains, state: PIDState, rate_error: jax.Array, t, dt) -> tuple[jax.Array, PIDState]:
-        """``(torque (7,) N m, next state)`` from the rate error ``qd_des - qd`` (7,) rad/s."""
-        return pid_torque(gains, state, rate_error, t, dt)
+    def update(
+        self, gains: Gains, state: PIDState, rate_error: jax.Array, t, dt, limit=None
+    ) -> tuple[jax.Array, PIDState]:
+        """``(torque (7,) N m, next state)`` from the rate error ``qd_des - qd`` (7,) rad/s at
+        time ``t`` (s), control period ``dt`` (s). ``limit``: (7,) N m torque limits, or
+        ``None`` for the paper's unlimited motors (:func:`pid_torque`)."""
+        if limit is None:
+            return pid_torque(gains, state, rate_error, t, dt)
+        integral = state.integral + rate_error * dt
+        derivative = (rate_error - state.previous_error) / dt
+        ramp = gain_ramp(t)
+        command = ramp * (gains.kp * rate_error + gains.ki * integral + gains.kd * derivative)
+        if self.anti_windup:
+            winding = (jnp.abs(command) > limit) & (rate_error * command > 0.0)
+            integral = jnp.where(winding, state.integral, integral)
+            command = ramp * (gains.kp * rate_error + gains.ki * integral + gains.kd * derivative)
+        return saturate(command, limit, self.saturation), PIDState(integral=integral, previous_error=rate_error)
