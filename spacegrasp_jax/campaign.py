@@ -38,8 +38,9 @@ from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.metrics import METRICS
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.montecarlo import evaluate_samples, over_torque_limit, success
+from spacegrasp_jax.montecarlo import evaluate_samples, over_torque_limit, sample_loops, success
 from spacegrasp_jax.perturbations import PerturbationRanges
+from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario, scenario_to_dict
 from spacegrasp_jax.simulate import Log
 
@@ -67,6 +68,9 @@ class CampaignConfig:
     device_batch: samples each device simulates at once (``None``: its whole share of the
         chunk). A device's share is run as a ``lax.map`` over sub-batches of this size; on a
         CPU, 128 keeps a sub-batch's states in cache. Must divide the share to take effect.
+    realism: the loop's realism (:mod:`spacegrasp_jax.realism`; ``None``: the paper's).
+    identified: tell the controller each sample's perturbed satellite (a perfectly
+        identified plant); by default it believes the nominal robot.
     """
 
     n: int
@@ -79,6 +83,8 @@ class CampaignConfig:
     timeseries_every: int | None = None
     pinv_damping: float = 0.0
     device_batch: int | None = None
+    realism: Realism | None = None
+    identified: bool = False
 
     def __post_init__(self):
         for name in ("n", "seed", "chunk"):
@@ -111,7 +117,8 @@ class CampaignConfig:
             raise CampaignError(f"pinv_damping: must be non-negative, got {self.pinv_damping}")
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self) | {"ranges": self.ranges.to_dict()}
+        fields = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}
+        return fields | {"ranges": self.ranges.to_dict(), "realism": (self.realism or ideal()).to_dict()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,19 +162,24 @@ class CampaignResult:
 # ---- the sharded, chunked evaluation --------------------------------------------------
 
 
+def _evaluate_chunk(robot, scenario, gains, seed, realism, indices, **settings):
+    return evaluate_samples(robot, scenario, gains, seed, indices, realism=realism, **settings)
+
+
 def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
     """The compiled evaluation of one chunk of ``config.chunk`` samples
     (:func:`~spacegrasp_jax.batching.compile_chunk`) and its compile time (s; that of the
     original compile)."""
     function = functools.partial(
-        evaluate_samples,
+        _evaluate_chunk,
         controller=variant.controller,
         ranges=config.ranges,
         pinv_damping=config.pinv_damping,
         every=config.timeseries_every,
+        identified=config.identified,
     )
-    key = (variant.controller, config.ranges, config.pinv_damping, config.timeseries_every)
-    replicated = (robot, scenario, variant.gains, np.uint32(config.seed))
+    key = (variant.controller, config.ranges, config.pinv_damping, config.timeseries_every, config.identified)
+    replicated = (robot, scenario, variant.gains, np.uint32(config.seed), config.realism)
     try:
         return batching.compile_chunk(
             "campaign",
@@ -189,7 +201,7 @@ def evaluate_indices(robot, scenario, variant: Variant, config: CampaignConfig, 
     indices = np.asarray(indices, dtype=np.uint32)
     if indices.shape != (config.chunk,):
         raise CampaignError(f"indices: expected {config.chunk} of them (the chunk size), got shape {indices.shape}")
-    replicated = (robot, scenario, variant.gains, np.uint32(config.seed))
+    replicated = (robot, scenario, variant.gains, np.uint32(config.seed), config.realism)
     perturbations, sample_metrics, rows = batching.run_chunk(executable, replicated, indices)
     arrays = {f"perturbation.{name}": value for name, value in vars(perturbations).items()}
     arrays |= dict(sample_metrics)
@@ -462,6 +474,8 @@ def run_campaign(
             "torque_limit_Nm": config.torque_limit_Nm,
         },
         "ranges": config.ranges.to_dict(),
+        "realism": (config.realism or ideal()).to_dict(),
+        "controller_believes": "each sample's perturbed robot" if config.identified else "the nominal robot",
         "throughput": throughput,
         "variants": summaries,
     }
@@ -505,12 +519,30 @@ def load_samples(path: Path) -> tuple[dict[str, np.ndarray], dict[str, dict[str,
 
 
 def replay_sample(robot: Robot, scenario: Scenario, config: CampaignConfig, index: int) -> tuple[Robot, Scenario]:
-    """The perturbed ``(robot, scenario)`` of sample ``index``, for a full rollout with its
-    log (e.g. ``experiment.run``) of a worst case."""
-    from spacegrasp_jax.perturbations import sample
+    """The perturbed ``(robot, scenario)`` of sample ``index`` (the plant and its scenario;
+    :func:`replay` runs the sample's whole loop)."""
+    loops = sample_loops(robot, scenario, config.seed, [index], config.ranges, config.realism, config.identified)
+    return jax.tree.map(lambda x: x[0], loops.robots), jax.tree.map(lambda x: x[0], loops.scenarios)
 
-    robots, scenarios, _ = sample(robot, scenario, config.seed, [index], config.ranges)
-    return jax.tree.map(lambda x: x[0], robots), jax.tree.map(lambda x: x[0], scenarios)
+
+def replay(robot: Robot, scenario: Scenario, variant: Variant, config: CampaignConfig, index: int, check: bool = False):
+    """Sample ``index`` of the campaign run again with its full log, as the campaign ran it
+    (same plant, scenario, loop, model and noise): a :class:`~spacegrasp_jax.experiment.RunResult`."""
+    from spacegrasp_jax import experiment
+
+    loops = sample_loops(robot, scenario, config.seed, [index], config.ranges, config.realism, config.identified)
+    first = lambda tree: None if tree is None else jax.tree.map(lambda x: x[0], tree)
+    return experiment.run(
+        first(loops.robots),
+        first(loops.scenarios),
+        variant.gains,
+        variant.controller,
+        pinv_damping=config.pinv_damping,
+        realism=first(loops.realisms),
+        key=first(loops.keys),
+        model_robot=loops.model_robot,
+        check=check,
+    )
 
 
 __all__ = [
@@ -521,6 +553,7 @@ __all__ = [
     "compiled_chunk",
     "evaluate_indices",
     "load_samples",
+    "replay",
     "replay_sample",
     "figure_title",
     "run_campaign",

@@ -20,6 +20,7 @@ import spacegrasp_jax as sg  # noqa: E402
 from spacegrasp_jax import batching, campaign, compilation, experiment, paper, plots, runfiles, spatial
 from spacegrasp_jax.control import CONTROLLERS, GainsError, UnusedGainsWarning, load_gains, paper_gains
 from spacegrasp_jax.perturbations import PerturbationError, PerturbationRanges, load_ranges
+from spacegrasp_jax.realism import Realism, RealismError, load_realism
 from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
 from spacegrasp_jax.tuning.objective import Weights
 from spacegrasp_jax.tuning.run import TuneSetupError, tune
@@ -98,16 +99,32 @@ def _write_results(out: Path, results: dict, config: dict) -> None:
     runfiles.write_json(out / "config.json", config)
 
 
+def _realism(args, scenario) -> Realism | None:
+    """``--realism`` (a preset or a file), checked against the scenario before compiling."""
+    if getattr(args, "realism", None) is None:
+        return None
+    realism = load_realism(args.realism)
+    if scenario.n_steps % realism.steps_per_period(scenario.dt):
+        raise RealismError(f"--realism {args.realism}: timing.control_period does not divide the scenario's duration")
+    return realism
+
+
 def _run_controllers(args, controllers) -> int:
     robot, scenario, gains = _load_inputs(args)
+    realism = _realism(args, scenario)
+    key = jax.random.PRNGKey(getattr(args, "seed", 0))
     results = {}
     for controller in controllers:
         print(
             f"running the {controller} controller over {scenario.duration:g} s (dt = {scenario.dt:g} s)...", flush=True
         )
-        results[controller] = experiment.run(robot, scenario, gains, controller, pinv_damping=args.pinv_damping)
+        results[controller] = experiment.run(
+            robot, scenario, gains, controller, pinv_damping=args.pinv_damping, realism=realism, key=key
+        )
     _print_table(results)
-    config = experiment.run_config(args.robot or "paper_robot()", scenario, gains, controllers, args.pinv_damping)
+    config = experiment.run_config(
+        args.robot or "paper_robot()", scenario, gains, controllers, args.pinv_damping, realism
+    )
     out = Path(args.out)
     _write_results(out, results, config)
     print(f"wrote {out}/: table5.csv, summary.json, fig4-fig9 PNGs, timeseries_*.npz, config.json")
@@ -240,11 +257,14 @@ def _montecarlo(args: argparse.Namespace) -> int:
             device_batch=args.device_batch
             if args.device_batch is not None
             else (128 if jax.default_backend() == "cpu" else None),
+            realism=load_realism(args.realism) if args.realism else None,
+            identified=args.identified,
         )
     except (PerturbationError, campaign.CampaignError) as error:
         raise UsageError(str(error)) from None
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
+    _realism(args, scenario)  # the control period against the scenario, before compiling
     out = Path(args.out)
     names = ", ".join(variant.key for variant in variants)
     print(
@@ -349,6 +369,8 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--controller", choices=CONTROLLERS, required=True)
     simulate.add_argument("--gains", help="gains JSON file (default: the paper's)")
     simulate.add_argument("--scenario", help="scenario TOML or JSON file (default: the paper's)")
+    _add_realism_option(simulate)
+    simulate.add_argument("--seed", type=int, default=0, help="seed of the sensors' noise key (default 0)")
     _add_run_options(simulate, "results/simulate")
     _add_compile_cache_option(simulate)
     simulate.set_defaults(run=_simulate)
@@ -438,6 +460,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--pinv-damping", type=float, default=0.0, help="damping of the pseudoinverse (0: exact, the paper)"
     )
     montecarlo.add_argument("--resume", action="store_true", help="continue the campaign in --out chunk by chunk")
+    _add_realism_option(montecarlo)
+    montecarlo.add_argument(
+        "--identified",
+        action="store_true",
+        help="tell the controller each sample's perturbed satellite (default: it believes the nominal robot)",
+    )
     cluster = montecarlo.add_argument_group("several hosts (jax.distributed; run the same command on every host)")
     cluster.add_argument(
         "--distributed",
@@ -464,6 +492,14 @@ def build_parser() -> argparse.ArgumentParser:
     benchmark.add_argument("--repeats", type=int, default=3, help="repeats per timing, median reported (default 3)")
     benchmark.set_defaults(run=_benchmark)
     return parser
+
+
+def _add_realism_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--realism",
+        metavar="ideal|flight|FILE",
+        help="the loop's realism: ideal (the paper's, default), flight, or a TOML file (documentation: Flight-like loop)",
+    )
 
 
 def _add_compile_cache_option(parser: argparse.ArgumentParser) -> None:
@@ -497,7 +533,7 @@ def main(argv: list[str] | None = None) -> int:
 
             warnings.showwarning = notice
             return args.run(args)
-    except (sg.RobotConfigError, GainsError, ScenarioError, PerturbationError, UsageError) as error:
+    except (sg.RobotConfigError, GainsError, ScenarioError, PerturbationError, RealismError, UsageError) as error:
         print(f"spacegrasp: error: {error}", file=sys.stderr)
         return 2
     except experiment.SimulationDiverged as error:

@@ -17,6 +17,7 @@ import numpy as np
 from spacegrasp_jax import compilation, metrics, paper, runfiles
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
+from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario, scenario_to_dict
 from spacegrasp_jax.simulate import Log, first_nonfinite_time, rollout
 
@@ -41,14 +42,33 @@ class RunResult:
     run_time_s: float
 
 
-def compiled_rollout(robot: Robot, scenario: Scenario, gains: Gains, controller: str, pinv_damping: float = 0.0):
+def compiled_rollout(
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller: str,
+    pinv_damping: float = 0.0,
+    realism: Realism | None = None,
+    key=None,
+    model_robot: Robot | None = None,
+):
     """The compiled :func:`~spacegrasp_jax.simulate.rollout` for these argument shapes and
-    static settings, compiled once per process, and its compile time (s)."""
-    arguments = (robot, scenario, gains)
+    static settings (the realism's among them), compiled once per process, and its compile
+    time (s)."""
+    arguments = (robot, scenario, gains, realism, key, model_robot)
 
     def lower():
         function = compilation.jit(rollout, static_argnames=("controller", "pinv_damping"))
-        return function.lower(robot, scenario, gains, controller=controller, pinv_damping=pinv_damping)
+        return function.lower(
+            robot,
+            scenario,
+            gains,
+            controller=controller,
+            pinv_damping=pinv_damping,
+            realism=realism,
+            key=key,
+            model_robot=model_robot,
+        )
 
     return compilation.compile_once(
         ("rollout", controller, pinv_damping, compilation.argument_signature(arguments)), lower
@@ -56,17 +76,34 @@ def compiled_rollout(robot: Robot, scenario: Scenario, gains: Gains, controller:
 
 
 def run(
-    robot: Robot, scenario: Scenario, gains: Gains, controller: str, *, pinv_damping: float = 0.0, check: bool = True
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller: str,
+    *,
+    pinv_damping: float = 0.0,
+    realism: Realism | None = None,
+    key=None,
+    model_robot: Robot | None = None,
+    check: bool = True,
 ) -> RunResult:
-    """Run one closed-loop rollout and bring its log back as NumPy arrays.
+    """Run one closed-loop rollout and bring its log back as NumPy arrays. ``realism`` and
+    ``key``: the flight-like loop (:func:`~spacegrasp_jax.simulate.rollout`); the key
+    defaults to ``PRNGKey(0)`` when the realism has noisy sensors.
 
     Raises:
         SimulationDiverged: (when ``check``) the state became non-finite; the error gives
             the first non-finite time.
     """
-    executable, compile_time = compiled_rollout(robot, scenario, gains, controller, pinv_damping)
+    if realism is not None and realism.is_ideal(scenario.dt):
+        realism = None  # the paper's loop: one program with or without an ideal realism
+    if (realism is not None or model_robot is not None) and key is None:
+        key = jax.random.PRNGKey(0)
+    executable, compile_time = compiled_rollout(
+        robot, scenario, gains, controller, pinv_damping, realism, key, model_robot
+    )
     start = time.perf_counter()
-    _, log = executable(robot, scenario, gains)
+    _, log = executable(robot, scenario, gains, realism=realism, key=key, model_robot=model_robot)
     log = jax.tree.map(np.asarray, jax.block_until_ready(log))
     run_time = time.perf_counter() - start
     bad_time = first_nonfinite_time(log)
@@ -118,7 +155,14 @@ def summary_markdown(results: dict) -> str:
     return "\n".join(lines)
 
 
-def run_config(robot_source: str, scenario: Scenario, gains: Gains, controllers, pinv_damping: float) -> dict:
+def run_config(
+    robot_source: str,
+    scenario: Scenario,
+    gains: Gains,
+    controllers,
+    pinv_damping: float,
+    realism: Realism | None = None,
+) -> dict:
     """What ``config.json`` records: enough to trace every number back to how it was made.
     The gains are those the controllers use (:meth:`~spacegrasp_jax.control.Gains.to_dict`)."""
     controllers = list(controllers)
@@ -128,5 +172,6 @@ def run_config(robot_source: str, scenario: Scenario, gains: Gains, controllers,
         "gains": gains.to_dict(controllers[0] if len(controllers) == 1 else None),
         "scenario": scenario_to_dict(scenario),
         "pinv_damping": pinv_damping,
+        "realism": (realism if realism is not None else ideal()).to_dict(),
         **runfiles.provenance(),
     }

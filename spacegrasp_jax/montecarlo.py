@@ -13,6 +13,8 @@ Everything here is pure: ``jit``, ``vmap`` and sharding are applied by the calle
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,9 +22,10 @@ import numpy as np
 from spacegrasp_jax import metrics
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.perturbations import PerturbationRanges, sample
+from spacegrasp_jax.perturbations import PerturbationRanges, sample, sample_keys
+from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import Log, closed_loop_step, initial_state
+from spacegrasp_jax.simulate import Log, closed_loop_step, flight_loop, initial_state
 
 
 def rollout_metrics(
@@ -32,6 +35,9 @@ def rollout_metrics(
     controller: str,
     pinv_damping: float = 0.0,
     every: int | None = None,
+    realism: Realism | None = None,
+    key: jax.Array | None = None,
+    model_robot: Robot | None = None,
 ) -> tuple[dict[str, jax.Array], Log | None]:
     """One closed-loop rollout reduced to its :data:`~spacegrasp_jax.metrics.METRICS`, in one ``lax.scan``.
 
@@ -39,11 +45,16 @@ def rollout_metrics(
         robot, scenario, gains, controller, pinv_damping: as :func:`~spacegrasp_jax.simulate.rollout`.
         every: if set (static; must divide ``scenario.n_steps``), also return every
             ``every``-th log row, i.e. the rows at ``t = 0, every dt, 2 every dt, ...``.
+        realism, key, model_robot: the flight-like loop
+            (:func:`~spacegrasp_jax.simulate.flight_rollout`), run when the realism is not
+            ideal or the controller's model starts from another robot than the plant.
 
     Returns:
         ``(metrics, rows)``: a dict of the metrics' arrays and the decimated
         :class:`~spacegrasp_jax.simulate.Log` (``None`` without ``every``).
     """
+    if (realism is not None and not realism.is_ideal(scenario.dt)) or model_robot is not None:
+        return _flight_metrics(robot, scenario, gains, controller, pinv_damping, every, realism, key, model_robot)
     step = closed_loop_step(robot, scenario, gains, controller, pinv_damping)
     n_steps = scenario.n_steps
     dtype = scenario.initial.q.dtype
@@ -70,9 +81,52 @@ def rollout_metrics(
             return carry, jax.tree.map(lambda x: x[0], rows)
 
         (final, running, _), rows = jax.lax.scan(block, carry, None, length=n_steps // every)
+    return _finish(running, final, scenario.duration), rows
+
+
+def _finish(running, final, duration):
     # A state that turns non-finite in the very last step shows in no logged row.
     final_finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(final)]))
-    return metrics.finish(running, nonfinite_after_s=jnp.where(final_finite, jnp.inf, scenario.duration)), rows
+    return metrics.finish(running, nonfinite_after_s=jnp.where(final_finite, jnp.inf, duration))
+
+
+def _flight_metrics(robot, scenario, gains, controller, pinv_damping, every, realism, key, model_robot):
+    """:func:`rollout_metrics` of the flight-like loop: each control period's rows folded at once."""
+    realism = ideal() if realism is None else realism
+    key = jax.random.PRNGKey(0) if key is None else key
+    start, one_period, periods = flight_loop(
+        robot, scenario, gains, controller, realism, key, model_robot=model_robot, pinv_damping=pinv_damping
+    )
+    per_period = scenario.n_steps // periods
+    dtype = scenario.initial.q.dtype
+
+    def period_and_fold(carry, k):
+        state, running = carry
+        state, rows = one_period(state, k)
+        return (state, metrics.accumulate(running, rows)), rows
+
+    carry = (start, metrics.start(dtype))
+    ks = jnp.arange(periods, dtype=dtype)
+    if every is None:
+        (final, running), _ = jax.lax.scan(lambda c, k: (period_and_fold(c, k)[0], None), carry, ks)
+        rows = None
+    else:
+        if every < 1 or every % per_period or scenario.n_steps % every:
+            raise ValueError(
+                f"every: {every} must divide the {scenario.n_steps} steps and be a multiple of the {per_period} steps of a control period"
+            )
+
+        def block(carry, ks):
+            carry, rows = jax.lax.scan(period_and_fold, carry, ks)
+            return carry, jax.tree.map(lambda x: x[0, 0], rows)
+
+        (final, running), rows = jax.lax.scan(block, carry, ks.reshape(-1, every // per_period))
+    return _finish(running, final.plant, scenario.duration), rows
+
+
+#: The stream of a sample's sensor noise: ``fold_in(fold_in(PRNGKey(seed), i), NOISE_STREAM)``
+#: (the perturbation draws use streams 0-2 of the same sample key).
+NOISE_STREAM = 1_000
 
 
 def evaluate_samples(
@@ -86,9 +140,17 @@ def evaluate_samples(
     ranges: PerturbationRanges,
     pinv_damping: float = 0.0,
     every: int | None = None,
+    realism: Realism | None = None,
+    identified: bool = False,
 ):
     """Samples ``indices`` (n,) of the campaign ``seed`` (see
     :mod:`~spacegrasp_jax.perturbations`), each simulated and reduced to its metrics.
+
+    The controller believes the nominal ``robot`` (times the realism's factors) while the
+    plant is the sample's perturbed one; with ``identified`` it is told the perturbed robot
+    (a perfectly identified plant). ``realism``: the loop (``None``: ideal); the sample's
+    target estimate error is drawn on top of the realism's own, its sensor noise from
+    ``fold_in(fold_in(PRNGKey(seed), i), NOISE_STREAM)``.
 
     Returns:
         ``(perturbations, metrics, rows)``, each with leading axis n: the drawn
@@ -96,10 +158,60 @@ def evaluate_samples(
         the decimated logs (``None`` without ``every``). A sample that diverges has NaN
         final errors and a finite ``first_nonfinite_s``; the others are unaffected.
     """
+    samples = sample_loops(robot, scenario, seed, indices, ranges, realism, identified)
+    if samples.realisms is None:
+        one = lambda r, s: rollout_metrics(r, s, gains, controller, pinv_damping, every)
+        sample_metrics, rows = jax.vmap(one)(samples.robots, samples.scenarios)
+    else:
+        one = lambda r, s, re, key: rollout_metrics(
+            r, s, gains, controller, pinv_damping, every, re, key, samples.model_robot
+        )
+        sample_metrics, rows = jax.vmap(one)(samples.robots, samples.scenarios, samples.realisms, samples.keys)
+    return samples.perturbations, sample_metrics, rows
+
+
+@dataclasses.dataclass(frozen=True)
+class SampleLoops:
+    """What the closed loops of a batch of samples run with (:func:`sample_loops`).
+
+    Attributes:
+        robots, scenarios, perturbations: the perturbed plants and scenarios and the drawn
+            numbers, leading axis n.
+        realisms: the samples' realism (their target estimate errors differ), leading axis
+            n, or ``None`` for the paper's loop.
+        keys: (n, 2) the samples' noise keys (``None`` with ``realisms``).
+        model_robot: the robot the controllers believe (``None``: each its own plant).
+    """
+
+    robots: Robot
+    scenarios: Scenario
+    perturbations: object
+    realisms: Realism | None
+    keys: jax.Array | None
+    model_robot: Robot | None
+
+
+def sample_loops(
+    robot, scenario, seed, indices, ranges: PerturbationRanges, realism=None, identified=False
+) -> SampleLoops:
+    """The samples ``indices`` of a campaign and the loop each runs (:func:`evaluate_samples`)."""
     robots, scenarios, perturbations = sample(robot, scenario, seed, indices, ranges)
-    one = lambda r, s: rollout_metrics(r, s, gains, controller, pinv_damping, every)
-    sample_metrics, rows = jax.vmap(one)(robots, scenarios)
-    return perturbations, sample_metrics, rows
+    believes_nominal = not identified and ranges.perturbs_robot
+    estimates = ranges.lar_estimate_position_m > 0.0 or ranges.lar_estimate_angle_rad > 0.0
+    if not (believes_nominal or estimates or (realism is not None and not realism.is_ideal(scenario.dt))):
+        return SampleLoops(robots, scenarios, perturbations, None, None, None)
+    base = ideal() if realism is None else realism
+    if estimates:
+        base = dataclasses.replace(base, stages=base.stages | {"estimate"})
+    realisms = jax.vmap(
+        lambda p: dataclasses.replace(
+            base,
+            lar_position_error_m=base.lar_position_error_m + p.dp_lar_estimate,
+            lar_angle_error_rad=base.lar_angle_error_rad + p.dr_lar_estimate,
+        )
+    )(perturbations)
+    keys = jax.vmap(lambda k: jax.random.fold_in(k, NOISE_STREAM))(sample_keys(seed, indices))
+    return SampleLoops(robots, scenarios, perturbations, realisms, keys, robot if believes_nominal else None)
 
 
 def over_torque_limit(sample_metrics: dict, torque_limit_Nm: float | None):

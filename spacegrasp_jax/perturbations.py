@@ -19,10 +19,15 @@ uniform, ``U`` meaning a fresh uniform number in [-1, 1]:
   ``D = diag(sqrt(1 + U_k * value))`` (satellite axes), which scales each principal moment of
   a diagonal ``I`` independently and keeps any ``I`` symmetric positive definite.
 
+* ``lar_estimate_position_m``, ``lar_estimate_angle_rad``: the LAR pose the controller
+  believes is off the true one by ``U * value`` along each LAR axis and a rotation vector
+  with components ``U * value`` (a flight-like loop's target estimate error,
+  :mod:`spacegrasp_jax.realism`; the perturbed LAR pose above is the true one).
+
 The LAR frame moves independently of ``q_init``: a perturbed sample starts with the EE off
-its desired start, as a real approach would. The controller is not told about the model
-perturbations (the satellite mass and inertia): it uses the perturbed robot's own Dynamic
-Jacobian, i.e. a perfectly identified plant; only the plant and the initial conditions vary.
+its desired start, as a real approach would. Whether the controller is told about the model
+perturbations (the satellite mass and inertia) is the campaign's choice
+(:mod:`spacegrasp_jax.montecarlo`): by default it believes the nominal robot.
 """
 
 from __future__ import annotations
@@ -60,6 +65,8 @@ class PerturbationRanges:
     radius_fraction: float = 0.1
     satellite_mass_fraction: float = 0.1
     satellite_inertia_fraction: float = 0.1
+    lar_estimate_position_m: float = 0.002
+    lar_estimate_angle_rad: float = 0.005
 
     def __post_init__(self):
         for field in dataclasses.fields(self):
@@ -141,6 +148,8 @@ class Perturbation:
     radius_scale: jax.Array
     satellite_mass_scale: jax.Array
     satellite_inertia_scale: jax.Array
+    dp_lar_estimate: jax.Array
+    dr_lar_estimate: jax.Array
 
 
 def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Perturbation:
@@ -153,6 +162,7 @@ def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Pertu
     # added, so that earlier tuning runs (which use only those four) reproduce.
     k_q, k_p, k_r, k_k = jax.random.split(key, 4)
     k_v, k_w, k_qd, k_radius, k_mass, k_inertia = jax.random.split(jax.random.fold_in(key, 1), 6)
+    k_estimate_p, k_estimate_r = jax.random.split(jax.random.fold_in(key, 2), 2)  # the same streams above
     return Perturbation(
         dq_init=ranges.q_init_rad * uniform(k_q, (N_JOINTS,)),
         dp_lar=ranges.lar_position_m * uniform(k_p, (3,)),
@@ -165,6 +175,8 @@ def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Pertu
         radius_scale=1.0 + ranges.radius_fraction * uniform(k_radius, ()),
         satellite_mass_scale=1.0 + ranges.satellite_mass_fraction * uniform(k_mass, ()),
         satellite_inertia_scale=1.0 + ranges.satellite_inertia_fraction * uniform(k_inertia, (3,)),
+        dp_lar_estimate=ranges.lar_estimate_position_m * uniform(k_estimate_p, (3,)),
+        dr_lar_estimate=ranges.lar_estimate_angle_rad * uniform(k_estimate_r, (3,)),
     )
 
 

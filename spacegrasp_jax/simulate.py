@@ -39,7 +39,7 @@ from spacegrasp_jax.dynamics import (
 from spacegrasp_jax.integrator import PlantState, rk4_step, state_rate
 from spacegrasp_jax.kinematics import Frames, point_jacobian_blocks
 from spacegrasp_jax.model import N_JOINTS, Robot
-from spacegrasp_jax.realism import Realism
+from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.trajectory import desired_state
 
@@ -374,6 +374,7 @@ def rollout(
     checkpoint_segment: int | None = None,
     realism: Realism | None = None,
     key: jax.Array | None = None,
+    model_robot: Robot | None = None,
 ) -> tuple[SimState, Log]:
     """Simulate the closed loop over ``scenario.duration`` with one ``jax.lax.scan``.
 
@@ -395,22 +396,33 @@ def rollout(
             ``None``: blocks of :data:`LOG_BLOCK` steps, nothing checkpointed.
         realism: ``None`` or an ideal :class:`~spacegrasp_jax.realism.Realism`: the paper's
             loop. Otherwise the flight-like loop of :func:`flight_rollout` (static fields
-            fix the program; no ``checkpoint_segment``).
+            fix the program; any ``checkpoint_segment`` checkpoints each control period).
         key: the ``jax.random`` key of the sensors' noise (flight-like loop with noise).
+        model_robot: the robot the controller believes, if not ``robot`` (the flight-like
+            loop; :func:`flight_rollout`).
 
     Returns:
         ``(final_state, log)``: the state after ``scenario.n_steps`` steps and the
         :class:`Log`. A diverging rollout carries non-finite values from the first bad
         step on; :func:`first_nonfinite_time` finds it (``experiment.run`` reports it).
     """
-    if realism is not None and not realism.is_ideal(scenario.dt):
-        if checkpoint_segment is not None:
-            raise ValueError("checkpoint_segment: the flight-like loop is not checkpointed")
+    if (realism is not None and not realism.is_ideal(scenario.dt)) or model_robot is not None:
+        realism = ideal() if realism is None else realism
         if key is None:
             if "sensors" in realism.stages:
                 raise ValueError("key: a realism with noisy sensors needs a jax.random key")
             key = jax.random.PRNGKey(0)  # drawn from by no stage
-        return flight_rollout(robot, scenario, gains, controller, realism, key, pinv_damping=pinv_damping)
+        return flight_rollout(
+            robot,
+            scenario,
+            gains,
+            controller,
+            realism,
+            key,
+            model_robot=model_robot,
+            pinv_damping=pinv_damping,
+            checkpoint=checkpoint_segment is not None,
+        )
     n_steps = scenario.n_steps
     if checkpoint_segment is not None and (checkpoint_segment < 1 or n_steps % checkpoint_segment):
         raise ValueError(f"checkpoint_segment: {checkpoint_segment} must be a positive divisor of the {n_steps} steps")
@@ -467,6 +479,7 @@ def flight_rollout(
     *,
     model_robot: Robot | None = None,
     pinv_damping: float = 0.0,
+    checkpoint: bool = False,
 ) -> tuple[FlightState, Log]:
     """The closed loop with the realism model (module :mod:`spacegrasp_jax.realism`), one
     ``jax.lax.scan`` over control periods, each an inner scan over the plant's steps.
@@ -484,7 +497,40 @@ def flight_rollout(
         key: a ``jax.random`` key; same key, same rollout.
         model_robot: the robot the controller's model starts from (default ``robot``);
             its satellite mass and inertia are scaled by the realism's factors.
+        checkpoint: put each control period under ``jax.checkpoint`` (reverse-mode
+            gradients of long rollouts: the tape keeps one state per period).
     """
+    start, one_period, periods = flight_loop(
+        robot,
+        scenario,
+        gains,
+        controller,
+        realism,
+        key,
+        model_robot=model_robot,
+        pinv_damping=pinv_damping,
+        checkpoint=checkpoint,
+    )
+    final, rows = jax.lax.scan(one_period, start, jnp.arange(periods, dtype=scenario.initial.q.dtype))
+    return final, jax.tree.map(lambda x: x.reshape((scenario.n_steps,) + x.shape[2:]), rows)
+
+
+def flight_loop(
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller,
+    realism: Realism,
+    key: jax.Array,
+    *,
+    model_robot: Robot | None = None,
+    pinv_damping: float = 0.0,
+    checkpoint: bool = False,
+):
+    """The parts of :func:`flight_rollout` (same arguments): ``(start, one_period,
+    periods)``, the initial :class:`FlightState`, the scan body ``one_period(state, k) ->
+    (state, rows)`` of control period ``k`` (a float) with its plant steps' log rows (a
+    :class:`Log` with a leading axis of the period's steps), and the number of periods."""
     law = as_law(controller, pinv_damping)
     per_period = realism.steps_per_period(scenario.dt)
     if scenario.n_steps % per_period:
@@ -590,14 +636,15 @@ def flight_rollout(
         plant, rows = jax.lax.scan(lambda p, j: plant_step(p, j, held), state.plant, steps)
         return dataclasses.replace(state, plant=plant), rows
 
+    if checkpoint:  # inside a scan no CSE can undo it (see closed_loop_step)
+        one_period = jax.checkpoint(one_period, prevent_cse=False)
     start = FlightState(
         plant=scenario.initial,
         controller=ControllerState(law=law.init(dtype), pid=pid.init(dtype)),
         wrench_reading=jnp.zeros(6, dtype),
         commands_in_flight=jnp.zeros((realism.delay_periods, N_JOINTS), dtype),
     )
-    final, rows = jax.lax.scan(one_period, start, jnp.arange(periods, dtype=dtype))
-    return final, jax.tree.map(lambda x: x.reshape((scenario.n_steps,) + x.shape[2:]), rows)
+    return start, one_period, periods
 
 
 def first_nonfinite_time(log: Log):

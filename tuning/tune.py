@@ -40,6 +40,8 @@ CHECKPOINT = "checkpoint.npz"
 #: The robust batch's perturbations: initial joint angles, LAR pose and contact stiffness,
 #: the model and the initial velocities left nominal (the Monte-Carlo defaults vary those too).
 TUNING_RANGES = PerturbationRanges(
+    lar_estimate_position_m=0.0,
+    lar_estimate_angle_rad=0.0,
     q_init_rad=0.01,
     lar_position_m=0.003,
     lar_angle_rad=0.005,
