@@ -21,6 +21,7 @@ simulated seconds per wall second, scenario-steps/s, the ratio to the sequential
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import resource
@@ -40,7 +41,7 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
     from spacegrasp_jax import batching, campaign
 
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    if kind == "batch" and size % cores == 0:
+    if kind in ("batch", "flight") and size % cores == 0:
         batching.use_all_cpu_cores()  # as `spacegrasp montecarlo` does; before any device use
     import spacegrasp_jax as sg
     from spacegrasp_jax import compilation
@@ -48,6 +49,7 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.montecarlo import rollout_metrics
     from spacegrasp_jax.perturbations import PerturbationRanges, sample
+    from spacegrasp_jax.realism import flight
     from spacegrasp_jax.scenario import paper_scenario
 
     robot, gains = sg.paper_robot(), paper_gains()
@@ -66,9 +68,14 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
 
     else:
         variant = campaign.Variant("admittance", gains)
-        config = campaign.CampaignConfig(
-            n=size, chunk=size, device_batch=128 if jax.default_backend() == "cpu" else None
-        )
+        device_batch = 128 if jax.default_backend() == "cpu" else None
+        if kind == "batch":  # the paper's loop: the controller told each sample's satellite
+            ranges = dataclasses.replace(PerturbationRanges(), lar_estimate_position_m=0.0, lar_estimate_angle_rad=0.0)
+            config = campaign.CampaignConfig(
+                n=size, chunk=size, device_batch=device_batch, ranges=ranges, identified=True
+            )
+        else:  # the default campaign under the flight preset
+            config = campaign.CampaignConfig(n=size, chunk=size, device_batch=device_batch, realism=flight())
         compiled, compile_s = campaign.compiled_chunk(robot, scenario, variant, config)
 
         def run():
@@ -113,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     if any(size < 1 for size in batches) or args.sequential < 1 or args.repeats < 1 or args.duration <= 0:
         parser.error("--batches, --sequential, --repeats and --duration must be positive")
 
-    runs = [("sequential", args.sequential)] + [("batch", size) for size in batches]
+    runs = [("sequential", args.sequential)] + [("batch", size) for size in batches] + [("flight", batches[-1])]
     results = []
     for kind, size in runs:
         command = [

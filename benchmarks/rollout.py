@@ -24,17 +24,20 @@ from spacegrasp_jax import compilation
 from spacegrasp_jax.benchmarks.dynamics import machine, timed
 from spacegrasp_jax.compilation import configure
 from spacegrasp_jax.control import CONTROLLERS, paper_gains
+from spacegrasp_jax.realism import flight
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
 
 
-def bench_controller(robot, scenario, gains, controller: str, repeats: int) -> dict:
+def bench_controller(robot, scenario, gains, controller: str, repeats: int, realism=None) -> dict:
+    """One rollout's compile and run times; ``realism``: the flight-like loop (noise key 0)."""
     function = compilation.jit(rollout, static_argnames=("controller",))
+    extra = {} if realism is None else dict(realism=realism, key=jax.random.PRNGKey(0))
     start = time.perf_counter()
-    executable = function.lower(robot, scenario, gains, controller=controller).compile()
+    executable = function.lower(robot, scenario, gains, controller=controller, **extra).compile()
     compile_s = time.perf_counter() - start
-    jax.block_until_ready(executable(robot, scenario, gains))  # warm-up
-    run = timed(lambda: jax.block_until_ready(executable(robot, scenario, gains)), repeats)
+    jax.block_until_ready(executable(robot, scenario, gains, **extra))  # warm-up
+    run = timed(lambda: jax.block_until_ready(executable(robot, scenario, gains, **extra)), repeats)
     return {
         "compile_s": compile_s,
         "run_s": run["median_s"],
@@ -61,19 +64,21 @@ def main(argv: list[str] | None = None) -> int:
     result = {"machine": {**machine(), "cpu_affinity": affinity}, "duration_s": args.duration}
     for controller in CONTROLLERS:
         result[controller] = bench_controller(robot, scenario, gains, controller, args.repeats)
+    for controller in CONTROLLERS:  # the flight preset: 100 Hz control, own model, sensors, limits
+        result[f"{controller}/flight"] = bench_controller(robot, scenario, gains, controller, args.repeats, flight())
 
     info = result["machine"]
     print(
         f"machine: {info['cpu']}, {info['cores']} cores (pinned to {affinity}), backend {info['backend']}, jax {info['jax']}"
     )
     print(
-        f"{'controller':12} {'compile [s]':>12} {'run [s]':>10} {'spread [s]':>16} {'us/step':>9} {'sim s / wall s':>15}"
+        f"{'controller':18} {'compile [s]':>12} {'run [s]':>10} {'spread [s]':>16} {'us/step':>9} {'sim s / wall s':>15}"
     )
-    for controller in CONTROLLERS:
+    for controller in [*CONTROLLERS, *(f"{c}/flight" for c in CONTROLLERS)]:
         r = result[controller]
         spread = f"{r['run_spread_s'][0]:.3f}-{r['run_spread_s'][1]:.3f}"
         print(
-            f"{controller:12} {r['compile_s']:>12.2f} {r['run_s']:>10.3f} {spread:>16} {r['us_per_step']:>9.1f} {r['simulated_s_per_wall_s']:>15.1f}"
+            f"{controller:18} {r['compile_s']:>12.2f} {r['run_s']:>10.3f} {spread:>16} {r['us_per_step']:>9.1f} {r['simulated_s_per_wall_s']:>15.1f}"
         )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -42,6 +42,8 @@ KEYS = (
     "rollout_s",
     "compile_s",
     "us_per_step",
+    "flight_over_ideal_step",
+    "flight_over_ideal_chunk",
     "batch_steps_per_s",
     "batch_peak_rss_mb",
     "sequential_steps_per_s",
@@ -136,6 +138,9 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
     report["rollout_s"] = {c: rollout[c]["run_s"] for c in CONTROLLERS}
     report["compile_s"] = {c: rollout[c]["compile_s"] for c in CONTROLLERS}
     report["us_per_step"] = {c: rollout[c]["us_per_step"] for c in CONTROLLERS}
+    report["flight_over_ideal_step"] = {
+        c: rollout[f"{c}/flight"]["us_per_step"] / rollout[c]["us_per_step"] for c in CONTROLLERS
+    }
 
     print(f"2/5 batches {batches}...", flush=True)
     montecarlo = _child(
@@ -154,6 +159,9 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
     report["batch_steps_per_s"] = {str(r["size"]): r["scenario_steps_per_s"] for r in batch_results}
     report["batch_peak_rss_mb"] = {str(r["size"]): r["peak_rss_mb"] for r in batch_results}
     report["sequential_steps_per_s"] = montecarlo["results"][0]["scenario_steps_per_s"]
+    flight_chunk = next(r for r in montecarlo["results"] if r["kind"] == "flight")
+    same_size = next(r for r in batch_results if r["size"] == flight_chunk["size"])
+    report["flight_over_ideal_chunk"] = flight_chunk["run_s"] / same_size["run_s"]
 
     print("3/5 gradients...", flush=True)
     gradient_duration = 0.2 if quick else 17.0

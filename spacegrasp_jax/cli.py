@@ -154,8 +154,7 @@ def _tune(args: argparse.Namespace) -> int:
         if path and not Path(path).is_file():
             raise UsageError(f"{path}: no such file")
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
-    if args.scenario:
-        load_scenario(robot, args.scenario)
+    _realism(args, load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot))
     if args.gains:
         load_gains(args.gains, args.controller)
     try:
@@ -197,6 +196,8 @@ def _tune_config(args: argparse.Namespace) -> TuneConfig:
         frozen=tuple(filter(None, args.freeze.split(","))),
         gradient=args.gradient,
         torque_guard_Nm=args.torque_guard,
+        realism=load_realism(args.realism).to_dict() if args.realism else None,
+        aggregate=args.aggregate or ("clip" if args.realism else "mean"),
     )
 
 
@@ -403,6 +404,12 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--scenario", help="scenario TOML/JSON (default: the paper's)")
     tune.add_argument("--robot", help="robot TOML (default: the paper's)")
     tune.add_argument("--resume", action="store_true", help="continue the run in --out from its last completed step")
+    _add_realism_option(tune)
+    tune.add_argument(
+        "--aggregate",
+        choices=("mean", "clip"),
+        help="combine the batch's gradients as their mean, or clip each to 3x the median norm first (default: clip under --realism, else mean)",
+    )
     _add_compile_cache_option(tune)
     tune.set_defaults(run=_tune)
 

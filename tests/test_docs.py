@@ -68,6 +68,7 @@ def test_the_pages_with_examples_are_the_ones_expected():
         "tuning.md",
         "monte-carlo.md",
         "file-formats.md",
+        "flight-like-loop.md",
     }
 
 

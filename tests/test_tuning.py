@@ -240,3 +240,43 @@ def test_shipped_tuned_gains_beat_the_paper_on_the_nominal_scenario(robot, full_
     assert max(tuned["max_abs_torque_Nm"]) <= 0.7 * max(paper["max_abs_torque_Nm"])
     assert all(new <= old for new, old in zip(tuned["max_abs_torque_Nm"], paper["max_abs_torque_Nm"]))
     assert tuned["final_position_error_m"] <= paper["final_position_error_m"]
+
+
+def test_a_chaotic_samples_gradient_is_clipped_to_a_multiple_of_the_median():
+    from spacegrasp_jax.tuning.tune import CLIP_FACTOR, aggregate_gradients
+
+    losses = jnp.array([1.0, 2.0, 3.0, 4.0])
+    gradients = {"kp": jnp.array([[1.0, 0.0], [0.0, 1.0], [0.6, 0.8], [100.0, 0.0]])}  # norms 1, 1, 1, 100
+    total, plain, clipped = aggregate_gradients(losses, gradients, TuneConfig(aggregate="mean"))
+    assert float(total) == 2.5 and int(clipped) == 0
+    np.testing.assert_allclose(plain["kp"], [101.6 / 4, 1.8 / 4])
+    total, robust, clipped = aggregate_gradients(losses, gradients, TuneConfig(aggregate="clip"))
+    assert float(total) == 2.5 and int(clipped) == 1
+    # The fourth gradient scaled to 3 x the median norm (1), its direction kept.
+    np.testing.assert_allclose(robust["kp"], [(1.6 + CLIP_FACTOR) / 4, 1.8 / 4])
+    # CVaR: the worst half only.
+    total, worst, _ = aggregate_gradients(losses, gradients, TuneConfig(aggregate="clip", cvar_alpha=0.5))
+    assert float(total) == 3.5
+    np.testing.assert_allclose(worst["kp"], [(0.6 + CLIP_FACTOR) / 2, 0.8 / 2])
+    with pytest.raises(ValueError, match="aggregate"):
+        TuneConfig(aggregate="median")
+
+
+def test_a_candidate_whose_loss_runs_away_is_rejected_even_within_the_torque_guard():
+    """With saturating motors an unstable candidate keeps its torques small while the EE
+    drifts away: the loss guard (10x the starting loss) catches it. A toy loss whose
+    candidates past ``p = 1`` blow up: the first step (to p = 2) is rejected, the half step
+    (to p = 1) accepted."""
+    calls = []
+
+    def value_and_grad(params):
+        p = float(params["kp"][0])
+        calls.append(p)
+        loss = 1.0 - p if p <= 1.5 else 1e3
+        return (jnp.asarray(loss), {"largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": -jnp.ones(1)}
+
+    config = TuneConfig(steps=1, learning_rate=2.0, optimizer="sgd", clip_norm=10.0, loss_guard=10.0)
+    state, status = optimise(value_and_grad, {"kp": jnp.zeros(1)}, config)
+    assert status == "done" and calls == [0.0, 2.0, 1.0]
+    assert len(state.events) == 1 and state.events[0]["loss"] == 1e3
+    assert float(state.params["kp"][0]) == 1.0

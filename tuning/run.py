@@ -32,13 +32,16 @@ import spacegrasp_jax as sg
 from spacegrasp_jax import batching, experiment, runfiles
 from spacegrasp_jax.control import load_gains, make_gains, paper_gains
 from spacegrasp_jax.model import robot_from_toml
+from spacegrasp_jax.montecarlo import SampleLoops
 from spacegrasp_jax.perturbations import sample_scenarios
+from spacegrasp_jax.realism import make_realism
 from spacegrasp_jax.scenario import paper_scenario, scenario_from_mapping
 from spacegrasp_jax.tuning.objective import Objective
 from spacegrasp_jax.tuning.parameters import gains_from_params
 from spacegrasp_jax.tuning.tune import (
     CHECKPOINT,
     TuneConfig,
+    flight_batch,
     load_checkpoint,
     make_optimizer,
     optimise,
@@ -91,6 +94,31 @@ def new_record(config: TuneConfig, gains_file, scenario_file, robot_file, holdou
 def _scenarios_parts(robot, gains, scenarios, *, controller: str, objective: Objective):
     """:func:`~spacegrasp_jax.tuning.tune.scenario_parts` of each scenario of a batch (vmapped)."""
     return jax.vmap(lambda scenario: scenario_parts(robot, scenario, gains, controller, objective))(scenarios)
+
+
+def _samples_parts(model_robot, gains, samples, *, controller: str, objective: Objective):
+    """:func:`~spacegrasp_jax.tuning.tune.scenario_parts` of each sample of a flight-like
+    batch ``samples = (robots, scenarios, realisms, keys)`` (vmapped)."""
+
+    def one(robot, scenario, realism, key):
+        return scenario_parts(robot, scenario, gains, controller, objective, None, realism, key, model_robot)
+
+    return jax.vmap(one)(*samples)
+
+
+def evaluate_flight(model_robot, batch: SampleLoops, gains, controller: str, objective: Objective, chunk: int = 10):
+    """:func:`evaluate` for samples of the flight-like loop (:func:`~spacegrasp_jax.tuning.tune.flight_batch`)."""
+    function = functools.partial(_samples_parts, controller=controller, objective=objective)
+    samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
+    return batching.map_in_chunks(
+        "tuning.evaluate_flight",
+        function,
+        (model_robot, gains),
+        samples,
+        chunk=chunk,
+        key=(controller, objective),
+        progress=None,
+    )
 
 
 def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chunk: int = 10) -> dict[str, np.ndarray]:
@@ -183,7 +211,9 @@ def tune(
         file=progress,
         flush=True,
     )
-    before = experiment.run(robot, exact, base, config.controller)
+    realism = make_realism(config.realism) if config.realism is not None else None
+    flight_settings = dict(realism=realism, key=jax.random.PRNGKey(config.seed)) if realism is not None else {}
+    before = experiment.run(robot, exact, base, config.controller, **flight_settings)
     objective, mask, params, value_and_grad = setup(robot, smooth, base, config, before.summary["max_abs_torque_Nm"])
     resume_state = None
     if resume and checkpoint_path.exists():
@@ -222,12 +252,13 @@ def tune(
         return TuneResult(status, state.history, before.log)
 
     print("evaluating the tuned gains with the exact contact law...", file=progress, flush=True)
-    after = experiment.run(robot, exact, tuned, config.controller)
+    after = experiment.run(robot, exact, tuned, config.controller, **flight_settings)
     summary = {
         "status": status,
         "controller": config.controller,
         "steps": state.step,
-        "evaluated_with": "exact contact law (eq 20), nominal scenario",
+        "evaluated_with": "exact contact law (eq 20), nominal scenario"
+        + (", the run's realism, noise key of --seed" if realism is not None else ""),
         "paper_gains" if record["gains_source"] == "paper_gains()" else "starting_gains": _comparison(before),
         "tuned_gains": _comparison(after),
         "rejected_steps": state.events,
@@ -246,9 +277,14 @@ def tune(
     ]
     if holdout:
         print(f"evaluating both on {holdout} held-out perturbed scenarios...", file=progress, flush=True)
-        scenarios = sample_scenarios(exact, config.seed + HOLDOUT_SEED_OFFSET, range(holdout), config.ranges)
-        before_parts = evaluate(robot, scenarios, base, config.controller, objective)
-        after_parts = evaluate(robot, scenarios, tuned, config.controller, objective)
+        if realism is None:
+            scenarios = sample_scenarios(exact, config.seed + HOLDOUT_SEED_OFFSET, range(holdout), config.ranges)
+            before_parts = evaluate(robot, scenarios, base, config.controller, objective)
+            after_parts = evaluate(robot, scenarios, tuned, config.controller, objective)
+        else:  # the same realism, new noise keys and satellites
+            samples = flight_batch(robot, exact, config, config.seed + HOLDOUT_SEED_OFFSET, holdout)
+            before_parts = evaluate_flight(robot, samples, base, config.controller, objective)
+            after_parts = evaluate_flight(robot, samples, tuned, config.controller, objective)
         summary["holdout"] = {
             "scenarios": holdout,
             "seed": config.seed + HOLDOUT_SEED_OFFSET,

@@ -3,7 +3,7 @@ resumable optax loop that rejects diverging steps.
 
 One step: ``updates = optimiser(gradient)``; the candidate ``params + scale * updates`` is
 evaluated (loss and gradient together); if its rollout diverged (non-finite values, or a peak
-torque above ``torque_guard_Nm``) it is rejected, ``scale`` is halved and the event logged,
+torque above ``torque_guard_Nm``, or a loss above ``loss_guard`` times the starting loss) it is rejected, ``scale`` is halved and the event logged,
 else it is accepted together with the optimiser's new state. After every accepted step the
 whole run state is written atomically to ``checkpoint.npz``, so an interrupted run resumes
 from its last completed step and ends exactly where an uninterrupted one would.
@@ -27,7 +27,9 @@ from jax.flatten_util import ravel_pytree
 from spacegrasp_jax import compilation
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
+from spacegrasp_jax.montecarlo import SampleLoops, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
+from spacegrasp_jax.realism import Realism, make_realism
 from spacegrasp_jax.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import largest_divisor, rollout
@@ -75,7 +77,17 @@ class TuneConfig:
         frozen: gain groups kept at their initial values.
         gradient: ``"reverse"`` (checkpointed; the faster) or ``"forward"``.
         torque_guard_Nm: a candidate whose peak torque exceeds this is rejected.
+        loss_guard: a candidate whose loss exceeds this many times the starting loss is
+            rejected too.
         ranges: perturbation half-widths for the robust batch (:data:`TUNING_RANGES`).
+        realism: the tables of a :class:`~spacegrasp_jax.realism.Realism` to train under
+            (``None``: the paper's loop). Then every sample of the batch draws its noise key
+            and a perturbed satellite (10% mass and inertia unless ``ranges`` sets them) that
+            the controller does not know: it believes the nominal robot.
+        aggregate: how the batch's gradients combine: ``"mean"`` (the gradient of the mean
+            or CVaR) or ``"clip"``: each sample's gradient clipped to :data:`CLIP_FACTOR`
+            times the batch's median gradient norm before the mean (one chaotic sample
+            cannot steer the step).
     """
 
     controller: str = "admittance"
@@ -91,14 +103,17 @@ class TuneConfig:
     frozen: tuple[str, ...] = ()
     gradient: str = "reverse"
     torque_guard_Nm: float = 100.0
+    loss_guard: float = 10.0
     ranges: PerturbationRanges = TUNING_RANGES
+    realism: dict | None = None
+    aggregate: str = "mean"
 
     def __post_init__(self):
         if self.controller not in ("admittance", "cartesian"):
             raise ValueError(f"controller: expected admittance or cartesian, got {self.controller!r}")
         if self.steps < 1 or self.batch < 1:
             raise ValueError("steps and batch must be at least 1")
-        for name in ("learning_rate", "clip_norm", "temperature", "torque_guard_Nm"):
+        for name in ("learning_rate", "clip_norm", "temperature", "torque_guard_Nm", "loss_guard"):
             value = getattr(self, name)
             if not (value > 0.0 and math.isfinite(value)):
                 raise ValueError(f"{name}: must be positive and finite, got {value}")
@@ -106,6 +121,10 @@ class TuneConfig:
             raise ValueError(f"cvar_alpha: must be in [0, 1), got {self.cvar_alpha}")
         if self.gradient not in ("reverse", "forward"):
             raise ValueError(f"gradient: expected reverse or forward, got {self.gradient!r}")
+        if self.aggregate not in ("mean", "clip"):
+            raise ValueError(f"aggregate: expected mean or clip, got {self.aggregate!r}")
+        if self.realism is not None:
+            make_realism(self.realism, source="realism")  # checked now, before anything compiles
         factory = getattr(optax, self.optimizer, None)
         if not callable(factory):
             raise ValueError(f"optimizer: optax has no optimiser named {self.optimizer!r}")
@@ -173,12 +192,30 @@ def training_scenarios(nominal: Scenario, config: TuneConfig) -> Scenario:
 
 
 def scenario_parts(
-    robot: Robot, scenario: Scenario, gains: Gains, controller: str, objective: Objective, segment: int | None = None
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller: str,
+    objective: Objective,
+    segment: int | None = None,
+    realism: Realism | None = None,
+    key: jax.Array | None = None,
+    model_robot: Robot | None = None,
 ) -> dict:
     """Every part of the objective on one scenario (:func:`~spacegrasp_jax.tuning.objective.objective_parts`),
     plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m). ``segment``: the
-    rollout's ``checkpoint_segment`` (for reverse-mode gradients)."""
-    _, log = rollout(robot, scenario, gains, controller, checkpoint_segment=segment)
+    rollout's ``checkpoint_segment`` (for reverse-mode gradients). ``realism``, ``key``,
+    ``model_robot``: the flight-like loop (:func:`~spacegrasp_jax.simulate.rollout`)."""
+    _, log = rollout(
+        robot,
+        scenario,
+        gains,
+        controller,
+        checkpoint_segment=segment,
+        realism=realism,
+        key=key,
+        model_robot=model_robot,
+    )
     parts = objective_parts(log, objective)
     parts["largest_peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
     return parts
@@ -234,6 +271,68 @@ def make_value_and_grad(loss: Callable, params, mode: str):
     return compilation.jit(forward)
 
 
+#: Under ``aggregate="clip"``, a sample's gradient is clipped to this many times the batch's
+#: median gradient norm.
+CLIP_FACTOR = 3.0
+
+
+def flight_batch(robot: Robot, nominal: Scenario, config: TuneConfig, seed: int, count: int) -> SampleLoops:
+    """``count`` samples of seed ``seed`` for a run under ``config.realism``: perturbed
+    scenarios and satellites, each with its noise key; the controller believes ``robot``."""
+    ranges = config.ranges
+    if ranges.satellite_mass_fraction == 0.0 and ranges.satellite_inertia_fraction == 0.0:
+        ranges = dataclasses.replace(ranges, satellite_mass_fraction=0.1, satellite_inertia_fraction=0.1)
+    return sample_loops(robot, nominal, seed, range(count), ranges, make_realism(config.realism))
+
+
+def aggregate_gradients(losses, gradients, config: TuneConfig):
+    """``(total, gradient, clipped)``: the batch's objective (mean, or CVaR), its gradient
+    from the per-sample ``gradients`` (a pytree with a leading batch axis), clipped per
+    sample under ``config.aggregate == "clip"``, and how many samples were clipped."""
+    count = losses.shape[0]
+    norms = jnp.sqrt(sum(jnp.sum(g.reshape(count, -1) ** 2, axis=1) for g in jax.tree.leaves(gradients)))
+    if config.aggregate == "clip":
+        ceiling = CLIP_FACTOR * jnp.median(norms)
+        scale = jnp.where(norms > ceiling, ceiling / jnp.where(norms > 0.0, norms, 1.0), 1.0)
+    else:
+        scale = jnp.ones_like(norms)
+    if config.cvar_alpha is None:
+        weights = jnp.full(count, 1.0 / count)
+    else:
+        worst = max(1, math.ceil((1.0 - config.cvar_alpha) * count))
+        weights = jnp.zeros(count).at[jnp.argsort(losses)[-worst:]].set(1.0 / worst)
+    total = jnp.sum(weights * losses)
+    gradient = jax.tree.map(lambda g: jnp.tensordot(weights * scale, g, axes=1), gradients)
+    return total, gradient, jnp.sum(scale < 1.0)
+
+
+def make_flight_value_and_grad(
+    robot: Robot, batch: SampleLoops, base: Gains, mask, config: TuneConfig, objective: Objective
+):
+    """Jitted ``params -> ((loss, aux), gradient)`` under ``config.realism``: each sample's
+    reverse-mode gradient (one control period a checkpoint), then :func:`aggregate_gradients`.
+    ``aux`` has the batch-mean parts, the worst hard peak torque and ``clipped_samples``."""
+
+    def sample_loss(params, sample):
+        r, scenario, realism, key = sample
+        gains = gains_from_params(params, base, mask)
+        parts = scenario_parts(r, scenario, gains, config.controller, objective, 1, realism, key, batch.model_robot)
+        return parts["loss"], parts
+
+    per_sample = jax.value_and_grad(sample_loss, has_aux=True)
+
+    def value_and_grad(params):
+        samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
+        (losses, parts), gradients = jax.lax.map(lambda sample: per_sample(params, sample), samples)
+        total, gradient, clipped = aggregate_gradients(losses, gradients, config)
+        aux = {name: jnp.mean(value) for name, value in parts.items()}
+        aux["largest_peak_torque_Nm"] = jnp.max(parts["largest_peak_torque_Nm"])
+        aux["clipped_samples"] = clipped.astype(losses.dtype)
+        return (total, aux), gradient
+
+    return compilation.jit(value_and_grad)
+
+
 @dataclasses.dataclass
 class RunState:
     """What a checkpoint holds: the loop's whole state after ``step`` accepted steps."""
@@ -249,9 +348,9 @@ class RunState:
     events: list
 
 
-def _is_acceptable(loss, aux, gradient, guard_Nm: float) -> bool:
+def _is_acceptable(loss, aux, gradient, guard_Nm: float, loss_ceiling: float = math.inf) -> bool:
     finite = math.isfinite(float(loss)) and all(bool(np.all(np.isfinite(g))) for g in jax.tree.leaves(gradient))
-    return finite and float(aux["largest_peak_torque_Nm"]) <= guard_Nm
+    return finite and float(aux["largest_peak_torque_Nm"]) <= guard_Nm and float(loss) <= loss_ceiling
 
 
 def save_checkpoint(path: Path, state: RunState, config: TuneConfig, write_atomically) -> None:
@@ -353,7 +452,11 @@ def optimise(
         while True:
             candidate = jax.tree.map(lambda p, u: p + state.scale * u, state.params, updates)
             (loss, aux), gradient = value_and_grad(candidate)
-            if _is_acceptable(loss, aux, gradient, config.torque_guard_Nm):
+            # With saturating motors an unstable candidate need not raise the torque: the EE
+            # drifts away instead, which the loss sees.
+            if _is_acceptable(
+                loss, aux, gradient, config.torque_guard_Nm, config.loss_guard * state.history[0]["loss"]
+            ):
                 break
             rejected += 1
             state.events.append(
@@ -395,6 +498,11 @@ def setup(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torq
     )
     mask = make_mask(base, config.controller, config.frozen)
     params = initial_params(base, config.controller)
+    if config.realism is not None:
+        if config.gradient != "reverse":
+            raise ValueError("gradient: tuning under a realism is reverse mode")
+        batch = flight_batch(robot, nominal, config, config.seed, config.batch)
+        return objective, mask, params, make_flight_value_and_grad(robot, batch, base, mask, config, objective)
     scenarios = training_scenarios(nominal, config)
     segment = checkpoint_segment(nominal.n_steps, config.batch) if config.gradient == "reverse" else None
     loss = make_loss(robot, scenarios, base, mask, config, objective, segment)
