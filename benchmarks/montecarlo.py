@@ -108,6 +108,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sequential", type=int, default=8, help="single rollouts in the sequential baseline")
     parser.add_argument("--duration", type=float, default=17.0, help="simulated seconds per rollout (17 in the paper)")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--flight",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also the largest batch under the flight preset",
+    )
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
@@ -120,7 +126,11 @@ def main(argv: list[str] | None = None) -> int:
     if any(size < 1 for size in batches) or args.sequential < 1 or args.repeats < 1 or args.duration <= 0:
         parser.error("--batches, --sequential, --repeats and --duration must be positive")
 
-    runs = [("sequential", args.sequential)] + [("batch", size) for size in batches] + [("flight", batches[-1])]
+    runs = (
+        [("sequential", args.sequential)]
+        + [("batch", size) for size in batches]
+        + ([("flight", batches[-1])] if args.flight else [])
+    )
     results = []
     for kind, size in runs:
         command = [

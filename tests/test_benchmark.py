@@ -29,7 +29,6 @@ def test_quick_benchmark_writes_every_key(tmp_path):
         *report["rollout_s"].values(),
         *report["compile_s"].values(),
         *report["flight_over_ideal_step"].values(),
-        report["flight_over_ideal_chunk"],
         *report["batch_steps_per_s"].values(),
         *report["gradient_over_forward"].values(),
         report["gradient_peak_mb"]["reverse"],

@@ -40,7 +40,8 @@ def test_a_rollout_compiled_with_the_options_matches_the_default_compile(robot, 
     ours = compilation.jit(rollout, static_argnames=("controller",))(*arguments, controller="admittance")[1]
     default = jax.jit(rollout, static_argnames=("controller",))(*arguments, controller="admittance")[1]
     for name, value in vars(default).items():
-        np.testing.assert_allclose(getattr(ours, name), value, rtol=1e-9, atol=1e-12, err_msg=name)
+        if value is not None:  # the flight-like loop's fields
+            np.testing.assert_allclose(getattr(ours, name), value, rtol=1e-9, atol=1e-12, err_msg=name)
 
 
 def test_loops_compiled_whole_give_the_results_of_loops_run_kernel_by_kernel(robot, gains, tmp_path):
@@ -57,7 +58,7 @@ def test_loops_compiled_whole_give_the_results_of_loops_run_kernel_by_kernel(rob
         "robot = sg.paper_robot()\n"
         "function = compilation.jit(rollout, static_argnames=('controller',))\n"
         "log = function(robot, paper_scenario(robot, duration=0.3), paper_gains(), controller='admittance')[1]\n"
-        "np.savez(sys.argv[1], **{name: np.asarray(value) for name, value in vars(log).items()})\n"
+        "np.savez(sys.argv[1], **{name: np.asarray(value) for name, value in vars(log).items() if value is not None})\n"
     )
     flags = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0"
     env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
@@ -68,6 +69,8 @@ def test_loops_compiled_whole_give_the_results_of_loops_run_kernel_by_kernel(rob
     )[1]
     kernel_by_kernel = np.load(tmp_path / "log.npz")
     for name, value in vars(ours).items():
+        if value is None:
+            continue
         np.testing.assert_allclose(value, kernel_by_kernel[name], rtol=1e-9, atol=1e-12, err_msg=name)
 
 
