@@ -112,7 +112,10 @@ def _realism(args, scenario) -> Realism | None:
 def _run_controllers(args, controllers) -> int:
     robot, scenario, gains = _load_inputs(args)
     realism = _realism(args, scenario)
-    key = jax.random.PRNGKey(getattr(args, "seed", 0))
+    seed = getattr(args, "seed", 0)
+    if not 0 <= seed < 2**32:
+        raise UsageError(f"--seed: must be in [0, 2^32), got {seed}")
+    key = jax.random.PRNGKey(seed)
     results = {}
     for controller in controllers:
         print(

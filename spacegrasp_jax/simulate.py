@@ -250,6 +250,41 @@ def control_step(
     plant = state.plant
     if kinematics is None:
         kinematics = plant_kinematics(robot, scenario, plant)
+    observed = observe(robot, scenario, plant, kinematics, t)
+    qd_des, law_state = law.update(gains, observed.inputs, state.controller.law, scenario.dt)
+    u, pid = PID().update(gains, state.controller.pid, qd_des - plant.qd, t, scenario.dt)
+    V_ref = law.reference_twist(state.controller.law)
+    row = log_row(
+        plant,
+        kinematics,
+        t,
+        observed,
+        u=u,
+        V_ref=jnp.zeros(6, dtype=plant.q.dtype) if V_ref is None else V_ref,
+        qd_des=qd_des,
+    )
+    return u, ControllerState(law=law_state, pid=pid), row
+
+
+@dataclasses.dataclass(frozen=True)
+class Observation:
+    """The true state as an ideal controller sees it (:func:`observe`).
+
+    Attributes:
+        inputs: what the law reads (:class:`~spacegrasp_jax.control.law.ControlInputs`).
+        pose, twist: (6,) the EE pose and twist in LAR (the log's ``pose_ee``, ``twist_ee``).
+        force_fts, torque_fts: (3,) N, N m, the ideal F/T sensor's reading, sensor axes.
+    """
+
+    inputs: ControlInputs
+    pose: jax.Array
+    twist: jax.Array
+    force_fts: jax.Array
+    torque_fts: jax.Array
+
+
+def observe(robot: Robot, scenario: Scenario, plant: PlantState, kinematics: PlantKinematics, t) -> Observation:
+    """The true state at time ``t`` (s) through perfect sensors, given ``kinematics`` of ``plant``."""
     force_fts, torque_fts = sensor_reading(robot, scenario, kinematics)
     inputs, (pose, twist) = controller_inputs(
         robot,
@@ -264,27 +299,26 @@ def control_step(
         torque_fts,
         t,
     )
-    qd_des, law_state = law.update(gains, inputs, state.controller.law, scenario.dt)
-    u, pid = PID().update(gains, state.controller.pid, qd_des - plant.qd, t, scenario.dt)
-    V_ref = law.reference_twist(state.controller.law)
+    return Observation(inputs, pose, twist, force_fts, torque_fts)
 
-    row = Log(
+
+def log_row(plant: PlantState, kinematics: PlantKinematics, t, observed: Observation, **controller) -> Log:
+    """One row of the :class:`Log`: the plant's true state at ``t`` (s) and ``controller``'s
+    fields (``u``, ``V_ref``, ``qd_des`` and, in the flight-like loop, its readings)."""
+    return Log(
         t=t,
-        pose_ee=pose,
-        pose_des=inputs.pose_des,
-        twist_ee=twist,
+        pose_ee=observed.pose,
+        pose_des=observed.inputs.pose_des,
+        twist_ee=observed.twist,
         contact_force=kinematics.contact_force_lar,
         momentum=momentum_at(kinematics, plant),
         V_base=plant.V_base,
-        u=u,
-        fts_force=force_fts,
-        fts_torque=torque_fts,
-        V_ref=jnp.zeros(6, dtype=pose.dtype) if V_ref is None else V_ref,
-        qd_des=qd_des,
+        fts_force=observed.force_fts,
+        fts_torque=observed.torque_fts,
         q=plant.q,
         qd=plant.qd,
+        **controller,
     )
-    return u, ControllerState(law=law_state, pid=pid), row
 
 
 def sensor_reading(robot: Robot, scenario: Scenario, kinematics: PlantKinematics) -> tuple[jax.Array, jax.Array]:
@@ -598,34 +632,7 @@ def flight_loop(
     def plant_step(plant: PlantState, k, held):
         t = k * scenario.dt
         kinematics = plant_kinematics(robot, scenario, plant)
-        force_fts, torque_fts = sensor_reading(robot, scenario, kinematics)
-        _, (pose, twist) = controller_inputs(
-            robot,
-            scenario.trajectory,
-            plant.p_base,
-            plant.V_base,
-            plant.qd,
-            kinematics,
-            scenario.p_lar,
-            scenario.R_lar,
-            force_fts,
-            torque_fts,
-            t,
-        )
-        row = Log(
-            t=t,
-            pose_ee=pose,
-            pose_des=desired_state(scenario.trajectory, t)[0],
-            twist_ee=twist,
-            contact_force=kinematics.contact_force_lar,
-            momentum=momentum_at(kinematics, plant),
-            V_base=plant.V_base,
-            fts_force=force_fts,
-            fts_torque=torque_fts,
-            q=plant.q,
-            qd=plant.qd,
-            **held,
-        )
+        row = log_row(plant, kinematics, t, observe(robot, scenario, plant, kinematics, t), **held)
         u = held["u"]
         k1 = plant_rate(robot, scenario, plant, kinematics, u)
         return rk4_step(lambda s: plant_derivative(robot, scenario, s, u), plant, scenario.dt, rate_at_start=k1), row
