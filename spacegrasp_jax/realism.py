@@ -9,7 +9,9 @@ low-pass; joints: encoder quantisation of q, white noise on qd) -> controller, r
 start of each control period with its own model of the robot (believed satellite mass and
 inertia) and its own estimate of the LAR pose -> delay (whole control periods) -> joint PID
 with anti-windup -> torque saturation -> zero-order hold over the control period -> plant
-(RK4 at the scenario's ``dt``).
+(RK4 at the scenario's ``dt``). The joint PID may run faster than the controller, at its own
+servo period, reading the joint sensors at each of its ticks (``timing.servo_period``; by
+default it runs with the controller, once per control period).
 
 Array leaves (noise levels, biases, limits, factors, estimate errors) are differentiable and
 vmappable; the choices that fix the program's shape are static: the control period, the
@@ -21,6 +23,7 @@ TOML (``--realism FILE``; every key optional, unknown keys rejected)::
     [timing]
     control_period = 0.001          # s, a whole multiple of the scenario's dt; zero-order hold
     delay_periods = 0               # whole control periods between measurement and actuation
+    servo_period = 0.001            # s, the joint PID's period: divides control_period (default: equal)
     [force_torque_sensor]
     force_noise_std = [0.0, 0.0, 0.0]    # N, white Gaussian per axis, sensor axes
     torque_noise_std = [0.0, 0.0, 0.0]   # N m
@@ -63,7 +66,7 @@ class RealismError(ValueError):
 
 #: The TOML contract: table -> key -> (shape, default). Shape () is a scalar.
 SCHEMA = {
-    "timing": {"control_period": ((), None), "delay_periods": ((), 0)},
+    "timing": {"control_period": ((), None), "delay_periods": ((), 0), "servo_period": ((), None)},
     "force_torque_sensor": {
         "force_noise_std": ((3,), 0.0),
         "torque_noise_std": ((3,), 0.0),
@@ -103,6 +106,9 @@ class Realism:
         lar_angle_error_rad: (3,) rad, rotation vector of the LAR attitude error, LAR axes.
         control_period: s, the controller's period (``None``: the scenario's ``dt``; static).
         delay_periods: whole control periods between measurement and actuation (static).
+        servo_period: s, the joint PID's period, a whole fraction of the control period;
+            the joint sensors are read at each servo tick (``None``: the control period;
+            static).
         cutoff_hz: Hz, cutoff of the first-order low-pass on the measured wrench (0: none;
             static).
         saturation: ``"hard"`` (clip) or ``"smooth"`` (``limit tanh(u / limit)``; static).
@@ -123,6 +129,7 @@ class Realism:
     lar_angle_error_rad: jax.Array
     control_period: float | None = _static(None)
     delay_periods: int = _static(0)
+    servo_period: float | None = _static(None)
     cutoff_hz: float = _static(0.0)
     saturation: str = _static("hard")
     anti_windup: bool = _static(True)
@@ -143,10 +150,29 @@ class Realism:
             )
         return int(round(ratio))
 
+    def steps_per_servo(self, dt: float) -> int:
+        """Plant steps per servo period (the joint PID's), for a scenario of step ``dt`` (s);
+        a whole fraction of :meth:`steps_per_period`."""
+        per_period = self.steps_per_period(dt)
+        if self.servo_period is None:
+            return per_period
+        ratio = self.servo_period / dt
+        per_servo = int(round(ratio))
+        if per_servo < 1 or abs(ratio - per_servo) > 1e-9 * ratio or per_period % per_servo:
+            raise RealismError(
+                f"timing.servo_period: {self.servo_period} s is not a whole multiple of the scenario's dt = {dt} s "
+                f"dividing the control period ({per_period * dt:g} s)"
+            )
+        return per_servo
+
     def to_dict(self) -> dict:
         """The settings as the TOML tables (JSON-ready; ``None`` for an infinite limit)."""
         values = {
-            "timing": {"control_period": self.control_period, "delay_periods": self.delay_periods},
+            "timing": {
+                "control_period": self.control_period,
+                "delay_periods": self.delay_periods,
+                "servo_period": self.servo_period,
+            },
             "force_torque_sensor": {
                 "force_noise_std": self.force_noise_std,
                 "torque_noise_std": self.torque_noise_std,
@@ -230,6 +256,7 @@ def make_realism(document: dict | None = None, *, source: str = "realism") -> Re
             if (table, key) in {
                 ("timing", "control_period"),
                 ("timing", "delay_periods"),
+                ("timing", "servo_period"),
                 ("force_torque_sensor", "cutoff_hz"),
                 ("actuators", "saturation"),
                 ("actuators", "anti_windup"),
@@ -277,6 +304,19 @@ def make_realism(document: dict | None = None, *, source: str = "realism") -> Re
     ):
         raise RealismError(
             f"{where('timing', 'control_period')}: must be a number of seconds in (0, 1], got {period!r}"
+        )
+    servo = get("timing", "servo_period")
+    if servo is not None and (
+        isinstance(servo, bool)
+        or not isinstance(servo, (int, float))
+        or not (math.isfinite(servo) and 0 < servo <= (1.0 if period is None else period))
+    ):
+        raise RealismError(
+            f"{where('timing', 'servo_period')}: must be a number of seconds in (0, control_period], got {servo!r}"
+        )
+    if servo is not None and period is not None and abs(period / servo - round(period / servo)) > 1e-9 * period / servo:
+        raise RealismError(
+            f"{where('timing', 'servo_period')}: {servo} s does not divide timing.control_period = {period} s"
         )
     delay = get("timing", "delay_periods")
     if isinstance(delay, bool) or not isinstance(delay, int) or not 0 <= delay <= 100:
@@ -327,6 +367,7 @@ def make_realism(document: dict | None = None, *, source: str = "realism") -> Re
         lar_angle_error_rad=jnp.asarray(a["angle_error_rad"]),
         control_period=None if period is None else float(period),
         delay_periods=delay,
+        servo_period=None if servo is None else float(servo),
         cutoff_hz=float(cutoff),
         saturation=saturation,
         anti_windup=anti_windup,
@@ -342,7 +383,7 @@ def ideal() -> Realism:
 #: The ``flight`` preset's tables; each value's reasoning is in the documentation's
 #: modelling notes ("The flight preset").
 FLIGHT = {
-    "timing": {"control_period": 0.01, "delay_periods": 1},
+    "timing": {"control_period": 0.01, "delay_periods": 1, "servo_period": 0.001},
     "force_torque_sensor": {
         "force_noise_std": [0.05, 0.05, 0.05],
         "torque_noise_std": [0.0025, 0.0025, 0.0025],

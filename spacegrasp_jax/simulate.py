@@ -102,8 +102,9 @@ class Log:
         fts_force_measured, fts_torque_measured: (N, 3) N, N m, the F/T sensor's reading
             the controller used (noise, bias, low-pass; held over the control period),
             sensor axes; ``None`` in the ideal loop, where it is ``fts_force``/``fts_torque``.
-        q_measured, qd_measured: (N, 7) rad, rad/s, the joint sensors' readings the
-            controller used; ``None`` in the ideal loop.
+        q_measured, qd_measured: (N, 7) rad, rad/s, the joint sensors' readings at the
+            latest servo tick (the PID's; at the start of a control period also the
+            controller's); ``None`` in the ideal loop.
         qd_des_computed: (N, 7) rad/s, the desired joint rates the law computed in this
             control period (they reach the PID ``delay_periods`` later); ``None`` in the
             ideal loop, where they are ``qd_des``.
@@ -520,10 +521,12 @@ def flight_rollout(
 
     At the start of control period k (``t_k = k T``, ``T = realism.control_period``): the
     sensors read the true state (noise drawn from ``fold_in(key, k)``), the controller runs
-    with its own model and LAR estimate, its desired joint rates enter the delay line, the
-    PID turns the rates leaving it into torques (anti-windup, saturation), and the torques
-    are held over the period's plant steps (RK4 at ``scenario.dt``, the contact force at
-    every stage). The log has one row per plant step, as :func:`rollout`'s.
+    with its own model and LAR estimate, and its desired joint rates enter the delay line.
+    The rates leaving it are held over the period; at each servo tick (``j S``, ``S =
+    realism.servo_period``, by default ``T``: one tick a period) the PID reads the joint
+    sensors (noise from the same key of the period) and turns the rate error into torques
+    (anti-windup, saturation), held over the tick's plant steps (RK4 at ``scenario.dt``, the
+    contact force at every stage). The log has one row per plant step, as :func:`rollout`'s.
 
     Args:
         robot, scenario, gains, controller, pinv_damping: as :func:`rollout`.
@@ -567,12 +570,14 @@ def flight_loop(
     :class:`Log` with a leading axis of the period's steps), and the number of periods."""
     law = as_law(controller, pinv_damping)
     per_period = realism.steps_per_period(scenario.dt)
+    per_servo = realism.steps_per_servo(scenario.dt)
     if scenario.n_steps % per_period:
         raise ValueError(
             f"timing.control_period: {realism.control_period} s does not divide the scenario's {scenario.duration} s"
         )
     periods = scenario.n_steps // per_period
-    period = per_period * scenario.dt
+    ticks = per_period // per_servo  # servo ticks per control period
+    period, servo_period = per_period * scenario.dt, per_servo * scenario.dt
     dtype = scenario.initial.q.dtype
     pid = PID(saturation=realism.saturation, anti_windup=realism.anti_windup)
     limit = realism.torque_limit_Nm if "actuators" in realism.stages else None
@@ -581,19 +586,28 @@ def flight_loop(
     # First-order low-pass, discretised exactly at the control period.
     smoothing = 1.0 - math.exp(-2.0 * math.pi * realism.cutoff_hz * period) if realism.cutoff_hz > 0.0 else 1.0
 
-    def control(state: FlightState, k):
-        plant, t = state.plant, k * period
-        truth = plant_kinematics(robot, scenario, plant)
-        force_fts, torque_fts = sensor_reading(robot, scenario, truth)
+    def period_noise(k):
+        """(6 + 7 ticks,) standard normals of period k: the wrench's, then each tick's rates."""
+        return jax.random.normal(jax.random.fold_in(key, k.astype(jnp.uint32)), (6 + N_JOINTS * ticks,), dtype)
+
+    def joint_reading(plant: PlantState, noise):
+        """The joint sensors' (q, qd) from the true state and the tick's (7,) rate noise."""
         q, qd = plant.q, plant.qd
         if "sensors" in realism.stages:
-            noise = jax.random.normal(jax.random.fold_in(key, k.astype(jnp.uint32)), (13,), dtype)
-            force_fts = force_fts + realism.force_bias + realism.force_noise_std * noise[:3]
-            torque_fts = torque_fts + realism.torque_bias + realism.torque_noise_std * noise[3:6]
             quantum = realism.angle_resolution_rad
             safe = jnp.where(quantum > 0.0, quantum, 1.0)
             q = jnp.where(quantum > 0.0, jnp.round(q / safe) * safe, q)
-            qd = qd + realism.rate_noise_std_radps * noise[6:]
+            qd = qd + realism.rate_noise_std_radps * noise
+        return q, qd
+
+    def control(state: FlightState, k, noise):
+        plant, t = state.plant, k * period
+        truth = plant_kinematics(robot, scenario, plant)
+        force_fts, torque_fts = sensor_reading(robot, scenario, truth)
+        if "sensors" in realism.stages:
+            force_fts = force_fts + realism.force_bias + realism.force_noise_std * noise[:3]
+            torque_fts = torque_fts + realism.torque_bias + realism.torque_noise_std * noise[3:6]
+        q, qd = joint_reading(plant, noise[6 : 6 + N_JOINTS])
         reading = jnp.concatenate([force_fts, torque_fts])
         if realism.cutoff_hz > 0.0:
             reading = state.wrench_reading + smoothing * (reading - state.wrench_reading)
@@ -615,19 +629,15 @@ def flight_loop(
             qd_des, in_flight = queue[0], queue[1:]
         else:
             qd_des, in_flight = computed, state.commands_in_flight
-        u, pid_state = pid.update(gains, state.controller.pid, qd_des - qd, t, period, limit)
         V_ref = law.reference_twist(state.controller.law)
         held = dict(
-            u=u,
             V_ref=jnp.zeros(6, dtype) if V_ref is None else V_ref,
             qd_des=qd_des,
             qd_des_computed=computed,
             fts_force_measured=reading[:3],
             fts_torque_measured=reading[3:],
-            q_measured=q,
-            qd_measured=qd,
         )
-        return FlightState(plant, ControllerState(law_state, pid_state), reading, in_flight), held
+        return dataclasses.replace(state, wrench_reading=reading, commands_in_flight=in_flight), law_state, held
 
     def plant_step(plant: PlantState, k, held):
         t = k * scenario.dt
@@ -637,11 +647,29 @@ def flight_loop(
         k1 = plant_rate(robot, scenario, plant, kinematics, u)
         return rk4_step(lambda s: plant_derivative(robot, scenario, s, u), plant, scenario.dt, rate_at_start=k1), row
 
+    def servo_tick(carry, j, held, noise):
+        """Servo tick j (a float) of the whole run: the joint sensors, the PID, its plant steps."""
+        plant, pid_state = carry
+        tick_noise = jax.lax.dynamic_slice_in_dim(noise, 6 + N_JOINTS * (j.astype(jnp.int32) % ticks), N_JOINTS)
+        q, qd = joint_reading(plant, tick_noise)
+        u, pid_state = pid.update(gains, pid_state, held["qd_des"] - qd, j * servo_period, servo_period, limit)
+        steps = j * per_servo + jnp.arange(per_servo, dtype=dtype)
+        held = dict(held, u=u, q_measured=q, qd_measured=qd)
+        plant, rows = jax.lax.scan(lambda p, i: plant_step(p, i, held), plant, steps)
+        return (plant, pid_state), rows
+
     def one_period(state: FlightState, k):
-        state, held = control(state, k)
-        steps = k * per_period + jnp.arange(per_period, dtype=dtype)
-        plant, rows = jax.lax.scan(lambda p, j: plant_step(p, j, held), state.plant, steps)
-        return dataclasses.replace(state, plant=plant), rows
+        noise = period_noise(k)
+        state, law_state, held = control(state, k, noise)
+        if ticks == 1:
+            (plant, pid_state), rows = servo_tick((state.plant, state.controller.pid), k, held, noise)
+        else:
+            tick = lambda carry, j: servo_tick(carry, j, held, noise)
+            (plant, pid_state), rows = jax.lax.scan(
+                tick, (state.plant, state.controller.pid), k * ticks + jnp.arange(ticks, dtype=dtype)
+            )
+            rows = jax.tree.map(lambda x: x.reshape((per_period,) + x.shape[2:]), rows)
+        return dataclasses.replace(state, plant=plant, controller=ControllerState(law_state, pid_state)), rows
 
     if checkpoint:  # inside a scan no CSE can undo it (see closed_loop_step)
         one_period = jax.checkpoint(one_period, prevent_cse=False)

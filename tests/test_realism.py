@@ -119,6 +119,40 @@ def test_torques_are_held_over_the_control_period_and_commands_arrive_late(robot
     assert np.max(np.abs(computed)) > 1e-4
 
 
+def test_the_joint_servos_run_at_their_own_period_on_their_own_readings(robot, gains, short_scenario):
+    # Controller every 4 ms with one period of delay; joint PID every 2 ms on noisy rates.
+    realism = make_realism(
+        {
+            "timing": {"control_period": 0.004, "delay_periods": 1, "servo_period": 0.002},
+            "joint_sensors": {"rate_noise_std_radps": 1e-3},
+        }
+    )
+    log = FLIGHT_ROLLOUT(robot, short_scenario, gains, "admittance", realism, jax.random.PRNGKey(5))[1]
+    by = lambda x, n: np.asarray(x).reshape(-1, n, *np.shape(x)[1:])
+    for name in ("qd_des", "qd_des_computed", "fts_force_measured"):  # held over the control period
+        held = by(getattr(log, name), 4)
+        np.testing.assert_array_equal(held, np.broadcast_to(held[:, :1], held.shape), err_msg=name)
+    for name in ("u", "qd_measured"):  # held over the servo period, and not over the control period
+        held = by(getattr(log, name), 2)
+        np.testing.assert_array_equal(held, np.broadcast_to(held[:, :1], held.shape), err_msg=name)
+        assert np.any(by(getattr(log, name), 4)[:, 2] != by(getattr(log, name), 4)[:, 0]), name
+    np.testing.assert_array_equal(by(log.qd_des, 4)[1:, 0], by(log.qd_des_computed, 4)[:-1, 0])  # one period late
+    # Each tick's torque is the PID of the rate error the servo read at that tick, written out
+    # independently here: integral and backward difference at the servo period, t^2 ramp.
+    S = 0.002
+    error = by(log.qd_des, 2)[:, 0] - by(log.qd_measured, 2)[:, 0]
+    t = np.arange(len(error)) * S
+    integral = np.cumsum(error, axis=0) * S
+    derivative = np.diff(error, axis=0, prepend=0.0) / S
+    kp, ki, kd = (np.asarray(x) for x in (gains.kp, gains.ki, gains.kd))
+    expected = np.minimum(t, 1.0)[:, None] ** 2 * (kp * error + ki * integral + kd * derivative)
+    np.testing.assert_allclose(by(log.u, 2)[:, 0], expected, rtol=1e-9, atol=1e-12)
+    # The servos read the sensors, not the truth: the readings differ from the true rates
+    # by the configured noise (std 1e-3 rad/s; 1000 ticks x 7 joints, std within 10%).
+    reading_error = by(log.qd_measured, 2)[:, 0] - by(log.qd, 2)[:, 0]
+    assert abs(np.std(reading_error) - 1e-3) < 1e-4
+
+
 def test_the_controllers_model_is_its_own_and_the_plant_stays_the_plant(robot, gains, quiet_scenario):
     believing = make_realism({"controller_model": {"satellite_mass_factor": 0.3, "satellite_inertia_factor": 3.0}})
     final, log = FLIGHT_ROLLOUT(robot, quiet_scenario, gains, "cartesian", believing, jax.random.PRNGKey(0))
@@ -171,7 +205,7 @@ def test_gradients_with_a_fixed_key_and_smooth_saturation_match_central_differen
 def test_the_flight_preset_and_its_limits(robot, gains):
     preset = flight()
     assert preset.stages == frozenset({"sensors", "actuators", "model", "estimate"})
-    assert preset.steps_per_period(1e-3) == 10 and preset.delay_periods == 1
+    assert preset.steps_per_period(1e-3) == 10 and preset.delay_periods == 1 and preset.steps_per_servo(1e-3) == 1
     scenario = paper_scenario(robot, duration=2.0, move_duration=2.0)
     log = jax.jit(rollout, static_argnames=("controller",))(
         robot, scenario, gains, "admittance", realism=preset, key=jax.random.PRNGKey(0)
@@ -206,6 +240,8 @@ def test_settings_files_are_validated_and_read_back(tmp_path):
         "[timing]\ndelay_periods = 1.5\n": "timing.delay_periods",
         "[controller_model]\nsatellite_mass_factor = 0.0\n": "satellite_mass_factor: must be between",
         "[force_torque_sensor]\nforce_noise_std = nan\n": "NaN",
+        "[timing]\ncontrol_period = 0.01\nservo_period = 0.003\n": "does not divide timing.control_period",
+        "[timing]\ncontrol_period = 0.01\nservo_period = 0.02\n": r"timing.servo_period: must be .* \(0, control_period\]",
     }
     for text, message in bad.items():
         path.write_text(text)
@@ -213,5 +249,7 @@ def test_settings_files_are_validated_and_read_back(tmp_path):
             load_realism(path)
     with pytest.raises(RealismError, match="not a whole multiple"):
         make_realism({"timing": {"control_period": 0.0015}}).steps_per_period(1e-3)
+    with pytest.raises(RealismError, match="timing.servo_period: .* not a whole multiple"):
+        make_realism({"timing": {"control_period": 0.01, "servo_period": 0.0025}}).steps_per_servo(1e-3)
     with pytest.raises(RealismError, match="cannot read"):
         load_realism(tmp_path / "missing.toml")
