@@ -596,7 +596,12 @@ def flight_loop(
         if "sensors" in realism.stages:
             quantum = realism.angle_resolution_rad
             safe = jnp.where(quantum > 0.0, quantum, 1.0)
-            q = jnp.where(quantum > 0.0, jnp.round(q / safe) * safe, q)
+            # The encoder's grid, with a straight-through gradient: round() is flat between
+            # steps, so its exact derivative would cut the position feedback out of every
+            # gradient (an open loop whose sensitivity grows without bound). Averaged over
+            # where the grid falls, d E[reading] / dq = 1.
+            grid_error = jnp.round(q / safe) * safe - q
+            q = q + jnp.where(quantum > 0.0, jax.lax.stop_gradient(grid_error), 0.0)
             qd = qd + realism.rate_noise_std_radps * noise
         return q, qd
 

@@ -202,6 +202,26 @@ def test_gradients_with_a_fixed_key_and_smooth_saturation_match_central_differen
         np.testing.assert_allclose(gradient[joint], central, rtol=1e-4, atol=1e-12)
 
 
+def test_the_encoder_grid_keeps_the_position_feedback_in_the_gradient(robot, gains, short_scenario):
+    # round() is flat between grid steps; its exact derivative would open the position loop
+    # in every gradient (the error's sensitivity then grows without bound). With a 16-bit
+    # encoder the gradient must stay the loop's: within 1% of the gradient without the grid
+    # (the exact derivative of round() is 42% off here).
+    def gradient(resolution):
+        realism = make_realism({"joint_sensors": {"angle_resolution_rad": resolution}})
+
+        def error(kp):
+            log = flight_rollout(
+                robot, short_scenario, dataclasses.replace(gains, kp=kp), "admittance", realism, jax.random.PRNGKey(0)
+            )[1]
+            return metrics.final_position_error(log)
+
+        return np.asarray(jax.jit(jax.grad(error))(gains.kp))
+
+    on_grid, exact = gradient(2 * np.pi / 2**16), gradient(0.0)
+    assert np.linalg.norm(on_grid - exact) < 1e-2 * np.linalg.norm(exact)
+
+
 def test_the_flight_preset_and_its_limits(robot, gains):
     preset = flight()
     assert preset.stages == frozenset({"sensors", "actuators", "model", "estimate"})
