@@ -660,6 +660,9 @@ def flight_loop(
         u, pid_state = pid.update(gains, pid_state, held["qd_des"] - qd, j * servo_period, servo_period, limit)
         steps = j * per_servo + jnp.arange(per_servo, dtype=dtype)
         held = dict(held, u=u, q_measured=q, qd_measured=qd)
+        if per_servo == 1:
+            plant, row = plant_step(plant, steps[0], held)
+            return (plant, pid_state), jax.tree.map(lambda x: x[None], row)
         plant, rows = jax.lax.scan(lambda p, i: plant_step(p, i, held), plant, steps)
         return (plant, pid_state), rows
 

@@ -117,11 +117,23 @@ def paper_gains() -> Gains:
     )
 
 
-def tuned_gains() -> Gains:
+#: The loops the shipped tuned gains were tuned in -> their data file.
+TUNED_GAINS_FILES = {
+    "ideal": "tuned_admittance_gains.json",
+    "flight": "tuned_admittance_flight_gains.json",
+}
+
+
+def tuned_gains(loop: str = "ideal") -> Gains:
     """The admittance gains found by ``spacegrasp tune`` with its defaults, starting from the
-    paper's. Shipped as ``spacegrasp_jax/data/tuned_admittance_gains.json``, which holds
-    the groups the admittance law uses; ``K_lin`` and ``K_eul`` are the paper's."""
-    return load_gains(Path(__file__).resolve().parents[1] / "data" / "tuned_admittance_gains.json")
+    paper's, in the ideal loop (``loop="ideal"``) or under the ``flight`` realism preset
+    (``loop="flight"``, ``spacegrasp tune --realism flight``). Shipped as
+    ``spacegrasp_jax/data/tuned_admittance_gains.json`` and
+    ``tuned_admittance_flight_gains.json``, which hold the groups the admittance law uses;
+    ``K_lin`` and ``K_eul`` are the paper's."""
+    if loop not in TUNED_GAINS_FILES:
+        raise ValueError(f"tuned_gains: loop must be one of {', '.join(TUNED_GAINS_FILES)}, got {loop!r}")
+    return load_gains(Path(__file__).resolve().parents[1] / "data" / TUNED_GAINS_FILES[loop])
 
 
 class UnusedGainsWarning(UserWarning):
