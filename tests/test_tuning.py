@@ -242,6 +242,25 @@ def test_shipped_tuned_gains_beat_the_paper_on_the_nominal_scenario(robot, full_
     assert tuned["final_position_error_m"] <= paper["final_position_error_m"]
 
 
+def test_shipped_flight_tuned_gains_beat_the_paper_under_flight(robot):
+    """``tuned_gains("flight")`` under the flight preset, nominal 17 s scenario, exact contact law,
+    noise key 0: the largest peak torque at most half the paper's gains' under the same loop and
+    key, and the final position error no larger (documentation, "The flight-like loop")."""
+    from spacegrasp_jax import experiment
+    from spacegrasp_jax.control import paper_gains, tuned_gains
+    from spacegrasp_jax.realism import flight
+
+    scenario, key = paper_scenario(robot), jax.random.PRNGKey(0)
+    paper, tuned = (
+        experiment.run(robot, scenario, gains, "admittance", realism=flight(), key=key).summary
+        for gains in (paper_gains(), tuned_gains("flight"))
+    )
+    assert tuned["largest_peak_torque_Nm"] <= 0.5 * paper["largest_peak_torque_Nm"]
+    assert tuned["final_position_error_m"] <= paper["final_position_error_m"]
+    with pytest.raises(ValueError, match="loop must be one of ideal, flight"):
+        tuned_gains("orbit")
+
+
 def test_a_chaotic_samples_gradient_is_clipped_to_a_multiple_of_the_median():
     from spacegrasp_jax.tuning.tune import CLIP_FACTOR, aggregate_gradients
 
