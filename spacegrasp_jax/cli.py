@@ -24,7 +24,7 @@ from spacegrasp_jax.realism import Realism, RealismError, load_realism
 from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
 from spacegrasp_jax.tuning.objective import Weights
 from spacegrasp_jax.tuning.run import TuneSetupError, tune
-from spacegrasp_jax.tuning.tune import TuneConfig
+from spacegrasp_jax.tuning.tune import TUNING_RANGES, TuneConfig
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -201,12 +201,38 @@ def _tune_config(args: argparse.Namespace) -> TuneConfig:
         torque_guard_Nm=args.torque_guard,
         realism=load_realism(args.realism).to_dict() if args.realism else None,
         aggregate=args.aggregate or ("clip" if args.realism else "mean"),
+        ranges=_ranges(args, TUNING_RANGES),
     )
 
 
-def _montecarlo_ranges(args: argparse.Namespace) -> PerturbationRanges:
-    """The campaign defaults, then ``--ranges FILE``, then each ``--range NAME=VALUE``."""
-    ranges = load_ranges(args.ranges) if args.ranges else PerturbationRanges()
+#: The envelopes ``--ranges`` knows by name: the campaigns' defaults and the tuning batch's.
+NAMED_RANGES = {"montecarlo": PerturbationRanges(), "tuning": TUNING_RANGES}
+
+
+def add_ranges_arguments(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--ranges`` and ``--range`` on ``parser``, whose envelope is ``default`` (a name)."""
+    parser.add_argument(
+        "--ranges",
+        metavar="montecarlo|tuning|FILE",
+        help=f"perturbation half-widths: a named envelope or a TOML file whose missing keys keep the {default} "
+        f"envelope's (default: {default}; documentation: File formats)",
+    )
+    parser.add_argument(
+        "--range",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="override one half-width, e.g. q_init_rad=0.05 (repeatable)",
+    )
+
+
+def _ranges(args: argparse.Namespace, default: PerturbationRanges) -> PerturbationRanges:
+    """``default``, or the ``--ranges`` envelope (a name of :data:`NAMED_RANGES` or a TOML
+    file whose missing keys are ``default``'s), then each ``--range NAME=VALUE``."""
+    if args.ranges in NAMED_RANGES:
+        ranges = NAMED_RANGES[args.ranges]
+    else:
+        ranges = load_ranges(args.ranges, base=default) if args.ranges else default
     overrides = {}
     for item in args.range:
         name, separator, value = item.partition("=")
@@ -236,11 +262,12 @@ def _montecarlo(args: argparse.Namespace) -> int:
     if args.distributed:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     batching.use_all_cpu_cores()
-    for path in (*args.gains, args.scenario, args.robot, args.ranges):  # fail on bad files before compiling
+    ranges_file = None if args.ranges in NAMED_RANGES else args.ranges
+    for path in (*args.gains, args.scenario, args.robot, ranges_file):  # fail on bad files before compiling
         if path and not Path(path).is_file():
             raise UsageError(f"{path}: no such file")
     try:
-        ranges = _montecarlo_ranges(args)
+        ranges = _ranges(args, PerturbationRanges())
         variants = _montecarlo_variants(args)
         if args.n < 1:
             raise UsageError(f"--n: must be at least 1, got {args.n}")
@@ -407,6 +434,7 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--scenario", help="scenario TOML/JSON (default: the paper's)")
     tune.add_argument("--robot", help="robot TOML (default: the paper's)")
     tune.add_argument("--resume", action="store_true", help="continue the run in --out from its last completed step")
+    add_ranges_arguments(tune, "tuning")
     _add_realism_option(tune)
     tune.add_argument(
         "--aggregate",
@@ -440,14 +468,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="samples each device simulates at once (default 128 on CPU, its whole share on GPU)",
     )
     montecarlo.add_argument("--out", default="results/montecarlo", help="output folder (default results/montecarlo)")
-    montecarlo.add_argument("--ranges", help="TOML file of perturbation half-widths (documentation: File formats)")
-    montecarlo.add_argument(
-        "--range",
-        action="append",
-        default=[],
-        metavar="NAME=VALUE",
-        help="override one half-width, e.g. q_init_rad=0.05 (repeatable)",
-    )
+    add_ranges_arguments(montecarlo, "montecarlo")
     montecarlo.add_argument(
         "--tolerance-mm", type=float, default=5.0, help="success: final position error at most this (default 5 mm)"
     )

@@ -109,9 +109,10 @@ class PerturbationRanges:
         return dataclasses.replace(base if base is not None else cls(), **document)
 
 
-def load_ranges(path: str | Path) -> PerturbationRanges:
-    """Ranges from a TOML file whose keys are the field names (all optional; a
-    ``[perturbations]`` table is also accepted). Raises :class:`PerturbationError`."""
+def load_ranges(path: str | Path, base: PerturbationRanges | None = None) -> PerturbationRanges:
+    """Ranges from a TOML file whose keys are the field names (all optional, the others
+    ``base``'s, by default the campaign defaults; a ``[perturbations]`` table is also
+    accepted). Raises :class:`PerturbationError`."""
     path = Path(path)
     try:
         document = tomllib.loads(path.read_text())
@@ -122,7 +123,7 @@ def load_ranges(path: str | Path) -> PerturbationRanges:
     if set(document) == {"perturbations"} and isinstance(document["perturbations"], dict):
         document = document["perturbations"]
     try:
-        return PerturbationRanges.from_mapping(document)
+        return PerturbationRanges.from_mapping(document, base=base)
     except PerturbationError as error:
         raise PerturbationError(f"{path}: {error}") from None
 

@@ -178,3 +178,31 @@ def test_tuning_under_flight_converges(tmp_path):
     holdout = json.loads((out / "summary.json").read_text())["holdout"]  # under flight too
     assert holdout["mean_objective_tuned"] < holdout["mean_objective_start"]
     assert holdout["tuned_better_fraction"] >= 2 / 3
+
+
+def test_tune_draws_from_the_envelope_it_is_given(tmp_path):
+    from spacegrasp_jax.cli import _tune_config, build_parser
+    from spacegrasp_jax.perturbations import PerturbationRanges
+    from spacegrasp_jax.tuning.tune import TUNING_RANGES
+
+    def config(*options):
+        return _tune_config(build_parser().parse_args(["tune", "--out", str(tmp_path / "x"), *options]))
+
+    assert config().ranges == TUNING_RANGES
+    assert config("--ranges", "montecarlo").ranges == PerturbationRanges()  # the campaigns' defaults
+    ranges_file = tmp_path / "ranges.toml"
+    ranges_file.write_text("q_init_rad = 0.04\n")
+    from_file = config("--ranges", str(ranges_file), "--range", "lar_position_m=0.007").ranges
+    assert (from_file.q_init_rad, from_file.lar_position_m) == (0.04, 0.007)
+    assert from_file.base_speed_mps == TUNING_RANGES.base_speed_mps  # the rest: the tuning envelope
+    for options, message in (
+        (["--range", "q_init=0.1"], "unknown perturbation range 'q_init'"),
+        (["--ranges", str(tmp_path / "missing.toml")], "missing.toml: cannot read"),
+    ):
+        result = subprocess.run(
+            [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(tmp_path / "y"), *options],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr
