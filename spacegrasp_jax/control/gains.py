@@ -125,9 +125,10 @@ TUNED_GAINS_FILES = {
 
 
 def tuned_gains(loop: str = "ideal") -> Gains:
-    """The admittance gains found by ``spacegrasp tune`` with its defaults, starting from the
-    paper's, in the ideal loop (``loop="ideal"``) or under the ``flight`` realism preset
-    (``loop="flight"``, ``spacegrasp tune --realism flight``). Shipped as
+    """The admittance gains found by ``spacegrasp tune``, starting from the paper's: with its
+    defaults in the ideal loop (``loop="ideal"``), or under the ``flight`` realism preset on
+    the Monte-Carlo campaigns' envelope (``loop="flight"``: ``spacegrasp tune --realism
+    flight --ranges montecarlo --batch 8``). Shipped as
     ``spacegrasp_jax/data/tuned_admittance_gains.json`` and
     ``tuned_admittance_flight_gains.json``, which hold the groups the admittance law uses;
     ``K_lin`` and ``K_eul`` are the paper's."""
