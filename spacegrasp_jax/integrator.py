@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from spacegrasp_jax import spatial
 from spacegrasp_jax.dynamics import forward_dynamics
 from spacegrasp_jax.model import Robot
+from spacegrasp_jax.target import TargetState
 
 
 @jax.tree_util.register_dataclass
@@ -30,6 +31,9 @@ class PlantState:
         V_base: (6,) ``[v_s (m/s), w_s (rad/s)]``, satellite CoM velocity and angular
             velocity in the inertial frame.
         qd: (7,) rad/s, joint rates.
+        target: the free-floating target's state
+            (:class:`~spacegrasp_jax.target.TargetState`), or ``None`` for the paper's
+            stationary target.
     """
 
     p_base: jax.Array
@@ -37,6 +41,7 @@ class PlantState:
     q: jax.Array
     V_base: jax.Array
     qd: jax.Array
+    target: TargetState | None = None
 
     @property
     def R_base(self) -> jax.Array:
@@ -62,8 +67,9 @@ def free_floating_derivative(robot: Robot, state: PlantState, Q: jax.Array) -> P
     return state_rate(state, forward_dynamics(robot, state.R_base, state.q, state.V_base, state.qd, Q))
 
 
-def state_rate(state: PlantState, xdd: jax.Array) -> PlantState:
-    """The rate of ``state`` given its generalised acceleration ``xdd`` (13,)."""
+def state_rate(state: PlantState, xdd: jax.Array, target_rate: TargetState | None = None) -> PlantState:
+    """The rate of ``state`` given the chaser's generalised acceleration ``xdd`` (13,) and,
+    with a free-floating target, the target's rate."""
     v_s, w_s = jnp.split(state.V_base, 2)
     V_base_rate, qd_rate = jnp.split(xdd, [6])
     return PlantState(
@@ -72,6 +78,7 @@ def state_rate(state: PlantState, xdd: jax.Array) -> PlantState:
         q=state.qd,
         V_base=V_base_rate,
         qd=qd_rate,
+        target=target_rate,
     )
 
 
@@ -115,6 +122,9 @@ def rk4_step(
     coefficients = jnp.asarray(_LATER_STAGES, dtype=state.q.dtype).T
     (_, weighted_sum), _ = jax.lax.scan(later_stage, (k1, k1), tuple(coefficients))
     new = advance(state, weighted_sum, dt / 6)
+    if new.target is not None:
+        target = dataclasses.replace(new.target, quat=new.target.quat / jnp.linalg.norm(new.target.quat))
+        new = dataclasses.replace(new, target=target)
     return dataclasses.replace(new, quat_base=new.quat_base / jnp.linalg.norm(new.quat_base))
 
 

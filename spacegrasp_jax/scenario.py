@@ -20,6 +20,7 @@ from spacegrasp_jax.compilation import require_float64
 from spacegrasp_jax.integrator import PlantState, plant_state
 from spacegrasp_jax.kinematics import ee_pose
 from spacegrasp_jax.model import PAPER_Q_INIT, Robot
+from spacegrasp_jax.target import TargetBody, initial_target_state
 from spacegrasp_jax.trajectory import Trajectory
 
 CONTACT_LAWS = ("exact", "smooth")
@@ -41,6 +42,10 @@ class Scenario:
     sphere_radius: () m.
     contact_stiffness: () N m^2 (``k`` of eq 20).
     contact_sharpness: () 1/m, sharpness of the smooth contact law.
+    target: the free-floating target's mass properties
+        (:class:`~spacegrasp_jax.target.TargetBody`; its state is ``initial.target``), or
+        ``None`` for the paper's stationary target. With a target, ``p_lar`` and ``R_lar``
+        are the LAR pose at t = 0.
     duration: s, simulated time (static).
     dt: s, integration and control period (static).
     contact_law: ``"exact"`` (eq 20) or ``"smooth"`` (static).
@@ -54,6 +59,7 @@ class Scenario:
     sphere_radius: jax.Array
     contact_stiffness: jax.Array
     contact_sharpness: jax.Array
+    target: TargetBody | None = None
     duration: float = dataclasses.field(default=17.0, metadata=dict(static=True))
     dt: float = dataclasses.field(default=1e-3, metadata=dict(static=True))
     contact_law: str = dataclasses.field(default="exact", metadata=dict(static=True))
@@ -79,6 +85,7 @@ def paper_scenario(
     contact_stiffness: float = 0.1,
     contact_sharpness: float = 1e4,
     contact_law: str = "exact",
+    target: dict | None = None,
 ) -> Scenario:
     """The paper's grasping scenario (section 4; modelling notes), every number overridable.
 
@@ -87,6 +94,12 @@ def paper_scenario(
     ``lar_offset`` (m) along the initial EE z axis. The desired EE pose goes from
     ``start_pose`` to ``end_pose`` (LAR, ``[m, m, m, rad, rad, rad]``) over ``move_duration``
     (s), then is held. The contact sphere (eq 20) is centred at ``sphere_centre`` (LAR).
+
+    ``target``: ``None`` for the paper's stationary target, or the free-floating target's
+    keys (:data:`TARGET_KEYS`): ``mass`` (kg) and ``inertia`` ((3, 3) or its (3,) diagonal,
+    kg m^2, about the target's CoM in LAR axes) required; ``com_in_lar`` (3,) m, the CoM in
+    LAR coordinates; ``velocity`` (3,) m/s and ``angular_velocity`` (3,) rad/s, the CoM's
+    velocity and the angular velocity at t = 0 in LAR axes (default zero).
 
     Raises:
         ScenarioError: a value is out of range or not finite; the message names it.
@@ -106,13 +119,25 @@ def paper_scenario(
         contact_sharpness=contact_sharpness,
         contact_law=contact_law,
     )
+    free_target = None if target is None else _check_target(target)
     q = jnp.asarray(q_init, dtype=jnp.float64)
     p_base, R_base = jnp.zeros(3), jnp.eye(3)
     p_ee, R_ee = ee_pose(robot, p_base, R_base, q)
+    p_lar, R_lar = p_ee + lar_offset * R_ee[:, 2], R_ee
+    initial = plant_state(p_base, R_base, q, jnp.zeros(6), jnp.zeros(7))
+    body = None
+    if free_target is not None:
+        body = TargetBody(
+            mass=jnp.asarray(free_target["mass"]),
+            inertia=jnp.asarray(free_target["inertia"]),
+            com_in_lar=jnp.asarray(free_target["com_in_lar"]),
+        )
+        motion = (jnp.asarray(free_target["velocity"]), jnp.asarray(free_target["angular_velocity"]))
+        initial = dataclasses.replace(initial, target=initial_target_state(body, p_lar, R_lar, *motion))
     return Scenario(
-        initial=plant_state(p_base, R_base, q, jnp.zeros(6), jnp.zeros(7)),
-        p_lar=p_ee + lar_offset * R_ee[:, 2],
-        R_lar=R_ee,
+        initial=initial,
+        p_lar=p_lar,
+        R_lar=R_lar,
         trajectory=Trajectory(
             start_pose=jnp.asarray(start_pose, dtype=jnp.float64),
             end_pose=jnp.asarray(end_pose, dtype=jnp.float64),
@@ -122,6 +147,7 @@ def paper_scenario(
         sphere_radius=jnp.asarray(sphere_radius, dtype=jnp.float64),
         contact_stiffness=jnp.asarray(contact_stiffness, dtype=jnp.float64),
         contact_sharpness=jnp.asarray(contact_sharpness, dtype=jnp.float64),
+        target=body,
         duration=float(duration),
         dt=float(dt),
         contact_law=contact_law,
@@ -169,6 +195,76 @@ def _check_scenario_numbers(**values) -> None:
         raise ScenarioError("start_pose/end_pose: pitch must stay away from +-pi/2 (ZYX Euler singularity)")
 
 
+#: The keys of a free-floating target (``[target]`` in a scenario file) -> (shape, default);
+#: ``None``: required.
+TARGET_KEYS = {
+    "mass": ((), None),
+    "inertia": ((3, 3), None),
+    "com_in_lar": ((3,), 0.0),
+    "velocity": ((3,), 0.0),
+    "angular_velocity": ((3,), 0.0),
+}
+#: Bounds of a target's numbers: beyond them a value is a mistake, not a target.
+TARGET_LIMITS = {"mass": 1e12, "com_in_lar": 100.0, "velocity": 10.0, "angular_velocity": 10.0}
+
+
+def _strict_numbers(where: str, value) -> np.ndarray:
+    """``value`` (a number or nested lists of numbers) as float64; booleans, strings and
+    ``None`` refused, naming ``where``."""
+
+    def check(item):
+        if isinstance(item, (list, tuple)):
+            for element in item:
+                check(element)
+        elif isinstance(item, bool) or not isinstance(item, (int, float, np.floating, np.integer)):
+            raise ScenarioError(f"{where}: expected numbers, got {value!r}")
+
+    if isinstance(value, (np.ndarray, jax.Array)):
+        array = np.asarray(value, dtype=np.float64)
+    else:
+        check(value)
+        array = np.asarray(value, dtype=np.float64)
+    if not np.all(np.isfinite(array)):
+        raise ScenarioError(f"{where}: must be finite, got {array.tolist()}")
+    return array
+
+
+def _check_target(target) -> dict:
+    """The free-floating target's keys (:data:`TARGET_KEYS`) checked, as float64 arrays."""
+    if not isinstance(target, dict):
+        raise ScenarioError(f"target: expected a table of {', '.join(TARGET_KEYS)}, got {type(target).__name__}")
+    for key in target:
+        if key not in TARGET_KEYS:
+            raise ScenarioError(f"unknown scenario key target.{key}; expected {', '.join(TARGET_KEYS)}")
+    values = {}
+    for key, (shape, default) in TARGET_KEYS.items():
+        if key not in target and default is None:
+            raise ScenarioError(f"target.{key}: required for a free-floating target")
+        value = _strict_numbers(f"target.{key}", target.get(key, default))
+        if key == "inertia" and value.shape == (3,):
+            value = np.diag(value)
+        if value.ndim == 0 and shape:
+            value = np.full(shape, float(value))
+        if value.shape != shape:
+            raise ScenarioError(f"target.{key}: expected shape {shape}, got {value.shape}")
+        if key in TARGET_LIMITS and np.linalg.norm(value) > TARGET_LIMITS[key]:
+            raise ScenarioError(f"target.{key}: {value.tolist()} is beyond {TARGET_LIMITS[key]:g} in magnitude")
+        values[key] = value
+    if values["mass"] <= 0.0:
+        raise ScenarioError(f"target.mass: must be positive, got {float(values['mass'])}")
+    inertia = values["inertia"]
+    if not np.allclose(inertia, inertia.T, rtol=1e-9, atol=1e-12 * np.abs(inertia).max()):
+        raise ScenarioError(f"target.inertia: must be symmetric, got {inertia.tolist()}")
+    moments = np.linalg.eigvalsh(inertia)
+    if moments[0] <= 0.0:
+        raise ScenarioError(f"target.inertia: must be positive definite, principal moments {moments.tolist()}")
+    if moments[2] > (moments[0] + moments[1]) * (1 + 1e-9):
+        raise ScenarioError(
+            f"target.inertia: principal moments {moments.tolist()} break the triangle inequality (no rigid body has them)"
+        )
+    return values
+
+
 # File keys -> paper_scenario keyword arguments.
 _FILE_KEYS = {
     ("duration",): "duration",
@@ -191,7 +287,9 @@ def scenario_from_mapping(robot: Robot, document: dict) -> Scenario:
     optional (documentation, File formats) and unknown keys are rejected."""
     kwargs = {}
     for key, value in document.items():
-        if isinstance(value, dict):
+        if key == "target":
+            kwargs["target"] = value
+        elif isinstance(value, dict):
             for sub_key, sub_value in value.items():
                 if (key, sub_key) not in _FILE_KEYS:
                     raise ScenarioError(f"unknown scenario key {key}.{sub_key}")

@@ -41,6 +41,7 @@ from spacegrasp_jax.kinematics import Frames, point_jacobian_blocks
 from spacegrasp_jax.model import N_JOINTS, Robot
 from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.target import lar_frame, lar_velocity, target_momentum, target_rate
 from spacegrasp_jax.trajectory import desired_state
 
 
@@ -108,6 +109,13 @@ class Log:
         qd_des_computed: (N, 7) rad/s, the desired joint rates the law computed in this
             control period (they reach the PID ``delay_periods`` later); ``None`` in the
             ideal loop, where they are ``qd_des``.
+        target_position: (N, 3) m, the free-floating target's CoM, inertial frame.
+        target_quat: (N, 4) its attitude ``[w, x, y, z]``, body (LAR axes) to inertial.
+        target_velocity: (N, 3) m/s, its CoM's velocity, inertial frame.
+        target_angular_velocity: (N, 3) rad/s, its angular velocity, body (LAR) axes.
+        momentum_total: (N, 6) ``[P (N s); L (N m s)]``, the chaser's plus the target's
+            momentum about the inertial origin. The target's fields are ``None`` for the
+            paper's stationary target.
     """
 
     t: jax.Array
@@ -129,12 +137,28 @@ class Log:
     q_measured: jax.Array | None = None
     qd_measured: jax.Array | None = None
     qd_des_computed: jax.Array | None = None
+    target_position: jax.Array | None = None
+    target_quat: jax.Array | None = None
+    target_velocity: jax.Array | None = None
+    target_angular_velocity: jax.Array | None = None
+    momentum_total: jax.Array | None = None
 
 
-def contact_force_lar(scenario: Scenario, p_ee: jax.Array) -> jax.Array:
+def lar_pose(scenario: Scenario, plant: PlantState) -> tuple[jax.Array, jax.Array]:
+    """``(p_lar (3,) m, R_lar (3, 3))``, the LAR frame at ``plant`` (inertial): the
+    scenario's for a stationary target, carried by the target's state for a free one."""
+    if scenario.target is None:
+        return scenario.p_lar, scenario.R_lar
+    return lar_frame(scenario.target, plant.target)
+
+
+def contact_force_lar(scenario: Scenario, p_ee: jax.Array, p_lar=None, R_lar=None) -> jax.Array:
     """Force (3,) N of the contact sphere on the EE point ``p_ee`` (3,) m (inertial), in LAR
-    axes, by the scenario's contact law."""
-    p_from_centre = spatial.matvec(scenario.R_lar.T, p_ee - scenario.p_lar) - scenario.sphere_centre
+    axes, by the scenario's contact law; the LAR frame at ``p_lar``, ``R_lar`` (default the
+    scenario's)."""
+    p_lar = scenario.p_lar if p_lar is None else p_lar
+    R_lar = scenario.R_lar if R_lar is None else R_lar
+    p_from_centre = spatial.matvec(R_lar.T, p_ee - p_lar) - scenario.sphere_centre
     if scenario.contact_law == "exact":
         return contact_force_exact(p_from_centre, scenario.sphere_radius, scenario.contact_stiffness)
     return contact_force_smooth(
@@ -163,6 +187,7 @@ class PlantKinematics:
             satellite block ``J_s = [[1, -r x], [0, 1]]`` needs only ``r = frames.p_ee``,
             the EE point from the satellite CoM, and is applied as cross products.
         contact_force_lar: (3,) N, force of the contact sphere on the EE, LAR axes.
+        p_lar, R_lar: (3,) m, (3, 3), the LAR frame at this state, inertial (:func:`lar_pose`).
     """
 
     frames: Frames
@@ -172,6 +197,8 @@ class PlantKinematics:
     base_per_joint: jax.Array
     J_joints: jax.Array
     contact_force_lar: jax.Array
+    p_lar: jax.Array
+    R_lar: jax.Array
 
 
 def plant_kinematics(robot: Robot, scenario: Scenario, state: PlantState, with_contact: bool = True) -> PlantKinematics:
@@ -180,8 +207,11 @@ def plant_kinematics(robot: Robot, scenario: Scenario, state: PlantState, with_c
     frames = frames_at_base(robot, state.R_base, state.q)  # satellite CoM at the origin
     m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
     _, J_joints = point_jacobian_blocks(frames, jnp.zeros(3, dtype=state.q.dtype), frames.p_ee, N_JOINTS)
+    p_lar, R_lar = lar_pose(scenario, state)
     force = (
-        contact_force_lar(scenario, state.p_base + frames.p_ee) if with_contact else jnp.zeros(3, dtype=state.q.dtype)
+        contact_force_lar(scenario, state.p_base + frames.p_ee, p_lar, R_lar)
+        if with_contact
+        else jnp.zeros(3, dtype=state.q.dtype)
     )
     return PlantKinematics(
         frames=frames,
@@ -191,6 +221,8 @@ def plant_kinematics(robot: Robot, scenario: Scenario, state: PlantState, with_c
         base_per_joint=solve_base(m, h, I_O, M_coupling),
         J_joints=J_joints,
         contact_force_lar=force,
+        p_lar=p_lar,
+        R_lar=R_lar,
     )
 
 
@@ -200,13 +232,17 @@ def plant_rate(
     """State rate under joint torques ``u`` (7,) N m and the contact force, given
     ``kinematics = plant_kinematics(robot, scenario, state)``."""
     k = kinematics
-    force = spatial.matvec(scenario.R_lar, k.contact_force_lar)
+    force = spatial.matvec(k.R_lar, k.contact_force_lar)
     # The contact force acts at the EE point: generalised force J_point^T [f; 0].
     Q = jnp.concatenate(
         [force, spatial.cross(k.frames.p_ee, force), spatial.matvec(jnp.split(k.J_joints, 2)[0].T, force) + u]
     )
     mass_blocks = (k.base, k.M_coupling, k.M_joints, k.base_per_joint)
-    return state_rate(state, forward_dynamics_from_frames(robot, k.frames, state.V_base, state.qd, Q, mass_blocks))
+    xdd = forward_dynamics_from_frames(robot, k.frames, state.V_base, state.qd, Q, mass_blocks)
+    if scenario.target is None:
+        return state_rate(state, xdd)
+    # Equal and opposite on the target, at the same point.
+    return state_rate(state, xdd, target_rate(scenario.target, state.target, -force, state.p_base + k.frames.p_ee))
 
 
 def plant_derivative(robot: Robot, scenario: Scenario, state: PlantState, u: jax.Array) -> PlantState:
@@ -260,6 +296,7 @@ def control_step(
         kinematics,
         t,
         observed,
+        scenario.target,
         u=u,
         V_ref=jnp.zeros(6, dtype=plant.q.dtype) if V_ref is None else V_ref,
         qd_des=qd_des,
@@ -294,30 +331,51 @@ def observe(robot: Robot, scenario: Scenario, plant: PlantState, kinematics: Pla
         plant.V_base,
         plant.qd,
         kinematics,
-        scenario.p_lar,
-        scenario.R_lar,
+        kinematics.p_lar,
+        kinematics.R_lar,
         force_fts,
         torque_fts,
         t,
+        lar_motion=target_motion(scenario, plant),
     )
     return Observation(inputs, pose, twist, force_fts, torque_fts)
 
 
-def log_row(plant: PlantState, kinematics: PlantKinematics, t, observed: Observation, **controller) -> Log:
+def target_motion(scenario: Scenario, plant: PlantState):
+    """``(v_lar (3,) m/s, w (3,) rad/s)``, the LAR origin's velocity and the target's
+    angular velocity (inertial), or ``None`` for a stationary target."""
+    return None if scenario.target is None else lar_velocity(scenario.target, plant.target)
+
+
+def log_row(plant: PlantState, kinematics: PlantKinematics, t, observed: Observation, target=None, **controller) -> Log:
     """One row of the :class:`Log`: the plant's true state at ``t`` (s) and ``controller``'s
-    fields (``u``, ``V_ref``, ``qd_des`` and, in the flight-like loop, its readings)."""
+    fields (``u``, ``V_ref``, ``qd_des`` and, in the flight-like loop, its readings);
+    ``target``: the scenario's :class:`~spacegrasp_jax.target.TargetBody` (``None``: a
+    stationary target)."""
+    momentum = momentum_at(kinematics, plant)
+    target_fields = {}
+    if target is not None:
+        state = plant.target
+        target_fields = dict(
+            target_position=state.p,
+            target_quat=state.quat,
+            target_velocity=state.v,
+            target_angular_velocity=state.w,
+            momentum_total=momentum + target_momentum(target, state),
+        )
     return Log(
         t=t,
         pose_ee=observed.pose,
         pose_des=observed.inputs.pose_des,
         twist_ee=observed.twist,
         contact_force=kinematics.contact_force_lar,
-        momentum=momentum_at(kinematics, plant),
+        momentum=momentum,
         V_base=plant.V_base,
         fts_force=observed.force_fts,
         fts_torque=observed.torque_fts,
         q=plant.q,
         qd=plant.qd,
+        **target_fields,
         **controller,
     )
 
@@ -326,26 +384,39 @@ def sensor_reading(robot: Robot, scenario: Scenario, kinematics: PlantKinematics
     """The ideal F/T sensor between link 7 and the EE: the contact's force (3,) N and its
     torque about the sensor point (3,) N m, in sensor (frame 7) axes (eqs 18-19)."""
     R_fts = kinematics.frames.R_ee  # frame 7's rotation
-    force = spatial.matvec(R_fts.T, spatial.matvec(scenario.R_lar, kinematics.contact_force_lar))
+    force = spatial.matvec(R_fts.T, spatial.matvec(kinematics.R_lar, kinematics.contact_force_lar))
     return sensor_wrench(force, robot.ee_offset)
 
 
-def controller_inputs(robot, trajectory, p_base, V_base, qd, kinematics, p_lar, R_lar, force_fts, torque_fts, t):
+def controller_inputs(
+    robot, trajectory, p_base, V_base, qd, kinematics, p_lar, R_lar, force_fts, torque_fts, t, lar_motion=None
+):
     """What the law reads (:class:`~spacegrasp_jax.control.law.ControlInputs`), and the EE
     pose and twist in LAR, from a view of the state: the satellite's position ``p_base`` (3,)
     m and twist ``V_base`` (6,), the joint rates ``qd`` (7,) rad/s, ``kinematics`` of the
     robot the controller believes at the joint angles it measured, the LAR frame it believes
     (``p_lar`` (3,) m, ``R_lar`` (3, 3), inertial), and the F/T reading ``force_fts``,
-    ``torque_fts`` (3,) in sensor axes, at time ``t`` (s)."""
+    ``torque_fts`` (3,) in sensor axes, at time ``t`` (s). ``lar_motion``: ``(v_lar, w)``
+    (3,) m/s, rad/s, inertial, the LAR origin's velocity and the target's angular velocity
+    (:func:`target_motion`), or ``None`` for a stationary target; the twist is then relative
+    to the moving frame, ``[d p_rel/dt; R_lar^T (w_ee - w)]``."""
     frames = kinematics.frames
     p_ee = p_base + frames.p_ee
     R_lar_ee = spatial.matmul(R_lar.T, frames.R_ee)
-    pose = jnp.concatenate([spatial.matvec(R_lar.T, p_ee - p_lar), spatial.euler_zyx(R_lar_ee)])
+    p_rel = spatial.matvec(R_lar.T, p_ee - p_lar)
+    pose = jnp.concatenate([p_rel, spatial.euler_zyx(R_lar_ee)])
     r_ee = frames.p_ee  # EE point from the satellite CoM
     v_s, w_s = jnp.split(V_base, 2)
     twist_inertial = jnp.concatenate([v_s + spatial.cross(w_s, r_ee), w_s]) + spatial.matvec(kinematics.J_joints, qd)
     # Both 3-vectors of a twist (wrench, Jacobian) rotate at once as a (2, 3) array.
     twist = spatial.matvec(R_lar.T, twist_inertial.reshape(2, 3)).reshape(6)
+    frame_twist = None
+    if lar_motion is not None:
+        # The LAR frame's own twist at the EE point, LAR axes: the EE's inertial twist is
+        # the relative one plus this (d p_rel/dt = R^T (v_ee - v_lar) - (R^T w) x p_rel).
+        v_lar, w = (spatial.matvec(R_lar.T, x) for x in lar_motion)
+        frame_twist = jnp.concatenate([v_lar + spatial.cross(w, p_rel), w])
+        twist = twist - frame_twist
 
     R_fts = frames.R_ee  # frame 7's rotation
     wrench_ee = wrench_at_ee(force_fts, torque_fts, robot.ee_offset)
@@ -354,7 +425,9 @@ def controller_inputs(robot, trajectory, p_base, V_base, qd, kinematics, p_lar, 
     pose_des, twist_des, twist_rate_des = desired_state(trajectory, t)
     J_dyn = dynamic_jacobian_from_parts(kinematics.base_per_joint, kinematics.J_joints, r_ee)  # eq 8
     J_dyn_ee = spatial.matmul(frames.R_ee.T, J_dyn.reshape(2, 3, N_JOINTS)).reshape(6, N_JOINTS)
-    inputs = ControlInputs(pose, twist, wrench_lar, pose_des, twist_des, twist_rate_des, J_dyn_ee, R_lar_ee)
+    inputs = ControlInputs(
+        pose, twist, wrench_lar, pose_des, twist_des, twist_rate_des, J_dyn_ee, R_lar_ee, frame_twist
+    )
     return inputs, (pose, twist)
 
 
@@ -621,12 +694,23 @@ def flight_loop(
             if own_model
             else truth
         )
-        p_lar, R_lar = scenario.p_lar, scenario.R_lar
+        p_lar, R_lar = truth.p_lar, truth.R_lar
         if "estimate" in realism.stages:
             p_lar = p_lar + spatial.matvec(R_lar, realism.lar_position_error_m)
             R_lar = spatial.matmul(R_lar, spatial.rotation_exp(realism.lar_angle_error_rad))
         inputs, _ = controller_inputs(
-            robot, scenario.trajectory, plant.p_base, plant.V_base, qd, view, p_lar, R_lar, reading[:3], reading[3:], t
+            robot,
+            scenario.trajectory,
+            plant.p_base,
+            plant.V_base,
+            qd,
+            view,
+            p_lar,
+            R_lar,
+            reading[:3],
+            reading[3:],
+            t,
+            lar_motion=target_motion(scenario, plant),
         )
         computed, law_state = law.update(gains, inputs, state.controller.law, period)
         if realism.delay_periods:
@@ -647,7 +731,7 @@ def flight_loop(
     def plant_step(plant: PlantState, k, held):
         t = k * scenario.dt
         kinematics = plant_kinematics(robot, scenario, plant)
-        row = log_row(plant, kinematics, t, observe(robot, scenario, plant, kinematics, t), **held)
+        row = log_row(plant, kinematics, t, observe(robot, scenario, plant, kinematics, t), scenario.target, **held)
         u = held["u"]
         k1 = plant_rate(robot, scenario, plant, kinematics, u)
         return rk4_step(lambda s: plant_derivative(robot, scenario, s, u), plant, scenario.dt, rate_at_start=k1), row

@@ -81,7 +81,9 @@ class Admittance:
     ) -> tuple[jax.Array, AdmittanceState]:
         """``(qd_des (7,) rad/s, next state)``: the command from ``V_ref(k)`` (eqs 16-17), then
         eq 15 by forward Euler over the control period ``dt`` (s)."""
-        qd_des = desired_joint_rates(inputs.J_dyn_ee, inputs.R_lar_ee, state.V_ref, self.pinv_damping)
+        # Relative to a moving target, the command adds the LAR frame's own twist.
+        V_command = state.V_ref if inputs.frame_twist is None else state.V_ref + inputs.frame_twist
+        qd_des = desired_joint_rates(inputs.J_dyn_ee, inputs.R_lar_ee, V_command, self.pinv_damping)
         rate = reference_twist_rate(
             gains, inputs.pose, inputs.twist, inputs.pose_des, inputs.twist_des, inputs.twist_rate_des, inputs.wrench
         )

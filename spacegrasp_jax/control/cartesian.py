@@ -17,7 +17,7 @@ from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
 
 
 def desired_joint_rates(
-    gains: Gains, J_dyn_ee: jax.Array, R_lar_ee: jax.Array, pose, pose_des, damping=0.0
+    gains: Gains, J_dyn_ee: jax.Array, R_lar_ee: jax.Array, pose, pose_des, damping=0.0, frame_twist=None
 ) -> jax.Array:
     """Eqs 21-22: ``qd_des`` (7,) rad/s.
 
@@ -30,11 +30,16 @@ def desired_joint_rates(
     Args:
         J_dyn_ee: (6, 7) Dynamic Jacobian in the EE frame. R_lar_ee: (3, 3) EE to LAR.
         pose, pose_des: (6,) ``[p (m); roll, pitch, yaw (rad)]`` of the EE in LAR.
+        frame_twist: (6,) the moving LAR frame's twist at the EE point, LAR axes, added to
+            the command (``None``: a stationary target).
     """
     error = pose_error(pose_des, pose)
     v_ee = spatial.matvec(R_lar_ee.T, gains.K_lin * error[:3])
     w_ee = spatial.matvec(spatial.euler_rates_to_body(pose[3:]), gains.K_eul * error[3:])
-    return pseudoinverse_apply(J_dyn_ee, jnp.concatenate([v_ee, w_ee]), damping)
+    command = jnp.concatenate([v_ee, w_ee])
+    if frame_twist is not None:
+        command = command + spatial.matvec(R_lar_ee.T, frame_twist.reshape(2, 3)).reshape(6)
+    return pseudoinverse_apply(J_dyn_ee, command, damping)
 
 
 @jax.tree_util.register_dataclass
@@ -62,7 +67,7 @@ class Cartesian:
     ) -> tuple[jax.Array, CartesianState]:
         """``(qd_des (7,) rad/s, state)`` from the pose error (``dt`` unused)."""
         qd_des = desired_joint_rates(
-            gains, inputs.J_dyn_ee, inputs.R_lar_ee, inputs.pose, inputs.pose_des, self.pinv_damping
+            gains, inputs.J_dyn_ee, inputs.R_lar_ee, inputs.pose, inputs.pose_des, self.pinv_damping, inputs.frame_twist
         )
         return qd_des, state
 

@@ -29,6 +29,9 @@ class ControlInputs:
             derivatives (eqs 10-13).
         J_dyn_ee: (6, 7) the Dynamic Jacobian in the EE frame (eq 8).
         R_lar_ee: (3, 3) EE to LAR rotation.
+        frame_twist: (6,) the moving LAR frame's twist at the EE point ``[v (m/s); w
+            (rad/s)]``, LAR axes, which the laws add to their commanded twist (the EE's
+            inertial twist is the relative one plus this); ``None`` for a stationary target.
     """
 
     pose: jax.Array
@@ -39,6 +42,7 @@ class ControlInputs:
     twist_rate_des: jax.Array
     J_dyn_ee: jax.Array
     R_lar_ee: jax.Array
+    frame_twist: jax.Array | None = None
 
 
 def law_named(name: str, pinv_damping: float = 0.0):

@@ -1,0 +1,169 @@
+"""The free-floating target (spacegrasp_jax.target): the stationary limit, momentum shared
+with the chaser, torque-free motion against invariants and the analytic precession, the
+contact's impulse, the relative twist against finite differences, gradients, and the
+scenario's [target] table."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from spacegrasp_jax import metrics, spatial
+from spacegrasp_jax.scenario import ScenarioError, paper_scenario, scenario_from_mapping
+from spacegrasp_jax.simulate import rollout
+
+ROLLOUT = jax.jit(rollout, static_argnames=("controller",))
+
+#: A few hundred kilograms, its CoM half a metre behind the LAR plane.
+TARGET = dict(mass=300.0, inertia=[[50.0, 2.0, 0.0], [2.0, 60.0, 0.0], [0.0, 0.0, 70.0]], com_in_lar=[0.0, 0.0, 0.5])
+
+
+def free(scenario, robot, **target):
+    """``scenario``'s settings with a free-floating target (2 s, the approach compressed)."""
+    return paper_scenario(robot, duration=2.0, move_duration=2.0, contact_law="smooth", target={**TARGET, **target})
+
+
+@pytest.fixture(scope="module")
+def pushed(robot, gains):
+    """The admittance law pushing a 300 kg target at rest (contact from about 0.9 s)."""
+    scenario = free(None, robot)
+    return scenario, ROLLOUT(robot, scenario, gains, "admittance")[1]
+
+
+def rotations(log):
+    return np.asarray(jax.vmap(spatial.quat_to_rotation)(log.target_quat))
+
+
+def test_a_stationary_scenario_has_no_target_and_logs_none(robot, gains, short_scenario):
+    assert short_scenario.target is None and short_scenario.initial.target is None
+    log = ROLLOUT(robot, short_scenario, gains, "cartesian")[1]
+    assert log.target_position is None and log.momentum_total is None
+
+
+@pytest.mark.parametrize("controller", ["admittance", "cartesian"])
+def test_a_very_heavy_target_is_the_stationary_target(robot, gains, short_scenario, controller):
+    heavy = free(None, robot, mass=1e9, inertia=[1e9, 1e9, 1e9])
+    logs = [ROLLOUT(robot, scenario, gains, controller)[1] for scenario in (short_scenario, heavy)]
+    assert float(jnp.max(jnp.linalg.norm(logs[0].contact_force, axis=1))) > 0.1  # there is contact
+    for measure in (metrics.final_position_error, metrics.final_orientation_error):
+        np.testing.assert_allclose(measure(logs[1]), measure(logs[0]), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(metrics.max_abs_torque(logs[1]), metrics.max_abs_torque(logs[0]), rtol=1e-6)
+
+
+def test_chaser_and_target_share_one_conserved_momentum(pushed):
+    scenario, log = pushed
+    total = np.asarray(log.momentum_total)
+    exchanged = np.abs(np.asarray(log.momentum) - np.asarray(log.momentum)[0]).max()
+    assert exchanged > 1e-2  # the contact moved momentum from one body to the other
+    np.testing.assert_array_less(np.abs(total - total[0]).max(), 1e-9 * exchanged)
+    assert np.linalg.norm(np.asarray(log.target_velocity[-1])) > 1e-4  # pushed away
+
+
+def test_the_contacts_impulse_is_the_targets_change_of_momentum(pushed):
+    scenario, log = pushed
+    body, dt = scenario.target, scenario.dt
+    R = rotations(log)  # LAR axes to inertial
+    force_on_target = -np.einsum("nij,nj->ni", R, np.asarray(log.contact_force))  # inertial
+    # The logged force is sampled at each step's start: trapezoids over the steps.
+    impulse = dt * (force_on_target[1:] + force_on_target[:-1]).sum(axis=0) / 2
+    change = float(body.mass) * (np.asarray(log.target_velocity[-1]) - np.asarray(log.target_velocity[0]))
+    np.testing.assert_allclose(impulse, change, rtol=0, atol=1e-4 * np.abs(change).max())
+    # The angular impulse about the target's CoM is the change of its spin momentum.
+    p_lar = np.asarray(log.target_position) - np.einsum("nij,j->ni", R, np.asarray(body.com_in_lar))
+    p_ee = p_lar + np.einsum("nij,nj->ni", R, np.asarray(log.pose_ee[:, :3]))
+    moment = np.cross(p_ee - np.asarray(log.target_position), force_on_target)
+    angular_impulse = dt * (moment[1:] + moment[:-1]).sum(axis=0) / 2
+    spin = np.einsum("nij,jk,nk->ni", R, np.asarray(body.inertia), np.asarray(log.target_angular_velocity))
+    np.testing.assert_allclose(angular_impulse, spin[-1] - spin[0], rtol=0, atol=1e-4 * np.abs(spin[-1]).max())
+
+
+def test_a_torque_free_target_keeps_its_energy_and_momentum_and_precesses_as_predicted(robot, gains):
+    # Axisymmetric (I1 = I2): in body axes w3 stays constant and (w1, w2) turns at
+    # Omega = (I3 - I1) / I1 w3, the torque-free precession.
+    I1, I3, w = 40.0, 70.0, np.array([0.3, 0.0, 1.0])
+    scenario = free(None, robot, inertia=[I1, I1, I3], com_in_lar=[0.1, -0.2, 0.5], angular_velocity=w.tolist())
+    scenario = dataclasses.replace(scenario, contact_stiffness=jnp.zeros(()))  # no contact: alone
+    scenario = dataclasses.replace(
+        scenario,
+        initial=dataclasses.replace(
+            scenario.initial, target=dataclasses.replace(scenario.initial.target, v=jnp.array([0.01, 0.0, -0.02]))
+        ),
+    )
+    log = ROLLOUT(robot, scenario, gains, "admittance")[1]
+    body, t = scenario.target, np.asarray(log.t)
+    omega = np.asarray(log.target_angular_velocity)
+    v, R = np.asarray(log.target_velocity), rotations(log)
+    inertia = np.asarray(body.inertia)
+    energy = 0.5 * float(body.mass) * (v**2).sum(axis=1) + 0.5 * np.einsum("ni,ij,nj->n", omega, inertia, omega)
+    np.testing.assert_allclose(energy, energy[0], rtol=1e-12)
+    L = np.einsum("nij,jk,nk->ni", R, inertia, omega) + np.cross(np.asarray(log.target_position), float(body.mass) * v)
+    np.testing.assert_allclose(L, np.broadcast_to(L[0], L.shape), rtol=0, atol=1e-12 * np.abs(L[0]).max())
+    precession = (I3 - I1) / I1 * w[2]
+    expected = w[0] * np.exp(1j * precession * t)
+    np.testing.assert_allclose(omega[:, 0] + 1j * omega[:, 1], expected, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(omega[:, 2], w[2], rtol=1e-13)
+
+
+def test_the_controllers_relative_twist_is_the_rate_of_the_relative_pose(robot, gains):
+    # A drifting, tumbling target: the relative twist must include the frame's motion.
+    scenario = free(None, robot, velocity=[0.01, -0.005, 0.002], angular_velocity=[0.02, -0.03, 0.05])
+    log = ROLLOUT(robot, scenario, gains, "cartesian")[1]
+    dt, twist = scenario.dt, np.asarray(log.twist_ee)
+    # The frame moves the relative pose by ~1e-2 m/s and rad/s; the central difference is
+    # good to ~5e-6 (it is as good for a stationary target: the torques jump between steps).
+    position = np.asarray(log.pose_ee[:, :3])
+    central = (position[2:] - position[:-2]) / (2 * dt)
+    np.testing.assert_allclose(twist[1:-1, :3], central, rtol=0, atol=1e-4 * np.abs(central).max())
+    # Angular: dR_rel/dt R_rel^T = [w_rel]x, R_rel from the logged ZYX angles.
+    R_rel = np.asarray(jax.vmap(spatial.euler_zyx_to_rotation)(log.pose_ee[:, 3:]))
+    rate = np.einsum("nij,nkj->nik", (R_rel[2:] - R_rel[:-2]) / (2 * dt), R_rel[1:-1])
+    w_rel = np.stack([rate[:, 2, 1], rate[:, 0, 2], rate[:, 1, 0]], axis=1)
+    np.testing.assert_allclose(twist[1:-1, 3:], w_rel, rtol=0, atol=1e-4 * np.abs(w_rel).max())
+
+
+def test_gradients_through_a_free_target_match_central_differences(robot, gains):
+    scenario = free(None, robot, velocity=[0.0, 0.0, 0.002], angular_velocity=[0.0, 0.0, 0.01])
+
+    def error(Kd):
+        log = rollout(robot, scenario, dataclasses.replace(gains, Kd=Kd), "admittance")[1]
+        return metrics.final_position_error(log) + jnp.linalg.norm(log.target_velocity[-1])
+
+    value, gradient = jax.jit(jax.value_and_grad(error))(gains.Kd)
+    assert np.isfinite(value) and np.all(np.isfinite(gradient)) and np.abs(gradient).max() > 0
+    forward = jax.jit(error)
+    for axis in (0, 1, 2, 3):  # the components of some size (Kd's rotational ones barely act in 2 s)
+        h = 1e-4 * float(gains.Kd[axis])
+        step = jnp.zeros(6).at[axis].set(h)
+        central = (forward(gains.Kd + step) - forward(gains.Kd - step)) / (2 * h)
+        np.testing.assert_allclose(gradient[axis], central, rtol=1e-4, atol=1e-15)
+
+
+def test_the_target_table_is_checked_key_by_key(robot):
+    scenario = scenario_from_mapping(robot, {"target": {"mass": 250, "inertia": [30.0, 40.0, 50.0]}})
+    assert float(scenario.target.mass) == 250.0 and scenario.initial.target is not None
+    np.testing.assert_allclose(scenario.target.inertia, np.diag([30.0, 40.0, 50.0]))
+    # The target's LAR frame starts where the stationary one is.
+    np.testing.assert_allclose(scenario.initial.target.p, scenario.p_lar, atol=1e-15)
+    bad = {
+        "mass": ({"inertia": [1.0, 1.0, 1.0]}, "target.mass: required"),
+        "unknown": ({"mass": 1.0, "inertia": [1.0, 1.0, 1.0], "spin": 1.0}, "unknown scenario key target.spin"),
+        "string": ({"mass": "300", "inertia": [1.0, 1.0, 1.0]}, "target.mass: expected numbers"),
+        "boolean": ({"mass": True, "inertia": [1.0, 1.0, 1.0]}, "target.mass: expected numbers"),
+        "negative": ({"mass": -1.0, "inertia": [1.0, 1.0, 1.0]}, "target.mass: must be positive"),
+        "asymmetric": ({"mass": 1.0, "inertia": [[1.0, 0.5, 0], [0, 1.0, 0], [0, 0, 1.0]]}, "must be symmetric"),
+        "indefinite": ({"mass": 1.0, "inertia": [1.0, 1.0, -1.0]}, "positive definite"),
+        "triangle": ({"mass": 1.0, "inertia": [1.0, 1.0, 3.0]}, "triangle inequality"),
+        "shape": (
+            {"mass": 1.0, "inertia": [1.0, 1.0, 1.0], "velocity": [1.0, 2.0]},
+            r"target.velocity: expected shape",
+        ),
+        "fast": ({"mass": 1.0, "inertia": [1.0, 1.0, 1.0], "angular_velocity": [20.0, 0, 0]}, "beyond 10"),
+        "nan": ({"mass": float("nan"), "inertia": [1.0, 1.0, 1.0]}, "target.mass: must be finite"),
+    }
+    for case, (table, message) in bad.items():
+        with pytest.raises(ScenarioError, match=message):
+            scenario_from_mapping(robot, {"target": table})
