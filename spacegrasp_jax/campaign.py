@@ -36,7 +36,7 @@ import numpy as np
 from spacegrasp_jax import batching, runfiles
 from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.metrics import METRICS
+from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import evaluate_samples, over_torque_limit, sample_loops, success
 from spacegrasp_jax.perturbations import PerturbationRanges
@@ -63,6 +63,9 @@ class CampaignConfig:
     torque_limit_Nm: a sample whose peak |u_i| on any joint exceeds this (N m) is counted as
         unstable and is not a success, even if it never turns non-finite (unstable captures
         reach 1e4-1e5 N m without a NaN); ``None``: no limit.
+    target_speed_limit_mps: with a free-floating target, a capture succeeds only if the
+        target's final speed is at most this (m/s): pushed away faster, it drifts out of
+        reach before the grasp closes.
     timeseries_every: keep every k-th log row of every sample (``None``: metrics only).
     pinv_damping: damping of the pseudoinverse (0: exact, the paper).
     device_batch: samples each device simulates at once (``None``: its whole share of the
@@ -80,6 +83,7 @@ class CampaignConfig:
     position_tolerance_m: float = 0.005
     orientation_tolerance_rad: float = math.radians(1.0)
     torque_limit_Nm: float | None = 100.0
+    target_speed_limit_mps: float = 0.005
     timeseries_every: int | None = None
     pinv_damping: float = 0.0
     device_batch: int | None = None
@@ -97,7 +101,7 @@ class CampaignConfig:
             raise CampaignError(f"chunk: must be at least 1, got {self.chunk}")
         if not 0 <= self.seed < 2**32:
             raise CampaignError(f"seed: must be in [0, 2^32), got {self.seed}")
-        for name in ("position_tolerance_m", "orientation_tolerance_rad"):
+        for name in ("position_tolerance_m", "orientation_tolerance_rad", "target_speed_limit_mps"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0.0):
                 raise CampaignError(f"{name}: must be positive and finite, got {value!r}")
@@ -281,7 +285,7 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
     ok = np.ones(len(sample_metrics["first_nonfinite_s"]), dtype=bool)
     ok[diverged] = False
     statistics = {}
-    for name in METRICS:
+    for name in (*METRICS, *(name for name in TARGET_METRICS if name in sample_metrics)):
         values = np.asarray(sample_metrics[name])
         if values.ndim == 2:  # per joint
             statistics[name] = [_statistics(values[ok, j]) for j in range(values.shape[1])]
@@ -448,9 +452,13 @@ def run_campaign(
             for name, value in merged.items()
             if name.startswith("perturbation.")
         }
-        sample_metrics = {name: merged[name] for name in METRICS}
+        sample_metrics = {name: merged[name] for name in (*METRICS, *TARGET_METRICS) if name in merged}
         sample_metrics["success"] = success(
-            sample_metrics, config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm
+            sample_metrics,
+            config.position_tolerance_m,
+            config.orientation_tolerance_rad,
+            config.torque_limit_Nm,
+            config.target_speed_limit_mps,
         )
         all_metrics[variant.key] = sample_metrics
         if config.timeseries_every is not None:
@@ -472,6 +480,7 @@ def run_campaign(
             "final_position_m": config.position_tolerance_m,
             "final_orientation_rad": config.orientation_tolerance_rad,
             "torque_limit_Nm": config.torque_limit_Nm,
+            **({"target_speed_mps": config.target_speed_limit_mps} if scenario.target is not None else {}),
         },
         "ranges": config.ranges.to_dict(),
         "realism": (config.realism or ideal()).to_dict(),

@@ -283,6 +283,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
             position_tolerance_m=args.tolerance_mm * 1e-3,
             orientation_tolerance_rad=math.radians(args.tolerance_deg),
             torque_limit_Nm=args.torque_limit if args.torque_limit > 0 else None,
+            target_speed_limit_mps=args.target_speed_limit,
             timeseries_every=args.timeseries_every,
             pinv_damping=args.pinv_damping,
             device_batch=args.device_batch
@@ -481,6 +482,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=100.0,
         metavar="NM",
         help="success: peak |u_i| at most this, else the sample counts as unstable (default 100 N m; 0: no limit)",
+    )
+    montecarlo.add_argument(
+        "--target-speed-limit",
+        type=float,
+        default=0.005,
+        metavar="MPS",
+        help="success, with a free-floating target: its final speed at most this (default 0.005 m/s)",
     )
     montecarlo.add_argument(
         "--timeseries-every", type=int, default=None, metavar="K", help="also keep every K-th log row of every sample"

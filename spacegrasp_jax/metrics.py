@@ -103,6 +103,18 @@ def contact_force_norm(log):
     return safe_norm(log.contact_force)
 
 
+#: The per-run metrics of a free-floating target (added to :data:`METRICS`' where the
+#: scenario has one): name -> (shape, unit, meaning).
+TARGET_METRICS = {
+    "final_target_speed_mps": ((), "m/s", "the target CoM's speed at the last step"),
+    "max_target_speed_mps": ((), "m/s", "the target CoM's peak speed"),
+    "final_target_rate_radps": ((), "rad/s", "the target's angular rate at the last step"),
+    "max_target_rate_radps": ((), "rad/s", "the target's peak angular rate"),
+    "target_displacement_m": ((), "m", "how far the target's CoM moved over the run"),
+    "target_impulse_Ns": ((), "N s", "magnitude of the impulse the contact gave the target"),
+}
+
+
 def first_contact_time(log):
     """() s, first time the contact force is non-zero; NaN if the EE never touches."""
     touching = contact_force_norm(log) > 0.0
@@ -110,6 +122,29 @@ def first_contact_time(log):
 
 
 # ---- the per-run metrics, folded over log rows -------------------------------------------
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class RunningTargetMetrics:
+    """The :data:`TARGET_METRICS` of the rows folded so far.
+
+    Attributes:
+        first_position, last_position: (3,) m, the target's CoM at the first and latest row.
+        last_speed, last_rate: () m/s, rad/s. max_speed, max_rate: () m/s, rad/s.
+        force_sum: (3,) N, the sum over rows of the contact's force on the target (inertial).
+        first_t, last_t: () s, the first and latest rows' times (their spacing is the step).
+    """
+
+    first_position: jax.Array
+    last_position: jax.Array
+    last_speed: jax.Array
+    last_rate: jax.Array
+    max_speed: jax.Array
+    max_rate: jax.Array
+    force_sum: jax.Array
+    first_t: jax.Array
+    last_t: jax.Array
 
 
 @jax.tree_util.register_dataclass
@@ -125,6 +160,7 @@ class RunningMetrics:
         max_base_speed: () m/s. max_base_rate: () rad/s.
         first_contact_s, first_nonfinite_s: () s, ``inf`` until it happens.
         last_pose_ee, last_pose_des: (6,) the latest row's EE and desired pose in LAR.
+        target: the free-floating target's (:class:`RunningTargetMetrics`), or ``None``.
     """
 
     rows: jax.Array
@@ -139,11 +175,16 @@ class RunningMetrics:
     first_nonfinite_s: jax.Array
     last_pose_ee: jax.Array
     last_pose_des: jax.Array
+    target: RunningTargetMetrics | None = None
 
 
-def start(dtype=jnp.float64) -> RunningMetrics:
-    """Nothing folded yet."""
+def start(dtype=jnp.float64, free_target: bool = False) -> RunningMetrics:
+    """Nothing folded yet; ``free_target``: the rows will carry a free-floating target."""
     zero, never = jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)
+    target = None
+    if free_target:
+        nothing = jnp.full(3, jnp.nan, dtype)
+        target = RunningTargetMetrics(nothing, nothing, zero, zero, zero, zero, jnp.zeros(3, dtype), never, never)
     return RunningMetrics(
         zero,
         zero,
@@ -157,6 +198,7 @@ def start(dtype=jnp.float64) -> RunningMetrics:
         never,
         jnp.zeros(6, dtype),
         jnp.zeros(6, dtype),
+        target,
     )
 
 
@@ -191,6 +233,26 @@ def accumulate(running: RunningMetrics, rows) -> RunningMetrics:
         first_nonfinite_s=_first(r.first_nonfinite_s, ~finite, rows.t),
         last_pose_ee=rows.pose_ee[-1],
         last_pose_des=rows.pose_des[-1],
+        target=None if r.target is None else _accumulate_target(r.target, rows),
+    )
+
+
+def _accumulate_target(running: RunningTargetMetrics, rows) -> RunningTargetMetrics:
+    speed = safe_norm(rows.target_velocity)
+    rate = safe_norm(rows.target_angular_velocity)
+    R = jax.vmap(spatial.quat_to_rotation)(rows.target_quat)  # LAR axes to inertial
+    force_on_target = -jnp.einsum("nij,nj->ni", R, rows.contact_force)
+    first = jnp.isinf(running.first_t)
+    return RunningTargetMetrics(
+        first_position=jnp.where(first, rows.target_position[0], running.first_position),
+        last_position=rows.target_position[-1],
+        last_speed=speed[-1],
+        last_rate=rate[-1],
+        max_speed=_peak(running.max_speed, speed),
+        max_rate=_peak(running.max_rate, rate),
+        force_sum=running.force_sum + jnp.sum(force_on_target, axis=0),
+        first_t=jnp.where(first, rows.t[0], running.first_t),
+        last_t=rows.t[-1],
     )
 
 
@@ -202,6 +264,18 @@ def finish(running: RunningMetrics, nonfinite_after_s=None) -> dict[str, jax.Arr
     if nonfinite_after_s is not None:
         first_nonfinite = jnp.where(jnp.isinf(first_nonfinite), nonfinite_after_s, first_nonfinite)
     never = lambda s: jnp.where(jnp.isinf(s), jnp.nan, s)
+    target = {}
+    if running.target is not None:
+        r = running.target
+        step = (r.last_t - r.first_t) / jnp.maximum(running.rows - 1, 1)  # the log's dt
+        target = {
+            "final_target_speed_mps": r.last_speed,
+            "max_target_speed_mps": r.max_speed,
+            "final_target_rate_radps": r.last_rate,
+            "max_target_rate_radps": r.max_rate,
+            "target_displacement_m": safe_norm(r.last_position - r.first_position),
+            "target_impulse_Ns": safe_norm(r.force_sum * step),
+        }
     return {
         "final_position_error_m": pose_position_error(running.last_pose_ee, running.last_pose_des),
         "final_orientation_error_rad": pose_orientation_error(running.last_pose_ee, running.last_pose_des),
@@ -215,23 +289,26 @@ def finish(running: RunningMetrics, nonfinite_after_s=None) -> dict[str, jax.Arr
         "max_base_rate_radps": running.max_base_rate,
         "first_contact_s": never(running.first_contact_s),
         "first_nonfinite_s": never(first_nonfinite),
-    }
+    } | target
 
 
 def log_metrics(log) -> dict[str, jax.Array]:
-    """The :data:`METRICS` of a whole log (arrays)."""
-    return finish(accumulate(start(jnp.asarray(log.t).dtype), log))
+    """The :data:`METRICS` of a whole log (arrays), and the :data:`TARGET_METRICS` if it
+    carries a free-floating target."""
+    return finish(accumulate(start(jnp.asarray(log.t).dtype, log.target_velocity is not None), log))
 
 
 def summary(log) -> dict:
-    """The :data:`METRICS` of a whole log as plain floats and lists (``summary.json``;
-    NaN where a metric has no value)."""
+    """The :data:`METRICS` (and :data:`TARGET_METRICS`) of a whole log as plain floats and
+    lists (``summary.json``; NaN where a metric has no value)."""
     return {name: jnp.asarray(value).tolist() for name, value in log_metrics(log).items()}
 
 
 __all__ = [
     "METRICS",
+    "TARGET_METRICS",
     "RunningMetrics",
+    "RunningTargetMetrics",
     "accumulate",
     "contact_force_norm",
     "final_orientation_error",

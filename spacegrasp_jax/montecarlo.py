@@ -66,7 +66,11 @@ def rollout_metrics(
         state, row = step(state, k)
         return (state, metrics.accumulate(running, jax.tree.map(lambda x: x[None], row)), k + 1), row
 
-    carry = (initial_state(scenario, controller), metrics.start(dtype), jnp.zeros((), dtype))
+    carry = (
+        initial_state(scenario, controller),
+        metrics.start(dtype, scenario.target is not None),
+        jnp.zeros((), dtype),
+    )
     if every is None:
         (final, running, _), _ = jax.lax.scan(
             lambda c, _: (step_and_fold(c, None)[0], None), carry, None, length=n_steps
@@ -105,7 +109,7 @@ def _flight_metrics(robot, scenario, gains, controller, pinv_damping, every, rea
         state, rows = one_period(state, k)
         return (state, metrics.accumulate(running, rows)), rows
 
-    carry = (start, metrics.start(dtype))
+    carry = (start, metrics.start(dtype, scenario.target is not None))
     ks = jnp.arange(periods, dtype=dtype)
     if every is None:
         (final, running), _ = jax.lax.scan(lambda c, k: (period_and_fold(c, k)[0], None), carry, ks)
@@ -228,12 +232,18 @@ def success(
     position_tolerance_m: float,
     orientation_tolerance_rad: float,
     torque_limit_Nm: float | None = None,
+    target_speed_limit_mps: float | None = None,
 ):
     """(n,) bool: the sample did not diverge, its peak |u_i| stayed at or below
-    ``torque_limit_Nm`` (N m; ``None``: no limit), and it ended within both tolerances (NumPy)."""
+    ``torque_limit_Nm`` (N m; ``None``: no limit), it ended within both tolerances (relative
+    to the LAR frame, moving or not) and, with a free-floating target (``sample_metrics``
+    holds ``final_target_speed_mps``), the target's final speed is at most
+    ``target_speed_limit_mps`` (m/s; ``None``: any) (NumPy)."""
     position = np.asarray(sample_metrics["final_position_error_m"])
     orientation = np.asarray(sample_metrics["final_orientation_error_rad"])
     diverged = np.isfinite(np.asarray(sample_metrics["first_nonfinite_s"]))
     with np.errstate(invalid="ignore"):
         within = (position <= position_tolerance_m) & (orientation <= orientation_tolerance_rad)
+        if target_speed_limit_mps is not None and "final_target_speed_mps" in sample_metrics:
+            within &= np.asarray(sample_metrics["final_target_speed_mps"]) <= target_speed_limit_mps
     return ~diverged & ~over_torque_limit(sample_metrics, torque_limit_Nm) & within

@@ -24,6 +24,18 @@ uniform, ``U`` meaning a fresh uniform number in [-1, 1]:
   with components ``U * value`` (a flight-like loop's target estimate error,
   :mod:`spacegrasp_jax.realism`; the perturbed LAR pose above is the true one).
 
+A free-floating target (the scenario's ``target``) is moved with its LAR frame (the target's
+pose is what ``lar_position_m`` and ``lar_angle_rad`` perturb) and draws, from a stream of its
+own (the other samples stay as they are):
+
+* ``target_mass_fraction``: the target's mass is scaled by ``1 + U * value``;
+* ``target_inertia_fraction``: its inertia ``I`` becomes ``D I D``, ``D = diag(sqrt(1 + U_k
+  * value))`` in LAR axes;
+* ``target_speed_mps``, ``target_rate_radps``: each component of its initial velocity and
+  angular velocity (LAR axes) moves by ``U * value`` (drift and tumble).
+
+Without a target these draws change nothing.
+
 The LAR frame moves independently of ``q_init``: a perturbed sample starts with the EE off
 its desired start, as a real approach would. Whether the controller is told about the model
 perturbations (the satellite mass and inertia) is the campaign's choice
@@ -43,6 +55,7 @@ import jax.numpy as jnp
 from spacegrasp_jax import spatial
 from spacegrasp_jax.model import N_JOINTS, Robot
 from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.target import initial_target_state
 
 
 class PerturbationError(ValueError):
@@ -67,6 +80,10 @@ class PerturbationRanges:
     satellite_inertia_fraction: float = 0.1
     lar_estimate_position_m: float = 0.002
     lar_estimate_angle_rad: float = 0.005
+    target_mass_fraction: float = 0.1
+    target_inertia_fraction: float = 0.1
+    target_speed_mps: float = 0.001
+    target_rate_radps: float = 0.005
 
     def __post_init__(self):
         for field in dataclasses.fields(self):
@@ -79,7 +96,13 @@ class PerturbationRanges:
             raise PerturbationError(
                 f"stiffness_factor: must be >= 1 (1 leaves the stiffness unchanged), got {self.stiffness_factor}"
             )
-        for name in ("radius_fraction", "satellite_mass_fraction", "satellite_inertia_fraction"):
+        for name in (
+            "radius_fraction",
+            "satellite_mass_fraction",
+            "satellite_inertia_fraction",
+            "target_mass_fraction",
+            "target_inertia_fraction",
+        ):
             if getattr(self, name) >= 1.0:
                 raise PerturbationError(
                     f"{name}: must be below 1 (the quantity must stay positive), got {getattr(self, name)}"
@@ -151,6 +174,10 @@ class Perturbation:
     satellite_inertia_scale: jax.Array
     dp_lar_estimate: jax.Array
     dr_lar_estimate: jax.Array
+    target_mass_scale: jax.Array
+    target_inertia_scale: jax.Array
+    target_velocity: jax.Array
+    target_angular_velocity: jax.Array
 
 
 def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Perturbation:
@@ -164,6 +191,7 @@ def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Pertu
     k_q, k_p, k_r, k_k = jax.random.split(key, 4)
     k_v, k_w, k_qd, k_radius, k_mass, k_inertia = jax.random.split(jax.random.fold_in(key, 1), 6)
     k_estimate_p, k_estimate_r = jax.random.split(jax.random.fold_in(key, 2), 2)  # the same streams above
+    k_target_m, k_target_i, k_target_v, k_target_w = jax.random.split(jax.random.fold_in(key, 3), 4)
     return Perturbation(
         dq_init=ranges.q_init_rad * uniform(k_q, (N_JOINTS,)),
         dp_lar=ranges.lar_position_m * uniform(k_p, (3,)),
@@ -178,6 +206,10 @@ def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Pertu
         satellite_inertia_scale=1.0 + ranges.satellite_inertia_fraction * uniform(k_inertia, (3,)),
         dp_lar_estimate=ranges.lar_estimate_position_m * uniform(k_estimate_p, (3,)),
         dr_lar_estimate=ranges.lar_estimate_angle_rad * uniform(k_estimate_r, (3,)),
+        target_mass_scale=1.0 + ranges.target_mass_fraction * uniform(k_target_m, ()),
+        target_inertia_scale=1.0 + ranges.target_inertia_fraction * uniform(k_target_i, (3,)),
+        target_velocity=ranges.target_speed_mps * uniform(k_target_v, (3,)),
+        target_angular_velocity=ranges.target_rate_radps * uniform(k_target_w, (3,)),
     )
 
 
@@ -192,17 +224,31 @@ def apply_to_robot(robot: Robot, perturbation: Perturbation) -> Robot:
 
 
 def apply_to_scenario(scenario: Scenario, perturbation: Perturbation) -> Scenario:
-    """The scenario with its initial state, LAR pose and contact sphere perturbed."""
+    """The scenario with its initial state, LAR pose, contact sphere and (with a free-floating
+    target) the target perturbed."""
     p, initial = perturbation, scenario.initial
+    p_lar = scenario.p_lar + scenario.R_lar @ p.dp_lar
+    R_lar = scenario.R_lar @ spatial.rotation_exp(p.dr_lar)
+    initial = dataclasses.replace(
+        initial, q=initial.q + p.dq_init, V_base=initial.V_base + p.V_base_init, qd=initial.qd + p.qd_init
+    )
+    body = scenario.target
+    if body is not None:
+        D = jnp.sqrt(p.target_inertia_scale)
+        body = dataclasses.replace(
+            body, mass=body.mass * p.target_mass_scale, inertia=D[:, None] * body.inertia * D[None, :]
+        )
+        velocity_lar = scenario.R_lar.T @ initial.target.v + p.target_velocity
+        state = initial_target_state(body, p_lar, R_lar, velocity_lar, initial.target.w + p.target_angular_velocity)
+        initial = dataclasses.replace(initial, target=state)
     return dataclasses.replace(
         scenario,
-        initial=dataclasses.replace(
-            initial, q=initial.q + p.dq_init, V_base=initial.V_base + p.V_base_init, qd=initial.qd + p.qd_init
-        ),
-        p_lar=scenario.p_lar + scenario.R_lar @ p.dp_lar,
-        R_lar=scenario.R_lar @ spatial.rotation_exp(p.dr_lar),
+        initial=initial,
+        p_lar=p_lar,
+        R_lar=R_lar,
         sphere_radius=scenario.sphere_radius * p.radius_scale,
         contact_stiffness=scenario.contact_stiffness * p.stiffness_scale,
+        target=body,
     )
 
 

@@ -167,3 +167,75 @@ def test_the_target_table_is_checked_key_by_key(robot):
     for case, (table, message) in bad.items():
         with pytest.raises(ScenarioError, match=message):
             scenario_from_mapping(robot, {"target": table})
+
+
+def test_the_summary_reports_what_the_contact_did_to_the_target(pushed):
+    scenario, log = pushed
+    summary = metrics.summary(log)
+    velocity, position = np.asarray(log.target_velocity), np.asarray(log.target_position)
+    speed = np.linalg.norm(velocity, axis=1)
+    assert summary["final_target_speed_mps"] == pytest.approx(speed[-1], rel=1e-12)
+    assert summary["max_target_speed_mps"] == pytest.approx(speed.max(), rel=1e-12)
+    assert summary["target_displacement_m"] == pytest.approx(np.linalg.norm(position[-1] - position[0]), rel=1e-12)
+    # The impulse (a sum of the logged force over the steps) is the momentum it gave.
+    change = float(scenario.target.mass) * np.linalg.norm(velocity[-1] - velocity[0])
+    assert summary["target_impulse_Ns"] == pytest.approx(change, rel=1e-2)
+    assert summary["final_target_rate_radps"] > 0.0  # pushed off its CoM: it turns
+
+
+def test_samples_move_and_vary_the_target_with_its_frame(robot):
+    from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
+    from spacegrasp_jax.target import lar_frame
+
+    nominal = free(None, robot, velocity=[0.001, 0.0, 0.0])
+    ranges = dataclasses.replace(PerturbationRanges(), satellite_mass_fraction=0.0, satellite_inertia_fraction=0.0)
+    samples = sample_scenarios(nominal, 3, range(4), ranges)
+    for i in range(4):
+        sample = jax.tree.map(lambda x, i=i: x[i], samples)
+        p_lar, R_lar = lar_frame(sample.target, sample.initial.target)
+        np.testing.assert_allclose(p_lar, sample.p_lar, atol=1e-14)  # the target carries the perturbed LAR
+        np.testing.assert_allclose(R_lar, sample.R_lar, atol=1e-14)
+        assert abs(float(sample.target.mass) / 300.0 - 1.0) <= ranges.target_mass_fraction
+        drift = np.asarray(R_lar.T @ sample.initial.target.v) - np.array([0.001, 0.0, 0.0])
+        assert np.all(np.abs(drift) <= ranges.target_speed_mps) and np.any(drift != 0.0)
+    # A stationary scenario's samples are what they were (the target's draws have a stream of their own).
+    stationary = paper_scenario(robot, duration=2.0, move_duration=2.0)
+    again = sample_scenarios(stationary, 3, range(4), ranges)
+    assert again.target is None
+    before = sample_scenarios(stationary, 3, range(4), dataclasses.replace(ranges, target_mass_fraction=0.0))
+    np.testing.assert_array_equal(again.p_lar, before.p_lar)
+
+
+def test_a_campaign_counts_a_pushed_away_target_as_a_failed_capture(robot, gains):
+    from spacegrasp_jax import campaign
+    from spacegrasp_jax.perturbations import PerturbationRanges
+
+    scenario = free(None, robot)
+    config = campaign.CampaignConfig(
+        n=2, chunk=2, ranges=PerturbationRanges.nominal(), position_tolerance_m=1.0, orientation_tolerance_rad=1.0
+    )
+    variants = [campaign.Variant("admittance", gains, "paper")]
+    loose = campaign.run_campaign(robot, scenario, variants, dataclasses.replace(config, target_speed_limit_mps=1.0))
+    strict = campaign.run_campaign(robot, scenario, variants, dataclasses.replace(config, target_speed_limit_mps=1e-6))
+    speeds = loose.metrics["admittance/paper"]["final_target_speed_mps"]
+    assert np.all(speeds > 1e-6) and np.all(speeds < 1.0)
+    assert loose.summary["variants"]["admittance/paper"]["success_rate"] == 1.0
+    assert strict.summary["variants"]["admittance/paper"]["success_rate"] == 0.0
+    assert "final_target_speed_mps" in strict.summary["variants"]["admittance/paper"]["statistics_over_non_diverged"]
+
+
+def test_the_tuning_objective_can_weigh_the_targets_final_speed(pushed, tmp_path):
+    from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts
+    from spacegrasp_jax.tuning.run import TuneSetupError, tune
+    from spacegrasp_jax.tuning.tune import TuneConfig
+
+    _, log = pushed
+    scale = tuple(float(x) for x in metrics.max_abs_torque(log))
+    plain = objective_parts(log, Objective(Weights(), scale))
+    weighed = objective_parts(log, Objective(Weights(target_speed=2.0), scale))
+    speed = float(jnp.linalg.norm(log.target_velocity[-1]))
+    assert float(plain["final_target_speed_mps"]) == pytest.approx(speed, rel=1e-12)
+    assert float(weighed["loss"] - plain["loss"]) == pytest.approx(2.0 * speed / 1e-3, rel=1e-9)
+    with pytest.raises(TuneSetupError, match="needs a scenario with a free-floating"):
+        tune(tmp_path / "run", config=TuneConfig(weights=Weights(target_speed=1.0)), progress=None)
+    assert not (tmp_path / "run" / "run.json").exists()

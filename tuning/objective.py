@@ -9,12 +9,14 @@ With ``e_p`` the final EE position error in LAR (m), ``e_o`` the final orientati
          + w_rms         * rms / rms_scale
          + w_torque      * smoothmax_{t, i} |u_i(t)| / torque_scale_i
          + w_contact     * smoothmax_t |F(t)| / contact_scale
+         + w_target      * |v_target(T)| / target_speed_scale      (free-floating target only)
 
 ``smoothmax(x) = T log sum exp(x / T)`` over every sample (temperature ``T``) is a smooth upper
 bound of the hard maximum, exceeding it by at most ``T log(count)``; the hard maximum and the
 gap are always reported beside it. With ``torque_scale_i`` the peaks of the initial gains,
 the torque term is the largest peak relative to where the tuning started: below 1 means every
-joint's peak went down.
+joint's peak went down. ``|v_target(T)|`` is a free-floating target's final speed ("do not
+push it away"); its weight is 0 by default.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ class Weights:
     rms_tracking: float = 0.1
     peak_torque: float = 10.0
     contact_force: float = 0.0
+    target_speed: float = 0.0
 
     @classmethod
     def parse(cls, text: str) -> Weights:
@@ -72,6 +75,7 @@ class Objective:
     orientation_scale_rad: float = 1e-2
     rms_scale_m: float = 1e-2
     contact_scale_N: float = 10.0
+    target_speed_scale_mps: float = 1e-3
     temperature: float = 0.02
 
     def __post_init__(self):
@@ -87,7 +91,8 @@ def smooth_max(values: jax.Array, temperature: float) -> jax.Array:
 
 
 def objective_parts(log, objective: Objective) -> dict[str, jax.Array]:
-    """Every part of the objective, unweighted, plus ``loss`` (the weighted sum)."""
+    """Every part of the objective, unweighted, plus ``loss`` (the weighted sum); with a
+    free-floating target, its final speed ``final_target_speed_mps`` too."""
     w = objective.weights
     torque_ratio = jnp.abs(log.u) / jnp.asarray(objective.torque_scale_Nm)
     contact = metrics.contact_force_norm(log)
@@ -108,4 +113,9 @@ def objective_parts(log, objective: Objective) -> dict[str, jax.Array]:
         + w.peak_torque * parts["peak_torque_smooth"]
         + w.contact_force * parts["peak_contact_smooth_N"] / objective.contact_scale_N
     )
+    if log.target_velocity is not None:
+        parts["final_target_speed_mps"] = metrics.safe_norm(log.target_velocity[-1])
+        parts["loss"] = (
+            parts["loss"] + w.target_speed * parts["final_target_speed_mps"] / objective.target_speed_scale_mps
+        )
     return parts
