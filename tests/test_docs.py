@@ -76,6 +76,7 @@ def test_the_pages_with_examples_are_the_ones_expected():
         "monte-carlo.md",
         "file-formats.md",
         "flight-like-loop.md",
+        "free-target.md",
     }
 
 
