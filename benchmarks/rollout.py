@@ -28,6 +28,15 @@ from spacegrasp_jax.realism import flight
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
 
+#: The free-floating target of ``configs/free_target.toml``: 400 kg, tumbling at 0.5 deg/s.
+FREE_TARGET = dict(
+    mass=400.0,
+    inertia=[70.0, 80.0, 60.0],
+    com_in_lar=[0.0, 0.0, 0.8],
+    velocity=[0.0005, -0.0005, 0.0],
+    angular_velocity=[0.0, 0.0, 0.0087],
+)
+
 
 def bench_controller(robot, scenario, gains, controller: str, repeats: int, realism=None) -> dict:
     """One rollout's compile and run times; ``realism``: the flight-like loop (noise key 0)."""
@@ -66,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
         result[controller] = bench_controller(robot, scenario, gains, controller, args.repeats)
     for controller in CONTROLLERS:  # the flight preset: 100 Hz control, own model, sensors, limits
         result[f"{controller}/flight"] = bench_controller(robot, scenario, gains, controller, args.repeats, flight())
+    free_target = paper_scenario(robot, duration=args.duration, target=FREE_TARGET)  # a second body in the state
+    result["admittance/free-target"] = bench_controller(robot, free_target, gains, "admittance", args.repeats)
 
     info = result["machine"]
     print(
@@ -74,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{'controller':18} {'compile [s]':>12} {'run [s]':>10} {'spread [s]':>16} {'us/step':>9} {'sim s / wall s':>15}"
     )
-    for controller in [*CONTROLLERS, *(f"{c}/flight" for c in CONTROLLERS)]:
+    for controller in [*CONTROLLERS, *(f"{c}/flight" for c in CONTROLLERS), "admittance/free-target"]:
         r = result[controller]
         spread = f"{r['run_spread_s'][0]:.3f}-{r['run_spread_s'][1]:.3f}"
         print(

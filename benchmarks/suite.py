@@ -43,6 +43,7 @@ KEYS = (
     "compile_s",
     "us_per_step",
     "flight_over_ideal_step",
+    "free_target_over_stationary_step",
     "batch_steps_per_s",
     "batch_peak_rss_mb",
     "sequential_steps_per_s",
@@ -140,6 +141,9 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
     report["flight_over_ideal_step"] = {
         c: rollout[f"{c}/flight"]["us_per_step"] / rollout[c]["us_per_step"] for c in CONTROLLERS
     }
+    report["free_target_over_stationary_step"] = (
+        rollout["admittance/free-target"]["us_per_step"] / rollout["admittance"]["us_per_step"]
+    )
 
     print(f"2/5 batches {batches}...", flush=True)
     montecarlo = _child(
@@ -267,6 +271,13 @@ def table(report: dict) -> str:
         "",
         "",
         "<= 1.6",
+    )
+    row(
+        "free-target step / stationary-target step, admittance",
+        f"{report['free_target_over_stationary_step']:.2f}",
+        "",
+        "",
+        "<= 1.25",
     )
     if "flight_over_ideal_chunk" in report:
         row("Monte-Carlo chunk, flight-like / ideal", f"{report['flight_over_ideal_chunk']:.2f}", "", "", "<= 1.6")
