@@ -239,3 +239,17 @@ def test_the_tuning_objective_can_weigh_the_targets_final_speed(pushed, tmp_path
     with pytest.raises(TuneSetupError, match="needs a scenario with a free-floating"):
         tune(tmp_path / "run", config=TuneConfig(weights=Weights(target_speed=1.0)), progress=None)
     assert not (tmp_path / "run" / "run.json").exists()
+
+
+def test_the_flight_like_loop_carries_the_target_as_the_ideal_loop_does(robot, gains):
+    # Every realism stage neutral: the flight-like loop's plant, controller view and log
+    # with a drifting, tumbling target are the ideal loop's.
+    from spacegrasp_jax.realism import ideal
+    from spacegrasp_jax.simulate import flight_rollout
+
+    scenario = free(None, robot, velocity=[0.002, 0.0, -0.001], angular_velocity=[0.0, 0.01, 0.02])
+    reference = ROLLOUT(robot, scenario, gains, "admittance")[1]
+    log = jax.jit(lambda: flight_rollout(robot, scenario, gains, "admittance", ideal(), jax.random.PRNGKey(0))[1])()
+    for name, value in vars(reference).items():
+        if value is not None:
+            np.testing.assert_allclose(getattr(log, name), value, rtol=1e-12, atol=1e-12, err_msg=name)
