@@ -1,6 +1,8 @@
-"""The ``spacegrasp tune`` command: the files it writes, its option checks, and resume after an
-interruption (a real SIGINT to a subprocess) to exactly the uninterrupted run's result, and
-a run under the flight preset that converges."""
+"""The ``spacegrasp tune`` command under the flight preset (noise keys, an unknown satellite,
+100 Hz control with a delay, 1 kHz servos, torque limits; the batch's gradients clipped per
+sample): the files it writes, that it converges, its option checks, and resume after an
+interruption (a real SIGINT to a subprocess) to exactly the uninterrupted run's result. The
+ideal loop's tuning is tested through the API (tests/test_tuning.py)."""
 
 from __future__ import annotations
 
@@ -52,6 +54,8 @@ def tune_command(tmp_path, out, *extra):
         "3",
         "--batch",
         "2",
+        "--realism",
+        "flight",
         *extra,
     ]
 
@@ -122,6 +126,19 @@ def test_tune_writes_every_file(uninterrupted):
     assert summary["evaluated_with"].startswith("exact contact law")
 
 
+def test_tuning_under_flight_converges(uninterrupted):
+    _, out, _ = uninterrupted
+    run = json.loads((out / "run.json").read_text())
+    assert run["config"]["realism"] == json.loads(json.dumps(load_realism("flight").to_dict()))
+    history = list(csv.DictReader((out / "history.csv").open()))
+    losses = [float(row["loss"]) for row in history]
+    assert all(np.isfinite(losses)) and "clipped_samples" in history[0]
+    assert losses[-1] < 0.75 * losses[0]  # 55.4 -> 38.0 when written
+    holdout = json.loads((out / "summary.json").read_text())["holdout"]  # under flight too
+    assert holdout["mean_objective_tuned"] < holdout["mean_objective_start"]
+    assert holdout["tuned_better_fraction"] >= 2 / 3
+
+
 def test_interrupted_run_resumes_to_the_same_result(uninterrupted):
     tmp_path, full, _ = uninterrupted
     out = tmp_path / "interrupted"
@@ -155,29 +172,6 @@ def test_tune_refuses_to_overwrite_and_rejects_bad_options(uninterrupted, tmp_pa
         timeout=300,
     )
     assert result.returncode == 2 and "holds no tuning run" in result.stderr
-
-
-def test_tuning_under_flight_converges(tmp_path):
-    # The flight preset end to end: noise keys, an unknown satellite, 100 Hz control with
-    # a delay, 1 kHz servos, torque limits; the batch's gradients clipped per sample.
-    out = tmp_path / "flight"
-    result = subprocess.run(
-        tune_command(tmp_path, out, "--realism", "flight"),
-        capture_output=True,
-        text=True,
-        timeout=900,
-        env=tune_environment(tmp_path),
-    )
-    assert result.returncode == 0, result.stderr
-    run = json.loads((out / "run.json").read_text())
-    assert run["config"]["realism"] == json.loads(json.dumps(load_realism("flight").to_dict()))
-    history = list(csv.DictReader((out / "history.csv").open()))
-    losses = [float(row["loss"]) for row in history]
-    assert all(np.isfinite(losses)) and "clipped_samples" in history[0]
-    assert losses[-1] < 0.75 * losses[0]  # 55.4 -> 38.0 when written
-    holdout = json.loads((out / "summary.json").read_text())["holdout"]  # under flight too
-    assert holdout["mean_objective_tuned"] < holdout["mean_objective_start"]
-    assert holdout["tuned_better_fraction"] >= 2 / 3
 
 
 def test_tune_draws_from_the_envelope_it_is_given(tmp_path):
