@@ -253,3 +253,25 @@ def test_the_flight_like_loop_carries_the_target_as_the_ideal_loop_does(robot, g
     for name, value in vars(reference).items():
         if value is not None:
             np.testing.assert_allclose(getattr(log, name), value, rtol=1e-12, atol=1e-12, err_msg=name)
+
+
+def test_simulate_reports_the_target_and_whether_it_was_a_capture(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    scenario = tmp_path / "free.toml"
+    scenario.write_text(
+        "duration = 2.0\n[trajectory]\nduration = 2.0\n[target]\nmass = 300.0\ninertia = [50.0, 60.0, 70.0]\n"
+        "com_in_lar = [0.0, 0.0, 0.5]\n"
+    )
+    out = tmp_path / "run"
+    command = [sys.executable, "-m", "spacegrasp_jax.cli", "simulate", "--controller", "admittance"]
+    command += ["--scenario", str(scenario), "--out", str(out), "--compile-cache", "none"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((out / "summary.json").read_text())["admittance"]
+    assert summary["final_target_speed_mps"] > 0.005  # pushed away faster than a capture allows
+    assert summary["capture_success"] is False and summary["capture_criteria"]["target_speed_mps"] == 0.005
+    with np.load(out / "timeseries_admittance.npz") as series:
+        assert series["target_position"].shape == (2000, 3) and series["momentum_total"].shape == (2000, 6)
