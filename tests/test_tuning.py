@@ -1,5 +1,6 @@
 """Tuning: the objective, the parameterisation, gradients against finite differences, the
-divergence guard, and the shipped tuned gains. The ``spacegrasp tune`` command: test_tune_cli.py."""
+divergence guard, and the shipped tuned gains. A batch's gradient: test_tuning_batch.py; the
+``spacegrasp tune`` command: test_tune_cli.py."""
 
 from __future__ import annotations
 
@@ -10,10 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax import compilation
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
-from spacegrasp_jax.tuning import tune
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts, smooth_max
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import (
@@ -136,57 +135,6 @@ def test_gradient_of_each_gain_group_matches_central_differences(short_problem, 
         numeric = float(plus - minus) / (2 * h)
         analytic = float(jnp.vdot(gradient[group], direction))
         assert abs(analytic - numeric) <= 1e-4 * abs(numeric) + 1e-9, (group, analytic, numeric)
-
-
-@pytest.fixture(scope="module")
-def batch_problem(robot, gains, full_runs):
-    """A batch of 2 short scenarios (Cartesian law), and the mean of the one-scenario losses
-    and gradients, each built from its scenario alone."""
-    nominal = paper_scenario(robot, contact_law="smooth", duration=0.1, move_duration=1.0)
-    config = TuneConfig(controller="cartesian", batch=2)
-    scenarios = training_scenarios(nominal, config)
-    scale = tuple(float(x) for x in full_runs["cartesian"].summary["max_abs_torque_Nm"])
-    objective = Objective(weights=Weights(contact_force=0.1), torque_scale_Nm=scale)
-    mask, params = make_mask(gains, "cartesian"), initial_params(gains, "cartesian")
-    single, segment = TuneConfig(controller="cartesian", batch=1), tune.checkpoint_segment(nominal.n_steps)
-
-    # One program for both scenarios: the scenario is an argument, not a constant of the loss.
-    @compilation.jit
-    def one_scenario(scenario):
-        loss = make_loss(robot, scenario, gains, mask, single, objective, segment)
-        return jax.value_and_grad(loss, has_aux=True)(params)
-
-    values, gradients = [], []
-    for i in range(config.batch):
-        (value, _), gradient = one_scenario(jax.tree.map(lambda leaf: leaf[i : i + 1], scenarios))
-        values.append(float(value))
-        gradients.append(gradient)
-    mean_gradient = {group: np.mean([g[group] for g in gradients], axis=0) for group in params}
-    return dict(
-        scenarios=scenarios,
-        config=config,
-        objective=objective,
-        mask=mask,
-        params=params,
-        one_scenario_segment=segment,
-        mean_value=float(np.mean(values)),
-        mean_gradient=mean_gradient,
-    )
-
-
-@pytest.mark.parametrize("in_sequence", [True, False], ids=["one-after-another", "vmapped"])
-def test_batch_gradient_is_the_mean_of_the_scenarios_gradients(robot, gains, batch_problem, monkeypatch, in_sequence):
-    # Both ways of running a batch (lax.map on a CPU up to SEQUENTIAL_BATCH, else vmap).
-    monkeypatch.setattr(tune, "SEQUENTIAL_BATCH", 8 if in_sequence else 1)
-    b = batch_problem
-    assert tune.batch_in_sequence(2) == in_sequence
-    segment = tune.checkpoint_segment(b["scenarios"].n_steps, 2)
-    assert segment == (b["one_scenario_segment"] if in_sequence else 1)
-    loss = make_loss(robot, b["scenarios"], gains, b["mask"], b["config"], b["objective"], segment)
-    (value, _), gradient = make_value_and_grad(loss, b["params"], "reverse")(b["params"])
-    assert float(value) == pytest.approx(b["mean_value"], rel=1e-10)
-    for group in b["params"]:
-        np.testing.assert_allclose(gradient[group], b["mean_gradient"][group], rtol=1e-8, atol=1e-12, err_msg=group)
 
 
 def test_forward_mode_gradient_equals_reverse_mode(robot, short_problem):
