@@ -61,3 +61,27 @@ def short_scenario(robot):
     from spacegrasp_jax.scenario import paper_scenario
 
     return paper_scenario(robot, duration=2.0, move_duration=2.0, contact_law="smooth")
+
+
+# ---- scheduling: the longest files first --------------------------------------------------
+
+#: The files that take longest (about 200-350 s each on 2 cores), started first: the two
+#: workers take whole files in collection order, so long files left to the end would leave
+#: one worker running them alone.
+LONGEST_FIRST = (
+    "tests/test_docs_examples.py",
+    "tests/test_realism.py",
+    "tests/test_tuning.py",
+    "tests/test_tune_cli.py",
+    "tests/test_montecarlo.py",
+    "tests/test_simulate.py",
+    "tests/test_benchmark.py",
+    "tests/test_tuning_batch.py",
+    "tests/test_target.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Reorder whole files, the longest first; a file's tests keep their order."""
+    rank = {name: position for position, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))
