@@ -34,7 +34,7 @@ from spacegrasp_jax import spatial
 from spacegrasp_jax.kinematics import N_DOF, body_com_positions, forward_kinematics, point_jacobian_blocks
 from spacegrasp_jax.linalg import cho_solve, cholesky, solve_spd
 from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
-from spacegrasp_jax.spatial import cross
+from spacegrasp_jax.spatial import cross, symmetric_inverse
 
 
 def frames_at_base(robot: Robot, R_base, q):
@@ -218,10 +218,7 @@ def solve_base(m, h, I_O, rhs: jax.Array) -> jax.Array:
     """
     c = h / m
     I_c = I_O + c[:, None] * h[None, :] - jnp.sum(h * c) * jnp.eye(3)
-    # Inverse of the symmetric I_c: rows are cross products of its columns over det.
-    c0, c1, c2 = jnp.unstack(I_c, axis=1)
-    row0 = cross(c1, c2)
-    I_c_inv = jnp.stack([row0, cross(c2, c0), cross(c0, c1)]) / jnp.sum(c0 * row0)
+    I_c_inv = symmetric_inverse(I_c)
     f, n = jnp.split(rhs, 2)
     if rhs.ndim == 2:  # columns
         moment = n - cross(c, f.T).T

@@ -118,6 +118,14 @@ def _cross_jvp(primals, tangents):
     return value, tangent
 
 
+def symmetric_inverse(A):
+    """The inverse of a symmetric (3, 3) matrix by its adjugate: its rows are cross products
+    of ``A``'s columns over the determinant (elementwise, so XLA fuses it; no LAPACK call)."""
+    c0, c1, c2 = jnp.unstack(A, axis=1)
+    row0 = cross(c1, c2)
+    return jnp.stack([row0, cross(c2, c0), cross(c0, c1)]) / jnp.sum(c0 * row0)
+
+
 def rot_x(angle):
     """Rotation (3, 3) by ``angle`` [rad] about the x axis."""
     c, s = jnp.cos(angle), jnp.sin(angle)

@@ -93,16 +93,8 @@ def target_rate(body: TargetBody, state: TargetState, force: jax.Array, point: j
         p=state.v,
         quat=spatial.quat_derivative(state.quat, spatial.matvec(R, state.w)),
         v=force / body.mass,
-        w=spatial.matvec(symmetric_inverse(body.inertia), torque_body - spin),
+        w=spatial.matvec(spatial.symmetric_inverse(body.inertia), torque_body - spin),
     )
-
-
-def symmetric_inverse(A: jax.Array) -> jax.Array:
-    """The inverse of a symmetric (3, 3) matrix by its adjugate: its rows are cross products
-    of ``A``'s columns over the determinant (elementwise, so XLA fuses it; no LAPACK call)."""
-    c0, c1, c2 = jnp.unstack(A, axis=1)
-    row0 = spatial.cross(c1, c2)
-    return jnp.stack([row0, spatial.cross(c2, c0), spatial.cross(c0, c1)]) / jnp.sum(c0 * row0)
 
 
 def target_momentum(body: TargetBody, state: TargetState) -> jax.Array:
@@ -123,7 +115,6 @@ __all__ = [
     "initial_target_state",
     "lar_frame",
     "lar_velocity",
-    "symmetric_inverse",
     "target_energy",
     "target_momentum",
     "target_rate",
