@@ -298,6 +298,8 @@ def _montecarlo(args: argparse.Namespace) -> int:
             raise UsageError(f"--n: must be at least 1, got {args.n}")
         if args.chunk < 1:
             raise UsageError(f"--chunk: must be at least 1, got {args.chunk}")
+        if not (math.isfinite(args.target_speed_limit) and args.target_speed_limit > 0.0):
+            raise UsageError(f"--target-speed-limit: must be a positive number of m/s, got {args.target_speed_limit}")
         devices = jax.device_count()
         chunk = batching.chunk_size(args.chunk, args.n)
         config = campaign.CampaignConfig(

@@ -222,6 +222,19 @@ def test_a_campaign_counts_a_pushed_away_target_as_a_failed_capture(robot, gains
     assert loose.summary["variants"]["admittance/paper"]["success_rate"] == 1.0
     assert strict.summary["variants"]["admittance/paper"]["success_rate"] == 0.0
     assert "final_target_speed_mps" in strict.summary["variants"]["admittance/paper"]["statistics_over_non_diverged"]
+    with pytest.raises(campaign.CampaignError, match="target_speed_limit_mps"):
+        dataclasses.replace(config, target_speed_limit_mps=float("nan"))
+
+
+def test_montecarlo_names_a_bad_target_speed_limit(tmp_path):
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-m", "spacegrasp_jax.cli", "montecarlo", "--n", "2", "--out", str(tmp_path / "mc")]
+    for value in ("nan", "-1"):
+        result = subprocess.run([*command, "--target-speed-limit", value], capture_output=True, text=True, timeout=300)
+        assert result.returncode == 2 and "--target-speed-limit" in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "mc").exists()
 
 
 def test_the_tuning_objective_can_weigh_the_targets_final_speed(pushed, tmp_path):
