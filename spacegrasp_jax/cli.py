@@ -27,6 +27,54 @@ from spacegrasp_jax.tuning.run import TuneSetupError, tune
 from spacegrasp_jax.tuning.tune import TUNING_RANGES, TuneConfig
 
 
+class UsageError(ValueError):
+    """A command-line option is invalid."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose every rejection is one line (exit 2), naming the option."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _whole(low: int, high: int):
+    """An option's type: a whole number in ``[low, high]``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be in [{low:,}, {high:,}], got {value:,}")
+        return value
+
+    parse.__name__ = "whole number"
+    return parse
+
+
+def _real(low: float, high: float, *, above: bool = False):
+    """An option's type: a finite number in ``[low, high]`` (``(low, high]`` if ``above``)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(value) or value < low or value > high or (above and value == low):
+            bounds = f"{'(' if above else '['}{low:g}, {high:g}]"
+            raise argparse.ArgumentTypeError(f"must be a finite number in {bounds}, got {text}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+#: Seeds are 32-bit (``jax.random.PRNGKey``).
+_SEED = _whole(0, 2**32 - 1)
+
+
 def _info(args: argparse.Namespace) -> int:
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     q = jnp.asarray(sg.PAPER_Q_INIT)
@@ -56,8 +104,6 @@ def _load_inputs(args):
     scenario = load_scenario(robot, args.scenario) if getattr(args, "scenario", None) else paper_scenario(robot)
     controller = getattr(args, "controller", None)
     gains = load_gains(args.gains, controller) if getattr(args, "gains", None) else paper_gains()
-    if args.pinv_damping < 0.0:
-        raise GainsError(f"--pinv-damping: must be non-negative, got {args.pinv_damping}")
     return robot, scenario, gains
 
 
@@ -137,10 +183,9 @@ def _realism(args, scenario) -> Realism | None:
 def _run_controllers(args, controllers) -> int:
     robot, scenario, gains = _load_inputs(args)
     realism = _realism(args, scenario)
-    seed = getattr(args, "seed", 0)
-    if not 0 <= seed < 2**32:
-        raise UsageError(f"--seed: must be in [0, 2^32), got {seed}")
-    key = jax.random.PRNGKey(seed)
+    out = Path(args.out)
+    runfiles.check_output_folder(out)  # before the first compile, not after the run
+    key = jax.random.PRNGKey(getattr(args, "seed", 0))
     results = {}
     for controller in controllers:
         print(
@@ -153,7 +198,6 @@ def _run_controllers(args, controllers) -> int:
     config = experiment.run_config(
         args.robot or "paper_robot()", scenario, gains, controllers, args.pinv_damping, realism
     )
-    out = Path(args.out)
     _write_results(out, results, config)
     print(f"wrote {out}/: table5.csv, summary.json, fig4-fig9 PNGs, timeseries_*.npz, config.json")
     return 0
@@ -167,24 +211,21 @@ def _simulate(args: argparse.Namespace) -> int:
     return _run_controllers(args, [args.controller])
 
 
-class UsageError(ValueError):
-    """A command-line option is invalid."""
-
-
 def _tune(args: argparse.Namespace) -> int:
     try:
         if args.resume:
             return _tune_finished(Path(args.out), tune(Path(args.out), resume=True))
         config = _tune_config(args)
     except (TuneSetupError, ValueError) as error:
-        raise UsageError(str(error)) from None
-    for path in (args.gains, args.scenario, args.robot):  # fail on bad files before compiling
-        if path and not Path(path).is_file():
-            raise UsageError(f"{path}: no such file")
+        field, separator, rest = str(error).partition(": ")
+        option = _TUNE_OPTIONS.get(field)
+        raise UsageError(f"{option}: {rest}" if separator and option else str(error)) from None
+    # Every file read and checked now: tune() reads them again after writing run.json.
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     _realism(args, load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot))
     if args.gains:
         load_gains(args.gains, args.controller)
+    runfiles.check_output_folder(Path(args.out))
     try:
         result = tune(
             Path(args.out),
@@ -197,6 +238,17 @@ def _tune(args: argparse.Namespace) -> int:
     except TuneSetupError as error:
         raise UsageError(str(error)) from None
     return _tune_finished(Path(args.out), result)
+
+
+#: TuneConfig's fields -> the options of ``spacegrasp tune`` that set them (for messages).
+_TUNE_OPTIONS = {
+    "frozen": "--freeze",
+    "optimizer": "--optimizer",
+    "cvar_alpha": "--cvar",
+    "learning_rate": "--lr",
+    "torque_guard_Nm": "--torque-guard",
+    "aggregate": "--aggregate",
+}
 
 
 def _tune_finished(out: Path, result) -> int:
@@ -284,22 +336,14 @@ def _montecarlo_variants(args: argparse.Namespace) -> list[campaign.Variant]:
 
 def _montecarlo(args: argparse.Namespace) -> int:
     # Both before anything touches a device.
+    if args.num_processes is not None and args.process_id is not None and args.process_id >= args.num_processes:
+        raise UsageError(f"--process-id: must be below --num-processes ({args.num_processes}), got {args.process_id}")
     if args.distributed:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     batching.use_all_cpu_cores()
-    ranges_file = None if args.ranges in NAMED_RANGES else args.ranges
-    for path in (*args.gains, args.scenario, args.robot, ranges_file):  # fail on bad files before compiling
-        if path and not Path(path).is_file():
-            raise UsageError(f"{path}: no such file")
     try:
         ranges = _ranges(args, PerturbationRanges())
         variants = _montecarlo_variants(args)
-        if args.n < 1:
-            raise UsageError(f"--n: must be at least 1, got {args.n}")
-        if args.chunk < 1:
-            raise UsageError(f"--chunk: must be at least 1, got {args.chunk}")
-        if not (math.isfinite(args.target_speed_limit) and args.target_speed_limit > 0.0):
-            raise UsageError(f"--target-speed-limit: must be a positive number of m/s, got {args.target_speed_limit}")
         devices = jax.device_count()
         chunk = batching.chunk_size(args.chunk, args.n)
         config = campaign.CampaignConfig(
@@ -325,6 +369,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
     _realism(args, scenario)  # the control period against the scenario, before compiling
     out = Path(args.out)
+    runfiles.check_output_folder(out)
     names = ", ".join(variant.key for variant in variants)
     print(
         f"Monte-Carlo: {args.n} samples x {len(variants)} variant(s) ({names}), {scenario.duration:g} s each, "
@@ -366,8 +411,6 @@ def _montecarlo(args: argparse.Namespace) -> int:
 
 
 def _benchmark(args: argparse.Namespace) -> int:
-    if args.repeats < 1:
-        raise UsageError(f"--repeats: must be at least 1, got {args.repeats}")
     try:
         import mujoco  # noqa: F401
         import pinocchio  # noqa: F401
@@ -405,12 +448,15 @@ def _add_run_options(parser: argparse.ArgumentParser, default_out: str) -> None:
     parser.add_argument("--out", default=default_out, help=f"output folder (default {default_out})")
     parser.add_argument("--robot", help="robot TOML file (default: the paper's robot)")
     parser.add_argument(
-        "--pinv-damping", type=float, default=0.0, help="damping of the pseudoinverse (0: exact, the paper)"
+        "--pinv-damping",
+        type=_real(0.0, 1e3),
+        default=0.0,
+        help="damping of the pseudoinverse (0: exact, the paper)",
     )
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="spacegrasp", description=sg.__doc__.splitlines()[0])
+    parser = _Parser(prog="spacegrasp", description=sg.__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"spacegrasp-jax {sg.__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
     info = commands.add_parser("info", help="print the robot's mass, CoM, EE pose at q_init and cond(M)")
@@ -429,7 +475,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--gains", help="gains JSON file (default: the paper's)")
     simulate.add_argument("--scenario", help="scenario TOML or JSON file (default: the paper's)")
     _add_realism_option(simulate)
-    simulate.add_argument("--seed", type=int, default=0, help="seed of the sensors' noise key (default 0)")
+    simulate.add_argument("--seed", type=_SEED, default=0, help="seed of the sensors' noise key (default 0)")
     _add_run_options(simulate, "results/simulate")
     _add_compile_cache_option(simulate)
     simulate.set_defaults(run=_simulate)
@@ -437,27 +483,27 @@ def build_parser() -> argparse.ArgumentParser:
     tune = commands.add_parser("tune", help="tune the gains by gradient descent (resumable)")
     tune.add_argument("--out", required=True, help="output folder (also holds the checkpoint)")
     tune.add_argument("--controller", choices=CONTROLLERS, default="admittance")
-    tune.add_argument("--steps", type=int, default=60, help="optimiser steps (default 60)")
-    tune.add_argument("--lr", type=float, default=0.15, help="initial step size in log-gain space (default 0.15)")
+    tune.add_argument("--steps", type=_whole(1, 1_000_000), default=60, help="optimiser steps (default 60)")
+    tune.add_argument("--lr", type=_real(0.0, 10.0, above=True), default=0.15, help="initial step size in log-gain space (default 0.15)")
     tune.add_argument(
         "--weights",
         default="",
         help="objective weights, e.g. final_position=1,peak_torque=4 (documentation: Tuning the gains)",
     )
     tune.add_argument(
-        "--batch", type=int, default=4, help="scenarios per step: nominal + batch-1 perturbed (default 4)"
+        "--batch", type=_whole(1, 65_536), default=4, help="scenarios per step: nominal + batch-1 perturbed (default 4)"
     )
     tune.add_argument(
-        "--cvar", type=float, default=None, help="optimise CVaR at this level over the batch instead of the mean"
+        "--cvar", type=_real(0.0, 1.0), default=None, help="optimise CVaR at this level over the batch instead of the mean"
     )
-    tune.add_argument("--seed", type=int, default=0, help="seed of the perturbed scenarios")
+    tune.add_argument("--seed", type=_SEED, default=0, help="seed of the perturbed scenarios")
     tune.add_argument("--optimizer", default="adam", help="any optax optimiser taking a learning rate (default adam)")
     tune.add_argument("--freeze", default="", help="gain groups to keep fixed, e.g. kd,ki")
     tune.add_argument("--gradient", choices=("reverse", "forward"), default="reverse")
     tune.add_argument(
-        "--torque-guard", type=float, default=100.0, help="reject steps whose peak torque exceeds this (N m)"
+        "--torque-guard", type=_real(0.0, 1e6, above=True), default=100.0, help="reject steps whose peak torque exceeds this (N m)"
     )
-    tune.add_argument("--holdout", type=int, default=100, help="held-out perturbed scenarios for the final evaluation")
+    tune.add_argument("--holdout", type=_whole(0, 1_000_000), default=100, help="held-out perturbed scenarios for the final evaluation")
     tune.add_argument("--gains", help="starting gains JSON (default: the paper's)")
     tune.add_argument("--scenario", help="scenario TOML/JSON (default: the paper's)")
     tune.add_argument("--robot", help="robot TOML (default: the paper's)")
@@ -475,7 +521,7 @@ def build_parser() -> argparse.ArgumentParser:
     montecarlo = commands.add_parser(
         "montecarlo", help="robustness campaign over perturbed captures (sharded, resumable)"
     )
-    montecarlo.add_argument("--n", type=int, required=True, help="number of perturbed samples")
+    montecarlo.add_argument("--n", type=_whole(1, 100_000_000), required=True, help="number of perturbed samples")
     montecarlo.add_argument("--controller", choices=(*CONTROLLERS, "both"), default="both")
     montecarlo.add_argument(
         "--gains",
@@ -484,13 +530,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="gains JSON to compare with the paper's (repeatable; labelled by file name)",
     )
-    montecarlo.add_argument("--seed", type=int, default=0, help="campaign seed (default 0)")
+    montecarlo.add_argument("--seed", type=_SEED, default=0, help="campaign seed (default 0)")
     montecarlo.add_argument(
-        "--chunk", type=int, default=256, help="samples per compiled call, a multiple of the device count (default 256)"
+        "--chunk", type=_whole(1, 1_000_000), default=256, help="samples per compiled call, a multiple of the device count (default 256)"
     )
     montecarlo.add_argument(
         "--device-batch",
-        type=int,
+        type=_whole(1, 1_000_000),
         default=None,
         metavar="K",
         help="samples each device simulates at once (default 128 on CPU, its whole share on GPU)",
@@ -498,32 +544,32 @@ def build_parser() -> argparse.ArgumentParser:
     montecarlo.add_argument("--out", default="results/montecarlo", help="output folder (default results/montecarlo)")
     add_ranges_arguments(montecarlo, "montecarlo")
     montecarlo.add_argument(
-        "--tolerance-mm", type=float, default=5.0, help="success: final position error at most this (default 5 mm)"
+        "--tolerance-mm", type=_real(0.0, 1e6, above=True), default=5.0, help="success: final position error at most this (default 5 mm)"
     )
     montecarlo.add_argument(
-        "--tolerance-deg", type=float, default=1.0, help="success: final orientation error at most this (default 1 deg)"
+        "--tolerance-deg", type=_real(0.0, 180.0, above=True), default=1.0, help="success: final orientation error at most this (default 1 deg)"
     )
     montecarlo.add_argument(
         "--torque-limit",
-        type=float,
+        type=_real(0.0, 1e6),
         default=100.0,
         metavar="NM",
         help="success: peak |u_i| at most this, else the sample counts as unstable (default 100 N m; 0: no limit)",
     )
     montecarlo.add_argument(
         "--target-speed-limit",
-        type=float,
+        type=_real(0.0, 100.0, above=True),
         default=0.005,
         metavar="MPS",
         help="success, with a free-floating target: its final speed at most this (default 0.005 m/s)",
     )
     montecarlo.add_argument(
-        "--timeseries-every", type=int, default=None, metavar="K", help="also keep every K-th log row of every sample"
+        "--timeseries-every", type=_whole(1, 100_000_000), default=None, metavar="K", help="also keep every K-th log row of every sample"
     )
     montecarlo.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
     montecarlo.add_argument("--robot", help="robot TOML (default: the paper's)")
     montecarlo.add_argument(
-        "--pinv-damping", type=float, default=0.0, help="damping of the pseudoinverse (0: exact, the paper)"
+        "--pinv-damping", type=_real(0.0, 1e3), default=0.0, help="damping of the pseudoinverse (0: exact, the paper)"
     )
     montecarlo.add_argument("--resume", action="store_true", help="continue the campaign in --out chunk by chunk")
     _add_realism_option(montecarlo)
@@ -539,8 +585,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="call jax.distributed.initialize (auto-detects SLURM and similar without the options below)",
     )
     cluster.add_argument("--coordinator", help="HOST:PORT of process 0")
-    cluster.add_argument("--num-processes", type=int, help="number of processes")
-    cluster.add_argument("--process-id", type=int, help="this process's rank, 0 .. num-processes - 1")
+    cluster.add_argument("--num-processes", type=_whole(1, 65_536), help="number of processes")
+    cluster.add_argument("--process-id", type=_whole(0, 65_535), help="this process's rank, 0 .. num-processes - 1")
     _add_compile_cache_option(montecarlo)
     montecarlo.set_defaults(run=_montecarlo)
 
@@ -555,7 +601,7 @@ def build_parser() -> argparse.ArgumentParser:
     benchmark.add_argument(
         "--out", default="results/benchmarks", help="folder for benchmark.json (default results/benchmarks)"
     )
-    benchmark.add_argument("--repeats", type=int, default=3, help="repeats per timing, median reported (default 3)")
+    benchmark.add_argument("--repeats", type=_whole(1, 1000), default=3, help="repeats per timing, median reported (default 3)")
     benchmark.set_defaults(run=_benchmark)
     return parser
 
@@ -578,7 +624,10 @@ def _add_compile_cache_option(parser: argparse.ArgumentParser) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exit:  # --help, --version (0) or a rejected option (2, one line printed)
+        return exit.code
     # The command owns its process: float64 and loops compiled whole, before anything runs,
     # and compiled programs kept on disk for the next run.
     compilation.enable_float64()
@@ -599,7 +648,15 @@ def main(argv: list[str] | None = None) -> int:
 
             warnings.showwarning = notice
             return args.run(args)
-    except (sg.RobotConfigError, GainsError, ScenarioError, PerturbationError, RealismError, UsageError) as error:
+    except (
+        sg.RobotConfigError,
+        GainsError,
+        ScenarioError,
+        PerturbationError,
+        RealismError,
+        UsageError,
+        runfiles.OutputFolderError,
+    ) as error:
         print(f"spacegrasp: error: {error}", file=sys.stderr)
         return 2
     except experiment.SimulationDiverged as error:

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from pathlib import Path
 
 import jax
@@ -32,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax.compilation import require_float64
+from spacegrasp_jax.inputs import numbers, parse_document, read_text
 
 N_JOINTS = 7
 
@@ -143,14 +143,9 @@ def _validated(fields: dict, label) -> dict[str, jax.Array]:
     arrays = {}
     for field, (shape, kind, _) in _FIELDS.items():
         name = label(field)
-        try:
-            value = np.asarray(fields[field], dtype=np.float64)
-        except (TypeError, ValueError) as error:
-            raise RobotConfigError(f"{name}: not an array of numbers ({error})") from None
+        value = numbers(fields[field], name, RobotConfigError)
         if value.shape != shape:
             raise RobotConfigError(f"{name}: expected shape {shape}, got {value.shape}")
-        if not np.all(np.isfinite(value)):
-            raise RobotConfigError(f"{name}: contains non-finite values: {value.tolist()}")
         if kind == "mass" and np.any(value <= 0.0):
             raise RobotConfigError(f"{name}: masses must be positive, got {value.tolist()}")
         if kind == "inertia":
@@ -219,16 +214,13 @@ def load_robot(path: str | Path) -> Robot:
             invalid; the message names the file and the key (``arm.link_mass``).
     """
     path = Path(path)
-    return robot_from_toml(path.read_text(), source=str(path))
+    return robot_from_toml(read_text(path, RobotConfigError), source=str(path))
 
 
 def robot_from_toml(text: str, source: str = "<robot TOML>") -> Robot:
     """:func:`load_robot` on the text of a TOML file; errors name ``source``."""
     path = source
-    try:
-        document = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise RobotConfigError(f"{path}: not valid TOML: {error}") from None
+    document = parse_document(text, "toml", path, RobotConfigError)
     key_to_field = {key: field for field, (_, _, key) in _FIELDS.items()}
     fields = {}
     for section, table in document.items():

@@ -46,13 +46,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import spatial
+from spacegrasp_jax.inputs import read_document
 from spacegrasp_jax.model import N_JOINTS, Robot
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.target import initial_target_state
@@ -137,12 +137,7 @@ def load_ranges(path: str | Path, base: PerturbationRanges | None = None) -> Per
     ``base``'s, by default the campaign defaults; a ``[perturbations]`` table is also
     accepted). Raises :class:`PerturbationError`."""
     path = Path(path)
-    try:
-        document = tomllib.loads(path.read_text())
-    except OSError as error:
-        raise PerturbationError(f"{path}: cannot read: {error.strerror}") from None
-    except tomllib.TOMLDecodeError as error:
-        raise PerturbationError(f"{path}: cannot parse: {error}") from None
+    document = read_document(path, PerturbationError, "toml")
     if set(document) == {"perturbations"} and isinstance(document["perturbations"], dict):
         document = document["perturbations"]
     try:

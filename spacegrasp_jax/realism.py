@@ -48,9 +48,7 @@ TOML (``--realism FILE``; every key optional, unknown keys rejected)::
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import tomllib
 from pathlib import Path
 
 import jax
@@ -58,6 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax.compilation import require_float64
+from spacegrasp_jax.inputs import read_document
 
 
 class RealismError(ValueError):
@@ -414,16 +413,12 @@ def load_realism(name_or_path: str | Path) -> Realism:
         return PRESETS[str(name_or_path)]()
     path = Path(name_or_path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        raise RealismError(
-            f"{path}: cannot read ({getattr(error, 'strerror', None) or error}); expected ideal, flight or a TOML file"
-        ) from None
-    try:
-        document = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
-    except (ValueError, RecursionError) as error:
-        raise RealismError(f"{path}: cannot parse: {error}") from None
-    if isinstance(document, dict) and isinstance(document.get("realism"), dict) and path.suffix == ".json":
+        document = read_document(path, RealismError)
+    except RealismError as error:
+        if path.exists():
+            raise
+        raise RealismError(f"{error}; expected ideal, flight or a TOML file") from None
+    if isinstance(document.get("realism"), dict) and path.suffix.lower() == ".json":
         document = document["realism"]
     return make_realism(document, source=str(path))
 

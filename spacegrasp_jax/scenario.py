@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from pathlib import Path
 
 import jax
@@ -17,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax.compilation import require_float64
+from spacegrasp_jax.inputs import numbers, read_document
 from spacegrasp_jax.integrator import PlantState, plant_state
 from spacegrasp_jax.kinematics import ee_pose
 from spacegrasp_jax.model import PAPER_Q_INIT, Robot
@@ -168,23 +168,31 @@ _SHAPES = {
     "contact_sharpness": (),
 }
 _POSITIVE = {"duration", "dt", "move_duration", "sphere_radius", "contact_sharpness"}
+#: The integration steps a scenario may have (the 17 s scenario has 17,000 at dt = 1 ms).
+MAX_STEPS = 10_000_000
+#: The integration periods a scenario may have, s: RK4 on this plant is meaningless outside.
+DT_LIMITS_S = (1e-6, 0.1)
 
 
 def _check_scenario_numbers(**values) -> None:
     law = values.pop("contact_law")
-    if law not in CONTACT_LAWS:
+    if not isinstance(law, str) or law not in CONTACT_LAWS:
         raise ScenarioError(f"contact_law: expected one of {CONTACT_LAWS}, got {law!r}")
     for name, shape in _SHAPES.items():
-        try:
-            value = np.asarray(values[name], dtype=np.float64)
-        except (TypeError, ValueError) as error:
-            raise ScenarioError(f"{name}: not numbers ({error})") from None
+        value = numbers(values[name], name, ScenarioError)
         if value.shape != shape:
             raise ScenarioError(f"{name}: expected shape {shape}, got {value.shape}")
-        if not np.all(np.isfinite(value)):
-            raise ScenarioError(f"{name}: must be finite, got {value.tolist()}")
         if name in _POSITIVE and value <= 0.0:
             raise ScenarioError(f"{name}: must be positive, got {float(value)}")
+        values[name] = value
+    low, high = DT_LIMITS_S
+    if not low <= values["dt"] <= high:
+        raise ScenarioError(f"dt: must be in [{low:g}, {high:g}] s, got {float(values['dt']):g}")
+    if values["duration"] / values["dt"] > MAX_STEPS:
+        raise ScenarioError(
+            f"duration: {float(values['duration']):g} s at dt = {float(values['dt']):g} s is more than "
+            f"{MAX_STEPS:,} steps (the log of one run would not fit in memory)"
+        )
     if values["contact_stiffness"] < 0.0:
         raise ScenarioError(f"contact_stiffness: must be non-negative, got {values['contact_stiffness']}")
     steps = values["duration"] / values["dt"]
@@ -208,27 +216,6 @@ TARGET_KEYS = {
 TARGET_LIMITS = {"mass": 1e12, "com_in_lar": 100.0, "velocity": 10.0, "angular_velocity": 10.0}
 
 
-def _strict_numbers(where: str, value) -> np.ndarray:
-    """``value`` (a number or nested lists of numbers) as float64; booleans, strings and
-    ``None`` refused, naming ``where``."""
-
-    def check(item):
-        if isinstance(item, (list, tuple)):
-            for element in item:
-                check(element)
-        elif isinstance(item, bool) or not isinstance(item, (int, float, np.floating, np.integer)):
-            raise ScenarioError(f"{where}: expected numbers, got {value!r}")
-
-    if isinstance(value, (np.ndarray, jax.Array)):
-        array = np.asarray(value, dtype=np.float64)
-    else:
-        check(value)
-        array = np.asarray(value, dtype=np.float64)
-    if not np.all(np.isfinite(array)):
-        raise ScenarioError(f"{where}: must be finite, got {array.tolist()}")
-    return array
-
-
 def _check_target(target) -> dict:
     """The free-floating target's keys (:data:`TARGET_KEYS`) checked, as float64 arrays."""
     if not isinstance(target, dict):
@@ -240,7 +227,7 @@ def _check_target(target) -> dict:
     for key, (shape, default) in TARGET_KEYS.items():
         if key not in target and default is None:
             raise ScenarioError(f"target.{key}: required for a free-floating target")
-        value = _strict_numbers(f"target.{key}", target.get(key, default))
+        value = numbers(target.get(key, default), f"target.{key}", ScenarioError)
         if key == "inertia" and value.shape == (3,):
             value = np.diag(value)
         if value.ndim == 0 and shape:
@@ -296,6 +283,8 @@ def scenario_from_mapping(robot: Robot, document: dict) -> Scenario:
                 kwargs[_FILE_KEYS[(key, sub_key)]] = sub_value
         elif (key,) in _FILE_KEYS:
             kwargs[_FILE_KEYS[(key,)]] = value
+        elif key in {table for table, *rest in _FILE_KEYS if rest}:
+            raise ScenarioError(f"{key}: expected a table of settings, got {value!r}")
         else:
             raise ScenarioError(f"unknown scenario key {key}")
     return paper_scenario(robot, **kwargs)
@@ -319,14 +308,8 @@ def load_scenario(robot: Robot, path: str | Path) -> Scenario:
     Raises:
         ScenarioError: unreadable file, unknown key or invalid value; names the file.
     """
-    import json
-
     path = Path(path)
-    try:
-        text = path.read_text()
-        document = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
-    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as error:
-        raise ScenarioError(f"{path}: cannot parse: {error}") from None
+    document = read_document(path, ScenarioError)
     try:
         return scenario_from_mapping(robot, document)
     except ScenarioError as error:

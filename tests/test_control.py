@@ -42,7 +42,7 @@ BAD_GAINS = [
     ({"Md": 0.0}, r"Md: gains must be positive"),
     ({"ki": [-1.0] * 7}, r"ki: gains must be non-negative"),
     ({"kp": [1.0] * 6}, r"kp: expected 7 values"),
-    ({"Bd": float("nan")}, r"Bd: contains non-finite"),
+    ({"Bd": float("nan")}, r"Bd: must be finite"),
     ({"gain_x": 1.0}, r"unknown gain\(s\): gain_x"),
 ]
 

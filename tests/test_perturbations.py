@@ -116,5 +116,5 @@ def test_ranges_from_a_file(tmp_path):
     with pytest.raises(PerturbationError, match="ranges.toml: unknown perturbation range 'q_init'"):
         load_ranges(path)
     path.write_text("q_init_rad = [0.05\n")
-    with pytest.raises(PerturbationError, match="cannot parse"):
+    with pytest.raises(PerturbationError, match="not valid TOML"):
         load_ranges(path)

@@ -191,7 +191,7 @@ def test_tune_draws_from_the_envelope_it_is_given(tmp_path):
     assert from_file.base_speed_mps == TUNING_RANGES.base_speed_mps  # the rest: the tuning envelope
     for options, message in (
         (["--range", "q_init=0.1"], "unknown perturbation range 'q_init'"),
-        (["--ranges", str(tmp_path / "missing.toml")], "missing.toml: cannot read"),
+        (["--ranges", str(tmp_path / "missing.toml")], "missing.toml: no such file"),
     ):
         result = subprocess.run(
             [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(tmp_path / "y"), *options],

@@ -55,7 +55,10 @@ def test_config_validation():
         (dict(learning_rate=0.0), "learning_rate"),
         (dict(steps=0), "steps"),
         (dict(cvar_alpha=1.0), "cvar_alpha"),
-        (dict(optimizer="newton"), "no optimiser named 'newton'"),
+        (dict(optimizer="newton"), "'newton' is not an optax optimiser"),
+        (dict(optimizer="clip"), "'clip' is not an optax optimiser"),
+        (dict(frozen=("K_lin",)), "K_lin not a gain group of the admittance law"),
+        (dict(frozen=("Md", "Bd", "Kd", "kp", "ki", "kd")), "nothing to tune"),
     ]:
         with pytest.raises(ValueError, match=message):
             TuneConfig(**change)

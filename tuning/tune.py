@@ -12,9 +12,11 @@ from its last completed step and ends exactly where an uninterrupted one would.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 import math
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -34,7 +36,7 @@ from spacegrasp_jax.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import largest_divisor, rollout
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts
-from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
+from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 
 CHECKPOINT = "checkpoint.npz"
 
@@ -125,9 +127,18 @@ class TuneConfig:
             raise ValueError(f"aggregate: expected mean or clip, got {self.aggregate!r}")
         if self.realism is not None:
             make_realism(self.realism, source="realism")  # checked now, before anything compiles
-        factory = getattr(optax, self.optimizer, None)
-        if not callable(factory):
-            raise ValueError(f"optimizer: optax has no optimiser named {self.optimizer!r}")
+        unknown = sorted(set(self.frozen) - set(GROUPS[self.controller]))
+        if unknown:
+            raise ValueError(
+                f"frozen: {', '.join(unknown)} not a gain group of the {self.controller} law; "
+                f"expected some of {', '.join(GROUPS[self.controller])}"
+            )
+        if set(self.frozen) == set(GROUPS[self.controller]):
+            raise ValueError(f"frozen: every gain group of the {self.controller} law frozen leaves nothing to tune")
+        if not is_optimizer(self.optimizer):
+            raise ValueError(
+                f"optimizer: {self.optimizer!r} is not an optax optimiser taking a learning rate (e.g. adam, sgd, lamb)"
+            )
 
     def to_dict(self) -> dict:
         document = dataclasses.asdict(self)
@@ -141,6 +152,22 @@ class TuneConfig:
         document["ranges"] = PerturbationRanges.from_mapping(document["ranges"], base=TUNING_RANGES)
         document["frozen"] = tuple(document["frozen"])
         return cls(**document)
+
+
+def is_optimizer(name: str) -> bool:
+    """Whether ``optax.<name>`` is an optimiser: a function whose first parameter is
+    ``learning_rate`` and which returns a gradient transformation."""
+    factory = getattr(optax, name, None) if name.isidentifier() and not name.startswith("_") else None
+    if not callable(factory) or isinstance(factory, type):
+        return False
+    try:
+        parameters = list(inspect.signature(factory).parameters)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            transformation = factory(learning_rate=1e-3) if parameters[:1] == ["learning_rate"] else None
+    except (TypeError, ValueError):
+        return False
+    return isinstance(transformation, optax.GradientTransformation)
 
 
 def make_optimizer(config: TuneConfig):

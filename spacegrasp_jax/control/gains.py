@@ -20,7 +20,6 @@ three on the ZYX Euler angles ``[roll, pitch, yaw]``.
 from __future__ import annotations
 
 import dataclasses
-import json
 import warnings
 from pathlib import Path
 
@@ -29,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax.compilation import require_float64
+from spacegrasp_jax.inputs import numbers, read_document
 
 GAIN_SHAPES = {"Md": 6, "Bd": 6, "Kd": 6, "K_lin": 3, "K_eul": 3, "kp": 7, "ki": 7, "kd": 7}
 
@@ -85,16 +85,11 @@ def make_gains(**fields) -> Gains:
         raise GainsError(f"missing gain(s): {', '.join(missing)}")
     arrays = {}
     for name, length in GAIN_SHAPES.items():
-        try:
-            value = np.asarray(fields[name], dtype=np.float64)
-        except (TypeError, ValueError) as error:
-            raise GainsError(f"{name}: not numbers ({error})") from None
+        value = numbers(fields[name], name, GainsError)
         if value.ndim == 0:
             value = np.full(length, float(value))
         if value.shape != (length,):
             raise GainsError(f"{name}: expected {length} values, got shape {value.shape}")
-        if not np.all(np.isfinite(value)):
-            raise GainsError(f"{name}: contains non-finite values: {value.tolist()}")
         if np.any(value < 0.0) or (name in _STRICTLY_POSITIVE and np.any(value == 0.0)):
             bound = "positive" if name in _STRICTLY_POSITIVE else "non-negative"
             raise GainsError(f"{name}: gains must be {bound}, got {value.tolist()}")
@@ -150,15 +145,11 @@ def load_gains(path: str | Path, controller: str | None = None) -> Gains:
     accepted and named in an :class:`UnusedGainsWarning`.
 
     Raises:
-        GainsError: unreadable JSON or invalid gains; the message names the file.
+        GainsError: unreadable file, not a JSON object, or invalid gains (a value that is
+            not a number, ``"140"`` or ``true`` included); the message names the file.
     """
     path = Path(path)
-    try:
-        document = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise GainsError(f"{path}: not valid JSON: {error}") from None
-    if not isinstance(document, dict):
-        raise GainsError(f"{path}: expected a JSON object of gains")
+    document = read_document(path, GainsError, "json")
     try:
         gains = make_gains(**(paper_gains().to_dict() | document))
     except GainsError as error:

@@ -1,0 +1,211 @@
+"""Bad input on the command line: every kind of mistake is refused with exit code 2 and one
+line naming the file and key or the option, with no traceback, before any program of the
+package is built (every closed-loop program is built by ``compilation.jit``; the driver
+below counts its calls) and without leaving files behind.
+
+All cases run in one fresh process (``DRIVER``), which calls ``cli.main`` on each.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+DRIVER = textwrap.dedent(
+    """
+    import contextlib, io, json, sys, traceback
+    from spacegrasp_jax import cli, compilation
+
+    built = []
+    original_jit = compilation.jit
+
+    def counting_jit(fun, **keywords):
+        built.append(getattr(fun, "__name__", repr(fun)))
+        return original_jit(fun, **keywords)
+
+    compilation.jit = counting_jit
+    results = {}
+    for name, argv in json.load(open(sys.argv[1])).items():
+        built.clear()
+        stderr = io.StringIO()
+        crashed = None
+        with contextlib.redirect_stderr(stderr), contextlib.redirect_stdout(io.StringIO()):
+            try:
+                code = cli.main(argv)
+            except SystemExit as exit:
+                code = exit.code
+            except BaseException:
+                code, crashed = None, traceback.format_exc()
+        results[name] = {"code": code, "stderr": stderr.getvalue(), "crashed": crashed, "built": list(built)}
+    json.dump(results, open(sys.argv[2], "w"))
+    """
+)
+
+SIMULATE = ["simulate", "--controller", "admittance"]
+TUNE = ["tune", "--steps", "1", "--holdout", "0"]
+MONTECARLO = ["montecarlo", "--n", "2", "--chunk", "2"]
+
+
+def files(folder):
+    """Malformed input files, by name -> path."""
+    contents = {
+        "binary.json": b"\x00\xff\xfe\x80 not text",
+        "binary.toml": b"\x89PNG\r\n\x1a\n\x00\x00",
+        "deep.json": b"[" * 100_000,
+        "deep.toml": b"a = " + b"[" * 100_000,
+        "list.json": b"[1, 2, 3]",
+        "number.json": b"17",
+        "null.json": b"null",
+        "kp_string.json": b'{"kp": "140"}',
+        "kp_true.json": b'{"kp": true}',
+        "Md_nested_string.json": b'{"Md": [800, 800, "800", 800, 800, 800]}',
+        "duration_string.toml": b'duration = "17"',
+        "duration_true.toml": b"duration = true",
+        "dt_string.json": b'{"dt": "0.001"}',
+        "target_mass_true.toml": b"[target]\nmass = true\ninertia = [1.0, 1.0, 1.0]",
+        "duration_huge.toml": b"duration = 1e300",
+        "dt_tiny.toml": b"dt = 1e-300",
+        "ragged.json": b'{"q_init": [0.1, [0.2, 0.3]]}',
+        "lar_not_table.toml": b"lar = 5",
+    }
+    paper_robot = (Path(__file__).resolve().parents[1] / "configs" / "paper_robot.toml").read_text()
+    assert "mass = 500.0" in paper_robot
+    contents["satellite_mass_string.toml"] = paper_robot.replace("mass = 500.0", 'mass = "500"', 1).encode()
+    paths = {}
+    for name, content in contents.items():
+        (folder / name).write_bytes(content)
+        paths[name] = str(folder / name)
+    (folder / "a_folder").mkdir()
+    paths["a_folder"] = str(folder / "a_folder")
+    (folder / "a_file").write_text("not a folder\n")
+    paths["missing"] = str(folder / "missing.toml")
+    paths["under_a_file"] = str(folder / "a_file" / "results")
+    return paths
+
+
+def cases(paths, out):
+    """Case name -> (argv, text the error line must contain)."""
+    p = paths
+    return {
+        # unreadable files, in every loader
+        "gains binary": ([*SIMULATE, "--gains", p["binary.json"], "--out", out], "binary.json: not UTF-8"),
+        "scenario binary": ([*SIMULATE, "--scenario", p["binary.toml"], "--out", out], "binary.toml: not UTF-8"),
+        "robot binary": (["info", "--robot", p["binary.toml"]], "binary.toml: not UTF-8"),
+        "ranges binary": ([*MONTECARLO, "--ranges", p["binary.toml"], "--out", out], "binary.toml: not UTF-8"),
+        "realism binary": ([*SIMULATE, "--realism", p["binary.toml"], "--out", out], "binary.toml: not UTF-8"),
+        "scenario deep JSON": ([*SIMULATE, "--scenario", p["deep.json"], "--out", out], "deep.json: nested too deeply"),
+        "gains deep JSON": ([*TUNE, "--gains", p["deep.json"], "--out", out], "deep.json: nested too deeply"),
+        "robot deep TOML": (["info", "--robot", p["deep.toml"]], "deep.toml: nested too deeply"),
+        "simulate missing scenario": ([*SIMULATE, "--scenario", p["missing"], "--out", out], "missing.toml: no such file"),
+        "info missing robot": (["info", "--robot", p["missing"]], "missing.toml: no such file"),
+        "info robot folder": (["info", "--robot", p["a_folder"]], "a_folder: is a folder"),
+        "simulate gains folder": ([*SIMULATE, "--gains", p["a_folder"], "--out", out], "a_folder: is a folder"),
+        "montecarlo gains folder": ([*MONTECARLO, "--gains", p["a_folder"], "--out", out], "a_folder: is a folder"),
+        "tune scenario folder": ([*TUNE, "--scenario", p["a_folder"], "--out", out], "a_folder: is a folder"),
+        # a top level that is not a table
+        "scenario list": ([*SIMULATE, "--scenario", p["list.json"], "--out", out], "list.json: expected a JSON object"),
+        "scenario number": ([*SIMULATE, "--scenario", p["number.json"], "--out", out], "number.json: expected a JSON"),
+        "scenario null": ([*SIMULATE, "--scenario", p["null.json"], "--out", out], "null.json: expected a JSON object"),
+        "gains list": ([*MONTECARLO, "--gains", p["list.json"], "--out", out], "list.json: expected a JSON object"),
+        "realism null": ([*SIMULATE, "--realism", p["null.json"], "--out", out], "null.json: expected a JSON object"),
+        # wrong types are refused, not coerced
+        "gains kp string": ([*SIMULATE, "--gains", p["kp_string.json"], "--out", out], "kp_string.json: kp: expected"),
+        "gains kp true": ([*SIMULATE, "--gains", p["kp_true.json"], "--out", out], "kp_true.json: kp: expected"),
+        "gains nested string": ([*TUNE, "--gains", p["Md_nested_string.json"], "--out", out], ": Md: expected"),
+        "scenario duration string": (
+            [*SIMULATE, "--scenario", p["duration_string.toml"], "--out", out],
+            "duration_string.toml: duration: expected numbers",
+        ),
+        "scenario duration true": (
+            [*MONTECARLO, "--scenario", p["duration_true.toml"], "--out", out],
+            "duration_true.toml: duration: expected numbers",
+        ),
+        "scenario dt string": ([*SIMULATE, "--scenario", p["dt_string.json"], "--out", out], "dt_string.json: dt:"),
+        "scenario ragged": ([*SIMULATE, "--scenario", p["ragged.json"], "--out", out], "ragged.json: q_init:"),
+        "scenario table not a table": ([*SIMULATE, "--scenario", p["lar_not_table.toml"], "--out", out], ": lar:"),
+        "target mass true": (
+            [*SIMULATE, "--scenario", p["target_mass_true.toml"], "--out", out],
+            "target_mass_true.toml: target.mass: expected numbers",
+        ),
+        "robot mass string": (["info", "--robot", p["satellite_mass_string.toml"]], ": satellite.mass: expected"),
+        # absurd values
+        "duration 1e300": ([*SIMULATE, "--scenario", p["duration_huge.toml"], "--out", out], ": duration:"),
+        "dt 1e-300": ([*SIMULATE, "--scenario", p["dt_tiny.toml"], "--out", out], "dt_tiny.toml: dt: must be in"),
+        "n 1e30": (["montecarlo", "--n", "1e30", "--out", out], "argument --n:"),
+        "n 10^21": (["montecarlo", "--n", str(10**21), "--out", out], "argument --n:"),
+        "batch 1e12": ([*TUNE, "--batch", str(10**12), "--out", out], "argument --batch:"),
+        "holdout 1e30": ([*TUNE, "--holdout", "1e30", "--out", out], "argument --holdout:"),
+        "seed 2^64": ([*SIMULATE, "--seed", str(2**64), "--out", out], "argument --seed:"),
+        "montecarlo seed negative": ([*MONTECARLO, "--seed", "-1", "--out", out], "argument --seed:"),
+        # options that used to be checked late or not at all
+        "freeze unknown group": ([*TUNE, "--freeze", "kd,zz", "--out", out], "--freeze: zz"),
+        "freeze a group the law lacks": ([*TUNE, "--freeze", "K_lin", "--out", out], "--freeze: K_lin"),
+        "pinv-damping nan": ([*SIMULATE, "--pinv-damping", "nan", "--out", out], "argument --pinv-damping:"),
+        "pinv-damping inf": ([*MONTECARLO, "--pinv-damping", "inf", "--out", out], "argument --pinv-damping:"),
+        "torque-limit nan": ([*MONTECARLO, "--torque-limit", "nan", "--out", out], "argument --torque-limit:"),
+        "torque-limit negative": ([*MONTECARLO, "--torque-limit", "-5", "--out", out], "argument --torque-limit:"),
+        "optimizer not an optimiser": ([*TUNE, "--optimizer", "clip", "--out", out], "--optimizer: 'clip'"),
+        "optimizer a module": ([*TUNE, "--optimizer", "tree_utils", "--out", out], "--optimizer:"),
+        "lr nan": ([*TUNE, "--lr", "nan", "--out", out], "argument --lr:"),
+        "cvar above 1": ([*TUNE, "--cvar", "2", "--out", out], "argument --cvar:"),
+        "process id beyond count": (
+            [*MONTECARLO, "--num-processes", "2", "--process-id", "2", "--out", out],
+            "--process-id: must be below --num-processes",
+        ),
+        # output folders that cannot be created
+        "simulate out under a file": ([*SIMULATE, "--out", p["under_a_file"]], "a_file/results: cannot write"),
+        "reproduce out under a file": (["reproduce", "--out", p["under_a_file"]], "a_file/results: cannot write"),
+        "montecarlo out under a file": ([*MONTECARLO, "--out", p["under_a_file"]], "a_file/results: cannot write"),
+        "tune out under a file": ([*TUNE, "--out", p["under_a_file"]], "a_file/results: cannot write"),
+    }
+
+
+@pytest.fixture(scope="module")
+def rejected(tmp_path_factory):
+    """``(cases, results, out)``: every case run by the driver in one fresh process."""
+    folder = tmp_path_factory.mktemp("bad_input")
+    out = str(folder / "out")
+    table = cases(files(folder), out)
+    (folder / "cases.json").write_text(json.dumps({name: argv for name, (argv, _) in table.items()}))
+    (folder / "driver.py").write_text(DRIVER)
+    subprocess.run(
+        [sys.executable, str(folder / "driver.py"), str(folder / "cases.json"), str(folder / "results.json")],
+        check=True,
+        timeout=600,
+        cwd=folder,
+    )
+    return table, json.loads((folder / "results.json").read_text()), folder / "out"
+
+
+_FILE_NAMES = (
+    "binary.json binary.toml deep.json deep.toml list.json number.json null.json kp_string.json kp_true.json "
+    "Md_nested_string.json duration_string.toml duration_true.toml dt_string.json target_mass_true.toml "
+    "duration_huge.toml dt_tiny.toml ragged.json lar_not_table.toml satellite_mass_string.toml a_folder missing "
+    "under_a_file"
+).split()
+
+
+@pytest.mark.parametrize("case", list(cases({name: name for name in _FILE_NAMES}, "out")))
+def test_bad_input_is_refused_in_one_line_before_compiling(rejected, case):
+    table, results, _ = rejected
+    result, (argv, expected) = results[case], table[case]
+    assert result["crashed"] is None, result["crashed"]
+    assert result["code"] == 2, (argv, result)
+    assert "Traceback" not in result["stderr"]
+    lines = [line for line in result["stderr"].splitlines() if not line.startswith("compilation cache:")]
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("spacegrasp") and "error:" in lines[0], lines
+    assert expected in lines[0], (expected, lines[0])
+    assert result["built"] == [], f"built {result['built']} before refusing"
+
+
+def test_a_refused_run_leaves_no_files(rejected):
+    """Nothing is written for a refused run: in particular no ``run.json`` that would make the
+    corrected re-run of ``tune`` refuse the folder."""
+    _, _, out = rejected
+    assert not out.exists() or not any(out.rglob("*")), sorted(out.rglob("*"))
