@@ -115,13 +115,18 @@ def _print_table(results: dict) -> None:
     for joint in range(7):
         row = f"{joint + 1:>5}"
         for c in controllers:
-            row += (
-                f"  {results[c].summary['max_abs_torque_Nm'][joint]:>16.3f}  {paper.MAX_ABS_TORQUE_NM[c][joint]:>7.3f}"
-            )
+            peak = results[c].summary.get("max_abs_torque_Nm")
+            ours = f"{peak[joint]:>16.3f}" if peak else f"{'diverged':>16}"
+            row += f"  {ours}  {paper.MAX_ABS_TORQUE_NM[c][joint]:>7.3f}"
         print(row)
     print()
     for c in controllers:
         summary = results[c].summary
+        if summary.get("diverged"):
+            print(
+                f"{c:>10}: diverged at t = {summary['first_nonfinite_s']:.4f} s ({', '.join(summary['nonfinite_fields'])})"
+            )
+            continue
         print(
             f"{c:>10}: final position error {1e3 * summary['final_position_error_m']:.3f} mm, "
             f"orientation error {np.degrees(summary['final_orientation_error_rad']):.4f} deg, "
@@ -158,8 +163,11 @@ def _with_capture(summary: dict) -> dict:
 def _write_results(out: Path, results: dict, config: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
     lines = ["joint," + ",".join(f"{c}_Nm" for c in results) + "," + ",".join(f"paper_{c}_Nm" for c in results)]
-    for joint in range(7):
-        ours = [f"{results[c].summary['max_abs_torque_Nm'][joint]:.6g}" for c in results]
+    for joint in range(7):  # a diverged run's cells are empty
+        ours = [
+            f"{results[c].summary['max_abs_torque_Nm'][joint]:.6g}" if "max_abs_torque_Nm" in results[c].summary else ""
+            for c in results
+        ]
         reference = [f"{paper.MAX_ABS_TORQUE_NM[c][joint]:.6g}" for c in results]
         lines.append(",".join([str(joint + 1)] + ours + reference))
     runfiles.write_text(out / "table5.csv", "\n".join(lines) + "\n")
@@ -186,21 +194,30 @@ def _run_controllers(args, controllers) -> int:
     out = Path(args.out)
     runfiles.check_output_folder(out)  # before the first compile, not after the run
     key = jax.random.PRNGKey(getattr(args, "seed", 0))
-    results = {}
+    results, diverged = {}, []
     for controller in controllers:
         print(
             f"running the {controller} controller over {scenario.duration:g} s (dt = {scenario.dt:g} s)...", flush=True
         )
-        results[controller] = experiment.run(
-            robot, scenario, gains, controller, pinv_damping=args.pinv_damping, realism=realism, key=key
-        )
+        try:
+            results[controller] = experiment.run(
+                robot, scenario, gains, controller, pinv_damping=args.pinv_damping, realism=realism, key=key
+            )
+        except experiment.SimulationDiverged as error:  # keep what it has: written below
+            results[controller] = error.result
+            diverged.append(error)
     _print_table(results)
     config = experiment.run_config(
         args.robot or "paper_robot()", scenario, gains, controllers, args.pinv_damping, realism
     )
     _write_results(out, results, config)
     print(f"wrote {out}/: table5.csv, summary.json, fig4-fig9 PNGs, timeseries_*.npz, config.json")
-    return 0
+    for error in diverged:
+        print(
+            f"spacegrasp: error: {error}; its log up to that step and the state there are in {out}/",
+            file=sys.stderr,
+        )
+    return 3 if diverged else 0
 
 
 def _reproduce(args: argparse.Namespace) -> int:
@@ -484,7 +501,12 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--out", required=True, help="output folder (also holds the checkpoint)")
     tune.add_argument("--controller", choices=CONTROLLERS, default="admittance")
     tune.add_argument("--steps", type=_whole(1, 1_000_000), default=60, help="optimiser steps (default 60)")
-    tune.add_argument("--lr", type=_real(0.0, 10.0, above=True), default=0.15, help="initial step size in log-gain space (default 0.15)")
+    tune.add_argument(
+        "--lr",
+        type=_real(0.0, 10.0, above=True),
+        default=0.15,
+        help="initial step size in log-gain space (default 0.15)",
+    )
     tune.add_argument(
         "--weights",
         default="",
@@ -494,16 +516,27 @@ def build_parser() -> argparse.ArgumentParser:
         "--batch", type=_whole(1, 65_536), default=4, help="scenarios per step: nominal + batch-1 perturbed (default 4)"
     )
     tune.add_argument(
-        "--cvar", type=_real(0.0, 1.0), default=None, help="optimise CVaR at this level over the batch instead of the mean"
+        "--cvar",
+        type=_real(0.0, 1.0),
+        default=None,
+        help="optimise CVaR at this level over the batch instead of the mean",
     )
     tune.add_argument("--seed", type=_SEED, default=0, help="seed of the perturbed scenarios")
     tune.add_argument("--optimizer", default="adam", help="any optax optimiser taking a learning rate (default adam)")
     tune.add_argument("--freeze", default="", help="gain groups to keep fixed, e.g. kd,ki")
     tune.add_argument("--gradient", choices=("reverse", "forward"), default="reverse")
     tune.add_argument(
-        "--torque-guard", type=_real(0.0, 1e6, above=True), default=100.0, help="reject steps whose peak torque exceeds this (N m)"
+        "--torque-guard",
+        type=_real(0.0, 1e6, above=True),
+        default=100.0,
+        help="reject steps whose peak torque exceeds this (N m)",
     )
-    tune.add_argument("--holdout", type=_whole(0, 1_000_000), default=100, help="held-out perturbed scenarios for the final evaluation")
+    tune.add_argument(
+        "--holdout",
+        type=_whole(0, 1_000_000),
+        default=100,
+        help="held-out perturbed scenarios for the final evaluation",
+    )
     tune.add_argument("--gains", help="starting gains JSON (default: the paper's)")
     tune.add_argument("--scenario", help="scenario TOML/JSON (default: the paper's)")
     tune.add_argument("--robot", help="robot TOML (default: the paper's)")
@@ -532,7 +565,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     montecarlo.add_argument("--seed", type=_SEED, default=0, help="campaign seed (default 0)")
     montecarlo.add_argument(
-        "--chunk", type=_whole(1, 1_000_000), default=256, help="samples per compiled call, a multiple of the device count (default 256)"
+        "--chunk",
+        type=_whole(1, 1_000_000),
+        default=256,
+        help="samples per compiled call, a multiple of the device count (default 256)",
     )
     montecarlo.add_argument(
         "--device-batch",
@@ -544,10 +580,16 @@ def build_parser() -> argparse.ArgumentParser:
     montecarlo.add_argument("--out", default="results/montecarlo", help="output folder (default results/montecarlo)")
     add_ranges_arguments(montecarlo, "montecarlo")
     montecarlo.add_argument(
-        "--tolerance-mm", type=_real(0.0, 1e6, above=True), default=5.0, help="success: final position error at most this (default 5 mm)"
+        "--tolerance-mm",
+        type=_real(0.0, 1e6, above=True),
+        default=5.0,
+        help="success: final position error at most this (default 5 mm)",
     )
     montecarlo.add_argument(
-        "--tolerance-deg", type=_real(0.0, 180.0, above=True), default=1.0, help="success: final orientation error at most this (default 1 deg)"
+        "--tolerance-deg",
+        type=_real(0.0, 180.0, above=True),
+        default=1.0,
+        help="success: final orientation error at most this (default 1 deg)",
     )
     montecarlo.add_argument(
         "--torque-limit",
@@ -564,7 +606,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="success, with a free-floating target: its final speed at most this (default 0.005 m/s)",
     )
     montecarlo.add_argument(
-        "--timeseries-every", type=_whole(1, 100_000_000), default=None, metavar="K", help="also keep every K-th log row of every sample"
+        "--timeseries-every",
+        type=_whole(1, 100_000_000),
+        default=None,
+        metavar="K",
+        help="also keep every K-th log row of every sample",
     )
     montecarlo.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
     montecarlo.add_argument("--robot", help="robot TOML (default: the paper's)")
@@ -601,7 +647,9 @@ def build_parser() -> argparse.ArgumentParser:
     benchmark.add_argument(
         "--out", default="results/benchmarks", help="folder for benchmark.json (default results/benchmarks)"
     )
-    benchmark.add_argument("--repeats", type=_whole(1, 1000), default=3, help="repeats per timing, median reported (default 3)")
+    benchmark.add_argument(
+        "--repeats", type=_whole(1, 1000), default=3, help="repeats per timing, median reported (default 3)"
+    )
     benchmark.set_defaults(run=_benchmark)
     return parser
 

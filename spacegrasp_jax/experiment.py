@@ -19,16 +19,19 @@ from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario, scenario_to_dict
-from spacegrasp_jax.simulate import Log, first_nonfinite_time, rollout
+from spacegrasp_jax.simulate import Log, first_nonfinite_step, rollout
 
 
 class SimulationDiverged(RuntimeError):
-    """The closed loop produced non-finite values; ``time_s`` is the first bad step."""
+    """The closed loop produced non-finite values; ``time_s`` is the first bad step and
+    ``result`` what the run had (:func:`run`): its log up to and including that step and
+    the :func:`divergence_summary`."""
 
-    def __init__(self, controller: str, time_s: float):
+    def __init__(self, controller: str, time_s: float, result: RunResult | None = None):
         super().__init__(f"the {controller} rollout diverged: first non-finite value at t = {time_s:.4f} s")
         self.controller = controller
         self.time_s = time_s
+        self.result = result
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,9 +94,11 @@ def run(
     ``key``: the flight-like loop (:func:`~spacegrasp_jax.simulate.rollout`); the key
     defaults to ``PRNGKey(0)`` when the realism has noisy sensors.
 
+    A run whose state becomes non-finite has a :func:`divergence_summary` for summary.
+
     Raises:
         SimulationDiverged: (when ``check``) the state became non-finite; the error gives
-            the first non-finite time.
+            the first non-finite time and, as ``result``, the log up to and including it.
     """
     if realism is not None and realism.is_ideal(scenario.dt):
         realism = None  # the paper's loop: one program with or without an ideal realism
@@ -106,12 +111,39 @@ def run(
     _, log = executable(robot, scenario, gains, realism=realism, key=key, model_robot=model_robot)
     log = jax.tree.map(np.asarray, jax.block_until_ready(log))
     run_time = time.perf_counter() - start
-    bad_time = first_nonfinite_time(log)
-    if check and bad_time is not None:
-        raise SimulationDiverged(controller, bad_time)
-    summary = metrics.summary(log) if bad_time is None else {"first_nonfinite_s": bad_time}
-    summary.update(compile_time_s=compile_time, run_time_s=run_time)
+    bad_step = first_nonfinite_step(log)
+    if bad_step is None:
+        summary = metrics.summary(log) | dict(compile_time_s=compile_time, run_time_s=run_time)
+        return RunResult(controller, log, summary, compile_time, run_time)
+    summary = divergence_summary(log, bad_step) | dict(compile_time_s=compile_time, run_time_s=run_time)
+    if check:
+        kept = jax.tree.map(lambda series: series[: bad_step + 1], log)
+        raise SimulationDiverged(
+            controller, summary["first_nonfinite_s"], RunResult(controller, kept, summary, compile_time, run_time)
+        )
     return RunResult(controller, log, summary, compile_time, run_time)
+
+
+def divergence_summary(log: Log, step: int) -> dict:
+    """What a diverged run tells: when (``first_nonfinite_s``, ``first_nonfinite_step``),
+    which logged quantities were non-finite then (``nonfinite_fields``), every logged
+    quantity at that step and at the step before (``state_at_divergence``,
+    ``state_before_divergence``; units of :class:`~spacegrasp_jax.simulate.Log`), and the
+    metrics of the finite steps (``before_divergence``, :func:`metrics.summary`)."""
+
+    def row(index: int) -> dict:
+        return {name: np.asarray(series)[index] for name, series in vars(log).items() if series is not None}
+
+    at_step = row(step)
+    return {
+        "diverged": True,
+        "first_nonfinite_s": float(np.asarray(log.t)[step]),
+        "first_nonfinite_step": step,
+        "nonfinite_fields": [name for name, value in at_step.items() if not np.all(np.isfinite(value))],
+        "state_at_divergence": at_step,
+        "state_before_divergence": row(step - 1) if step > 0 else None,
+        "before_divergence": metrics.summary(jax.tree.map(lambda series: series[:step], log)) if step > 0 else None,
+    }
 
 
 def table5_markdown(results: dict) -> str:

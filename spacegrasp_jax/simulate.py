@@ -774,11 +774,17 @@ def flight_loop(
     return start, one_period, periods
 
 
-def first_nonfinite_time(log: Log):
-    """Time (s) of the first log row holding a non-finite value, or ``None`` (host side)."""
+def first_nonfinite_step(log: Log) -> int | None:
+    """Index of the first log row holding a non-finite value, or ``None`` (host side)."""
     bad = np.zeros(np.shape(log.t), dtype=bool)
     for name, series in vars(log).items():
         if name != "t" and series is not None:
             values = np.asarray(series)
             bad |= ~np.all(np.isfinite(values.reshape(values.shape[0], -1)), axis=1)
-    return float(np.asarray(log.t)[np.argmax(bad)]) if bad.any() else None
+    return int(np.argmax(bad)) if bad.any() else None
+
+
+def first_nonfinite_time(log: Log) -> float | None:
+    """Time (s) of the first log row holding a non-finite value, or ``None`` (host side)."""
+    step = first_nonfinite_step(log)
+    return None if step is None else float(np.asarray(log.t)[step])

@@ -3,12 +3,14 @@ convergence, divergence reporting, vmap and gradients."""
 
 from __future__ import annotations
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax import experiment, metrics
+from spacegrasp_jax import experiment, metrics, plots
 from spacegrasp_jax.control import Admittance, Cartesian, make_gains
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import first_nonfinite_time, initial_state, rollout
@@ -149,3 +151,34 @@ def test_a_law_object_runs_the_loop_its_name_runs(robot, gains, short_scenario, 
         assert np.max(np.abs(by_object.V_ref)) > 1e-3
     with pytest.raises(ValueError, match="give it to the law object"):
         rollout(robot, short_scenario, gains, law, pinv_damping=0.1)
+
+
+def test_a_diverging_run_writes_what_it_has(robot, gains, tmp_path, capsys):
+    """``spacegrasp simulate`` with gains that make the loop blow up: exit 3, and the log up
+    to and including the first non-finite step, the summary with the divergence time and
+    the state there, and the figures, all written (the same program as the test above)."""
+    from spacegrasp_jax import cli
+
+    (tmp_path / "wild.json").write_text(json.dumps({"kp": [1e7] * 7}))
+    (tmp_path / "short.toml").write_text("duration = 0.5\n")
+    out = tmp_path / "out"
+    argv = ["simulate", "--controller", "cartesian", "--gains", str(tmp_path / "wild.json")]
+    code = cli.main([*argv, "--scenario", str(tmp_path / "short.toml"), "--out", str(out), "--compile-cache", "none"])
+    error = capsys.readouterr().err
+    assert code == 3
+    assert "the cartesian rollout diverged: first non-finite value at t = " in error and "Traceback" not in error
+    summary = json.loads((out / "summary.json").read_text())["cartesian"]
+    log = np.load(out / "timeseries_cartesian.npz")
+    step = summary["first_nonfinite_step"]
+    assert summary["diverged"] and 0 < step < 500
+    assert log["t"].shape == (step + 1,) and summary["first_nonfinite_s"] == pytest.approx(log["t"][-1])
+    assert not np.all(np.isfinite(log["u"][-1])) or not np.all(np.isfinite(log["q"][-1]))  # the last row is the bad one
+    for name in ("q", "qd", "u", "pose_ee", "V_base"):
+        assert np.all(np.isfinite(log[name][:-1])), name  # every row before it is finite
+    assert summary["nonfinite_fields"] and set(summary["nonfinite_fields"]) <= set(log.files)
+    np.testing.assert_array_equal(summary["state_before_divergence"]["q"], log["q"][-2])
+    for name in summary["nonfinite_fields"]:
+        assert None in np.ravel(np.asarray(summary["state_at_divergence"][name], dtype=object)), name
+    assert summary["before_divergence"]["max_abs_torque_Nm"] == pytest.approx(np.max(np.abs(log["u"][:-1]), axis=0))
+    assert len(list(out.glob("fig*.png"))) == len(plots.FIGURES)
+    assert (out / "config.json").exists() and (out / "table5.csv").exists()
