@@ -695,7 +695,10 @@ def main(argv: list[str] | None = None) -> int:
                     show_warning(message, category, *rest, **keywords)
 
             warnings.showwarning = notice
-            return args.run(args)
+            # Commands with safe points (montecarlo, tune) stop at the next one on a first
+            # signal; until then, and for the others, a signal ends the process at once (130).
+            with runfiles.StopRequest("run", patience=0, hard_exit=True):
+                return args.run(args)
     except (
         sg.RobotConfigError,
         GainsError,

@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 import jax
@@ -131,33 +132,95 @@ def provenance() -> dict:
 
 
 class StopRequest:
-    """Context manager for long runs: SIGINT/SIGTERM set ``requested``, which the loop checks
-    after each unit of work (a tuning step, a Monte-Carlo chunk) before stopping cleanly; a
-    second signal interrupts at once (completed units are on disk either way)."""
+    """Context manager for long runs: the first SIGINT/SIGTERM sets ``requested``, which the
+    loop checks after each unit of work (a tuning step, a Monte-Carlo chunk) before stopping
+    cleanly; the next one stops at once (completed units are on disk either way: every file
+    is written atomically).
 
-    def __init__(self, unit: str = "step"):
+    Args:
+        unit: what the loop finishes before a clean stop (for the message).
+        patience: how many signals ask for a clean stop before one stops at once (1 for
+            runs with safe points; 0 for runs without: the first signal stops them).
+        hard_exit: how "at once" stops. ``False``: :class:`KeyboardInterrupt` in the main
+            thread (what a notebook expects; Python runs it only between bytecodes, so not
+            during a compile). ``True``, the command line's: the process ends with exit
+            code 130 and a one-line message, even in the middle of a compile: the signal is
+            written to a pipe (:func:`signal.set_wakeup_fd`) that a watcher thread reads,
+            which ends the process with :func:`os._exit` (no interpreter shutdown racing
+            the compiler's threads). ``None``: as the enclosing :class:`StopRequest`
+            (``False`` outside any).
+    """
+
+    _active: list[StopRequest] = []  # the contexts entered, innermost last
+
+    def __init__(self, unit: str = "step", *, patience: int = 1, hard_exit: bool | None = None):
         self.requested = False
         self.unit = unit
+        self.patience = patience
+        self.hard_exit = hard_exit
+        self._received = 0
         self._previous = {}
+        self._previous_wakeup = None
+        self._pipe = None
+        self._watcher = None
 
     def __enter__(self):
+        if self.hard_exit is None:
+            self.hard_exit = bool(StopRequest._active) and StopRequest._active[-1].hard_exit
+        if self.hard_exit:
+            read_end, write_end = os.pipe()
+            os.set_blocking(write_end, False)
+            self._pipe = (read_end, write_end)
+            self._watcher = threading.Thread(target=self._watch, args=(read_end,), name="stop-request", daemon=True)
+            self._watcher.start()
         for sig in (signal.SIGINT, signal.SIGTERM):
             self._previous[sig] = signal.signal(sig, self._handle)
+        if self.hard_exit:
+            self._previous_wakeup = signal.set_wakeup_fd(self._pipe[1], warn_on_full_buffer=False)
+        StopRequest._active.append(self)
         return self
 
     def _handle(self, signum, frame):
-        if self.requested:
+        if self.hard_exit:
+            return  # the watcher thread acts on the signal, at once even during a compile
+        self._received += 1
+        if self._received > self.patience:
             raise KeyboardInterrupt
+        self._request(signal.Signals(signum).name, lambda text: print(text, file=sys.stderr, end="", flush=True))
+
+    def _request(self, name: str, write) -> None:
         self.requested = True
-        print(
-            f"\n{signal.Signals(signum).name} received: stopping after this {self.unit} (send again to stop now)",
-            file=sys.stderr,
-            flush=True,
-        )
+        write(f"\n{name} received: stopping after this {self.unit} (send again to stop now)\n")
+
+    def _watch(self, read_end: int) -> None:
+        while True:
+            try:
+                received = os.read(read_end, 64)
+            except OSError:
+                return
+            if not received:  # the pipe closed: the context ended
+                return
+            for signum in received:
+                if signum not in (signal.SIGINT, signal.SIGTERM):
+                    continue
+                self._received += 1
+                name = signal.Signals(signum).name
+                if self._received > self.patience:
+                    os.write(2, f"\n{name} received: stopped at once; finished files are on disk\n".encode())
+                    os._exit(130)
+                self._request(name, lambda text: os.write(2, text.encode()))
 
     def __exit__(self, *exc):
+        StopRequest._active.remove(self)
+        if self.hard_exit:
+            signal.set_wakeup_fd(self._previous_wakeup)
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
+        if self.hard_exit:
+            read_end, write_end = self._pipe
+            os.close(write_end)  # the watcher reads the end of the pipe and returns
+            self._watcher.join(timeout=5.0)
+            os.close(read_end)
         return False
 
 

@@ -101,7 +101,10 @@ def cases(paths, out):
         "scenario deep JSON": ([*SIMULATE, "--scenario", p["deep.json"], "--out", out], "deep.json: nested too deeply"),
         "gains deep JSON": ([*TUNE, "--gains", p["deep.json"], "--out", out], "deep.json: nested too deeply"),
         "robot deep TOML": (["info", "--robot", p["deep.toml"]], "deep.toml: nested too deeply"),
-        "simulate missing scenario": ([*SIMULATE, "--scenario", p["missing"], "--out", out], "missing.toml: no such file"),
+        "simulate missing scenario": (
+            [*SIMULATE, "--scenario", p["missing"], "--out", out],
+            "missing.toml: no such file",
+        ),
         "info missing robot": (["info", "--robot", p["missing"]], "missing.toml: no such file"),
         "info robot folder": (["info", "--robot", p["a_folder"]], "a_folder: is a folder"),
         "simulate gains folder": ([*SIMULATE, "--gains", p["a_folder"], "--out", out], "a_folder: is a folder"),

@@ -1,0 +1,89 @@
+"""Signals on the command line: a second SIGINT (or the first, for a command without safe
+points) ends the process at once, even in the middle of a compile, with exit code 130, one
+line and no traceback or crash."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+SHORT_SCENARIO = "duration = 0.2\n[trajectory]\nduration = 0.2\n"
+
+
+def _start(arguments, tmp_path):
+    (tmp_path / "short.toml").write_text(SHORT_SCENARIO)
+    command = [sys.executable, "-m", "spacegrasp_jax.cli", *arguments, "--compile-cache", "none"]
+    command += ["--scenario", str(tmp_path / "short.toml"), "--out", str(tmp_path / "out")]
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for_line(process, prefix: str) -> list[str]:
+    """stderr lines up to the one starting with ``prefix`` (printed just before compiling)."""
+    lines = []
+    while not (lines and lines[-1].startswith(prefix)):
+        line = process.stderr.readline()
+        assert line, f"the process ended before printing {prefix!r}: {lines}"
+        lines.append(line)
+    return lines
+
+
+def _finish(process, sent_at: float):
+    stdout, stderr = process.communicate(timeout=60)
+    return process.returncode, time.monotonic() - sent_at, stderr
+
+
+@pytest.mark.parametrize("second_signal", [signal.SIGINT, signal.SIGTERM])
+def test_second_signal_during_compilation_exits_130_at_once(tmp_path, second_signal):
+    process = _start(["montecarlo", "--n", "2", "--chunk", "2", "--controller", "admittance"], tmp_path)
+    _wait_for_line(process, "Monte-Carlo:")
+    time.sleep(1.0)  # inside the campaign's compile (tens of seconds on two cores)
+    process.send_signal(signal.SIGINT)
+    time.sleep(0.5)
+    process.send_signal(second_signal)
+    code, elapsed, stderr = _finish(process, time.monotonic())
+    assert code == 130, stderr  # not -11 (segmentation fault) or -6 (abort): no crash
+    assert elapsed < 10.0, f"took {elapsed:.1f} s to stop"
+    assert "Traceback" not in stderr and "core dumped" not in stderr
+    assert "stopping after this chunk" in stderr
+    assert (
+        stderr.strip().splitlines()[-1] == f"{second_signal.name} received: stopped at once; finished files are on disk"
+    )
+    assert not list((tmp_path / "out").rglob(".*.npz")), "a half-written file left behind"
+
+
+def test_first_signal_ends_a_command_without_safe_points(tmp_path):
+    process = _start(["simulate", "--controller", "cartesian"], tmp_path)
+    _wait_for_line(process, "compilation cache:")
+    time.sleep(2.0)  # validation done, in the compile
+    process.send_signal(signal.SIGINT)
+    code, elapsed, stderr = _finish(process, time.monotonic())
+    assert code == 130 and elapsed < 10.0, (code, elapsed, stderr)
+    assert "Traceback" not in stderr
+    assert stderr.strip().splitlines()[-1] == "SIGINT received: stopped at once; finished files are on disk"
+
+
+def test_in_a_library_call_the_second_signal_raises_keyboard_interrupt():
+    """Outside the command line (a notebook calling ``tuning.run.tune``) nothing ends the
+    process: the first signal asks for a clean stop, the second raises KeyboardInterrupt,
+    and the previous handlers come back."""
+    import os
+
+    from spacegrasp_jax.runfiles import StopRequest
+
+    before = signal.getsignal(signal.SIGINT)
+    with StopRequest("step") as stop:
+        assert not stop.hard_exit
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.1)
+        assert stop.requested
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1.0)
+    assert signal.getsignal(signal.SIGINT) is before
+    with StopRequest("run", patience=0, hard_exit=True) as outer, StopRequest("chunk") as inner:
+        assert outer.hard_exit and inner.hard_exit  # the command line's choice holds inside
+    assert signal.getsignal(signal.SIGINT) is before
