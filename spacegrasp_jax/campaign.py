@@ -32,6 +32,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from jax.experimental import multihost_utils
 
 from spacegrasp_jax import batching, runfiles
 from spacegrasp_jax.control import CONTROLLERS
@@ -326,6 +327,16 @@ def _progress_line(
     )
 
 
+def _stop_everywhere(stop: runfiles.StopRequest | None) -> bool:
+    """Whether to stop after this chunk: asked in this process or, with several processes,
+    in any of them (a collective: every process stops after the same chunk, so none is left
+    waiting in the next chunk's collectives)."""
+    requested = stop is not None and stop.requested
+    if jax.process_count() == 1:
+        return requested
+    return bool(np.any(multihost_utils.process_allgather(np.asarray(requested))))
+
+
 def run_campaign(
     robot: Robot,
     scenario: Scenario,
@@ -371,6 +382,8 @@ def run_campaign(
     record = _record(config, variants, robot_source, scenario)
     if out is not None:
         _check_resume(out, record, resume)
+        if jax.process_count() > 1:  # every process checks the folder before process 0 writes in it
+            multihost_utils.sync_global_devices("spacegrasp campaign: folder checked")
         if writer:
             runfiles.write_json(out / "campaign.json", record)
 
@@ -418,7 +431,7 @@ def run_campaign(
                     file=progress,
                     flush=True,
                 )
-            if stop is not None and stop.requested:
+            if _stop_everywhere(stop):
                 status = "interrupted"
                 break
         if status == "interrupted":
@@ -439,7 +452,8 @@ def run_campaign(
         "scenario_steps_per_s": computed_samples * scenario.n_steps / run_s if run_s > 0 else None,
     }
     if status == "interrupted":
-        return CampaignResult({}, {}, {}, {"status": status, "throughput": throughput}, status)
+        summary = {"status": status, "chunks_done": done_chunks, "chunks_total": total_chunks, "throughput": throughput}
+        return CampaignResult({}, {}, {}, summary, status)
 
     perturbations, all_metrics, timeseries, summaries = {}, {}, {}, {}
     for variant in variants:

@@ -231,7 +231,7 @@ def _simulate(args: argparse.Namespace) -> int:
 def _tune(args: argparse.Namespace) -> int:
     try:
         if args.resume:
-            return _tune_finished(Path(args.out), tune(Path(args.out), resume=True))
+            return _tune_finished(Path(args.out), tune(Path(args.out), resume=True, stop=args.stop))
         config = _tune_config(args)
     except (TuneSetupError, ValueError) as error:
         field, separator, rest = str(error).partition(": ")
@@ -251,6 +251,7 @@ def _tune(args: argparse.Namespace) -> int:
             scenario_file=args.scenario,
             robot_file=args.robot,
             holdout=args.holdout,
+            stop=args.stop,
         )
     except TuneSetupError as error:
         raise UsageError(str(error)) from None
@@ -395,22 +396,22 @@ def _montecarlo(args: argparse.Namespace) -> int:
         flush=True,
     )
     try:
-        with runfiles.StopRequest("chunk") as stop:
-            result = campaign.run_campaign(
-                robot,
-                scenario,
-                variants,
-                config,
-                out,
-                resume=args.resume,
-                robot_source=args.robot or "paper_robot()",
-                stop=stop,
-            )
+        result = campaign.run_campaign(
+            robot,
+            scenario,
+            variants,
+            config,
+            out,
+            resume=args.resume,
+            robot_source=args.robot or "paper_robot()",
+            stop=args.stop,
+        )
     except campaign.CampaignError as error:
         raise UsageError(str(error)) from None
     if result.status == "interrupted":
         print(
-            f"interrupted; finished chunks are in {out}/chunks. Continue with: spacegrasp montecarlo {shlex.join(sys.argv[2:]) if sys.argv[1:2] == ['montecarlo'] else '...'} --resume",
+            f"interrupted after chunk {result.summary['chunks_done']}/{result.summary['chunks_total']}; "
+            f"finished chunks are in {out}/chunks. Continue with: spacegrasp montecarlo {shlex.join(sys.argv[2:]) if sys.argv[1:2] == ['montecarlo'] else '...'} --resume",
             file=sys.stderr,
         )
         return 130
@@ -671,6 +672,10 @@ def _add_compile_cache_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+#: The commands that stop cleanly at a safe point on a first signal -> the unit they finish.
+_SAFE_POINTS = {"montecarlo": "chunk", "tune": "step"}
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
@@ -696,9 +701,13 @@ def main(argv: list[str] | None = None) -> int:
 
             warnings.showwarning = notice
             # Commands with safe points (montecarlo, tune) stop at the next one on a first
-            # signal; until then, and for the others, a signal ends the process at once (130).
-            with runfiles.StopRequest("run", patience=0, hard_exit=True):
-                return args.run(args)
+            # signal, the others at once; then a signal ends the process at once (130).
+            unit = _SAFE_POINTS.get(args.command)
+            with runfiles.StopRequest(unit or "run", patience=1 if unit else 0, hard_exit=True) as args.stop:
+                code = args.run(args)
+                if getattr(args, "distributed", False):
+                    jax.distributed.shutdown()  # with every process, before a late signal can interrupt it
+                return code
     except (
         sg.RobotConfigError,
         GainsError,

@@ -16,6 +16,7 @@ the :class:`TuneResult` that :func:`tune` returns.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import functools
@@ -179,8 +180,12 @@ def tune(
     holdout: int = 100,
     resume: bool = False,
     progress=sys.stderr,
+    stop: runfiles.StopRequest | None = None,
 ) -> TuneResult:
-    """Run the job (or, with ``resume``, continue it) and write its files in ``out``."""
+    """Run the job (or, with ``resume``, continue it) and write its files in ``out``.
+
+    ``stop``: the signal guard of the caller (the command line's); by default the job
+    installs its own for the optimisation (SIGINT/SIGTERM stop it after the current step)."""
     out = Path(out)
     record_path, checkpoint_path = out / "run.json", out / CHECKPOINT
     if resume:
@@ -231,7 +236,7 @@ def tune(
         file=progress,
         flush=True,
     )
-    with runfiles.StopRequest() as stop:
+    with runfiles.StopRequest() if stop is None else contextlib.nullcontext(stop) as stop:
         state, status = optimise(
             value_and_grad,
             params,
