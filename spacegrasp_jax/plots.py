@@ -314,6 +314,44 @@ def save_campaign_figures(out_dir, metrics: dict, title: str, tolerance_mm: floa
     save(figures, out_dir, write_atomically)
 
 
+def figure_gradient_health(norm_ratios, cosines, horizon_norms: list[dict], outlier_factor: float, title: str):
+    """Gradient health over the envelope: the gradient norm over the nominal's (log scale,
+    the outlier threshold marked), the cosine with the nominal gradient, and the gradient
+    norm against the horizon (median, 95th percentile, largest)."""
+    fig, axes = plt.subplots(1, 3, figsize=(15, 3.8))
+    ratios = np.asarray(norm_ratios, dtype=float)
+    ratios = ratios[np.isfinite(ratios) & (ratios > 0.0)]
+    if len(ratios):
+        axes[0].hist(np.log10(ratios), bins=40, color="tab:blue")
+    axes[0].axvline(np.log10(outlier_factor), color="tab:red", linestyle="--", label=f"{outlier_factor:g}x nominal")
+    axes[0].set_xlabel("log10 (|gradient| / |nominal gradient|)")
+    axes[0].set_ylabel("samples")
+    axes[0].legend()
+    cos = np.asarray(cosines, dtype=float)
+    axes[1].hist(cos[np.isfinite(cos)], bins=40, range=(-1.0, 1.0), color="tab:green")
+    axes[1].set_xlabel("cosine with the nominal gradient")
+    horizons = [row["horizon_s"] for row in horizon_norms]
+    for key, label, style in (
+        ("median_norm", "median", "o-"),
+        ("p95_norm", "95th percentile", "s--"),
+        ("largest_norm", "largest", "^:"),
+        ("nominal_norm", "nominal", "k.-"),
+    ):
+        axes[2].semilogy(horizons, [row[key] for row in horizon_norms], style, label=label)
+    axes[2].set_xlabel("horizon [s]")
+    axes[2].set_ylabel("|gradient| (log-gains)")
+    axes[2].legend()
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def save_gradient_figures(out_dir, norm_ratios, cosines, horizon_norms, outlier_factor, title, write_atomically):
+    """``gradients.png`` of ``spacegrasp gradients`` (:func:`figure_gradient_health`)."""
+    figure = figure_gradient_health(norm_ratios, cosines, horizon_norms, outlier_factor, title)
+    save({"gradients.png": figure}, out_dir, write_atomically)
+
+
 # ---- the EE path around the contact sphere, and gain sweeps ----------------------------
 
 

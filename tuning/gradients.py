@@ -1,0 +1,337 @@
+"""Gradient health over the envelope: is the tuning objective's gradient at a set of gains
+one a descent method can trust on every scenario it will meet?
+
+For the nominal scenario and N perturbed ones (the Monte-Carlo campaigns' samples 1..N, with
+their satellites, noise keys and target estimates under a realism), :func:`envelope_gradients`
+computes the objective's gradient with respect to the log-gains (the tuning parameters,
+:mod:`spacegrasp_jax.tuning.parameters`), batched and sharded like a campaign, over several
+horizons at once (the objective of the log cut at each horizon). :func:`report` condenses
+them into what ``spacegrasp gradients`` writes in ``gradients.json``:
+
+* per gain group and entry: mean, median, spread (standard deviation and interquartile
+  range) and *sign agreement*, the fraction of samples whose gradient entry has the nominal
+  gradient's sign;
+* the samples whose gradient or loss is not finite (indices, perturbations);
+* the samples whose gradient norm exceeds ``outlier_factor`` times the nominal's
+  (indices, norms, cosine with the nominal gradient, perturbations), and the distribution of
+  the norm ratio and of the cosine;
+* central differences against the gradient on a few samples (directional derivatives along
+  random directions);
+* the median and largest gradient norm at each horizon: a norm that grows exponentially with
+  the horizon is the mark of a chaotic, untrustworthy gradient.
+
+Every number is per unit relative change of a gain (log-gains): an entry of 0.5 means a 1%
+larger gain raises the loss by about 0.005.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from spacegrasp_jax import batching
+from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.model import Robot
+from spacegrasp_jax.montecarlo import sample_loops
+from spacegrasp_jax.perturbations import PerturbationRanges
+from spacegrasp_jax.realism import Realism, ideal
+from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.simulate import rollout
+from spacegrasp_jax.tuning.objective import Objective, objective_parts
+from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
+from spacegrasp_jax.tuning.tune import checkpoint_segment
+
+#: Horizons, as fractions of the scenario's duration, at which the gradient is taken.
+HORIZONS = (0.125, 0.25, 0.5, 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvelopeGradients:
+    """The gradients of one evaluation (:func:`envelope_gradients`).
+
+    Attributes:
+        horizons_s: (H,) s, the horizons; the last is the whole scenario.
+        losses: (N + 1, H) the objective at each horizon; row 0 is the nominal scenario.
+        gradients: group -> (N + 1, H, size) d loss / d log-gain.
+        perturbations: field -> (N, ...) the perturbed samples' drawn numbers.
+        sample_indices: (N,) the campaign indices of the perturbed samples (1..N).
+    """
+
+    horizons_s: np.ndarray
+    losses: np.ndarray
+    gradients: dict[str, np.ndarray]
+    perturbations: dict[str, np.ndarray]
+    sample_indices: np.ndarray
+
+
+def _nominal_first(robot: Robot, scenario: Scenario, seed: int, n: int, ranges, realism):
+    """The loops of the nominal scenario (row 0) and of samples 1..n, one batch."""
+    perturbed = sample_loops(robot, scenario, seed, np.arange(1, n + 1), ranges, realism)
+    nominal = jax.tree.map(lambda leaf: jnp.asarray(leaf)[None], (robot, scenario))
+    realisms, keys = perturbed.realisms, perturbed.keys
+    if realisms is not None:  # the nominal sample: the loop's own estimate errors, key of the seed
+        base = realism if realism is not None else ideal()
+        first = jax.tree.map(lambda leaf: leaf[:1], realisms)
+        first = dataclasses.replace(
+            first,
+            lar_position_error_m=jnp.asarray(base.lar_position_error_m)[None],
+            lar_angle_error_rad=jnp.asarray(base.lar_angle_error_rad)[None],
+        )
+        realisms = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, realisms)
+        keys = jnp.concatenate([jax.random.PRNGKey(seed)[None], keys])
+    robots, scenarios = jax.tree.map(
+        lambda a, b: jnp.concatenate([a, b]), nominal, (perturbed.robots, perturbed.scenarios)
+    )
+    return (robots, scenarios, realisms, keys), perturbed.model_robot, perturbed.perturbations
+
+
+def horizon_steps(n_steps: int, horizons=HORIZONS) -> tuple[int, ...]:
+    """The log rows (at least one) that each horizon fraction of ``n_steps`` keeps."""
+    return tuple(max(1, round(fraction * n_steps)) for fraction in horizons)
+
+
+def make_item_function(controller: str, objective: Objective, steps, segment):
+    """``(base, mask, model_robot, item) -> (losses (H,), gradients group -> (H, size))`` for
+    one item ``(params, robot, scenario, realism, key)``: a rollout at the gains ``params``
+    (log-gains over ``base``), the objective of its log cut at each of ``steps`` rows, and
+    their gradients (one reverse pass per horizon)."""
+
+    def horizon_losses(params, base, mask, model_robot, robot, scenario, realism, key):
+        gains = gains_from_params(params, base, mask)
+        _, log = rollout(
+            robot,
+            scenario,
+            gains,
+            controller,
+            checkpoint_segment=segment,
+            realism=realism,
+            key=key,
+            model_robot=model_robot,
+        )
+        return jnp.stack([objective_parts(jax.tree.map(lambda x: x[:rows], log), objective)["loss"] for rows in steps])
+
+    def item(base, mask, model_robot, arguments):
+        params, *loop = arguments
+        losses, pullback = jax.vjp(lambda p: horizon_losses(p, base, mask, model_robot, *loop), params)
+        (gradients,) = jax.vmap(pullback)(jnp.eye(len(steps), dtype=losses.dtype))
+        return losses, gradients
+
+    return item
+
+
+def envelope_gradients(
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller: str,
+    objective: Objective,
+    *,
+    n: int,
+    seed: int = 0,
+    ranges: PerturbationRanges | None = None,
+    realism: Realism | None = None,
+    horizons=HORIZONS,
+    chunk: int = 8,
+    progress=None,
+) -> tuple[EnvelopeGradients, callable]:
+    """The objective's gradient at ``gains`` on the nominal ``scenario`` and on the campaign
+    samples 1..n of ``seed`` (``ranges``: the campaigns' default envelope), at each horizon.
+    The controller believes the nominal ``robot``, as in a campaign.
+
+    Returns:
+        ``(gradients, evaluate)``: the :class:`EnvelopeGradients`, and ``evaluate(params,
+        rows)``, the same program on items ``rows`` at per-item log-gains ``params``
+        (group -> (len(rows), size)), returning ``(losses (len(rows), H), gradients)``
+        (for central differences without another compile).
+    """
+    ranges = PerturbationRanges() if ranges is None else ranges
+    mask = make_mask(gains, controller)
+    params = initial_params(gains, controller)
+    items, model_robot, perturbations = _nominal_first(robot, scenario, seed, n, ranges, realism)
+    steps = horizon_steps(scenario.n_steps, horizons)
+    segment = 1 if items[2] is not None else checkpoint_segment(scenario.n_steps)
+    item = make_item_function(controller, objective, steps, segment)
+    replicated = (gains, mask) if model_robot is None else (gains, mask, model_robot)
+
+    def block(*arguments):  # one device's share, one item after another (the tape of one)
+        base, mask, *believed, batch = arguments
+        return jax.lax.map(lambda one: item(base, mask, believed[0] if believed else None, one), batch)
+
+    def evaluate(item_params, rows):
+        batched = (item_params, *batching.take(items, np.asarray(rows)))
+        return batching.map_in_chunks(
+            "envelope-gradients",
+            block,
+            replicated,
+            batched,
+            chunk=chunk,
+            key=(controller, steps, segment, objective),
+            progress=progress,
+            label="gradients",
+        )
+
+    rows = np.arange(n + 1)
+    repeated = jax.tree.map(lambda p: np.repeat(np.asarray(p)[None], n + 1, axis=0), params)
+    losses, gradients = evaluate(repeated, rows)
+    result = EnvelopeGradients(
+        horizons_s=np.asarray(steps) * scenario.dt,
+        losses=np.asarray(losses),
+        gradients={name: np.asarray(value) for name, value in gradients.items()},
+        perturbations={
+            field.name: np.asarray(getattr(perturbations, field.name)) for field in dataclasses.fields(perturbations)
+        },
+        sample_indices=rows[1:],
+    )
+    return result, evaluate
+
+
+def _flat(gradients: dict, horizon: int = -1) -> np.ndarray:
+    """(N + 1, P) every sample's gradient at one horizon, the groups in order."""
+    return np.concatenate([value[:, horizon, :] for value in gradients.values()], axis=1)
+
+
+def _perturbation(result: EnvelopeGradients, sample: int) -> dict:
+    return {name: np.asarray(value[sample - 1]).tolist() for name, value in result.perturbations.items()}
+
+
+def central_differences(
+    result: EnvelopeGradients, evaluate, gains: Gains, controller: str, *, samples, step=1e-4, seed=0
+):
+    """The gradient's directional derivative against ``(loss(+h) - loss(-h)) / 2h`` on the
+    items ``samples`` (0: nominal), each along a random unit direction of the tuned
+    log-gains, at the whole horizon. Returns one dict per sample."""
+    if not len(samples):
+        return []
+    params = initial_params(gains, controller)
+    mask = make_mask(gains, controller)
+    flat, unravel = ravel_pytree(params)
+    tuned = np.asarray(ravel_pytree(mask)[0], dtype=float)
+    rng = np.random.default_rng(seed)
+    directions = []
+    for _ in samples:
+        direction = rng.standard_normal(flat.shape[0]) * tuned
+        directions.append(direction / np.linalg.norm(direction))
+    points = [np.asarray(flat) + sign * step * d for d in directions for sign in (1.0, -1.0)]
+    stacked = jax.tree.map(lambda *leaves: np.stack(leaves), *[unravel(jnp.asarray(p)) for p in points])
+    losses, _ = evaluate(stacked, np.repeat(np.asarray(samples), 2))
+    checks = []
+    gradient = _flat(result.gradients)
+    for k, (sample, direction) in enumerate(zip(samples, directions, strict=True)):
+        difference = (losses[2 * k, -1] - losses[2 * k + 1, -1]) / (2.0 * step)
+        analytic = float(gradient[sample] @ direction)
+        scale = max(abs(analytic), abs(difference), 1e-300)
+        checks.append(
+            {
+                "sample": int(sample),
+                "gradient_slope": analytic,
+                "finite_difference_slope": float(difference),
+                "relative_error": abs(analytic - difference) / scale,
+                "step": step,
+            }
+        )
+    return checks
+
+
+def report(result: EnvelopeGradients, *, outlier_factor: float = 100.0, listed: int = 20) -> dict:
+    """The content of ``gradients.json`` (module docstring); non-finite numbers are NaN
+    (``null`` in the file). ``listed``: at most this many outliers and non-finite samples
+    are listed with their perturbations (the counts are complete)."""
+    full = _flat(result.gradients)  # (N + 1, P), whole horizon
+    finite = np.all(np.isfinite(full), axis=1) & np.all(np.isfinite(result.losses), axis=1)
+    nominal = full[0]
+    nominal_norm = float(np.linalg.norm(nominal)) if finite[0] else math.nan
+    norms = np.linalg.norm(np.where(finite[:, None], full, 0.0), axis=1)
+    norms[~finite] = np.nan
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosines = full @ nominal / (norms * nominal_norm)
+        ratios = norms / nominal_norm
+    perturbed = np.arange(1, full.shape[0])
+    good = perturbed[finite[1:]]
+
+    groups = {}
+    for name, value in result.gradients.items():
+        entries = value[:, -1, :]
+        kept = entries[1:][finite[1:]]
+        with np.errstate(invalid="ignore"):
+            same_sign = np.sign(kept) == np.sign(entries[0])[None]
+        quartiles = np.percentile(kept, [25, 75], axis=0) if len(kept) else np.full((2, entries.shape[1]), np.nan)
+        groups[name] = {
+            "nominal": entries[0],
+            "mean": kept.mean(axis=0) if len(kept) else np.full(entries.shape[1], np.nan),
+            "median": np.median(kept, axis=0) if len(kept) else np.full(entries.shape[1], np.nan),
+            "std": kept.std(axis=0) if len(kept) else np.full(entries.shape[1], np.nan),
+            "iqr": quartiles[1] - quartiles[0],
+            "sign_agreement": same_sign.mean(axis=0) if len(kept) else np.full(entries.shape[1], np.nan),
+            "norm_median": float(np.median(np.linalg.norm(kept, axis=1))) if len(kept) else math.nan,
+        }
+
+    def described(samples, limit):
+        return [
+            {
+                "sample": int(i),
+                "loss": float(result.losses[i, -1]),
+                "norm": float(norms[i]),
+                "norm_over_nominal": float(ratios[i]),
+                "cosine_with_nominal": float(cosines[i]),
+                "perturbation": _perturbation(result, int(i)),
+            }
+            for i in samples[:limit]
+        ]
+
+    bad = perturbed[~finite[1:]]
+    outliers = good[ratios[good] > outlier_factor]
+    outliers = outliers[np.argsort(-ratios[outliers])]
+    horizon_norms = []
+    for h, horizon in enumerate(result.horizons_s):
+        at = np.linalg.norm(_flat(result.gradients, h), axis=1)
+        kept = at[finite]
+        horizon_norms.append(
+            {
+                "horizon_s": float(horizon),
+                "nominal_norm": float(at[0]),
+                "median_norm": float(np.median(kept)) if len(kept) else math.nan,
+                "p95_norm": float(np.percentile(kept, 95)) if len(kept) else math.nan,
+                "largest_norm": float(np.max(kept)) if len(kept) else math.nan,
+            }
+        )
+    growth = [row["median_norm"] for row in horizon_norms]
+    return {
+        "samples": int(len(perturbed)),
+        "horizons_s": result.horizons_s,
+        "nominal": {"loss": float(result.losses[0, -1]), "gradient_norm": nominal_norm, "finite": bool(finite[0])},
+        "nonfinite": {"count": int(len(bad)), "samples": described(bad, listed)},
+        "groups": groups,
+        "norm_over_nominal": {
+            "median": float(np.median(ratios[good])) if len(good) else math.nan,
+            "p95": float(np.percentile(ratios[good], 95)) if len(good) else math.nan,
+            "largest": float(np.max(ratios[good])) if len(good) else math.nan,
+        },
+        "cosine_with_nominal": {
+            "median": float(np.median(cosines[good])) if len(good) else math.nan,
+            "p05": float(np.percentile(cosines[good], 5)) if len(good) else math.nan,
+            "fraction_negative": float(np.mean(cosines[good] < 0.0)) if len(good) else math.nan,
+        },
+        "outliers": {
+            "factor": outlier_factor,
+            "count": int(len(outliers)),
+            "fraction": float(len(outliers) / max(1, len(good))),
+            "samples": described(outliers, listed),
+        },
+        "per_sample": {
+            "loss": result.losses[1:, -1],
+            "norm_over_nominal": ratios[1:],
+            "cosine_with_nominal": cosines[1:],
+        },
+        "horizon_growth": {
+            "norms": horizon_norms,
+            "median_norm_ratio_last_to_first": growth[-1] / growth[0] if growth[0] else math.nan,
+        },
+    }
+
+
+__all__ = ["HORIZONS", "EnvelopeGradients", "central_differences", "envelope_gradients", "horizon_steps", "report"]
