@@ -320,6 +320,10 @@ def report(result: EnvelopeGradients, *, outlier_factor: float = 100.0, listed: 
             "factor": outlier_factor,
             "count": int(len(outliers)),
             "fraction": float(len(outliers) / max(1, len(good))),
+            "median_loss": float(np.median(result.losses[outliers, -1])) if len(outliers) else math.nan,
+            "median_loss_of_the_others": float(np.median(result.losses[np.setdiff1d(good, outliers), -1]))
+            if len(good) > len(outliers)
+            else math.nan,
             "samples": described(outliers, listed),
         },
         "per_sample": {
