@@ -561,6 +561,7 @@ def _benchmark(args: argparse.Namespace) -> int:
         from spacegrasp_jax.benchmarks import suite
     except ImportError as error:  # the peers, or the benchmarks package outside a checkout
         raise UsageError(f"the benchmark needs the test extra (pip install -e '.[test]'): {error}") from None
+    runfiles.check_output_folder(Path(args.out))
     return suite.main([*(["--quick"] if args.quick else []), "--out", args.out, "--repeats", str(args.repeats)])
 
 

@@ -65,21 +65,25 @@ def short_scenario(robot):
 
 # ---- scheduling: the longest files first --------------------------------------------------
 
-#: The files that take longest (about 120-500 s each on 2 cores), started first: the two
-#: workers take whole files in collection order, so long files left to the end would leave
-#: one worker running them alone.
+#: The files that take longest (about 50-400 s each on 2 cores, measured), started first, the
+#: longest first: the two workers take whole files in collection order, so long files left to
+#: the end (the notebooks come last alphabetically) would leave one worker running them alone.
 LONGEST_FIRST = (
-    "tests/test_tuning.py",
-    "tests/test_realism.py",
     "tests/test_docs_examples.py",
-    "tests/test_simulate.py",
-    "tests/test_montecarlo.py",
-    "tests/test_target.py",
     "tests/test_tune_cli.py",
-    "tests/test_tuning_batch.py",
+    "tests/test_realism.py",
+    "tests/test_tuning.py",
+    "tests/test_montecarlo.py",
     "tests/test_benchmark.py",
+    "tests/test_tuning_batch.py",
+    "tests/test_target.py",
     "tests/test_gradients_cli.py",
+    "tests/test_simulate.py",
+    "notebooks/06_free_target.ipynb",
     "tests/test_distributed.py",
+    "notebooks/04_monte_carlo.ipynb",
+    "notebooks/03_tuning.ipynb",
+    "notebooks/05_flight_realism.ipynb",
     "tests/test_loop_compilation.py",
 )
 

@@ -165,6 +165,10 @@ def cases(paths, out):
         "reproduce out under a file": (["reproduce", "--out", p["under_a_file"]], "a_file/results: cannot write"),
         "montecarlo out under a file": ([*MONTECARLO, "--out", p["under_a_file"]], "a_file/results: cannot write"),
         "tune out under a file": ([*TUNE, "--out", p["under_a_file"]], "a_file/results: cannot write"),
+        "gradients out under a file": (["gradients", "--n", "2", "--out", p["under_a_file"]], "a_file/results: cannot"),
+        "benchmark out under a file": (["benchmark", "--quick", "--out", p["under_a_file"]], "a_file/results: cannot"),
+        "gradients horizons": (["gradients", "--n", "2", "--horizons", "0.5,0.25", "--out", out], "--horizons"),
+        "gradients n 0": (["gradients", "--n", "0", "--out", out], "argument --n:"),
     }
 
 
