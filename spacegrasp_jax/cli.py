@@ -24,7 +24,7 @@ from spacegrasp_jax.perturbations import PerturbationError, PerturbationRanges, 
 from spacegrasp_jax.realism import Realism, RealismError, load_realism
 from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
 from spacegrasp_jax.tuning.gradients import HORIZONS as GRADIENT_HORIZONS
-from spacegrasp_jax.tuning.gradients import central_differences, envelope_gradients
+from spacegrasp_jax.tuning.gradients import central_differences, envelope_gradients, finite_rows
 from spacegrasp_jax.tuning.gradients import report as gradient_report
 from spacegrasp_jax.tuning.objective import Objective, Weights
 from spacegrasp_jax.tuning.run import TuneSetupError, tune
@@ -471,12 +471,9 @@ def _gradients(args: argparse.Namespace) -> int:
         progress=sys.stderr,
     )
     document = gradient_report(result, outlier_factor=args.outlier_factor)
-    finite = [0] * bool(document["nominal"]["finite"]) + [
-        int(i) for i in result.sample_indices if np.all(np.isfinite(result.losses[i]))
-    ]
-    finite = [i for i in finite if all(np.all(np.isfinite(g[i])) for g in result.gradients.values())]
+    checked = np.flatnonzero(finite_rows(result))[: args.fd_samples]  # the nominal first, if finite
     document["central_differences"] = central_differences(
-        result, evaluate, gains, args.controller, samples=finite[: args.fd_samples], seed=args.seed
+        result, evaluate, gains, args.controller, samples=checked, seed=args.seed
     )
     document["settings"] = {
         "controller": args.controller,

@@ -195,6 +195,12 @@ def _flat(gradients: dict, horizon: int = -1) -> np.ndarray:
     return np.concatenate([value[:, horizon, :] for value in gradients.values()], axis=1)
 
 
+def finite_rows(result: EnvelopeGradients) -> np.ndarray:
+    """(N + 1,) bool: the rows (0: nominal) whose losses and gradients are all finite."""
+    gradients = np.concatenate([value.reshape(value.shape[0], -1) for value in result.gradients.values()], axis=1)
+    return np.all(np.isfinite(gradients), axis=1) & np.all(np.isfinite(result.losses), axis=1)
+
+
 def _perturbation(result: EnvelopeGradients, sample: int) -> dict:
     return {name: np.asarray(value[sample - 1]).tolist() for name, value in result.perturbations.items()}
 
@@ -242,7 +248,7 @@ def report(result: EnvelopeGradients, *, outlier_factor: float = 100.0, listed: 
     (``null`` in the file). ``listed``: at most this many outliers and non-finite samples
     are listed with their perturbations (the counts are complete)."""
     full = _flat(result.gradients)  # (N + 1, P), whole horizon
-    finite = np.all(np.isfinite(full), axis=1) & np.all(np.isfinite(result.losses), axis=1)
+    finite = finite_rows(result)
     nominal = full[0]
     nominal_norm = float(np.linalg.norm(nominal)) if finite[0] else math.nan
     norms = np.linalg.norm(np.where(finite[:, None], full, 0.0), axis=1)
@@ -338,4 +344,12 @@ def report(result: EnvelopeGradients, *, outlier_factor: float = 100.0, listed: 
     }
 
 
-__all__ = ["HORIZONS", "EnvelopeGradients", "central_differences", "envelope_gradients", "horizon_steps", "report"]
+__all__ = [
+    "HORIZONS",
+    "EnvelopeGradients",
+    "central_differences",
+    "envelope_gradients",
+    "finite_rows",
+    "horizon_steps",
+    "report",
+]
