@@ -467,6 +467,7 @@ def _gradients(args: argparse.Namespace) -> int:
         ranges=ranges,
         realism=realism,
         horizons=horizons,
+        pinv_damping=args.pinv_damping,
         chunk=batching.chunk_size(args.chunk, args.n + 1),
         progress=sys.stderr,
     )
@@ -484,6 +485,7 @@ def _gradients(args: argparse.Namespace) -> int:
         "weights": dataclasses.asdict(weights),
         "torque_scale_Nm": objective.torque_scale_Nm,
         "scenario_duration_s": scenario.duration,
+        "pinv_damping": args.pinv_damping,
         "contact_law": "smooth",
         **runfiles.provenance(),
     }

@@ -95,7 +95,7 @@ def horizon_steps(n_steps: int, horizons=HORIZONS) -> tuple[int, ...]:
     return tuple(max(1, round(fraction * n_steps)) for fraction in horizons)
 
 
-def make_item_function(controller: str, objective: Objective, steps, segment):
+def make_item_function(controller: str, objective: Objective, steps, segment, pinv_damping: float = 0.0):
     """``(base, mask, model_robot, item) -> (losses (H,), gradients group -> (H, size))`` for
     one item ``(params, robot, scenario, realism, key)``: a rollout at the gains ``params``
     (log-gains over ``base``), the objective of its log cut at each of ``steps`` rows, and
@@ -108,6 +108,7 @@ def make_item_function(controller: str, objective: Objective, steps, segment):
             scenario,
             gains,
             controller,
+            pinv_damping=pinv_damping,
             checkpoint_segment=segment,
             realism=realism,
             key=key,
@@ -136,12 +137,14 @@ def envelope_gradients(
     ranges: PerturbationRanges | None = None,
     realism: Realism | None = None,
     horizons=HORIZONS,
+    pinv_damping: float = 0.0,
     chunk: int = 8,
     progress=None,
 ) -> tuple[EnvelopeGradients, callable]:
     """The objective's gradient at ``gains`` on the nominal ``scenario`` and on the campaign
     samples 1..n of ``seed`` (``ranges``: the campaigns' default envelope), at each horizon.
-    The controller believes the nominal ``robot``, as in a campaign.
+    The controller believes the nominal ``robot``, as in a campaign; ``pinv_damping`` is
+    the damping of its pseudoinverse (0: exact, the paper).
 
     Returns:
         ``(gradients, evaluate)``: the :class:`EnvelopeGradients`, and ``evaluate(params,
@@ -155,7 +158,7 @@ def envelope_gradients(
     items, model_robot, perturbations = _nominal_first(robot, scenario, seed, n, ranges, realism)
     steps = horizon_steps(scenario.n_steps, horizons)
     segment = 1 if items[2] is not None else checkpoint_segment(scenario.n_steps)
-    item = make_item_function(controller, objective, steps, segment)
+    item = make_item_function(controller, objective, steps, segment, pinv_damping)
     replicated = (gains, mask) if model_robot is None else (gains, mask, model_robot)
 
     def block(*arguments):  # one device's share, one item after another (the tape of one)
@@ -170,7 +173,7 @@ def envelope_gradients(
             replicated,
             batched,
             chunk=chunk,
-            key=(controller, steps, segment, objective),
+            key=(controller, steps, segment, objective, pinv_damping),
             progress=progress,
             label="gradients",
         )
