@@ -34,7 +34,7 @@ import jax
 import numpy as np
 from jax.experimental import multihost_utils
 
-from spacegrasp_jax import batching, runfiles
+from spacegrasp_jax import batching, runfiles, statistics
 from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
@@ -299,10 +299,12 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
         order = np.argsort(np.where(np.isfinite(values), values, np.inf))[::-1]
         return [int(i) for i in order[:5]]
 
+    successes = int(np.sum(sample_metrics["success"]))
     return {
         "samples": int(ok.size),
         "success_rate": float(np.mean(sample_metrics["success"])),
-        "successes": int(np.sum(sample_metrics["success"])),
+        "successes": successes,
+        "success_interval": statistics.success_interval(successes, ok.size),
         "diverged": int(diverged.size),
         "diverged_samples": [int(i) for i in diverged],
         "unstable": int(unstable.size),
@@ -311,6 +313,33 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
         "worst_by_peak_torque": worst(peak),
         "statistics_over_non_diverged": statistics,
     }
+
+
+#: The metrics that a comparison of two gain sets tests pairwise (lower is better).
+COMPARED_METRICS = ("final_position_error_m", "final_orientation_error_rad", "largest_peak_torque_Nm")
+
+
+def comparisons(metrics_by_variant: dict[str, dict[str, np.ndarray]], variants: list[Variant]) -> dict:
+    """Each gain set against the first gain set of the same controller, on the same samples:
+    the exact McNemar test of their success flags and the paired tests of
+    :data:`COMPARED_METRICS` (:mod:`spacegrasp_jax.statistics`). Keyed
+    ``"<candidate key> vs <reference key>"``."""
+    first = {}
+    for variant in variants:
+        first.setdefault(variant.controller, variant)
+    result = {}
+    for variant in variants:
+        reference = first[variant.controller]
+        if variant is reference:
+            continue
+        a, b = metrics_by_variant[reference.key], metrics_by_variant[variant.key]
+        result[f"{variant.key} vs {reference.key}"] = {
+            "reference": reference.key,
+            "candidate": variant.key,
+            "success": statistics.compare_success(a["success"], b["success"]),
+            **{name: statistics.compare_metric(a[name], b[name]) for name in COMPARED_METRICS},
+        }
+    return result
 
 
 # ---- the campaign -----------------------------------------------------------------------
@@ -501,6 +530,7 @@ def run_campaign(
         "controller_believes": "each sample's perturbed robot" if config.identified else "the nominal robot",
         "throughput": throughput,
         "variants": summaries,
+        "comparisons": comparisons(all_metrics, variants),
     }
     result = CampaignResult(perturbations, all_metrics, timeseries, summary, status)
     if writer:

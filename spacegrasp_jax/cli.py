@@ -18,7 +18,7 @@ import numpy as np
 matplotlib.use("Agg")  # the command line only writes figures to files; before pyplot is imported
 
 import spacegrasp_jax as sg  # noqa: E402
-from spacegrasp_jax import batching, campaign, compilation, experiment, paper, plots, runfiles, spatial
+from spacegrasp_jax import batching, campaign, compilation, experiment, paper, plots, runfiles, spatial, statistics
 from spacegrasp_jax.control import CONTROLLERS, GainsError, UnusedGainsWarning, load_gains, paper_gains
 from spacegrasp_jax.perturbations import PerturbationError, PerturbationRanges, load_ranges
 from spacegrasp_jax.realism import Realism, RealismError, load_realism
@@ -565,7 +565,7 @@ def _benchmark(args: argparse.Namespace) -> int:
 
 
 def _print_campaign(result: campaign.CampaignResult) -> None:
-    header = f"{'variant':24} {'success':>8} {'diverged':>8} {'unstable':>8} {'final pos p50/p95 [mm]':>23} {'peak |u| p50/p95 [N m]':>23} {'contact p95 [N]':>16}"
+    header = f"{'variant':24} {'success [95% CI]':>22} {'diverged':>8} {'unstable':>8} {'final pos p50/p95 [mm]':>23} {'peak |u| p50/p95 [N m]':>23} {'contact p95 [N]':>16}"
     print(header)
     for key, summary in result.summary["variants"].items():
         stats = summary["statistics_over_non_diverged"]
@@ -576,8 +576,17 @@ def _print_campaign(result: campaign.CampaignResult) -> None:
 
         contact = stats["max_contact_force_N"]
         print(
-            f"{key:24} {summary['success_rate']:>8.1%} {summary['diverged']:>8d} {summary['unstable']:>8d} {pair('final_position_error_m', 1e3):>23} "
+            f"{key:24} {statistics.format_interval(summary['success_interval']):>22} {summary['diverged']:>8d} {summary['unstable']:>8d} {pair('final_position_error_m', 1e3):>23} "
             f"{pair('largest_peak_torque_Nm'):>23} {contact['p95'] if contact.get('count') else float('nan'):>16.3f}"
+        )
+    for name, comparison in result.summary.get("comparisons", {}).items():
+        s, torque = comparison["success"], comparison["largest_peak_torque_Nm"]
+        print(
+            f"{name}: success {100 * s['rate_difference']:+.1f} points [{100 * s['rate_difference_low']:+.1f}, "
+            f"{100 * s['rate_difference_high']:+.1f}] (captured by one only: {s['only_candidate']} vs {s['only_reference']}, "
+            f"McNemar p = {s['p_value']:.2g}); largest peak torque median {torque['median_difference']:+.3f} N m "
+            f"[{torque['low']:+.3f}, {torque['high']:+.3f}] (lower in {torque['candidate_lower']} vs {torque['reference_lower']}, "
+            f"Wilcoxon p = {torque['p_value']:.2g})"
         )
     throughput = result.summary["throughput"]
     if throughput["rollouts_per_s"]:
