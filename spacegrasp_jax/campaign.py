@@ -34,12 +34,12 @@ import jax
 import numpy as np
 from jax.experimental import multihost_utils
 
-from spacegrasp_jax import batching, runfiles, statistics
+from spacegrasp_jax import anatomy, batching, runfiles, statistics
 from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.montecarlo import evaluate_samples, over_torque_limit, sample_loops, success
+from spacegrasp_jax.montecarlo import evaluate_samples, over_torque_limit, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges
 from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario, scenario_to_dict
@@ -278,20 +278,34 @@ def _statistics(values: np.ndarray) -> dict:
     }
 
 
+def classify(sample_metrics: dict[str, np.ndarray], config: CampaignConfig) -> dict[str, np.ndarray]:
+    """:func:`spacegrasp_jax.anatomy.failure_classes` of the samples by the campaign's criteria."""
+    return anatomy.failure_classes(
+        sample_metrics,
+        config.position_tolerance_m,
+        config.orientation_tolerance_rad,
+        config.torque_limit_Nm,
+        config.target_speed_limit_mps,
+    )
+
+
 def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfig) -> dict:
-    """Statistics of every metric over the samples that did not diverge, success rate, the
-    diverged and the unstable samples, and the five worst samples by final position error and
-    by peak torque."""
+    """Statistics of every metric over the samples that did not diverge, success rate with
+    its 95% interval, the diverged and the unstable samples, the five worst samples by final
+    position error and by peak torque, and the failures' anatomy
+    (:func:`spacegrasp_jax.anatomy.anatomy_summary`)."""
     diverged = np.flatnonzero(np.isfinite(sample_metrics["first_nonfinite_s"]))
     ok = np.ones(len(sample_metrics["first_nonfinite_s"]), dtype=bool)
     ok[diverged] = False
-    statistics = {}
+    over_non_diverged = {}
     for name in (*METRICS, *(name for name in TARGET_METRICS if name in sample_metrics)):
+        if name not in sample_metrics:
+            continue
         values = np.asarray(sample_metrics[name])
-        if values.ndim == 2:  # per joint
-            statistics[name] = [_statistics(values[ok, j]) for j in range(values.shape[1])]
+        if values.ndim == 2:  # per joint or per axis
+            over_non_diverged[name] = [_statistics(values[ok, j]) for j in range(values.shape[1])]
         elif name != "first_nonfinite_s":
-            statistics[name] = _statistics(values[ok])
+            over_non_diverged[name] = _statistics(values[ok])
     peak = np.asarray(sample_metrics["largest_peak_torque_Nm"])
     unstable = np.flatnonzero(ok & over_torque_limit(sample_metrics, config.torque_limit_Nm))
 
@@ -311,7 +325,8 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
         "unstable_samples": [int(i) for i in unstable],
         "worst_by_final_position_error": worst(np.asarray(sample_metrics["final_position_error_m"])),
         "worst_by_peak_torque": worst(peak),
-        "statistics_over_non_diverged": statistics,
+        "statistics_over_non_diverged": over_non_diverged,
+        "failures": anatomy.anatomy_summary(sample_metrics | classify(sample_metrics, config)),
     }
 
 
@@ -495,14 +510,11 @@ def run_campaign(
             for name, value in merged.items()
             if name.startswith("perturbation.")
         }
-        sample_metrics = {name: merged[name] for name in (*METRICS, *TARGET_METRICS) if name in merged}
-        sample_metrics["success"] = success(
-            sample_metrics,
-            config.position_tolerance_m,
-            config.orientation_tolerance_rad,
-            config.torque_limit_Nm,
-            config.target_speed_limit_mps,
-        )
+        names = (*METRICS, *TARGET_METRICS, *anatomy.ANATOMY_METRICS)
+        sample_metrics = {name: merged[name] for name in names if name in merged}
+        classes = classify(sample_metrics, config)
+        sample_metrics |= classes | {"success": classes["failure"] == "success"}
+        sample_metrics |= anatomy.error_decomposition(sample_metrics)
         all_metrics[variant.key] = sample_metrics
         if config.timeseries_every is not None:
             fields = {

@@ -18,7 +18,19 @@ import numpy as np
 matplotlib.use("Agg")  # the command line only writes figures to files; before pyplot is imported
 
 import spacegrasp_jax as sg  # noqa: E402
-from spacegrasp_jax import batching, campaign, compilation, experiment, paper, plots, runfiles, spatial, statistics
+from spacegrasp_jax import (
+    anatomy,
+    batching,
+    campaign,
+    compilation,
+    experiment,
+    metrics,
+    paper,
+    plots,
+    runfiles,
+    spatial,
+    statistics,
+)
 from spacegrasp_jax.control import CONTROLLERS, GainsError, UnusedGainsWarning, load_gains, paper_gains
 from spacegrasp_jax.perturbations import PerturbationError, PerturbationRanges, load_ranges
 from spacegrasp_jax.realism import Realism, RealismError, load_realism
@@ -26,7 +38,7 @@ from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
 from spacegrasp_jax.tuning.gradients import HORIZONS as GRADIENT_HORIZONS
 from spacegrasp_jax.tuning.gradients import central_differences, envelope_gradients, finite_rows
 from spacegrasp_jax.tuning.gradients import report as gradient_report
-from spacegrasp_jax.tuning.objective import Objective, Weights
+from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights
 from spacegrasp_jax.tuning.run import TuneSetupError, tune
 from spacegrasp_jax.tuning.tune import TUNING_RANGES, TuneConfig
 
@@ -139,29 +151,68 @@ def _print_table(results: dict) -> None:
         )
 
 
-def _with_capture(summary: dict) -> dict:
-    """``summary`` and, with a free-floating target, whether the run is a capture by the
-    Monte-Carlo campaigns' default criteria (``capture_success``, ``capture_criteria``)."""
-    if "final_target_speed_mps" not in summary:
-        return summary
+def _capture_tolerances() -> dict:
+    """The Monte-Carlo campaigns' default success criteria, as summary.json names them."""
     criteria = campaign.CampaignConfig(n=1)
-    as_sample = {name: np.asarray([value]) for name, value in summary.items() if not isinstance(value, str)}
-    captured = campaign.success(
+    return {
+        "final_position_m": criteria.position_tolerance_m,
+        "final_orientation_rad": criteria.orientation_tolerance_rad,
+        "torque_limit_Nm": criteria.torque_limit_Nm,
+        "target_speed_mps": criteria.target_speed_limit_mps,
+    }
+
+
+def _capture_classes(summary: dict) -> dict:
+    """:func:`spacegrasp_jax.anatomy.failure_classes` of one run's summary (a one-sample batch)."""
+    tolerances = _capture_tolerances()
+    as_sample = {name: np.asarray([value], dtype=float) for name, value in summary.items() if name in _NUMERIC}
+    return anatomy.failure_classes(
         as_sample,
-        criteria.position_tolerance_m,
-        criteria.orientation_tolerance_rad,
-        criteria.torque_limit_Nm,
-        criteria.target_speed_limit_mps,
+        tolerances["final_position_m"],
+        tolerances["final_orientation_rad"],
+        tolerances["torque_limit_Nm"],
+        tolerances["target_speed_mps"],
+    )
+
+
+_NUMERIC = (*metrics.METRICS, *metrics.TARGET_METRICS, *anatomy.ANATOMY_METRICS)
+
+
+def _with_capture(summary: dict) -> dict:
+    """``summary`` and whether the run is a capture by the Monte-Carlo campaigns' default
+    criteria (``capture_success``, ``capture_criteria``), which criteria it missed and by
+    how much (``capture_failure``, ``capture_margins``) and the parts of its final position
+    error (``final_error_parts_m``). A diverged run's summary is returned as it is."""
+    if summary.get("diverged"):
+        return summary
+    classes = _capture_classes(summary)
+    parts = anatomy.error_decomposition(
+        {name: np.asarray([summary[name]]) for name in ("final_position_error_lar_m", *anatomy.ANATOMY_METRICS)}
     )
     return summary | {
-        "capture_success": bool(captured[0]),
-        "capture_criteria": {
-            "final_position_m": criteria.position_tolerance_m,
-            "final_orientation_rad": criteria.orientation_tolerance_rad,
-            "torque_limit_Nm": criteria.torque_limit_Nm,
-            "target_speed_mps": criteria.target_speed_limit_mps,
+        "capture_success": bool(classes["failure"][0] == "success"),
+        "capture_criteria": _capture_tolerances(),
+        "capture_failure": str(classes["failure"][0]),
+        "capture_missed": [name for name in anatomy.FAILURE_CLASSES if classes[f"failed_{name}"][0]],
+        "capture_margins": {
+            name: (None if not np.isfinite(classes[name][0]) else float(classes[name][0]))
+            for name in ("position_margin", "orientation_margin", "torque_margin", "target_speed_margin")
+        },
+        "final_error_parts_m": {
+            name.removeprefix("final_error_").removesuffix("_m"): float(v[0]) for name, v in parts.items()
         },
     }
+
+
+def _print_capture_verdicts(results: dict) -> None:
+    """One line for each run that failed its capture (a result, not an error: exit 0)."""
+    for controller, result in results.items():
+        summary = result.summary
+        if summary.get("diverged"):
+            continue
+        line = anatomy.verdict_line(summary, _capture_classes(summary), _capture_tolerances())
+        if line is not None:
+            print(f"{controller:>10}: {line}")
 
 
 def _write_results(out: Path, results: dict, config: dict) -> None:
@@ -211,6 +262,7 @@ def _run_controllers(args, controllers) -> int:
             results[controller] = error.result
             diverged.append(error)
     _print_table(results)
+    _print_capture_verdicts(results)
     config = experiment.run_config(
         args.robot or "paper_robot()", scenario, gains, controllers, args.pinv_damping, realism
     )
@@ -301,6 +353,7 @@ def _tune_config(args: argparse.Namespace) -> TuneConfig:
         realism=load_realism(args.realism).to_dict() if args.realism else None,
         aggregate=args.aggregate or ("clip" if args.realism else "mean"),
         ranges=_ranges(args, TUNING_RANGES),
+        objective=args.objective,
     )
 
 
@@ -426,7 +479,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
             out, result.metrics, campaign.figure_title(result.summary), tolerance_mm, runfiles.write_atomically
         )
         print(
-            f"wrote {out}/: samples.npz, summary.json, histograms.png, torque_vs_error.png"
+            f"wrote {out}/: samples.npz, summary.json, histograms.png, torque_vs_error.png, failures.png"
             + (", timeseries_*.npz" if config.timeseries_every else "")
         )
     return 0
@@ -643,9 +696,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="initial step size in log-gain space (default 0.15)",
     )
     tune.add_argument(
+        "--objective",
+        choices=OBJECTIVES,
+        default=TuneConfig.objective,
+        help=f"capture: the margins to the success criteria, torque a constraint at the motors' limits; weighted: "
+        f"errors against torque relative to the starting gains (default {TuneConfig.objective})",
+    )
+    tune.add_argument(
         "--weights",
         default="",
-        help="objective weights, e.g. final_position=1,peak_torque=4 (documentation: Tuning the gains)",
+        help="the weighted objective's weights, e.g. final_position=1,peak_torque=4 (documentation: Tuning the gains)",
     )
     tune.add_argument(
         "--batch", type=_whole(1, 65_536), default=4, help="scenarios per step: nominal + batch-1 perturbed (default 4)"

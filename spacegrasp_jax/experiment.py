@@ -14,7 +14,7 @@ import time
 import jax
 import numpy as np
 
-from spacegrasp_jax import compilation, metrics, paper, runfiles
+from spacegrasp_jax import anatomy, compilation, metrics, paper, runfiles
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, ideal
@@ -113,9 +113,9 @@ def run(
     run_time = time.perf_counter() - start
     bad_step = first_nonfinite_step(log)
     if bad_step is None:
-        summary = metrics.summary(log) | dict(compile_time_s=compile_time, run_time_s=run_time)
+        summary = run_summary(log, robot, scenario, realism) | dict(compile_time_s=compile_time, run_time_s=run_time)
         return RunResult(controller, log, summary, compile_time, run_time)
-    summary = divergence_summary(log, bad_step) | dict(compile_time_s=compile_time, run_time_s=run_time)
+    summary = divergence_summary(log, bad_step, robot) | dict(compile_time_s=compile_time, run_time_s=run_time)
     if check:
         kept = jax.tree.map(lambda series: series[: bad_step + 1], log)
         raise SimulationDiverged(
@@ -124,12 +124,24 @@ def run(
     return RunResult(controller, log, summary, compile_time, run_time)
 
 
-def divergence_summary(log: Log, step: int) -> dict:
+def run_summary(log: Log, robot: Robot, scenario: Scenario, realism: Realism | None = None) -> dict:
+    """The metrics of a whole log (:func:`spacegrasp_jax.metrics.summary`, runaways by
+    ``robot``'s limits) and the parts of its final error (:func:`spacegrasp_jax.anatomy.error_parts`),
+    as plain floats and lists."""
+    summary = metrics.summary(log, robot)
+    parts = anatomy.error_parts(
+        {"final_contact_force_N": np.asarray(summary["final_contact_force_N"])}, scenario, realism
+    )
+    return summary | {name: np.asarray(value).tolist() for name, value in parts.items()}
+
+
+def divergence_summary(log: Log, step: int, robot: Robot | None = None) -> dict:
     """What a diverged run tells: when (``first_nonfinite_s``, ``first_nonfinite_step``),
     which logged quantities were non-finite then (``nonfinite_fields``), every logged
     quantity at that step and at the step before (``state_at_divergence``,
     ``state_before_divergence``; units of :class:`~spacegrasp_jax.simulate.Log`), and the
-    metrics of the finite steps (``before_divergence``, :func:`metrics.summary`)."""
+    metrics of the finite steps (``before_divergence``, :func:`metrics.summary`, runaways
+    by ``robot``'s limits)."""
 
     def row(index: int) -> dict:
         return {name: np.asarray(series)[index] for name, series in vars(log).items() if series is not None}
@@ -142,7 +154,9 @@ def divergence_summary(log: Log, step: int) -> dict:
         "nonfinite_fields": [name for name, value in at_step.items() if not np.all(np.isfinite(value))],
         "state_at_divergence": at_step,
         "state_before_divergence": row(step - 1) if step > 0 else None,
-        "before_divergence": metrics.summary(jax.tree.map(lambda series: series[:step], log)) if step > 0 else None,
+        "before_divergence": metrics.summary(jax.tree.map(lambda series: series[:step], log), robot)
+        if step > 0
+        else None,
     }
 
 

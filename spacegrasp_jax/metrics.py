@@ -40,7 +40,20 @@ METRICS = {
     "max_base_rate_radps": ((), "rad/s", "peak satellite angular rate"),
     "first_contact_s": ((), "s", "first time the contact force is non-zero; NaN if never"),
     "first_nonfinite_s": ((), "s", "first step with a non-finite value; NaN if none"),
+    "max_joint_rate_radps": ((7,), "rad/s", "peak |qd_i| per joint"),
+    "first_runaway_s": (
+        (),
+        "s",
+        "first time a joint's rate or torque exceeded RUNAWAY_FACTOR times the robot's limit; NaN if never",
+    ),
+    "final_position_error_lar_m": ((3,), "m", "EE minus desired position at the last step, LAR axes (z: approach)"),
+    "final_contact_force_N": ((3,), "N", "contact force on the EE at the last step, LAR axes"),
 }
+
+#: A run whose joint rate or torque exceeds this many times the robot's limit
+#: (``Robot.joint_rate_limit``, ``Robot.joint_torque_limit``) has run away: no motor or
+#: gearbox follows it, whatever the simulated numbers say next.
+RUNAWAY_FACTOR = 10.0
 
 
 def safe_norm(x, axis=-1):
@@ -160,6 +173,10 @@ class RunningMetrics:
         max_base_speed: () m/s. max_base_rate: () rad/s.
         first_contact_s, first_nonfinite_s: () s, ``inf`` until it happens.
         last_pose_ee, last_pose_des: (6,) the latest row's EE and desired pose in LAR.
+        max_joint_rate: (7,) rad/s. first_runaway_s: () s, ``inf`` until it happens.
+        last_contact_force: (3,) N, the latest row's contact force, LAR axes.
+        runaway_rate, runaway_torque: (7,) rad/s, N m, the thresholds of a runaway
+            (``inf``: none).
         target: the free-floating target's (:class:`RunningTargetMetrics`), or ``None``.
     """
 
@@ -175,12 +192,24 @@ class RunningMetrics:
     first_nonfinite_s: jax.Array
     last_pose_ee: jax.Array
     last_pose_des: jax.Array
+    max_joint_rate: jax.Array
+    first_runaway_s: jax.Array
+    last_contact_force: jax.Array
+    runaway_rate: jax.Array
+    runaway_torque: jax.Array
     target: RunningTargetMetrics | None = None
 
 
-def start(dtype=jnp.float64, free_target: bool = False) -> RunningMetrics:
-    """Nothing folded yet; ``free_target``: the rows will carry a free-floating target."""
+def start(dtype=jnp.float64, free_target: bool = False, robot=None) -> RunningMetrics:
+    """Nothing folded yet; ``free_target``: the rows will carry a free-floating target;
+    ``robot``: the :class:`~spacegrasp_jax.model.Robot` whose limits define a runaway
+    (``None``: no runaway is detected)."""
     zero, never = jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)
+    if robot is None:
+        runaway_rate = runaway_torque = jnp.full(7, jnp.inf, dtype)
+    else:
+        runaway_rate = RUNAWAY_FACTOR * jnp.asarray(robot.joint_rate_limit, dtype)
+        runaway_torque = RUNAWAY_FACTOR * jnp.asarray(robot.joint_torque_limit, dtype)
     target = None
     if free_target:
         nothing = jnp.full(3, jnp.nan, dtype)
@@ -198,6 +227,11 @@ def start(dtype=jnp.float64, free_target: bool = False) -> RunningMetrics:
         never,
         jnp.zeros(6, dtype),
         jnp.zeros(6, dtype),
+        jnp.zeros(7, dtype),
+        never,
+        jnp.zeros(3, dtype),
+        runaway_rate,
+        runaway_torque,
         target,
     )
 
@@ -220,6 +254,7 @@ def accumulate(running: RunningMetrics, rows) -> RunningMetrics:
     ).all(axis=0)
     force = contact_force_norm(rows)
     r = running
+    runaway = jnp.any(jnp.abs(rows.qd) > r.runaway_rate, axis=1) | jnp.any(jnp.abs(rows.u) > r.runaway_torque, axis=1)
     return RunningMetrics(
         rows=r.rows + rows.t.shape[0],
         sum_squared_position_error=r.sum_squared_position_error + jnp.sum(position_error(rows) ** 2),
@@ -233,6 +268,11 @@ def accumulate(running: RunningMetrics, rows) -> RunningMetrics:
         first_nonfinite_s=_first(r.first_nonfinite_s, ~finite, rows.t),
         last_pose_ee=rows.pose_ee[-1],
         last_pose_des=rows.pose_des[-1],
+        max_joint_rate=_peak(r.max_joint_rate, jnp.abs(rows.qd)),
+        first_runaway_s=_first(r.first_runaway_s, runaway, rows.t),
+        last_contact_force=rows.contact_force[-1],
+        runaway_rate=r.runaway_rate,
+        runaway_torque=r.runaway_torque,
         target=None if r.target is None else _accumulate_target(r.target, rows),
     )
 
@@ -289,23 +329,28 @@ def finish(running: RunningMetrics, nonfinite_after_s=None) -> dict[str, jax.Arr
         "max_base_rate_radps": running.max_base_rate,
         "first_contact_s": never(running.first_contact_s),
         "first_nonfinite_s": never(first_nonfinite),
+        "max_joint_rate_radps": running.max_joint_rate,
+        "first_runaway_s": never(running.first_runaway_s),
+        "final_position_error_lar_m": running.last_pose_ee[:3] - running.last_pose_des[:3],
+        "final_contact_force_N": running.last_contact_force,
     } | target
 
 
-def log_metrics(log) -> dict[str, jax.Array]:
+def log_metrics(log, robot=None) -> dict[str, jax.Array]:
     """The :data:`METRICS` of a whole log (arrays), and the :data:`TARGET_METRICS` if it
-    carries a free-floating target."""
-    return finish(accumulate(start(jnp.asarray(log.t).dtype, log.target_velocity is not None), log))
+    carries a free-floating target; ``robot``: whose limits define a runaway (:func:`start`)."""
+    return finish(accumulate(start(jnp.asarray(log.t).dtype, log.target_velocity is not None, robot), log))
 
 
-def summary(log) -> dict:
+def summary(log, robot=None) -> dict:
     """The :data:`METRICS` (and :data:`TARGET_METRICS`) of a whole log as plain floats and
-    lists (``summary.json``; NaN where a metric has no value)."""
-    return {name: jnp.asarray(value).tolist() for name, value in log_metrics(log).items()}
+    lists (``summary.json``; NaN where a metric has no value); ``robot`` as :func:`log_metrics`."""
+    return {name: jnp.asarray(value).tolist() for name, value in log_metrics(log, robot).items()}
 
 
 __all__ = [
     "METRICS",
+    "RUNAWAY_FACTOR",
     "TARGET_METRICS",
     "RunningMetrics",
     "RunningTargetMetrics",

@@ -63,6 +63,12 @@ class Robot:
         ee_mass: () kg, the EE body rigidly fixed to link 7.
         ee_com: (3,) m, EE body CoM from the origin of frame 7, frame 7 axes.
         ee_inertia: (3, 3) kg m^2 about the EE body CoM, frame 7 axes.
+        joint_rate_limit: (7,) rad/s, the fastest each joint can turn (the paper gives none:
+            :data:`PAPER_JOINT_RATE_LIMIT` by default). Not a constraint of the dynamics: a
+            run whose rates go far beyond it is a runaway (:mod:`spacegrasp_jax.anatomy`).
+        joint_torque_limit: (7,) N m, the largest torque each joint's motor gives
+            (:data:`PAPER_JOINT_TORQUE_LIMIT` by default); the flight-like loop's actuators
+            saturate at their own ``torque_limit_Nm``.
     """
 
     satellite_mass: jax.Array
@@ -79,7 +85,17 @@ class Robot:
     ee_mass: jax.Array
     ee_com: jax.Array
     ee_inertia: jax.Array
+    joint_rate_limit: jax.Array
+    joint_torque_limit: jax.Array
 
+
+#: Joint rate limits of the paper's arm (rad/s; the paper gives none): 1 rad/s, about one and
+#: a half times the fastest joint of the paper's two runs (0.68 rad/s, joint 1 under the
+#: Cartesian law, in the first second).
+PAPER_JOINT_RATE_LIMIT = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+#: Joint torque limits of the paper's arm (N m; the paper gives none): the ``flight``
+#: realism preset's actuators, four to ten times Table 5's peaks.
+PAPER_JOINT_TORQUE_LIMIT = (10.0, 10.0, 10.0, 5.0, 5.0, 2.0, 2.0)
 
 # Field -> (shape, kind, key in the TOML file). Kinds select the validation rules.
 _FIELDS: dict[str, tuple[tuple[int, ...], str, str]] = {
@@ -97,7 +113,12 @@ _FIELDS: dict[str, tuple[tuple[int, ...], str, str]] = {
     "ee_mass": ((), "mass", "end_effector.mass"),
     "ee_com": ((3,), "real", "end_effector.com"),
     "ee_inertia": ((3, 3), "inertia", "end_effector.inertia"),
+    "joint_rate_limit": ((N_JOINTS,), "limit", "limits.joint_rate"),
+    "joint_torque_limit": ((N_JOINTS,), "limit", "limits.joint_torque"),
 }
+
+#: Fields a robot description may leave out, and the values they then take.
+_DEFAULTS = {"joint_rate_limit": PAPER_JOINT_RATE_LIMIT, "joint_torque_limit": PAPER_JOINT_TORQUE_LIMIT}
 
 # Relative tolerance of the inertia checks (symmetry, positive definiteness, triangle).
 _INERTIA_RTOL = 1e-9
@@ -137,6 +158,7 @@ def _validated(fields: dict, label) -> dict[str, jax.Array]:
     unknown = sorted(set(fields) - set(_FIELDS))
     if unknown:
         raise RobotConfigError(f"unknown robot field(s): {', '.join(map(label, unknown))}")
+    fields = _DEFAULTS | fields
     missing = [field for field in _FIELDS if field not in fields]
     if missing:
         raise RobotConfigError(f"missing robot field(s): {', '.join(map(label, missing))}")
@@ -148,6 +170,8 @@ def _validated(fields: dict, label) -> dict[str, jax.Array]:
             raise RobotConfigError(f"{name}: expected shape {shape}, got {value.shape}")
         if kind == "mass" and np.any(value <= 0.0):
             raise RobotConfigError(f"{name}: masses must be positive, got {value.tolist()}")
+        if kind == "limit" and np.any(value <= 0.0):
+            raise RobotConfigError(f"{name}: limits must be positive, got {value.tolist()}")
         if kind == "inertia":
             for index, tensor in enumerate(value.reshape(-1, 3, 3)):
                 where = f"{name}[{index}]" if value.ndim == 3 else name
@@ -205,7 +229,8 @@ def inertia_from_table(row) -> np.ndarray:
 def load_robot(path: str | Path) -> Robot:
     """Read a robot from a TOML file (schema in the documentation's File formats and ``configs/paper_robot.toml``).
 
-    The file has three tables, ``[satellite]``, ``[arm]`` and ``[end_effector]``; each key
+    The file has three tables, ``[satellite]``, ``[arm]`` and ``[end_effector]``, and an
+    optional ``[limits]`` (``joint_rate`` in rad/s, ``joint_torque`` in N m); each key
     maps to one :class:`Robot` field (``satellite.mass`` -> ``satellite_mass``,
     ``end_effector.offset`` -> ``ee_offset``, ``arm.link_com`` -> ``link_com``, ...).
 

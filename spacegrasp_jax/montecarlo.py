@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from spacegrasp_jax import metrics
+from spacegrasp_jax import anatomy, metrics
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.perturbations import PerturbationRanges, sample, sample_keys
@@ -39,7 +39,8 @@ def rollout_metrics(
     key: jax.Array | None = None,
     model_robot: Robot | None = None,
 ) -> tuple[dict[str, jax.Array], Log | None]:
-    """One closed-loop rollout reduced to its :data:`~spacegrasp_jax.metrics.METRICS`, in one ``lax.scan``.
+    """One closed-loop rollout reduced to its :data:`~spacegrasp_jax.metrics.METRICS` and the
+    parts of its final error (:data:`~spacegrasp_jax.anatomy.ANATOMY_METRICS`), in one ``lax.scan``.
 
     Args:
         robot, scenario, gains, controller, pinv_damping: as :func:`~spacegrasp_jax.simulate.rollout`.
@@ -68,7 +69,7 @@ def rollout_metrics(
 
     carry = (
         initial_state(scenario, controller),
-        metrics.start(dtype, scenario.target is not None),
+        metrics.start(dtype, scenario.target is not None, robot),
         jnp.zeros((), dtype),
     )
     if every is None:
@@ -85,13 +86,14 @@ def rollout_metrics(
             return carry, jax.tree.map(lambda x: x[0], rows)
 
         (final, running, _), rows = jax.lax.scan(block, carry, None, length=n_steps // every)
-    return _finish(running, final, scenario.duration), rows
+    return _finish(running, final, scenario, realism), rows
 
 
-def _finish(running, final, duration):
+def _finish(running, final, scenario, realism):
     # A state that turns non-finite in the very last step shows in no logged row.
     final_finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(final)]))
-    return metrics.finish(running, nonfinite_after_s=jnp.where(final_finite, jnp.inf, duration))
+    finished = metrics.finish(running, nonfinite_after_s=jnp.where(final_finite, jnp.inf, scenario.duration))
+    return finished | anatomy.error_parts(finished, scenario, realism)
 
 
 def _flight_metrics(robot, scenario, gains, controller, pinv_damping, every, realism, key, model_robot):
@@ -109,7 +111,7 @@ def _flight_metrics(robot, scenario, gains, controller, pinv_damping, every, rea
         state, rows = one_period(state, k)
         return (state, metrics.accumulate(running, rows)), rows
 
-    carry = (start, metrics.start(dtype, scenario.target is not None))
+    carry = (start, metrics.start(dtype, scenario.target is not None, robot))
     ks = jnp.arange(periods, dtype=dtype)
     if every is None:
         (final, running), _ = jax.lax.scan(lambda c, k: (period_and_fold(c, k)[0], None), carry, ks)
@@ -125,7 +127,7 @@ def _flight_metrics(robot, scenario, gains, controller, pinv_damping, every, rea
             return carry, jax.tree.map(lambda x: x[0, 0], rows)
 
         (final, running), rows = jax.lax.scan(block, carry, ks.reshape(-1, every // per_period))
-    return _finish(running, final.plant, scenario.duration), rows
+    return _finish(running, final.plant, scenario, realism), rows
 
 
 #: The stream of a sample's sensor noise: ``fold_in(fold_in(PRNGKey(seed), i), NOISE_STREAM)``
@@ -234,16 +236,13 @@ def success(
     torque_limit_Nm: float | None = None,
     target_speed_limit_mps: float | None = None,
 ):
-    """(n,) bool: the sample did not diverge, its peak |u_i| stayed at or below
-    ``torque_limit_Nm`` (N m; ``None``: no limit), it ended within both tolerances (relative
-    to the LAR frame, moving or not) and, with a free-floating target (``sample_metrics``
-    holds ``final_target_speed_mps``), the target's final speed is at most
-    ``target_speed_limit_mps`` (m/s; ``None``: any) (NumPy)."""
-    position = np.asarray(sample_metrics["final_position_error_m"])
-    orientation = np.asarray(sample_metrics["final_orientation_error_rad"])
-    diverged = np.isfinite(np.asarray(sample_metrics["first_nonfinite_s"]))
-    with np.errstate(invalid="ignore"):
-        within = (position <= position_tolerance_m) & (orientation <= orientation_tolerance_rad)
-        if target_speed_limit_mps is not None and "final_target_speed_mps" in sample_metrics:
-            within &= np.asarray(sample_metrics["final_target_speed_mps"]) <= target_speed_limit_mps
-    return ~diverged & ~over_torque_limit(sample_metrics, torque_limit_Nm) & within
+    """(n,) bool: the sample did not diverge nor run away (``first_runaway_s``), its peak
+    |u_i| stayed at or below ``torque_limit_Nm`` (N m; ``None``: no limit), it ended within
+    both tolerances (relative to the LAR frame, moving or not) and, with a free-floating
+    target (``sample_metrics`` holds ``final_target_speed_mps``), the target's final speed
+    is at most ``target_speed_limit_mps`` (m/s; ``None``: any) (NumPy). Which criterion a
+    failed sample missed: :func:`spacegrasp_jax.anatomy.failure_classes`."""
+    classes = anatomy.failure_classes(
+        sample_metrics, position_tolerance_m, orientation_tolerance_rad, torque_limit_Nm, target_speed_limit_mps
+    )
+    return classes["failure"] == "success"

@@ -305,11 +305,64 @@ def figure_campaign_scatter(metrics: dict, title: str = "Monte-Carlo campaign"):
     return fig
 
 
+#: The failure classes in the order a campaign assigns them (spacegrasp_jax.anatomy), and their colours.
+_FAILURE_COLOURS = {
+    "success": "tab:green",
+    "diverged": "black",
+    "runaway": "tab:red",
+    "torque_limit": "tab:orange",
+    "position": "tab:blue",
+    "orientation": "tab:purple",
+    "target_speed": "tab:brown",
+}
+
+
+def figure_campaign_failures(metrics: dict, title: str = "Monte-Carlo campaign"):
+    """Why captures fail: per variant, the samples by the first criterion they missed
+    (``failure``), and the final position error of the position failures split into its
+    approach-axis and cross-axis components and its estimate, compliance and residual parts
+    (``final_error_<part>_m``; medians, mm)."""
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.2))
+    keys = list(metrics)
+    left = np.zeros(len(keys))
+    for name, colour in _FAILURE_COLOURS.items():
+        counts = np.array([np.sum(np.asarray(metrics[key]["failure"]) == name) for key in keys], dtype=float)
+        if counts.any():
+            axes[0].barh(keys, counts, left=left, color=colour, label=name)
+        left += counts
+    axes[0].set_xlabel("samples")
+    axes[0].set_title("First criterion missed")
+    axes[0].legend(fontsize=8, loc="lower right")
+    parts = ("along", "across", "estimate", "compliance", "residual")
+    width = 0.8 / max(len(keys), 1)
+    for index, key in enumerate(keys):
+        m = metrics[key]
+        failed = np.asarray(m["failed_position"], dtype=bool)
+        values = [np.abs(np.asarray(m[f"final_error_{part}_m"], dtype=float)[failed]) for part in parts]
+        medians = [1e3 * np.nanmedian(v) if v.size else 0.0 for v in values]
+        axes[1].bar(
+            np.arange(len(parts)) + index * width,
+            medians,
+            width,
+            color=_variant_colour(index, key),
+            label=f"{key} ({int(failed.sum())} position failures)",
+        )
+    axes[1].set_xticks(np.arange(len(parts)) + 0.4 - width / 2, [f"|{p}|" for p in parts])
+    axes[1].set_ylabel("median over the position failures [mm]")
+    axes[1].set_title("Final position error of the position failures")
+    axes[1].legend(fontsize=8)
+    axes[1].grid(True, axis="y", alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
 def save_campaign_figures(out_dir, metrics: dict, title: str, tolerance_mm: float, write_atomically) -> None:
-    """``histograms.png`` and ``torque_vs_error.png`` of a Monte-Carlo campaign."""
+    """``histograms.png``, ``torque_vs_error.png`` and ``failures.png`` of a Monte-Carlo campaign."""
     figures = {
         "histograms.png": figure_campaign_histograms(metrics, title, tolerance_mm),
         "torque_vs_error.png": figure_campaign_scatter(metrics, title),
+        "failures.png": figure_campaign_failures(metrics, title),
     }
     save(figures, out_dir, write_atomically)
 

@@ -1,6 +1,27 @@
-"""The tuning objective, from a rollout log.
+"""The tuning objectives, from a rollout log: ``"capture"`` (the default) and ``"weighted"``.
 
-With ``e_p`` the final EE position error in LAR (m), ``e_o`` the final orientation error (rad),
+**capture**: how far a run is from failing its capture. Each success criterion gives a
+margin, the value over its tolerance (above 1: the capture fails; the campaigns' criteria,
+:mod:`spacegrasp_jax.anatomy`): ``m_p = e_p / 5 mm``, ``m_o = e_o / 1 deg``, the torque
+``m_u = smoothmax_{t, i} |u_i(t)| / limit_i`` against the motors' limits (the robot's
+``joint_torque_limit``: torque is a constraint, not a cost) and, with a free-floating
+target, ``m_v = |v_target(T)| / 5 mm/s``. With the worst margin in log units
+
+    w = S log sum_c exp(log(m_c) / S)          (a smooth maximum, S = 0.05)
+
+the run's loss is a softplus hinge at the safety level ``1 - d``:
+
+    loss = tau softplus((w - log(1 - d)) / tau),    d = 0.2, tau = 0.1
+
+It is about 0 for a run that meets every criterion with 20% to spare, grows like
+``log(worst margin / 0.8)`` beyond, and is smooth, so its gradient pushes each failing or
+marginal sample back inside the tolerances. In logs, a run far outside (a runaway at 100
+times a limit) weighs ``log 100``, not 100: no single sample steers the batch. The batch
+mean of the losses is the expected excess of the worst margin over the safety level, a
+smooth stand-in for the failure probability that still points somewhere when every sample
+fails; ``--cvar`` makes it the mean over the worst samples.
+
+**weighted** (the objective before ``capture``): with ``e_p`` the final EE position error in LAR (m), ``e_o`` the final orientation error (rad),
 ``rms`` the RMS position tracking error over the run (m), ``|u_i(t)|`` the joint torques and
 ``|F(t)|`` the contact force:
 
@@ -27,6 +48,9 @@ import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import metrics
+
+#: The objectives by name (``--objective``).
+OBJECTIVES = ("capture", "weighted")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,11 +86,21 @@ class Weights:
 
 @dataclasses.dataclass(frozen=True)
 class Objective:
-    """Weights, scales and temperature of the objective (module docstring).
+    """The objective (module docstring): which, and its weights, scales and tolerances.
 
     Attributes:
-        torque_scale_Nm: (7,) per-joint torque scale; ``tuning`` sets it to the peaks of
-            the initial gains on the nominal scenario.
+        weights: the ``weighted`` objective's weights.
+        torque_scale_Nm: (7,) per-joint torque scale of the ``weighted`` objective;
+            ``tuning`` sets it to the peaks of the initial gains on the nominal scenario.
+        kind: ``"capture"`` or ``"weighted"``.
+        torque_limit_Nm: (7,) the motors' limits of the ``capture`` objective (the robot's
+            ``joint_torque_limit``).
+        position_tolerance_m, orientation_tolerance_rad, target_speed_limit_mps: the
+            success criteria of the ``capture`` objective (the campaigns' defaults).
+        safety: ``d``, the share of each tolerance kept in reserve (the hinge sits at
+            ``1 - d`` of it).
+        hinge_width: ``tau``, the softplus hinge's width in log-margin units.
+        margin_temperature: ``S``, the smooth maximum's temperature over the log margins.
     """
 
     weights: Weights
@@ -77,12 +111,31 @@ class Objective:
     contact_scale_N: float = 10.0
     target_speed_scale_mps: float = 1e-3
     temperature: float = 0.02
+    kind: str = "weighted"
+    torque_limit_Nm: tuple[float, ...] = (10.0, 10.0, 10.0, 5.0, 5.0, 2.0, 2.0)
+    position_tolerance_m: float = 0.005
+    orientation_tolerance_rad: float = 0.017453292519943295  # 1 deg
+    target_speed_limit_mps: float = 0.005
+    safety: float = 0.2
+    hinge_width: float = 0.1
+    margin_temperature: float = 0.05
 
     def __post_init__(self):
         if len(self.torque_scale_Nm) != 7 or min(self.torque_scale_Nm) <= 0.0:
             raise ValueError(f"torque_scale_Nm: need 7 positive numbers, got {self.torque_scale_Nm}")
+        if len(self.torque_limit_Nm) != 7 or min(self.torque_limit_Nm) <= 0.0:
+            raise ValueError(f"torque_limit_Nm: need 7 positive numbers, got {self.torque_limit_Nm}")
         if not self.temperature > 0.0:
             raise ValueError(f"temperature: must be positive, got {self.temperature}")
+        if self.kind not in OBJECTIVES:
+            raise ValueError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {self.kind!r}")
+        if not 0.0 <= self.safety < 1.0:
+            raise ValueError(f"safety: must be in [0, 1), got {self.safety}")
+        for name in ("position_tolerance_m", "orientation_tolerance_rad", "target_speed_limit_mps"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name}: must be positive, got {getattr(self, name)}")
+        if not (self.hinge_width > 0.0 and self.margin_temperature > 0.0):
+            raise ValueError("hinge_width and margin_temperature: must be positive")
 
 
 def smooth_max(values: jax.Array, temperature: float) -> jax.Array:
@@ -90,9 +143,40 @@ def smooth_max(values: jax.Array, temperature: float) -> jax.Array:
     return temperature * jax.nn.logsumexp(values.ravel() / temperature)
 
 
+#: Added to the final errors before their logarithm (m, rad): the margins' gradient stays
+#: finite at an exact zero error and no capture is judged finer than a micrometre.
+_LOG_FLOOR = 1e-6
+
+
+def capture_margins(parts: dict[str, jax.Array], log, objective: Objective) -> dict[str, jax.Array]:
+    """The ``capture`` objective's margins (value over tolerance; above 1 the capture
+    fails) from the ``weighted`` parts and the log: ``position_margin``,
+    ``orientation_margin``, ``torque_margin`` (smooth) and, with a free-floating target,
+    ``target_speed_margin``."""
+    torque_ratio = jnp.abs(log.u) / jnp.asarray(objective.torque_limit_Nm)
+    margins = {
+        "position_margin": (parts["final_position_m"] + _LOG_FLOOR) / objective.position_tolerance_m,
+        "orientation_margin": (parts["final_orientation_rad"] + _LOG_FLOOR) / objective.orientation_tolerance_rad,
+        "torque_margin": smooth_max(torque_ratio, objective.temperature),
+    }
+    if log.target_velocity is not None:
+        speed = metrics.safe_norm(log.target_velocity[-1])
+        margins["target_speed_margin"] = (speed + _LOG_FLOOR) / objective.target_speed_limit_mps
+    return margins
+
+
+def capture_loss(margins: dict[str, jax.Array], objective: Objective) -> jax.Array:
+    """``tau softplus((smoothmax_c log m_c - log(1 - d)) / tau)`` (module docstring)."""
+    logs = jnp.stack([jnp.log(value) for value in margins.values()])
+    worst = smooth_max(logs, objective.margin_temperature)
+    return objective.hinge_width * jax.nn.softplus((worst - jnp.log1p(-objective.safety)) / objective.hinge_width)
+
+
 def objective_parts(log, objective: Objective) -> dict[str, jax.Array]:
-    """Every part of the objective, unweighted, plus ``loss`` (the weighted sum); with a
-    free-floating target, its final speed ``final_target_speed_mps`` too."""
+    """Every part of the objective, unweighted, the ``capture`` objective's margins
+    (:func:`capture_margins`) and its ``capture_loss``, the ``weighted_loss``, and ``loss``,
+    the one ``objective.kind`` names; with a free-floating target, its final speed
+    ``final_target_speed_mps`` too."""
     w = objective.weights
     torque_ratio = jnp.abs(log.u) / jnp.asarray(objective.torque_scale_Nm)
     contact = metrics.contact_force_norm(log)
@@ -118,4 +202,9 @@ def objective_parts(log, objective: Objective) -> dict[str, jax.Array]:
         parts["loss"] = (
             parts["loss"] + w.target_speed * parts["final_target_speed_mps"] / objective.target_speed_scale_mps
         )
+    margins = capture_margins(parts, log, objective)
+    parts |= margins
+    parts["weighted_loss"] = parts["loss"]
+    parts["capture_loss"] = capture_loss(margins, objective)
+    parts["loss"] = parts["capture_loss"] if objective.kind == "capture" else parts["weighted_loss"]
     return parts

@@ -35,7 +35,7 @@ from spacegrasp_jax.realism import Realism, make_realism
 from spacegrasp_jax.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import largest_divisor, rollout
-from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts
+from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights, objective_parts
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 
 CHECKPOINT = "checkpoint.npz"
@@ -86,6 +86,8 @@ class TuneConfig:
             (``None``: the paper's loop). Then every sample of the batch draws its noise key
             and a perturbed satellite (10% mass and inertia unless ``ranges`` sets them) that
             the controller does not know: it believes the nominal robot.
+        objective: ``"weighted"`` or ``"capture"``
+            (:mod:`spacegrasp_jax.tuning.objective`).
         aggregate: how the batch's gradients combine: ``"mean"`` (the gradient of the mean
             or CVaR) or ``"clip"``: each sample's gradient clipped to :data:`CLIP_FACTOR`
             times the batch's median gradient norm before the mean (one chaotic sample
@@ -109,6 +111,7 @@ class TuneConfig:
     ranges: PerturbationRanges = TUNING_RANGES
     realism: dict | None = None
     aggregate: str = "mean"
+    objective: str = "weighted"
 
     def __post_init__(self):
         if self.controller not in ("admittance", "cartesian"):
@@ -123,6 +126,8 @@ class TuneConfig:
             raise ValueError(f"cvar_alpha: must be in [0, 1), got {self.cvar_alpha}")
         if self.gradient not in ("reverse", "forward"):
             raise ValueError(f"gradient: expected reverse or forward, got {self.gradient!r}")
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
         if self.aggregate not in ("mean", "clip"):
             raise ValueError(f"aggregate: expected mean or clip, got {self.aggregate!r}")
         if self.realism is not None:
@@ -521,7 +526,11 @@ def optimise(
 def setup(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torque_scale_Nm):
     """Objective, initial parameters, mask and the jitted loss gradient for a run."""
     objective = Objective(
-        weights=config.weights, torque_scale_Nm=tuple(float(x) for x in torque_scale_Nm), temperature=config.temperature
+        weights=config.weights,
+        torque_scale_Nm=tuple(float(x) for x in torque_scale_Nm),
+        temperature=config.temperature,
+        kind=config.objective,
+        torque_limit_Nm=tuple(float(x) for x in robot.joint_torque_limit),
     )
     mask = make_mask(base, config.controller, config.frozen)
     params = initial_params(base, config.controller)

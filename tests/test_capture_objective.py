@@ -1,0 +1,122 @@
+"""The capture objective on hand-made logs: its value by hand, its zero inside the margins, its
+gradient against central differences, and the campaigns' success flag it stands in for."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from spacegrasp_jax import anatomy
+from spacegrasp_jax.simulate import Log
+from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts
+
+LIMITS = (10.0, 10.0, 10.0, 5.0, 5.0, 2.0, 2.0)
+OBJECTIVE = Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 7, kind="capture", torque_limit_Nm=LIMITS)
+
+
+def make_log(final_offset_m, final_yaw_rad, torque_peaks_Nm, n: int = 50) -> Log:
+    """A run of ``n`` rows whose EE ends ``final_offset_m`` (3,) from the desired point with
+    ``final_yaw_rad`` of yaw, and whose joint i's torque rises to ``torque_peaks_Nm[i]``."""
+    t = jnp.arange(n) * 0.01
+    ramp = jnp.sin(jnp.pi * t / t[-1])[:, None]  # 0 -> 1 -> 0
+    pose_ee = jnp.zeros((n, 6)).at[-1, :3].set(final_offset_m).at[-1, 5].set(final_yaw_rad)
+    zeros = lambda width: jnp.zeros((n, width))  # noqa: E731
+    return Log(
+        t=t,
+        pose_ee=pose_ee,
+        pose_des=zeros(6),
+        twist_ee=zeros(6),
+        contact_force=zeros(3),
+        momentum=zeros(6),
+        V_base=zeros(6),
+        u=ramp * jnp.asarray(torque_peaks_Nm),
+        fts_force=zeros(3),
+        fts_torque=zeros(3),
+        V_ref=zeros(6),
+        qd_des=zeros(7),
+        q=zeros(7),
+        qd=zeros(7),
+    )
+
+
+def test_a_capture_with_room_to_spare_costs_next_to_nothing():
+    spare = objective_parts(make_log([0.001, 0.0, 0.0], 0.002, np.array(LIMITS) * 0.3), OBJECTIVE)
+    failing = objective_parts(make_log([0.006, 0.0, 0.0], 0.002, np.array(LIMITS) * 0.3), OBJECTIVE)
+    assert float(spare["loss"]) < 1e-3 < 0.1 < float(failing["loss"])
+    assert float(spare["loss"]) == float(spare["capture_loss"])
+
+
+def test_one_failing_margin_by_hand():
+    # 7.5 mm off (margin 1.5); orientation and torque far inside theirs.
+    parts = objective_parts(make_log([0.0, 0.0, 0.0075], 0.0, np.array(LIMITS) * 0.1), OBJECTIVE)
+    margin = (0.0075 + 1e-6) / 0.005
+    assert float(parts["position_margin"]) == pytest.approx(margin)
+    # The smooth maximum of the log margins is the largest one, exceeding it by at most
+    # S log(count) and by far less when the others are far below.
+    expected = 0.1 * math.log1p(math.exp((math.log(margin) - math.log(0.8)) / 0.1))
+    assert float(parts["loss"]) == pytest.approx(expected, rel=1e-6)
+
+
+def test_torque_is_a_constraint_at_the_motors_limits():
+    inside = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 0.5), OBJECTIVE)
+    at_limit = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 1.0), OBJECTIVE)
+    beyond = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 2.0), OBJECTIVE)
+    assert float(inside["loss"]) < 0.01 < 0.1 < float(at_limit["loss"]) < float(beyond["loss"])
+    # Well below the limits, halving the torque buys next to nothing: no trade of precision
+    # for torque, where the weighted objective would halve its torque term.
+    halved = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 0.25), OBJECTIVE)
+    assert float(inside["loss"]) - float(halved["loss"]) < 0.005
+
+
+def test_a_runaway_weighs_its_log_not_its_size():
+    hundredfold = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 100.0), OBJECTIVE)
+    assert float(hundredfold["loss"]) == pytest.approx(math.log(100.0 / 0.8), rel=0.02)
+
+
+def test_gradient_matches_central_differences():
+    def loss(x):
+        offset, yaw, torque = x[:3], x[3], x[4:]
+        return objective_parts(make_log(offset, yaw, torque), OBJECTIVE)["loss"]
+
+    rng = np.random.default_rng(2)
+    for x in (
+        np.concatenate([[0.004, -0.003, 0.002], [0.015], np.array(LIMITS) * 0.9]),  # every margin near 1
+        np.concatenate([[0.0, 0.0, 0.0062], [0.001], np.array(LIMITS) * 0.4]),  # position failing
+    ):
+        x = jnp.asarray(x)
+        gradient = jax.grad(loss)(x)
+        assert np.all(np.isfinite(gradient)) and float(jnp.linalg.norm(gradient)) > 0.0
+        for _ in range(3):
+            direction = jnp.asarray(rng.normal(size=x.shape)) * jnp.abs(x).clip(1e-3)
+            h = 1e-6
+            central = (loss(x + h * direction) - loss(x - h * direction)) / (2 * h)
+            np.testing.assert_allclose(float(gradient @ direction), float(central), rtol=1e-6, atol=1e-12)
+
+
+def test_the_gradient_is_finite_at_an_exact_capture():
+    gradient = jax.grad(lambda d: objective_parts(make_log(d, 0.0, np.ones(7)), OBJECTIVE)["loss"])(jnp.zeros(3))
+    assert np.all(np.isfinite(gradient))
+
+
+@pytest.mark.parametrize(
+    "offset, yaw, scale",
+    [([0.001, 0, 0], 0.0, 0.3), ([0.0051, 0, 0], 0.0, 0.3), ([0.001, 0, 0], 0.02, 0.3), ([0, 0.002, 0], 0.0, 1.2)],
+)
+def test_the_margins_agree_with_the_campaigns_criteria(offset, yaw, scale):
+    parts = objective_parts(make_log(offset, yaw, np.array(LIMITS) * scale), OBJECTIVE)
+    margins = [float(parts[name]) for name in ("position_margin", "orientation_margin", "torque_margin")]
+    sample = {
+        "final_position_error_m": np.array([float(parts["final_position_m"])]),
+        "final_orientation_error_rad": np.array([float(parts["final_orientation_rad"])]),
+        "largest_peak_torque_Nm": np.array([scale * max(LIMITS)]),
+        "first_nonfinite_s": np.array([np.nan]),
+    }
+    classes = anatomy.failure_classes(sample, 0.005, math.radians(1.0), None)
+    # The smooth torque margin sits above the hard one by at most T log(count).
+    fails_errors = classes["failure"][0] != "success"
+    assert (max(margins[:2]) > 1.0) == fails_errors
+    assert (margins[2] > 1.0) == (scale >= 1.0)
