@@ -40,7 +40,7 @@ from spacegrasp_jax.tuning.gradients import central_differences, envelope_gradie
 from spacegrasp_jax.tuning.gradients import report as gradient_report
 from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights
 from spacegrasp_jax.tuning.run import TuneSetupError, tune
-from spacegrasp_jax.tuning.tune import TUNING_RANGES, TuneConfig
+from spacegrasp_jax.tuning.tune import METHODS, TUNING_RANGES, TuneConfig
 
 
 class UsageError(ValueError):
@@ -354,6 +354,8 @@ def _tune_config(args: argparse.Namespace) -> TuneConfig:
         aggregate=args.aggregate or ("clip" if args.realism else "mean"),
         ranges=_ranges(args, TUNING_RANGES),
         objective=args.objective,
+        method=args.method,
+        population=args.population,
     )
 
 
@@ -694,6 +696,18 @@ def build_parser() -> argparse.ArgumentParser:
         type=_real(0.0, 10.0, above=True),
         default=0.15,
         help="initial step size in log-gain space (default 0.15)",
+    )
+    tune.add_argument(
+        "--method",
+        choices=METHODS,
+        default=TuneConfig.method,
+        help=f"gradient: optax on the gradient; cmaes: CMA-ES, --steps generations of forward rollouts (default {TuneConfig.method})",
+    )
+    tune.add_argument(
+        "--population",
+        type=_whole(2, 10_000),
+        default=None,
+        help="CMA-ES candidates per generation (default 4 + 3 ln(number of tuned gains))",
     )
     tune.add_argument(
         "--objective",

@@ -37,18 +37,21 @@ from spacegrasp_jax.montecarlo import SampleLoops
 from spacegrasp_jax.perturbations import sample_scenarios
 from spacegrasp_jax.realism import make_realism
 from spacegrasp_jax.scenario import paper_scenario, scenario_from_mapping
+from spacegrasp_jax.tuning import cmaes
 from spacegrasp_jax.tuning.objective import Objective
-from spacegrasp_jax.tuning.parameters import gains_from_params
+from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import (
     CHECKPOINT,
     TuneConfig,
     flight_batch,
     load_checkpoint,
+    make_objective,
     make_optimizer,
     optimise,
     progress_line,
     scenario_parts,
     setup,
+    training_batch,
 )
 
 HOLDOUT_SEED_OFFSET = 1_000_003  # held-out samples never coincide with training samples
@@ -170,6 +173,98 @@ class TuneResult:
     log_after: object | None = None
 
 
+def _optimise_gradient(robot, smooth, base, config, before, out, resume, progress, stop):
+    """The optax loop (:func:`~spacegrasp_jax.tuning.tune.optimise`): ``(objective, tuned
+    gains, history, events, steps done, status)``."""
+    checkpoint_path = out / CHECKPOINT
+    objective, mask, params, value_and_grad = setup(robot, smooth, base, config, before.summary["max_abs_torque_Nm"])
+    resume_state = None
+    if resume and checkpoint_path.exists():
+        resume_state, _ = load_checkpoint(checkpoint_path, params, make_optimizer(config)[0].init(params))
+        print(f"resuming after step {resume_state.step}/{config.steps}", file=progress, flush=True)
+
+    def on_step(state):
+        print(progress_line(state, config.steps), end="", file=progress, flush=True)
+        _write_history(out / "history.csv", state.history)
+
+    print(
+        f"compiling the {config.gradient}-mode gradient of the {config.controller} {config.objective} objective "
+        f"over {config.batch} scenario(s)...",
+        file=progress,
+        flush=True,
+    )
+    state, status = optimise(
+        value_and_grad,
+        params,
+        config,
+        checkpoint_path=checkpoint_path,
+        resume_state=resume_state,
+        write_atomically=runfiles.write_atomically,
+        on_step=on_step,
+        stop=stop,
+    )
+    tuned = gains_from_params(state.params, base, mask)
+    return objective, tuned, state.history, state.events, state.step, status
+
+
+def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, stop):
+    """CMA-ES (:mod:`~spacegrasp_jax.tuning.cmaes`): as :func:`_optimise_gradient`."""
+    checkpoint_path = out / CHECKPOINT
+    objective = make_objective(robot, config, before.summary["max_abs_torque_Nm"])
+    mask = make_mask(base, config.controller, config.frozen)
+    params = {name: np.asarray(value) for name, value in initial_params(base, config.controller).items()}
+    x0 = cmaes.flatten(params, mask)
+    evaluate = cmaes.make_population_evaluator(
+        robot, training_batch(robot, smooth, config), base, mask, params, config.controller, objective, chunk=64
+    )
+    previous = None
+    if resume and checkpoint_path.exists():
+        previous = cmaes.load_checkpoint(checkpoint_path)
+        print(f"resuming after generation {len(previous[0])}/{config.steps}", file=progress, flush=True)
+
+    def on_generation(state):
+        row = state.history[-1]
+        print(
+            runfiles.progress_bar(
+                state.generation,
+                config.steps,
+                f"generation {state.generation}/{config.steps} mean's loss {row['loss']:.4f} "
+                f"(best candidate {row['best_candidate_loss']:.4f}) | final pos {1e3 * row['final_position_m']:.3f} mm "
+                f"| step size {row['sigma']:.3f}",
+            ),
+            end="",
+            file=progress,
+            flush=True,
+        )
+        _write_history(out / "history.csv", state.history)
+
+    print(
+        f"CMA-ES on the {config.controller} {config.objective} objective over {config.batch} scenario(s), "
+        f"{x0.size} numbers; compiling the population's forward rollouts...",
+        file=progress,
+        flush=True,
+    )
+    state, status = cmaes.optimise(
+        evaluate,
+        x0,
+        generations=config.steps,
+        population=config.population,
+        seed=config.seed,
+        cvar_alpha=config.cvar_alpha,
+        checkpoint_path=checkpoint_path,
+        config_dict=config.to_dict(),
+        write_atomically=runfiles.write_atomically,
+        resume=previous,
+        on_generation=on_generation,
+        stop=stop,
+    )
+    tuned_params = {
+        name: jax.numpy.asarray(value) for name, value in cmaes.unflatten(state.strategy.mean, params, mask).items()
+    }
+    tuned = gains_from_params(tuned_params, base, mask)
+    return objective, tuned, state.history, [], state.generation, status
+
+
 def tune(
     out: Path,
     *,
@@ -187,7 +282,7 @@ def tune(
     ``stop``: the signal guard of the caller (the command line's); by default the job
     installs its own for the optimisation (SIGINT/SIGTERM stop it after the current step)."""
     out = Path(out)
-    record_path, checkpoint_path = out / "run.json", out / CHECKPOINT
+    record_path = out / "run.json"
     if resume:
         if not record_path.exists():
             raise TuneSetupError(f"--resume: {out} holds no tuning run (no run.json)")
@@ -221,54 +316,38 @@ def tune(
     realism = make_realism(config.realism) if config.realism is not None else None
     flight_settings = dict(realism=realism, key=jax.random.PRNGKey(config.seed)) if realism is not None else {}
     before = experiment.run(robot, exact, base, config.controller, **flight_settings)
-    objective, mask, params, value_and_grad = setup(robot, smooth, base, config, before.summary["max_abs_torque_Nm"])
-    resume_state = None
-    if resume and checkpoint_path.exists():
-        resume_state, _ = load_checkpoint(checkpoint_path, params, make_optimizer(config)[0].init(params))
-        print(f"resuming after step {resume_state.step}/{config.steps}", file=progress, flush=True)
-
-    def on_step(state):
-        print(progress_line(state, config.steps), end="", file=progress, flush=True)
-        _write_history(out / "history.csv", state.history)
-
-    print(
-        f"compiling the {config.gradient}-mode gradient of the {config.controller} objective over {config.batch} scenario(s)...",
-        file=progress,
-        flush=True,
-    )
     with runfiles.StopRequest() if stop is None else contextlib.nullcontext(stop) as stop:
-        state, status = optimise(
-            value_and_grad,
-            params,
-            config,
-            checkpoint_path=checkpoint_path,
-            resume_state=resume_state,
-            write_atomically=runfiles.write_atomically,
-            on_step=on_step,
-            stop=stop,
-        )
+        if config.method == "cmaes":
+            objective, tuned, history, events, steps_done, status = _optimise_cmaes(
+                robot, smooth, base, config, before, out, resume, progress, stop
+            )
+        else:
+            objective, tuned, history, events, steps_done, status = _optimise_gradient(
+                robot, smooth, base, config, before, out, resume, progress, stop
+            )
     print(file=progress)
-    _write_history(out / "history.csv", state.history)
-    tuned = gains_from_params(state.params, base, mask)
+    _write_history(out / "history.csv", history)
     runfiles.write_json(out / "gains.json", tuned.to_dict(config.controller))
     if status == "interrupted":
         print(
-            f"interrupted after step {state.step}/{config.steps}; continue with: spacegrasp tune --out {out} --resume",
+            f"interrupted after step {steps_done}/{config.steps}; continue with: spacegrasp tune --out {out} --resume",
             file=progress,
         )
-        return TuneResult(status, state.history, before.log)
+        return TuneResult(status, history, before.log)
 
     print("evaluating the tuned gains with the exact contact law...", file=progress, flush=True)
     after = experiment.run(robot, exact, tuned, config.controller, **flight_settings)
     summary = {
         "status": status,
         "controller": config.controller,
-        "steps": state.step,
+        "steps": steps_done,
+        "method": config.method,
+        "objective_kind": config.objective,
         "evaluated_with": "exact contact law (eq 20), nominal scenario"
         + (", the run's realism, noise key of --seed" if realism is not None else ""),
         "paper_gains" if record["gains_source"] == "paper_gains()" else "starting_gains": _comparison(before),
         "tuned_gains": _comparison(after),
-        "rejected_steps": state.events,
+        "rejected_steps": events,
         "objective": dataclasses.asdict(objective),
     }
     start_key = next(key for key in summary if key in ("paper_gains", "starting_gains"))
@@ -317,4 +396,4 @@ def tune(
         samples.update({f"tuned_{name}": value for name, value in after_parts.items()})
         runfiles.write_arrays(out / "holdout.npz", samples)
     runfiles.write_json(out / "summary.json", summary)
-    return TuneResult(status, state.history, before.log, after.log)
+    return TuneResult(status, history, before.log, after.log)

@@ -40,6 +40,9 @@ from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_
 
 CHECKPOINT = "checkpoint.npz"
 
+#: The tuning methods (``--method``).
+METHODS = ("gradient", "cmaes")
+
 
 #: The robust batch's perturbations: initial joint angles, LAR pose and contact stiffness,
 #: the model and the initial velocities left nominal (the Monte-Carlo defaults vary those too).
@@ -88,6 +91,11 @@ class TuneConfig:
             the controller does not know: it believes the nominal robot.
         objective: ``"weighted"`` or ``"capture"``
             (:mod:`spacegrasp_jax.tuning.objective`).
+        method: ``"gradient"`` (optax on the reverse- or forward-mode gradient) or
+            ``"cmaes"`` (:mod:`spacegrasp_jax.tuning.cmaes`: ``steps`` generations of
+            ``population`` candidates, forward rollouts only).
+        population: CMA-ES's candidates per generation (``None``: its default,
+            ``4 + 3 ln n`` for n tuned numbers).
         aggregate: how the batch's gradients combine: ``"mean"`` (the gradient of the mean
             or CVaR) or ``"clip"``: each sample's gradient clipped to :data:`CLIP_FACTOR`
             times the batch's median gradient norm before the mean (one chaotic sample
@@ -112,6 +120,8 @@ class TuneConfig:
     realism: dict | None = None
     aggregate: str = "mean"
     objective: str = "weighted"
+    method: str = "gradient"
+    population: int | None = None
 
     def __post_init__(self):
         if self.controller not in ("admittance", "cartesian"):
@@ -128,6 +138,10 @@ class TuneConfig:
             raise ValueError(f"gradient: expected reverse or forward, got {self.gradient!r}")
         if self.objective not in OBJECTIVES:
             raise ValueError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
+        if self.method not in METHODS:
+            raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.population is not None and not (isinstance(self.population, int) and 2 <= self.population <= 10_000):
+            raise ValueError(f"population: must be a whole number from 2 to 10000, got {self.population!r}")
         if self.aggregate not in ("mean", "clip"):
             raise ValueError(f"aggregate: expected mean or clip, got {self.aggregate!r}")
         if self.realism is not None:
@@ -523,23 +537,38 @@ def optimise(
     return state, "done"
 
 
-def setup(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torque_scale_Nm):
-    """Objective, initial parameters, mask and the jitted loss gradient for a run."""
-    objective = Objective(
+def make_objective(robot: Robot, config: TuneConfig, torque_scale_Nm) -> Objective:
+    """The run's objective: ``config.objective`` with the ``weighted`` one's torque scale
+    and the robot's motor limits."""
+    return Objective(
         weights=config.weights,
         torque_scale_Nm=tuple(float(x) for x in torque_scale_Nm),
         temperature=config.temperature,
         kind=config.objective,
         torque_limit_Nm=tuple(float(x) for x in robot.joint_torque_limit),
     )
+
+
+def training_batch(robot: Robot, nominal: Scenario, config: TuneConfig):
+    """The batch every step (or generation) is evaluated on: under a realism, the
+    :class:`~spacegrasp_jax.montecarlo.SampleLoops` of :func:`flight_batch`; else the
+    stacked scenarios of :func:`training_scenarios`."""
+    if config.realism is not None:
+        return flight_batch(robot, nominal, config, config.seed, config.batch)
+    return training_scenarios(nominal, config)
+
+
+def setup(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torque_scale_Nm):
+    """Objective, initial parameters, mask and the jitted loss gradient for a run."""
+    objective = make_objective(robot, config, torque_scale_Nm)
     mask = make_mask(base, config.controller, config.frozen)
     params = initial_params(base, config.controller)
     if config.realism is not None:
         if config.gradient != "reverse":
             raise ValueError("gradient: tuning under a realism is reverse mode")
-        batch = flight_batch(robot, nominal, config, config.seed, config.batch)
+        batch = training_batch(robot, nominal, config)
         return objective, mask, params, make_flight_value_and_grad(robot, batch, base, mask, config, objective)
-    scenarios = training_scenarios(nominal, config)
+    scenarios = training_batch(robot, nominal, config)
     segment = checkpoint_segment(nominal.n_steps, config.batch) if config.gradient == "reverse" else None
     loss = make_loss(robot, scenarios, base, mask, config, objective, segment)
     return objective, mask, params, make_value_and_grad(loss, params, config.gradient)

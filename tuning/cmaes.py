@@ -1,0 +1,231 @@
+"""Gradient-free tuning: CMA-ES (the ``cma`` package) on the same parameters, objective and
+batch as the gradient loop, forward rollouts only.
+
+The parameters are the tuned entries of the log-gains (:mod:`spacegrasp_jax.tuning.parameters`,
+frozen groups left out), one flat vector. A generation asks ``population`` candidates of
+CMA-ES, adds the distribution's mean, and evaluates all of them on the batch in one sharded,
+chunked program (:func:`spacegrasp_jax.batching.map_in_chunks`: ``(population + 1) x batch``
+forward rollouts, no reverse-mode compile), then tells CMA-ES the candidates' objectives.
+The run's gains are the mean after the last generation (the best candidate of a fixed batch
+is the one most fitted to it).
+
+Resume without pickles: CMA-ES draws its candidates from its own seeded generator, so the
+checkpoint keeps each generation's candidates and objectives, and a resumed run replays the
+asks and tells, which rebuilds the strategy exactly, then goes on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import cma
+import jax
+import numpy as np
+
+from spacegrasp_jax import batching
+from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.model import Robot
+from spacegrasp_jax.montecarlo import SampleLoops
+from spacegrasp_jax.runfiles import StopRequest
+from spacegrasp_jax.tuning.objective import Objective
+from spacegrasp_jax.tuning.parameters import gains_from_params
+
+#: CMA-ES's initial step in log-gain units: about +-30% on every tuned gain.
+SIGMA = 0.3
+
+
+def flatten(params: dict, mask: dict) -> np.ndarray:
+    """The tuned entries of ``params`` (log-gains) as one vector, group by group."""
+    return np.concatenate([np.asarray(params[name])[np.asarray(mask[name])] for name in params])
+
+
+def unflatten(vector: np.ndarray, params: dict, mask: dict) -> dict:
+    """``params`` with its tuned entries replaced by ``vector`` (:func:`flatten`'s inverse)."""
+    out, at = {}, 0
+    for name, value in params.items():
+        value = np.array(value)
+        chosen = np.asarray(mask[name])
+        count = int(chosen.sum())
+        value[chosen] = vector[at : at + count]
+        out[name] = value
+        at += count
+    return out
+
+
+def _candidate_parts(model_robot, items, *, controller: str, objective: Objective, realism_loop: bool):
+    """The objective's parts of each (gains, sample) item (vmapped)."""
+    from spacegrasp_jax.tuning.tune import scenario_parts
+
+    if realism_loop:
+        gains, robot, scenario, realism, key = items
+        one = lambda g, r, s, re, k: scenario_parts(r, s, g, controller, objective, None, re, k, model_robot)
+        return jax.vmap(one)(gains, robot, scenario, realism, key)
+    gains, scenario = items
+    return jax.vmap(lambda g, s: scenario_parts(model_robot, s, g, controller, objective))(gains, scenario)
+
+
+def make_population_evaluator(
+    robot: Robot, samples, base: Gains, mask: dict, params: dict, controller: str, objective: Objective, chunk: int
+) -> Callable[[np.ndarray], dict]:
+    """``evaluate(vectors (P, n)) -> parts`` with every part of the objective shaped
+    (P, batch), for P parameter vectors on the batch ``samples``: a ``SampleLoops`` of the
+    flight-like loop (robots, scenarios, realisms, keys) or stacked scenarios of the
+    paper's loop."""
+    realism_loop = isinstance(samples, SampleLoops)
+    if realism_loop:
+        per_sample = (samples.robots, samples.scenarios, samples.realisms, samples.keys)
+        model_robot = samples.model_robot if samples.model_robot is not None else robot
+    else:
+        per_sample = (samples,)
+        model_robot = robot
+    batch = batching.batch_size(per_sample)
+    function = functools.partial(
+        _candidate_parts, controller=controller, objective=objective, realism_loop=realism_loop
+    )
+
+    def evaluate(vectors: np.ndarray) -> dict:
+        count = len(vectors)
+        gains = [gains_from_params(unflatten(v, params, mask), base, mask) for v in vectors]
+        stacked = jax.tree.map(lambda *g: np.repeat(np.stack([np.asarray(x) for x in g]), batch, axis=0), *gains)
+        items = (stacked, *jax.tree.map(lambda x: np.concatenate([np.asarray(x)] * count), per_sample))
+        parts = batching.map_in_chunks(
+            "tuning.cmaes",
+            function,
+            (model_robot,),
+            items,
+            chunk=chunk,
+            key=(controller, objective, realism_loop),
+            progress=None,
+        )
+        return {name: value.reshape(count, batch) for name, value in parts.items()}
+
+    return evaluate
+
+
+def batch_objective(losses: np.ndarray, cvar_alpha: float | None) -> np.ndarray:
+    """(P,) the objective of each candidate from its (P, batch) losses: the mean, or the mean
+    over the worst ``1 - cvar_alpha`` of the batch; a candidate with a non-finite loss gets
+    ``inf`` (CMA-ES ranks it last)."""
+    losses = np.asarray(losses, dtype=float)
+    if cvar_alpha is None:
+        total = losses.mean(axis=1)
+    else:
+        worst = max(1, math.ceil((1.0 - cvar_alpha) * losses.shape[1]))
+        total = np.sort(losses, axis=1)[:, -worst:].mean(axis=1)
+    return np.where(np.isfinite(total), total, np.inf)
+
+
+@dataclasses.dataclass
+class CmaState:
+    """A CMA-ES run after ``generation`` generations: the strategy, every generation's
+    candidates and objectives (what a resume replays), the mean's history rows."""
+
+    generation: int
+    strategy: cma.CMAEvolutionStrategy
+    asked: list
+    told: list
+    history: list
+
+
+def new_strategy(x0: np.ndarray, population: int | None, seed: int) -> cma.CMAEvolutionStrategy:
+    """CMA-ES from ``x0`` with step :data:`SIGMA`, seeded (its ``seed`` must not be 0, which
+    ``cma`` reads as "draw one"), silent."""
+    options = {"seed": seed + 1, "verbose": -9, "verb_log": 0, "verb_disp": 0}
+    if population is not None:
+        options["popsize"] = population
+    return cma.CMAEvolutionStrategy(np.asarray(x0, dtype=float), SIGMA, options)
+
+
+def replay(strategy: cma.CMAEvolutionStrategy, asked: list, told: list) -> None:
+    """Rebuild ``strategy`` by asking and telling the recorded generations again; raises
+    RuntimeError if an ask does not give back the recorded candidates (another ``cma``)."""
+    for candidates, objectives in zip(asked, told):
+        again = np.asarray(strategy.ask())
+        if not np.allclose(again, candidates, rtol=0.0, atol=1e-12):
+            raise RuntimeError("the checkpoint's CMA-ES generations do not replay (was it written by another cma?)")
+        strategy.tell(list(candidates), list(objectives))
+
+
+def save_checkpoint(path: Path, state: CmaState, config_dict: dict, write_atomically) -> None:
+    arrays = {f"asked_{k}": np.asarray(a) for k, a in enumerate(state.asked)}
+    arrays |= {f"told_{k}": np.asarray(t) for k, t in enumerate(state.told)}
+    arrays["meta"] = np.array(
+        json.dumps({"config": config_dict, "generation": state.generation, "history": state.history})
+    )
+    write_atomically(path, lambda target: np.savez(target, **arrays))
+
+
+def load_checkpoint(path: Path) -> tuple[list, list, list]:
+    """``(asked, told, history)`` of a CMA-ES checkpoint."""
+    with np.load(path, allow_pickle=False) as data:
+        meta = json.loads(str(data["meta"]))
+        count = meta["generation"]
+        return (
+            [data[f"asked_{k}"] for k in range(count)],
+            [data[f"told_{k}"] for k in range(count)],
+            meta["history"],
+        )
+
+
+def optimise(
+    evaluate: Callable[[np.ndarray], dict],
+    x0: np.ndarray,
+    *,
+    generations: int,
+    population: int | None,
+    seed: int,
+    cvar_alpha: float | None,
+    checkpoint_path: Path | None = None,
+    config_dict: dict | None = None,
+    write_atomically=None,
+    resume: tuple | None = None,
+    on_generation: Callable[[CmaState], None] | None = None,
+    stop: StopRequest | None = None,
+) -> tuple[CmaState, str]:
+    """Run (or, from ``resume = (asked, told, history)``, continue) CMA-ES for
+    ``generations``. Each history row has the generation, the mean's objective and parts
+    (batch means), the best candidate's objective, the step size and the wall time.
+    Returns the state and ``"done"`` or ``"interrupted"``."""
+    strategy = new_strategy(x0, population, seed)
+    asked, told, history = ([], [], []) if resume is None else (list(resume[0]), list(resume[1]), list(resume[2]))
+    replay(strategy, asked, told)
+    state = CmaState(len(asked), strategy, asked, told, history)
+    if not history:  # generation 0: the starting point
+        start = time.perf_counter()
+        parts = evaluate(np.asarray([x0]))
+        history.append(_row(0, parts, 0, batch_objective(parts["loss"], cvar_alpha)[0], math.nan, SIGMA, start))
+    while state.generation < generations:
+        if stop is not None and stop.requested:
+            return state, "interrupted"
+        start = time.perf_counter()
+        candidates = np.asarray(strategy.ask())
+        parts = evaluate(np.concatenate([candidates, strategy.mean[None]]))
+        objectives = batch_objective(parts["loss"], cvar_alpha)
+        strategy.tell(list(candidates), list(objectives[:-1]))
+        asked.append(candidates)
+        told.append(objectives[:-1])
+        state.generation += 1
+        history.append(
+            _row(state.generation, parts, -1, objectives[-1], float(objectives[:-1].min()), strategy.sigma, start)
+        )
+        if checkpoint_path is not None:
+            save_checkpoint(checkpoint_path, state, config_dict or {}, write_atomically)
+        if on_generation is not None:
+            on_generation(state)
+    return state, "done"
+
+
+def _row(generation, parts, which, objective, best, sigma, start) -> dict:
+    """A history row: the objective of candidate ``which`` (the mean: the last) and the batch
+    means of its parts, the generation's best objective, CMA-ES's step size, wall time."""
+    row = {"step": generation, "loss": float(objective)}
+    row |= {name: float(np.nanmean(value[which])) for name, value in parts.items() if name != "loss"}
+    row["largest_peak_torque_Nm"] = float(np.nanmax(parts["largest_peak_torque_Nm"][which]))
+    row |= {"best_candidate_loss": best, "sigma": float(sigma), "wall_s": time.perf_counter() - start}
+    return row
