@@ -32,7 +32,7 @@ from spacegrasp_jax import (
     statistics,
 )
 from spacegrasp_jax.control import CONTROLLERS, GainsError, UnusedGainsWarning, load_gains, paper_gains
-from spacegrasp_jax.perturbations import PerturbationError, PerturbationRanges, load_ranges
+from spacegrasp_jax.perturbations import FREE_TARGET_RANGES, PerturbationError, PerturbationRanges, load_ranges
 from spacegrasp_jax.realism import Realism, RealismError, load_realism
 from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
 from spacegrasp_jax.tuning.gradients import HORIZONS as GRADIENT_HORIZONS
@@ -295,7 +295,9 @@ def _tune(args: argparse.Namespace) -> int:
         raise UsageError(f"{option}: {rest}" if separator and option else str(error)) from None
     # Every file read and checked now: tune() reads them again after writing run.json.
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
-    _realism(args, load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot))
+    scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
+    _realism(args, scenario)
+    _check_envelope(args, scenario)
     if args.gains:
         load_gains(args.gains, args.controller)
     runfiles.check_output_folder(Path(args.out))
@@ -359,15 +361,16 @@ def _tune_config(args: argparse.Namespace) -> TuneConfig:
     )
 
 
-#: The envelopes ``--ranges`` knows by name: the campaigns' defaults and the tuning batch's.
-NAMED_RANGES = {"montecarlo": PerturbationRanges(), "tuning": TUNING_RANGES}
+#: The envelopes ``--ranges`` knows by name: the campaigns' defaults, the tuning batch's and
+#: free-floating targets of 200 to 2,000 kg (with a scenario that has a [target]).
+NAMED_RANGES = {"montecarlo": PerturbationRanges(), "tuning": TUNING_RANGES, "free_target": FREE_TARGET_RANGES}
 
 
 def add_ranges_arguments(parser: argparse.ArgumentParser, default: str) -> None:
     """``--ranges`` and ``--range`` on ``parser``, whose envelope is ``default`` (a name)."""
     parser.add_argument(
         "--ranges",
-        metavar="montecarlo|tuning|FILE",
+        metavar="montecarlo|tuning|free_target|FILE",
         help=f"perturbation half-widths: a named envelope or a TOML file whose missing keys keep the {default} "
         f"envelope's (default: {default}; documentation: File formats)",
     )
@@ -378,6 +381,14 @@ def add_ranges_arguments(parser: argparse.ArgumentParser, default: str) -> None:
         metavar="NAME=VALUE",
         help="override one half-width, e.g. q_init_rad=0.05 (repeatable)",
     )
+
+
+def _check_envelope(args: argparse.Namespace, scenario) -> None:
+    """``--ranges free_target`` draws targets: refused for a scenario without one."""
+    if getattr(args, "ranges", None) == "free_target" and scenario.target is None:
+        raise UsageError(
+            "--ranges free_target: needs a scenario with a free-floating [target], e.g. --scenario configs/free_target_envelope.toml"
+        )
 
 
 def _ranges(args: argparse.Namespace, default: PerturbationRanges) -> PerturbationRanges:
@@ -445,6 +456,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
     _realism(args, scenario)  # the control period against the scenario, before compiling
+    _check_envelope(args, scenario)
     out = Path(args.out)
     runfiles.check_output_folder(out)
     names = ", ".join(variant.key for variant in variants)
@@ -497,6 +509,7 @@ def _gradients(args: argparse.Namespace) -> int:
         raise UsageError(str(error)) from None
     robot, scenario, gains = _load_inputs(args)
     realism = _realism(args, scenario)
+    _check_envelope(args, scenario)
     out = Path(args.out)
     runfiles.check_output_folder(out)
     objective = Objective(  # the torque scale of Table 5: reports at different gains compare

@@ -32,7 +32,16 @@ own (the other samples stay as they are):
 * ``target_inertia_fraction``: its inertia ``I`` becomes ``D I D``, ``D = diag(sqrt(1 + U_k
   * value))`` in LAR axes;
 * ``target_speed_mps``, ``target_rate_radps``: each component of its initial velocity and
-  angular velocity (LAR axes) moves by ``U * value`` (drift and tumble).
+  angular velocity (LAR axes) moves by ``U * value`` (drift and tumble);
+* ``target_mass_log_range``: its mass and its inertia both scale by ``exp(U * value)``
+  (log-uniform; a body of the same shape and another density: "proportionate inertia");
+* ``target_com_offset_m``: its CoM moves from ``com_in_lar`` to a point drawn uniformly in
+  the ball of this radius around it (LAR coordinates).
+
+The ``free_target`` envelope (:data:`FREE_TARGET_RANGES`, about the nominal target of
+``configs/free_target_envelope.toml``, 632 kg at rest with its CoM 0.25 m behind the ring)
+spans targets of 200 to 2,000 kg, drifting up to 5 mm/s and tumbling up to 1 deg/s, their
+CoM up to 0.5 m from the LAR origin.
 
 Without a target these draws change nothing.
 
@@ -84,6 +93,8 @@ class PerturbationRanges:
     target_inertia_fraction: float = 0.1
     target_speed_mps: float = 0.001
     target_rate_radps: float = 0.005
+    target_mass_log_range: float = 0.0
+    target_com_offset_m: float = 0.0
 
     def __post_init__(self):
         for field in dataclasses.fields(self):
@@ -132,6 +143,21 @@ class PerturbationRanges:
         return dataclasses.replace(base if base is not None else cls(), **document)
 
 
+#: The free-floating targets a capture of the mission may meet, about the nominal target of
+#: ``configs/free_target_envelope.toml`` (632 kg at rest, CoM 0.25 m behind the ring): 200 to
+#: 2,000 kg log-uniformly with the inertia in proportion, drifting up to 5 mm/s and tumbling
+#: up to 1 deg/s (each component up to 1/sqrt(3) of those, so the vectors stay within them),
+#: the CoM up to 0.5 m from the LAR origin; the rest the campaigns' envelope.
+FREE_TARGET_RANGES = PerturbationRanges(
+    target_mass_fraction=0.0,
+    target_inertia_fraction=0.0,
+    target_mass_log_range=0.5 * math.log(10.0),
+    target_speed_mps=0.005 / math.sqrt(3.0),
+    target_rate_radps=math.radians(1.0) / math.sqrt(3.0),
+    target_com_offset_m=0.25,
+)
+
+
 def load_ranges(path: str | Path, base: PerturbationRanges | None = None) -> PerturbationRanges:
     """Ranges from a TOML file whose keys are the field names (all optional, the others
     ``base``'s, by default the campaign defaults; a ``[perturbations]`` table is also
@@ -173,6 +199,8 @@ class Perturbation:
     target_inertia_scale: jax.Array
     target_velocity: jax.Array
     target_angular_velocity: jax.Array
+    target_mass_log_scale: jax.Array
+    target_com_offset: jax.Array
 
 
 def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Perturbation:
@@ -187,6 +215,7 @@ def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Pertu
     k_v, k_w, k_qd, k_radius, k_mass, k_inertia = jax.random.split(jax.random.fold_in(key, 1), 6)
     k_estimate_p, k_estimate_r = jax.random.split(jax.random.fold_in(key, 2), 2)  # the same streams above
     k_target_m, k_target_i, k_target_v, k_target_w = jax.random.split(jax.random.fold_in(key, 3), 4)
+    k_target_log_m, k_target_com = jax.random.split(jax.random.fold_in(key, 4), 2)  # the envelope's, on their own
     return Perturbation(
         dq_init=ranges.q_init_rad * uniform(k_q, (N_JOINTS,)),
         dp_lar=ranges.lar_position_m * uniform(k_p, (3,)),
@@ -205,7 +234,17 @@ def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Pertu
         target_inertia_scale=1.0 + ranges.target_inertia_fraction * uniform(k_target_i, (3,)),
         target_velocity=ranges.target_speed_mps * uniform(k_target_v, (3,)),
         target_angular_velocity=ranges.target_rate_radps * uniform(k_target_w, (3,)),
+        target_mass_log_scale=ranges.target_mass_log_range * uniform(k_target_log_m, ()),
+        target_com_offset=ranges.target_com_offset_m * _in_unit_ball(k_target_com, dtype),
     )
+
+
+def _in_unit_ball(key: jax.Array, dtype) -> jax.Array:
+    """(3,) a point drawn uniformly in the unit ball."""
+    k_direction, k_radius = jax.random.split(key)
+    direction = jax.random.normal(k_direction, (3,), dtype)
+    direction = direction / jnp.linalg.norm(direction)
+    return direction * jax.random.uniform(k_radius, (), dtype) ** (1.0 / 3.0)
 
 
 def apply_to_robot(robot: Robot, perturbation: Perturbation) -> Robot:
@@ -230,8 +269,12 @@ def apply_to_scenario(scenario: Scenario, perturbation: Perturbation) -> Scenari
     body = scenario.target
     if body is not None:
         D = jnp.sqrt(p.target_inertia_scale)
+        proportion = jnp.exp(p.target_mass_log_scale)
         body = dataclasses.replace(
-            body, mass=body.mass * p.target_mass_scale, inertia=D[:, None] * body.inertia * D[None, :]
+            body,
+            mass=body.mass * p.target_mass_scale * proportion,
+            inertia=proportion * D[:, None] * body.inertia * D[None, :],
+            com_in_lar=body.com_in_lar + p.target_com_offset,
         )
         velocity_lar = scenario.R_lar.T @ initial.target.v + p.target_velocity
         state = initial_target_state(body, p_lar, R_lar, velocity_lar, initial.target.w + p.target_angular_velocity)

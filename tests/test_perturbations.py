@@ -118,3 +118,41 @@ def test_ranges_from_a_file(tmp_path):
     path.write_text("q_init_rad = [0.05\n")
     with pytest.raises(PerturbationError, match="not valid TOML"):
         load_ranges(path)
+
+
+def test_the_free_target_envelope_stays_within_its_bounds_and_fills_them(robot):
+    from spacegrasp_jax.perturbations import FREE_TARGET_RANGES, sample
+    from spacegrasp_jax.scenario import load_scenario
+    from spacegrasp_jax.target import lar_frame
+
+    nominal = load_scenario(robot, "configs/free_target_envelope.toml")
+    _, scenarios, _ = sample(robot, nominal, 4242, np.arange(3000), FREE_TARGET_RANGES)
+    body, state = scenarios.target, scenarios.initial.target
+    mass = np.asarray(body.mass)
+    assert mass.min() >= 200.0 - 1e-9 and mass.max() <= 2000.0 + 1e-9
+    assert mass.min() < 210.0 and mass.max() > 1900.0  # log-uniform: both ends are reached
+    assert abs(np.median(np.log(mass)) - np.log(632.5)) < 0.05
+    # Proportionate inertia: the same shape, scaled with the mass.
+    np.testing.assert_allclose(
+        np.asarray(body.inertia) / mass[:, None, None],
+        np.broadcast_to(np.asarray(nominal.target.inertia) / float(nominal.target.mass), (3000, 3, 3)),
+        rtol=1e-12,
+    )
+    speed = np.linalg.norm(np.asarray(state.v), axis=1)
+    rate = np.linalg.norm(np.asarray(state.w), axis=1)
+    assert speed.max() <= 0.005 + 1e-12 and speed.max() > 0.004
+    assert rate.max() <= np.radians(1.0) + 1e-12 and rate.max() > 0.8 * np.radians(1.0)
+    com_distance = np.linalg.norm(np.asarray(body.com_in_lar), axis=1)
+    assert com_distance.max() <= 0.5 + 1e-12 and com_distance.max() > 0.48
+    # The CoM sits where the target's state puts it, relative to the (perturbed) LAR frame.
+    p_lar, _ = jax.vmap(lar_frame)(body, state)
+    np.testing.assert_allclose(p_lar, scenarios.p_lar, atol=1e-12)
+
+
+def test_the_envelope_draws_leave_the_other_samples_as_they_were(robot, nominal):
+    from spacegrasp_jax.perturbations import FREE_TARGET_RANGES, PerturbationRanges, sample
+
+    _, plain, _ = sample(robot, nominal, 7, np.arange(8), PerturbationRanges())
+    _, with_envelope, _ = sample(robot, nominal, 7, np.arange(8), FREE_TARGET_RANGES)
+    for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(with_envelope)):
+        np.testing.assert_array_equal(a, b)  # no target: the envelope's draws change nothing
