@@ -119,7 +119,8 @@ def test_the_vector_round_trip_leaves_frozen_and_zero_gains_alone():
     params = {name: np.asarray(value) for name, value in initial_params(gains, "admittance").items()}
     mask = make_mask(gains, "admittance", frozen=("kd",))
     vector = cmaes.flatten(params, mask)
-    assert vector.size == 6 * 3 + 7 * 2  # kd frozen
+    assert vector.size == 6 * 3 + 7 * 2 + 1  # kd frozen; the damping tuned from its start
+    np.testing.assert_allclose(np.exp(params["pinv_damping"]), 1e-3)
     moved = cmaes.unflatten(vector + 1.0, params, mask)
     np.testing.assert_array_equal(moved["kd"], params["kd"])
     np.testing.assert_allclose(moved["kp"], params["kp"] + 1.0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import warnings
 
@@ -73,8 +74,8 @@ def test_gains_json_round_trip_and_errors(tmp_path):
 def test_a_gains_file_holds_what_its_controller_uses(tmp_path):
     # Written for one controller: only that law's groups and the PID's.
     tuned = make_gains(**(paper_gains().to_dict() | {"Kd": 300.0, "K_lin": 2.0}))
-    assert set(tuned.to_dict("admittance")) == {"Md", "Bd", "Kd", "kp", "ki", "kd"}
-    assert set(tuned.to_dict("cartesian")) == {"K_lin", "K_eul", "kp", "ki", "kd"}
+    assert set(tuned.to_dict("admittance")) == {"Md", "Bd", "Kd", "kp", "ki", "kd", "pinv_damping"}
+    assert set(tuned.to_dict("cartesian")) == {"K_lin", "K_eul", "kp", "ki", "kd", "pinv_damping"}
     path = tmp_path / "admittance.json"
     path.write_text(json.dumps(tuned.to_dict("admittance")))
     with warnings.catch_warnings():
@@ -158,3 +159,34 @@ def test_laws_drive_the_ee_towards_the_target():
     pose, pose_des = jnp.zeros(6), jnp.array([0.0, 0.0, 0.01, 0.0, 0.0, 0.02])
     qd = cartesian.desired_joint_rates(paper_gains(), J, R_lar_ee, pose, pose_des)
     np.testing.assert_allclose(qd[:6], 3.0 * (pose_des - pose), atol=1e-14)
+
+
+def test_the_gains_damping_is_the_damped_least_squares_law_and_differentiable():
+    rng = np.random.default_rng(4)
+    J = jnp.asarray(rng.normal(size=(6, 7)))
+    twist = jnp.asarray(rng.normal(size=6))
+    inputs = ControlInputs(
+        jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), J, jnp.eye(3)
+    )
+    state = AdmittanceState(V_ref=twist)
+    lam = 0.2
+    damped = make_gains(**(paper_gains().to_dict() | {"pinv_damping": lam}))
+    qd_des, _ = Admittance().update(damped, inputs, state, 1e-3)
+    expected = np.linalg.solve(np.asarray(J.T @ J) + lam**2 * np.eye(7), np.asarray(J.T @ twist))
+    np.testing.assert_allclose(qd_des, expected, rtol=1e-10)
+    # The same as the law's own (static) damping; the two add up.
+    np.testing.assert_allclose(qd_des, Admittance(pinv_damping=lam).update(paper_gains(), inputs, state, 1e-3)[0])
+    half = make_gains(**(paper_gains().to_dict() | {"pinv_damping": lam / 2}))
+    np.testing.assert_allclose(qd_des, Admittance(pinv_damping=lam / 2).update(half, inputs, state, 1e-3)[0])
+    # The paper's gains: no damping, the exact pseudoinverse.
+    assert paper_gains().pinv_damping.tolist() == [0.0]
+    exact, _ = Admittance().update(paper_gains(), inputs, state, 1e-3)
+    np.testing.assert_allclose(exact, np.linalg.pinv(np.asarray(J)) @ np.asarray(twist), rtol=1e-10)
+
+    # d qd / d lambda against central differences.
+    def f(damping):
+        gains = dataclasses.replace(paper_gains(), pinv_damping=jnp.reshape(damping, (1,)))
+        return jnp.sum(Admittance().update(gains, inputs, state, 1e-3)[0] ** 2)
+
+    h = 1e-6
+    np.testing.assert_allclose(jax.grad(f)(lam), (f(lam + h) - f(lam - h)) / (2 * h), rtol=1e-6)

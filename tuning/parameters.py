@@ -1,6 +1,10 @@
-"""Tunable parameters: the logarithms of the gain diagonals, with a mask that freezes any
-subset. ``exp`` keeps every tuned gain positive; frozen entries keep their base value and get
-a zero gradient."""
+"""Tunable parameters: the logarithms of the gain diagonals and of the pseudoinverse's
+damping, with a mask that freezes any subset. ``exp`` keeps every tuned gain positive; frozen
+entries keep their base value and get a zero gradient.
+
+A damping of 0 (the paper's exact pseudoinverse) has no logarithm: a tuned damping starts at
+:data:`DAMPING_START`, small enough to change nothing measurable away from a singularity
+(it adds ``1e-6`` to ``J J^T``, whose eigenvalues along the paper's motion are 0.01 to 1)."""
 
 from __future__ import annotations
 
@@ -9,31 +13,43 @@ import jax.numpy as jnp
 
 from spacegrasp_jax.control.gains import GAIN_SHAPES, Gains
 
-#: Gain groups tuned for each controller (39 numbers for the admittance law).
+#: Gain groups tuned for each controller (40 numbers for the admittance law).
 GROUPS = {
-    "admittance": ("Md", "Bd", "Kd", "kp", "ki", "kd"),
-    "cartesian": ("K_lin", "K_eul", "kp", "ki", "kd"),
+    "admittance": ("Md", "Bd", "Kd", "kp", "ki", "kd", "pinv_damping"),
+    "cartesian": ("K_lin", "K_eul", "kp", "ki", "kd", "pinv_damping"),
 }
+
+#: Where a tuned ``pinv_damping`` starts when the base gains' is 0.
+DAMPING_START = 1e-3
 
 
 def make_mask(base: Gains, controller: str, frozen: tuple[str, ...] = ()) -> dict[str, jax.Array]:
     """Boolean arrays, True where an entry is tuned: the controller's groups minus the
-    ``frozen`` groups, and never an entry whose base value is 0 (it has no logarithm)."""
+    ``frozen`` groups, and never a gain whose base value is 0 (it has no logarithm; the
+    damping starts at :data:`DAMPING_START` instead)."""
     unknown = sorted(set(frozen) - set(GAIN_SHAPES))
     if unknown:
         raise ValueError(f"--freeze: unknown gain group(s) {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")
     return {
-        name: jnp.asarray(getattr(base, name)) > 0.0 if name not in frozen else jnp.zeros(GAIN_SHAPES[name], dtype=bool)
+        name: jnp.zeros(GAIN_SHAPES[name], dtype=bool)
+        if name in frozen
+        else jnp.ones(GAIN_SHAPES[name], dtype=bool)
+        if name == "pinv_damping"
+        else jnp.asarray(getattr(base, name)) > 0.0
         for name in GROUPS[controller]
     }
 
 
 def initial_params(base: Gains, controller: str) -> dict[str, jax.Array]:
-    """``log`` of the tuned groups' gains (a zero stands in where the base gain is 0)."""
-    return {
-        name: jnp.log(jnp.where(jnp.asarray(getattr(base, name)) > 0.0, getattr(base, name), 1.0))
-        for name in GROUPS[controller]
-    }
+    """``log`` of the tuned groups' gains (a zero stands in where the base gain is 0, and
+    :data:`DAMPING_START` where the base damping is)."""
+
+    def start(name):
+        value = jnp.asarray(getattr(base, name))
+        fill = DAMPING_START if name == "pinv_damping" else 1.0
+        return jnp.log(jnp.where(value > 0.0, value, fill))
+
+    return {name: start(name) for name in GROUPS[controller]}
 
 
 def gains_from_params(params: dict[str, jax.Array], base: Gains, mask: dict[str, jax.Array]) -> Gains:

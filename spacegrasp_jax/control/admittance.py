@@ -83,7 +83,9 @@ class Admittance:
         eq 15 by forward Euler over the control period ``dt`` (s)."""
         # Relative to a moving target, the command adds the LAR frame's own twist.
         V_command = state.V_ref if inputs.frame_twist is None else state.V_ref + inputs.frame_twist
-        qd_des = desired_joint_rates(inputs.J_dyn_ee, inputs.R_lar_ee, V_command, self.pinv_damping)
+        qd_des = desired_joint_rates(
+            inputs.J_dyn_ee, inputs.R_lar_ee, V_command, self.pinv_damping + gains.pinv_damping[0]
+        )
         rate = reference_twist_rate(
             gains, inputs.pose, inputs.twist, inputs.pose_des, inputs.twist_des, inputs.twist_rate_des, inputs.wrench
         )

@@ -67,7 +67,13 @@ class Cartesian:
     ) -> tuple[jax.Array, CartesianState]:
         """``(qd_des (7,) rad/s, state)`` from the pose error (``dt`` unused)."""
         qd_des = desired_joint_rates(
-            gains, inputs.J_dyn_ee, inputs.R_lar_ee, inputs.pose, inputs.pose_des, self.pinv_damping, inputs.frame_twist
+            gains,
+            inputs.J_dyn_ee,
+            inputs.R_lar_ee,
+            inputs.pose,
+            inputs.pose_des,
+            self.pinv_damping + gains.pinv_damping[0],
+            inputs.frame_twist,
         )
         return qd_des, state
 

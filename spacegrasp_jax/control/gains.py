@@ -12,6 +12,11 @@ Every gain matrix of the paper is diagonal, so each is held as its diagonal:
 | ``kp`` | (7,) | N m s/rad | Table 4 (joint PID on the rate error) |
 | ``ki`` | (7,) | N m/rad | Table 4 |
 | ``kd`` | (7,) | N m s^2/rad | Table 4 |
+| ``pinv_damping`` | (1,) | as ``J_dyn``'s entries | 0 (the exact pseudoinverse of eqs 17, 21) |
+
+``pinv_damping`` is the damping a mission sets at design time to keep the law's
+pseudoinverse bounded near Dynamic-Jacobian singularities (``J^T (J J^T + damping^2 1)^-1``);
+it adds to a law's own (static) ``pinv_damping``, so the paper's gains keep the exact law.
 
 The first three rows of ``Md``/``Bd``/``Kd`` act on the position in the LAR frame, the last
 three on the ZYX Euler angles ``[roll, pitch, yaw]``.
@@ -30,13 +35,15 @@ import numpy as np
 from spacegrasp_jax.compilation import require_float64
 from spacegrasp_jax.inputs import numbers, read_document
 
-GAIN_SHAPES = {"Md": 6, "Bd": 6, "Kd": 6, "K_lin": 3, "K_eul": 3, "kp": 7, "ki": 7, "kd": 7}
+GAIN_SHAPES = {"Md": 6, "Bd": 6, "Kd": 6, "K_lin": 3, "K_eul": 3, "kp": 7, "ki": 7, "kd": 7, "pinv_damping": 1}
 
 #: The gain groups each controller uses (the joint PID stage's with its law's).
 GAINS_USED = {
-    "admittance": ("Md", "Bd", "Kd", "kp", "ki", "kd"),
-    "cartesian": ("K_lin", "K_eul", "kp", "ki", "kd"),
+    "admittance": ("Md", "Bd", "Kd", "kp", "ki", "kd", "pinv_damping"),
+    "cartesian": ("K_lin", "K_eul", "kp", "ki", "kd", "pinv_damping"),
 }
+#: Groups a description may leave out, and the value they then take.
+_OPTIONAL = {"pinv_damping": 0.0}
 # Gains that must be strictly positive (the rest may be zero, e.g. no integral action).
 _STRICTLY_POSITIVE = {"Md", "Bd", "Kd", "K_lin", "K_eul", "kp"}
 
@@ -49,8 +56,8 @@ class GainsError(ValueError):
 @dataclasses.dataclass(frozen=True)
 class Gains:
     """Diagonal gains of the admittance law (``Md``, ``Bd``, ``Kd``), the Cartesian law
-    (``K_lin``, ``K_eul``) and the joint PID loops (``kp``, ``ki``, ``kd``); see the module
-    docstring for shapes and units."""
+    (``K_lin``, ``K_eul``), the joint PID loops (``kp``, ``ki``, ``kd``) and the
+    pseudoinverse's damping (``pinv_damping``); see the module docstring for shapes and units."""
 
     Md: jax.Array
     Bd: jax.Array
@@ -60,6 +67,7 @@ class Gains:
     kp: jax.Array
     ki: jax.Array
     kd: jax.Array
+    pinv_damping: jax.Array
 
     def to_dict(self, controller: str | None = None) -> dict[str, list[float]]:
         """Plain lists, for JSON: the groups ``controller`` uses (:data:`GAINS_USED`), or
@@ -69,7 +77,8 @@ class Gains:
 
 
 def make_gains(**fields) -> Gains:
-    """Validate and build :class:`Gains`; a scalar is broadcast to the field's length.
+    """Validate and build :class:`Gains`; a scalar is broadcast to the field's length, and
+    ``pinv_damping`` may be left out (0: the exact pseudoinverse).
 
     Raises:
         GainsError: missing or unknown field, wrong length, non-finite, negative value, or
@@ -80,6 +89,7 @@ def make_gains(**fields) -> Gains:
     unknown = sorted(set(fields) - set(GAIN_SHAPES))
     if unknown:
         raise GainsError(f"unknown gain(s): {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")
+    fields = _OPTIONAL | fields
     missing = [name for name in GAIN_SHAPES if name not in fields]
     if missing:
         raise GainsError(f"missing gain(s): {', '.join(missing)}")
