@@ -633,7 +633,8 @@ def _benchmark(args: argparse.Namespace) -> int:
 
 
 def _print_campaign(result: campaign.CampaignResult) -> None:
-    header = f"{'variant':24} {'success [95% CI]':>22} {'diverged':>8} {'unstable':>8} {'final pos p50/p95 [mm]':>23} {'peak |u| p50/p95 [N m]':>23} {'contact p95 [N]':>16}"
+    width = max(24, *(len(key) for key in result.summary["variants"]))
+    header = f"{'variant':{width}} {'success [95% CI]':>22} {'diverged':>8} {'unstable':>8} {'final pos p50/p95 [mm]':>23} {'peak |u| p50/p95 [N m]':>23} {'contact p95 [N]':>16}"
     print(header)
     for key, summary in result.summary["variants"].items():
         stats = summary["statistics_over_non_diverged"]
@@ -644,7 +645,7 @@ def _print_campaign(result: campaign.CampaignResult) -> None:
 
         contact = stats["max_contact_force_N"]
         print(
-            f"{key:24} {statistics.format_interval(summary['success_interval']):>22} {summary['diverged']:>8d} {summary['unstable']:>8d} {pair('final_position_error_m', 1e3):>23} "
+            f"{key:{width}} {statistics.format_interval(summary['success_interval']):>22} {summary['diverged']:>8d} {summary['unstable']:>8d} {pair('final_position_error_m', 1e3):>23} "
             f"{pair('largest_peak_torque_Nm'):>23} {contact['p95'] if contact.get('count') else float('nan'):>16.3f}"
         )
     for name, comparison in result.summary.get("comparisons", {}).items():

@@ -18,6 +18,7 @@ import pytest
 
 from spacegrasp_jax import campaign, experiment, runfiles
 from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, run_campaign, variant_summary
+from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.metrics import METRICS
 from spacegrasp_jax.montecarlo import success
 from spacegrasp_jax.perturbations import PerturbationRanges
@@ -322,3 +323,56 @@ def test_unstable_samples_are_counted_and_are_not_successes(five_samples, varian
     assert summary["unstable"] >= 1 and summary["success_rate"] == pytest.approx(np.mean(peaks <= limit))
     sample_metrics["success"] = success(sample_metrics, 1.0, 1.0, None)
     assert variant_summary(sample_metrics, loose)["unstable"] == 0
+
+
+def test_gain_sets_are_compared_pairwise_against_the_first_of_their_controller(capsys):
+    from spacegrasp_jax import statistics
+    from spacegrasp_jax.cli import _print_campaign
+
+    rng = np.random.default_rng(9)
+    gains = paper_gains()
+    variants = [
+        campaign.Variant("admittance", gains, "paper"),
+        campaign.Variant("admittance", gains, "tuned"),
+        campaign.Variant("cartesian", gains, "paper"),
+        campaign.Variant("cartesian", gains, "tuned"),
+    ]
+    metrics = {}
+    for variant in variants:
+        metrics[variant.key] = {
+            "success": rng.random(200) < 0.7,
+            "final_position_error_m": rng.random(200) * 0.008,
+            "final_orientation_error_rad": rng.random(200) * 0.01,
+            "largest_peak_torque_Nm": rng.random(200) * 5.0,
+        }
+    comparisons = campaign.comparisons(metrics, variants)
+    assert set(comparisons) == {"admittance/tuned vs admittance/paper", "cartesian/tuned vs cartesian/paper"}
+    one = comparisons["admittance/tuned vs admittance/paper"]
+    assert one["success"] == statistics.compare_success(
+        metrics["admittance/paper"]["success"], metrics["admittance/tuned"]["success"]
+    )
+    assert one["largest_peak_torque_Nm"] == statistics.compare_metric(
+        metrics["admittance/paper"]["largest_peak_torque_Nm"], metrics["admittance/tuned"]["largest_peak_torque_Nm"]
+    )
+    summary = {
+        "variants": {
+            key: {
+                "success_interval": statistics.success_interval(int(m["success"].sum()), 200),
+                "diverged": 0,
+                "unstable": 0,
+                "statistics_over_non_diverged": {
+                    name: {"count": 0}
+                    for name in ("final_position_error_m", "largest_peak_torque_Nm", "max_contact_force_N")
+                },
+            }
+            for key, m in metrics.items()
+        },
+        "comparisons": comparisons,
+        "throughput": {"rollouts_per_s": None},
+    }
+    _print_campaign(campaign.CampaignResult({}, metrics, {}, summary, "done"))
+    printed = capsys.readouterr().out
+    rate = statistics.format_interval(summary["variants"]["cartesian/tuned"]["success_interval"])
+    assert rate in printed and "%" in rate and "[" in rate
+    assert f"McNemar p = {one['success']['p_value']:.2g}" in printed
+    assert "admittance/tuned vs admittance/paper: success" in printed
