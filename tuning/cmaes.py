@@ -189,43 +189,58 @@ def optimise(
     stop: StopRequest | None = None,
 ) -> tuple[CmaState, str]:
     """Run (or, from ``resume = (asked, told, history)``, continue) CMA-ES for
-    ``generations``. Each history row has the generation, the mean's objective and parts
-    (batch means), the best candidate's objective, the step size and the wall time.
+    ``generations``. History row k is the distribution's mean after k generations (row 0:
+    ``x0``): its objective and parts (batch means), the best candidate of generation k, the
+    step size and generation k's wall time. The mean after generation k is evaluated with
+    generation k + 1's candidates, in the same program call; the last mean on its own.
     Returns the state and ``"done"`` or ``"interrupted"``."""
     strategy = new_strategy(x0, population, seed)
     asked, told, history = ([], [], []) if resume is None else (list(resume[0]), list(resume[1]), list(resume[2]))
     replay(strategy, asked, told)
     state = CmaState(len(asked), strategy, asked, told, history)
-    if not history:  # generation 0: the starting point
-        start = time.perf_counter()
-        parts = evaluate(np.asarray([x0]))
-        history.append(_row(0, parts, 0, batch_objective(parts["loss"], cvar_alpha)[0], math.nan, SIGMA, start))
+    wall = math.nan  # the wall time of the generation whose mean has no row yet
+
+    def mean_row(parts, which):
+        best = float(np.min(told[-1])) if told else math.nan
+        return _row(
+            state.generation,
+            parts,
+            which,
+            batch_objective(parts["loss"], cvar_alpha)[which],
+            best,
+            strategy.sigma,
+            wall,
+        )
+
+    status = "done"
     while state.generation < generations:
         if stop is not None and stop.requested:
-            return state, "interrupted"
+            status = "interrupted"
+            break
         start = time.perf_counter()
         candidates = np.asarray(strategy.ask())
         parts = evaluate(np.concatenate([candidates, strategy.mean[None]]))
-        objectives = batch_objective(parts["loss"], cvar_alpha)
-        strategy.tell(list(candidates), list(objectives[:-1]))
+        history.append(mean_row(parts, -1))
+        objectives = batch_objective(parts["loss"][:-1], cvar_alpha)
+        strategy.tell(list(candidates), list(objectives))
         asked.append(candidates)
-        told.append(objectives[:-1])
+        told.append(objectives)
         state.generation += 1
-        history.append(
-            _row(state.generation, parts, -1, objectives[-1], float(objectives[:-1].min()), strategy.sigma, start)
-        )
+        wall = time.perf_counter() - start
         if checkpoint_path is not None:
             save_checkpoint(checkpoint_path, state, config_dict or {}, write_atomically)
         if on_generation is not None:
             on_generation(state)
-    return state, "done"
+    if len(history) == state.generation:  # the last mean, on its own
+        history.append(mean_row(evaluate(strategy.mean[None]), 0))
+    return state, status
 
 
-def _row(generation, parts, which, objective, best, sigma, start) -> dict:
-    """A history row: the objective of candidate ``which`` (the mean: the last) and the batch
-    means of its parts, the generation's best objective, CMA-ES's step size, wall time."""
+def _row(generation, parts, which, objective, best, sigma, wall) -> dict:
+    """A history row: the objective of candidate ``which`` (the mean) and the batch means of
+    its parts, the best candidate's objective, CMA-ES's step size, the wall time (s)."""
     row = {"step": generation, "loss": float(objective)}
     row |= {name: float(np.nanmean(value[which])) for name, value in parts.items() if name != "loss"}
     row["largest_peak_torque_Nm"] = float(np.nanmax(parts["largest_peak_torque_Nm"][which]))
-    row |= {"best_candidate_loss": best, "sigma": float(sigma), "wall_s": time.perf_counter() - start}
+    row |= {"best_candidate_loss": best, "sigma": float(sigma), "wall_s": wall}
     return row

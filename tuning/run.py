@@ -228,9 +228,9 @@ def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, 
             runfiles.progress_bar(
                 state.generation,
                 config.steps,
-                f"generation {state.generation}/{config.steps} mean's loss {row['loss']:.4f} "
-                f"(best candidate {row['best_candidate_loss']:.4f}) | final pos {1e3 * row['final_position_m']:.3f} mm "
-                f"| step size {row['sigma']:.3f}",
+                f"generation {state.generation}/{config.steps}: best candidate {float(np.min(state.told[-1])):.4f} | "
+                f"the mean before it {row['loss']:.4f}, final pos {1e3 * row['final_position_m']:.3f} mm | "
+                f"step size {state.strategy.sigma:.3f}",
             ),
             end="",
             file=progress,
