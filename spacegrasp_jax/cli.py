@@ -285,6 +285,7 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _tune(args: argparse.Namespace) -> int:
+    batching.use_all_cpu_cores()  # before anything touches a device: the batch shards over the cores
     try:
         if args.resume:
             return _tune_finished(Path(args.out), tune(Path(args.out), resume=True, stop=args.stop))

@@ -58,6 +58,12 @@ def unflatten(vector: np.ndarray, params: dict, mask: dict) -> dict:
     return out
 
 
+def gains_of(vector: np.ndarray, params: dict, base: Gains, mask: dict) -> Gains:
+    """The gains a parameter vector stands for (the entries :func:`flatten` left out keep
+    ``params``' values, the frozen ones ``base``'s)."""
+    return gains_from_params(unflatten(vector, params, mask), base, mask)
+
+
 def _candidate_parts(model_robot, items, *, controller: str, objective: Objective, realism_loop: bool):
     """The objective's parts of each (gains, sample) item (vmapped)."""
     from spacegrasp_jax.tuning.tune import scenario_parts
@@ -91,7 +97,7 @@ def make_population_evaluator(
 
     def evaluate(vectors: np.ndarray) -> dict:
         count = len(vectors)
-        gains = [gains_from_params(unflatten(v, params, mask), base, mask) for v in vectors]
+        gains = [gains_of(v, params, base, mask) for v in vectors]
         stacked = jax.tree.map(lambda *g: np.repeat(np.stack([np.asarray(x) for x in g]), batch, axis=0), *gains)
         items = (stacked, *jax.tree.map(lambda x: np.concatenate([np.asarray(x)] * count), per_sample))
         parts = batching.map_in_chunks(

@@ -258,10 +258,7 @@ def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, 
         on_generation=on_generation,
         stop=stop,
     )
-    tuned_params = {
-        name: jax.numpy.asarray(value) for name, value in cmaes.unflatten(state.strategy.mean, params, mask).items()
-    }
-    tuned = gains_from_params(tuned_params, base, mask)
+    tuned = cmaes.gains_of(state.strategy.mean, params, base, mask)
     return objective, tuned, state.history, [], state.generation, status
 
 

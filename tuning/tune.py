@@ -12,6 +12,7 @@ from its last completed step and ends exactly where an uninterrupted one would.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import inspect
 import json
 import math
@@ -26,7 +27,7 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
-from spacegrasp_jax import compilation
+from spacegrasp_jax import batching, compilation
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import SampleLoops, sample_loops
@@ -352,31 +353,55 @@ def aggregate_gradients(losses, gradients, config: TuneConfig):
     return total, gradient, jnp.sum(scale < 1.0)
 
 
+def _per_sample_gradients(params, base, mask, model_robot, samples, *, controller: str, objective: Objective):
+    """``(losses, parts, gradients)``, each with the samples' leading axis: each sample's
+    objective and its reverse-mode gradient (one control period a checkpoint), one sample
+    after another (``lax.map``: the tape of one rollout at a time)."""
+
+    def one(sample):
+        r, scenario, realism, key = sample
+
+        def sample_loss(params):
+            gains = gains_from_params(params, base, mask)
+            parts = scenario_parts(r, scenario, gains, controller, objective, 1, realism, key, model_robot)
+            return parts["loss"], parts
+
+        (loss, parts), gradient = jax.value_and_grad(sample_loss, has_aux=True)(params)
+        return loss, parts, gradient
+
+    return jax.lax.map(one, samples)
+
+
 def make_flight_value_and_grad(
     robot: Robot, batch: SampleLoops, base: Gains, mask, config: TuneConfig, objective: Objective
 ):
-    """Jitted ``params -> ((loss, aux), gradient)`` under ``config.realism``: each sample's
-    reverse-mode gradient (one control period a checkpoint), then :func:`aggregate_gradients`.
-    ``aux`` has the batch-mean parts, the worst hard peak torque and ``clipped_samples``."""
-
-    def sample_loss(params, sample):
-        r, scenario, realism, key = sample
-        gains = gains_from_params(params, base, mask)
-        parts = scenario_parts(r, scenario, gains, config.controller, objective, 1, realism, key, batch.model_robot)
-        return parts["loss"], parts
-
-    per_sample = jax.value_and_grad(sample_loss, has_aux=True)
+    """``params -> ((loss, aux), gradient)`` under ``config.realism``: the samples'
+    gradients (:func:`_per_sample_gradients`) as one program sharded over every device
+    (:func:`spacegrasp_jax.batching.map_in_chunks`: a share of the batch per core or GPU),
+    then :func:`aggregate_gradients` on the host. ``aux`` has the batch-mean parts, the worst
+    hard peak torque and ``clipped_samples``."""
+    function = functools.partial(_per_sample_gradients, controller=config.controller, objective=objective)
+    samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
+    count = int(batch.keys.shape[0])
 
     def value_and_grad(params):
-        samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
-        (losses, parts), gradients = jax.lax.map(lambda sample: per_sample(params, sample), samples)
+        losses, parts, gradients = batching.map_in_chunks(
+            "tuning.flight_gradient",
+            function,
+            (params, base, mask, batch.model_robot),
+            samples,
+            chunk=count,
+            key=(config.controller, objective),
+            progress=None,
+        )
+        losses, gradients = jnp.asarray(losses), jax.tree.map(jnp.asarray, gradients)
         total, gradient, clipped = aggregate_gradients(losses, gradients, config)
         aux = {name: jnp.mean(value) for name, value in parts.items()}
         aux["largest_peak_torque_Nm"] = jnp.max(parts["largest_peak_torque_Nm"])
         aux["clipped_samples"] = clipped.astype(losses.dtype)
         return (total, aux), gradient
 
-    return compilation.jit(value_and_grad)
+    return value_and_grad
 
 
 @dataclasses.dataclass
