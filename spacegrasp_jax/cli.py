@@ -325,6 +325,10 @@ _TUNE_OPTIONS = {
     "learning_rate": "--lr",
     "torque_guard_Nm": "--torque-guard",
     "aggregate": "--aggregate",
+    "torque_fraction": "--torque-fraction",
+    "population": "--population",
+    "method": "--method",
+    "objective": "--objective",
 }
 
 
@@ -359,6 +363,7 @@ def _tune_config(args: argparse.Namespace) -> TuneConfig:
         objective=args.objective,
         method=args.method,
         population=args.population,
+        torque_fraction=args.torque_fraction,
     )
 
 
@@ -730,6 +735,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=TuneConfig.objective,
         help=f"capture: the margins to the success criteria, torque a constraint at the motors' limits; weighted: "
         f"errors against torque relative to the starting gains (default {TuneConfig.objective})",
+    )
+    tune.add_argument(
+        "--torque-fraction",
+        type=_real(0.0, 10.0, above=True),
+        default=1.0,
+        help="the capture objective's torque constraint as a fraction of the motors' limits (default 1)",
     )
     tune.add_argument(
         "--weights",

@@ -97,6 +97,8 @@ class TuneConfig:
             ``population`` candidates, forward rollouts only).
         population: CMA-ES's candidates per generation (``None``: its default,
             ``4 + 3 ln n`` for n tuned numbers).
+        torque_fraction: the capture objective's torque constraint, as a fraction of the
+            motors' limits (the robot's ``joint_torque_limit``; 1: the limits themselves).
         aggregate: how the batch's gradients combine: ``"mean"`` (the gradient of the mean
             or CVaR) or ``"clip"``: each sample's gradient clipped to :data:`CLIP_FACTOR`
             times the batch's median gradient norm before the mean (one chaotic sample
@@ -123,13 +125,14 @@ class TuneConfig:
     objective: str = "weighted"
     method: str = "gradient"
     population: int | None = None
+    torque_fraction: float = 1.0
 
     def __post_init__(self):
         if self.controller not in ("admittance", "cartesian"):
             raise ValueError(f"controller: expected admittance or cartesian, got {self.controller!r}")
         if self.steps < 1 or self.batch < 1:
             raise ValueError("steps and batch must be at least 1")
-        for name in ("learning_rate", "clip_norm", "temperature", "torque_guard_Nm", "loss_guard"):
+        for name in ("learning_rate", "clip_norm", "temperature", "torque_guard_Nm", "loss_guard", "torque_fraction"):
             value = getattr(self, name)
             if not (value > 0.0 and math.isfinite(value)):
                 raise ValueError(f"{name}: must be positive and finite, got {value}")
@@ -570,7 +573,7 @@ def make_objective(robot: Robot, config: TuneConfig, torque_scale_Nm) -> Objecti
         torque_scale_Nm=tuple(float(x) for x in torque_scale_Nm),
         temperature=config.temperature,
         kind=config.objective,
-        torque_limit_Nm=tuple(float(x) for x in robot.joint_torque_limit),
+        torque_limit_Nm=tuple(config.torque_fraction * float(x) for x in robot.joint_torque_limit),
     )
 
 
