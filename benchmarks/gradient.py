@@ -51,7 +51,9 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
 
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, contact_law="smooth", duration=duration)
-    config = TuneConfig(batch=1)  # one scenario: the cost of one gradient against one rollout
+    config = TuneConfig(
+        batch=1, objective="weighted", method="gradient"
+    )  # one scenario: the cost of one gradient against one rollout
     objective = Objective(weights=Weights(), torque_scale_Nm=(0.80, 2.71, 1.82, 0.77, 1.11, 0.24, 0.028))
     params = initial_params(gains, "admittance")
     segment = checkpoint_segment(scenario.n_steps) if mode == "reverse_checkpointed" else None

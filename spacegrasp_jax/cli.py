@@ -329,6 +329,7 @@ _TUNE_OPTIONS = {
     "population": "--population",
     "method": "--method",
     "objective": "--objective",
+    "weights": "--weights",
 }
 
 

@@ -136,7 +136,7 @@ def _gradient_hlo(robot, gains) -> str:
     )
 
     scenario = paper_scenario(robot, contact_law="smooth", duration=0.1)
-    config = TuneConfig(batch=1)
+    config = TuneConfig(batch=1, objective="weighted", method="gradient")
     objective = Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 7)
     loss = make_loss(
         robot,

@@ -250,7 +250,9 @@ def test_the_tuning_objective_can_weigh_the_targets_final_speed(pushed, tmp_path
     assert float(plain["final_target_speed_mps"]) == pytest.approx(speed, rel=1e-12)
     assert float(weighed["loss"] - plain["loss"]) == pytest.approx(2.0 * speed / 1e-3, rel=1e-9)
     with pytest.raises(TuneSetupError, match="needs a scenario with a free-floating"):
-        tune(tmp_path / "run", config=TuneConfig(weights=Weights(target_speed=1.0)), progress=None)
+        tune(
+            tmp_path / "run", config=TuneConfig(weights=Weights(target_speed=1.0), objective="weighted"), progress=None
+        )
     assert not (tmp_path / "run" / "run.json").exists()
 
 

@@ -56,6 +56,10 @@ def tune_command(tmp_path, out, *extra):
         "2",
         "--realism",
         "flight",
+        "--method",
+        "gradient",
+        "--objective",
+        "weighted",
         *extra,
     ]
 
@@ -200,3 +204,35 @@ def test_tune_draws_from_the_envelope_it_is_given(tmp_path):
             timeout=300,
         )
         assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr
+
+
+def cmaes_command(tmp_path, out, steps):
+    """The default method and objective (CMA-ES on the capture objective), tiny."""
+    command = tune_command(tmp_path, out)
+    cut = command.index("--method")
+    command = command[:cut] + ["--population", "3"]
+    command[command.index("--steps") + 1] = str(steps)
+    return command
+
+
+def test_the_default_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tmp_path):
+    env = tune_environment(tmp_path)
+    full = tmp_path / "cmaes_full"
+    result = subprocess.run(cmaes_command(tmp_path, full, 4), capture_output=True, text=True, timeout=900, env=env)
+    assert result.returncode == 0, result.stderr
+    assert "CMA-ES on the admittance capture objective over 2 scenario(s), 40 numbers" in result.stderr
+    rows = list(csv.DictReader((full / "history.csv").open()))
+    assert [int(row["step"]) for row in rows] == list(range(5))  # the mean after 0..4 generations
+    assert {"loss", "capture_loss", "position_margin", "torque_margin", "best_candidate_loss", "sigma"} <= set(rows[0])
+    summary = json.loads((full / "summary.json").read_text())
+    assert summary["method"] == "cmaes" and summary["objective_kind"] == "capture"
+    assert load_gains(full / "gains.json").pinv_damping.shape == (1,)
+    out = tmp_path / "cmaes_interrupted"
+    code, err = run_until_step(cmaes_command(tmp_path, out, 4), out / "history.csv", step=1, env=env)
+    assert code == 130, err
+    resume = [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--resume"]
+    result = subprocess.run(resume, capture_output=True, text=True, timeout=900, env=env)
+    assert result.returncode == 0, result.stderr
+    assert "resuming after generation" in result.stderr
+    assert json.loads((out / "gains.json").read_text()) == json.loads((full / "gains.json").read_text())
+    assert [row["loss"] for row in csv.DictReader((out / "history.csv").open())] == [row["loss"] for row in rows]

@@ -58,7 +58,12 @@ def test_config_validation():
         (dict(optimizer="newton"), "'newton' is not an optax optimiser"),
         (dict(optimizer="clip"), "'clip' is not an optax optimiser"),
         (dict(frozen=("K_lin",)), "K_lin not a gain group of the admittance law"),
-        (dict(frozen=("Md", "Bd", "Kd", "kp", "ki", "kd")), "nothing to tune"),
+        (dict(frozen=("Md", "Bd", "Kd", "kp", "ki", "kd", "pinv_damping")), "nothing to tune"),
+        (dict(method="newton"), "method: expected one of gradient, cmaes"),
+        (dict(objective="speed"), "objective: expected one of capture, weighted"),
+        (dict(population=1), "population: must be a whole number"),
+        (dict(torque_fraction=0.0), "torque_fraction: must be positive"),
+        (dict(weights=Weights(peak_torque=2.0)), "choose it \\(--objective weighted\\)"),
     ]:
         with pytest.raises(ValueError, match=message):
             TuneConfig(**change)
@@ -66,10 +71,13 @@ def test_config_validation():
 
 def test_parameters_round_trip_and_mask(gains):
     params = initial_params(gains, "admittance")
-    assert sum(p.size for p in params.values()) == 39
+    assert sum(p.size for p in params.values()) == 39 + 1  # the gains and the damping
     rebuilt = gains_from_params(params, gains, make_mask(gains, "admittance"))
     for name in ("Md", "Bd", "Kd", "kp", "ki", "kd"):
         np.testing.assert_allclose(getattr(rebuilt, name), getattr(gains, name), rtol=1e-14)
+    np.testing.assert_allclose(rebuilt.pinv_damping, [1e-3], rtol=1e-14)  # tuned from its start
+    frozen = gains_from_params(params, gains, make_mask(gains, "admittance", frozen=("pinv_damping",)))
+    np.testing.assert_array_equal(frozen.pinv_damping, [0.0])  # frozen: the paper's exact law
     mask = make_mask(gains, "admittance", frozen=("kd",))
     moved = gains_from_params({k: v + 1.0 for k, v in params.items()}, gains, mask)
     np.testing.assert_array_equal(moved.kd, gains.kd)  # frozen
@@ -109,7 +117,9 @@ def short_problem(robot, gains, full_runs):
         if shared and controller in built:
             return built[controller]
         scenario = scenario or paper_scenario(robot, contact_law="smooth", **SHORT)
-        config = TuneConfig(controller=controller, batch=1)  # the nominal scenario alone
+        config = TuneConfig(
+            controller=controller, batch=1, objective="weighted", method="gradient"
+        )  # the nominal scenario alone
         scale = tuple(float(x) for x in full_runs[controller].summary["max_abs_torque_Nm"])
         objective = Objective(weights=Weights(contact_force=0.1), torque_scale_Nm=scale)
         mask = make_mask(gains, controller)
@@ -170,7 +180,7 @@ def test_divergence_guard_rejects_and_shrinks_the_step(short_problem):
     closed loop blows up, the step is rejected, the step size halved and the event logged;
     the run goes on from finite gains."""
     _, params, value_and_grad = short_problem("admittance")  # shared with the central-differences test
-    config = TuneConfig(steps=2, learning_rate=3.0, torque_guard_Nm=20.0)
+    config = TuneConfig(steps=2, learning_rate=3.0, torque_guard_Nm=20.0, objective="weighted", method="gradient")
     state, status = optimise(value_and_grad, params, config)
     assert status == "done" and state.step == 2
     assert len(state.events) >= 1 and all(event["event"] == "rejected" for event in state.events)
@@ -245,7 +255,15 @@ def test_a_candidate_whose_loss_runs_away_is_rejected_even_within_the_torque_gua
         loss = 1.0 - p if p <= 1.5 else 1e3
         return (jnp.asarray(loss), {"largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": -jnp.ones(1)}
 
-    config = TuneConfig(steps=1, learning_rate=2.0, optimizer="sgd", clip_norm=10.0, loss_guard=10.0)
+    config = TuneConfig(
+        steps=1,
+        learning_rate=2.0,
+        optimizer="sgd",
+        clip_norm=10.0,
+        loss_guard=10.0,
+        objective="weighted",
+        method="gradient",
+    )
     state, status = optimise(value_and_grad, {"kp": jnp.zeros(1)}, config)
     assert status == "done" and calls == [0.0, 2.0, 1.0]
     assert len(state.events) == 1 and state.events[0]["loss"] == 1e3

@@ -21,12 +21,13 @@ def batch_problem(robot, gains):
     """A batch of 2 short scenarios (Cartesian law), and the mean of the one-scenario losses
     and gradients, each built from its scenario alone."""
     nominal = paper_scenario(robot, contact_law="smooth", duration=0.1, move_duration=1.0)
-    config = TuneConfig(controller="cartesian", batch=2)
+    config = TuneConfig(controller="cartesian", batch=2, objective="weighted", method="gradient")
     scenarios = training_scenarios(nominal, config)
     scale = tuple(paper.MAX_ABS_TORQUE_NM["cartesian"])  # any positive scale: Table 5's peaks
     objective = Objective(weights=Weights(contact_force=0.1), torque_scale_Nm=scale)
     mask, params = make_mask(gains, "cartesian"), initial_params(gains, "cartesian")
-    single, segment = TuneConfig(controller="cartesian", batch=1), tune.checkpoint_segment(nominal.n_steps)
+    single = TuneConfig(controller="cartesian", batch=1, objective="weighted", method="gradient")
+    segment = tune.checkpoint_segment(nominal.n_steps)
 
     # One program for both scenarios: the scenario is an argument, not a constant of the loss.
     @compilation.jit
