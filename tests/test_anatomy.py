@@ -9,6 +9,7 @@ import math
 import jax
 import numpy as np
 import pytest
+from hand_logs import log_of
 from scipy.spatial.transform import Rotation
 
 import spacegrasp_jax as sg
@@ -85,25 +86,9 @@ def runaway_log(rate_radps: float, torque_Nm: float) -> Log:
     """Four rows, 0.5 s apart; in the third, joint 3 turns at ``rate_radps`` and joint 7
     gives ``torque_Nm``."""
     n = 4
-    zeros = lambda width: np.zeros((n, width))  # noqa: E731
-    qd, u = zeros(7), zeros(7)
+    qd, u = np.zeros((n, 7)), np.zeros((n, 7))
     qd[2, 2], u[2, 6] = rate_radps, torque_Nm
-    return Log(
-        t=np.arange(n) * 0.5,
-        pose_ee=zeros(6),
-        pose_des=zeros(6),
-        twist_ee=zeros(6),
-        contact_force=zeros(3),
-        momentum=zeros(6),
-        V_base=zeros(6),
-        u=u,
-        fts_force=zeros(3),
-        fts_torque=zeros(3),
-        V_ref=zeros(6),
-        qd_des=zeros(7),
-        q=zeros(7),
-        qd=qd,
-    )
+    return log_of(np.arange(n) * 0.5, u=u, qd=qd)
 
 
 @pytest.mark.parametrize(

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hand_logs import log_of
 
 from spacegrasp_jax import anatomy
 from spacegrasp_jax.simulate import Log
@@ -24,23 +25,7 @@ def make_log(final_offset_m, final_yaw_rad, torque_peaks_Nm, n: int = 50) -> Log
     t = jnp.arange(n) * 0.01
     ramp = jnp.sin(jnp.pi * t / t[-1])[:, None]  # 0 -> 1 -> 0
     pose_ee = jnp.zeros((n, 6)).at[-1, :3].set(final_offset_m).at[-1, 5].set(final_yaw_rad)
-    zeros = lambda width: jnp.zeros((n, width))  # noqa: E731
-    return Log(
-        t=t,
-        pose_ee=pose_ee,
-        pose_des=zeros(6),
-        twist_ee=zeros(6),
-        contact_force=zeros(3),
-        momentum=zeros(6),
-        V_base=zeros(6),
-        u=ramp * jnp.asarray(torque_peaks_Nm),
-        fts_force=zeros(3),
-        fts_torque=zeros(3),
-        V_ref=zeros(6),
-        qd_des=zeros(7),
-        q=zeros(7),
-        qd=zeros(7),
-    )
+    return log_of(t, pose_ee=pose_ee, u=ramp * jnp.asarray(torque_peaks_Nm))
 
 
 def test_a_capture_with_room_to_spare_costs_next_to_nothing():
