@@ -203,10 +203,12 @@ def test_shipped_tuned_gains_beat_the_paper_on_the_nominal_scenario(robot, full_
     assert tuned["final_position_error_m"] <= paper["final_position_error_m"]
 
 
-def test_shipped_flight_tuned_gains_beat_the_paper_under_flight(robot):
-    """``tuned_gains("flight")`` under the flight preset, nominal 17 s scenario, exact contact law,
-    noise key 0: the largest peak torque at most half the paper's gains' under the same loop and
-    key, and the final position error no larger (documentation, "The flight-like loop")."""
+def test_shipped_flight_tuned_gains_capture_closer_than_the_paper_under_flight(robot):
+    """``tuned_gains("flight")`` (tuned for capture success) under the flight preset, nominal
+    17 s scenario, exact contact law, noise key 0: a capture by the campaigns' criteria,
+    ending closer to the ring than the paper's gains under the same loop and key, with every
+    joint's peak within its motor's limit (the robot's ``joint_torque_limit``) and no runaway
+    (documentation, "Tuning the gains")."""
     from spacegrasp_jax import experiment
     from spacegrasp_jax.control import paper_gains, tuned_gains
     from spacegrasp_jax.realism import flight
@@ -216,8 +218,10 @@ def test_shipped_flight_tuned_gains_beat_the_paper_under_flight(robot):
         experiment.run(robot, scenario, gains, "admittance", realism=flight(), key=key).summary
         for gains in (paper_gains(), tuned_gains("flight"))
     )
-    assert tuned["largest_peak_torque_Nm"] <= 0.5 * paper["largest_peak_torque_Nm"]
-    assert tuned["final_position_error_m"] <= paper["final_position_error_m"]
+    assert tuned["final_position_error_m"] < 0.8 * paper["final_position_error_m"] < 0.005
+    assert tuned["final_orientation_error_rad"] < np.radians(1.0)
+    assert all(peak < limit for peak, limit in zip(tuned["max_abs_torque_Nm"], np.asarray(robot.joint_torque_limit)))
+    assert np.isnan(tuned["first_runaway_s"])
     with pytest.raises(ValueError, match="loop must be one of ideal, flight"):
         tuned_gains("orbit")
 

@@ -130,13 +130,18 @@ TUNED_GAINS_FILES = {
 
 
 def tuned_gains(loop: str = "ideal") -> Gains:
-    """The admittance gains found by ``spacegrasp tune``, starting from the paper's: with its
-    defaults in the ideal loop (``loop="ideal"``), or under the ``flight`` realism preset on
-    the Monte-Carlo campaigns' envelope (``loop="flight"``: ``spacegrasp tune --realism
-    flight --ranges montecarlo --batch 8``). Shipped as
-    ``spacegrasp_jax/data/tuned_admittance_gains.json`` and
-    ``tuned_admittance_flight_gains.json``, which hold the groups the admittance law uses;
-    ``K_lin`` and ``K_eul`` are the paper's."""
+    """The admittance gains found by ``spacegrasp tune`` from the paper's.
+
+    ``loop="flight"``: tuned for capture success under the ``flight`` realism preset on the
+    Monte-Carlo campaigns' envelope (CMA-ES on the capture objective, a batch of 32, 34
+    generations); on 1,000 held-out flight-like captures they succeed in 90.9% [89.0, 92.5]
+    against the paper's 65.7%, their largest peak torque reaching the 10 N m motor limit at
+    the 95th percentile (the paper's: 4.0 N m). ``loop="ideal"``: the weighted objective's
+    defaults in the ideal loop (lower torques, fewer captures). Shipped as
+    ``spacegrasp_jax/data/tuned_admittance_gains.json`` and ``tuned_admittance_flight_gains.json``
+    (the groups the admittance law uses; ``K_lin`` and ``K_eul`` are the paper's), each run's
+    settings and held-out result beside it (``*.settings.json``; documentation, Tuning the
+    gains)."""
     if loop not in TUNED_GAINS_FILES:
         raise ValueError(f"tuned_gains: loop must be one of {', '.join(TUNED_GAINS_FILES)}, got {loop!r}")
     return load_gains(Path(__file__).resolve().parents[1] / "data" / TUNED_GAINS_FILES[loop])
