@@ -189,18 +189,22 @@ def test_divergence_guard_rejects_and_shrinks_the_step(short_problem):
     assert sum(row["rejected_candidates"] for row in state.history) == len(state.events)
 
 
-def test_shipped_tuned_gains_beat_the_paper_on_the_nominal_scenario(robot, full_runs):
-    """``tuned_gains()`` (the data file the notebooks use) still does what the documentation says the
-    default tuning run achieved, on today's simulator, with the exact contact law: the largest
-    peak torque at least 30% lower, no joint's peak higher, the final position error no larger."""
+def test_shipped_tuned_gains_capture_with_less_torque_on_the_nominal_scenario(robot, full_runs):
+    """``tuned_gains()`` (tuned for capture success in the paper's loop, the torque constraint
+    at a quarter of the motors' limits) on the nominal 17 s scenario with the exact contact
+    law: a capture by the campaigns' criteria, a largest peak torque below the paper's gains',
+    every joint within a quarter of its motor's limit, no runaway (documentation, "Tuning the
+    gains")."""
     from spacegrasp_jax import experiment
     from spacegrasp_jax.control import tuned_gains
 
     paper = full_runs["admittance"].summary
     tuned = experiment.run(robot, paper_scenario(robot), tuned_gains(), "admittance").summary
-    assert max(tuned["max_abs_torque_Nm"]) <= 0.7 * max(paper["max_abs_torque_Nm"])
-    assert all(new <= old for new, old in zip(tuned["max_abs_torque_Nm"], paper["max_abs_torque_Nm"]))
-    assert tuned["final_position_error_m"] <= paper["final_position_error_m"]
+    assert tuned["final_position_error_m"] < 0.005 and tuned["final_orientation_error_rad"] < np.radians(1.0)
+    assert tuned["largest_peak_torque_Nm"] < 0.8 * paper["largest_peak_torque_Nm"]
+    limits = 0.25 * np.asarray(robot.joint_torque_limit)
+    assert all(peak < limit for peak, limit in zip(tuned["max_abs_torque_Nm"], limits))
+    assert np.isnan(tuned["first_runaway_s"])
 
 
 def test_shipped_flight_tuned_gains_capture_closer_than_the_paper_under_flight(robot):
