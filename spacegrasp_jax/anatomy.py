@@ -120,8 +120,11 @@ def error_decomposition(sample_metrics: dict) -> dict[str, np.ndarray]:
     axis), and the norms ``estimate_m``, ``compliance_m``, ``residual_m`` of the three
     parts, all (n,) m and named ``final_error_<part>``. Without the parts in
     ``sample_metrics`` they are NaN."""
-    n = np.size(sample_metrics["final_position_error_m"])
-    error = np.asarray(sample_metrics.get("final_position_error_lar_m", np.full((n, 3), np.nan)), float).reshape(-1, 3)
+    if "final_position_error_lar_m" in sample_metrics:
+        error = np.asarray(sample_metrics["final_position_error_lar_m"], float).reshape(-1, 3)
+    else:
+        error = np.full((np.size(sample_metrics["final_position_error_m"]), 3), np.nan)
+    n = error.shape[0]
     estimate = np.asarray(sample_metrics.get("estimate_offset_lar_m", np.full((n, 3), np.nan)), float).reshape(-1, 3)
     compliance = np.asarray(sample_metrics.get("compliance_offset_lar_m", np.full((n, 3), np.nan)), float)
     compliance = compliance.reshape(-1, 3)

@@ -168,3 +168,15 @@ def test_the_decomposition_adds_up(scenario):
         residual = anatomy.error_decomposition(run)["final_error_residual_m"][0]
         np.testing.assert_allclose(residual, np.linalg.norm(error - total), rtol=1e-12)
     assert dataclasses.is_dataclass(scenario)
+
+
+def test_a_position_failure_is_said_in_one_line_with_its_parts(scenario):
+    realism = make_realism({"target_estimate": {"position_error_m": [0.004, -0.003, 0.002]}})
+    run = one_run(scenario, [0.0046, -0.0031, 0.0019], np.zeros(3), realism)
+    summary = {name: np.asarray(value[0]).tolist() for name, value in run.items()}
+    classes = anatomy.failure_classes(run, **TOLERANCES)
+    line = anatomy.verdict_line(summary, classes, dict(final_position_m=0.005, final_orientation_rad=0.01745))
+    # |(4.6, -3.1, 1.9)| = 5.86 mm; across sqrt(4.6^2 + 3.1^2) = 5.55; estimate |(4, -3, 2)| = 5.39;
+    # residual |(0.6, -0.1, -0.1)| = 0.62.
+    assert line.startswith("capture failed (position): final position error 5.86 mm > 5")
+    assert "along the approach +1.90, across 5.55; estimate 5.39, compliance 0.00, residual 0.62" in line

@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from spacegrasp_jax import cli
+from spacegrasp_jax.tuning.parameters import GROUPS as TUNED_GROUPS
 
 N = 3
 SCENARIO = "duration = 0.4\n[trajectory]\nduration = 0.4\n"
-GROUPS = ("Md", "Bd", "Kd", "kp", "ki", "kd")
+GROUPS = TUNED_GROUPS["admittance"]  # what the report covers: the tuned groups
 
 
 def _run(tmp_path, name, *extra):
