@@ -64,6 +64,7 @@ def test_config_validation():
         (dict(population=1), "population: must be a whole number"),
         (dict(torque_fraction=0.0), "torque_fraction: must be positive"),
         (dict(weights=Weights(peak_torque=2.0)), "choose it \\(--objective weighted\\)"),
+        (dict(objective="weighted", torque_fraction=0.5), "the weighted objective has none"),
     ]:
         with pytest.raises(ValueError, match=message):
             TuneConfig(**change)

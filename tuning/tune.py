@@ -146,6 +146,10 @@ class TuneConfig:
             raise ValueError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
         if self.objective != "weighted" and self.weights != Weights():
             raise ValueError("weights: they weigh the weighted objective's parts; choose it (--objective weighted)")
+        if self.objective == "weighted" and self.torque_fraction != 1.0:
+            raise ValueError(
+                "torque_fraction: the capture objective's torque constraint; the weighted objective has none"
+            )
         if self.method not in METHODS:
             raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
         if self.population is not None and not (isinstance(self.population, int) and 2 <= self.population <= 10_000):
