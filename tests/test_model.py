@@ -90,6 +90,12 @@ BAD_FIELDS = [
     ("inf", lambda f: {**f, "mount_position": [0.2, np.inf, 0.2]}, r"mount_position: must be finite"),
     ("zero mass", lambda f: {**f, "satellite_mass": 0.0}, r"satellite_mass: masses must be positive"),
     (
+        "zero rate limit",
+        lambda f: {**f, "joint_rate_limit": [1.0] * 6 + [0.0]},
+        r"joint_rate_limit: limits must be positive",
+    ),
+    ("short torque limits", lambda f: {**f, "joint_torque_limit": [10.0] * 6}, r"joint_torque_limit: expected shape"),
+    (
         "negative mass",
         lambda f: {**f, "link_mass": np.r_[f["link_mass"][:3], -1.0, f["link_mass"][4:]]},
         r"link_mass: masses must be positive",
