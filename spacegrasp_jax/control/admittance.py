@@ -67,7 +67,8 @@ class Admittance:
     """The admittance law as a controller (eqs 9-17).
 
     Attributes:
-        pinv_damping: damping of the pseudoinverse (0: exact, the paper; static).
+        pinv_damping: damping of the pseudoinverse (0: exact, the paper; static), added to
+            the gains' own ``pinv_damping``.
     """
 
     pinv_damping: float = 0.0

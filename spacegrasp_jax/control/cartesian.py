@@ -53,7 +53,8 @@ class Cartesian:
     """The Cartesian law as a controller (eqs 21-22).
 
     Attributes:
-        pinv_damping: damping of the pseudoinverse (0: exact, the paper; static).
+        pinv_damping: damping of the pseudoinverse (0: exact, the paper; static), added to
+            the gains' own ``pinv_damping``.
     """
 
     pinv_damping: float = 0.0
