@@ -39,7 +39,7 @@ from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.montecarlo import evaluate_samples, over_torque_limit, sample_loops
+from spacegrasp_jax.montecarlo import evaluate_samples, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges
 from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario, scenario_to_dict
@@ -307,7 +307,8 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
         elif name != "first_nonfinite_s":
             over_non_diverged[name] = _statistics(values[ok])
     peak = np.asarray(sample_metrics["largest_peak_torque_Nm"])
-    unstable = np.flatnonzero(ok & over_torque_limit(sample_metrics, config.torque_limit_Nm))
+    classes = classify(sample_metrics, config)
+    unstable = np.flatnonzero(ok & classes["failed_torque_limit"])
 
     def worst(values):
         order = np.argsort(np.where(np.isfinite(values), values, np.inf))[::-1]
@@ -326,7 +327,7 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
         "worst_by_final_position_error": worst(np.asarray(sample_metrics["final_position_error_m"])),
         "worst_by_peak_torque": worst(peak),
         "statistics_over_non_diverged": over_non_diverged,
-        "failures": anatomy.anatomy_summary(sample_metrics | classify(sample_metrics, config)),
+        "failures": anatomy.anatomy_summary(sample_metrics | classes),
     }
 
 

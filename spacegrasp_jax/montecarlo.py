@@ -17,7 +17,6 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from spacegrasp_jax import anatomy, metrics
 from spacegrasp_jax.control.gains import Gains
@@ -218,15 +217,6 @@ def sample_loops(
     )(perturbations)
     keys = jax.vmap(lambda k: jax.random.fold_in(k, NOISE_STREAM))(sample_keys(seed, indices))
     return SampleLoops(robots, scenarios, perturbations, realisms, keys, robot if believes_nominal else None)
-
-
-def over_torque_limit(sample_metrics: dict, torque_limit_Nm: float | None):
-    """(n,) bool: the sample's peak |u_i| on some joint exceeded ``torque_limit_Nm`` (N m;
-    ``None``: never). NaN peaks (diverged samples) are not over it (NumPy)."""
-    peak = np.asarray(sample_metrics["largest_peak_torque_Nm"])
-    limit = np.inf if torque_limit_Nm is None else torque_limit_Nm
-    with np.errstate(invalid="ignore"):
-        return peak > limit
 
 
 def success(
