@@ -326,7 +326,9 @@ _TUNE_OPTIONS = {
     "torque_guard_Nm": "--torque-guard",
     "aggregate": "--aggregate",
     "torque_fraction": "--torque-fraction",
+    "torque_cap_Nm": "--torque-cap",
     "population": "--population",
+    "step_size": "--step-size",
     "method": "--method",
     "objective": "--objective",
     "weights": "--weights",
@@ -364,7 +366,9 @@ def _tune_config(args: argparse.Namespace) -> TuneConfig:
         objective=args.objective,
         method=args.method,
         population=args.population,
+        step_size=args.step_size,
         torque_fraction=args.torque_fraction,
+        torque_cap_Nm=args.torque_cap,
     )
 
 
@@ -731,6 +735,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="CMA-ES candidates per generation (default 4 + 3 ln(number of tuned gains))",
     )
     tune.add_argument(
+        "--step-size",
+        type=_real(0.0, 10.0, above=True),
+        default=TuneConfig.step_size,
+        help=f"CMA-ES's initial step in log-gain units (default {TuneConfig.step_size}: about +-30%% on every gain)",
+    )
+    tune.add_argument(
         "--objective",
         choices=OBJECTIVES,
         default=TuneConfig.objective,
@@ -742,6 +752,14 @@ def build_parser() -> argparse.ArgumentParser:
         type=_real(0.0, 10.0, above=True),
         default=1.0,
         help="the capture objective's torque constraint as a fraction of the motors' limits (default 1)",
+    )
+    tune.add_argument(
+        "--torque-cap",
+        type=_real(0.0, 1000.0, above=True),
+        default=None,
+        metavar="NM",
+        help="the capture objective's torque budget in N m for every joint, where below its fraction of the "
+        "limit (default: none)",
     )
     tune.add_argument(
         "--weights",

@@ -156,6 +156,15 @@ def cases(paths, out):
         "optimizer a module": ([*TUNE, "--optimizer", "tree_utils", "--out", out], "--optimizer:"),
         "lr nan": ([*TUNE, "--lr", "nan", "--out", out], "argument --lr:"),
         "cvar above 1": ([*TUNE, "--cvar", "2", "--out", out], "argument --cvar:"),
+        "torque-cap 0": ([*TUNE, "--torque-cap", "0", "--out", out], "argument --torque-cap:"),
+        "torque-cap with weighted": (
+            [*TUNE, "--objective", "weighted", "--torque-cap", "4", "--out", out],
+            "--torque-cap: the capture objective's torque constraint",
+        ),
+        "torque-fraction with weighted": (
+            [*TUNE, "--objective", "weighted", "--torque-fraction", "0.5", "--out", out],
+            "--torque-fraction: the capture objective's torque constraint",
+        ),
         "process id beyond count": (
             [*MONTECARLO, "--num-processes", "2", "--process-id", "2", "--out", out],
             "--process-id: must be below --num-processes",

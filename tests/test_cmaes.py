@@ -10,6 +10,7 @@ from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.runfiles import write_atomically
 from spacegrasp_jax.tuning import cmaes
 from spacegrasp_jax.tuning.parameters import initial_params, make_mask
+from spacegrasp_jax.tuning.tune import TuneConfig
 
 OPTIMUM = np.array([0.7, -1.3, 0.2, 2.0, -0.4])
 
@@ -42,6 +43,15 @@ def test_cmaes_on_a_rosenbrock_valley():
 
     state, _ = cmaes.optimise(rosenbrock, np.array([-1.0, 1.5]), generations=250, population=8, seed=0, cvar_alpha=None)
     np.testing.assert_allclose(state.strategy.mean, [1.0, 1.0], atol=1e-3)
+
+
+def test_the_initial_step_size_sets_the_first_generations_spread():
+    # The first generation is drawn from N(x0, step^2 I): its spread about x0 is the step.
+    for step in (0.3, 0.05):
+        strategy = cmaes.new_strategy(np.zeros(40), 200, seed=1, step_size=step)
+        candidates = np.asarray(strategy.ask())
+        assert np.std(candidates) == pytest.approx(step, rel=0.05)
+    assert cmaes.SIGMA == TuneConfig.step_size  # the command line's default is the module's
 
 
 def test_a_non_finite_candidate_is_ranked_last():

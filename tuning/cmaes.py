@@ -36,7 +36,7 @@ from spacegrasp_jax.runfiles import StopRequest
 from spacegrasp_jax.tuning.objective import Objective
 from spacegrasp_jax.tuning.parameters import gains_from_params
 
-#: CMA-ES's initial step in log-gain units: about +-30% on every tuned gain.
+#: CMA-ES's default initial step in log-gain units: about +-30% on every tuned gain.
 SIGMA = 0.3
 
 
@@ -139,13 +139,15 @@ class CmaState:
     history: list
 
 
-def new_strategy(x0: np.ndarray, population: int | None, seed: int) -> cma.CMAEvolutionStrategy:
-    """CMA-ES from ``x0`` with step :data:`SIGMA`, seeded (its ``seed`` must not be 0, which
-    ``cma`` reads as "draw one"), silent."""
+def new_strategy(
+    x0: np.ndarray, population: int | None, seed: int, step_size: float = SIGMA
+) -> cma.CMAEvolutionStrategy:
+    """CMA-ES from ``x0`` with initial step ``step_size`` (log-gain units), seeded (its
+    ``seed`` must not be 0, which ``cma`` reads as "draw one"), silent."""
     options = {"seed": seed + 1, "verbose": -9, "verb_log": 0, "verb_disp": 0}
     if population is not None:
         options["popsize"] = population
-    return cma.CMAEvolutionStrategy(np.asarray(x0, dtype=float), SIGMA, options)
+    return cma.CMAEvolutionStrategy(np.asarray(x0, dtype=float), step_size, options)
 
 
 def replay(strategy: cma.CMAEvolutionStrategy, asked: list, told: list) -> None:
@@ -187,6 +189,7 @@ def optimise(
     population: int | None,
     seed: int,
     cvar_alpha: float | None,
+    step_size: float = SIGMA,
     checkpoint_path: Path | None = None,
     config_dict: dict | None = None,
     write_atomically=None,
@@ -200,7 +203,7 @@ def optimise(
     step size and generation k's wall time. The mean after generation k is evaluated with
     generation k + 1's candidates, in the same program call; the last mean on its own.
     Returns the state and ``"done"`` or ``"interrupted"``."""
-    strategy = new_strategy(x0, population, seed)
+    strategy = new_strategy(x0, population, seed, step_size)
     asked, told, history = ([], [], []) if resume is None else (list(resume[0]), list(resume[1]), list(resume[2]))
     replay(strategy, asked, told)
     state = CmaState(len(asked), strategy, asked, told, history)

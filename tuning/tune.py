@@ -99,8 +99,15 @@ class TuneConfig:
             (documentation, Tuning the gains).
         population: CMA-ES's candidates per generation (``None``: its default,
             ``4 + 3 ln n`` for n tuned numbers).
+        step_size: CMA-ES's initial step in log-gain units (0.3: about +-30% on every
+            gain; smaller to refine gains already tuned).
         torque_fraction: the capture objective's torque constraint, as a fraction of the
             motors' limits (the robot's ``joint_torque_limit``; 1: the limits themselves).
+        torque_cap_Nm: a torque budget in N m for every joint (``None``: none): the
+            constraint of joint ``i`` is ``min(torque_fraction * limit_i, torque_cap_Nm)``.
+            A budget in N m matches a requirement on the largest peak over the joints,
+            which a fraction of unequal limits does not (at 40% of the paper's arm's limits
+            the wrist's constraint is 0.8 N m, below the paper's own wrist peaks).
         aggregate: how the batch's gradients combine: ``"mean"`` (the gradient of the mean
             or CVaR) or ``"clip"``: each sample's gradient clipped to :data:`CLIP_FACTOR`
             times the batch's median gradient norm before the mean (one chaotic sample
@@ -127,14 +134,24 @@ class TuneConfig:
     objective: str = "capture"
     method: str = "cmaes"
     population: int | None = None
+    step_size: float = 0.3
     torque_fraction: float = 1.0
+    torque_cap_Nm: float | None = None
 
     def __post_init__(self):
         if self.controller not in ("admittance", "cartesian"):
             raise ValueError(f"controller: expected admittance or cartesian, got {self.controller!r}")
         if self.steps < 1 or self.batch < 1:
             raise ValueError("steps and batch must be at least 1")
-        for name in ("learning_rate", "clip_norm", "temperature", "torque_guard_Nm", "loss_guard", "torque_fraction"):
+        for name in (
+            "learning_rate",
+            "clip_norm",
+            "temperature",
+            "torque_guard_Nm",
+            "loss_guard",
+            "torque_fraction",
+            "step_size",
+        ):
             value = getattr(self, name)
             if not (value > 0.0 and math.isfinite(value)):
                 raise ValueError(f"{name}: must be positive and finite, got {value}")
@@ -150,8 +167,17 @@ class TuneConfig:
             raise ValueError(
                 "torque_fraction: the capture objective's torque constraint; the weighted objective has none"
             )
+        if self.torque_cap_Nm is not None:
+            if not (self.torque_cap_Nm > 0.0 and math.isfinite(self.torque_cap_Nm)):
+                raise ValueError(f"torque_cap_Nm: must be positive and finite, got {self.torque_cap_Nm}")
+            if self.objective == "weighted":
+                raise ValueError(
+                    "torque_cap_Nm: the capture objective's torque constraint; the weighted objective has none"
+                )
         if self.method not in METHODS:
             raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.method != "cmaes" and self.step_size != 0.3:
+            raise ValueError("step_size: CMA-ES's initial step; the gradient method's is the learning rate (--lr)")
         if self.population is not None and not (isinstance(self.population, int) and 2 <= self.population <= 10_000):
             raise ValueError(f"population: must be a whole number from 2 to 10000, got {self.population!r}")
         if self.aggregate not in ("mean", "clip"):
@@ -581,8 +607,15 @@ def make_objective(robot: Robot, config: TuneConfig, torque_scale_Nm) -> Objecti
         torque_scale_Nm=tuple(float(x) for x in torque_scale_Nm),
         temperature=config.temperature,
         kind=config.objective,
-        torque_limit_Nm=tuple(config.torque_fraction * float(x) for x in robot.joint_torque_limit),
+        torque_limit_Nm=torque_constraint_Nm(robot, config),
     )
+
+
+def torque_constraint_Nm(robot: Robot, config: TuneConfig) -> tuple[float, ...]:
+    """(7,) the capture objective's torque constraint per joint (N m):
+    ``min(torque_fraction * joint_torque_limit_i, torque_cap_Nm)``."""
+    cap = math.inf if config.torque_cap_Nm is None else config.torque_cap_Nm
+    return tuple(min(config.torque_fraction * float(x), cap) for x in robot.joint_torque_limit)
 
 
 def training_batch(robot: Robot, nominal: Scenario, config: TuneConfig):
