@@ -19,8 +19,10 @@ from spacegrasp_jax.tuning.tune import (
     CHECKPOINT_SEGMENT,
     TuneConfig,
     make_loss,
+    make_objective,
     make_value_and_grad,
     optimise,
+    torque_constraint_Nm,
     training_scenarios,
 )
 
@@ -65,9 +67,25 @@ def test_config_validation():
         (dict(torque_fraction=0.0), "torque_fraction: must be positive"),
         (dict(weights=Weights(peak_torque=2.0)), "choose it \\(--objective weighted\\)"),
         (dict(objective="weighted", torque_fraction=0.5), "the weighted objective has none"),
+        (dict(torque_cap_Nm=0.0), "torque_cap_Nm: must be positive and finite"),
+        (dict(torque_cap_Nm=float("nan")), "torque_cap_Nm: must be positive and finite"),
+        (dict(objective="weighted", torque_cap_Nm=4.0), "the weighted objective has none"),
+        (dict(step_size=0.0), "step_size: must be positive"),
+        (dict(method="gradient", step_size=0.1), "the gradient method's is the learning rate"),
     ]:
         with pytest.raises(ValueError, match=message):
             TuneConfig(**change)
+
+
+def test_torque_constraint_is_the_lower_of_the_fraction_and_the_cap(robot):
+    limits = np.asarray(robot.joint_torque_limit, dtype=float)  # the paper's arm: 10, 10, 10, 5, 5, 2, 2 N m
+    assert torque_constraint_Nm(robot, TuneConfig()) == tuple(limits)
+    assert torque_constraint_Nm(robot, TuneConfig(torque_fraction=0.4)) == tuple(0.4 * limits)
+    capped = torque_constraint_Nm(robot, TuneConfig(torque_cap_Nm=4.0))
+    assert capped == (4.0, 4.0, 4.0, 4.0, 4.0, 2.0, 2.0)
+    both = torque_constraint_Nm(robot, TuneConfig(torque_fraction=0.5, torque_cap_Nm=4.0))
+    assert both == (4.0, 4.0, 4.0, 2.5, 2.5, 1.0, 1.0)
+    assert make_objective(robot, TuneConfig(torque_cap_Nm=4.0), (1.0,) * 7).torque_limit_Nm == capped
 
 
 def test_parameters_round_trip_and_mask(gains):
@@ -230,8 +248,31 @@ def test_shipped_flight_tuned_gains_capture_closer_than_the_paper_under_flight(r
     assert tuned["final_orientation_error_rad"] < np.radians(1.0)
     assert all(peak < limit for peak, limit in zip(tuned["max_abs_torque_Nm"], np.asarray(robot.joint_torque_limit)))
     assert np.isnan(tuned["first_runaway_s"])
-    with pytest.raises(ValueError, match="loop must be one of ideal, flight"):
+    with pytest.raises(ValueError, match="loop must be one of ideal, flight, free_target"):
         tuned_gains("orbit")
+
+
+def test_shipped_free_target_gains_capture_the_envelopes_nominal_target_without_pushing_it_away(robot):
+    """``tuned_gains("free_target")`` under the flight preset against the free_target
+    envelope's nominal target (632 kg at rest, CoM 0.25 m behind the ring), 17 s, exact
+    contact law, noise key 0: a capture by the campaigns' criteria (within 5 mm and 1 deg,
+    the target's final speed within 5 mm/s), every joint within its motor's limit and no
+    runaway (documentation, "Tuning the gains")."""
+    from pathlib import Path
+
+    from spacegrasp_jax import experiment
+    from spacegrasp_jax.control import tuned_gains
+    from spacegrasp_jax.realism import flight
+    from spacegrasp_jax.scenario import load_scenario
+
+    scenario = load_scenario(robot, Path(__file__).resolve().parents[1] / "configs" / "free_target_envelope.toml")
+    summary = experiment.run(
+        robot, scenario, tuned_gains("free_target"), "admittance", realism=flight(), key=jax.random.PRNGKey(0)
+    ).summary
+    assert summary["final_position_error_m"] < 0.005 and summary["final_orientation_error_rad"] < np.radians(1.0)
+    assert summary["final_target_speed_mps"] < 0.005
+    assert all(peak < limit for peak, limit in zip(summary["max_abs_torque_Nm"], np.asarray(robot.joint_torque_limit)))
+    assert np.isnan(summary["first_runaway_s"])
 
 
 def test_a_chaotic_samples_gradient_is_clipped_to_a_multiple_of_the_median():
