@@ -188,7 +188,7 @@ def measure(parts: list[str], batch: int, iterations: int, repeats: int) -> list
 
 
 def main(argv: list[str] | None = None) -> int:
-    configure()  # this process is the benchmark's: float64, loops compiled whole
+    configure(compile_cache=False)  # this process is the benchmark's: float64, loops compiled whole, no cache
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks")
     parser.add_argument(

@@ -301,7 +301,7 @@ def table(report: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    configure()  # this process is the benchmark's: float64, loops compiled whole
+    configure(compile_cache=False)  # this process is the benchmark's: float64, loops compiled whole, no cache
     parser = argparse.ArgumentParser(prog="spacegrasp benchmark", description=__doc__.splitlines()[0])
     parser.add_argument(
         "--quick",

@@ -127,20 +127,34 @@ def use_compile_cache(folder: str | Path | None = None) -> Path | None:
     return folder
 
 
-def configure(*, float64: bool = True, loops_whole: bool = True, compile_cache: str | Path | None = "none") -> None:
+def configure(
+    *, float64: bool = True, loops_whole: bool = True, compile_cache: str | Path | bool | None = True
+) -> None:
     """The process settings the package is built for, in one call (module docstring):
-    :func:`enable_float64`, :func:`compile_loops_whole` and, when ``compile_cache`` is not
-    ``"none"``, :func:`use_compile_cache` (``None``: the default folder). Call it once, at
-    the top of a script or notebook, before JAX runs anything::
+    :func:`enable_float64`, :func:`compile_loops_whole` and the persistent compilation
+    cache (:func:`use_compile_cache`), on by default in the folder the process already uses
+    (``JAX_COMPILATION_CACHE_DIR``) or the per-user :func:`default_compile_cache`. Call it
+    once, at the top of a script or notebook, before JAX runs anything::
 
         import spacegrasp_jax as sg
         sg.configure()
+
+    Args:
+        compile_cache: ``True`` or ``None``: the default folder; a folder: that one;
+            ``False`` or ``"none"``: leave the cache as it is (off unless JAX was told
+            otherwise).
     """
+    if compile_cache is False or compile_cache == "none":
+        folder = "none"
+    elif compile_cache is True or compile_cache is None:
+        folder = None
+    else:
+        folder = compile_cache
     if float64:
         enable_float64()
     if loops_whole:
         compile_loops_whole()
-    use_compile_cache(compile_cache)
+    use_compile_cache(folder)
 
 
 @functools.cache

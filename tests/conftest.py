@@ -9,7 +9,7 @@ import spacegrasp_jax as sg
 
 # As the command line does: float64, loops compiled whole (before anything compiles). No
 # persistent compilation cache: every test compiles what it runs.
-sg.configure()
+sg.configure(compile_cache=False)
 
 N_RANDOM_STATES = 20
 

@@ -11,6 +11,7 @@ import sys
 
 import jax
 import numpy as np
+import pytest
 
 from spacegrasp_jax import compilation
 from spacegrasp_jax.scenario import paper_scenario
@@ -111,6 +112,27 @@ def test_importing_the_package_changes_nothing_in_the_process():
     assert ours["x64"] is False and ours["cache_dir"] == theirs["cache_dir"]
     assert "xla_cpu_small_call" not in ours["hlo"]  # the loop runs kernel by kernel, as JAX's default
     assert ours["hlo"] == theirs["hlo"]
+
+
+@pytest.mark.parametrize(
+    "call, expected",
+    [
+        ("sg.configure()", "{xdg}/spacegrasp-jax/xla"),
+        ("sg.configure(compile_cache=None)", "{xdg}/spacegrasp-jax/xla"),
+        ("sg.configure(compile_cache=False)", "None"),
+        ("sg.configure(compile_cache='none')", "None"),
+        ("sg.configure(compile_cache='{tmp}/mine')", "{tmp}/mine"),
+    ],
+)
+def test_configure_keeps_compiled_programs_in_the_per_user_cache_unless_told_not_to(tmp_path, call, expected):
+    script = (
+        f"import jax, spacegrasp_jax as sg\n{call.format(tmp=tmp_path)}\nprint(jax.config.jax_compilation_cache_dir)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR")}
+    env["XDG_CACHE_HOME"] = str(tmp_path / "xdg")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == expected.format(xdg=tmp_path / "xdg", tmp=tmp_path)
 
 
 def test_configure_turns_on_each_setting_and_constructors_demand_float64(tmp_path):
