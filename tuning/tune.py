@@ -36,6 +36,7 @@ from spacegrasp_jax.realism import Realism, make_realism
 from spacegrasp_jax.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import largest_divisor, rollout
+from spacegrasp_jax.tuning import cmaes
 from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights, objective_parts
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 
@@ -107,7 +108,7 @@ class TuneConfig:
             constraint of joint ``i`` is ``min(torque_fraction * limit_i, torque_cap_Nm)``.
             A budget in N m matches a requirement on the largest peak over the joints,
             which a fraction of unequal limits does not (at 40% of the paper's arm's limits
-            the wrist's constraint is 0.8 N m, below the paper's own wrist peaks).
+            the wrist's constraint is 0.8 N m, about the paper's own median wrist peak).
         aggregate: how the batch's gradients combine: ``"mean"`` (the gradient of the mean
             or CVaR) or ``"clip"``: each sample's gradient clipped to :data:`CLIP_FACTOR`
             times the batch's median gradient norm before the mean (one chaotic sample
@@ -134,7 +135,7 @@ class TuneConfig:
     objective: str = "capture"
     method: str = "cmaes"
     population: int | None = None
-    step_size: float = 0.3
+    step_size: float = cmaes.SIGMA
     torque_fraction: float = 1.0
     torque_cap_Nm: float | None = None
 
@@ -176,7 +177,7 @@ class TuneConfig:
                 )
         if self.method not in METHODS:
             raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
-        if self.method != "cmaes" and self.step_size != 0.3:
+        if self.method != "cmaes" and self.step_size != cmaes.SIGMA:
             raise ValueError("step_size: CMA-ES's initial step; the gradient method's is the learning rate (--lr)")
         if self.population is not None and not (isinstance(self.population, int) and 2 <= self.population <= 10_000):
             raise ValueError(f"population: must be a whole number from 2 to 10000, got {self.population!r}")
