@@ -14,7 +14,7 @@ bounds it, except where one sample's code waits on latencies (divisions, square 
 
 Parts, each including the ones it needs (so the cost of a part alone is a difference):
 * ``kinematics``: ``dynamics.frames_at_base``, the poses of the DH frames;
-* ``kinematics_by_component``: the same poses from :func:`forward_kinematics_by_component`,
+* ``kinematics_by_component``: the same poses from ``forward_kinematics_by_component()``,
   the kinematics written component by component (a probe, not the package's code);
 * ``mass_matrix``: kinematics and the mass matrix's blocks;
 * ``plant_kinematics``: everything computed once per state (``simulate.plant_kinematics``:
@@ -44,9 +44,9 @@ PARTS = ("kinematics", "kinematics_by_component", "mass_matrix", "plant_kinemati
 
 
 def forward_kinematics_by_component(robot, p_base, R_base, q):
-    """:func:`spacegrasp_jax.kinematics.forward_kinematics` written component by component:
+    """[`spacegrasp_jax.kinematics.forward_kinematics()`][spacegrasp_jax.kinematics.forward_kinematics] written component by component:
     every vector a list of 3 arrays, every rotation a 3x3 list, ``R Rz(theta) Rx(alpha)``
-    column by column, stacked into the same :class:`~spacegrasp_jax.kinematics.Frames` only
+    column by column, stacked into the same [`Frames`][spacegrasp_jax.kinematics.Frames] only
     at the end. Under ``vmap`` each component is an array of the batch's shape, so the chain's
     arithmetic runs across the batch (the last axis). The probe for a batch-last rewrite of the
     step (documentation, Performance); not used by the package."""

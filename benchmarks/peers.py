@@ -1,10 +1,10 @@
 """The tools a user would otherwise pick, timed on the same robot and the same 1 ms RK4 steps.
 
-* MuJoCo (``mujoco`` on PyPI) with the MJCF that :mod:`spacegrasp_jax.mjcf` generates from the
+* MuJoCo (``mujoco`` on PyPI) with the MJCF that [`spacegrasp_jax.mjcf`][spacegrasp_jax.mjcf] generates from the
   package's ``Robot``: free-joint base, no gravity, no contacts, RK4 at 1 ms, zero joint
   torques (open loop: MuJoCo has no controller here). ``mj_step`` in a Python loop on one
   thread, and ``mujoco.rollout`` over a batch of initial states with a thread per core.
-* Pinocchio in a Python loop with the same closed loop (:mod:`benchmarks.pinocchio_loop`).
+* Pinocchio in a Python loop with the same closed loop (``benchmarks.pinocchio_loop``).
 """
 
 from __future__ import annotations

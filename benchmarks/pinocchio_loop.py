@@ -1,7 +1,7 @@
 """The peer a user would write without this package: the paper's closed loop as a Python
 loop over NumPy, with Pinocchio for the rigid-body dynamics.
 
-Same robot (built here in Pinocchio from a :class:`~spacegrasp_jax.model.Robot`), same
+Same robot (built here in Pinocchio from a [`Robot`][spacegrasp_jax.model.Robot]), same
 scenario, same controllers (admittance eqs 9-17 and Cartesian eqs 21-22, joint PID with the
 t^2 ramp), same exact contact law and the same RK4 with the torques held over each 1 ms step.
 The state is kept in our convention (inertial base twist, satellite quaternion) and converted

@@ -15,7 +15,7 @@ Measures, after compilation and a warm-up, medians over ``--repeats``:
    robot, and the same closed loop written as a Python loop over Pinocchio (whose final pose
    must agree with ours, else the comparison is void and the run fails).
 Prints one table with the ratios and writes ``benchmark.json`` (the keys are listed in
-:data:`KEYS`). ``--quick`` runs every part at toy sizes (0.2-0.5 s scenarios, batches of 1 and
+``KEYS``). ``--quick`` runs every part at toy sizes (0.2-0.5 s scenarios, batches of 1 and
 4) so CI exercises the whole command in about two minutes; its numbers mean nothing.
 """
 

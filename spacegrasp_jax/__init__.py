@@ -2,7 +2,7 @@
 a satellite (Basmadji et al., active 6-DoF force/torque control on the Dynamic Jacobian).
 
 Importing the package changes no process-wide setting. The package computes in float64 and
-runs fastest on a CPU with loops compiled whole: call :func:`configure` once, before JAX runs
+runs fastest on a CPU with loops compiled whole: call [`configure()`][spacegrasp_jax.compilation.configure] once, before JAX runs
 anything (``spacegrasp_jax.compilation`` says what each setting does)::
 
     import spacegrasp_jax as sg

@@ -18,7 +18,7 @@ split into three parts that add up to it:
 
 Those are jnp functions of a run's final metrics, computed where the scenario and the
 realism are known (inside a campaign's compiled program and in a single run's summary). The
-classification of failures (:func:`failure_classes`) is NumPy, on the host.
+classification of failures ([`failure_classes()`][spacegrasp_jax.anatomy.failure_classes]) is NumPy, on the host.
 """
 
 from __future__ import annotations
@@ -37,14 +37,14 @@ ANATOMY_METRICS = {
 
 
 def error_parts(final_metrics: dict, scenario, realism=None) -> dict[str, jax.Array]:
-    """The :data:`ANATOMY_METRICS` of one run (jnp; vmaps).
+    """The ``ANATOMY_METRICS`` of one run (jnp; vmaps).
 
     Args:
         final_metrics: the run's metrics (``spacegrasp_jax.metrics.finish``), for
             ``final_contact_force_N`` (3,) N, LAR axes.
-        scenario: the run's :class:`~spacegrasp_jax.scenario.Scenario` (sphere radius and
+        scenario: the run's [`Scenario`][spacegrasp_jax.scenario.Scenario] (sphere radius and
             stiffness, the held desired pose ``trajectory.end_pose``).
-        realism: the run's :class:`~spacegrasp_jax.realism.Realism`; its LAR estimate error
+        realism: the run's [`Realism`][spacegrasp_jax.realism.Realism]; its LAR estimate error
             counts when its ``"estimate"`` stage is on (``None``: the paper's loop, none).
     """
     force = jnp.asarray(final_metrics["final_contact_force_N"])
@@ -74,7 +74,7 @@ def failure_classes(
     """Which criteria each sample missed and by how much (NumPy).
 
     Returns:
-        ``failed_<class>`` (n,) bool for each of :data:`FAILURE_CLASSES` (a sample can miss
+        ``failed_<class>`` (n,) bool for each of ``FAILURE_CLASSES`` (a sample can miss
         several); ``failure`` (n,) str, the first class it missed or ``"success"``; and
         the margins, each a value over its tolerance (above 1: missed):
         ``position_margin``, ``orientation_margin``, ``torque_margin`` (largest peak over
@@ -141,7 +141,7 @@ def anatomy_summary(sample_metrics: dict) -> dict:
     """A campaign variant's failures: the count of each class (first missed and any
     missed), and the medians of the error decomposition over every sample and over the
     position failures (m). ``sample_metrics`` holds the metrics and their
-    :func:`failure_classes`."""
+    [`failure_classes()`][spacegrasp_jax.anatomy.failure_classes]."""
     classes = sample_metrics
     parts = error_decomposition(sample_metrics)
     position_failures = classes["failed_position"]
@@ -166,7 +166,7 @@ def anatomy_summary(sample_metrics: dict) -> dict:
 def verdict_line(summary: dict, classes: dict[str, np.ndarray], tolerances: dict) -> str | None:
     """One line for a single run that failed its capture (``None`` if it succeeded): the
     class, the numbers that decided it and the error's parts. ``summary``: the run's
-    summary.json (metrics as floats and lists); ``classes``: :func:`failure_classes` of it
+    summary.json (metrics as floats and lists); ``classes``: [`failure_classes()`][spacegrasp_jax.anatomy.failure_classes] of it
     as a one-sample batch; ``tolerances``: ``final_position_m``, ``final_orientation_rad``,
     ``torque_limit_Nm``, ``target_speed_mps``."""
     failure = str(classes["failure"][0])

@@ -37,7 +37,7 @@ def contact_force_smooth(p_from_centre: jax.Array, radius, stiffness, sharpness)
     """Smooth variant of eq 20: force (3,) N, same axes as ``p_from_centre`` (3,) m.
 
     ``sharpness`` (1/m) sets the width ``1/sharpness`` of the softened boundary and of the
-    regularised centre; ``sharpness -> inf`` recovers :func:`contact_force_exact` for
+    regularised centre; ``sharpness -> inf`` recovers [`contact_force_exact()`][spacegrasp_jax.contact.contact_force_exact] for
     ``p != 0``. Outside the sphere the force decays like ``exp(-sharpness (d - r))``.
     """
     width = 1.0 / sharpness

@@ -13,7 +13,7 @@ bodies, so the RNEA velocity and velocity-product acceleration passes are cumula
 over the joints and the composite inertias a reverse cumulative sum: apart from the 7
 products of the kinematic chain nothing is sequential, which suits jit, vmap and GPUs.
 The accelerations come by block elimination on ``M``'s satellite and joint blocks.
-Their derivative is that of inverse dynamics (:func:`forward_dynamics_from_frames`).
+Their derivative is that of inverse dynamics ([`forward_dynamics_from_frames()`][spacegrasp_jax.dynamics.forward_dynamics_from_frames]).
 
 Spatial vectors are pairs of 3-vectors ``(angular, linear)``: a motion ``(w, v)`` with ``v``
 the velocity of the body point at the satellite CoM; a force ``(n, f)`` with ``n`` the moment
@@ -121,7 +121,7 @@ def _joint_axes(frames) -> tuple[jax.Array, jax.Array]:
 
 
 def mass_matrix_parts_from_frames(robot: Robot, frames):
-    """The mass matrix by composite rigid bodies, from :func:`frames_at_base`, in parts:
+    """The mass matrix by composite rigid bodies, from [`frames_at_base()`][spacegrasp_jax.dynamics.frames_at_base], in parts:
     ``(m, h, I_O, M_coupling, M_joints)``. The satellite block
     ``M_base = [[m 1, -h x], [h x, I_O]]`` (6, 6) is the whole system's spatial inertia about
     the satellite CoM: mass ``m`` (), first moment ``h`` (3,) kg m, rotational inertia
@@ -147,7 +147,7 @@ def mass_matrix_parts_from_frames(robot: Robot, frames):
 
 
 def mass_matrix_from_frames(robot: Robot, frames) -> jax.Array:
-    """Mass matrix (13, 13) by composite rigid bodies, from :func:`frames_at_base`."""
+    """Mass matrix (13, 13) by composite rigid bodies, from [`frames_at_base()`][spacegrasp_jax.dynamics.frames_at_base]."""
     m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
     h_skew = spatial.skew(h)
     M_base = jnp.block([[m * jnp.eye(3), -h_skew], [h_skew, I_O]])
@@ -156,13 +156,13 @@ def mass_matrix_from_frames(robot: Robot, frames) -> jax.Array:
 
 def bias_from_frames(robot: Robot, frames, V_base, qd) -> jax.Array:
     """Bias forces (13,) by Newton-Euler with zero generalised acceleration, from
-    :func:`frames_at_base`."""
+    [`frames_at_base()`][spacegrasp_jax.dynamics.frames_at_base]."""
     return _newton_euler(robot, frames, V_base, qd, None)
 
 
 def inverse_dynamics_from_frames(robot: Robot, frames, V_base, qd, xdd) -> jax.Array:
     """Generalised force ``Q = M xdd + bias`` (13,) by Newton-Euler (RNEA), from
-    :func:`frames_at_base`; ``xdd`` (13,) ``[dv_s/dt, dw_s/dt, qdd]``, inertial frame."""
+    [`frames_at_base()`][spacegrasp_jax.dynamics.frames_at_base]; ``xdd`` (13,) ``[dv_s/dt, dw_s/dt, qdd]``, inertial frame."""
     return _newton_euler(robot, frames, V_base, qd, xdd)
 
 
@@ -209,7 +209,7 @@ def _newton_euler(robot: Robot, frames, V_base, qd, xdd) -> jax.Array:
 
 def solve_base(m, h, I_O, rhs: jax.Array) -> jax.Array:
     """``M_base^-1 rhs`` for the satellite block ``M_base = [[m 1, -h x], [h x, I_O]]``
-    (:func:`mass_matrix_parts_from_frames`), ``rhs`` (6,) or (6, k), in closed form.
+    ([`mass_matrix_parts_from_frames()`][spacegrasp_jax.dynamics.mass_matrix_parts_from_frames]), ``rhs`` (6,) or (6, k), in closed form.
 
     For ``M_base [v; w] = [f; n]``: ``I_c w = n - c x f`` with ``c = h / m`` and
     ``I_c = I_O + (h x)(c x) = I_O + c h^T - (h . c) 1`` the inertia about the system's CoM
@@ -231,8 +231,8 @@ def solve_base(m, h, I_O, rhs: jax.Array) -> jax.Array:
 
 def solve_mass_blocks(base, M_coupling, M_joints, base_per_joint, rhs) -> jax.Array:
     """``M^-1 rhs`` (13,) by block elimination, given the parts of
-    :func:`mass_matrix_parts_from_frames` (``base = (m, h, I_O)``) and
-    ``base_per_joint = M_base^-1 M_coupling`` (6, 7) (:func:`solve_base`): the joint
+    [`mass_matrix_parts_from_frames()`][spacegrasp_jax.dynamics.mass_matrix_parts_from_frames] (``base = (m, h, I_O)``) and
+    ``base_per_joint = M_base^-1 M_coupling`` (6, 7) ([`solve_base()`][spacegrasp_jax.dynamics.solve_base]): the joint
     accelerations from the Schur complement ``M_joints - M_coupling^T M_base^-1 M_coupling``
     (7, 7), symmetric positive definite, by Cholesky, then the satellite's."""
     schur = M_joints - spatial.matmul(M_coupling.T, base_per_joint)
@@ -247,17 +247,17 @@ def _solve_blocks(base, M_coupling, base_per_joint, rhs, solve_schur) -> jax.Arr
 
 
 def mass_blocks_from_frames(robot: Robot, frames):
-    """The mass matrix's blocks as the solves use them, from :func:`frames_at_base`:
+    """The mass matrix's blocks as the solves use them, from [`frames_at_base()`][spacegrasp_jax.dynamics.frames_at_base]:
     ``((m, h, I_O), M_coupling, M_joints, base_per_joint)``, the parts of
-    :func:`mass_matrix_parts_from_frames` and ``base_per_joint = M_base^-1 M_coupling``
-    (6, 7) (:func:`solve_base`)."""
+    [`mass_matrix_parts_from_frames()`][spacegrasp_jax.dynamics.mass_matrix_parts_from_frames] and ``base_per_joint = M_base^-1 M_coupling``
+    (6, 7) ([`solve_base()`][spacegrasp_jax.dynamics.solve_base])."""
     m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
     return (m, h, I_O), M_coupling, M_joints, solve_base(m, h, I_O, M_coupling)
 
 
 def forward_dynamics_from_frames(robot: Robot, frames, V_base, qd, Q, mass_blocks=None) -> jax.Array:
-    """Generalised acceleration ``xdd = M^-1 (Q - bias)`` (13,) from :func:`frames_at_base`,
-    by composite rigid bodies and the block elimination of :func:`solve_mass_blocks`.
+    """Generalised acceleration ``xdd = M^-1 (Q - bias)`` (13,) from [`frames_at_base()`][spacegrasp_jax.dynamics.frames_at_base],
+    by composite rigid bodies and the block elimination of [`solve_mass_blocks()`][spacegrasp_jax.dynamics.solve_mass_blocks].
 
     ``mass_blocks``, if given, must be ``mass_blocks_from_frames(robot, frames)``, computed
     by a caller that needs it too (the closed loop's controller). Derivatives do not flow
@@ -266,7 +266,7 @@ def forward_dynamics_from_frames(robot: Robot, frames, V_base, qd, Q, mass_block
     The derivative is that of inverse dynamics, not of the solve: differentiating
     ``M(x) xdd + bias(x, x_v) = Q`` at the solution gives
     ``d xdd = M^-1 (dQ - d[M xdd + bias]|xdd held)``, the bracket being Newton-Euler
-    (:func:`inverse_dynamics_from_frames`) at fixed ``xdd`` (as Carpentier and Mansard,
+    ([`inverse_dynamics_from_frames()`][spacegrasp_jax.dynamics.inverse_dynamics_from_frames]) at fixed ``xdd`` (as Carpentier and Mansard,
     RSS 2018, for Pinocchio). Neither autodiff mode goes through the composite inertias,
     the Schur complement or its factorisation, and the tangent's solve reuses the factor.
     """
@@ -331,17 +331,17 @@ def bias_forces(robot: Robot, R_base, q, V_base, qd) -> jax.Array:
 
 def mass_matrix_and_bias(robot: Robot, R_base, q, V_base, qd) -> tuple[jax.Array, jax.Array]:
     """``(M (13, 13), bias (13,))`` sharing one kinematics pass; arguments as
-    :func:`bias_forces`."""
+    [`bias_forces()`][spacegrasp_jax.dynamics.bias_forces]."""
     frames = frames_at_base(robot, R_base, q)
     return mass_matrix_from_frames(robot, frames), bias_from_frames(robot, frames, V_base, qd)
 
 
 def forward_dynamics(robot: Robot, R_base, q, V_base, qd, Q) -> jax.Array:
     """Generalised acceleration ``xdot_v = M^-1 (Q - bias)`` (13,), by the block
-    elimination of :func:`solve_mass_blocks` (the closed loop's own solve).
+    elimination of [`solve_mass_blocks()`][spacegrasp_jax.dynamics.solve_mass_blocks] (the closed loop's own solve).
 
     Args:
-        R_base, q, V_base, qd: as :func:`bias_forces`.
+        R_base, q, V_base, qd: as [`bias_forces()`][spacegrasp_jax.dynamics.bias_forces].
         Q: (13,) ``[f_s (N), tau_s (N m), u (N m)]``, satellite force and torque in the
             inertial frame, joint torques.
 
@@ -354,8 +354,8 @@ def forward_dynamics(robot: Robot, R_base, q, V_base, qd, Q) -> jax.Array:
 def inverse_dynamics(robot: Robot, R_base, q, V_base, qd, xdd) -> jax.Array:
     """Generalised force ``Q = M xdd + bias`` (13,) ``[f_s (N), tau_s (N m), u (N m)]``
     that gives the acceleration ``xdd`` (13,) ``[dv_s/dt, dw_s/dt, qdd]`` (inertial frame),
-    by recursive Newton-Euler; the inverse of :func:`forward_dynamics`. Other arguments as
-    :func:`bias_forces`."""
+    by recursive Newton-Euler; the inverse of [`forward_dynamics()`][spacegrasp_jax.dynamics.forward_dynamics]. Other arguments as
+    [`bias_forces()`][spacegrasp_jax.dynamics.bias_forces]."""
     return inverse_dynamics_from_frames(robot, frames_at_base(robot, R_base, q), V_base, qd, xdd)
 
 
@@ -380,14 +380,14 @@ def momentum_matrix(robot: Robot, p_base, R_base, q) -> jax.Array:
 
 def momentum_jacobians(robot: Robot, p_base, R_base, q) -> tuple[jax.Array, jax.Array]:
     """``H2`` (6, 6) and ``H3`` (6, 7) of eq 6 (momentum about the inertial origin);
-    arguments as :func:`momentum_matrix`."""
+    arguments as [`momentum_matrix()`][spacegrasp_jax.dynamics.momentum_matrix]."""
     H = momentum_matrix(robot, p_base, R_base, q)
     return H[:, :6], H[:, 6:]
 
 
 def system_momentum(robot: Robot, p_base, R_base, q, V_base, qd) -> jax.Array:
     """``[P; L]`` (6,): total linear momentum (N s) and angular momentum about the
-    inertial origin (N m s), inertial frame. Arguments as :func:`momentum_matrix` plus
+    inertial origin (N m s), inertial frame. Arguments as [`momentum_matrix()`][spacegrasp_jax.dynamics.momentum_matrix] plus
     ``V_base`` (6,) ``[v_s, w_s]`` and ``qd`` (7,)."""
     return momentum_matrix(robot, p_base, R_base, q) @ jnp.concatenate([V_base, qd])
 
@@ -421,7 +421,7 @@ def _dynamic_jacobian_at(robot: Robot, frames) -> jax.Array:
 
 def dynamic_jacobian_from_parts(base_per_joint: jax.Array, J_joints: jax.Array, r_ee: jax.Array) -> jax.Array:
     """``J_dyn = J_m - J_s M_base^-1 M_coupling`` (6, 7), inertial frame, from
-    ``base_per_joint = M_base^-1 M_coupling`` (6, 7) (:func:`solve_base`), the joint block
+    ``base_per_joint = M_base^-1 M_coupling`` (6, 7) ([`solve_base()`][spacegrasp_jax.dynamics.solve_base]), the joint block
     ``J_m`` (6, 7) of the EE point Jacobian and ``r_ee`` (3,) m, the EE point from the
     satellite CoM. Zero momentum about the satellite CoM (rows 0-5 of ``M``) is the
     constraint of eq 6; ``J_s X = [X_v + X_w x r_ee; X_w]`` is applied as cross products."""
@@ -431,7 +431,7 @@ def dynamic_jacobian_from_parts(base_per_joint: jax.Array, J_joints: jax.Array, 
 
 def dynamic_jacobian_ee(robot: Robot, R_base, q) -> jax.Array:
     """``J_dyn^(EE)`` (6, 7): the Dynamic Jacobian mapping ``qd`` to the EE twist expressed
-    in the EE frame (used by eqs 17 and 21). Arguments as :func:`dynamic_jacobian`."""
+    in the EE frame (used by eqs 17 and 21). Arguments as [`dynamic_jacobian()`][spacegrasp_jax.dynamics.dynamic_jacobian]."""
     frames = frames_at_base(robot, R_base, q)
     R_ee_T = frames.R_ee.T
     J_dyn = _dynamic_jacobian_at(robot, frames)

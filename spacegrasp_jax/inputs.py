@@ -1,7 +1,7 @@
 """What users hand in, read and checked before anything compiles: input files and numbers.
 
 Every loader (robot, scenario, gains, perturbation ranges, realism) reads its file with
-:func:`read_document` and checks its numbers with :func:`numbers`, so every input fails the
+[`read_document()`][spacegrasp_jax.inputs.read_document] and checks its numbers with [`numbers()`][spacegrasp_jax.inputs.numbers], so every input fails the
 same way: a ``ValueError`` subclass of the loader's own (``ScenarioError``, ``GainsError``,
 ...) whose one-line message names the file and the key.
 
@@ -19,7 +19,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-#: The file formats :func:`read_document` parses, by name.
+#: The file formats [`read_document()`][spacegrasp_jax.inputs.read_document] parses, by name.
 FORMATS = ("json", "toml")
 
 
@@ -67,7 +67,7 @@ def read_document(path: str | Path, error: type[ValueError], file_format: str | 
     file's extension (``.json``: JSON, anything else TOML) when it is ``None``.
 
     Raises:
-        error: see :func:`read_text` and :func:`parse_document`.
+        error: see [`read_text()`][spacegrasp_jax.inputs.read_text] and [`parse_document()`][spacegrasp_jax.inputs.parse_document].
     """
     path = Path(path)
     file_format = file_format or ("json" if path.suffix.lower() == ".json" else "toml")

@@ -32,7 +32,7 @@ class PlantState:
             velocity in the inertial frame.
         qd: (7,) rad/s, joint rates.
         target: the free-floating target's state
-            (:class:`~spacegrasp_jax.target.TargetState`), or ``None`` for the paper's
+            ([`TargetState`][spacegrasp_jax.target.TargetState]), or ``None`` for the paper's
             stationary target.
     """
 
@@ -50,7 +50,7 @@ class PlantState:
 
 
 def plant_state(p_base, R_base, q, V_base, qd) -> PlantState:
-    """A :class:`PlantState` from a rotation-matrix attitude ``R_base`` (3, 3)."""
+    """A [`PlantState`][spacegrasp_jax.integrator.PlantState] from a rotation-matrix attitude ``R_base`` (3, 3)."""
     return PlantState(
         p_base=jnp.asarray(p_base, dtype=jnp.float64),
         quat_base=spatial.rotation_to_quat(jnp.asarray(R_base, dtype=jnp.float64)),
@@ -62,7 +62,7 @@ def plant_state(p_base, R_base, q, V_base, qd) -> PlantState:
 
 def free_floating_derivative(robot: Robot, state: PlantState, Q: jax.Array) -> PlantState:
     """Time derivative of ``state`` under the generalised force ``Q`` (13,)
-    ``[f_s, tau_s, u]`` (inertial frame, N and N m); returned as a :class:`PlantState`
+    ``[f_s, tau_s, u]`` (inertial frame, N and N m); returned as a [`PlantState`][spacegrasp_jax.integrator.PlantState]
     whose fields hold the rates."""
     return state_rate(state, forward_dynamics(robot, state.R_base, state.q, state.V_base, state.qd, Q))
 
@@ -135,7 +135,7 @@ def simulate_free_floating(
     torques ``joint_torques`` (N, 7) N m, each held over one step of ``dt`` s.
 
     Returns:
-        ``(final_state, trajectory)``, ``trajectory`` a :class:`PlantState` of stacked
+        ``(final_state, trajectory)``, ``trajectory`` a [`PlantState`][spacegrasp_jax.integrator.PlantState] of stacked
         states (N + 1 leading entries, the initial state first).
     """
 

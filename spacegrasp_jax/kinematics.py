@@ -131,7 +131,7 @@ def body_com_positions(robot: Robot, frames: Frames) -> jax.Array:
 def point_jacobian_blocks(
     frames: Frames, p_base: jax.Array, point: jax.Array, last_joint: int
 ) -> tuple[jax.Array, jax.Array]:
-    """:func:`point_jacobian` as its satellite block (6, 6), for ``[v_s, w_s]``, and its
+    """[`point_jacobian()`][spacegrasp_jax.kinematics.point_jacobian] as its satellite block (6, 6), for ``[v_s, w_s]``, and its
     joint block (6, 7), for ``qd``."""
     r_base = point - p_base
     axes = frames.joint_axis

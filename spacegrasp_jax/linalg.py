@@ -10,7 +10,7 @@ same code across the batch (batched LAPACK is an opaque call per system; documen
 modelling notes).
 
 ``solve_spd`` has its own derivative rule, ``dX = A^-1 (dB - dA X)``, built from the
-factor and the substitutions of :func:`cho_solve`, which are linear in the right-hand side
+factor and the substitutions of [`cho_solve()`][spacegrasp_jax.linalg.cho_solve], which are linear in the right-hand side
 (so reverse mode transposes them). Neither autodiff mode goes through the factorisation.
 """
 
@@ -24,7 +24,7 @@ def cholesky(A: jax.Array) -> jax.Array:
     """Lower-triangular ``L`` (..., n, n) with ``L L^T = A`` for symmetric positive-definite
     ``A`` (..., n, n), leading axes batched. NaN if ``A`` is not positive definite (a
     diverging simulation then shows as non-finite values). Not meant to be differentiated
-    by itself: differentiate :func:`solve_spd`."""
+    by itself: differentiate [`solve_spd()`][spacegrasp_jax.linalg.solve_spd]."""
     n = A.shape[-1]
     L: list[list[jax.Array]] = [[] for _ in range(n)]
     for i in range(n):

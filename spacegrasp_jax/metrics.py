@@ -1,17 +1,17 @@
 """Scalar measures of a rollout, one definition each, from a whole
-:class:`~spacegrasp_jax.simulate.Log` or folded step by step inside the scan.
+[`Log`][spacegrasp_jax.simulate.Log] or folded step by step inside the scan.
 
 Two views of the same definitions:
 
-* :data:`METRICS` are the per-run numbers of ``summary.json``, Monte-Carlo campaigns and
-  sweeps. They are computed by folding log rows into :class:`RunningMetrics`
-  (:func:`accumulate`, then :func:`finish`): a rollout that keeps no log folds each step's
-  row as it goes (``spacegrasp_jax.montecarlo.rollout_metrics``), and :func:`log_metrics`
+* ``METRICS`` are the per-run numbers of ``summary.json``, Monte-Carlo campaigns and
+  sweeps. They are computed by folding log rows into [`RunningMetrics`][spacegrasp_jax.metrics.RunningMetrics]
+  ([`accumulate()`][spacegrasp_jax.metrics.accumulate], then [`finish()`][spacegrasp_jax.metrics.finish]): a rollout that keeps no log folds each step's
+  row as it goes (``spacegrasp_jax.montecarlo.rollout_metrics``), and [`log_metrics()`][spacegrasp_jax.metrics.log_metrics]
   folds a whole log at once. Both paths run the same functions. A metric with no value
   ("never touched", "never diverged") is NaN (``null`` in JSON files).
-* The differentiable functions of a log (:func:`position_error`, :func:`final_position_error`,
-  :func:`rms_position_error`, :func:`contact_force_norm`, ...) are what the tuning objective
-  is built from. Their gradients are finite wherever the values are (:func:`safe_norm`).
+* The differentiable functions of a log ([`position_error()`][spacegrasp_jax.metrics.position_error], [`final_position_error()`][spacegrasp_jax.metrics.final_position_error],
+  [`rms_position_error()`][spacegrasp_jax.metrics.rms_position_error], [`contact_force_norm()`][spacegrasp_jax.metrics.contact_force_norm], ...) are what the tuning objective
+  is built from. Their gradients are finite wherever the values are ([`safe_norm()`][spacegrasp_jax.metrics.safe_norm]).
 
 Pure ``jnp`` functions: they run on NumPy arrays too, and under ``jit``/``vmap``/``grad``.
 "Final" means the last logged step, ``t = duration - dt``.
@@ -116,7 +116,7 @@ def contact_force_norm(log):
     return safe_norm(log.contact_force)
 
 
-#: The per-run metrics of a free-floating target (added to :data:`METRICS`' where the
+#: The per-run metrics of a free-floating target (added to ``METRICS``' where the
 #: scenario has one): name -> (shape, unit, meaning).
 TARGET_METRICS = {
     "final_target_speed_mps": ((), "m/s", "the target CoM's speed at the last step"),
@@ -140,7 +140,7 @@ def first_contact_time(log):
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class RunningTargetMetrics:
-    """The :data:`TARGET_METRICS` of the rows folded so far.
+    """The ``TARGET_METRICS`` of the rows folded so far.
 
     Attributes:
         first_position, last_position: (3,) m, the target's CoM at the first and latest row.
@@ -177,7 +177,7 @@ class RunningMetrics:
         last_contact_force: (3,) N, the latest row's contact force, LAR axes.
         runaway_rate, runaway_torque: (7,) rad/s, N m, the thresholds of a runaway
             (``inf``: none).
-        target: the free-floating target's (:class:`RunningTargetMetrics`), or ``None``.
+        target: the free-floating target's ([`RunningTargetMetrics`][spacegrasp_jax.metrics.RunningTargetMetrics]), or ``None``.
     """
 
     rows: jax.Array
@@ -202,7 +202,7 @@ class RunningMetrics:
 
 def start(dtype=jnp.float64, free_target: bool = False, robot=None) -> RunningMetrics:
     """Nothing folded yet; ``free_target``: the rows will carry a free-floating target;
-    ``robot``: the :class:`~spacegrasp_jax.model.Robot` whose limits define a runaway
+    ``robot``: the [`Robot`][spacegrasp_jax.model.Robot] whose limits define a runaway
     (``None``: no runaway is detected)."""
     zero, never = jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)
     if robot is None:
@@ -247,7 +247,7 @@ def _first(running, happened, t):
 
 
 def accumulate(running: RunningMetrics, rows) -> RunningMetrics:
-    """Fold ``rows`` (a :class:`~spacegrasp_jax.simulate.Log` with a leading axis of one or
+    """Fold ``rows`` (a [`Log`][spacegrasp_jax.simulate.Log] with a leading axis of one or
     more rows, in time order) into ``running``."""
     finite = jnp.stack(
         [jnp.all(jnp.isfinite(leaf.reshape(leaf.shape[0], -1)), axis=1) for leaf in jax.tree.leaves(rows)]
@@ -297,7 +297,7 @@ def _accumulate_target(running: RunningTargetMetrics, rows) -> RunningTargetMetr
 
 
 def finish(running: RunningMetrics, nonfinite_after_s=None) -> dict[str, jax.Array]:
-    """The :data:`METRICS` of everything folded into ``running`` (NaN where a time never
+    """The ``METRICS`` of everything folded into ``running`` (NaN where a time never
     came). ``nonfinite_after_s``: a time (s) to report as ``first_nonfinite_s`` if no row
     was non-finite (a state that turns non-finite in the last step shows in no row)."""
     first_nonfinite = running.first_nonfinite_s
@@ -337,14 +337,14 @@ def finish(running: RunningMetrics, nonfinite_after_s=None) -> dict[str, jax.Arr
 
 
 def log_metrics(log, robot=None) -> dict[str, jax.Array]:
-    """The :data:`METRICS` of a whole log (arrays), and the :data:`TARGET_METRICS` if it
-    carries a free-floating target; ``robot``: whose limits define a runaway (:func:`start`)."""
+    """The ``METRICS`` of a whole log (arrays), and the ``TARGET_METRICS`` if it
+    carries a free-floating target; ``robot``: whose limits define a runaway ([`start()`][spacegrasp_jax.metrics.start])."""
     return finish(accumulate(start(jnp.asarray(log.t).dtype, log.target_velocity is not None, robot), log))
 
 
 def summary(log, robot=None) -> dict:
-    """The :data:`METRICS` (and :data:`TARGET_METRICS`) of a whole log as plain floats and
-    lists (``summary.json``; NaN where a metric has no value); ``robot`` as :func:`log_metrics`."""
+    """The ``METRICS`` (and ``TARGET_METRICS``) of a whole log as plain floats and
+    lists (``summary.json``; NaN where a metric has no value); ``robot`` as [`log_metrics()`][spacegrasp_jax.metrics.log_metrics]."""
     return {name: jnp.asarray(value).tolist() for name, value in log_metrics(log, robot).items()}
 
 

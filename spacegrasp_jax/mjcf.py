@@ -1,9 +1,9 @@
 """The robot as a MuJoCo model (MJCF text), for side-by-side benchmarks and checks.
 
 The generated model has a free joint at the satellite CoM, seven hinges and the EE merged into
-link 7 (as :func:`~spacegrasp_jax.model.body_inertials` does), no gravity, no geometry and so
+link 7 (as [`body_inertials()`][spacegrasp_jax.model.body_inertials] does), no gravity, no geometry and so
 no contacts, the RK4 integrator at ``dt`` and one motor per joint (``ctrl`` = joint torque,
-N m). It describes the same rigid-body system as :class:`~spacegrasp_jax.model.Robot`:
+N m). It describes the same rigid-body system as [`Robot`][spacegrasp_jax.model.Robot]:
 
 * body ``link<i>`` has the pose of DH frame ``i``. Its hinge sits at the origin of frame
   ``i-1``, about ``z_{i-1}``; at ``q = 0`` the body is placed by ``T_{i-1,i}(0)``.
@@ -11,7 +11,7 @@ N m). It describes the same rigid-body system as :class:`~spacegrasp_jax.model.R
   ``[v_s, w_s]``, both in the inertial frame (``qvel_from_state`` converts).
 * site ``ee`` is the EE frame's origin.
 
-MuJoCo itself is not a dependency of the package: only :mod:`benchmarks` and the tests
+MuJoCo itself is not a dependency of the package: only ``benchmarks`` and the tests
 import it.
 """
 

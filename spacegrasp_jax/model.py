@@ -16,7 +16,7 @@ Frames and conventions (the modelling notes of the documentation)
 
 Every leaf is a float64 array, so a batch of robots (e.g. perturbed satellite mass in a
 Monte-Carlo campaign) is simply a ``Robot`` with a leading batch axis under ``jax.vmap``.
-Build robots with :func:`make_robot`, :func:`paper_robot` or :func:`load_robot`, which
+Build robots with [`make_robot()`][spacegrasp_jax.model.make_robot], [`paper_robot()`][spacegrasp_jax.model.paper_robot] or [`load_robot()`][spacegrasp_jax.model.load_robot], which
 validate their input; the dataclass constructor itself does not (it must accept tracers).
 """
 
@@ -64,10 +64,10 @@ class Robot:
         ee_com: (3,) m, EE body CoM from the origin of frame 7, frame 7 axes.
         ee_inertia: (3, 3) kg m^2 about the EE body CoM, frame 7 axes.
         joint_rate_limit: (7,) rad/s, the fastest each joint can turn (the paper gives none:
-            :data:`PAPER_JOINT_RATE_LIMIT` by default). Not a constraint of the dynamics: a
-            run whose rates go far beyond it is a runaway (:mod:`spacegrasp_jax.anatomy`).
+            ``PAPER_JOINT_RATE_LIMIT`` by default). Not a constraint of the dynamics: a
+            run whose rates go far beyond it is a runaway ([`spacegrasp_jax.anatomy`][spacegrasp_jax.anatomy]).
         joint_torque_limit: (7,) N m, the largest torque each joint's motor gives
-            (:data:`PAPER_JOINT_TORQUE_LIMIT` by default); the flight-like loop's actuators
+            (``PAPER_JOINT_TORQUE_LIMIT`` by default); the flight-like loop's actuators
             saturate at their own ``torque_limit_Nm``.
     """
 
@@ -142,7 +142,7 @@ def _check_inertia(name: str, tensor: np.ndarray) -> None:
 
 
 def make_robot(**fields) -> Robot:
-    """Validate the fields of :class:`Robot` and build it with float64 leaves.
+    """Validate the fields of [`Robot`][spacegrasp_jax.model.Robot] and build it with float64 leaves.
 
     Raises:
         RobotConfigError: a field is missing or unknown, has the wrong shape, holds a
@@ -231,7 +231,7 @@ def load_robot(path: str | Path) -> Robot:
 
     The file has three tables, ``[satellite]``, ``[arm]`` and ``[end_effector]``, and an
     optional ``[limits]`` (``joint_rate`` in rad/s, ``joint_torque`` in N m); each key
-    maps to one :class:`Robot` field (``satellite.mass`` -> ``satellite_mass``,
+    maps to one [`Robot`][spacegrasp_jax.model.Robot] field (``satellite.mass`` -> ``satellite_mass``,
     ``end_effector.offset`` -> ``ee_offset``, ``arm.link_com`` -> ``link_com``, ...).
 
     Raises:
@@ -243,7 +243,7 @@ def load_robot(path: str | Path) -> Robot:
 
 
 def robot_from_toml(text: str, source: str = "<robot TOML>") -> Robot:
-    """:func:`load_robot` on the text of a TOML file; errors name ``source``."""
+    """[`load_robot()`][spacegrasp_jax.model.load_robot] on the text of a TOML file; errors name ``source``."""
     path = source
     document = parse_document(text, "toml", path, RobotConfigError)
     key_to_field = {key: field for field, (_, _, key) in _FIELDS.items()}

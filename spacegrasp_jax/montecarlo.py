@@ -1,14 +1,14 @@
 """Per-sample metrics of closed-loop rollouts, accumulated inside the scan, and the batched
 evaluation of a Monte-Carlo campaign's samples.
 
-A full :class:`~spacegrasp_jax.simulate.Log` of a 17 s rollout holds some 1.4 million numbers; a campaign
-needs a few numbers per sample. :func:`rollout_metrics` runs the same scan body as
-:func:`~spacegrasp_jax.simulate.rollout` but folds every log row into the running metrics of
-:mod:`spacegrasp_jax.metrics` as it goes (the functions that give a whole log's metrics), so
+A full [`Log`][spacegrasp_jax.simulate.Log] of a 17 s rollout holds some 1.4 million numbers; a campaign
+needs a few numbers per sample. [`rollout_metrics()`][spacegrasp_jax.montecarlo.rollout_metrics] runs the same scan body as
+[`rollout()`][spacegrasp_jax.simulate.rollout] but folds every log row into the running metrics of
+[`spacegrasp_jax.metrics`][spacegrasp_jax.metrics] as it goes (the functions that give a whole log's metrics), so
 a batch needs memory for its states only, plus, on request, every ``every``-th log row.
 
 Everything here is pure: ``jit``, ``vmap`` and sharding are applied by the caller
-(:mod:`spacegrasp_jax.campaign`).
+([`spacegrasp_jax.campaign`][spacegrasp_jax.campaign]).
 """
 
 from __future__ import annotations
@@ -38,20 +38,20 @@ def rollout_metrics(
     key: jax.Array | None = None,
     model_robot: Robot | None = None,
 ) -> tuple[dict[str, jax.Array], Log | None]:
-    """One closed-loop rollout reduced to its :data:`~spacegrasp_jax.metrics.METRICS` and the
-    parts of its final error (:data:`~spacegrasp_jax.anatomy.ANATOMY_METRICS`), in one ``lax.scan``.
+    """One closed-loop rollout reduced to its ``METRICS`` and the
+    parts of its final error (``ANATOMY_METRICS``), in one ``lax.scan``.
 
     Args:
-        robot, scenario, gains, controller, pinv_damping: as :func:`~spacegrasp_jax.simulate.rollout`.
+        robot, scenario, gains, controller, pinv_damping: as [`rollout()`][spacegrasp_jax.simulate.rollout].
         every: if set (static; must divide ``scenario.n_steps``), also return every
             ``every``-th log row, i.e. the rows at ``t = 0, every dt, 2 every dt, ...``.
         realism, key, model_robot: the flight-like loop
-            (:func:`~spacegrasp_jax.simulate.flight_rollout`), run when the realism is not
+            ([`flight_rollout()`][spacegrasp_jax.simulate.flight_rollout]), run when the realism is not
             ideal or the controller's model starts from another robot than the plant.
 
     Returns:
         ``(metrics, rows)``: a dict of the metrics' arrays and the decimated
-        :class:`~spacegrasp_jax.simulate.Log` (``None`` without ``every``).
+        [`Log`][spacegrasp_jax.simulate.Log] (``None`` without ``every``).
     """
     if (realism is not None and not realism.is_ideal(scenario.dt)) or model_robot is not None:
         return _flight_metrics(robot, scenario, gains, controller, pinv_damping, every, realism, key, model_robot)
@@ -96,7 +96,7 @@ def _finish(running, final, scenario, realism):
 
 
 def _flight_metrics(robot, scenario, gains, controller, pinv_damping, every, realism, key, model_robot):
-    """:func:`rollout_metrics` of the flight-like loop: each control period's rows folded at once."""
+    """[`rollout_metrics()`][spacegrasp_jax.montecarlo.rollout_metrics] of the flight-like loop: each control period's rows folded at once."""
     realism = ideal() if realism is None else realism
     key = jax.random.PRNGKey(0) if key is None else key
     start, one_period, periods = flight_loop(
@@ -149,7 +149,7 @@ def evaluate_samples(
     identified: bool = False,
 ):
     """Samples ``indices`` (n,) of the campaign ``seed`` (see
-    :mod:`~spacegrasp_jax.perturbations`), each simulated and reduced to its metrics.
+    [`perturbations`][spacegrasp_jax.perturbations]), each simulated and reduced to its metrics.
 
     The controller believes the nominal ``robot`` (times the realism's factors) while the
     plant is the sample's perturbed one; with ``identified`` it is told the perturbed robot
@@ -159,7 +159,7 @@ def evaluate_samples(
 
     Returns:
         ``(perturbations, metrics, rows)``, each with leading axis n: the drawn
-        :class:`~spacegrasp_jax.perturbations.Perturbation`, the metrics dict and
+        [`Perturbation`][spacegrasp_jax.perturbations.Perturbation], the metrics dict and
         the decimated logs (``None`` without ``every``). A sample that diverges has NaN
         final errors and a finite ``first_nonfinite_s``; the others are unaffected.
     """
@@ -177,7 +177,7 @@ def evaluate_samples(
 
 @dataclasses.dataclass(frozen=True)
 class SampleLoops:
-    """What the closed loops of a batch of samples run with (:func:`sample_loops`).
+    """What the closed loops of a batch of samples run with ([`sample_loops()`][spacegrasp_jax.montecarlo.sample_loops]).
 
     Attributes:
         robots, scenarios, perturbations: the perturbed plants and scenarios and the drawn
@@ -199,7 +199,7 @@ class SampleLoops:
 def sample_loops(
     robot, scenario, seed, indices, ranges: PerturbationRanges, realism=None, identified=False
 ) -> SampleLoops:
-    """The samples ``indices`` of a campaign and the loop each runs (:func:`evaluate_samples`)."""
+    """The samples ``indices`` of a campaign and the loop each runs ([`evaluate_samples()`][spacegrasp_jax.montecarlo.evaluate_samples])."""
     robots, scenarios, perturbations = sample(robot, scenario, seed, indices, ranges)
     believes_nominal = not identified and ranges.perturbs_robot
     estimates = ranges.lar_estimate_position_m > 0.0 or ranges.lar_estimate_angle_rad > 0.0
@@ -231,7 +231,7 @@ def success(
     both tolerances (relative to the LAR frame, moving or not) and, with a free-floating
     target (``sample_metrics`` holds ``final_target_speed_mps``), the target's final speed
     is at most ``target_speed_limit_mps`` (m/s; ``None``: any) (NumPy). Which criterion a
-    failed sample missed: :func:`spacegrasp_jax.anatomy.failure_classes`."""
+    failed sample missed: [`spacegrasp_jax.anatomy.failure_classes()`][spacegrasp_jax.anatomy.failure_classes]."""
     classes = anatomy.failure_classes(
         sample_metrics, position_tolerance_m, orientation_tolerance_rad, torque_limit_Nm, target_speed_limit_mps
     )

@@ -22,7 +22,7 @@ uniform, ``U`` meaning a fresh uniform number in [-1, 1]:
 * ``lar_estimate_position_m``, ``lar_estimate_angle_rad``: the LAR pose the controller
   believes is off the true one by ``U * value`` along each LAR axis and a rotation vector
   with components ``U * value`` (a flight-like loop's target estimate error,
-  :mod:`spacegrasp_jax.realism`; the perturbed LAR pose above is the true one).
+  [`spacegrasp_jax.realism`][spacegrasp_jax.realism]; the perturbed LAR pose above is the true one).
 
 A free-floating target (the scenario's ``target``) is moved with its LAR frame (the target's
 pose is what ``lar_position_m`` and ``lar_angle_rad`` perturb) and draws, from a stream of its
@@ -38,7 +38,7 @@ own (the other samples stay as they are):
 * ``target_com_offset_m``: its CoM moves from ``com_in_lar`` to a point drawn uniformly in
   the ball of this radius around it (LAR coordinates).
 
-The ``free_target`` envelope (:data:`FREE_TARGET_RANGES`, about the nominal target of
+The ``free_target`` envelope (``FREE_TARGET_RANGES``, about the nominal target of
 ``configs/free_target_envelope.toml``, 632 kg at rest with its CoM 0.25 m behind the ring)
 spans targets of 200 to 2,000 kg, drifting up to 5 mm/s and tumbling up to 1 deg/s, their
 CoM up to 0.5 m from the LAR origin.
@@ -48,7 +48,7 @@ Without a target these draws change nothing.
 The LAR frame moves independently of ``q_init``: a perturbed sample starts with the EE off
 its desired start, as a real approach would. Whether the controller is told about the model
 perturbations (the satellite mass and inertia) is the campaign's choice
-(:mod:`spacegrasp_jax.montecarlo`): by default it believes the nominal robot.
+([`spacegrasp_jax.montecarlo`][spacegrasp_jax.montecarlo]): by default it believes the nominal robot.
 """
 
 from __future__ import annotations
@@ -161,7 +161,7 @@ FREE_TARGET_RANGES = PerturbationRanges(
 def load_ranges(path: str | Path, base: PerturbationRanges | None = None) -> PerturbationRanges:
     """Ranges from a TOML file whose keys are the field names (all optional, the others
     ``base``'s, by default the campaign defaults; a ``[perturbations]`` table is also
-    accepted). Raises :class:`PerturbationError`."""
+    accepted). Raises [`PerturbationError`][spacegrasp_jax.perturbations.PerturbationError]."""
     path = Path(path)
     document = read_document(path, PerturbationError, "toml")
     if set(document) == {"perturbations"} and isinstance(document["perturbations"], dict):

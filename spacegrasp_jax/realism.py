@@ -2,7 +2,7 @@
 
 The ideal loop (the paper's, and the default everywhere) has a controller that knows the
 plant exactly, perfect sensors, unlimited motors and control at the plant's rate. A
-:class:`Realism` inserts, in this order (documentation, modelling notes):
+[`Realism`][spacegrasp_jax.realism.Realism] inserts, in this order (documentation, modelling notes):
 
 plant state -> sensors (F/T: bias and white noise in sensor axes, then a first-order
 low-pass; joints: encoder quantisation of q, white noise on qd) -> controller, run at the
@@ -16,7 +16,7 @@ default it runs with the controller, once per control period).
 Array leaves (noise levels, biases, limits, factors, estimate errors) are differentiable and
 vmappable; the choices that fix the program's shape are static: the control period, the
 delay, the filter's cutoff, the saturation law, the anti-windup, and which stages are on
-(:attr:`Realism.stages`, decided by :func:`make_realism` from the values).
+(``Realism.stages``, decided by [`make_realism()`][spacegrasp_jax.realism.make_realism] from the values).
 
 TOML (``--realism FILE``; every key optional, unknown keys rejected)::
 
@@ -79,7 +79,7 @@ SCHEMA = {
     "target_estimate": {"position_error_m": ((3,), 0.0), "angle_error_rad": ((3,), 0.0)},
 }
 
-#: The stages a realism can switch on (:attr:`Realism.stages`).
+#: The stages a realism can switch on (``Realism.stages``).
 STAGES = ("sensors", "actuators", "model", "estimate")
 
 
@@ -91,7 +91,7 @@ def _static(default):
 @dataclasses.dataclass(frozen=True)
 class Realism:
     """The realism settings of a rollout (module docstring); build it with
-    :func:`make_realism`, :func:`ideal`, :func:`flight` or :func:`load_realism`.
+    [`make_realism()`][spacegrasp_jax.realism.make_realism], [`ideal()`][spacegrasp_jax.realism.ideal], [`flight()`][spacegrasp_jax.realism.flight] or [`load_realism()`][spacegrasp_jax.realism.load_realism].
 
     Attributes:
         force_noise_std, torque_noise_std: (3,) N, N m, white noise std per sensor axis.
@@ -112,7 +112,7 @@ class Realism:
             static).
         saturation: ``"hard"`` (clip) or ``"smooth"`` (``limit tanh(u / limit)``; static).
         anti_windup: stop the PID's integrator while the torque saturates (static).
-        stages: the stages that are on, a subset of :data:`STAGES` (static).
+        stages: the stages that are on, a subset of ``STAGES`` (static).
     """
 
     force_noise_std: jax.Array
@@ -151,7 +151,7 @@ class Realism:
 
     def steps_per_servo(self, dt: float) -> int:
         """Plant steps per servo period (the joint PID's), for a scenario of step ``dt`` (s);
-        a whole fraction of :meth:`steps_per_period`."""
+        a whole fraction of ``steps_per_period()``."""
         per_period = self.steps_per_period(dt)
         if self.servo_period is None:
             return per_period
@@ -231,7 +231,7 @@ def _number(where: str, value, shape, *, allow_null_as_inf: bool = False) -> np.
 
 
 def make_realism(document: dict | None = None, *, source: str = "realism") -> Realism:
-    """A :class:`Realism` from the TOML tables of the module docstring (every key optional,
+    """A [`Realism`][spacegrasp_jax.realism.Realism] from the TOML tables of the module docstring (every key optional,
     unknown keys rejected, every value checked; errors name ``source``, table and key)."""
     require_float64("a Realism")
     document = {} if document is None else document
@@ -398,7 +398,7 @@ FLIGHT = {
 
 
 def flight() -> Realism:
-    """Typical values for a 7-joint space arm with a 6-axis F/T sensor (:data:`FLIGHT`)."""
+    """Typical values for a 7-joint space arm with a 6-axis F/T sensor (``FLIGHT``)."""
     return make_realism(FLIGHT, source="flight")
 
 

@@ -48,10 +48,12 @@ from spacegrasp_jax.trajectory import desired_state
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class ControllerState:
-    """Attributes:
-    law: the law's own state (``AdmittanceState`` with its ``V_ref``, or the Cartesian law's
-        empty one).
-    pid: the joint PID loops' memory.
+    """The controller's memory from one control step to the next.
+
+    Attributes:
+        law: the law's own state (``AdmittanceState`` with its ``V_ref``, or the Cartesian law's
+            empty one).
+        pid: the joint PID loops' memory.
     """
 
     law: object
@@ -176,10 +178,10 @@ class PlantKinematics:
     run kernel by kernel (documentation, Performance).
 
     Attributes:
-        frames: :class:`~spacegrasp_jax.kinematics.Frames` with the satellite CoM at the
-            origin (:func:`~spacegrasp_jax.dynamics.frames_at_base`).
+        frames: [`Frames`][spacegrasp_jax.kinematics.Frames] with the satellite CoM at the
+            origin ([`frames_at_base()`][spacegrasp_jax.dynamics.frames_at_base]).
         base: ``(m, h, I_O)``, the mass matrix's satellite block
-            ``M_base = [[m 1, -h x], [h x, I_O]]`` (:func:`~spacegrasp_jax.dynamics.mass_matrix_parts_from_frames`).
+            ``M_base = [[m 1, -h x], [h x, I_O]]`` ([`mass_matrix_parts_from_frames()`][spacegrasp_jax.dynamics.mass_matrix_parts_from_frames]).
         M_coupling, M_joints: (6, 7), (7, 7) blocks of the mass matrix.
         base_per_joint: (6, 7) ``M_base^-1 M_coupling``: minus the satellite velocity per
             unit joint rate at zero momentum (eq 6).
@@ -187,7 +189,7 @@ class PlantKinematics:
             satellite block ``J_s = [[1, -r x], [0, 1]]`` needs only ``r = frames.p_ee``,
             the EE point from the satellite CoM, and is applied as cross products.
         contact_force_lar: (3,) N, force of the contact sphere on the EE, LAR axes.
-        p_lar, R_lar: (3,) m, (3, 3), the LAR frame at this state, inertial (:func:`lar_pose`).
+        p_lar, R_lar: (3,) m, (3, 3), the LAR frame at this state, inertial ([`lar_pose()`][spacegrasp_jax.simulate.lar_pose]).
     """
 
     frames: Frames
@@ -281,8 +283,8 @@ def control_step(
 ):
     """One controller update at time ``t``: returns ``(u (7,), new ControllerState, log row)``.
 
-    ``controller``: a law's name or object (:func:`as_law`). ``kinematics``:
-    :func:`plant_kinematics` of ``state.plant`` if the caller has it."""
+    ``controller``: a law's name or object ([`as_law()`][spacegrasp_jax.simulate.as_law]). ``kinematics``:
+    [`plant_kinematics()`][spacegrasp_jax.simulate.plant_kinematics] of ``state.plant`` if the caller has it."""
     law = as_law(controller, pinv_damping)
     plant = state.plant
     if kinematics is None:
@@ -306,10 +308,10 @@ def control_step(
 
 @dataclasses.dataclass(frozen=True)
 class Observation:
-    """The true state as an ideal controller sees it (:func:`observe`).
+    """The true state as an ideal controller sees it ([`observe()`][spacegrasp_jax.simulate.observe]).
 
     Attributes:
-        inputs: what the law reads (:class:`~spacegrasp_jax.control.law.ControlInputs`).
+        inputs: what the law reads ([`ControlInputs`][spacegrasp_jax.control.law.ControlInputs]).
         pose, twist: (6,) the EE pose and twist in LAR (the log's ``pose_ee``, ``twist_ee``).
         force_fts, torque_fts: (3,) N, N m, the ideal F/T sensor's reading, sensor axes.
     """
@@ -348,9 +350,9 @@ def target_motion(scenario: Scenario, plant: PlantState):
 
 
 def log_row(plant: PlantState, kinematics: PlantKinematics, t, observed: Observation, target=None, **controller) -> Log:
-    """One row of the :class:`Log`: the plant's true state at ``t`` (s) and ``controller``'s
+    """One row of the [`Log`][spacegrasp_jax.simulate.Log]: the plant's true state at ``t`` (s) and ``controller``'s
     fields (``u``, ``V_ref``, ``qd_des`` and, in the flight-like loop, its readings);
-    ``target``: the scenario's :class:`~spacegrasp_jax.target.TargetBody` (``None``: a
+    ``target``: the scenario's [`TargetBody`][spacegrasp_jax.target.TargetBody] (``None``: a
     stationary target)."""
     momentum = momentum_at(kinematics, plant)
     target_fields = {}
@@ -391,14 +393,14 @@ def sensor_reading(robot: Robot, scenario: Scenario, kinematics: PlantKinematics
 def controller_inputs(
     robot, trajectory, p_base, V_base, qd, kinematics, p_lar, R_lar, force_fts, torque_fts, t, lar_motion=None
 ):
-    """What the law reads (:class:`~spacegrasp_jax.control.law.ControlInputs`), and the EE
+    """What the law reads ([`ControlInputs`][spacegrasp_jax.control.law.ControlInputs]), and the EE
     pose and twist in LAR, from a view of the state: the satellite's position ``p_base`` (3,)
     m and twist ``V_base`` (6,), the joint rates ``qd`` (7,) rad/s, ``kinematics`` of the
     robot the controller believes at the joint angles it measured, the LAR frame it believes
     (``p_lar`` (3,) m, ``R_lar`` (3, 3), inertial), and the F/T reading ``force_fts``,
     ``torque_fts`` (3,) in sensor axes, at time ``t`` (s). ``lar_motion``: ``(v_lar, w)``
     (3,) m/s, rad/s, inertial, the LAR origin's velocity and the target's angular velocity
-    (:func:`target_motion`), or ``None`` for a stationary target; the twist is then relative
+    ([`target_motion()`][spacegrasp_jax.simulate.target_motion]), or ``None`` for a stationary target; the twist is then relative
     to the moving frame, ``[d p_rel/dt; R_lar^T (w_ee - w)]``."""
     frames = kinematics.frames
     p_ee = p_base + frames.p_ee
@@ -436,7 +438,7 @@ def closed_loop_step(
 ):
     """The scan body ``step(state: SimState, k) -> (next SimState, Log row)`` for step
     number ``k`` (a float, t = k dt): one controller update, then one RK4 step of the plant
-    under the held torques. Arguments as :func:`rollout`.
+    under the held torques. Arguments as [`rollout()`][spacegrasp_jax.simulate.rollout].
 
     ``checkpoint``: put the controller update and RK4's first stage under
     ``jax.checkpoint`` (RK4's later stages always are, one by one: ``integrator.rk4_step``).
@@ -468,7 +470,7 @@ def largest_divisor(n: int, at_most: int) -> int:
     return max(d for d in range(1, at_most + 1) if n % d == 0)
 
 
-#: Steps per inner scan of :func:`rollout`: the largest log field (7 numbers) times 8 is 56,
+#: Steps per inner scan of [`rollout()`][spacegrasp_jax.simulate.rollout]: the largest log field (7 numbers) times 8 is 56,
 #: under the 64 numbers (512 bytes) up to which XLA's CPU runtime runs a loop in sequence.
 LOG_BLOCK = 8
 
@@ -494,25 +496,25 @@ def rollout(
             squares, with a law's name; static.
         checkpoint_segment: for reverse-mode gradients, the number of steps per inner
             scan (static; must divide ``n_steps``), each step's parts under
-            ``jax.checkpoint`` (:func:`closed_loop_step`): the tape holds, per step, the
+            ``jax.checkpoint`` ([`closed_loop_step()`][spacegrasp_jax.simulate.closed_loop_step]): the tape holds, per step, the
             state and the rates RK4's stages start from instead of every intermediate of
             every step, and the backward pass recomputes each part just before
             differentiating it. A stage's rate is at most 7 numbers a field, so the three
             of one step are (3, 7) and inner scans of 2 steps hold no array over 64
             numbers, which matters where XLA runs loops kernel by kernel (with loops
             compiled whole the length does not).
-            ``None``: blocks of :data:`LOG_BLOCK` steps, nothing checkpointed.
-        realism: ``None`` or an ideal :class:`~spacegrasp_jax.realism.Realism`: the paper's
-            loop. Otherwise the flight-like loop of :func:`flight_rollout` (static fields
+            ``None``: blocks of ``LOG_BLOCK`` steps, nothing checkpointed.
+        realism: ``None`` or an ideal [`Realism`][spacegrasp_jax.realism.Realism]: the paper's
+            loop. Otherwise the flight-like loop of [`flight_rollout()`][spacegrasp_jax.simulate.flight_rollout] (static fields
             fix the program; any ``checkpoint_segment`` checkpoints each control period).
         key: the ``jax.random`` key of the sensors' noise (flight-like loop with noise).
         model_robot: the robot the controller believes, if not ``robot`` (the flight-like
-            loop; :func:`flight_rollout`).
+            loop; [`flight_rollout()`][spacegrasp_jax.simulate.flight_rollout]).
 
     Returns:
         ``(final_state, log)``: the state after ``scenario.n_steps`` steps and the
-        :class:`Log`. A diverging rollout carries non-finite values from the first bad
-        step on; :func:`first_nonfinite_time` finds it (``experiment.run`` reports it).
+        [`Log`][spacegrasp_jax.simulate.Log]. A diverging rollout carries non-finite values from the first bad
+        step on; [`first_nonfinite_time()`][spacegrasp_jax.simulate.first_nonfinite_time] finds it (``experiment.run`` reports it).
     """
     if (realism is not None and not realism.is_ideal(scenario.dt)) or model_robot is not None:
         realism = ideal() if realism is None else realism
@@ -589,7 +591,7 @@ def flight_rollout(
     pinv_damping: float = 0.0,
     checkpoint: bool = False,
 ) -> tuple[FlightState, Log]:
-    """The closed loop with the realism model (module :mod:`spacegrasp_jax.realism`), one
+    """The closed loop with the realism model (module [`spacegrasp_jax.realism`][spacegrasp_jax.realism]), one
     ``jax.lax.scan`` over control periods, each an inner scan over the plant's steps.
 
     At the start of control period k (``t_k = k T``, ``T = realism.control_period``): the
@@ -599,10 +601,10 @@ def flight_rollout(
     realism.servo_period``, by default ``T``: one tick a period) the PID reads the joint
     sensors (noise from the same key of the period) and turns the rate error into torques
     (anti-windup, saturation), held over the tick's plant steps (RK4 at ``scenario.dt``, the
-    contact force at every stage). The log has one row per plant step, as :func:`rollout`'s.
+    contact force at every stage). The log has one row per plant step, as [`rollout()`][spacegrasp_jax.simulate.rollout]'s.
 
     Args:
-        robot, scenario, gains, controller, pinv_damping: as :func:`rollout`.
+        robot, scenario, gains, controller, pinv_damping: as [`rollout()`][spacegrasp_jax.simulate.rollout].
         realism: the realism settings (static fields fix the program).
         key: a ``jax.random`` key; same key, same rollout.
         model_robot: the robot the controller's model starts from (default ``robot``);
@@ -637,10 +639,10 @@ def flight_loop(
     pinv_damping: float = 0.0,
     checkpoint: bool = False,
 ):
-    """The parts of :func:`flight_rollout` (same arguments): ``(start, one_period,
-    periods)``, the initial :class:`FlightState`, the scan body ``one_period(state, k) ->
+    """The parts of [`flight_rollout()`][spacegrasp_jax.simulate.flight_rollout] (same arguments): ``(start, one_period,
+    periods)``, the initial [`FlightState`][spacegrasp_jax.simulate.FlightState], the scan body ``one_period(state, k) ->
     (state, rows)`` of control period ``k`` (a float) with its plant steps' log rows (a
-    :class:`Log` with a leading axis of the period's steps), and the number of periods."""
+    [`Log`][spacegrasp_jax.simulate.Log] with a leading axis of the period's steps), and the number of periods."""
     law = as_law(controller, pinv_damping)
     per_period = realism.steps_per_period(scenario.dt)
     per_servo = realism.steps_per_servo(scenario.dt)

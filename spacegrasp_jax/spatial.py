@@ -5,12 +5,12 @@ Conventions
 * A rotation matrix ``R_a_b`` (3, 3) maps coordinates in frame ``b`` to frame ``a``:
   ``x_a = R_a_b @ x_b``.
 * Unit quaternions are scalar-first ``[w, x, y, z]`` (4,) and represent the same
-  body-to-inertial rotation as the matrix built by :func:`quat_to_rotation`.
+  body-to-inertial rotation as the matrix built by [`quat_to_rotation()`][spacegrasp_jax.spatial.quat_to_rotation].
 * ZYX Euler angles are returned ordered ``[roll (about x), pitch (about y), yaw (about z)]``
   with ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (modelling notes, eq 14 pairing).
 
-All functions are pure and work on a single element (:func:`skew`, :func:`cross`,
-:func:`matvec` and :func:`matmul` also broadcast over leading axes); use ``jax.vmap`` for
+All functions are pure and work on a single element ([`skew()`][spacegrasp_jax.spatial.skew], [`cross()`][spacegrasp_jax.spatial.cross],
+[`matvec()`][spacegrasp_jax.spatial.matvec] and [`matmul()`][spacegrasp_jax.spatial.matmul] also broadcast over leading axes); use ``jax.vmap`` for
 batches.
 """
 
@@ -65,12 +65,12 @@ def matvec(A, x):
 @jax.custom_jvp
 def matmul(A, B):
     """``A @ B`` for small matrices ``A`` (..., m, k) and ``B`` (..., k, n), leading axes
-    broadcast; as :func:`matvec`."""
+    broadcast; as [`matvec()`][spacegrasp_jax.spatial.matvec]."""
     return _summed_matmul(A, B)
 
 
 def _bilinear_jvp(product, summed):
-    """Give the bilinear ``product`` (:func:`matvec` or :func:`matmul`) the derivative
+    """Give the bilinear ``product`` ([`matvec()`][spacegrasp_jax.spatial.matvec] or [`matmul()`][spacegrasp_jax.spatial.matmul]) the derivative
     ``product(dA, B) + product(A, dB)``, written with ``summed``, its products-and-sums form."""
 
     @functools.partial(product.defjvp, symbolic_zeros=True)

@@ -1,10 +1,10 @@
 """What a success rate or a difference between two gain sets is worth: confidence intervals
 and paired tests, on the host (NumPy and ``scipy.stats``).
 
-* :func:`success_interval` - a success rate with its 95% Wilson score interval.
-* :func:`compare_success` - two gain sets on the same samples: the exact McNemar test on
+* [`success_interval()`][spacegrasp_jax.statistics.success_interval] - a success rate with its 95% Wilson score interval.
+* [`compare_success()`][spacegrasp_jax.statistics.compare_success] - two gain sets on the same samples: the exact McNemar test on
   the discordant pairs (samples one set captures and the other does not).
-* :func:`compare_metric` - two gain sets' values of one metric on the same samples: the
+* [`compare_metric()`][spacegrasp_jax.statistics.compare_metric] - two gain sets' values of one metric on the same samples: the
   median of the paired differences with a bootstrap 95% interval, the Wilcoxon signed-rank
   p-value, and the counts of samples each set wins.
 
@@ -45,7 +45,7 @@ def success_interval(successes: int, samples: int) -> dict:
 
 
 def format_interval(interval: dict) -> str:
-    """``"67.2% [61.2, 72.7]"``: a :func:`success_interval` as a console cell."""
+    """``"67.2% [61.2, 72.7]"``: a [`success_interval()`][spacegrasp_jax.statistics.success_interval] as a console cell."""
     if interval["samples"] == 0:
         return "-"
     return f"{interval['rate']:.1%} [{100 * interval['low']:.1f}, {100 * interval['high']:.1f}]"
@@ -102,8 +102,8 @@ def compare_metric(reference, candidate) -> dict:
 
     Returns:
         ``samples`` (pairs used), ``median_difference`` (candidate - reference) with its
-        paired bootstrap 95% interval (percentile method, :data:`BOOTSTRAP_RESAMPLES`
-        resamples of the pairs, seed :data:`BOOTSTRAP_SEED`), ``candidate_lower`` and
+        paired bootstrap 95% interval (percentile method, ``BOOTSTRAP_RESAMPLES``
+        resamples of the pairs, seed ``BOOTSTRAP_SEED``), ``candidate_lower`` and
         ``reference_lower`` (samples each set wins; ties in neither), and ``p_value``: the
         two-sided Wilcoxon signed-rank test of the differences (1.0 when all are zero).
     """

@@ -3,8 +3,8 @@ in one vmapped program sharded over the local devices, and the Pareto front of t
 
 A sweep answers "what happens to peak torque, accuracy and contact force if the admittance
 is stiffer, softer, more damped..." on one scenario. Each gain set runs the same closed loop
-as :func:`~spacegrasp_jax.simulate.rollout`, reduced to the per-run metrics of
-:data:`~spacegrasp_jax.metrics.METRICS` inside the scan, so a batch of full 17 s runs
+as [`rollout()`][spacegrasp_jax.simulate.rollout], reduced to the per-run metrics of
+``METRICS`` inside the scan, so a batch of full 17 s runs
 needs memory for its states only.
 
 Example (scale Kd and Bd of the paper's admittance by 1/2, 1 and 2, on a 2 s approach)::
@@ -67,10 +67,10 @@ def scaled_gains(base: Gains, scales: dict) -> Gains:
 
     Args:
         base: one gain set (unbatched).
-        scales: group name -> (N,) positive factors, all of one length N (see :func:`scale_grid`).
+        scales: group name -> (N,) positive factors, all of one length N (see [`scale_grid()`][spacegrasp_jax.sweep.scale_grid]).
 
     Returns:
-        :class:`Gains` with a leading batch axis of N on every field.
+        [`Gains`][spacegrasp_jax.control.gains.Gains] with a leading batch axis of N on every field.
     """
     if not scales:
         raise SweepError("scales: empty; give at least one gain group")
@@ -93,7 +93,7 @@ def scaled_gains(base: Gains, scales: dict) -> Gains:
 
 
 def stack_gains(gain_sets) -> Gains:
-    """A batch of gain sets from a sequence of unbatched :class:`Gains`."""
+    """A batch of gain sets from a sequence of unbatched [`Gains`][spacegrasp_jax.control.gains.Gains]."""
     gain_sets = list(gain_sets)
     if not gain_sets:
         raise SweepError("gain_sets: empty")
@@ -127,7 +127,7 @@ def evaluate_gains(
     The batch is split into chunks of ``chunk`` sets (rounded up to a multiple of the device
     count; the last chunk is padded with copies of the final set, dropped from the results),
     each chunk one call of one compiled program sharded over ``jax.devices()``
-    (:func:`spacegrasp_jax.batching.map_in_chunks`).
+    ([`spacegrasp_jax.batching.map_in_chunks()`][spacegrasp_jax.batching.map_in_chunks]).
 
     Args:
         robot, scenario: the system and the scenario, the same for every run.
@@ -138,7 +138,7 @@ def evaluate_gains(
         progress: stream for one line per chunk (``None``: silent).
 
     Returns:
-        Each metric of :data:`~spacegrasp_jax.metrics.METRICS` as an (N, ...) array, plus
+        Each metric of ``METRICS`` as an (N, ...) array, plus
         ``diverged`` (N,) bool, true where the run became non-finite.
     """
     if controller not in CONTROLLERS:

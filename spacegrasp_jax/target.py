@@ -1,11 +1,11 @@
 """The free-floating target: a rigid body that carries the LAR frame and the contact sphere.
 
-The paper's target is fixed in inertial space. A :class:`TargetBody` in the scenario makes it
+The paper's target is fixed in inertial space. A [`TargetBody`][spacegrasp_jax.target.TargetBody] in the scenario makes it
 a free rigid body (documentation, modelling notes): its body frame is the LAR frame moved to
 the target's centre of mass, ``com_in_lar`` (LAR coordinates), so its axes are the LAR axes
 and its inertia is about its CoM in those axes. Torque-free except for the contact, whose
 force acts on the EE and, opposite, on the target at the same point (the EE point). Its
-state (:class:`TargetState`) is integrated in the same RK4 step as the chaser's.
+state ([`TargetState`][spacegrasp_jax.target.TargetState]) is integrated in the same RK4 step as the chaser's.
 """
 
 from __future__ import annotations

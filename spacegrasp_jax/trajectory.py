@@ -20,10 +20,12 @@ from spacegrasp_jax import spatial
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Trajectory:
-    """Attributes:
-    start_pose: (6,) ``[m, m, m, rad, rad, rad]`` at t = 0.
-    end_pose: (6,) reached at ``t = duration`` and held afterwards.
-    duration: () s, length of the move (10 s in the paper).
+    """The desired end-effector pose over time, in the LAR frame.
+
+    Attributes:
+        start_pose: (6,) ``[m, m, m, rad, rad, rad]`` at t = 0.
+        end_pose: (6,) reached at ``t = duration`` and held afterwards.
+        duration: () s, length of the move (10 s in the paper).
     """
 
     start_pose: jax.Array

@@ -5,6 +5,7 @@ a fresh process (the pages' and the README's Python blocks: tests/test_docs_exam
 from __future__ import annotations
 
 import ast
+import html
 import os
 import re
 import subprocess
@@ -63,6 +64,15 @@ def test_the_site_builds_strictly(tmp_path):
     )
     assert result.returncode == 0, result.stdout + result.stderr
     assert (tmp_path / "site" / "reference" / "simulation" / "index.html").exists()
+    # The API reference renders: no Sphinx role left as text (cross-references are links),
+    # every Attributes: section a table rather than a paragraph that starts with the word.
+    raw_role = re.compile(r":(?:py:)?(?:func|class|data|mod|meth|attr|exc|obj|const):`")
+    for page in (tmp_path / "site").rglob("*.html"):
+        text = page.read_text()
+        assert not raw_role.search(html.unescape(re.sub(r"<[^>]+>", "", text))), f"a raw role in {page}"
+        assert "<p>Attributes:" not in text, f"an Attributes: section rendered as a paragraph in {page}"
+    reference = (tmp_path / "site" / "reference" / "simulation" / "index.html").read_text()
+    assert 'href="../dynamics/#spacegrasp_jax.kinematics.Frames"' in reference  # a role became a link
 
 
 def test_the_pages_with_examples_are_the_ones_expected():

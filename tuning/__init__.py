@@ -1,9 +1,9 @@
 """Gradient-based tuning of the admittance, Cartesian and joint PID gains with optax.
 
-* :mod:`spacegrasp_jax.tuning.objective` - the objective (final errors, RMS tracking, smooth peak torque).
-* :mod:`spacegrasp_jax.tuning.parameters` - log-gain parameters and the freeze mask.
-* :mod:`spacegrasp_jax.tuning.tune` - loss over a scenario batch, gradients, the resumable optimiser loop.
-* :mod:`spacegrasp_jax.tuning.run` - the ``spacegrasp tune`` job: files, evaluation, plots.
+* [`spacegrasp_jax.tuning.objective`][tuning.objective] - the objective (final errors, RMS tracking, smooth peak torque).
+* [`spacegrasp_jax.tuning.parameters`][tuning.parameters] - log-gain parameters and the freeze mask.
+* [`spacegrasp_jax.tuning.tune`][tuning.tune] - loss over a scenario batch, gradients, the resumable optimiser loop.
+* [`spacegrasp_jax.tuning.run`][tuning.run] - the ``spacegrasp tune`` job: files, evaluation, plots.
 """
 
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts, smooth_max

@@ -1,7 +1,7 @@
 """Looking at the objective around a set of gains: which gains matter (the gradient per gain
 group), and the loss along a line in parameter space checked against the gradient's slope.
 
-Parameters are log-gains (:mod:`spacegrasp_jax.tuning.parameters`), so ``d loss / d param`` is the change of
+Parameters are log-gains ([`spacegrasp_jax.tuning.parameters`][tuning.parameters]), so ``d loss / d param`` is the change of
 the loss per unit *relative* change of a gain: a gradient entry of 0.5 means a 1% larger gain
 raises the loss by about 0.005.
 """
@@ -33,8 +33,8 @@ def loss_slice(value_and_grad, params: dict, direction: dict, steps) -> dict[str
     """The loss along the line ``params + s * direction`` and its exact slope there.
 
     Args:
-        value_and_grad: ``params -> ((loss, aux), gradient)``, e.g. from :func:`spacegrasp_jax.tuning.tune.setup`.
-        params: the line's origin (log-gains). direction: same structure (e.g. :func:`descent_direction`).
+        value_and_grad: ``params -> ((loss, aux), gradient)``, e.g. from [`spacegrasp_jax.tuning.tune.setup()`][tuning.tune.setup].
+        params: the line's origin (log-gains). direction: same structure (e.g. [`descent_direction()`][tuning.analysis.descent_direction]).
         steps: (S,) values of ``s``.
 
     Returns:

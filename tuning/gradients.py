@@ -2,10 +2,10 @@
 one a descent method can trust on every scenario it will meet?
 
 For the nominal scenario and N perturbed ones (the Monte-Carlo campaigns' samples 1..N, with
-their satellites, noise keys and target estimates under a realism), :func:`envelope_gradients`
+their satellites, noise keys and target estimates under a realism), [`envelope_gradients()`][tuning.gradients.envelope_gradients]
 computes the objective's gradient with respect to the log-gains (the tuning parameters,
-:mod:`spacegrasp_jax.tuning.parameters`), batched and sharded like a campaign, over several
-horizons at once (the objective of the log cut at each horizon). :func:`report` condenses
+[`spacegrasp_jax.tuning.parameters`][tuning.parameters]), batched and sharded like a campaign, over several
+horizons at once (the objective of the log cut at each horizon). [`report()`][tuning.gradients.report] condenses
 them into what ``spacegrasp gradients`` writes in ``gradients.json``:
 
 * per gain group and entry: mean, median, spread (standard deviation and interquartile
@@ -52,7 +52,7 @@ HORIZONS = (0.125, 0.25, 0.5, 1.0)
 
 @dataclasses.dataclass(frozen=True)
 class EnvelopeGradients:
-    """The gradients of one evaluation (:func:`envelope_gradients`).
+    """The gradients of one evaluation ([`envelope_gradients()`][tuning.gradients.envelope_gradients]).
 
     Attributes:
         horizons_s: (H,) s, the horizons; the last is the whole scenario.
@@ -147,7 +147,7 @@ def envelope_gradients(
     the damping of its pseudoinverse (0: exact, the paper).
 
     Returns:
-        ``(gradients, evaluate)``: the :class:`EnvelopeGradients`, and ``evaluate(params,
+        ``(gradients, evaluate)``: the [`EnvelopeGradients`][tuning.gradients.EnvelopeGradients], and ``evaluate(params,
         rows)``, the same program on items ``rows`` at per-item log-gains ``params``
         (group -> (len(rows), size)), returning ``(losses (len(rows), H), gradients)``
         (for central differences without another compile).

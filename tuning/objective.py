@@ -2,7 +2,7 @@
 
 **capture**: how far a run is from failing its capture. Each success criterion gives a
 margin, the value over its tolerance (above 1: the capture fails; the campaigns' criteria,
-:mod:`spacegrasp_jax.anatomy`): ``m_p = e_p / 5 mm``, ``m_o = e_o / 1 deg``, the torque
+[`spacegrasp_jax.anatomy`][spacegrasp_jax.anatomy]): ``m_p = e_p / 5 mm``, ``m_o = e_o / 1 deg``, the torque
 ``m_u = smoothmax_{t, i} |u_i(t)| / limit_i`` against the motors' limits (the robot's
 ``joint_torque_limit``: torque is a constraint, not a cost) and, with a free-floating
 target, ``m_v = |v_target(T)| / 5 mm/s``. With the worst margin in log units
@@ -174,7 +174,7 @@ def capture_loss(margins: dict[str, jax.Array], objective: Objective) -> jax.Arr
 
 def objective_parts(log, objective: Objective) -> dict[str, jax.Array]:
     """Every part of the objective, unweighted, the ``capture`` objective's margins
-    (:func:`capture_margins`) and its ``capture_loss``, the ``weighted_loss``, and ``loss``,
+    ([`capture_margins()`][tuning.objective.capture_margins]) and its ``capture_loss``, the ``weighted_loss``, and ``loss``,
     the one ``objective.kind`` names; with a free-floating target, its final speed
     ``final_target_speed_mps`` too."""
     w = objective.weights

@@ -3,7 +3,7 @@ damping, with a mask that freezes any subset. ``exp`` keeps every tuned gain pos
 entries keep their base value and get a zero gradient.
 
 A damping of 0 (the paper's exact pseudoinverse) has no logarithm: a tuned damping starts at
-:data:`DAMPING_START`, small enough to change nothing measurable away from a singularity
+``DAMPING_START``, small enough to change nothing measurable away from a singularity
 (it adds ``1e-6`` to ``J J^T``, whose eigenvalues along the paper's motion are 0.01 to 1)."""
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ DAMPING_START = 1e-3
 def make_mask(base: Gains, controller: str, frozen: tuple[str, ...] = ()) -> dict[str, jax.Array]:
     """Boolean arrays, True where an entry is tuned: the controller's groups minus the
     ``frozen`` groups, and never a gain whose base value is 0 (it has no logarithm; the
-    damping starts at :data:`DAMPING_START` instead)."""
+    damping starts at ``DAMPING_START`` instead)."""
     unknown = sorted(set(frozen) - set(GAIN_SHAPES))
     if unknown:
         raise ValueError(f"--freeze: unknown gain group(s) {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")
@@ -42,7 +42,7 @@ def make_mask(base: Gains, controller: str, frozen: tuple[str, ...] = ()) -> dic
 
 def initial_params(base: Gains, controller: str) -> dict[str, jax.Array]:
     """``log`` of the tuned groups' gains (a zero stands in where the base gain is 0, and
-    :data:`DAMPING_START` where the base damping is)."""
+    ``DAMPING_START`` where the base damping is)."""
 
     def start(name):
         value = jnp.asarray(getattr(base, name))

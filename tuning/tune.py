@@ -86,17 +86,17 @@ class TuneConfig:
         torque_guard_Nm: a candidate whose peak torque exceeds this is rejected.
         loss_guard: a candidate whose loss exceeds this many times the starting loss is
             rejected too.
-        ranges: perturbation half-widths for the robust batch (:data:`TUNING_RANGES`).
-        realism: the tables of a :class:`~spacegrasp_jax.realism.Realism` to train under
+        ranges: perturbation half-widths for the robust batch (``TUNING_RANGES``).
+        realism: the tables of a [`Realism`][spacegrasp_jax.realism.Realism] to train under
             (``None``: the paper's loop). Then every sample of the batch draws its noise key
             and a perturbed satellite (10% mass and inertia unless ``ranges`` sets them) that
             the controller does not know: it believes the nominal robot.
         objective: ``"capture"`` (the default) or ``"weighted"``
-            (:mod:`spacegrasp_jax.tuning.objective`); ``weights`` apply to the weighted one.
-        method: ``"cmaes"`` (the default; :mod:`spacegrasp_jax.tuning.cmaes`: ``steps``
+            ([`spacegrasp_jax.tuning.objective`][tuning.objective]); ``weights`` apply to the weighted one.
+        method: ``"cmaes"`` (the default; [`spacegrasp_jax.tuning.cmaes`][tuning.cmaes]: ``steps``
             generations of ``population`` candidates, forward rollouts only) or
-            ``"gradient"`` (optax on the reverse- or forward-mode gradient; :func:`setup`
-            and :func:`optimise`). CMA-ES won on held-out captures at equal compute
+            ``"gradient"`` (optax on the reverse- or forward-mode gradient; [`setup()`][tuning.tune.setup]
+            and [`optimise()`][tuning.tune.optimise]). CMA-ES won on held-out captures at equal compute
             (documentation, Tuning the gains).
         population: CMA-ES's candidates per generation (``None``: its default,
             ``4 + 3 ln n`` for n tuned numbers).
@@ -110,7 +110,7 @@ class TuneConfig:
             which a fraction of unequal limits does not (at 40% of the paper's arm's limits
             the wrist's constraint is 0.8 N m, about the paper's own median wrist peak).
         aggregate: how the batch's gradients combine: ``"mean"`` (the gradient of the mean
-            or CVaR) or ``"clip"``: each sample's gradient clipped to :data:`CLIP_FACTOR`
+            or CVaR) or ``"clip"``: each sample's gradient clipped to ``CLIP_FACTOR``
             times the batch's median gradient norm before the mean (one chaotic sample
             cannot steer the step).
     """
@@ -253,14 +253,14 @@ SEQUENTIAL_BATCH = 8
 
 def batch_in_sequence(batch: int) -> bool:
     """Whether the loss runs its ``batch`` scenarios one after another rather than vmapped:
-    one scenario, or up to :data:`SEQUENTIAL_BATCH` on a CPU (a GPU always vmaps)."""
+    one scenario, or up to ``SEQUENTIAL_BATCH`` on a CPU (a GPU always vmaps)."""
     return batch == 1 or (batch <= SEQUENTIAL_BATCH and jax.default_backend() == "cpu")
 
 
 def checkpoint_segment(n_steps: int, batch: int = 1) -> int:
     """Steps per inner scan for a gradient over ``batch`` scenarios: the largest divisor of
-    ``n_steps`` up to :data:`CHECKPOINT_SEGMENT` when the scenarios run one after another
-    (:func:`batch_in_sequence`); 1 for a vmapped batch, whose arrays are too large for XLA's
+    ``n_steps`` up to ``CHECKPOINT_SEGMENT`` when the scenarios run one after another
+    ([`batch_in_sequence()`][tuning.tune.batch_in_sequence]); 1 for a vmapped batch, whose arrays are too large for XLA's
     sequential mode anyway."""
     if not batch_in_sequence(batch):
         return 1
@@ -287,10 +287,10 @@ def scenario_parts(
     key: jax.Array | None = None,
     model_robot: Robot | None = None,
 ) -> dict:
-    """Every part of the objective on one scenario (:func:`~spacegrasp_jax.tuning.objective.objective_parts`),
+    """Every part of the objective on one scenario ([`objective_parts()`][tuning.objective.objective_parts]),
     plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m). ``segment``: the
     rollout's ``checkpoint_segment`` (for reverse-mode gradients). ``realism``, ``key``,
-    ``model_robot``: the flight-like loop (:func:`~spacegrasp_jax.simulate.rollout`)."""
+    ``model_robot``: the flight-like loop ([`rollout()`][spacegrasp_jax.simulate.rollout])."""
     _, log = rollout(
         robot,
         scenario,
@@ -311,7 +311,7 @@ def make_loss(
 ):
     """``loss(params) -> (loss, aux)``: the batch mean (or CVaR) of the objective, and the
     batch-mean parts plus the worst hard peak torque (N m) for the divergence guard. The
-    scenarios run one after another or vmapped, as :func:`batch_in_sequence` says."""
+    scenarios run one after another or vmapped, as [`batch_in_sequence()`][tuning.tune.batch_in_sequence] says."""
 
     def loss(params):
         gains = gains_from_params(params, base, mask)
@@ -414,9 +414,9 @@ def make_flight_value_and_grad(
     robot: Robot, batch: SampleLoops, base: Gains, mask, config: TuneConfig, objective: Objective
 ):
     """``params -> ((loss, aux), gradient)`` under ``config.realism``: the samples'
-    gradients (:func:`_per_sample_gradients`) as one program sharded over every device
-    (:func:`spacegrasp_jax.batching.map_in_chunks`: a share of the batch per core or GPU),
-    then :func:`aggregate_gradients` on the host. ``aux`` has the batch-mean parts, the worst
+    gradients (``_per_sample_gradients()``) as one program sharded over every device
+    ([`spacegrasp_jax.batching.map_in_chunks()`][spacegrasp_jax.batching.map_in_chunks]: a share of the batch per core or GPU),
+    then [`aggregate_gradients()`][tuning.tune.aggregate_gradients] on the host. ``aux`` has the batch-mean parts, the worst
     hard peak torque and ``clipped_samples``."""
     function = functools.partial(_per_sample_gradients, controller=config.controller, objective=objective)
     samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
@@ -621,8 +621,8 @@ def torque_constraint_Nm(robot: Robot, config: TuneConfig) -> tuple[float, ...]:
 
 def training_batch(robot: Robot, nominal: Scenario, config: TuneConfig):
     """The batch every step (or generation) is evaluated on: under a realism, the
-    :class:`~spacegrasp_jax.montecarlo.SampleLoops` of :func:`flight_batch`; else the
-    stacked scenarios of :func:`training_scenarios`."""
+    [`SampleLoops`][spacegrasp_jax.montecarlo.SampleLoops] of [`flight_batch()`][tuning.tune.flight_batch]; else the
+    stacked scenarios of [`training_scenarios()`][tuning.tune.training_scenarios]."""
     if config.realism is not None:
         return flight_batch(robot, nominal, config, config.seed, config.batch)
     return training_scenarios(nominal, config)

@@ -1,7 +1,7 @@
 """Controllers: the admittance (active 6-DoF F/T) law, the Cartesian law, joint PID, gains.
 
-Each law is an object with ``init`` and ``update`` (:mod:`spacegrasp_jax.control.law`):
-:class:`Admittance`, :class:`Cartesian`, and the joint :class:`PID` stage after them.
+Each law is an object with ``init`` and ``update`` ([`spacegrasp_jax.control.law`][spacegrasp_jax.control.law]):
+[`Admittance`][spacegrasp_jax.control.admittance.Admittance], [`Cartesian`][spacegrasp_jax.control.cartesian.Cartesian], and the joint [`PID`][spacegrasp_jax.control.pid.PID] stage after them.
 """
 
 from spacegrasp_jax.control.admittance import Admittance, AdmittanceState

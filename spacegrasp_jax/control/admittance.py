@@ -55,8 +55,10 @@ def desired_joint_rates(J_dyn_ee: jax.Array, R_lar_ee: jax.Array, V_ref_lar: jax
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class AdmittanceState:
-    """Attributes:
-    V_ref: (6,) reference EE twist in LAR, the integrator of eq 15 (``V_ref(0) = 0``).
+    """The admittance law's state.
+
+    Attributes:
+        V_ref: (6,) reference EE twist in LAR, the integrator of eq 15 (``V_ref(0) = 0``).
     """
 
     V_ref: jax.Array

@@ -70,14 +70,14 @@ class Gains:
     pinv_damping: jax.Array
 
     def to_dict(self, controller: str | None = None) -> dict[str, list[float]]:
-        """Plain lists, for JSON: the groups ``controller`` uses (:data:`GAINS_USED`), or
+        """Plain lists, for JSON: the groups ``controller`` uses (``GAINS_USED``), or
         every group (``None``)."""
         names = GAINS_USED[controller] if controller is not None else GAIN_SHAPES
         return {name: np.asarray(getattr(self, name)).tolist() for name in names}
 
 
 def make_gains(**fields) -> Gains:
-    """Validate and build :class:`Gains`; a scalar is broadcast to the field's length, and
+    """Validate and build [`Gains`][spacegrasp_jax.control.gains.Gains]; a scalar is broadcast to the field's length, and
     ``pinv_damping`` may be left out (0: the exact pseudoinverse).
 
     Raises:
@@ -163,9 +163,9 @@ def load_gains(path: str | Path, controller: str | None = None) -> Gains:
     """Read gains from a JSON file ``{"Md": [...], "kp": [...], ...}`` (scalars allowed).
 
     A file may hold any subset of the groups: the others take the paper's values
-    (:func:`paper_gains`). A file written for one controller holds the groups that
-    controller uses (:data:`GAINS_USED`); given ``controller``, groups it does not use are
-    accepted and named in an :class:`UnusedGainsWarning`.
+    ([`paper_gains()`][spacegrasp_jax.control.gains.paper_gains]). A file written for one controller holds the groups that
+    controller uses (``GAINS_USED``); given ``controller``, groups it does not use are
+    accepted and named in an [`UnusedGainsWarning`][spacegrasp_jax.control.gains.UnusedGainsWarning].
 
     Raises:
         GainsError: unreadable file, not a JSON object, or invalid gains (a value that is

@@ -3,9 +3,9 @@
 A law is a small frozen object with ``init(dtype) -> state`` and
 ``update(gains, inputs, state, dt) -> (qd_des, state)`` (optax's and diffrax's style): the
 object fixes the program (it is static, hashable, a ``jit`` static argument), its state is a
-pytree the closed loop carries. :class:`~spacegrasp_jax.control.admittance.Admittance` and
-:class:`~spacegrasp_jax.control.cartesian.Cartesian` are the two laws; the joint PID stage
-(:class:`~spacegrasp_jax.control.pid.PID`) turns their desired joint rates into torques.
+pytree the closed loop carries. [`Admittance`][spacegrasp_jax.control.admittance.Admittance] and
+[`Cartesian`][spacegrasp_jax.control.cartesian.Cartesian] are the two laws; the joint PID stage
+([`PID`][spacegrasp_jax.control.pid.PID]) turns their desired joint rates into torques.
 """
 
 from __future__ import annotations

@@ -13,9 +13,11 @@ from spacegrasp_jax.control.gains import Gains
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class PIDState:
-    """Attributes:
-    integral: (7,) rad, running integral of the rate error.
-    previous_error: (7,) rad/s, rate error at the previous control step.
+    """The joint PID loops' memory.
+
+    Attributes:
+        integral: (7,) rad, running integral of the rate error.
+        previous_error: (7,) rad/s, rate error at the previous control step.
     """
 
     integral: jax.Array
@@ -62,7 +64,7 @@ class PID:
     """The joint PID stage as a controller: ``init`` and ``update``.
 
     Attributes:
-        saturation: ``"hard"`` or ``"smooth"`` (:func:`saturate`), when ``update`` gets a
+        saturation: ``"hard"`` or ``"smooth"`` ([`saturate()`][spacegrasp_jax.control.pid.saturate]), when ``update`` gets a
             torque limit (static).
         anti_windup: with a limit, hold the integral while the unlimited torque exceeds the
             limit and the error drives it further out (conditional integration; static).
@@ -79,7 +81,7 @@ class PID:
     ) -> tuple[jax.Array, PIDState]:
         """``(torque (7,) N m, next state)`` from the rate error ``qd_des - qd`` (7,) rad/s at
         time ``t`` (s), control period ``dt`` (s). ``limit``: (7,) N m torque limits, or
-        ``None`` for the paper's unlimited motors (:func:`pid_torque`)."""
+        ``None`` for the paper's unlimited motors ([`pid_torque()`][spacegrasp_jax.control.pid.pid_torque])."""
         if limit is None:
             return pid_torque(gains, state, rate_error, t, dt)
         integral = state.integral + rate_error * dt
