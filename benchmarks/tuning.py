@@ -32,6 +32,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 METHODS = ("cmaes", "gradient")
 
 
@@ -105,7 +107,23 @@ def run_call(
         "rollouts": rollouts,
         "rollouts_unit": unit,
         "final_loss": float(rows[-1]["loss"]),
+        "gains": json.loads((out / "gains.json").read_text()),
     }
+
+
+def shipped_difference(gains: dict) -> float:
+    """The largest relative difference between ``gains`` (a gains.json document) and the
+    shipped ``tuned_gains("flight")``: 0 when the run reproduces them."""
+    import spacegrasp_jax
+    from spacegrasp_jax.control.gains import TUNED_GAINS_FILES
+
+    data = Path(spacegrasp_jax.__file__).resolve().parent / "data"
+    shipped = json.loads((data / TUNED_GAINS_FILES["flight"]).read_text())
+    differences = []
+    for name, value in shipped.items():
+        value = np.asarray(value, dtype=float)
+        differences.append(float(np.max(np.abs(np.asarray(gains[name], dtype=float) - value) / np.abs(value))))
+    return max(differences)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -136,6 +154,8 @@ def main(argv: list[str] | None = None) -> int:
                 "rollouts": sum(call["rollouts"] for call in calls),
                 "rollouts_unit": calls[0]["rollouts_unit"],
             }
+            if method == "cmaes":  # the shipped flight recipe: does it give the shipped gains?
+                total["largest_relative_difference_from_shipped_gains"] = shipped_difference(calls[-1]["gains"])
             results["methods"][method] = {"calls": calls, "total": total}
             print(
                 f"{method:14s} {total['wall_min']:6.1f} min wall in all | {total['rollouts']} {total['rollouts_unit']}"

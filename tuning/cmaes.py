@@ -1,10 +1,10 @@
 """Gradient-free tuning: CMA-ES (the ``cma`` package) on the same parameters, objective and
 batch as the gradient loop, forward rollouts only.
 
-The parameters are the tuned entries of the log-gains (:mod:`spacegrasp_jax.tuning.parameters`,
+The parameters are the tuned entries of the log-gains ([`spacegrasp_jax.tuning.parameters`][tuning.parameters],
 frozen groups left out), one flat vector. A generation asks ``population`` candidates of
 CMA-ES, adds the distribution's mean, and evaluates all of them on the batch in one sharded,
-chunked program (:func:`spacegrasp_jax.batching.map_in_chunks`: ``(population + 1) x batch``
+chunked program ([`spacegrasp_jax.batching.map_in_chunks()`][spacegrasp_jax.batching.map_in_chunks]: ``(population + 1) x batch``
 forward rollouts, no reverse-mode compile), then tells CMA-ES the candidates' objectives.
 The run's gains are the mean after the last generation (the best candidate of a fixed batch
 is the one most fitted to it).
@@ -46,7 +46,7 @@ def flatten(params: dict, mask: dict) -> np.ndarray:
 
 
 def unflatten(vector: np.ndarray, params: dict, mask: dict) -> dict:
-    """``params`` with its tuned entries replaced by ``vector`` (:func:`flatten`'s inverse)."""
+    """``params`` with its tuned entries replaced by ``vector`` ([`flatten()`][tuning.cmaes.flatten]'s inverse)."""
     out, at = {}, 0
     for name, value in params.items():
         value = np.array(value)
@@ -59,7 +59,7 @@ def unflatten(vector: np.ndarray, params: dict, mask: dict) -> dict:
 
 
 def gains_of(vector: np.ndarray, params: dict, base: Gains, mask: dict) -> Gains:
-    """The gains a parameter vector stands for (the entries :func:`flatten` left out keep
+    """The gains a parameter vector stands for (the entries [`flatten()`][tuning.cmaes.flatten] left out keep
     ``params``' values, the frozen ones ``base``'s)."""
     return gains_from_params(unflatten(vector, params, mask), base, mask)
 
@@ -74,6 +74,22 @@ def _candidate_parts(model_robot, items, *, controller: str, objective: Objectiv
         return jax.vmap(one)(gains, robot, scenario, realism, key)
     gains, scenario = items
     return jax.vmap(lambda g, s: scenario_parts(model_robot, s, g, controller, objective))(gains, scenario)
+
+
+#: The most rollouts one call of the population's program runs (measured on 2 cores: a
+#: batch of 64 runs as fast in calls of 64 as of 32; performance page).
+MAX_CHUNK = 64
+
+
+def population_chunk(batch: int) -> int:
+    """Rollouts per call of the population's program for a training ``batch``: the batch
+    itself up to ``MAX_CHUNK`` (each candidate one call, no padding, and the final
+    mean's evaluation reuses the program); a larger batch, its largest divisor up to it
+    where that is at least half of it, else ``MAX_CHUNK`` (the last call padded)."""
+    if batch <= MAX_CHUNK:
+        return batch
+    divisor = max(d for d in range(1, MAX_CHUNK + 1) if batch % d == 0)
+    return divisor if 2 * divisor >= MAX_CHUNK else MAX_CHUNK
 
 
 def make_population_evaluator(
@@ -205,6 +221,8 @@ def optimise(
     Returns the state and ``"done"`` or ``"interrupted"``."""
     strategy = new_strategy(x0, population, seed, step_size)
     asked, told, history = ([], [], []) if resume is None else (list(resume[0]), list(resume[1]), list(resume[2]))
+    if len(asked) < generations:  # a finished run given more generations: its last row comes again
+        history = history[: len(asked)]
     replay(strategy, asked, told)
     state = CmaState(len(asked), strategy, asked, told, history)
     wall = math.nan  # the wall time of the generation whose mean has no row yet
