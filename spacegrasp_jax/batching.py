@@ -3,12 +3,12 @@ evaluations: chunk, pad, shard over the devices' mesh, compile once, gather, rep
 
 A batched job is a pure function ``function(*replicated, block)`` whose last argument is a
 pytree with a leading batch axis (sample indices, gain sets, scenarios) and whose outputs
-all carry that axis. :func:`compile_chunk` compiles it for one chunk of ``chunk`` items, the
+all carry that axis. [`compile_chunk()`][spacegrasp_jax.batching.compile_chunk] compiles it for one chunk of ``chunk`` items, the
 chunk's batch axis sharded over a 1-D mesh of ALL devices of ALL processes
-(:func:`batch_mesh`): one device on a plain CPU, every core with
-:func:`use_all_cpu_cores`, every GPU or host of a cluster with ``jax.distributed``; the code
-path is the same. :func:`run_chunk` runs a chunk and brings its outputs back to every host
-as NumPy arrays; :func:`map_in_chunks` runs a whole batch chunk by chunk, the last chunk
+([`batch_mesh()`][spacegrasp_jax.batching.batch_mesh]): one device on a plain CPU, every core with
+[`use_all_cpu_cores()`][spacegrasp_jax.batching.use_all_cpu_cores], every GPU or host of a cluster with ``jax.distributed``; the code
+path is the same. [`run_chunk()`][spacegrasp_jax.batching.run_chunk] runs a chunk and brings its outputs back to every host
+as NumPy arrays; [`map_in_chunks()`][spacegrasp_jax.batching.map_in_chunks] runs a whole batch chunk by chunk, the last chunk
 padded with copies of the last item (computed, then dropped).
 """
 
@@ -85,7 +85,7 @@ def compile_chunk(
     key=(),
 ) -> tuple[Callable, float]:
     """Compile ``function(*replicated, block)`` for chunks shaped like ``chunk_example``,
-    once per process (:func:`~spacegrasp_jax.compilation.compile_once`).
+    once per process ([`compile_once()`][spacegrasp_jax.compilation.compile_once]).
 
     Args:
         name: the job's name; with ``key`` and the arguments' shapes it identifies the
@@ -132,7 +132,11 @@ def compile_chunk(
         return compilation.jit(sharded).lower(*replicated, placeholder)
 
     signature = compilation.argument_signature((replicated, take(chunk_example, slice(0, 0))))
-    return compilation.compile_once(("batch", name, key, chunk, sub_batch, tuple(jax.devices()), signature), lower)
+    return compilation.compile_once(
+        ("batch", name, key, chunk, sub_batch, tuple(jax.devices()), signature),
+        lower,
+        label=f"{name} ({chunk} items a call)",
+    )
 
 
 def run_chunk(executable: Callable, replicated: tuple, block) -> object:
@@ -160,8 +164,8 @@ def map_in_chunks(
     label: str = "items",
 ):
     """``function(*replicated, batched)`` over a whole batch of N items, ``chunk`` items per
-    call of one compiled program (:func:`compile_chunk`; ``chunk`` rounded by
-    :func:`chunk_size`). ``progress``: stream for one progress line per chunk (``None``:
+    call of one compiled program ([`compile_chunk()`][spacegrasp_jax.batching.compile_chunk]; ``chunk`` rounded by
+    [`chunk_size()`][spacegrasp_jax.batching.chunk_size]). ``progress``: stream for one progress line per chunk (``None``:
     silent). Returns the outputs as NumPy arrays with leading axis N."""
     if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
         raise BatchingError(f"chunk: expected a positive integer, got {chunk!r}")

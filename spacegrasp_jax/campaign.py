@@ -1,6 +1,6 @@
 """Monte-Carlo campaigns on the host: chunks, sharding over devices and hosts, resume, files.
 
-A campaign evaluates ``n`` perturbed samples (:mod:`~spacegrasp_jax.perturbations`) for one
+A campaign evaluates ``n`` perturbed samples ([`perturbations`][spacegrasp_jax.perturbations]) for one
 or more *variants* (a controller with a set of gains). Samples are processed in chunks of
 ``chunk``; each chunk is one call of a compiled function whose batch axis is sharded over a
 1-D mesh of ALL devices of ALL processes (``jax.devices()``). On one CPU that mesh has one
@@ -13,7 +13,7 @@ Files in ``out`` (written by process 0, atomically):
 * ``chunks/<controller>/<gains>/<first sample>.npz``: one file per finished chunk, so an
   interrupted run loses at most the chunk in flight and resumes chunk by chunk;
 * ``samples.npz``, ``summary.json`` and ``timeseries_<controller>_<gains>.npz``, once every
-  chunk is done (see :func:`run_campaign`); the command line adds the figures.
+  chunk is done (see [`run_campaign()`][spacegrasp_jax.campaign.run_campaign]); the command line adds the figures.
 
 For several hosts, ``out`` must be a folder that every process can read (a shared file
 system): every process reads the finished chunks on resume so that all agree on what is left.
@@ -54,27 +54,29 @@ class CampaignError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class CampaignConfig:
-    """Attributes:
-    n: number of samples (sample indices 0 .. n-1).
-    seed: campaign seed; sample i is drawn with ``fold_in(PRNGKey(seed), i)``.
-    chunk: samples per compiled call; a multiple of the number of devices. Memory grows
-        with it; results do not depend on it.
-    ranges: perturbation half-widths.
-    position_tolerance_m, orientation_tolerance_rad: success thresholds on the final errors.
-    torque_limit_Nm: a sample whose peak |u_i| on any joint exceeds this (N m) is counted as
-        unstable and is not a success, even if it never turns non-finite (unstable captures
-        reach 1e4-1e5 N m without a NaN); ``None``: no limit.
-    target_speed_limit_mps: with a free-floating target, a capture succeeds only if the
-        target's final speed is at most this (m/s): pushed away faster, it drifts out of
-        reach before the grasp closes.
-    timeseries_every: keep every k-th log row of every sample (``None``: metrics only).
-    pinv_damping: damping of the pseudoinverse (0: exact, the paper).
-    device_batch: samples each device simulates at once (``None``: its whole share of the
-        chunk). A device's share is run as a ``lax.map`` over sub-batches of this size; on a
-        CPU, 128 keeps a sub-batch's states in cache. Must divide the share to take effect.
-    realism: the loop's realism (:mod:`spacegrasp_jax.realism`; ``None``: the paper's).
-    identified: tell the controller each sample's perturbed satellite (a perfectly
-        identified plant); by default it believes the nominal robot.
+    """A Monte-Carlo campaign's settings.
+
+    Attributes:
+        n: number of samples (sample indices 0 .. n-1).
+        seed: campaign seed; sample i is drawn with ``fold_in(PRNGKey(seed), i)``.
+        chunk: samples per compiled call; a multiple of the number of devices. Memory grows
+            with it; results do not depend on it.
+        ranges: perturbation half-widths.
+        position_tolerance_m, orientation_tolerance_rad: success thresholds on the final errors.
+        torque_limit_Nm: a sample whose peak |u_i| on any joint exceeds this (N m) is counted as
+            unstable and is not a success, even if it never turns non-finite (unstable captures
+            reach 1e4-1e5 N m without a NaN); ``None``: no limit.
+        target_speed_limit_mps: with a free-floating target, a capture succeeds only if the
+            target's final speed is at most this (m/s): pushed away faster, it drifts out of
+            reach before the grasp closes.
+        timeseries_every: keep every k-th log row of every sample (``None``: metrics only).
+        pinv_damping: damping of the pseudoinverse (0: exact, the paper).
+        device_batch: samples each device simulates at once (``None``: its whole share of the
+            chunk). A device's share is run as a ``lax.map`` over sub-batches of this size; on a
+            CPU, 128 keeps a sub-batch's states in cache. Must divide the share to take effect.
+        realism: the loop's realism ([`spacegrasp_jax.realism`][spacegrasp_jax.realism]; ``None``: the paper's).
+        identified: tell the controller each sample's perturbed satellite (a perfectly
+            identified plant); by default it believes the nominal robot.
     """
 
     n: int
@@ -149,12 +151,14 @@ class Variant:
 
 @dataclasses.dataclass
 class CampaignResult:
-    """Attributes:
-    perturbations: field -> (n, ...) the drawn perturbations (shared by all variants).
-    metrics: variant key -> metric -> (n, ...) per-sample metrics, plus ``"success"`` (n,).
-    timeseries: variant key -> decimated :class:`Log` with leading axis n (if requested).
-    summary: the content of summary.json.
-    status: ``"done"`` or ``"interrupted"``.
+    """What a campaign returns.
+
+    Attributes:
+        perturbations: field -> (n, ...) the drawn perturbations (shared by all variants).
+        metrics: variant key -> metric -> (n, ...) per-sample metrics, plus ``"success"`` (n,).
+        timeseries: variant key -> decimated [`Log`][spacegrasp_jax.simulate.Log] with leading axis n (if requested).
+        summary: the content of summary.json.
+        status: ``"done"`` or ``"interrupted"``.
     """
 
     perturbations: dict[str, np.ndarray]
@@ -173,7 +177,7 @@ def _evaluate_chunk(robot, scenario, gains, seed, realism, indices, **settings):
 
 def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
     """The compiled evaluation of one chunk of ``config.chunk`` samples
-    (:func:`~spacegrasp_jax.batching.compile_chunk`) and its compile time (s; that of the
+    ([`compile_chunk()`][spacegrasp_jax.batching.compile_chunk]) and its compile time (s; that of the
     original compile)."""
     function = functools.partial(
         _evaluate_chunk,
@@ -279,7 +283,7 @@ def _statistics(values: np.ndarray) -> dict:
 
 
 def classify(sample_metrics: dict[str, np.ndarray], config: CampaignConfig) -> dict[str, np.ndarray]:
-    """:func:`spacegrasp_jax.anatomy.failure_classes` of the samples by the campaign's criteria."""
+    """[`spacegrasp_jax.anatomy.failure_classes()`][spacegrasp_jax.anatomy.failure_classes] of the samples by the campaign's criteria."""
     return anatomy.failure_classes(
         sample_metrics,
         config.position_tolerance_m,
@@ -293,7 +297,7 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
     """Statistics of every metric over the samples that did not diverge, success rate with
     its 95% interval, the diverged and the unstable samples, the five worst samples by final
     position error and by peak torque, and the failures' anatomy
-    (:func:`spacegrasp_jax.anatomy.anatomy_summary`)."""
+    ([`spacegrasp_jax.anatomy.anatomy_summary()`][spacegrasp_jax.anatomy.anatomy_summary])."""
     diverged = np.flatnonzero(np.isfinite(sample_metrics["first_nonfinite_s"]))
     ok = np.ones(len(sample_metrics["first_nonfinite_s"]), dtype=bool)
     ok[diverged] = False
@@ -338,7 +342,7 @@ COMPARED_METRICS = ("final_position_error_m", "final_orientation_error_rad", "la
 def comparisons(metrics_by_variant: dict[str, dict[str, np.ndarray]], variants: list[Variant]) -> dict:
     """Each gain set against the first gain set of the same controller, on the same samples:
     the exact McNemar test of their success flags and the paired tests of
-    :data:`COMPARED_METRICS` (:mod:`spacegrasp_jax.statistics`). Keyed
+    ``COMPARED_METRICS`` ([`spacegrasp_jax.statistics`][spacegrasp_jax.statistics]). Keyed
     ``"<candidate key> vs <reference key>"``."""
     first = {}
     for variant in variants:
@@ -532,6 +536,7 @@ def run_campaign(
         "duration_s": scenario.duration,
         "dt_s": scenario.dt,
         "contact_law": scenario.contact_law,
+        "target": "fixed" if scenario.target is None else f"free, {float(scenario.target.mass):g} kg nominal",
         "tolerances": {
             "final_position_m": config.position_tolerance_m,
             "final_orientation_rad": config.orientation_tolerance_rad,
@@ -553,7 +558,7 @@ def run_campaign(
 
 def write_results(out: Path, result: CampaignResult) -> None:
     """samples.npz, summary.json and the decimated time series (the figures are the
-    caller's: :func:`spacegrasp_jax.plots.save_campaign_figures`)."""
+    caller's: [`spacegrasp_jax.plots.save_campaign_figures()`][spacegrasp_jax.plots.save_campaign_figures])."""
     arrays = {f"perturbation/{name}": value for name, value in result.perturbations.items()}
     for key, sample_metrics in result.metrics.items():
         arrays |= {f"{key}/{name}": value for name, value in sample_metrics.items()}
@@ -564,10 +569,13 @@ def write_results(out: Path, result: CampaignResult) -> None:
 
 
 def figure_title(summary: dict) -> str:
-    """The title of a campaign's figures, from its summary."""
+    """The title of a campaign's figures, from its summary: the samples, the loop (ideal or
+    flight-like) and the target; the gains are the legend's."""
+    loop = "ideal loop" if summary["realism"] == ideal().to_dict() else "flight-like loop"
     return (
         f"Monte-Carlo: {summary['n']} perturbed captures, seed {summary['seed']}, "
-        f"{summary['duration_s']:g} s, {summary['contact_law']} contact law"
+        f"{summary['duration_s']:g} s, {summary['contact_law']} contact law\n"
+        f"{loop}, {summary.get('target', 'fixed')} target"
     )
 
 
@@ -584,16 +592,49 @@ def load_samples(path: Path) -> tuple[dict[str, np.ndarray], dict[str, dict[str,
     return perturbations, by_variant
 
 
+def load_campaign(out: Path) -> tuple[Robot, Scenario, list[Variant], CampaignConfig]:
+    """The campaign that ``out`` holds, from its ``campaign.json``: ``(robot, scenario,
+    variants, config)``, what [`replay()`][spacegrasp_jax.campaign.replay] takes. The robot
+    is the paper's or read again from the file the campaign names.
+
+    Raises:
+        CampaignError: no campaign there, or its robot file is gone or changed shape.
+    """
+    from spacegrasp_jax.control.gains import make_gains
+    from spacegrasp_jax.model import load_robot, paper_robot
+    from spacegrasp_jax.realism import make_realism
+    from spacegrasp_jax.scenario import scenario_from_dict
+
+    path = Path(out) / "campaign.json"
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise CampaignError(f"{out}: holds no readable campaign ({path.name}: {error})") from None
+    source = record["robot"]
+    try:
+        robot = paper_robot() if source == "paper_robot()" else load_robot(source)
+    except (OSError, ValueError) as error:
+        raise CampaignError(f"{path}: its robot {source}: {error}") from None
+    fields = dict(record["config"])
+    fields["ranges"] = PerturbationRanges.from_mapping(fields["ranges"])
+    realism = make_realism(fields["realism"], source=str(path))
+    fields["realism"] = None if realism.to_dict() == ideal().to_dict() else realism
+    variants = [
+        Variant(item["controller"], make_gains(**item["gains"]), item["gains_label"]) for item in record["variants"]
+    ]
+    return robot, scenario_from_dict(record["scenario"]), variants, CampaignConfig(**fields)
+
+
 def replay_sample(robot: Robot, scenario: Scenario, config: CampaignConfig, index: int) -> tuple[Robot, Scenario]:
     """The perturbed ``(robot, scenario)`` of sample ``index`` (the plant and its scenario;
-    :func:`replay` runs the sample's whole loop)."""
+    [`replay()`][spacegrasp_jax.campaign.replay] runs the sample's whole loop)."""
     loops = sample_loops(robot, scenario, config.seed, [index], config.ranges, config.realism, config.identified)
     return jax.tree.map(lambda x: x[0], loops.robots), jax.tree.map(lambda x: x[0], loops.scenarios)
 
 
 def replay(robot: Robot, scenario: Scenario, variant: Variant, config: CampaignConfig, index: int, check: bool = False):
     """Sample ``index`` of the campaign run again with its full log, as the campaign ran it
-    (same plant, scenario, loop, model and noise): a :class:`~spacegrasp_jax.experiment.RunResult`."""
+    (same plant, scenario, loop, model and noise): a [`RunResult`][spacegrasp_jax.experiment.RunResult]."""
     from spacegrasp_jax import experiment
 
     loops = sample_loops(robot, scenario, config.seed, [index], config.ranges, config.realism, config.identified)
@@ -618,6 +659,7 @@ __all__ = [
     "Variant",
     "compiled_chunk",
     "evaluate_indices",
+    "load_campaign",
     "load_samples",
     "replay",
     "replay_sample",

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import functools
+import json
 import math
 import shlex
 import sys
@@ -14,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import matplotlib
 import numpy as np
+from jax.experimental import multihost_utils
 
 matplotlib.use("Agg")  # the command line only writes figures to files; before pyplot is imported
 
@@ -26,20 +30,23 @@ from spacegrasp_jax import (
     experiment,
     metrics,
     paper,
+    plausibility,
     plots,
     runfiles,
     spatial,
     statistics,
 )
 from spacegrasp_jax.control import CONTROLLERS, GainsError, UnusedGainsWarning, load_gains, paper_gains
+from spacegrasp_jax.model import robot_from_toml
 from spacegrasp_jax.perturbations import FREE_TARGET_RANGES, PerturbationError, PerturbationRanges, load_ranges
-from spacegrasp_jax.realism import Realism, RealismError, load_realism
+from spacegrasp_jax.realism import Realism, RealismError, ideal, load_realism
 from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
+from spacegrasp_jax.simulate import Log
 from spacegrasp_jax.tuning.gradients import HORIZONS as GRADIENT_HORIZONS
 from spacegrasp_jax.tuning.gradients import central_differences, envelope_gradients, finite_rows
 from spacegrasp_jax.tuning.gradients import report as gradient_report
 from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights
-from spacegrasp_jax.tuning.run import TuneSetupError, tune
+from spacegrasp_jax.tuning.run import ResumeMismatchError, TuneSetupError, tune
 from spacegrasp_jax.tuning.tune import METHODS, TUNING_RANGES, TuneConfig
 
 
@@ -123,17 +130,33 @@ def _load_inputs(args):
     return robot, scenario, gains
 
 
-def _print_table(results: dict) -> None:
+def _is_papers_run(args: argparse.Namespace) -> bool:
+    """Whether the run is the paper's: its robot, scenario, gains and ideal loop (the one
+    run that Table 5's "paper" column compares with)."""
+    realism = getattr(args, "realism", None)
+    return (
+        not getattr(args, "robot", None)
+        and not getattr(args, "scenario", None)
+        and not getattr(args, "gains", None)
+        and realism in (None, "ideal")
+        and getattr(args, "pinv_damping", 0.0) == 0.0
+    )
+
+
+def _print_table(results: dict, beside_paper: bool) -> None:
+    """The runs' largest |u_i| per joint, and Table 5's beside them when ``beside_paper``."""
     controllers = list(results)
-    header = "joint" + "".join(f"  {c + ' [N m]':>16}  {'paper':>7}" for c in controllers)
-    print("\nTable 5: maximal absolute joint torques")
+    header = "joint" + "".join(
+        f"  {c + ' [N m]':>16}" + (f"  {'paper':>7}" if beside_paper else "") for c in controllers
+    )
+    print("\nTable 5: maximal absolute joint torques" if beside_paper else "\nmaximal absolute joint torques")
     print(header)
     for joint in range(7):
         row = f"{joint + 1:>5}"
         for c in controllers:
             peak = results[c].summary.get("max_abs_torque_Nm")
             ours = f"{peak[joint]:>16.3f}" if peak else f"{'diverged':>16}"
-            row += f"  {ours}  {paper.MAX_ABS_TORQUE_NM[c][joint]:>7.3f}"
+            row += f"  {ours}" + (f"  {paper.MAX_ABS_TORQUE_NM[c][joint]:>7.3f}" if beside_paper else "")
         print(row)
     print()
     for c in controllers:
@@ -151,9 +174,10 @@ def _print_table(results: dict) -> None:
         )
 
 
-def _capture_tolerances() -> dict:
-    """The Monte-Carlo campaigns' default success criteria, as summary.json names them."""
-    criteria = campaign.CampaignConfig(n=1)
+def _capture_tolerances(criteria: campaign.CampaignConfig | None = None) -> dict:
+    """A campaign's success criteria (default: the campaigns' defaults), as summary.json
+    names them."""
+    criteria = campaign.CampaignConfig(n=1) if criteria is None else criteria
     return {
         "final_position_m": criteria.position_tolerance_m,
         "final_orientation_rad": criteria.orientation_tolerance_rad,
@@ -162,9 +186,9 @@ def _capture_tolerances() -> dict:
     }
 
 
-def _capture_classes(summary: dict) -> dict:
-    """:func:`spacegrasp_jax.anatomy.failure_classes` of one run's summary (a one-sample batch)."""
-    tolerances = _capture_tolerances()
+def _capture_classes(summary: dict, criteria: campaign.CampaignConfig | None = None) -> dict:
+    """``spacegrasp_jax.anatomy.failure_classes()`` of one run's summary (a one-sample batch)."""
+    tolerances = _capture_tolerances(criteria)
     as_sample = {name: np.asarray([value], dtype=float) for name, value in summary.items() if name in _NUMERIC}
     return anatomy.failure_classes(
         as_sample,
@@ -178,20 +202,20 @@ def _capture_classes(summary: dict) -> dict:
 _NUMERIC = (*metrics.METRICS, *metrics.TARGET_METRICS, *anatomy.ANATOMY_METRICS)
 
 
-def _with_capture(summary: dict) -> dict:
+def _with_capture(summary: dict, criteria: campaign.CampaignConfig | None = None) -> dict:
     """``summary`` and whether the run is a capture by the Monte-Carlo campaigns' default
     criteria (``capture_success``, ``capture_criteria``), which criteria it missed and by
     how much (``capture_failure``, ``capture_margins``) and the parts of its final position
     error (``final_error_parts_m``). A diverged run's summary is returned as it is."""
     if summary.get("diverged"):
         return summary
-    classes = _capture_classes(summary)
+    classes = _capture_classes(summary, criteria)
     parts = anatomy.error_decomposition(
         {name: np.asarray([summary[name]]) for name in ("final_position_error_lar_m", *anatomy.ANATOMY_METRICS)}
     )
     return summary | {
         "capture_success": bool(classes["failure"][0] == "success"),
-        "capture_criteria": _capture_tolerances(),
+        "capture_criteria": _capture_tolerances(criteria),
         "capture_failure": str(classes["failure"][0]),
         "capture_missed": [name for name in anatomy.FAILURE_CLASSES if classes[f"failed_{name}"][0]],
         "capture_margins": {
@@ -204,33 +228,92 @@ def _with_capture(summary: dict) -> dict:
     }
 
 
-def _print_capture_verdicts(results: dict) -> None:
-    """One line for each run that failed its capture (a result, not an error: exit 0)."""
+def _print_capture_verdicts(results: dict, criteria: campaign.CampaignConfig | None = None) -> None:
+    """Each run's capture verdict by the campaigns' default criteria: one line that says why
+    a failed capture failed (a result, not an error: exit 0), or the margins of a success;
+    with a free-floating target, one more line for the target's motion."""
+    tolerances = _capture_tolerances(criteria)
     for controller, result in results.items():
         summary = result.summary
         if summary.get("diverged"):
             continue
-        line = anatomy.verdict_line(summary, _capture_classes(summary), _capture_tolerances())
-        if line is not None:
-            print(f"{controller:>10}: {line}")
+        line = anatomy.verdict_line(summary, _capture_classes(summary, criteria), tolerances)
+        if line is None:
+            line = (
+                f"capture succeeded: final position error {1e3 * summary['final_position_error_m']:.2f} mm <= "
+                f"{1e3 * tolerances['final_position_m']:g}, orientation {np.degrees(summary['final_orientation_error_rad']):.3f} deg <= "
+                f"{np.degrees(tolerances['final_orientation_rad']):g}, peak torque {summary['largest_peak_torque_Nm']:.3g} N m"
+                + (f" <= {tolerances['torque_limit_Nm']:g}" if tolerances["torque_limit_Nm"] is not None else "")
+            )
+        print(f"{controller:>10}: {line}")
+        if "final_target_speed_mps" in summary:
+            print(
+                f"{controller:>10}: target: final speed {1e3 * summary['final_target_speed_mps']:.2f} mm/s "
+                f"(limit {1e3 * tolerances['target_speed_mps']:g}), rate {np.degrees(summary['final_target_rate_radps']):.3f} deg/s, "
+                f"drifted {1e3 * summary['target_displacement_m']:.1f} mm, contact impulse {summary['target_impulse_Ns']:.3g} N s"
+            )
 
 
-def _write_results(out: Path, results: dict, config: dict) -> None:
+def _run_caption(realism_source: str | None, gains_source: str | None, scenario) -> str:
+    """The second title line of a run's figures: its loop, gains and target."""
+    loop = "ideal loop (the paper's)" if realism_source in (None, "ideal") else f"{Path(realism_source).stem} loop"
+    gains = "the paper's gains" if gains_source is None else f"gains {Path(gains_source).name}"
+    if scenario.target is None:
+        target = "fixed target (the paper's)"
+    else:
+        target = f"free target {float(scenario.target.mass):g} kg"
+    return f"{loop}, {gains}, {target}"
+
+
+def _file_name(key: str) -> str:
+    """A run's key (``admittance`` or a campaign variant's ``admittance/paper``) in a file name."""
+    return key.replace("/", "_")
+
+
+def _write_results(
+    out: Path,
+    results: dict,
+    config: dict,
+    beside_paper: bool,
+    caption: str | None = None,
+    torque_limit_Nm=None,
+    csv: bool = False,
+    criteria: campaign.CampaignConfig | None = None,
+) -> None:
+    """Every file of a ``reproduce`` or ``simulate`` run; ``table5.csv`` has Table 5's
+    columns beside the run's only for the paper's run (``_is_papers_run()``)."""
     out.mkdir(parents=True, exist_ok=True)
-    lines = ["joint," + ",".join(f"{c}_Nm" for c in results) + "," + ",".join(f"paper_{c}_Nm" for c in results)]
+    columns = [f"{c}_Nm" for c in results] + ([f"paper_{c}_Nm" for c in results] if beside_paper else [])
+    lines = ["joint," + ",".join(columns)]
     for joint in range(7):  # a diverged run's cells are empty
         ours = [
             f"{results[c].summary['max_abs_torque_Nm'][joint]:.6g}" if "max_abs_torque_Nm" in results[c].summary else ""
             for c in results
         ]
-        reference = [f"{paper.MAX_ABS_TORQUE_NM[c][joint]:.6g}" for c in results]
+        reference = [f"{paper.MAX_ABS_TORQUE_NM[c][joint]:.6g}" for c in results] if beside_paper else []
         lines.append(",".join([str(joint + 1)] + ours + reference))
     runfiles.write_text(out / "table5.csv", "\n".join(lines) + "\n")
-    runfiles.write_json(out / "summary.json", {c: _with_capture(result.summary) for c, result in results.items()})
+    runfiles.write_json(
+        out / "summary.json", {c: _with_capture(result.summary, criteria) for c, result in results.items()}
+    )
     for c, result in results.items():
-        runfiles.write_timeseries(out / f"timeseries_{c}.npz", result.log)
-    plots.save_figures({c: result.log for c, result in results.items()}, out, runfiles.write_atomically)
-    runfiles.write_json(out / "config.json", config)
+        runfiles.write_timeseries(out / f"timeseries_{_file_name(c)}.npz", result.log)
+        if csv:
+            runfiles.write_timeseries_csv(out / f"timeseries_{_file_name(c)}.csv", result.log)
+    plots.save_figures(
+        {c: result.log for c, result in results.items()},
+        out,
+        runfiles.write_atomically,
+        caption=caption,
+        torque_limit_Nm=torque_limit_Nm,
+    )
+    runfiles.write_json(out / "config.json", config | {"caption": caption})
+
+
+def _warn(lines: list[str], prefix: str = "") -> None:
+    """Each line as ``spacegrasp: warning: ...`` on stderr (``spacegrasp_jax.plausibility``)."""
+    for line in lines:
+        print(f"spacegrasp: warning: {prefix}{line}", file=sys.stderr, flush=True)
 
 
 def _realism(args, scenario) -> Realism | None:
@@ -246,8 +329,9 @@ def _realism(args, scenario) -> Realism | None:
 def _run_controllers(args, controllers) -> int:
     robot, scenario, gains = _load_inputs(args)
     realism = _realism(args, scenario)
+    _warn(plausibility.input_warnings(scenario))
     out = Path(args.out)
-    runfiles.check_output_folder(out)  # before the first compile, not after the run
+    _claim(args, out)  # before the first compile, not after the run
     key = jax.random.PRNGKey(getattr(args, "seed", 0))
     results, diverged = {}, []
     for controller in controllers:
@@ -261,19 +345,194 @@ def _run_controllers(args, controllers) -> int:
         except experiment.SimulationDiverged as error:  # keep what it has: written below
             results[controller] = error.result
             diverged.append(error)
-    _print_table(results)
+    _print_table(results, beside_paper=_is_papers_run(args))
     _print_capture_verdicts(results)
+    for controller, result in results.items():
+        _warn(plausibility.result_warnings(result.summary), f"{controller}: ")
     config = experiment.run_config(
         args.robot or "paper_robot()", scenario, gains, controllers, args.pinv_damping, realism
+    ) | {
+        "gains_source": args.gains if "gains" in args else None,
+        "realism_source": args.realism if "realism" in args else None,
+    }
+    _write_results(
+        out,
+        results,
+        config,
+        beside_paper=_is_papers_run(args),
+        caption=_run_caption(config["realism_source"], config["gains_source"], scenario),
+        torque_limit_Nm=np.asarray(robot.joint_torque_limit),
+        csv=args.csv,
     )
-    _write_results(out, results, config)
-    print(f"wrote {out}/: table5.csv, summary.json, fig4-fig9 PNGs, timeseries_*.npz, config.json")
+    print(
+        f"wrote {out}/: table5.csv, summary.json, figures, timeseries_*.npz{', .csv' if args.csv else ''}, config.json"
+    )
     for error in diverged:
         print(
             f"spacegrasp: error: {error}; its log up to that step and the state there are in {out}/",
             file=sys.stderr,
         )
     return 3 if diverged else 0
+
+
+def _replay(args: argparse.Namespace) -> int:
+    """``spacegrasp replay CAMPAIGN --sample K``: one sample of a campaign again, with its
+    full log, as the campaign ran it (plant, scenario, loop, noise), for each variant."""
+    folder = Path(args.campaign)
+    try:
+        robot, scenario, variants, config = campaign.load_campaign(folder)
+    except campaign.CampaignError as error:
+        raise UsageError(str(error)) from None
+    if args.sample >= config.n:
+        raise UsageError(f"--sample: {args.sample} is beyond the campaign's {config.n} samples (0 to {config.n - 1})")
+    if args.variant is not None:
+        variants = [variant for variant in variants if variant.key == args.variant]
+        if not variants:
+            keys = ", ".join(
+                item["controller"] + "/" + item["gains_label"] for item in _campaign_record(folder)["variants"]
+            )
+            raise UsageError(f"--variant: {folder} has no variant {args.variant!r}; it has {keys}")
+    out = Path(args.out)
+    _claim(args, out)
+    results = {}
+    for variant in variants:
+        print(f"replaying sample {args.sample} of {folder} with {variant.key}...", flush=True)
+        results[variant.key] = campaign.replay(robot, scenario, variant, config, args.sample)
+    _print_table(results, beside_paper=False)
+    _print_capture_verdicts(results, config)
+    for key, result in results.items():
+        _warn(plausibility.result_warnings(result.summary), f"{key}: ")
+    loop = "ideal loop" if config.realism is None else "flight-like loop"
+    target = "fixed target" if scenario.target is None else "free target"
+    record = {
+        "campaign": str(folder),
+        "sample": args.sample,
+        "variants": [variant.key for variant in variants],
+        "campaign_record": _campaign_record(folder),
+        **runfiles.provenance(),
+    }
+    _write_results(
+        out,
+        results,
+        record,
+        beside_paper=False,
+        caption=f"sample {args.sample} of the campaign {folder.name}: {loop}, perturbed {target}",
+        torque_limit_Nm=np.asarray(robot.joint_torque_limit),
+        csv=args.csv,
+        criteria=config,
+    )
+    print(
+        f"wrote {out}/: table5.csv, summary.json, figures, timeseries_*.npz{', .csv' if args.csv else ''}, config.json"
+    )
+    return 0
+
+
+def _run_descriptors(folder: Path, key: str, config: dict) -> dict:
+    """What one run of a run folder (``key``: a law, or a campaign variant ``law/gains``)
+    was: its law, loop, gains, target and folder, for ``compare`` to label runs by what
+    differs between them."""
+    if "campaign_record" in config:  # a replay: the campaign's settings
+        record = config["campaign_record"]
+        realism, scenario = record["config"]["realism"], record["scenario"]
+        loop = "ideal" if realism == ideal().to_dict() else "flight-like"
+        gains = key.split("/", 1)[1]
+        loop += f" (sample {config['sample']})"
+    else:
+        scenario = config["scenario"]
+        source = config.get("realism_source")
+        loop = source if source else ("ideal" if config["realism"] == ideal().to_dict() else "custom")
+        gains = Path(config["gains_source"]).stem if config.get("gains_source") else "paper"
+    target = "fixed" if scenario.get("target") is None else f"free {scenario['target']['mass']:g} kg"
+    return {"law": key.split("/", 1)[0], "loop": loop, "gains": gains, "target": target, "run": folder.name}
+
+
+def _load_log(path: Path) -> Log:
+    """A run's ``timeseries_*.npz`` as a Log (fields the run's loop did not fill: None)."""
+    with np.load(path) as data:
+        return Log(
+            **{field.name: data[field.name] if field.name in data.files else None for field in dataclasses.fields(Log)}
+        )
+
+
+def _compare(args: argparse.Namespace) -> int:
+    """``spacegrasp compare RUN_DIR...``: the runs of several run folders (``simulate``,
+    ``reproduce``, ``replay``) on the paper's figures and in one table, each labelled by
+    what differs between them."""
+    runs = []
+    for name in args.runs:
+        folder = Path(name)
+        if not (folder / "config.json").is_file() or not (folder / "summary.json").is_file():
+            raise UsageError(
+                f"{folder}: not a run folder of simulate, reproduce or replay (no config.json and summary.json)"
+            )
+        config = json.loads((folder / "config.json").read_text())
+        summaries = json.loads((folder / "summary.json").read_text())
+        for key in summaries:
+            path = folder / f"timeseries_{_file_name(key)}.npz"
+            if path.is_file():
+                runs.append((folder, key, config, summaries[key], path))
+    if len(runs) < 2:
+        raise UsageError(f"compare: needs at least two runs, found {len(runs)} in {', '.join(args.runs)}")
+    out = Path(args.out)
+    _claim(args, out)
+    descriptors = [_run_descriptors(folder, key, config) for folder, key, config, _, _ in runs]
+    differing = [name for name in descriptors[0] if len({d[name] for d in descriptors}) > 1 and name != "run"]
+    if not differing or len({tuple(d[name] for name in differing) for d in descriptors}) < len(runs):
+        differing.append("run")
+    labels = [", ".join(f"{name} {d[name]}" for name in differing) for d in descriptors]
+    common = ", ".join(
+        f"{name} {descriptors[0][name]}" for name in descriptors[0] if name not in differing and name != "run"
+    )
+    logs = {label: _load_log(path) for label, (_, _, _, _, path) in zip(labels, runs)}
+    table = {}
+    print(
+        f"\n{'run':40} {'final pos [mm]':>15} {'orient [deg]':>13} {'peak |u| [N m]':>15} {'contact [N]':>12}  capture"
+    )
+    for label, (_, _, _, summary, _) in zip(labels, runs):
+        numbers = {
+            "final_position_error_m": summary.get("final_position_error_m"),
+            "final_orientation_error_rad": summary.get("final_orientation_error_rad"),
+            "largest_peak_torque_Nm": summary.get("largest_peak_torque_Nm"),
+            "max_contact_force_N": summary.get("max_contact_force_N"),
+            "capture_success": summary.get("capture_success"),
+            "max_abs_torque_Nm": summary.get("max_abs_torque_Nm"),
+        }
+        table[label] = numbers
+        cells = [
+            f"{1e3 * numbers['final_position_error_m']:>15.3f}"
+            if numbers["final_position_error_m"] is not None
+            else f"{'-':>15}",
+            f"{np.degrees(numbers['final_orientation_error_rad']):>13.4f}"
+            if numbers["final_orientation_error_rad"] is not None
+            else f"{'-':>13}",
+            f"{numbers['largest_peak_torque_Nm']:>15.3f}"
+            if numbers["largest_peak_torque_Nm"] is not None
+            else f"{'-':>15}",
+            f"{numbers['max_contact_force_N']:>12.2f}" if numbers["max_contact_force_N"] is not None else f"{'-':>12}",
+        ]
+        verdict = {True: "yes", False: "no", None: "-"}[numbers["capture_success"]]
+        print(f"{label[:40]:40} {' '.join(cells)}  {verdict}")
+    caption = f"compared: {common}" if common else "compared"
+    plots.save_figures(logs, out, runfiles.write_atomically, caption=caption)
+    runfiles.write_json(
+        out / "compare.json",
+        {
+            "runs": [
+                {"label": label, "folder": str(folder), "key": key, **d}
+                for label, (folder, key, *_), d in zip(labels, runs, descriptors)
+            ],
+            "differing": differing,
+            "common": common,
+            "table": table,
+            **runfiles.provenance(),
+        },
+    )
+    print(f"wrote {out}/: compare.json and the figures of {len(runs)} runs, labelled by {', '.join(differing)}")
+    return 0
+
+
+def _campaign_record(folder: Path) -> dict:
+    return json.loads((folder / "campaign.json").read_text())
 
 
 def _reproduce(args: argparse.Namespace) -> int:
@@ -288,8 +547,14 @@ def _tune(args: argparse.Namespace) -> int:
     batching.use_all_cpu_cores()  # before anything touches a device: the batch shards over the cores
     try:
         if args.resume:
-            return _tune_finished(Path(args.out), tune(Path(args.out), resume=True, stop=args.stop))
+            _claim(args, Path(args.out))
+            return _tune_finished(Path(args.out), _resume_tune(args))
         config = _tune_config(args)
+    except ResumeMismatchError as error:
+        raise UsageError(
+            f"--resume: {args.out} holds another run: {error.listed(_tune_option)}. Resume with the run's options "
+            f"(more --steps may continue a CMA-ES run, --holdout may change), or start a new run in another --out"
+        ) from None
     except (TuneSetupError, ValueError) as error:
         field, separator, rest = str(error).partition(": ")
         option = _TUNE_OPTIONS.get(field)
@@ -298,10 +563,11 @@ def _tune(args: argparse.Namespace) -> int:
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
     _realism(args, scenario)
+    _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
     if args.gains:
         load_gains(args.gains, args.controller)
-    runfiles.check_output_folder(Path(args.out))
+    _claim(args, Path(args.out))
     try:
         result = tune(
             Path(args.out),
@@ -315,6 +581,28 @@ def _tune(args: argparse.Namespace) -> int:
     except TuneSetupError as error:
         raise UsageError(str(error)) from None
     return _tune_finished(Path(args.out), result)
+
+
+def _resume_tune(args: argparse.Namespace):
+    """``tune --resume``: the options given on the command line (not their defaults) must
+    be the recorded run's, but for the ones a resume may change."""
+    record = json.loads((Path(args.out) / "run.json").read_text()) if (Path(args.out) / "run.json").exists() else None
+    given = args.given - {"out", "resume", "compile_cache", "overwrite", "holdout", "gains", "scenario", "robot"}
+    config = None
+    if record is not None and given:
+        fresh = _tune_config(args).to_dict()
+        asked = {_TUNE_FIELDS.get(dest, dest) for dest in given} & set(fresh)
+        config = TuneConfig.from_dict(record["config"] | {field: fresh[field] for field in asked})
+    return tune(
+        Path(args.out),
+        resume=True,
+        config=config,
+        gains_file=args.gains,
+        scenario_file=args.scenario,
+        robot_file=args.robot,
+        holdout=args.holdout if "holdout" in args.given else None,
+        stop=args.stop,
+    )
 
 
 #: TuneConfig's fields -> the options of ``spacegrasp tune`` that set them (for messages).
@@ -334,12 +622,90 @@ _TUNE_OPTIONS = {
     "weights": "--weights",
 }
 
+#: The options of ``spacegrasp tune`` (their destinations) -> the TuneConfig fields they set.
+_TUNE_FIELDS = {option[2:].replace("-", "_"): field for field, option in _TUNE_OPTIONS.items()} | {"range": "ranges"}
+
+
+def _tune_option(name: str) -> str:
+    """The option of ``spacegrasp tune`` that sets a TuneConfig field (or a file) ``name``."""
+    return _TUNE_OPTIONS.get(name, "--" + name.replace("_", "-"))
+
+
+#: The objective's parts ``tune`` prints before and after (history.csv's names -> label, scale, unit).
+_TUNE_PARTS = {
+    "loss": ("objective", 1.0, ""),
+    "final_position_m": ("final position error", 1e3, "mm"),
+    "final_orientation_rad": ("final orientation error", 180.0 / math.pi, "deg"),
+    "rms_tracking_m": ("rms tracking error", 1e3, "mm"),
+    "position_margin": ("position margin (error / tolerance)", 1.0, ""),
+    "orientation_margin": ("orientation margin", 1.0, ""),
+    "torque_margin": ("torque margin (peak / constraint)", 1.0, ""),
+    "target_speed_margin": ("target speed margin", 1.0, ""),
+    "largest_peak_torque_Nm": ("largest peak torque", 1.0, "N m"),
+    "peak_contact_hard_N": ("peak contact force", 1.0, "N"),
+}
+
+
+def _print_tune_report(out: Path, history: list) -> None:
+    """What a tuning run did: each part of the objective over the training batch (mean)
+    at the first and the last step, the nominal run's numbers, and the held-out result."""
+    first, last = history[0], history[-1]
+    print(f"\n{'training batch (mean)':38} {'start':>12} {'tuned':>12}")
+    for name, (label, scale, unit) in _TUNE_PARTS.items():
+        if name in first and name in last:
+            label = f"{label} [{unit}]" if unit else label
+            print(f"{label:38} {scale * float(first[name]):>12.4g} {scale * float(last[name]):>12.4g}")
+    summary = json.loads((out / "summary.json").read_text())
+    start = summary.get("paper_gains") or summary.get("starting_gains")
+    tuned = summary["tuned_gains"]
+    print(f"\n{'nominal run, exact contact':38} {'start':>12} {'tuned':>12}")
+    for name, label, scale in (
+        ("final_position_error_m", "final position error [mm]", 1e3),
+        ("final_orientation_error_rad", "final orientation error [deg]", 180.0 / math.pi),
+        ("largest_peak_torque_Nm", "largest peak torque [N m]", 1.0),
+        ("max_contact_force_N", "peak contact force [N]", 1.0),
+    ):
+        print(f"{label:38} {scale * start[name]:>12.4g} {scale * tuned[name]:>12.4g}")
+    holdout = summary.get("holdout")
+    if holdout:
+        paired = holdout["success_tuned_vs_start"]
+        print(
+            f"\nheld out ({holdout['scenarios']} samples, seed {holdout['seed']}): captured "
+            f"{statistics.format_interval(holdout['success_start'])} with the starting gains, "
+            f"{statistics.format_interval(holdout['success_tuned'])} tuned; exact McNemar p = {paired['p_value']:.2g} "
+            f"({paired['only_candidate']} captures only the tuned gains make, {paired['only_reference']} only the starting)"
+        )
+        print(
+            f"held-out objective: mean {holdout['mean_objective_start']:.4g} -> {holdout['mean_objective_tuned']:.4g}, "
+            f"median largest peak torque {holdout['median_largest_peak_torque_Nm_start']:.3g} -> "
+            f"{holdout['median_largest_peak_torque_Nm_tuned']:.3g} N m"
+        )
+
 
 def _tune_finished(out: Path, result) -> int:
-    """The figures of a finished tuning run; the exit code (130: interrupted)."""
+    """The report and figures of a finished tuning run; the exit code (130: interrupted)."""
     if result.status == "interrupted":
         return 130
-    plots.save_tuning_figures(result.history, result.log_before, result.log_after, out, runfiles.write_atomically)
+    _print_tune_report(out, result.history)
+    record = json.loads((out / "run.json").read_text())
+    robot = sg.paper_robot() if record["robot_toml"] is None else robot_from_toml(record["robot_toml"])
+    realism = record["config"]["realism"]
+    loop = "ideal loop (the paper's)" if realism is None or realism == ideal().to_dict() else "flight-like loop"
+    start = (
+        "the paper's gains"
+        if record["gains_source"] == "paper_gains()"
+        else f"from {Path(record['gains_source']).name}"
+    )
+    target = "fixed target (the paper's)" if result.log_before.target_position is None else "free target"
+    plots.save_tuning_figures(
+        result.history,
+        result.log_before,
+        result.log_after,
+        out,
+        runfiles.write_atomically,
+        caption=f"{loop}, {start}, {target}",
+        torque_limit_Nm=np.asarray(robot.joint_torque_limit),
+    )
     print(
         f"wrote {out}/: gains.json, history.csv, summary.json, loss.png, peak_torques.png, ee_pose.png", file=sys.stderr
     )
@@ -403,7 +769,7 @@ def _check_envelope(args: argparse.Namespace, scenario) -> None:
 
 
 def _ranges(args: argparse.Namespace, default: PerturbationRanges) -> PerturbationRanges:
-    """``default``, or the ``--ranges`` envelope (a name of :data:`NAMED_RANGES` or a TOML
+    """``default``, or the ``--ranges`` envelope (a name of ``NAMED_RANGES`` or a TOML
     file whose missing keys are ``default``'s), then each ``--range NAME=VALUE``."""
     if args.ranges in NAMED_RANGES:
         ranges = NAMED_RANGES[args.ranges]
@@ -467,9 +833,10 @@ def _montecarlo(args: argparse.Namespace) -> int:
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
     _realism(args, scenario)  # the control period against the scenario, before compiling
+    _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
     out = Path(args.out)
-    runfiles.check_output_folder(out)
+    _claim(args, out)
     names = ", ".join(variant.key for variant in variants)
     print(
         f"Monte-Carlo: {args.n} samples x {len(variants)} variant(s) ({names}), {scenario.duration:g} s each, "
@@ -501,11 +868,19 @@ def _montecarlo(args: argparse.Namespace) -> int:
     if jax.process_index() == 0:
         tolerance_mm = 1e3 * result.summary["tolerances"]["final_position_m"]
         plots.save_campaign_figures(
-            out, result.metrics, campaign.figure_title(result.summary), tolerance_mm, runfiles.write_atomically
+            out,
+            result.metrics,
+            campaign.figure_title(result.summary),
+            tolerance_mm,
+            runfiles.write_atomically,
+            torque_limit_Nm=config.torque_limit_Nm,
         )
+        if args.csv:
+            with np.load(out / "samples.npz") as samples:
+                runfiles.write_csv(out / "samples.csv", {name: samples[name] for name in samples.files})
         print(
-            f"wrote {out}/: samples.npz, summary.json, histograms.png, torque_vs_error.png, failures.png"
-            + (", timeseries_*.npz" if config.timeseries_every else "")
+            f"wrote {out}/: samples.npz{', samples.csv' if args.csv else ''}, summary.json, histograms.png, "
+            "torque_vs_error.png, failures.png" + (", timeseries_*.npz" if config.timeseries_every else "")
         )
     return 0
 
@@ -520,9 +895,10 @@ def _gradients(args: argparse.Namespace) -> int:
         raise UsageError(str(error)) from None
     robot, scenario, gains = _load_inputs(args)
     realism = _realism(args, scenario)
+    _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
     out = Path(args.out)
-    runfiles.check_output_folder(out)
+    _claim(args, out)
     objective = Objective(  # the torque scale of Table 5: reports at different gains compare
         weights=weights,
         torque_scale_Nm=tuple(float(x) for x in paper.MAX_ABS_TORQUE_NM[args.controller]),
@@ -639,7 +1015,7 @@ def _benchmark(args: argparse.Namespace) -> int:
         from spacegrasp_jax.benchmarks import suite
     except ImportError as error:  # the peers, or the benchmarks package outside a checkout
         raise UsageError(f"the benchmark needs the test extra (pip install -e '.[test]'): {error}") from None
-    runfiles.check_output_folder(Path(args.out))
+    _claim(args, Path(args.out))
     return suite.main([*(["--quick"] if args.quick else []), "--out", args.out, "--repeats", str(args.repeats)])
 
 
@@ -676,8 +1052,43 @@ def _print_campaign(result: campaign.CampaignResult) -> None:
         )
 
 
+def _claim(args: argparse.Namespace, out: Path) -> None:
+    """The command's output folder, refused if it holds anything (another run, or files
+    this tool did not write) unless ``--overwrite`` or ``--resume`` says what to do
+    (``spacegrasp_jax.runfiles.claim_output_folder()``). Several processes: every one
+    checks the folder, then the first claims it."""
+    claim = functools.partial(
+        runfiles.claim_output_folder,
+        out,
+        args.command,
+        overwrite=args.overwrite,
+        resume=bool(getattr(args, "resume", False)),
+    )
+    if not getattr(args, "distributed", False):  # one process (no device query: backends stay uninitialised)
+        claim()
+        return
+    claim(write=False)
+    multihost_utils.sync_global_devices("spacegrasp: output folder checked")
+    if jax.process_index() == 0:
+        claim()
+    multihost_utils.sync_global_devices("spacegrasp: output folder claimed")
+
+
+def _add_overwrite_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the run that --out holds (default: refuse a folder that holds anything)",
+    )
+
+
+def _add_csv_option(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument("--csv", action="store_true", help=f"also write {what} as CSV (one row per row of the .npz)")
+
+
 def _add_run_options(parser: argparse.ArgumentParser, default_out: str) -> None:
     parser.add_argument("--out", default=default_out, help=f"output folder (default {default_out})")
+    _add_overwrite_option(parser)
     parser.add_argument("--robot", help="robot TOML file (default: the paper's robot)")
     parser.add_argument(
         "--pinv-damping",
@@ -687,33 +1098,64 @@ def _add_run_options(parser: argparse.ArgumentParser, default_out: str) -> None:
     )
 
 
+def _add_command(commands, name: str, help: str) -> argparse.ArgumentParser:
+    """A command's parser whose ``--help`` opens with the line ``spacegrasp --help`` lists."""
+    return commands.add_parser(name, help=help, description=help[0].upper() + help[1:] + ".")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="spacegrasp", description=sg.__doc__.splitlines()[0])
+    parser = _Parser(prog="spacegrasp", description=" ".join(sg.__doc__.split("\n\n")[0].split()))
     parser.add_argument("--version", action="version", version=f"spacegrasp-jax {sg.__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
-    info = commands.add_parser("info", help="print the robot's mass, CoM, EE pose at q_init and cond(M)")
+    parser.commands = commands.choices  # command name -> its parser
+    info = _add_command(commands, "info", help="print the robot's mass, CoM, EE pose at q_init and cond(M)")
     info.add_argument("--robot", help="robot TOML file (default: the paper's robot)")
     info.set_defaults(run=_info)
 
-    reproduce = commands.add_parser(
-        "reproduce", help="run both controllers with the paper's gains: Table 5 and Figures 4-9"
+    reproduce = _add_command(
+        commands, "reproduce", help="run both controllers with the paper's gains: Table 5 and Figures 4-9"
     )
     _add_run_options(reproduce, "results/reproduce")
+    _add_csv_option(reproduce, "the time series")
     _add_compile_cache_option(reproduce)
     reproduce.set_defaults(run=_reproduce)
 
-    simulate = commands.add_parser("simulate", help="run one controller with any gains and scenario")
+    simulate = _add_command(commands, "simulate", help="run one controller with any gains and scenario")
     simulate.add_argument("--controller", choices=CONTROLLERS, required=True)
     simulate.add_argument("--gains", help="gains JSON file (default: the paper's)")
     simulate.add_argument("--scenario", help="scenario TOML or JSON file (default: the paper's)")
     _add_realism_option(simulate)
     simulate.add_argument("--seed", type=_SEED, default=0, help="seed of the sensors' noise key (default 0)")
     _add_run_options(simulate, "results/simulate")
+    _add_csv_option(simulate, "the time series")
     _add_compile_cache_option(simulate)
     simulate.set_defaults(run=_simulate)
 
-    tune = commands.add_parser("tune", help="tune the gains by gradient descent (resumable)")
+    replay = _add_command(commands, "replay", help="run one sample of a campaign again with its full log and figures")
+    replay.add_argument("campaign", metavar="CAMPAIGN_DIR", help="a montecarlo output folder")
+    replay.add_argument("--sample", type=_whole(0, 100_000_000), required=True, metavar="K", help="the sample's index")
+    replay.add_argument(
+        "--variant", metavar="LAW/GAINS", help="one variant, e.g. admittance/paper (default: every one)"
+    )
+    replay.add_argument("--out", required=True, help="output folder")
+    _add_overwrite_option(replay)
+    _add_csv_option(replay, "the time series")
+    _add_compile_cache_option(replay)
+    replay.set_defaults(run=_replay)
+
+    compare = _add_command(
+        commands, "compare", help="overlay runs of simulate, reproduce or replay on the paper's figures"
+    )
+    compare.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run folders (each may hold several runs)")
+    compare.add_argument("--out", required=True, help="output folder")
+    _add_overwrite_option(compare)
+    compare.set_defaults(run=_compare)
+
+    tune = _add_command(
+        commands, "tune", help="tune the gains for capture success: CMA-ES or gradient descent (resumable)"
+    )
     tune.add_argument("--out", required=True, help="output folder (also holds the checkpoint)")
+    _add_overwrite_option(tune)
     tune.add_argument("--controller", choices=CONTROLLERS, default="admittance")
     tune.add_argument("--steps", type=_whole(1, 1_000_000), default=60, help="optimiser steps (default 60)")
     tune.add_argument(
@@ -805,8 +1247,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_compile_cache_option(tune)
     tune.set_defaults(run=_tune)
 
-    montecarlo = commands.add_parser(
-        "montecarlo", help="robustness campaign over perturbed captures (sharded, resumable)"
+    montecarlo = _add_command(
+        commands, "montecarlo", help="robustness campaign over perturbed captures (sharded, resumable)"
     )
     montecarlo.add_argument("--n", type=_whole(1, 100_000_000), required=True, help="number of perturbed samples")
     montecarlo.add_argument("--controller", choices=(*CONTROLLERS, "both"), default="both")
@@ -832,6 +1274,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="samples each device simulates at once (default 128 on CPU, its whole share on GPU)",
     )
     montecarlo.add_argument("--out", default="results/montecarlo", help="output folder (default results/montecarlo)")
+    _add_overwrite_option(montecarlo)
+    _add_csv_option(montecarlo, "samples.npz")
     add_ranges_arguments(montecarlo, "montecarlo")
     montecarlo.add_argument(
         "--tolerance-mm",
@@ -890,8 +1334,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_compile_cache_option(montecarlo)
     montecarlo.set_defaults(run=_montecarlo)
 
-    gradient_health = commands.add_parser(
-        "gradients", help="the tuning objective's gradient over perturbed scenarios: is it trustworthy?"
+    gradient_health = _add_command(
+        commands, "gradients", help="the tuning objective's gradient over perturbed scenarios: is it trustworthy?"
     )
     gradient_health.add_argument("--n", type=_whole(1, 1_000_000), required=True, help="perturbed scenarios")
     gradient_health.add_argument("--controller", choices=CONTROLLERS, default="admittance")
@@ -927,8 +1371,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_compile_cache_option(gradient_health)
     gradient_health.set_defaults(run=_gradients)
 
-    benchmark = commands.add_parser(
-        "benchmark", help="speed and memory against MuJoCo and a Pinocchio loop (needs the test extra)"
+    benchmark = _add_command(
+        commands, "benchmark", help="speed and memory against MuJoCo and a Pinocchio loop (needs the test extra)"
     )
     benchmark.add_argument(
         "--quick",
@@ -938,6 +1382,7 @@ def build_parser() -> argparse.ArgumentParser:
     benchmark.add_argument(
         "--out", default="results/benchmarks", help="folder for benchmark.json (default results/benchmarks)"
     )
+    _add_overwrite_option(benchmark)
     benchmark.add_argument(
         "--repeats", type=_whole(1, 1000), default=3, help="repeats per timing, median reported (default 3)"
     )
@@ -953,6 +1398,11 @@ def _add_realism_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+#: The file in the compile cache's folder that keeps each program's last compile time, for
+#: the line printed before the program compiles again (``compilation.CompileAnnouncer``).
+COMPILE_TIMES = "spacegrasp-compile-times.json"
+
+
 def _add_compile_cache_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--compile-cache",
@@ -960,24 +1410,57 @@ def _add_compile_cache_option(parser: argparse.ArgumentParser) -> None:
         help="keep compiled programs in DIR for later runs (default: $JAX_COMPILATION_CACHE_DIR, "
         "else ~/.cache/spacegrasp-jax/xla; 'none': compile everything afresh)",
     )
+    parser.add_argument(
+        "--verbose",
+        action="store_true",
+        help="show XLA's and JAX's own log (XLA's slow-compile banner among it; hidden by default)",
+    )
 
 
 #: The commands that stop cleanly at a safe point on a first signal -> the unit they finish.
 _SAFE_POINTS = {"montecarlo": "chunk", "tune": "step"}
 
 
-def main(argv: list[str] | None = None) -> int:
+def _given_options(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
+    """The destinations of the options that ``argv`` gives explicitly (not by default): the
+    command's parser run again with every default suppressed."""
+    command, rest = None, []
+    for index, token in enumerate(argv):
+        if token in parser.commands:
+            command, rest = parser.commands[token], argv[index + 1 :]
+            break
+    if command is None:
+        return set()
+    defaults = {action: action.default for action in command._actions}
     try:
-        args = build_parser().parse_args(argv)
+        for action in defaults:
+            action.default = argparse.SUPPRESS
+        given, _ = command.parse_known_args(rest)
+    finally:
+        for action, default in defaults.items():
+            action.default = default
+    return set(vars(given)) & {action.dest for action in defaults}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
     except SystemExit as exit:  # --help, --version (0) or a rejected option (2, one line printed)
         return exit.code
+    args.given = _given_options(parser, argv)
     # The command owns its process: float64 and loops compiled whole, before anything runs,
     # and compiled programs kept on disk for the next run.
     compilation.enable_float64()
     compilation.compile_loops_whole()
+    announcer = None
     if "compile_cache" in args:
+        if not args.verbose:  # XLA's C++ log, its "Very slow compile?" banner among it, and JAX's
+            jax.config.update("jax_logging_level", "CRITICAL")
         cache = compilation.use_compile_cache(args.compile_cache)
         print(f"compilation cache: {cache if cache else 'off'}", file=sys.stderr)
+        announcer = compilation.CompileAnnouncer(sys.stderr, cache / COMPILE_TIMES if cache else None)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", UnusedGainsWarning)
@@ -993,7 +1476,9 @@ def main(argv: list[str] | None = None) -> int:
             # Commands with safe points (montecarlo, tune) stop at the next one on a first
             # signal, the others at once; then a signal ends the process at once (130).
             unit = _SAFE_POINTS.get(args.command)
-            with runfiles.StopRequest(unit or "run", patience=1 if unit else 0, hard_exit=True) as args.stop:
+            listening = compilation.listening(announcer) if announcer else contextlib.nullcontext()
+            stop = runfiles.StopRequest(unit or "run", patience=1 if unit else 0, hard_exit=True)
+            with listening, stop as args.stop:
                 code = args.run(args)
                 if getattr(args, "distributed", False):
                     jax.distributed.shutdown()  # with every process, before a late signal can interrupt it

@@ -2,12 +2,12 @@
 
 Importing ``spacegrasp_jax`` changes nothing in the process: no environment variable, no
 XLA flag, no JAX option. Three settings are the caller's to choose, each by one explicit
-call, or all three at once by :func:`configure` (what the ``spacegrasp`` command does):
+call, or all three at once by [`configure()`][spacegrasp_jax.compilation.configure] (what the ``spacegrasp`` command does):
 
-* **float64** (:func:`enable_float64`). The dynamics need double precision; JAX computes in
+* **float64** ([`enable_float64()`][spacegrasp_jax.compilation.enable_float64]). The dynamics need double precision; JAX computes in
   float32 unless told otherwise. The constructors of robots, scenarios and gains raise
-  :class:`Float64Required` when it is off, before anything compiles.
-* **Loops compiled whole** (:func:`compile_loops_whole`). XLA:CPU normally runs a loop body
+  [`Float64Required`][spacegrasp_jax.compilation.Float64Required] when it is off, before anything compiles.
+* **Loops compiled whole** ([`compile_loops_whole()`][spacegrasp_jax.compilation.compile_loops_whole]). XLA:CPU normally runs a loop body
   as a sequence of separately compiled kernels, one launch each: some 430 per closed-loop
   step, whose launching costs more than their arithmetic. A while loop whose body touches
   fewer bytes per iteration than ``xla_cpu_small_while_loop_byte_threshold`` and calls no
@@ -16,12 +16,12 @@ call, or all three at once by :func:`configure` (what the ``spacegrasp`` command
   to every program of the process on a CPU (other backends ignore it), which is why it is
   an opt-in. The package's loops are written to qualify: the small solves are unrolled
   (``spacegrasp_jax.linalg``), the 3x3 products are products and sums
-  (``spacegrasp_jax.spatial``), and :data:`CPU_OPTIONS` turns off XLA's YNNPACK fusions of
+  (``spacegrasp_jax.spatial``), and ``CPU_OPTIONS`` turns off XLA's YNNPACK fusions of
   batched reductions (custom fusions). Results are the same either way, to rounding.
-* **A persistent compilation cache** (:func:`use_compile_cache`): compiled programs are
+* **A persistent compilation cache** ([`use_compile_cache()`][spacegrasp_jax.compilation.use_compile_cache]): compiled programs are
   kept on disk and loaded by later processes instead of compiled again.
 
-**Compile options.** :data:`CPU_OPTIONS` also keeps the loop-fusion emitters that predate
+**Compile options.** ``CPU_OPTIONS`` also keeps the loop-fusion emitters that predate
 XLA's MLIR-based "fusion emitters": half the compiler's peak memory on the closed loop's
 many small kernels. They are read only by the CPU compiler. An XLA that no longer knows
 them rejects them, so they are used only if a one-off probe compile accepts them.
@@ -29,7 +29,10 @@ them rejects them, so they are used only if a one-off probe compile accepts them
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import hashlib
+import json
 import os
 import time
 import warnings
@@ -62,8 +65,8 @@ def enable_float64() -> None:
 
 
 def require_float64(what: str) -> None:
-    """Raise :class:`Float64Required`, naming ``what`` was being built, unless JAX is in
-    float64 (:func:`enable_float64`, ``JAX_ENABLE_X64=1`` or ``jax_enable_x64``)."""
+    """Raise [`Float64Required`][spacegrasp_jax.compilation.Float64Required], naming ``what`` was being built, unless JAX is in
+    float64 ([`enable_float64()`][spacegrasp_jax.compilation.enable_float64], ``JAX_ENABLE_X64=1`` or ``jax_enable_x64``)."""
     if not jax.config.jax_enable_x64:
         raise Float64Required(
             f"{what}: spacegrasp_jax computes in float64, but JAX is in float32 (its default). "
@@ -82,7 +85,7 @@ def _backends_initialised() -> bool:
 
 def compile_loops_whole() -> None:
     """Ask XLA:CPU to compile small loops into one function (module docstring) by adding
-    :data:`LOOP_FLAG` to ``XLA_FLAGS``, process-wide.
+    ``LOOP_FLAG`` to ``XLA_FLAGS``, process-wide.
 
     If ``XLA_FLAGS`` already sets backend options, the user's choice stands (with
     ``xla_cpu_small_while_loop_byte_threshold=0`` there, loops run kernel by kernel). Best
@@ -113,7 +116,7 @@ def use_compile_cache(folder: str | Path | None = None) -> Path | None:
     """Turn on JAX's persistent compilation cache in ``folder`` and return the folder.
 
     ``None``: the folder the process already uses (``JAX_COMPILATION_CACHE_DIR``), else
-    :func:`default_compile_cache`; ``"none"``: leave the cache as it is and return ``None``.
+    [`default_compile_cache()`][spacegrasp_jax.compilation.default_compile_cache]; ``"none"``: leave the cache as it is and return ``None``.
     Programs that took at least ``jax_persistent_cache_min_compile_time_secs`` (1 s by
     default) to compile are written there; a later process with the same program, JAX
     version and XLA flags loads it instead of compiling it. Takes effect for programs
@@ -131,9 +134,9 @@ def configure(
     *, float64: bool = True, loops_whole: bool = True, compile_cache: str | Path | bool | None = True
 ) -> None:
     """The process settings the package is built for, in one call (module docstring):
-    :func:`enable_float64`, :func:`compile_loops_whole` and the persistent compilation
-    cache (:func:`use_compile_cache`), on by default in the folder the process already uses
-    (``JAX_COMPILATION_CACHE_DIR``) or the per-user :func:`default_compile_cache`. Call it
+    [`enable_float64()`][spacegrasp_jax.compilation.enable_float64], [`compile_loops_whole()`][spacegrasp_jax.compilation.compile_loops_whole] and the persistent compilation
+    cache ([`use_compile_cache()`][spacegrasp_jax.compilation.use_compile_cache]), on by default in the folder the process already uses
+    (``JAX_COMPILATION_CACHE_DIR``) or the per-user [`default_compile_cache()`][spacegrasp_jax.compilation.default_compile_cache]. Call it
     once, at the top of a script or notebook, before JAX runs anything::
 
         import spacegrasp_jax as sg
@@ -169,7 +172,7 @@ def loops_compile_whole() -> bool:
 
 @functools.cache
 def compiler_options() -> dict[str, Any]:
-    """:data:`CPU_OPTIONS` if this XLA accepts them, else ``{}``. Probed on first use (the
+    """``CPU_OPTIONS`` if this XLA accepts them, else ``{}``. Probed on first use (the
     probe compiles a scalar program, so it initialises the JAX backend)."""
     try:
         jax.jit(lambda x: x + 1.0, compiler_options=CPU_OPTIONS).lower(0.0).compile()
@@ -179,7 +182,7 @@ def compiler_options() -> dict[str, Any]:
 
 
 def jit(fun: Callable, **jit_kwargs) -> Callable:
-    """``jax.jit(fun, **jit_kwargs)`` compiled with :func:`compiler_options`. Call it when
+    """``jax.jit(fun, **jit_kwargs)`` compiled with [`compiler_options()`][spacegrasp_jax.compilation.compiler_options]. Call it when
     the program is about to be compiled, not at import: the options' probe initialises the
     JAX backend (``batching.use_all_cpu_cores`` must come before that)."""
     options = compiler_options()
@@ -199,22 +202,110 @@ def argument_signature(arguments) -> tuple:
 
 _EXECUTABLES: dict = {}
 
+#: Who hears of each compile that [`compile_once()`][spacegrasp_jax.compilation.compile_once] makes ([`listening()`][spacegrasp_jax.compilation.listening]); none by
+#: default: the library compiles silently.
+_LISTENERS: list = []
 
-def compile_once(key, lower: Callable[[], Any]) -> tuple[Any, float]:
+
+@contextlib.contextmanager
+def listening(listener):
+    """Within the block, ``listener.before(label, key)`` is called before each compile that
+    [`compile_once()`][spacegrasp_jax.compilation.compile_once] makes and ``listener.after(label, key, seconds)`` after it (the
+    command line prints a line naming each program and its expected duration)."""
+    _LISTENERS.append(listener)
+    try:
+        yield listener
+    finally:
+        _LISTENERS.remove(listener)
+
+
+class CompileAnnouncer:
+    """A [`listening()`][spacegrasp_jax.compilation.listening] listener that writes one line before each compile, naming the
+    program and, when the same program was compiled before on this machine, how long that
+    took (XLA's own slow-compile banner says nothing of what is compiling).
+
+    Args:
+        stream: where the lines go (the command line: stderr).
+        history: a JSON file of each program's last compile time (s), read and updated
+            (the command line keeps it beside the compile cache); ``None``: no history.
+    """
+
+    def __init__(self, stream, history: Path | None = None):
+        self.stream = stream
+        self.history_path = None if history is None else Path(history)
+        self.history = {}
+        if self.history_path is not None:
+            try:
+                self.history = dict(json.loads(self.history_path.read_text()))
+            except (OSError, ValueError, TypeError):
+                self.history = {}
+
+    @staticmethod
+    def digest(key) -> str:
+        """A name for ``key`` that stays the same from one process to the next."""
+        return hashlib.sha256(repr(key).encode()).hexdigest()[:20]
+
+    def before(self, label: str, key) -> None:
+        last = self.history.get(self.digest(key))
+        expected = f" (last time {last:.1f} s on this machine)" if isinstance(last, (int, float)) else ""
+        print(f"compiling {label}{expected}...", file=self.stream, flush=True)
+
+    def after(self, label: str, key, seconds: float) -> None:
+        self.history[self.digest(key)] = round(seconds, 2)
+        if self.history_path is None:
+            return
+        try:
+            self.history_path.parent.mkdir(parents=True, exist_ok=True)
+            temporary = self.history_path.with_name(f".{self.history_path.name}.{os.getpid()}")
+            temporary.write_text(json.dumps(self.history, indent=0, sort_keys=True))
+            os.replace(temporary, self.history_path)
+        except OSError:
+            pass  # a history that cannot be written only loses the next run's estimate
+
+
+def announce_first_call(function: Callable, label: str, key) -> Callable:
+    """``function`` (a jitted program that compiles on its first call) whose first call is
+    announced to the :func:`listening` listeners like a compile of :func:`compile_once`;
+    the time they hear is that of the compile and the first run together (s)."""
+    called = False
+
+    def first_call_announced(*args, **kwargs):
+        nonlocal called
+        if called:
+            return function(*args, **kwargs)
+        called = True
+        for listener in _LISTENERS:
+            listener.before(label, key)
+        start = time.perf_counter()
+        result = jax.block_until_ready(function(*args, **kwargs))
+        for listener in _LISTENERS:
+            listener.after(label, key, time.perf_counter() - start)
+        return result
+
+    return first_call_announced
+
+
+def compile_once(key, lower: Callable[[], Any], label: str | None = None) -> tuple[Any, float]:
     """The executable of ``lower().compile()``, compiled the first time ``key`` is asked for
     in this process and reused after: the package's one cache of compiled programs (JAX's
-    persistent cache, :func:`use_compile_cache`, keeps them across processes).
+    persistent cache, [`use_compile_cache()`][spacegrasp_jax.compilation.use_compile_cache], keeps them across processes).
 
     Args:
         key: hashable; everything that shapes the program (its name, static settings and
-            :func:`argument_signature` of its arguments).
+            [`argument_signature()`][spacegrasp_jax.compilation.argument_signature] of its arguments).
         lower: builds the program's ``jax.stages.Lowered`` (called on a miss only).
+        label: the program's name for people ([`listening()`][spacegrasp_jax.compilation.listening]); default ``str(key[0])``.
 
     Returns:
         ``(executable, compile_s)``, the time that of the original compile (s).
     """
     if key not in _EXECUTABLES:
+        label = label if label is not None else str(key[0] if isinstance(key, tuple) else key)
+        for listener in _LISTENERS:
+            listener.before(label, key)
         start = time.perf_counter()
         executable = lower().compile()
         _EXECUTABLES[key] = (executable, time.perf_counter() - start)
+        for listener in _LISTENERS:
+            listener.after(label, key, _EXECUTABLES[key][1])
     return _EXECUTABLES[key]

@@ -1,7 +1,7 @@
 """Single rollouts on the host: compile once, time, check for divergence, summarise.
 
 This is the edge of the library where ``jit`` happens (the core never calls it). The CLI,
-the tests and the notebooks use :func:`run`, so a rollout of a given controller, shapes and
+the tests and the notebooks use [`run()`][spacegrasp_jax.experiment.run], so a rollout of a given controller, shapes and
 static settings compiles once per process.
 """
 
@@ -24,8 +24,8 @@ from spacegrasp_jax.simulate import Log, first_nonfinite_step, rollout
 
 class SimulationDiverged(RuntimeError):
     """The closed loop produced non-finite values; ``time_s`` is the first bad step and
-    ``result`` what the run had (:func:`run`): its log up to and including that step and
-    the :func:`divergence_summary`."""
+    ``result`` what the run had ([`run()`][spacegrasp_jax.experiment.run]): its log up to and including that step and
+    the [`divergence_summary()`][spacegrasp_jax.experiment.divergence_summary]."""
 
     def __init__(self, controller: str, time_s: float, result: RunResult | None = None):
         super().__init__(f"the {controller} rollout diverged: first non-finite value at t = {time_s:.4f} s")
@@ -55,7 +55,7 @@ def compiled_rollout(
     key=None,
     model_robot: Robot | None = None,
 ):
-    """The compiled :func:`~spacegrasp_jax.simulate.rollout` for these argument shapes and
+    """The compiled [`rollout()`][spacegrasp_jax.simulate.rollout] for these argument shapes and
     static settings (the realism's among them), compiled once per process, and its compile
     time (s)."""
     arguments = (robot, scenario, gains, realism, key, model_robot)
@@ -73,8 +73,11 @@ def compiled_rollout(
             model_robot=model_robot,
         )
 
+    loop = "ideal" if realism is None and model_robot is None else "flight-like"
     return compilation.compile_once(
-        ("rollout", controller, pinv_damping, compilation.argument_signature(arguments)), lower
+        ("rollout", controller, pinv_damping, compilation.argument_signature(arguments)),
+        lower,
+        label=f"the {controller} law's {loop} rollout",
     )
 
 
@@ -91,10 +94,10 @@ def run(
     check: bool = True,
 ) -> RunResult:
     """Run one closed-loop rollout and bring its log back as NumPy arrays. ``realism`` and
-    ``key``: the flight-like loop (:func:`~spacegrasp_jax.simulate.rollout`); the key
+    ``key``: the flight-like loop ([`rollout()`][spacegrasp_jax.simulate.rollout]); the key
     defaults to ``PRNGKey(0)`` when the realism has noisy sensors.
 
-    A run whose state becomes non-finite has a :func:`divergence_summary` for summary.
+    A run whose state becomes non-finite has a [`divergence_summary()`][spacegrasp_jax.experiment.divergence_summary] for summary.
 
     Raises:
         SimulationDiverged: (when ``check``) the state became non-finite; the error gives
@@ -125,8 +128,8 @@ def run(
 
 
 def run_summary(log: Log, robot: Robot, scenario: Scenario, realism: Realism | None = None) -> dict:
-    """The metrics of a whole log (:func:`spacegrasp_jax.metrics.summary`, runaways by
-    ``robot``'s limits) and the parts of its final error (:func:`spacegrasp_jax.anatomy.error_parts`),
+    """The metrics of a whole log ([`spacegrasp_jax.metrics.summary()`][spacegrasp_jax.metrics.summary], runaways by
+    ``robot``'s limits) and the parts of its final error ([`spacegrasp_jax.anatomy.error_parts()`][spacegrasp_jax.anatomy.error_parts]),
     as plain floats and lists."""
     summary = metrics.summary(log, robot)
     parts = anatomy.error_parts(
@@ -139,8 +142,8 @@ def divergence_summary(log: Log, step: int, robot: Robot | None = None) -> dict:
     """What a diverged run tells: when (``first_nonfinite_s``, ``first_nonfinite_step``),
     which logged quantities were non-finite then (``nonfinite_fields``), every logged
     quantity at that step and at the step before (``state_at_divergence``,
-    ``state_before_divergence``; units of :class:`~spacegrasp_jax.simulate.Log`), and the
-    metrics of the finite steps (``before_divergence``, :func:`metrics.summary`, runaways
+    ``state_before_divergence``; units of [`Log`][spacegrasp_jax.simulate.Log]), and the
+    metrics of the finite steps (``before_divergence``, [`metrics.summary()`][spacegrasp_jax.metrics.summary], runaways
     by ``robot``'s limits)."""
 
     def row(index: int) -> dict:
@@ -161,7 +164,7 @@ def divergence_summary(log: Log, step: int, robot: Robot | None = None) -> dict:
 
 
 def table5_markdown(results: dict) -> str:
-    """Table 5 (peak |u_i| per joint, N m) of ``results`` (controller -> :class:`RunResult`)
+    """Table 5 (peak |u_i| per joint, N m) of ``results`` (controller -> [`RunResult`][spacegrasp_jax.experiment.RunResult])
     beside the paper's, with the relative difference, as a Markdown table."""
     header = "| joint |" + "".join(f" {c} (ours) | {c} (paper) | difference |" for c in results)
     lines = [header, "|" + " --- |" * (1 + 3 * len(results))]
@@ -174,7 +177,7 @@ def table5_markdown(results: dict) -> str:
     return "\n".join(lines)
 
 
-#: Rows of :func:`summary_markdown`: label, summary key, scale to the display unit, format.
+#: Rows of [`summary_markdown()`][spacegrasp_jax.experiment.summary_markdown]: label, summary key, scale to the display unit, format.
 _SUMMARY_ROWS = [
     ("final EE position error [mm]", "final_position_error_m", 1e3, "{:.2f}"),
     ("final EE orientation error [deg]", "final_orientation_error_rad", math.degrees(1.0), "{:.3f}"),
@@ -189,7 +192,7 @@ _SUMMARY_ROWS = [
 
 
 def summary_markdown(results: dict) -> str:
-    """The end-of-run errors and the peaks of ``results`` (controller -> :class:`RunResult`)
+    """The end-of-run errors and the peaks of ``results`` (controller -> [`RunResult`][spacegrasp_jax.experiment.RunResult])
     side by side, as a Markdown table."""
     lines = ["| |" + "".join(f" {c} |" for c in results), "|" + " --- |" * (1 + len(results))]
     for label, key, scale, number in _SUMMARY_ROWS:
@@ -210,7 +213,7 @@ def run_config(
     realism: Realism | None = None,
 ) -> dict:
     """What ``config.json`` records: enough to trace every number back to how it was made.
-    The gains are those the controllers use (:meth:`~spacegrasp_jax.control.Gains.to_dict`)."""
+    The gains are those the controllers use ([`to_dict()`][spacegrasp_jax.control.gains.Gains.to_dict])."""
     controllers = list(controllers)
     return {
         "controllers": controllers,

@@ -24,98 +24,164 @@ STYLES = {
 }
 
 
-def plot_series(ax, t: np.ndarray, values: np.ndarray, style: str, linewidth: float = 1.4):
-    """One time series on ``ax`` in the paper's style for ``style``; returns the line."""
-    (line,) = ax.plot(t, values, linewidth=linewidth, **STYLES[style])
+#: Line styles of runs that are not one of :data:`STYLES`' names (``spacegrasp compare``'s
+#: runs, labelled by what differs between them), in order.
+_RUN_LINESTYLES = ("-", "--", ":", "-.")
+
+
+def style_of(name: str, index: int = 0) -> dict:
+    """The line style of the run ``name``: :data:`STYLES`' for its names, else the
+    ``index``-th colour and line style of a cycle, labelled ``name``."""
+    if name in STYLES:
+        return STYLES[name]
+    return dict(color=f"C{index % 10}", linestyle=_RUN_LINESTYLES[index % len(_RUN_LINESTYLES)], label=name)
+
+
+def plot_series(ax, t: np.ndarray, values: np.ndarray, style: str, linewidth: float = 1.4, index: int = 0):
+    """One time series on ``ax`` in the style of the run ``style`` (:func:`style_of`);
+    returns the line."""
+    (line,) = ax.plot(t, values, linewidth=linewidth, **style_of(style, index))
     return line
 
 
-def _grid(rows: int, columns: int, title: str, height: float = 2.2):
+def _grid(rows: int, columns: int, title: str, height: float = 2.2, caption: str | None = None):
     fig, axes = plt.subplots(rows, columns, figsize=(5.0 * columns, height * rows), sharex=True, squeeze=False)
-    fig.suptitle(title)
+    fig.suptitle(title if caption is None else f"{title}\n{caption}", fontsize=11 if caption else None)
     return fig, axes
 
 
-def _finish(fig, axes, ylabels):
+def _finish(fig, axes, ylabels, caption: str | None = None):
     for ax, label in zip(axes.flat, ylabels):
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
     for ax in axes[-1]:
         ax.set_xlabel("time [s]")
-    handles, labels = axes.flat[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=len(labels), frameon=False)
-    fig.tight_layout(rect=(0, 0.05, 1, 0.96))
+    entries = {}  # label -> handle, over every panel (a panel may carry a line the first lacks)
+    for ax in axes.flat:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            entries.setdefault(label, handle)
+    fig.legend(list(entries.values()), list(entries), loc="lower center", ncol=min(len(entries), 4), frameon=False)
+    top = 0.96 if caption is None else 0.96 - 0.25 / fig.get_figheight()  # room for the caption line
+    fig.tight_layout(rect=(0, 0.05, 1, top))
     return fig
 
 
 def _plot_columns(axes, logs, series, columns, desired=None):
-    for name, log in logs.items():
+    for index, (name, log) in enumerate(logs.items()):
         for ax, column in zip(axes.flat, columns):
-            plot_series(ax, log.t, series(log)[:, column], name)
+            plot_series(ax, log.t, series(log)[:, column], name, index=index)
     if desired is not None:
         log = next(iter(logs.values()))
         for ax, column in zip(axes.flat, columns):
             plot_series(ax, log.t, desired(log)[:, column], "desired", linewidth=1.0)
 
 
-def figure_ee_pose(logs, title: str = "Fig. 4  End-effector position and orientation in the LAR frame"):
-    """Figure 4: EE position (mm) and orientation (deg) in the LAR frame, with the desired."""
-    fig, axes = _grid(3, 2, title)
+def figure_ee_pose(
+    logs, title: str = "Fig. 4  End-effector position and orientation in the LAR frame", caption: str | None = None
+):
+    """Figure 4: EE position (mm) and orientation (deg) in the LAR frame, with the desired.
+    ``caption``: a second title line (the command line's: the loop, gains and target)."""
+    fig, axes = _grid(3, 2, title, caption=caption)
     scale = np.array([1e3, 1e3, 1e3, np.degrees(1), np.degrees(1), np.degrees(1)])
     order = [0, 3, 1, 4, 2, 5]  # left column positions, right column angles
     _plot_columns(axes, logs, lambda log: log.pose_ee * scale, order, desired=lambda log: log.pose_des * scale)
     labels = ["x [mm]", "roll [deg]", "y [mm]", "pitch [deg]", "z [mm]", "yaw [deg]"]
-    return _finish(fig, axes, labels)
+    return _finish(fig, axes, labels, caption=caption)
 
 
-def figure_contact_force(logs):
+def figure_contact_force(logs, caption: str | None = None):
     """Figure 5: the contact model's force on the EE, LAR axes, and its magnitude."""
-    fig, axes = _grid(2, 2, "Fig. 5  External forces from the contact model (LAR axes)")
+    fig, axes = _grid(2, 2, "Fig. 5  External forces from the contact model (LAR axes)", caption=caption)
     _plot_columns(
         axes,
         logs,
         lambda log: np.column_stack([log.contact_force, np.linalg.norm(log.contact_force, axis=1)]),
         range(4),
     )
-    return _finish(fig, axes, ["F_x [N]", "F_y [N]", "F_z [N]", "|F| [N]"])
+    return _finish(fig, axes, ["F_x [N]", "F_y [N]", "F_z [N]", "|F| [N]"], caption=caption)
 
 
-def figure_momentum(logs):
-    """Figure 6: resultant linear and angular momentum of the whole system."""
-    fig, axes = _grid(1, 2, "Fig. 6  Momentum and angular momentum of the satellite-manipulator system", height=3.0)
+def figure_momentum(logs, caption: str | None = None):
+    """Figure 6: resultant linear and angular momentum of the whole system (the angular
+    momentum about the inertial origin)."""
+    fig, axes = _grid(
+        1, 2, "Fig. 6  Momentum and angular momentum (about the inertial origin)", height=3.2, caption=caption
+    )
     norms = lambda log: np.column_stack(
         [np.linalg.norm(log.momentum[:, :3], axis=1), np.linalg.norm(log.momentum[:, 3:], axis=1)]
     )  # noqa: E731
     _plot_columns(axes, logs, norms, range(2))
-    return _finish(fig, axes, ["|P| [N s]", "|L| (about the inertial origin) [N m s]"])
+    return _finish(fig, axes, ["|P| [N s]", "|L| [N m s]"], caption=caption)
 
 
-def figure_base_velocity(logs):
+def figure_base_velocity(logs, caption: str | None = None):
     """Figure 7: resultant linear and angular velocity of the servicing satellite."""
-    fig, axes = _grid(1, 2, "Fig. 7  Servicing satellite velocities", height=3.0)
+    fig, axes = _grid(1, 2, "Fig. 7  Servicing satellite velocities", height=3.2, caption=caption)
     norms = lambda log: np.column_stack(
         [1e3 * np.linalg.norm(log.V_base[:, :3], axis=1), np.degrees(np.linalg.norm(log.V_base[:, 3:], axis=1))]
     )  # noqa: E731
     _plot_columns(axes, logs, norms, range(2))
-    return _finish(fig, axes, ["|v_s| [mm/s]", "|w_s| [deg/s]"])
+    return _finish(fig, axes, ["|v_s| [mm/s]", "|w_s| [deg/s]"], caption=caption)
 
 
-def figure_joint_torques(logs):
-    """Figure 8: joint torques of the seven joints."""
-    fig, axes = _grid(4, 2, "Fig. 8  Joint torques", height=2.0)
+def figure_joint_torques(logs, caption: str | None = None, torque_limit_Nm=None):
+    """Figure 8: joint torques of the seven joints; ``torque_limit_Nm`` (7,) N m: each
+    joint's motor limit, drawn at +-limit where the joint's peak reaches half of it, else
+    written in the panel's corner (a line far above the curves would flatten them)."""
+    fig, axes = _grid(4, 2, "Fig. 8  Joint torques", height=2.0, caption=caption)
     _plot_columns(axes, logs, lambda log: log.u, range(7))
+    if torque_limit_Nm is not None:
+        for joint, ax in zip(range(7), axes.flat):
+            limit = float(np.asarray(torque_limit_Nm)[joint])
+            peak = max(float(np.max(np.abs(np.asarray(log.u)[:, joint]))) for log in logs.values())
+            if peak >= 0.5 * limit:
+                for sign in (1.0, -1.0):
+                    ax.axhline(sign * limit, color="0.4", linestyle="-.", linewidth=0.9, label="motor limit")
+            else:
+                ax.text(
+                    0.99, 0.95, f"motor limit ±{limit:g} N m", transform=ax.transAxes, ha="right", va="top", fontsize=7
+                )
     axes.flat[7].set_visible(False)
     axes.flat[5].xaxis.set_tick_params(labelbottom=True)
     axes.flat[5].set_xlabel("time [s]")
-    return _finish(fig, axes, [f"u_{i + 1} [N m]" for i in range(7)])
+    return _finish(fig, axes, [f"u_{i + 1} [N m]" for i in range(7)], caption=caption)
 
 
-def figure_sensor_loads(logs):
+def figure_sensor_loads(logs, caption: str | None = None):
     """Figure 9: loads measured by the F/T sensor between link 7 and the EE (sensor axes)."""
-    fig, axes = _grid(3, 2, "Fig. 9  Loads measured between the seventh link and the end-effector")
+    fig, axes = _grid(3, 2, "Fig. 9  Loads measured between the seventh link and the end-effector", caption=caption)
     both = lambda log: np.column_stack([log.fts_force, log.fts_torque])  # noqa: E731
     _plot_columns(axes, logs, both, [0, 3, 1, 4, 2, 5])
-    return _finish(fig, axes, ["f_x [N]", "n_x [N m]", "f_y [N]", "n_y [N m]", "f_z [N]", "n_z [N m]"])
+    return _finish(fig, axes, ["f_x [N]", "n_x [N m]", "f_y [N]", "n_y [N m]", "f_z [N]", "n_z [N m]"], caption=caption)
+
+
+def figure_target_motion(logs, caption: str | None = None):
+    """A free-floating target's motion: how far its CoM moved from where it started (mm),
+    its speed (mm/s) and angular rate (deg/s), and the impulse the contact gave it (N s,
+    the magnitude of the time integral of the contact force on the target). Only the logs
+    that carry a target are drawn."""
+    logs = {name: log for name, log in logs.items() if getattr(log, "target_position", None) is not None}
+    fig, axes = _grid(2, 2, "The free-floating target's motion", height=2.6, caption=caption)
+
+    def series(log):
+        dt = np.diff(log.t, append=log.t[-1] + (log.t[-1] - log.t[-2] if len(log.t) > 1 else 0.0))
+        impulse = np.cumsum(-np.asarray(log.contact_force) * dt[:, None], axis=0)  # on the target, LAR axes
+        return np.column_stack(
+            [
+                1e3 * np.linalg.norm(log.target_position - log.target_position[0], axis=1),
+                1e3 * np.linalg.norm(log.target_velocity, axis=1),
+                np.degrees(np.linalg.norm(log.target_angular_velocity, axis=1)),
+                np.linalg.norm(impulse, axis=1),
+            ]
+        )
+
+    _plot_columns(axes, logs, series, range(4))
+    return _finish(
+        fig,
+        axes,
+        ["CoM displacement [mm]", "speed [mm/s]", "angular rate [deg/s]", "contact impulse [N s]"],
+        caption=caption,
+    )
 
 
 FIGURES = {
@@ -138,13 +204,24 @@ def save(figures: dict, out_dir, write_atomically) -> list[str]:
     return list(figures)
 
 
-def save_figures(logs, out_dir, write_atomically) -> list[str]:
-    """Write Figures 4-9 into ``out_dir``; returns the file names."""
-    return save({name: build(logs) for name, build in FIGURES.items()}, out_dir, write_atomically)
+def save_figures(logs, out_dir, write_atomically, caption: str | None = None, torque_limit_Nm=None) -> list[str]:
+    """Write Figures 4-9 into ``out_dir``, each with ``caption`` under its title and Fig. 8
+    with the motor limits ``torque_limit_Nm`` (7,) N m; with a free-floating target in any
+    log, ``target_motion.png`` too (:func:`figure_target_motion`). Returns the file names."""
+    figures = {
+        name: build(logs, caption=caption, torque_limit_Nm=torque_limit_Nm)
+        if build is figure_joint_torques
+        else build(logs, caption=caption)
+        for name, build in FIGURES.items()
+    }
+    if any(getattr(log, "target_position", None) is not None for log in logs.values()):
+        figures["target_motion.png"] = figure_target_motion(logs, caption=caption)
+    return save(figures, out_dir, write_atomically)
 
 
-def figure_loss_curve(history: list[dict]):
-    """Tuning: the loss and its main parts against the optimiser step."""
+def figure_loss_curve(history: list[dict], caption: str | None = None):
+    """Tuning: the loss and its main parts against the optimiser step; ``caption``: a
+    second title line (the run's loop, starting gains and target)."""
     steps = np.array([row["step"] for row in history])
     fig, axes = plt.subplots(1, 3, figsize=(15, 3.6))
     axes[0].plot(steps, [row["loss"] for row in history], color="black", marker=".")
@@ -178,35 +255,48 @@ def figure_loss_curve(history: list[dict]):
     for ax in axes:
         ax.set_xlabel("optimiser step")
         ax.grid(True, alpha=0.3)
-    fig.suptitle("Tuning: loss and its parts (smooth contact law)")
+    title = "Tuning: loss and its parts (smooth contact law)"
+    fig.suptitle(title if caption is None else f"{title}\n{caption}")
     fig.tight_layout()
     return fig
 
 
-def figure_peak_torques(before, after):
-    """Tuning: per-joint peak |u| before and after (exact contact law)."""
+def figure_peak_torques(before, after, caption: str | None = None, torque_limit_Nm=None):
+    """Tuning: per-joint peak |u| before and after (exact contact law); each joint's motor
+    limit ``torque_limit_Nm`` (7,) N m as a black mark where given."""
     fig, ax = plt.subplots(figsize=(8, 3.6))
     joints = np.arange(1, 8)
     ax.bar(joints - 0.2, before, width=0.4, color=STYLES["start"]["color"], label=STYLES["start"]["label"])
     ax.bar(joints + 0.2, after, width=0.4, color=STYLES["tuned"]["color"], label=STYLES["tuned"]["label"])
+    if torque_limit_Nm is not None:
+        ax.hlines(np.asarray(torque_limit_Nm), joints - 0.4, joints + 0.4, color="black", label="motor limit")
     ax.set_xlabel("joint")
     ax.set_ylabel("max |u_i| [N m]")
-    ax.set_title("Peak joint torques, nominal scenario, exact contact law")
+    title = "Peak joint torques, nominal scenario, exact contact law"
+    ax.set_title(title if caption is None else f"{title}\n{caption}")
     ax.legend()
     ax.grid(True, axis="y", alpha=0.3)
     fig.tight_layout()
     return fig
 
 
-def save_tuning_figures(history, log_before, log_after, out_dir, write_atomically) -> None:
-    """``loss.png``, ``peak_torques.png`` and ``ee_pose.png`` of a tuning run."""
+def save_tuning_figures(
+    history, log_before, log_after, out_dir, write_atomically, caption: str | None = None, torque_limit_Nm=None
+) -> None:
+    """``loss.png``, ``peak_torques.png`` and ``ee_pose.png`` of a tuning run, each with
+    ``caption`` under its title; the motor limits ``torque_limit_Nm`` on the peaks."""
     figures = {
-        "loss.png": figure_loss_curve(history),
+        "loss.png": figure_loss_curve(history, caption=caption),
         "peak_torques.png": figure_peak_torques(
-            np.max(np.abs(log_before.u), axis=0), np.max(np.abs(log_after.u), axis=0)
+            np.max(np.abs(log_before.u), axis=0),
+            np.max(np.abs(log_after.u), axis=0),
+            caption=caption,
+            torque_limit_Nm=torque_limit_Nm,
         ),
         "ee_pose.png": figure_ee_pose(
-            {"start": log_before, "tuned": log_after}, "EE pose in LAR before and after tuning (exact contact law)"
+            {"start": log_before, "tuned": log_after},
+            "EE pose in LAR before and after tuning (exact contact law)",
+            caption=caption,
         ),
     }
     save(figures, out_dir, write_atomically)
@@ -246,9 +336,15 @@ def _bins(values: np.ndarray, count: int = 30):
     return np.linspace(values.min(), values.max(), count + 1)
 
 
-def figure_campaign_histograms(metrics: dict, title: str = "Monte-Carlo campaign", tolerance_mm: float | None = None):
+def figure_campaign_histograms(
+    metrics: dict,
+    title: str = "Monte-Carlo campaign",
+    tolerance_mm: float | None = None,
+    torque_limit_Nm: float | None = None,
+):
     """Histograms of the final position error (with the success tolerance, if given) and of
-    the largest peak joint torque."""
+    the largest peak joint torque (with the success criterion's torque limit, if given: a
+    line where it lies within twice the largest peak, else named in the legend)."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
     values = {key: _campaign_values(m) for key, m in metrics.items()}
     for column, (ax, xlabel, panel_title) in enumerate(
@@ -275,6 +371,12 @@ def figure_campaign_histograms(metrics: dict, title: str = "Monte-Carlo campaign
             ax.axvline(
                 tolerance_mm, color="black", linestyle="--", linewidth=1, label=f"success tolerance {tolerance_mm:g} mm"
             )
+        if column == 1 and torque_limit_Nm is not None:
+            label = f"torque limit {torque_limit_Nm:g} N m"
+            if pooled.size and torque_limit_Nm <= 2.0 * np.max(pooled):
+                ax.axvline(torque_limit_Nm, color="black", linestyle="--", linewidth=1, label=label)
+            else:
+                ax.plot([], [], color="black", linestyle="--", linewidth=1, label=f"{label} (beyond the axis)")
         ax.set_xlabel(xlabel)
         ax.set_ylabel("samples")
         ax.set_title(panel_title)
@@ -357,10 +459,12 @@ def figure_campaign_failures(metrics: dict, title: str = "Monte-Carlo campaign")
     return fig
 
 
-def save_campaign_figures(out_dir, metrics: dict, title: str, tolerance_mm: float, write_atomically) -> None:
+def save_campaign_figures(
+    out_dir, metrics: dict, title: str, tolerance_mm: float, write_atomically, torque_limit_Nm: float | None = None
+) -> None:
     """``histograms.png``, ``torque_vs_error.png`` and ``failures.png`` of a Monte-Carlo campaign."""
     figures = {
-        "histograms.png": figure_campaign_histograms(metrics, title, tolerance_mm),
+        "histograms.png": figure_campaign_histograms(metrics, title, tolerance_mm, torque_limit_Nm),
         "torque_vs_error.png": figure_campaign_scatter(metrics, title),
         "failures.png": figure_campaign_failures(metrics, title),
     }
@@ -400,7 +504,7 @@ def figure_gradient_health(norm_ratios, cosines, horizon_norms: list[dict], outl
 
 
 def save_gradient_figures(out_dir, norm_ratios, cosines, horizon_norms, outlier_factor, title, write_atomically):
-    """``gradients.png`` of ``spacegrasp gradients`` (:func:`figure_gradient_health`)."""
+    """``gradients.png`` of ``spacegrasp gradients`` ([`figure_gradient_health()`][spacegrasp_jax.plots.figure_gradient_health])."""
     figure = figure_gradient_health(norm_ratios, cosines, horizon_norms, outlier_factor, title)
     save({"gradients.png": figure}, out_dir, write_atomically)
 
@@ -481,7 +585,7 @@ def figure_tradeoff(
     Args:
         peak_torque_Nm, final_error_m, contact_force_N: (N,) per gain set; non-finite
             (diverged) points are left out and counted in the title.
-        front: (N,) bool, the Pareto-optimal points (:func:`spacegrasp_jax.sweep.pareto_front`).
+        front: (N,) bool, the Pareto-optimal points ([`spacegrasp_jax.sweep.pareto_front()`][spacegrasp_jax.sweep.pareto_front]).
         highlights: label -> (peak torque N m, final error m), drawn as large markers
             (e.g. the paper's and the tuned gains).
     """

@@ -3,15 +3,17 @@
 interrupts that stop a long run at a safe point.
 
 Missing values: a metric that has no value (no contact, no divergence) is NaN in arrays and
-``null`` in JSON files (:func:`write_json` converts every non-finite float).
+``null`` in JSON files ([`write_json()`][spacegrasp_jax.runfiles.write_json] converts every non-finite float).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -25,6 +27,91 @@ import numpy as np
 
 class OutputFolderError(ValueError):
     """An output folder that cannot be created or written; names the folder."""
+
+
+#: The file every command writes first in its output folder: which command made the run,
+#: when, and with which arguments. A folder that holds it belongs to a run of this tool.
+RUN_MARKER = ".spacegrasp-run.json"
+
+
+def _listing(paths: list[Path], most: int = 3) -> str:
+    names = sorted(path.name + ("/" if path.is_dir() else "") for path in paths)
+    return ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
+def read_run_marker(out: Path) -> dict | None:
+    """The run marker of ``out`` (``RUN_MARKER``), or None where there is none (or it
+    cannot be read)."""
+    try:
+        return json.loads((Path(out) / RUN_MARKER).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def claim_output_folder(
+    out: Path, command: str, *, overwrite: bool = False, resume: bool = False, write: bool = True
+) -> None:
+    """Make ``out`` the output folder of a new run of ``command`` (its run marker written),
+    or refuse it before anything is computed.
+
+    The rule, the same for every command: a folder that holds anything (another run, or
+    files this tool did not write) is refused, naming what it holds, unless
+
+    * ``resume``: the command continues its own run there (``out`` must hold a run of the
+      same command; the command checks that the run is the same);
+    * ``overwrite``: the previous run's files are deleted first; files that were in the
+      folder before any run of this tool (the marker lists them) are kept, and the new
+      run's files are written beside them (a file of the same name is replaced).
+
+    ``write=False`` only checks (nothing deleted, no marker): what every process but the
+    first of a multi-host run does before the first claims the folder.
+
+    Raises:
+        OutputFolderError: ``out`` is occupied (as above), is a file, or is not writable.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputFolderError(f"{out}: is a file, not a folder")
+    held = [path for path in out.iterdir() if not path.name.startswith(".write-test.")] if out.is_dir() else []
+    marker = read_run_marker(out)
+    what = (
+        f"a {marker.get('command', '?')} run (started {marker.get('started', '?')})"
+        if marker
+        else f"files this tool did not write ({_listing(held)})"
+    )
+    if resume and overwrite:
+        raise OutputFolderError(f"{out}: --resume continues the run there and --overwrite replaces it: give one")
+    if resume:
+        if marker is not None and marker.get("command") != command:
+            raise OutputFolderError(f"{out}: --resume: it holds {what}, not a {command} run")
+    elif held and not overwrite:
+        raise OutputFolderError(
+            f"{out} already holds {what}: pass --overwrite to replace it, or choose another output folder"
+        )
+    if not write:
+        return
+    if resume:  # the command checks that the folder holds its run; nothing is written here
+        if out.exists():
+            check_output_folder(out)
+        return
+    kept = set(marker.get("kept_files", [])) if marker else {path.name for path in held}
+    for path in held:
+        if path.name in kept:
+            continue
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+    check_output_folder(out)
+    write_json(
+        out / RUN_MARKER,
+        {
+            "command": command,
+            "argv": sys.argv[1:],
+            "started": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+            "kept_files": sorted(kept & {path.name for path in held}),
+        },
+    )
 
 
 def check_output_folder(out: Path) -> None:
@@ -83,7 +170,7 @@ def plain(value):
 
 
 def write_json(path: Path, document) -> None:
-    """``document`` as indented JSON (:func:`plain`: non-finite numbers become ``null``)."""
+    """``document`` as indented JSON ([`plain()`][spacegrasp_jax.runfiles.plain]: non-finite numbers become ``null``)."""
     text = json.dumps(plain(document), indent=2, allow_nan=False) + "\n"
     write_atomically(path, lambda target: target.write_text(text))
 
@@ -99,9 +186,52 @@ def write_arrays(path: Path, arrays: dict, *, compressed: bool = True) -> None:
 
 
 def write_timeseries(path: Path, log) -> None:
-    """A log (:class:`~spacegrasp_jax.simulate.Log`) as a compressed ``.npz``, one array per
+    """A log ([`Log`][spacegrasp_jax.simulate.Log]) as a compressed ``.npz``, one array per
     field (fields a loop does not fill, ``None``, are left out)."""
     write_arrays(path, {name: value for name, value in vars(log).items() if value is not None})
+
+
+def csv_columns(arrays: dict) -> dict[str, np.ndarray]:
+    """``arrays`` (name -> array with a leading axis N) as flat columns: a (N,) array keeps
+    its name, a (N, k, ...) array becomes ``name[0]`` ... ``name[k-1]`` (C order, each
+    index in its own brackets)."""
+    columns = {}
+    for name, value in arrays.items():
+        value = np.asarray(value)
+        if value.ndim == 1:
+            columns[name] = value
+            continue
+        flat = value.reshape(value.shape[0], -1)
+        for column, index in enumerate(np.ndindex(*value.shape[1:])):
+            columns[name + "".join(f"[{i}]" for i in index)] = flat[:, column]
+    return columns
+
+
+def write_csv(path: Path, arrays: dict) -> None:
+    """A CSV file of ``arrays`` (:func:`csv_columns`), one row per index of the leading
+    axis: floats with 17 significant digits (read back bit for bit), missing values empty."""
+    columns = csv_columns(arrays)
+    names = list(columns)
+    rows = len(next(iter(columns.values()))) if columns else 0
+
+    def cell(value) -> str:
+        if isinstance(value, (float, np.floating)):
+            return repr(float(value)) if math.isfinite(value) else ("" if math.isnan(value) else repr(float(value)))
+        return str(value.item() if isinstance(value, np.generic) else value)
+
+    def write(target: Path) -> None:
+        with open(target, "w", newline="") as handle:
+            handle.write(",".join(names) + "\n")
+            for row in range(rows):
+                handle.write(",".join(cell(columns[name][row]) for name in names) + "\n")
+
+    write_atomically(path, write)
+
+
+def write_timeseries_csv(path: Path, log) -> None:
+    """A log as a CSV file, one row per log row (:func:`write_csv`; fields a loop does not
+    fill are left out)."""
+    write_csv(path, {name: value for name, value in vars(log).items() if value is not None})
 
 
 def git_revision() -> str | None:
@@ -141,13 +271,13 @@ class StopRequest:
         unit: what the loop finishes before a clean stop (for the message).
         patience: how many signals ask for a clean stop before one stops at once (1 for
             runs with safe points; 0 for runs without: the first signal stops them).
-        hard_exit: how "at once" stops. ``False``: :class:`KeyboardInterrupt` in the main
+        hard_exit: how "at once" stops. ``False``: ``KeyboardInterrupt`` in the main
             thread (what a notebook expects; Python runs it only between bytecodes, so not
             during a compile). ``True``, the command line's: the process ends with exit
             code 130 and a one-line message, even in the middle of a compile: the signal is
-            written to a pipe (:func:`signal.set_wakeup_fd`) that a watcher thread reads,
-            which ends the process with :func:`os._exit` (no interpreter shutdown racing
-            the compiler's threads). ``None``: as the enclosing :class:`StopRequest`
+            written to a pipe (``signal.set_wakeup_fd()``) that a watcher thread reads,
+            which ends the process with ``os._exit()`` (no interpreter shutdown racing
+            the compiler's threads). ``None``: as the enclosing [`StopRequest`][spacegrasp_jax.runfiles.StopRequest]
             (``False`` outside any).
     """
 
@@ -232,15 +362,21 @@ def progress_bar(done: int, total: int, text: str, width: int = 24) -> str:
 
 __all__ = [
     "OutputFolderError",
+    "RUN_MARKER",
     "StopRequest",
     "check_output_folder",
+    "claim_output_folder",
+    "csv_columns",
     "git_revision",
     "plain",
     "progress_bar",
     "provenance",
+    "read_run_marker",
     "write_arrays",
     "write_atomically",
     "write_json",
     "write_text",
+    "write_csv",
     "write_timeseries",
+    "write_timeseries_csv",
 ]

@@ -20,7 +20,7 @@ from spacegrasp_jax.inputs import numbers, read_document
 from spacegrasp_jax.integrator import PlantState, plant_state
 from spacegrasp_jax.kinematics import ee_pose
 from spacegrasp_jax.model import PAPER_Q_INIT, Robot
-from spacegrasp_jax.target import TargetBody, initial_target_state
+from spacegrasp_jax.target import TargetBody, TargetState, initial_target_state
 from spacegrasp_jax.trajectory import Trajectory
 
 CONTACT_LAWS = ("exact", "smooth")
@@ -33,22 +33,24 @@ class ScenarioError(ValueError):
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Scenario:
-    """Attributes:
-    initial: the system's state at t = 0.
-    p_lar: (3,) m, origin of the LAR frame in the inertial frame (the target is stationary).
-    R_lar: (3, 3) LAR to inertial rotation.
-    trajectory: desired EE pose in LAR.
-    sphere_centre: (3,) m, contact sphere centre in LAR.
-    sphere_radius: () m.
-    contact_stiffness: () N m^2 (``k`` of eq 20).
-    contact_sharpness: () 1/m, sharpness of the smooth contact law.
-    target: the free-floating target's mass properties
-        (:class:`~spacegrasp_jax.target.TargetBody`; its state is ``initial.target``), or
-        ``None`` for the paper's stationary target. With a target, ``p_lar`` and ``R_lar``
-        are the LAR pose at t = 0.
-    duration: s, simulated time (static).
-    dt: s, integration and control period (static).
-    contact_law: ``"exact"`` (eq 20) or ``"smooth"`` (static).
+    """One capture: the initial state, the LAR, the desired trajectory, the contact sphere and the target.
+
+    Attributes:
+        initial: the system's state at t = 0.
+        p_lar: (3,) m, origin of the LAR frame in the inertial frame (the target is stationary).
+        R_lar: (3, 3) LAR to inertial rotation.
+        trajectory: desired EE pose in LAR.
+        sphere_centre: (3,) m, contact sphere centre in LAR.
+        sphere_radius: () m.
+        contact_stiffness: () N m^2 (``k`` of eq 20).
+        contact_sharpness: () 1/m, sharpness of the smooth contact law.
+        target: the free-floating target's mass properties
+            ([`TargetBody`][spacegrasp_jax.target.TargetBody]; its state is ``initial.target``), or
+            ``None`` for the paper's stationary target. With a target, ``p_lar`` and ``R_lar``
+            are the LAR pose at t = 0.
+        duration: s, simulated time (static).
+        dt: s, integration and control period (static).
+        contact_law: ``"exact"`` (eq 20) or ``"smooth"`` (static).
     """
 
     initial: PlantState
@@ -96,7 +98,7 @@ def paper_scenario(
     (s), then is held. The contact sphere (eq 20) is centred at ``sphere_centre`` (LAR).
 
     ``target``: ``None`` for the paper's stationary target, or the free-floating target's
-    keys (:data:`TARGET_KEYS`): ``mass`` (kg) and ``inertia`` ((3, 3) or its (3,) diagonal,
+    keys (``TARGET_KEYS``): ``mass`` (kg) and ``inertia`` ((3, 3) or its (3,) diagonal,
     kg m^2, about the target's CoM in LAR axes) required; ``com_in_lar`` (3,) m, the CoM in
     LAR coordinates; ``velocity`` (3,) m/s and ``angular_velocity`` (3,) rad/s, the CoM's
     velocity and the angular velocity at t = 0 in LAR axes (default zero).
@@ -217,7 +219,7 @@ TARGET_LIMITS = {"mass": 1e12, "com_in_lar": 100.0, "velocity": 10.0, "angular_v
 
 
 def _check_target(target) -> dict:
-    """The free-floating target's keys (:data:`TARGET_KEYS`) checked, as float64 arrays."""
+    """The free-floating target's keys (``TARGET_KEYS``) checked, as float64 arrays."""
     if not isinstance(target, dict):
         raise ScenarioError(f"target: expected a table of {', '.join(TARGET_KEYS)}, got {type(target).__name__}")
     for key in target:
@@ -302,8 +304,36 @@ def scenario_to_dict(scenario: Scenario) -> dict:
     return plain(leaves)
 
 
+def scenario_from_dict(document: dict) -> Scenario:
+    """The scenario that [`scenario_to_dict()`][spacegrasp_jax.scenario.scenario_to_dict]
+    wrote, leaf for leaf (float64 arrays): what a run folder's ``config.json`` or a
+    campaign's ``campaign.json`` records is run again exactly."""
+    require_float64("a Scenario")
+    arrays = lambda cls, fields: cls(**{name: jnp.asarray(value, dtype=jnp.float64) for name, value in fields.items()})
+    initial = dict(document["initial"])
+    target_state = initial.pop("target")
+    initial = PlantState(
+        **{name: jnp.asarray(value, dtype=jnp.float64) for name, value in initial.items()},
+        target=None if target_state is None else arrays(TargetState, target_state),
+    )
+    return Scenario(
+        initial=initial,
+        p_lar=jnp.asarray(document["p_lar"], dtype=jnp.float64),
+        R_lar=jnp.asarray(document["R_lar"], dtype=jnp.float64),
+        trajectory=arrays(Trajectory, document["trajectory"]),
+        sphere_centre=jnp.asarray(document["sphere_centre"], dtype=jnp.float64),
+        sphere_radius=jnp.asarray(document["sphere_radius"], dtype=jnp.float64),
+        contact_stiffness=jnp.asarray(document["contact_stiffness"], dtype=jnp.float64),
+        contact_sharpness=jnp.asarray(document["contact_sharpness"], dtype=jnp.float64),
+        target=None if document["target"] is None else arrays(TargetBody, document["target"]),
+        duration=float(document["duration"]),
+        dt=float(document["dt"]),
+        contact_law=str(document["contact_law"]),
+    )
+
+
 def load_scenario(robot: Robot, path: str | Path) -> Scenario:
-    """Read a scenario (TOML or JSON, by extension) as :func:`scenario_from_mapping`.
+    """Read a scenario (TOML or JSON, by extension) as [`scenario_from_mapping()`][spacegrasp_jax.scenario.scenario_from_mapping].
 
     Raises:
         ScenarioError: unreadable file, unknown key or invalid value; names the file.

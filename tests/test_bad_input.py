@@ -85,6 +85,19 @@ def files(folder):
     (folder / "a_file").write_text("not a folder\n")
     paths["missing"] = str(folder / "missing.toml")
     paths["under_a_file"] = str(folder / "a_file" / "results")
+    (folder / "simulated").mkdir()
+    (folder / "simulated" / ".spacegrasp-run.json").write_text(json.dumps({"command": "simulate"}))
+    paths["simulated"] = str(folder / "simulated")
+    occupied = folder / "occupied"  # another command's run
+    occupied.mkdir()
+    (occupied / ".spacegrasp-run.json").write_text(
+        json.dumps({"command": "tune", "started": "2026-01-01T00:00:00+00:00"})
+    )
+    (occupied / "summary.json").write_text("{}\n")
+    paths["occupied"] = str(occupied)
+    (folder / "foreign").mkdir()  # files this tool did not write
+    (folder / "foreign" / "notes.txt").write_text("mine\n")
+    paths["foreign"] = str(folder / "foreign")
     return paths
 
 
@@ -176,6 +189,33 @@ def cases(paths, out):
         "tune out under a file": ([*TUNE, "--out", p["under_a_file"]], "a_file/results: cannot write"),
         "gradients out under a file": (["gradients", "--n", "2", "--out", p["under_a_file"]], "a_file/results: cannot"),
         "benchmark out under a file": (["benchmark", "--quick", "--out", p["under_a_file"]], "a_file/results: cannot"),
+        # occupied output folders, the same rule and message for every command
+        **{
+            f"{argv[0]} out occupied": (
+                [*argv, "--out", p["occupied"]],
+                "occupied already holds a tune run (started 2026-01-01",
+            )
+            for argv in (SIMULATE, ["reproduce"], TUNE, MONTECARLO, ["gradients", "--n", "2"], ["benchmark", "--quick"])
+        },
+        **{
+            f"{argv[0]} out foreign": (
+                [*argv, "--out", p["foreign"]],
+                "foreign already holds files this tool did not write (notes.txt)",
+            )
+            for argv in (SIMULATE, ["reproduce"], TUNE, MONTECARLO, ["gradients", "--n", "2"], ["benchmark", "--quick"])
+        },
+        "tune resume another command's run": (
+            ["tune", "--out", p["occupied"].replace("occupied", "foreign"), "--resume"],
+            "holds no tuning run",
+        ),
+        "montecarlo resume and overwrite": (
+            [*MONTECARLO, "--resume", "--overwrite", "--out", p["occupied"]],
+            "--resume continues the run there and --overwrite replaces it: give one",
+        ),
+        "tune resume a simulate run": (
+            ["tune", "--resume", "--out", p["simulated"]],
+            "--resume: it holds a simulate run",
+        ),
         "gradients horizons": (["gradients", "--n", "2", "--horizons", "0.5,0.25", "--out", out], "--horizons"),
         "gradients n 0": (["gradients", "--n", "0", "--out", out], "argument --n:"),
     }
@@ -202,7 +242,7 @@ _FILE_NAMES = (
     "binary.json binary.toml deep.json deep.toml list.json number.json null.json kp_string.json kp_true.json "
     "Md_nested_string.json duration_string.toml duration_true.toml dt_string.json target_mass_true.toml "
     "duration_huge.toml dt_tiny.toml ragged.json lar_not_table.toml satellite_mass_string.toml a_folder missing "
-    "under_a_file"
+    "under_a_file occupied foreign simulated"
 ).split()
 
 
@@ -222,6 +262,10 @@ def test_bad_input_is_refused_in_one_line_before_compiling(rejected, case):
 
 def test_a_refused_run_leaves_no_files(rejected):
     """Nothing is written for a refused run: in particular no ``run.json`` that would make the
-    corrected re-run of ``tune`` refuse the folder."""
+    corrected re-run of ``tune`` refuse the folder; the occupied folders are as they were."""
     _, _, out = rejected
     assert not out.exists() or not any(out.rglob("*")), sorted(out.rglob("*"))
+    folder = out.parent
+    assert sorted(path.name for path in (folder / "occupied").iterdir()) == [".spacegrasp-run.json", "summary.json"]
+    assert (folder / "occupied" / "summary.json").read_text() == "{}\n"
+    assert [path.name for path in (folder / "foreign").iterdir()] == ["notes.txt"]

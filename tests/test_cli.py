@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 
@@ -61,6 +62,9 @@ def test_info_reports_a_bad_robot_file_clearly(tmp_path):
 # ---- reproduce and simulate (in-process: the session's compiled rollouts are reused) ------
 
 import json  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from csv_files import assert_csv_holds  # noqa: E402
 
 from spacegrasp_jax import cli  # noqa: E402
 
@@ -168,6 +172,87 @@ def test_simulate_one_controller_with_gains_and_scenario_files(tmp_path, gains):
     assert json.loads((out / "config.json").read_text())["gains"]["Kd"] == [300.0] * 6
 
 
+def test_compare_overlays_runs_of_different_realisms(tmp_path, capsys):
+    """Two runs that differ in their loop only: ``compare`` labels them by it, names what
+    they share in the figures' caption, and its table holds each run's own numbers;
+    ``--csv`` writes the time series the .npz holds, number for number."""
+    scenario = tmp_path / "short.toml"
+    scenario.write_text("duration = 0.2\n[trajectory]\nduration = 0.2\n")
+    base = ["simulate", "--compile-cache", "none", "--controller", "admittance", "--scenario", str(scenario)]
+    assert cli.main([*base, "--out", str(tmp_path / "ideal"), "--csv"]) == 0
+    assert cli.main([*base, "--realism", "flight", "--out", str(tmp_path / "flight")]) == 0
+    printed = capsys.readouterr().out
+    assert "maximal absolute joint torques" in printed and "paper" not in printed.split("running")[1]  # no paper column
+    assert (
+        cli.main(["compare", str(tmp_path / "ideal"), str(tmp_path / "flight"), "--out", str(tmp_path / "both")]) == 0
+    )
+    printed = capsys.readouterr().out
+    record = json.loads((tmp_path / "both" / "compare.json").read_text())
+    assert record["differing"] == ["loop"] and [run["label"] for run in record["runs"]] == ["loop ideal", "loop flight"]
+    assert record["common"] == "law admittance, gains paper, target fixed"
+    assert all((tmp_path / "both" / name).stat().st_size > 0 for name in FIGURES)
+    for run in record["runs"]:
+        summary = json.loads((Path(run["folder"]) / "summary.json").read_text())["admittance"]
+        assert record["table"][run["label"]]["largest_peak_torque_Nm"] == summary["largest_peak_torque_Nm"]
+        assert run["label"] in printed
+    peaks = [record["table"][label]["largest_peak_torque_Nm"] for label in ("loop ideal", "loop flight")]
+    assert peaks[0] != peaks[1]  # two different runs, not one twice
+    with np.load(tmp_path / "ideal" / "timeseries_admittance.npz") as data:
+        assert_csv_holds(tmp_path / "ideal" / "timeseries_admittance.csv", dict(data), rows=200)
+    assert cli.main(["compare", str(tmp_path / "ideal"), "--out", str(tmp_path / "one")]) == 2
+    assert "compare: needs at least two runs, found 1" in capsys.readouterr().err
+
+
+def test_xlas_own_log_is_hidden_unless_verbose(tmp_path):
+    """XLA's C++ log (where its "Very slow compile?" banner is written, at ERROR level) made
+    to write its INFO lines too: the command hides every line of it written after it
+    starts, ``--verbose`` shows them."""
+    scenario = tmp_path / "short.toml"
+    scenario.write_text("duration = 0.05\n[trajectory]\nduration = 0.05\n")
+    env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="0")
+    xla_line = re.compile(r"^[IWEF]\d{4} \d\d:\d\d:\d\d", re.MULTILINE)  # the C++ log's format
+
+    def simulate(out, *extra):
+        command = [sys.executable, "-m", "spacegrasp_jax.cli", "simulate", "--controller", "cartesian"]
+        command += ["--scenario", str(scenario), "--out", str(tmp_path / out), "--compile-cache", "none", *extra]
+        result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
+        assert result.returncode == 0, result.stderr
+        return result.stderr.split("compilation cache: off", 1)[1]  # what is written after the command starts
+
+    assert not xla_line.search(simulate("quiet"))
+    assert xla_line.search(simulate("verbose", "--verbose"))
+
+
+def test_simulate_never_overwrites_a_run_without_overwrite(tmp_path, capsys):
+    """The folder rule end to end: a folder of the user's files is refused, then shared with
+    ``--overwrite``; a second run is refused, then replaces the first with ``--overwrite``
+    (the first run's files gone, the user's kept)."""
+    scenario_file = tmp_path / "scenario.toml"
+    scenario_file.write_text("duration = 0.2\n[trajectory]\nduration = 0.2\n")
+    out = tmp_path / "sim"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine\n")
+    args = ["simulate", "--compile-cache", "none", "--controller", "cartesian", "--scenario", str(scenario_file)]
+    args += ["--out", str(out)]
+    assert cli.main(args) == 2
+    assert "sim already holds files this tool did not write (notes.txt): pass --overwrite" in capsys.readouterr().err
+    assert cli.main([*args, "--overwrite"]) == 0
+    assert (out / "summary.json").exists() and (out / "notes.txt").read_text() == "mine\n"
+    printed = capsys.readouterr()
+    # 0.2 s ends before the end-effector reaches the contact sphere: said after the run
+    assert (
+        "spacegrasp: warning: cartesian: the end-effector never touched the target (max contact force 0 N)"
+        in printed.err
+    )
+    assert "cartesian: final position error" in printed.out and "capture" in printed.out
+    assert cli.main(args) == 2
+    assert "sim already holds a simulate run (started" in capsys.readouterr().err
+    (out / "stale.npz").write_bytes(b"left by the first run")
+    assert cli.main([*args, "--overwrite"]) == 0
+    assert not (out / "stale.npz").exists() and (out / "notes.txt").read_text() == "mine\n"
+    assert (out / "summary.json").exists() and (out / "fig4_ee_pose.png").exists()
+
+
 def test_simulate_rejects_bad_files_before_running(tmp_path, gains, capsys):
     bad_gains = tmp_path / "gains.json"
     bad_gains.write_text(json.dumps({**gains.to_dict(), "Kd": -1.0}))
@@ -271,10 +356,19 @@ def test_a_command_keeps_its_programs_in_the_compile_cache_and_loads_them_the_se
         result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
         assert result.returncode == 0, result.stderr
         assert f"compilation cache: {cache}" in result.stderr
-        return sorted(path.name for path in cache.iterdir())
+        return sorted(path.name for path in cache.iterdir()), result.stderr
 
-    first = simulate("a")
+    first, printed = simulate("a")
     assert any(name.startswith("jit_rollout") for name in first)  # the closed loop, compiled once
-    assert simulate("b") == first  # the second run loads every program: nothing new to write
+    assert "compiling the cartesian law's ideal rollout...\n" in printed  # named, no history yet
+    second, printed = simulate("b")
+    assert second == first  # the second run loads every program: nothing new to write
+    history = json.loads((cache / cli.COMPILE_TIMES).read_text())
+    assert len(history) == 1  # the one program's time, overwritten by the second run's
+    (last,) = history.values()
+    assert re.search(
+        r"compiling the cartesian law's ideal rollout \(last time \d+\.\d s on this machine\)\.\.\.", printed
+    )
+    assert 0.0 < last < 300.0
     summaries = [json.loads((tmp_path / out / "summary.json").read_text())["cartesian"] for out in ("a", "b")]
     assert summaries[0]["max_abs_torque_Nm"] == summaries[1]["max_abs_torque_Nm"]

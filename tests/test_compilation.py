@@ -4,6 +4,7 @@ loops compiled whole without effect on the results beyond rounding."""
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import subprocess
@@ -178,3 +179,47 @@ print([str(w.message) for w in caught])
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300)
     assert result.returncode == 0, result.stderr
     assert "came too late" in result.stdout and "kernel by kernel" in result.stdout
+
+
+class _Heard:
+    """A compile listener that keeps what it hears."""
+
+    def __init__(self):
+        self.events = []
+
+    def before(self, label, key):
+        self.events.append(("before", label, key))
+
+    def after(self, label, key, seconds):
+        self.events.append(("after", label, key, seconds))
+
+
+def test_compiles_are_announced_once_each_with_a_history_across_processes(tmp_path):
+    """``compile_once`` and ``announce_first_call`` tell the listeners of the one compile of
+    a program (not of its reuse); the command line's announcer names the program and, from
+    the history file, the last compile's time."""
+    heard = _Heard()
+    key = ("test.square", 3)
+    with compilation.listening(heard):
+        for _ in range(2):
+            compilation.compile_once(key, lambda: jax.jit(lambda x: x * x).lower(np.ones(3)), label="the square")
+        twice = compilation.announce_first_call(jax.jit(lambda x: 2.0 * x), "the double", ("test.double",))
+        np.testing.assert_array_equal(twice(np.ones(2)), 2.0)
+        np.testing.assert_array_equal(twice(np.ones(2)), 2.0)
+    assert [event[:3] for event in heard.events] == [
+        ("before", "the square", key),
+        ("after", "the square", key),
+        ("before", "the double", ("test.double",)),
+        ("after", "the double", ("test.double",)),
+    ]
+    assert all(event[3] >= 0.0 for event in heard.events if event[0] == "after")
+    compilation.compile_once(("test.unheard",), lambda: jax.jit(lambda x: x + 1).lower(1.0))  # no listener: silent
+    assert len(heard.events) == 4
+
+    history = tmp_path / "times.json"
+    first, second = io.StringIO(), io.StringIO()
+    compilation.CompileAnnouncer(first, history).before("the square", key)
+    compilation.CompileAnnouncer(first, history).after("the square", key, 12.34)
+    compilation.CompileAnnouncer(second, history).before("the square", key)  # a later process, same program
+    assert first.getvalue() == "compiling the square...\n"
+    assert second.getvalue() == "compiling the square (last time 12.3 s on this machine)...\n"

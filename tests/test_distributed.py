@@ -94,8 +94,9 @@ def test_two_process_campaign_interrupted_and_resumed_equals_one_process(tmp_pat
         f"{first:09d}.npz" for first in range(0, done * CHUNK, CHUNK)
     ]
 
-    codes, errors = _wait(_two_processes(tmp_path, out, "--resume"))
+    codes, errors = _wait(_two_processes(tmp_path, out, "--resume", "--csv"))  # --csv: safe to add on resume
     assert codes == [0, 0], errors
+    assert (out / "samples.csv").stat().st_size > 0
 
     one = tmp_path / "one"
     single = subprocess.run(

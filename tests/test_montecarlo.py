@@ -15,6 +15,7 @@ import sys
 
 import numpy as np
 import pytest
+from csv_files import assert_csv_holds
 
 from spacegrasp_jax import campaign, experiment, runfiles
 from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, run_campaign, variant_summary
@@ -113,31 +114,26 @@ def test_results_do_not_depend_on_the_chunk_or_sub_batch_size(five_samples, vari
         assert_close(value, by_other.metrics[variant.key][name], rtol=1e-10, err_msg=name)
 
 
-def test_four_devices_give_the_results_of_one(tmp_path, five_samples, variant):
-    scenario_file = tmp_path / "short.toml"
+@pytest.fixture(scope="module")
+def four_device_campaign(tmp_path_factory):
+    """``spacegrasp montecarlo`` over four CPU devices in another process, the short
+    scenario, n = 5 in chunks of 4, every 100th log row kept, samples.csv written: its
+    folder."""
+    folder = tmp_path_factory.mktemp("four_devices")
+    scenario_file = folder / "short.toml"
     scenario_file.write_text(SHORT_SCENARIO_TOML)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
-    command = [
-        sys.executable,
-        "-m",
-        "spacegrasp_jax.cli",
-        "montecarlo",
-        "--n",
-        "5",
-        "--chunk",
-        "4",
-        "--controller",
-        "admittance",
-        "--scenario",
-        str(scenario_file),
-        "--out",
-        str(tmp_path / "mc"),
-        "--compile-cache",
-        "none",
-    ]
+    command = [sys.executable, "-m", "spacegrasp_jax.cli", "montecarlo", "--n", "5", "--chunk", "4"]
+    command += ["--controller", "admittance", "--scenario", str(scenario_file), "--out", str(folder / "mc")]
+    command += ["--compile-cache", "none", "--timeseries-every", "100", "--csv"]
     finished = subprocess.run(command, capture_output=True, text=True, env=env, timeout=600)
     assert finished.returncode == 0, finished.stderr
     assert "over 4 device(s)" in finished.stderr
+    return folder
+
+
+def test_four_devices_give_the_results_of_one(four_device_campaign, five_samples, variant):
+    tmp_path = four_device_campaign
     assert all((tmp_path / "mc" / name).stat().st_size > 0 for name in ("histograms.png", "torque_vs_error.png"))
     perturbations, by_variant = campaign.load_samples(tmp_path / "mc" / "samples.npz")
     summary = json.loads((tmp_path / "mc" / "summary.json").read_text())
@@ -147,6 +143,50 @@ def test_four_devices_give_the_results_of_one(tmp_path, five_samples, variant):
         np.testing.assert_array_equal(perturbations[name], value)
     for name, value in reference.metrics[variant.key].items():
         assert_close(by_variant[variant.key][name], value, rtol=1e-9, err_msg=name)
+    # samples.csv holds samples.npz's numbers, every one of them
+    with np.load(tmp_path / "mc" / "samples.npz") as samples:
+        assert_csv_holds(tmp_path / "mc" / "samples.csv", dict(samples), rows=5)
+
+
+def test_replay_runs_a_campaigns_sample_again(four_device_campaign, tmp_path, capsys):
+    """``spacegrasp replay``: sample 3 of a campaign (four devices, in another process) run
+    again in this one equals the campaign's own record of it: its log rows to 1e-12, its
+    metrics to 1e-10 (the campaign folds them step by step, the replay takes them from
+    the whole log)."""
+    from spacegrasp_jax.cli import main
+
+    campaign_dir, out = four_device_campaign / "mc", tmp_path / "sample3"
+    assert (
+        main(["replay", str(campaign_dir), "--sample", "3", "--out", str(out), "--csv", "--compile-cache", "none"]) == 0
+    )
+    assert "capture" in capsys.readouterr().out
+    _, by_variant = campaign.load_samples(campaign_dir / "samples.npz")
+    summary = json.loads((out / "summary.json").read_text())["admittance/paper"]
+    for name in METRICS:  # summary.json writes NaN (no contact, no divergence) as null
+        replayed = np.asarray(summary[name] if summary[name] is not None else np.nan, dtype=float)
+        np.testing.assert_allclose(replayed, by_variant["admittance/paper"][name][3], rtol=1e-10, err_msg=name)
+    with (
+        np.load(out / "timeseries_admittance_paper.npz") as replayed,
+        np.load(campaign_dir / "timeseries_admittance_paper.npz") as recorded,
+    ):
+        assert set(recorded.files) <= set(replayed.files)
+        for name in recorded.files:
+            np.testing.assert_allclose(replayed[name][::100], recorded[name][3], rtol=1e-12, atol=1e-12, err_msg=name)
+        assert_csv_holds(out / "timeseries_admittance_paper.csv", dict(replayed), rows=2000)  # the CSV is the npz
+    assert main(["replay", str(campaign_dir), "--sample", "5", "--out", str(tmp_path / "x")]) == 2
+    assert "--sample: 5 is beyond the campaign's 5 samples (0 to 4)" in capsys.readouterr().err
+    assert (
+        main(
+            ["replay", str(campaign_dir), "--sample", "0", "--variant", "cartesian/paper", "--out", str(tmp_path / "x")]
+        )
+        == 2
+    )
+    assert "has no variant 'cartesian/paper'; it has admittance/paper" in capsys.readouterr().err
+    # A resume of the campaign with another seed is another campaign: refused, naming it
+    resume = ["montecarlo", "--n", "5", "--chunk", "4", "--controller", "admittance", "--compile-cache", "none"]
+    resume += ["--scenario", str(four_device_campaign / "short.toml"), "--timeseries-every", "100"]
+    assert main([*resume, "--seed", "3", "--resume", "--out", str(campaign_dir)]) == 2
+    assert "cannot resume, the config differs from the interrupted campaign's (seed)" in capsys.readouterr().err
 
 
 def test_a_diverging_sample_is_reported_and_leaves_the_others_alone(robot, short_scenario, variant):

@@ -164,7 +164,21 @@ def test_interrupted_run_resumes_to_the_same_result(uninterrupted):
 def test_tune_refuses_to_overwrite_and_rejects_bad_options(uninterrupted, tmp_path):
     _, full, _ = uninterrupted
     result = subprocess.run(tune_command(tmp_path, full), capture_output=True, text=True, timeout=300)
-    assert result.returncode == 2 and "already holds a tuning run" in result.stderr
+    assert result.returncode == 2 and "already holds a tune run (started" in result.stderr
+    # A resume is the recorded run: each option given that differs is named, nothing runs.
+    before = sorted((path.name, path.stat().st_mtime_ns) for path in full.iterdir())
+    changed = ["--batch", "8", "--lr", "0.5", "--steps", "12", "--realism", "flight"]
+    result = subprocess.run(
+        [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(full), "--resume", *changed],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 2, result.stderr
+    line = result.stderr.strip().splitlines()[-1]
+    assert "--batch 8 (the run's: 2)" in line and "--lr 0.5 (the run's: 0.15)" in line, line
+    assert "--steps 12 (the run's: 8)" in line and "--realism" not in line, line  # gradient: the schedule
+    assert sorted((path.name, path.stat().st_mtime_ns) for path in full.iterdir()) == before
     result = subprocess.run(
         tune_command(tmp_path, tmp_path / "x", "--weights", "speed=1"), capture_output=True, text=True, timeout=300
     )
@@ -236,3 +250,17 @@ def test_the_default_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tm
     assert "resuming after generation" in result.stderr
     assert json.loads((out / "gains.json").read_text()) == json.loads((full / "gains.json").read_text())
     assert [row["loss"] for row in csv.DictReader((out / "history.csv").open())] == [row["loss"] for row in rows]
+    # More generations are the one option a CMA-ES resume may change: the finished run
+    # continues to exactly a run of that many generations from the start.
+    result = subprocess.run([*resume, "--steps", "6"], capture_output=True, text=True, timeout=900, env=env)
+    assert result.returncode == 0, result.stderr
+    assert "resuming after generation 4/6" in result.stderr
+    six = tmp_path / "cmaes_six"
+    result = subprocess.run(cmaes_command(tmp_path, six, 6), capture_output=True, text=True, timeout=900, env=env)
+    assert result.returncode == 0, result.stderr
+    assert json.loads((out / "gains.json").read_text()) == json.loads((six / "gains.json").read_text())
+    extended = [row["loss"] for row in csv.DictReader((out / "history.csv").open())]
+    assert extended == [row["loss"] for row in csv.DictReader((six / "history.csv").open())] and len(extended) == 7
+    assert json.loads((out / "run.json").read_text())["config"]["steps"] == 6
+    result = subprocess.run([*resume, "--population", "5"], capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 2 and "--population 5 (the run's: 3)" in result.stderr

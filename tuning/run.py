@@ -11,7 +11,7 @@ Files in ``--out`` (all written atomically):
   ``holdout.npz`` - every part of the objective for each held-out sample, both gain sets.
 
 The command line adds the figures (``loss.png``, ``peak_torques.png``, ``ee_pose.png``) from
-the :class:`TuneResult` that :func:`tune` returns.
+the [`TuneResult`][tuning.run.TuneResult] that [`tune()`][tuning.run.tune] returns.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import jax
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import batching, experiment, runfiles
+from spacegrasp_jax import batching, campaign, compilation, experiment, runfiles, statistics
 from spacegrasp_jax.control import load_gains, make_gains, paper_gains
 from spacegrasp_jax.model import robot_from_toml
 from spacegrasp_jax.montecarlo import SampleLoops
@@ -59,6 +59,59 @@ HOLDOUT_SEED_OFFSET = 1_000_003  # held-out samples never coincide with training
 
 class TuneSetupError(ValueError):
     """The tuning run cannot start (bad options, or an output folder in the wrong state)."""
+
+
+class ResumeMismatchError(TuneSetupError):
+    """A resume asked for another run than the one in the folder. ``differences``: one
+    ``(name, asked, recorded)`` for each, ``name`` a [`TuneConfig`][tuning.tune.TuneConfig] field or one of
+    ``gains``, ``scenario``, ``robot``."""
+
+    def __init__(self, out: Path, differences: list[tuple[str, object, object]]):
+        self.differences = differences
+        super().__init__(f"{out}: cannot resume another run than the one there: {self.listed()}")
+
+    def listed(self, name_of=lambda name: name) -> str:
+        """``"batch 8 (the run's: 32); ..."``, each name as ``name_of`` writes it."""
+        return "; ".join(
+            f"{name_of(name)} {_shown(asked)} (the run's: {_shown(recorded)})"
+            for name, asked, recorded in self.differences
+        )
+
+
+def _shown(value) -> str:
+    text = json.dumps(runfiles.plain(value), sort_keys=True)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _same(a, b) -> bool:
+    return json.dumps(runfiles.plain(a), sort_keys=True) == json.dumps(runfiles.plain(b), sort_keys=True)
+
+
+def resume_differences(
+    record: dict, config: TuneConfig | None, gains_file: str | None, scenario_file: str | None, robot_file: str | None
+) -> list[tuple[str, object, object]]:
+    """What a resume asks for that differs from the recorded run: every field of ``config``
+    (None: nothing asked) and the contents of the files given. More ``steps`` for CMA-ES is
+    not a difference (the run continues); for gradient descent it is, as its learning-rate
+    schedule decays over the steps it was started with."""
+    differences = []
+    if config is not None:
+        recorded = record["config"]
+        for field, asked in config.to_dict().items():
+            if _same(asked, recorded.get(field)):
+                continue
+            if field == "steps" and recorded["method"] == "cmaes" and asked > recorded["steps"]:
+                continue
+            differences.append((field, asked, recorded.get(field)))
+    if gains_file is not None:
+        asked = load_gains(gains_file, record["config"]["controller"]).to_dict()
+        if not _same(asked, record["base_gains"]):
+            differences.append(("gains", gains_file, record["gains_source"]))
+    if scenario_file is not None and _read_optional(scenario_file) != record["scenario_text"]:
+        differences.append(("scenario", scenario_file, record["scenario_source"]))
+    if robot_file is not None and _read_optional(robot_file) != record["robot_toml"]:
+        differences.append(("robot", robot_file, record["robot_source"]))
+    return differences
 
 
 def _read_optional(path: str | None) -> str | None:
@@ -96,12 +149,12 @@ def new_record(config: TuneConfig, gains_file, scenario_file, robot_file, holdou
 
 
 def _scenarios_parts(robot, gains, scenarios, *, controller: str, objective: Objective):
-    """:func:`~spacegrasp_jax.tuning.tune.scenario_parts` of each scenario of a batch (vmapped)."""
+    """[`scenario_parts()`][tuning.tune.scenario_parts] of each scenario of a batch (vmapped)."""
     return jax.vmap(lambda scenario: scenario_parts(robot, scenario, gains, controller, objective))(scenarios)
 
 
 def _samples_parts(model_robot, gains, samples, *, controller: str, objective: Objective):
-    """:func:`~spacegrasp_jax.tuning.tune.scenario_parts` of each sample of a flight-like
+    """[`scenario_parts()`][tuning.tune.scenario_parts] of each sample of a flight-like
     batch ``samples = (robots, scenarios, realisms, keys)`` (vmapped)."""
 
     def one(robot, scenario, realism, key):
@@ -111,7 +164,7 @@ def _samples_parts(model_robot, gains, samples, *, controller: str, objective: O
 
 
 def evaluate_flight(model_robot, batch: SampleLoops, gains, controller: str, objective: Objective, chunk: int = 10):
-    """:func:`evaluate` for samples of the flight-like loop (:func:`~spacegrasp_jax.tuning.tune.flight_batch`)."""
+    """[`evaluate()`][tuning.run.evaluate] for samples of the flight-like loop ([`flight_batch()`][tuning.tune.flight_batch])."""
     function = functools.partial(_samples_parts, controller=controller, objective=objective)
     samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
     return batching.map_in_chunks(
@@ -127,7 +180,7 @@ def evaluate_flight(model_robot, batch: SampleLoops, gains, controller: str, obj
 
 def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chunk: int = 10) -> dict[str, np.ndarray]:
     """Objective parts for each scenario of a batch (exact or smooth per the scenarios),
-    by vmapped rollouts in chunks of ``chunk`` (:func:`spacegrasp_jax.batching.map_in_chunks`);
+    by vmapped rollouts in chunks of ``chunk`` ([`spacegrasp_jax.batching.map_in_chunks()`][spacegrasp_jax.batching.map_in_chunks]);
     NaN marks a diverged sample. The gains are an argument of the compiled program, so
     evaluating another gain set reuses it."""
     function = functools.partial(_scenarios_parts, controller=controller, objective=objective)
@@ -142,6 +195,33 @@ def _write_history(path: Path, history: list) -> None:
     writer.writeheader()
     writer.writerows(history)
     runfiles.write_text(path, buffer.getvalue())
+
+
+def captured(parts: dict) -> np.ndarray:
+    """(n,) bool: each held-out sample's capture by the campaigns' default criteria
+    ([`CampaignConfig`][spacegrasp_jax.campaign.CampaignConfig]: final position and orientation
+    errors, largest peak torque, a free target's final speed), from the objective's parts; a
+    non-finite sample is a failure."""
+    criteria = campaign.CampaignConfig(n=1)
+    success = (parts["final_position_m"] <= criteria.position_tolerance_m) & (
+        parts["final_orientation_rad"] <= criteria.orientation_tolerance_rad
+    )
+    if criteria.torque_limit_Nm is not None:
+        success &= parts["largest_peak_torque_Nm"] <= criteria.torque_limit_Nm
+    if "final_target_speed_mps" in parts:
+        success &= parts["final_target_speed_mps"] <= criteria.target_speed_limit_mps
+    return np.asarray(success & np.isfinite(parts["loss"]), dtype=bool)
+
+
+def holdout_success(before_parts: dict, after_parts: dict) -> dict:
+    """The held-out success rates of the starting and tuned gains with their 95% Wilson
+    intervals, and the exact McNemar test of tuned against starting on the same samples."""
+    start, tuned = captured(before_parts), captured(after_parts)
+    return {
+        "success_start": statistics.success_interval(start.sum(), start.size),
+        "success_tuned": statistics.success_interval(tuned.sum(), tuned.size),
+        "success_tuned_vs_start": statistics.compare_success(start, tuned),
+    }
 
 
 def _comparison(result: experiment.RunResult) -> dict:
@@ -174,10 +254,16 @@ class TuneResult:
 
 
 def _optimise_gradient(robot, smooth, base, config, before, out, resume, progress, stop):
-    """The optax loop (:func:`~spacegrasp_jax.tuning.tune.optimise`): ``(objective, tuned
+    """The optax loop ([`optimise()`][tuning.tune.optimise]): ``(objective, tuned
     gains, history, events, steps done, status)``."""
     checkpoint_path = out / CHECKPOINT
     objective, mask, params, value_and_grad = setup(robot, smooth, base, config, before.summary["max_abs_torque_Nm"])
+    if config.realism is None:  # the flight-like gradient's programs are announced as they compile
+        value_and_grad = compilation.announce_first_call(
+            value_and_grad,
+            f"the {config.gradient}-mode gradient over {config.batch} scenario(s) (and its first step)",
+            ("tuning.gradient", json.dumps(config.to_dict(), sort_keys=True), smooth.n_steps, smooth.target is None),
+        )
     resume_state = None
     if resume and checkpoint_path.exists():
         resume_state, _ = load_checkpoint(checkpoint_path, params, make_optimizer(config)[0].init(params))
@@ -208,14 +294,21 @@ def _optimise_gradient(robot, smooth, base, config, before, out, resume, progres
 
 
 def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, stop):
-    """CMA-ES (:mod:`~spacegrasp_jax.tuning.cmaes`): as :func:`_optimise_gradient`."""
+    """CMA-ES ([`cmaes`][tuning.cmaes]): as [`_optimise_gradient()`][tuning.run._optimise_gradient]."""
     checkpoint_path = out / CHECKPOINT
     objective = make_objective(robot, config, before.summary["max_abs_torque_Nm"])
     mask = make_mask(base, config.controller, config.frozen)
     params = {name: np.asarray(value) for name, value in initial_params(base, config.controller).items()}
     x0 = cmaes.flatten(params, mask)
     evaluate = cmaes.make_population_evaluator(
-        robot, training_batch(robot, smooth, config), base, mask, params, config.controller, objective, chunk=64
+        robot,
+        training_batch(robot, smooth, config),
+        base,
+        mask,
+        params,
+        config.controller,
+        objective,
+        chunk=cmaes.population_chunk(config.batch),
     )
     previous = None
     if resume and checkpoint_path.exists():
@@ -270,12 +363,17 @@ def tune(
     gains_file: str | None = None,
     scenario_file: str | None = None,
     robot_file: str | None = None,
-    holdout: int = 100,
+    holdout: int | None = None,
     resume: bool = False,
     progress=sys.stderr,
     stop: runfiles.StopRequest | None = None,
 ) -> TuneResult:
     """Run the job (or, with ``resume``, continue it) and write its files in ``out``.
+
+    ``holdout``: held-out scenarios of the final evaluation (default 100). With
+    ``resume``, ``config`` and the files, where given, must be the recorded run's
+    ([`resume_differences()`][tuning.run.resume_differences], else [`ResumeMismatchError`][tuning.run.ResumeMismatchError]); what may change is
+    ``holdout`` and, for CMA-ES, more ``config.steps``: the run then continues.
 
     ``stop``: the signal guard of the caller (the command line's); by default the job
     installs its own for the optimisation (SIGINT/SIGTERM stop it after the current step)."""
@@ -285,9 +383,21 @@ def tune(
         if not record_path.exists():
             raise TuneSetupError(f"--resume: {out} holds no tuning run (no run.json)")
         record = json.loads(record_path.read_text())
+        differences = resume_differences(record, config, gains_file, scenario_file, robot_file)
+        if differences:
+            raise ResumeMismatchError(out, differences)
+        if holdout is not None and holdout < 0:
+            raise TuneSetupError(f"--holdout: must be >= 0, got {holdout}")
+        changed = dict(holdout=holdout if holdout is not None else record["holdout"])
+        if config is not None:
+            changed["config"] = record["config"] | {"steps": max(config.steps, record["config"]["steps"])}
+        if any(not _same(value, record[key]) for key, value in changed.items()):
+            record |= changed
+            runfiles.write_json(record_path, record)
         config = TuneConfig.from_dict(record["config"])
         holdout = record["holdout"]
     else:
+        holdout = 100 if holdout is None else holdout
         if record_path.exists():
             raise TuneSetupError(
                 f"{out} already holds a tuning run: pass --resume to continue it, or choose another --out"
@@ -390,6 +500,7 @@ def tune(
             "diverged_tuned": int(np.sum(~np.isfinite(after_parts["loss"]))),
             "per_sample": "holdout.npz",
         }
+        summary["holdout"] |= holdout_success(before_parts, after_parts)
         samples = {f"start_{name}": value for name, value in before_parts.items()}
         samples.update({f"tuned_{name}": value for name, value in after_parts.items()})
         runfiles.write_arrays(out / "holdout.npz", samples)

@@ -1,0 +1,79 @@
+"""The output-folder rule every command follows (``runfiles.claim_output_folder``): a folder
+that holds anything is refused, naming what it holds; ``--overwrite`` deletes a previous
+run's files and nothing else; ``--resume`` continues a run of the same command."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from spacegrasp_jax import runfiles
+from spacegrasp_jax.runfiles import OutputFolderError, claim_output_folder, read_run_marker
+
+
+def test_a_new_or_empty_folder_is_claimed_with_a_marker(tmp_path):
+    claim_output_folder(tmp_path / "new" / "run", "simulate")
+    marker = read_run_marker(tmp_path / "new" / "run")
+    assert marker["command"] == "simulate" and marker["kept_files"] == [] and "started" in marker
+    (tmp_path / "empty").mkdir()
+    claim_output_folder(tmp_path / "empty", "tune")
+    assert [p.name for p in (tmp_path / "empty").iterdir()] == [runfiles.RUN_MARKER]
+
+
+def test_a_folder_holding_a_run_is_refused_then_replaced_with_overwrite(tmp_path):
+    out = tmp_path / "run"
+    claim_output_folder(out, "tune")
+    (out / "summary.json").write_text("{}")
+    (out / "chunks").mkdir()
+    (out / "chunks" / "000.npz").write_bytes(b"x")
+    with pytest.raises(OutputFolderError, match=r"run already holds a tune run \(started .*--overwrite"):
+        claim_output_folder(out, "simulate")
+    assert (out / "summary.json").exists()  # refused: untouched
+    claim_output_folder(out, "simulate", overwrite=True)
+    assert sorted(p.name for p in out.iterdir()) == [runfiles.RUN_MARKER]
+    assert read_run_marker(out)["command"] == "simulate"
+
+
+def test_files_the_tool_did_not_write_are_named_and_never_deleted(tmp_path):
+    out = tmp_path / "mine"
+    out.mkdir()
+    for name in ("a.txt", "b.txt", "c.txt", "d.txt"):
+        (out / name).write_text(name)
+    with pytest.raises(OutputFolderError, match=r"files this tool did not write \(a.txt, b.txt, c.txt and 1 more\)"):
+        claim_output_folder(out, "reproduce")
+    claim_output_folder(out, "reproduce", overwrite=True)
+    assert read_run_marker(out)["kept_files"] == ["a.txt", "b.txt", "c.txt", "d.txt"]
+    (out / "table5.csv").write_text("run output")
+    claim_output_folder(out, "reproduce", overwrite=True)  # the run's file goes, the user's stay
+    assert sorted(p.name for p in out.iterdir()) == [runfiles.RUN_MARKER, "a.txt", "b.txt", "c.txt", "d.txt"]
+    assert all((out / name).read_text() == name for name in ("a.txt", "b.txt", "c.txt", "d.txt"))
+
+
+def test_resume_continues_the_same_command_only(tmp_path):
+    out = tmp_path / "campaign"
+    claim_output_folder(out, "montecarlo")
+    started = read_run_marker(out)["started"]
+    (out / "campaign.json").write_text("{}")
+    claim_output_folder(out, "montecarlo", resume=True)  # nothing deleted, the marker kept
+    assert (out / "campaign.json").exists() and read_run_marker(out)["started"] == started
+    with pytest.raises(OutputFolderError, match="--resume: it holds a montecarlo run .*not a tune run"):
+        claim_output_folder(out, "tune", resume=True)
+    with pytest.raises(OutputFolderError, match="give one"):
+        claim_output_folder(out, "montecarlo", resume=True, overwrite=True)
+
+
+def test_a_check_only_claim_writes_nothing(tmp_path):
+    claim_output_folder(tmp_path / "x", "montecarlo", write=False)
+    assert not (tmp_path / "x").exists()
+    (tmp_path / "y").mkdir()
+    (tmp_path / "y" / "f").write_text("")
+    with pytest.raises(OutputFolderError):
+        claim_output_folder(tmp_path / "y", "montecarlo", write=False)
+
+
+def test_a_file_is_not_a_folder(tmp_path):
+    (tmp_path / "f").write_text("")
+    with pytest.raises(OutputFolderError, match="is a file"):
+        claim_output_folder(tmp_path / "f", "simulate")
+    assert json.loads((tmp_path / "f").read_text() or "null") is None
