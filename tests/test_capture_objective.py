@@ -105,3 +105,34 @@ def test_the_margins_agree_with_the_campaigns_criteria(offset, yaw, scale):
     fails_errors = classes["failure"][0] != "success"
     assert (max(margins[:2]) > 1.0) == fails_errors
     assert (margins[2] > 1.0) == (scale >= 1.0)
+
+
+def test_a_tuning_runs_held_out_success_is_the_campaigns():
+    """Held-out samples counted as captured by the campaigns' criteria (5 mm, 1 deg, 100 N m,
+    a free target's 5 mm/s, finite), and the rates and paired test built on them."""
+    from scipy import stats
+
+    from spacegrasp_jax.tuning.run import captured, holdout_success
+
+    start = {
+        "final_position_m": np.array([0.001, 0.006, 0.001, 0.001, np.nan, 0.004]),
+        "final_orientation_rad": np.array([0.001, 0.001, 0.03, 0.001, np.nan, 0.001]),
+        "largest_peak_torque_Nm": np.array([2.0, 2.0, 2.0, 200.0, np.nan, 3.0]),
+        "loss": np.array([0.1, 0.1, 0.1, 0.1, np.nan, 0.1]),
+    }
+    np.testing.assert_array_equal(captured(start), [True, False, False, False, False, True])
+    pushed = start | {"final_target_speed_mps": np.array([0.001, 0.001, 0.001, 0.001, 0.001, 0.006])}
+    np.testing.assert_array_equal(captured(pushed), [True, False, False, False, False, False])
+    tuned = start | {"final_position_m": np.array([0.001, 0.002, 0.001, 0.001, 0.001, 0.004])}
+    tuned["loss"] = np.full(6, 0.1)
+    tuned["largest_peak_torque_Nm"] = np.array([2.0, 2.0, 2.0, 200.0, 2.0, 3.0])
+    tuned["final_orientation_rad"] = np.full(6, 0.001)
+    report = holdout_success(start, tuned)  # start captures 2 of 6, tuned 5 of 6 (all but the 200 N m)
+    assert (report["success_start"]["successes"], report["success_tuned"]["successes"]) == (2, 5)
+    wilson = stats.binomtest(5, 6).proportion_ci(confidence_level=0.95, method="wilson")
+    assert report["success_tuned"]["low"] == pytest.approx(wilson.low) and report["success_tuned"][
+        "high"
+    ] == pytest.approx(wilson.high)
+    paired = report["success_tuned_vs_start"]
+    assert (paired["only_candidate"], paired["only_reference"]) == (3, 0)
+    assert paired["p_value"] == pytest.approx(0.25)  # all 3 discordant samples one way: 2 * 0.5**3

@@ -33,7 +33,7 @@ import spacegrasp_jax as sg
 from spacegrasp_jax import batching, campaign, compilation, experiment, runfiles, statistics
 from spacegrasp_jax.control import load_gains, make_gains, paper_gains
 from spacegrasp_jax.model import robot_from_toml
-from spacegrasp_jax.montecarlo import SampleLoops
+from spacegrasp_jax.montecarlo import SampleLoops, success
 from spacegrasp_jax.perturbations import sample_scenarios
 from spacegrasp_jax.realism import make_realism
 from spacegrasp_jax.scenario import paper_scenario, scenario_from_mapping
@@ -199,18 +199,28 @@ def _write_history(path: Path, history: list) -> None:
 
 def captured(parts: dict) -> np.ndarray:
     """(n,) bool: each held-out sample's capture by the campaigns' default criteria
-    ([`CampaignConfig`][spacegrasp_jax.campaign.CampaignConfig]: final position and orientation
-    errors, largest peak torque, a free target's final speed), from the objective's parts; a
-    non-finite sample is a failure."""
+    ([`success()`][spacegrasp_jax.montecarlo.success] with
+    [`CampaignConfig`][spacegrasp_jax.campaign.CampaignConfig]'s tolerances), from the
+    objective's parts; a sample whose objective is not finite diverged."""
     criteria = campaign.CampaignConfig(n=1)
-    success = (parts["final_position_m"] <= criteria.position_tolerance_m) & (
-        parts["final_orientation_rad"] <= criteria.orientation_tolerance_rad
-    )
-    if criteria.torque_limit_Nm is not None:
-        success &= parts["largest_peak_torque_Nm"] <= criteria.torque_limit_Nm
+    sample_metrics = {
+        "final_position_error_m": parts["final_position_m"],
+        "final_orientation_error_rad": parts["final_orientation_rad"],
+        "largest_peak_torque_Nm": parts["largest_peak_torque_Nm"],
+        "first_nonfinite_s": np.where(np.isfinite(parts["loss"]), np.nan, 0.0),
+    }
     if "final_target_speed_mps" in parts:
-        success &= parts["final_target_speed_mps"] <= criteria.target_speed_limit_mps
-    return np.asarray(success & np.isfinite(parts["loss"]), dtype=bool)
+        sample_metrics["final_target_speed_mps"] = parts["final_target_speed_mps"]
+    return np.asarray(
+        success(
+            sample_metrics,
+            criteria.position_tolerance_m,
+            criteria.orientation_tolerance_rad,
+            criteria.torque_limit_Nm,
+            criteria.target_speed_limit_mps,
+        ),
+        dtype=bool,
+    )
 
 
 def holdout_success(before_parts: dict, after_parts: dict) -> dict:
