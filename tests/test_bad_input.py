@@ -216,6 +216,15 @@ def cases(paths, out):
             ["tune", "--resume", "--out", p["simulated"]],
             "--resume: it holds a simulate run",
         ),
+        "replay no campaign": (
+            ["replay", p["a_folder"], "--sample", "0", "--out", out],
+            "a_folder: holds no readable campaign",
+        ),
+        "replay negative sample": (["replay", p["a_folder"], "--sample", "-1", "--out", out], "argument --sample:"),
+        "compare not run folders": (
+            ["compare", p["a_folder"], p["a_folder"], "--out", out],
+            "a_folder: not a run folder",
+        ),
         "gradients horizons": (["gradients", "--n", "2", "--horizons", "0.5,0.25", "--out", out], "--horizons"),
         "gradients n 0": (["gradients", "--n", "0", "--out", out], "argument --n:"),
     }
