@@ -37,7 +37,6 @@ from spacegrasp_jax import (
     statistics,
 )
 from spacegrasp_jax.control import CONTROLLERS, GainsError, UnusedGainsWarning, load_gains, paper_gains
-from spacegrasp_jax.model import robot_from_toml
 from spacegrasp_jax.perturbations import FREE_TARGET_RANGES, PerturbationError, PerturbationRanges, load_ranges
 from spacegrasp_jax.realism import Realism, RealismError, ideal, load_realism
 from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
@@ -46,7 +45,7 @@ from spacegrasp_jax.tuning.gradients import HORIZONS as GRADIENT_HORIZONS
 from spacegrasp_jax.tuning.gradients import central_differences, envelope_gradients, finite_rows
 from spacegrasp_jax.tuning.gradients import report as gradient_report
 from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights
-from spacegrasp_jax.tuning.run import ResumeMismatchError, TuneSetupError, tune
+from spacegrasp_jax.tuning.run import ResumeMismatchError, TuneSetupError, record_robot, record_scenario, tune
 from spacegrasp_jax.tuning.tune import METHODS, TUNING_RANGES, TuneConfig
 
 
@@ -229,7 +228,7 @@ def _with_capture(summary: dict, criteria: campaign.CampaignConfig | None = None
 
 
 def _print_capture_verdicts(results: dict, criteria: campaign.CampaignConfig | None = None) -> None:
-    """Each run's capture verdict by the campaigns' default criteria: one line that says why
+    """Each run's capture verdict by ``criteria`` (default: the campaigns' defaults): one line that says why
     a failed capture failed (a result, not an error: exit 0), or the margins of a success;
     with a free-floating target, one more line for the target's motion."""
     tolerances = _capture_tolerances(criteria)
@@ -254,15 +253,18 @@ def _print_capture_verdicts(results: dict, criteria: campaign.CampaignConfig | N
             )
 
 
-def _run_caption(realism_source: str | None, gains_source: str | None, scenario) -> str:
-    """The second title line of a run's figures: its loop, gains and target."""
-    loop = "ideal loop (the paper's)" if realism_source in (None, "ideal") else f"{Path(realism_source).stem} loop"
-    gains = "the paper's gains" if gains_source is None else f"gains {Path(gains_source).name}"
+def _run_caption(loop: str, gains: str, scenario) -> str:
+    """The second title line of a run's figures: its loop, its gains and its target."""
     if scenario.target is None:
         target = "fixed target (the paper's)"
     else:
         target = f"free target {float(scenario.target.mass):g} kg"
     return f"{loop}, {gains}, {target}"
+
+
+def _loop_words(realism_source: str | None) -> str:
+    """``--realism``'s value as a caption says it."""
+    return "ideal loop (the paper's)" if realism_source in (None, "ideal") else f"{Path(realism_source).stem} loop"
 
 
 def _file_name(key: str) -> str:
@@ -280,7 +282,7 @@ def _write_results(
     csv: bool = False,
     criteria: campaign.CampaignConfig | None = None,
 ) -> None:
-    """Every file of a ``reproduce`` or ``simulate`` run; ``table5.csv`` has Table 5's
+    """Every file of a ``reproduce``, ``simulate`` or ``replay`` run; ``table5.csv`` has Table 5's
     columns beside the run's only for the paper's run (``_is_papers_run()``)."""
     out.mkdir(parents=True, exist_ok=True)
     columns = [f"{c}_Nm" for c in results] + ([f"paper_{c}_Nm" for c in results] if beside_paper else [])
@@ -360,7 +362,11 @@ def _run_controllers(args, controllers) -> int:
         results,
         config,
         beside_paper=_is_papers_run(args),
-        caption=_run_caption(config["realism_source"], config["gains_source"], scenario),
+        caption=_run_caption(
+            _loop_words(config["realism_source"]),
+            "the paper's gains" if config["gains_source"] is None else f"gains {Path(config['gains_source']).name}",
+            scenario,
+        ),
         torque_limit_Nm=np.asarray(robot.joint_torque_limit),
         csv=args.csv,
     )
@@ -403,7 +409,6 @@ def _replay(args: argparse.Namespace) -> int:
     for key, result in results.items():
         _warn(plausibility.result_warnings(result.summary), f"{key}: ")
     loop = "ideal loop" if config.realism is None else "flight-like loop"
-    target = "fixed target" if scenario.target is None else "free target"
     record = {
         "campaign": str(folder),
         "sample": args.sample,
@@ -416,7 +421,7 @@ def _replay(args: argparse.Namespace) -> int:
         results,
         record,
         beside_paper=False,
-        caption=f"sample {args.sample} of the campaign {folder.name}: {loop}, perturbed {target}",
+        caption=_run_caption(f"sample {args.sample} of the campaign {folder.name}: {loop}", "its gains", scenario),
         torque_limit_Nm=np.asarray(robot.joint_torque_limit),
         csv=args.csv,
         criteria=config,
@@ -688,22 +693,21 @@ def _tune_finished(out: Path, result) -> int:
         return 130
     _print_tune_report(out, result.history)
     record = json.loads((out / "run.json").read_text())
-    robot = sg.paper_robot() if record["robot_toml"] is None else robot_from_toml(record["robot_toml"])
+    robot = record_robot(record)
     realism = record["config"]["realism"]
     loop = "ideal loop (the paper's)" if realism is None or realism == ideal().to_dict() else "flight-like loop"
     start = (
-        "the paper's gains"
+        "from the paper's gains"
         if record["gains_source"] == "paper_gains()"
         else f"from {Path(record['gains_source']).name}"
     )
-    target = "fixed target (the paper's)" if result.log_before.target_position is None else "free target"
     plots.save_tuning_figures(
         result.history,
         result.log_before,
         result.log_after,
         out,
         runfiles.write_atomically,
-        caption=f"{loop}, {start}, {target}",
+        caption=_run_caption(loop, start, record_scenario(robot, record)),
         torque_limit_Nm=np.asarray(robot.joint_torque_limit),
     )
     print(

@@ -50,11 +50,11 @@ def input_warnings(scenario: Scenario) -> list[str]:
         lines.append(
             f"q_init[{joint}] = {q[joint]:g} rad is more than a turn: degrees? ({math.radians(q[joint]):.4g} rad)"
         )
-    for name, value, unit in (
-        ("contact sphere radius", float(scenario.sphere_radius), "m"),
-        ("contact stiffness", float(scenario.contact_stiffness), "N m^2"),
+    for name, field, unit in (
+        ("contact sphere radius", "sphere_radius", "m"),
+        ("contact stiffness", "contact_stiffness", "N m^2"),
     ):
-        paper = PAPER_CONTACT["sphere_radius" if "radius" in name else "contact_stiffness"]
+        value, paper = float(getattr(scenario, field)), PAPER_CONTACT[field]
         ratio = value / paper
         if ratio > CONTACT_FACTOR or ratio < 1.0 / CONTACT_FACTOR:
             hint = f": millimetres? ({value / 1e3:g} m)" if unit == "m" and ratio > CONTACT_FACTOR else ""

@@ -118,13 +118,15 @@ def _read_optional(path: str | None) -> str | None:
     return None if path is None else Path(path).read_text()
 
 
-def _robot(record: dict):
+def record_robot(record: dict):
+    """The robot of a tuning run's record (``run.json``): the paper's, or its TOML as recorded."""
     if record["robot_toml"] is None:
         return sg.paper_robot()
     return robot_from_toml(record["robot_toml"], source=record["robot_source"])
 
 
-def _scenario(robot, record: dict):
+def record_scenario(robot, record: dict):
+    """The nominal scenario of a tuning run's record (``run.json``), as recorded."""
     if record["scenario_text"] is None:
         return paper_scenario(robot)
     text = record["scenario_text"]
@@ -416,14 +418,14 @@ def tune(
             raise TuneSetupError(f"--holdout: must be >= 0, got {holdout}")
         record = new_record(config or TuneConfig(), gains_file, scenario_file, robot_file, holdout)
         config = TuneConfig.from_dict(record["config"])
-        if config.weights.target_speed > 0.0 and _scenario(_robot(record), record).target is None:
+        if config.weights.target_speed > 0.0 and record_scenario(record_robot(record), record).target is None:
             raise TuneSetupError("--weights target_speed: needs a scenario with a free-floating [target]")
         out.mkdir(parents=True, exist_ok=True)
         runfiles.write_json(record_path, record)
 
-    robot = _robot(record)
+    robot = record_robot(record)
     base = make_gains(**record["base_gains"])
-    exact = dataclasses.replace(_scenario(robot, record), contact_law="exact")
+    exact = dataclasses.replace(record_scenario(robot, record), contact_law="exact")
     smooth = dataclasses.replace(exact, contact_law="smooth")  # gradients need the smooth law
 
     print(
