@@ -61,14 +61,15 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
         robot, training_scenarios(scenario, config), gains, make_mask(gains, "admittance"), config, objective, segment
     )
     if mode == "forward":
-        function = compilation.jit(lambda p: loss(p)[0])
+        program = compilation.jit(lambda p, values: loss.function(p, values)[0])
     else:
-        function = make_value_and_grad(loss, params, "forward" if mode == "forward_mode" else "reverse")
+        program = make_value_and_grad(loss, params, "forward" if mode == "forward_mode" else "reverse").program
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     start = time.perf_counter()
-    compiled = function.lower(params).compile()
+    executable = program.lower(params, loss.values).compile()
     compile_s = time.perf_counter() - start
-    memory = compiled.memory_analysis()
+    compiled = lambda p: executable(p, loss.values)  # noqa: E731
+    memory = executable.memory_analysis()
     jax.block_until_ready(compiled(params))
     run = timed(lambda: jax.block_until_ready(compiled(params)), repeats)
     return {

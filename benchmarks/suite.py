@@ -11,7 +11,9 @@ Measures, after compilation and a warm-up, medians over ``--repeats``:
    a ratio to one forward rollout, with peak memory (``benchmarks.gradient``);
 4. the floating-point work of one closed-loop step from XLA's cost analysis, and the rate
    achieved by the single rollout against an estimate of the machine's peak;
-5. the peers (``benchmarks.peers``): MuJoCo's ``mj_step`` and ``mujoco.rollout`` on the same
+5. the cost of building each program a user meets, cold: trace, lower and compile times and
+   the compiled program's size (``benchmarks.compile``; ``--quick``: the rollout alone);
+6. the peers (``benchmarks.peers``): MuJoCo's ``mj_step`` and ``mujoco.rollout`` on the same
    robot, and the same closed loop written as a Python loop over Pinocchio (whose final pose
    must agree with ours, else the comparison is void and the run fails).
 Prints one table with the ratios and writes ``benchmark.json`` (the keys are listed in
@@ -31,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from spacegrasp_jax.benchmarks import compile as compile_benchmark
 from spacegrasp_jax.compilation import configure
 from spacegrasp_jax.control import CONTROLLERS
 
@@ -59,6 +62,7 @@ KEYS = (
     "mujoco_us_per_step",
     "mujoco_rollout_steps_per_s",
     "mujoco_rollout_batches",
+    "programs",
 )
 
 
@@ -69,6 +73,7 @@ def _child(module: str, out: Path, *options: str) -> dict:
         "spacegrasp_jax.benchmarks.rollout": "rollout.json",
         "spacegrasp_jax.benchmarks.montecarlo": "montecarlo.json",
         "spacegrasp_jax.benchmarks.gradient": "gradient.json",
+        "spacegrasp_jax.benchmarks.compile": "compile.json",
     }[module]
     return json.loads((out / name).read_text())
 
@@ -133,7 +138,7 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
 
     report = {"machine": machine(), "quick": quick, "duration_s": duration}
 
-    print(f"1/5 single rollouts ({duration:g} s)...", flush=True)
+    print(f"1/6 single rollouts ({duration:g} s)...", flush=True)
     rollout = _child("spacegrasp_jax.benchmarks.rollout", parts, "--duration", str(duration), "--repeats", str(repeats))
     report["rollout_s"] = {c: rollout[c]["run_s"] for c in CONTROLLERS}
     report["compile_s"] = {c: rollout[c]["compile_s"] for c in CONTROLLERS}
@@ -145,7 +150,7 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
         rollout["admittance/free-target"]["us_per_step"] / rollout["admittance"]["us_per_step"]
     )
 
-    print(f"2/5 batches {batches}...", flush=True)
+    print(f"2/6 batches {batches}...", flush=True)
     montecarlo = _child(
         "spacegrasp_jax.benchmarks.montecarlo",
         parts,
@@ -168,7 +173,7 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
         same_size = next(r for r in batch_results if r["size"] == flight_chunk["size"])
         report["flight_over_ideal_chunk"] = flight_chunk["run_s"] / same_size["run_s"]
 
-    print("3/5 gradients...", flush=True)
+    print("3/6 gradients...", flush=True)
     gradient_duration = 0.2 if quick else 17.0
     gradient = _child(
         "spacegrasp_jax.benchmarks.gradient",
@@ -194,12 +199,25 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
         "forward": gradient["forward_mode"]["xla_temp_mb"],
     }
 
-    print("4/5 cost analysis...", flush=True)
+    print("4/6 cost analysis...", flush=True)
     report["flops_per_step"] = flops_per_step()
     report["achieved_gflops"] = report["flops_per_step"] / (report["us_per_step"]["admittance"] * 1e-6) / 1e9
     report["peak_gflops_estimate"] = peak_gflops_estimate()
 
-    print("5/5 peers: MuJoCo and a Python loop over Pinocchio...", flush=True)
+    print("5/6 building each program, cold...", flush=True)
+    programs = _child(
+        "spacegrasp_jax.benchmarks.compile",
+        parts,
+        "--duration",
+        str(0.2 if quick else 17.0),
+        "--repeats",
+        str(repeats),
+        "--programs",
+        "rollout_ideal" if quick else ",".join(compile_benchmark.PROGRAMS),
+    )
+    report["programs"] = programs["programs"]
+
+    print("6/6 peers: MuJoCo and a Python loop over Pinocchio...", flush=True)
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, duration=duration)
     mj_step = peers.mujoco_mj_step(robot, scenario, repeats)
@@ -288,6 +306,17 @@ def table(report: dict) -> str:
         "",
         "< 30",
     )
+    targets = {"rollout": "<= 5", "tuning_gradient_ideal": "<= 30", "tuning_gradient_flight": "<= 45"}
+    targets |= {"montecarlo": "<= 30", "gradients_command": "<= 60"}
+    for name, program in report["programs"].items():
+        target = next((value for prefix, value in targets.items() if name.startswith(prefix)), "")
+        row(
+            f"build {name} cold: trace+lower+compile [s]",
+            f"{program['build_s']:.1f}",
+            "",
+            f"{program['over_forward']:.2f}x fwd" if "over_forward" in program and "gradient" in name else "",
+            target,
+        )
     peak = report["peak_gflops_estimate"]
     row("FLOPs per closed-loop step (XLA cost analysis)", f"{report['flops_per_step']:.3g}", "", "", "")
     row(

@@ -171,8 +171,8 @@ class CampaignResult:
 # ---- the sharded, chunked evaluation --------------------------------------------------
 
 
-def _evaluate_chunk(robot, scenario, gains, seed, realism, indices, **settings):
-    return evaluate_samples(robot, scenario, gains, seed, indices, realism=realism, **settings)
+def _evaluate_chunk(robot, scenario, gains, seed, realism, ranges, indices, **settings):
+    return evaluate_samples(robot, scenario, gains, seed, indices, ranges=ranges, realism=realism, **settings)
 
 
 def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
@@ -182,13 +182,12 @@ def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
     function = functools.partial(
         _evaluate_chunk,
         controller=variant.controller,
-        ranges=config.ranges,
         pinv_damping=config.pinv_damping,
         every=config.timeseries_every,
         identified=config.identified,
     )
-    key = (variant.controller, config.ranges, config.pinv_damping, config.timeseries_every, config.identified)
-    replicated = (robot, scenario, variant.gains, np.uint32(config.seed), config.realism)
+    key = (variant.controller, config.pinv_damping, config.timeseries_every, config.identified)
+    replicated = (robot, scenario, variant.gains, np.uint32(config.seed), config.realism, config.ranges)
     try:
         return batching.compile_chunk(
             "campaign",
@@ -210,7 +209,7 @@ def evaluate_indices(robot, scenario, variant: Variant, config: CampaignConfig, 
     indices = np.asarray(indices, dtype=np.uint32)
     if indices.shape != (config.chunk,):
         raise CampaignError(f"indices: expected {config.chunk} of them (the chunk size), got shape {indices.shape}")
-    replicated = (robot, scenario, variant.gains, np.uint32(config.seed), config.realism)
+    replicated = (robot, scenario, variant.gains, np.uint32(config.seed), config.realism, config.ranges)
     perturbations, sample_metrics, rows = batching.run_chunk(executable, replicated, indices)
     arrays = {f"perturbation.{name}": value for name, value in vars(perturbations).items()}
     arrays |= dict(sample_metrics)

@@ -245,13 +245,27 @@ class CompileAnnouncer:
         """A name for ``key`` that stays the same from one process to the next."""
         return hashlib.sha256(repr(key).encode()).hexdigest()[:20]
 
+    @staticmethod
+    def program(key) -> str:
+        """The kind of program ``key`` names, whatever its settings and shapes (its first
+        entry; for [`batching.compile_chunk()`][spacegrasp_jax.batching.compile_chunk]'s keys, the job's name)."""
+        parts = key if isinstance(key, tuple) else (key,)
+        return f"program:{parts[1] if parts[0] == 'batch' and len(parts) > 1 else parts[0]}"
+
     def before(self, label: str, key) -> None:
         last = self.history.get(self.digest(key))
-        expected = f" (last time {last:.1f} s on this machine)" if isinstance(last, (int, float)) else ""
+        similar = self.history.get(self.program(key))
+        if isinstance(last, (int, float)):
+            expected = f" (last time {last:.1f} s on this machine)"
+        elif isinstance(similar, (int, float)):
+            expected = f" (first time for these settings, about {similar:.0f} s)"
+        else:
+            expected = " (first time on this machine)" if self.history_path is not None else ""
         print(f"compiling {label}{expected}...", file=self.stream, flush=True)
 
     def after(self, label: str, key, seconds: float) -> None:
         self.history[self.digest(key)] = round(seconds, 2)
+        self.history[self.program(key)] = round(seconds, 2)
         if self.history_path is None:
             return
         try:

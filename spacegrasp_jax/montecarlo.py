@@ -202,7 +202,7 @@ def sample_loops(
     """The samples ``indices`` of a campaign and the loop each runs ([`evaluate_samples()`][spacegrasp_jax.montecarlo.evaluate_samples])."""
     robots, scenarios, perturbations = sample(robot, scenario, seed, indices, ranges)
     believes_nominal = not identified and ranges.perturbs_robot
-    estimates = ranges.lar_estimate_position_m > 0.0 or ranges.lar_estimate_angle_rad > 0.0
+    estimates = ranges.draws_estimate_errors
     if not (believes_nominal or estimates or (realism is not None and not realism.is_ideal(scenario.dt))):
         return SampleLoops(robots, scenarios, perturbations, None, None, None)
     base = ideal() if realism is None else realism

@@ -71,11 +71,19 @@ class PerturbationError(ValueError):
     """Invalid perturbation ranges; the message names the offending field."""
 
 
+@jax.tree_util.register_pytree_node_class
 @dataclasses.dataclass(frozen=True)
 class PerturbationRanges:
     """Half-widths of the uniform perturbations (module docstring). The defaults are the
     Monte-Carlo campaign's (documentation, Monte-Carlo campaigns); all zeros give the
-    nominal scenario."""
+    nominal scenario.
+
+    A pytree: the half-widths are its leaves, so a compiled campaign takes them as
+    arguments and other ranges reuse the program. What shapes the program is whether the
+    satellite is perturbed (``perturbs_robot``) and whether target estimate errors are drawn
+    (``draws_estimate_errors``); they are worked out from the numbers when the ranges are
+    made and travel as the pytree's static part.
+    """
 
     q_init_rad: float = 0.02
     lar_position_m: float = 0.005
@@ -119,6 +127,18 @@ class PerturbationRanges:
                     f"{name}: must be below 1 (the quantity must stay positive), got {getattr(self, name)}"
                 )
 
+    def tree_flatten(self):
+        values = tuple(getattr(self, field.name) for field in dataclasses.fields(self))
+        return values, (self.perturbs_robot, self.draws_estimate_errors)
+
+    @classmethod
+    def tree_unflatten(cls, flags, values):
+        ranges = object.__new__(cls)  # placeholders inside a program: checked when first made
+        for field, value in zip(dataclasses.fields(cls), values):
+            object.__setattr__(ranges, field.name, value)
+        object.__setattr__(ranges, "_flags", flags)
+        return ranges
+
     @classmethod
     def nominal(cls) -> PerturbationRanges:
         """No perturbation at all."""
@@ -127,7 +147,16 @@ class PerturbationRanges:
     @property
     def perturbs_robot(self) -> bool:
         """Whether the satellite's mass or inertia varies between samples."""
+        if "_flags" in vars(self):
+            return self._flags[0]
         return self.satellite_mass_fraction > 0.0 or self.satellite_inertia_fraction > 0.0
+
+    @property
+    def draws_estimate_errors(self) -> bool:
+        """Whether each sample draws an error of the LAR pose the controller believes."""
+        if "_flags" in vars(self):
+            return self._flags[1]
+        return self.lar_estimate_position_m > 0.0 or self.lar_estimate_angle_rad > 0.0
 
     def to_dict(self) -> dict[str, float]:
         return dataclasses.asdict(self)

@@ -332,43 +332,47 @@ def test_compile_cache_folder_and_precedence(tmp_path, case):
         assert written and all(expected in p.parents for p in written), written
 
 
-def test_a_command_keeps_its_programs_in_the_compile_cache_and_loads_them_the_second_time(tmp_path):
-    scenario = tmp_path / "short.toml"
-    scenario.write_text("duration = 0.2\n")
+def test_a_command_keeps_its_programs_in_the_compile_cache_and_loads_them_for_other_values(tmp_path, gains):
+    """A second run with other values (gains, the scenario's numbers, the realism's noise
+    levels, the noise seed) loads every program from the persistent cache: the cache key
+    does not change with values, only with settings that shape the program."""
     cache = tmp_path / "cache"
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    first_scenario, second_scenario = tmp_path / "short.toml", tmp_path / "other.toml"
+    first_scenario.write_text("duration = 0.2\n")
+    second_scenario.write_text("duration = 0.2\nq_init = [2.21, -2.386, -2.011, 2.595, 2.558, 0.756, 0.949]\n")
+    other_gains = tmp_path / "gains.json"
+    other_gains.write_text(json.dumps({**gains.to_dict(), "K_lin": 2.0}))
+    noisy, noisier = tmp_path / "noisy.toml", tmp_path / "noisier.toml"
+    noisy.write_text("[joint_sensors]\nrate_noise_std_radps = 0.001\n")
+    noisier.write_text("[joint_sensors]\nrate_noise_std_radps = 0.003\n")
 
-    def simulate(out):
-        command = [
-            sys.executable,
-            "-m",
-            "spacegrasp_jax.cli",
-            "simulate",
-            "--controller",
-            "cartesian",
-            "--scenario",
-            str(scenario),
-            "--out",
-            str(tmp_path / out),
-            "--compile-cache",
-            str(cache),
-        ]
+    def simulate(out, *options):
+        command = [sys.executable, "-m", "spacegrasp_jax.cli", "simulate", "--controller", "cartesian"]
+        command += [*options, "--out", str(tmp_path / out), "--compile-cache", str(cache)]
         result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
         assert result.returncode == 0, result.stderr
         assert f"compilation cache: {cache}" in result.stderr
-        return sorted(path.name for path in cache.iterdir()), result.stderr
+        summary = json.loads((tmp_path / out / "summary.json").read_text())["cartesian"]
+        return sorted(path.name for path in cache.iterdir()), result.stderr, summary
 
-    first, printed = simulate("a")
+    first, printed, first_summary = simulate("a", "--scenario", str(first_scenario))
     assert any(name.startswith("jit_rollout") for name in first)  # the closed loop, compiled once
-    assert "compiling the cartesian law's ideal rollout...\n" in printed  # named, no history yet
-    second, printed = simulate("b")
-    assert second == first  # the second run loads every program: nothing new to write
-    history = json.loads((cache / cli.COMPILE_TIMES).read_text())
-    assert len(history) == 1  # the one program's time, overwritten by the second run's
-    (last,) = history.values()
+    assert "compiling the cartesian law's ideal rollout (first time on this machine)...\n" in printed
+    second, printed, second_summary = simulate("b", "--scenario", str(second_scenario), "--gains", str(other_gains))
+    assert second == first  # other gains and initial angles: the program is loaded, nothing new written
+    assert second_summary["max_abs_torque_Nm"] != first_summary["max_abs_torque_Nm"]  # the values were used
     assert re.search(
         r"compiling the cartesian law's ideal rollout \(last time \d+\.\d s on this machine\)\.\.\.", printed
     )
-    assert 0.0 < last < 300.0
-    summaries = [json.loads((tmp_path / out / "summary.json").read_text())["cartesian"] for out in ("a", "b")]
-    assert summaries[0]["max_abs_torque_Nm"] == summaries[1]["max_abs_torque_Nm"]
+    history = json.loads((cache / cli.COMPILE_TIMES).read_text())
+    assert len(history) == 2  # the program's time and its kind's, overwritten by the second run
+    assert all(0.0 < seconds < 300.0 for seconds in history.values())
+
+    third, printed, third_summary = simulate("c", "--scenario", str(first_scenario), "--realism", str(noisy))
+    assert len(third) > len(second)  # the flight-like loop is another program
+    fourth, _, fourth_summary = simulate(
+        "d", "--scenario", str(first_scenario), "--realism", str(noisier), "--seed", "7"
+    )
+    assert fourth == third  # other noise levels and another seed: the same program
+    assert fourth_summary["max_abs_torque_Nm"] != third_summary["max_abs_torque_Nm"]

@@ -221,5 +221,11 @@ def test_compiles_are_announced_once_each_with_a_history_across_processes(tmp_pa
     compilation.CompileAnnouncer(first, history).before("the square", key)
     compilation.CompileAnnouncer(first, history).after("the square", key, 12.34)
     compilation.CompileAnnouncer(second, history).before("the square", key)  # a later process, same program
-    assert first.getvalue() == "compiling the square...\n"
+    assert first.getvalue() == "compiling the square (first time on this machine)...\n"
     assert second.getvalue() == "compiling the square (last time 12.3 s on this machine)...\n"
+    other_settings = io.StringIO()  # the same program for another static setting: not the same compile
+    compilation.CompileAnnouncer(other_settings, history).before("the square", ("test.square", 4))
+    assert other_settings.getvalue() == "compiling the square (first time for these settings, about 12 s)...\n"
+    silent = io.StringIO()  # no history file: nothing to say about earlier compiles
+    compilation.CompileAnnouncer(silent).before("the square", key)
+    assert silent.getvalue() == "compiling the square...\n"

@@ -64,7 +64,7 @@ def gains_of(vector: np.ndarray, params: dict, base: Gains, mask: dict) -> Gains
     return gains_from_params(unflatten(vector, params, mask), base, mask)
 
 
-def _candidate_parts(model_robot, items, *, controller: str, objective: Objective, realism_loop: bool):
+def _candidate_parts(model_robot, objective: Objective, items, *, controller: str, realism_loop: bool):
     """The objective's parts of each (gains, sample) item (vmapped)."""
     from spacegrasp_jax.tuning.tune import scenario_parts
 
@@ -107,9 +107,7 @@ def make_population_evaluator(
         per_sample = (samples,)
         model_robot = robot
     batch = batching.batch_size(per_sample)
-    function = functools.partial(
-        _candidate_parts, controller=controller, objective=objective, realism_loop=realism_loop
-    )
+    function = functools.partial(_candidate_parts, controller=controller, realism_loop=realism_loop)
 
     def evaluate(vectors: np.ndarray) -> dict:
         count = len(vectors)
@@ -119,10 +117,10 @@ def make_population_evaluator(
         parts = batching.map_in_chunks(
             "tuning.cmaes",
             function,
-            (model_robot,),
+            (model_robot, objective),
             items,
             chunk=chunk,
-            key=(controller, objective, realism_loop),
+            key=(controller, realism_loop),
             progress=None,
         )
         return {name: value.reshape(count, batch) for name, value in parts.items()}

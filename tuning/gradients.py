@@ -95,13 +95,13 @@ def horizon_steps(n_steps: int, horizons=HORIZONS) -> tuple[int, ...]:
     return tuple(max(1, round(fraction * n_steps)) for fraction in horizons)
 
 
-def make_item_function(controller: str, objective: Objective, steps, segment, pinv_damping: float = 0.0):
-    """``(base, mask, model_robot, item) -> (losses (H,), gradients group -> (H, size))`` for
+def make_item_function(controller: str, steps, segment, pinv_damping: float = 0.0):
+    """``(base, mask, objective, model_robot, item) -> (losses (H,), gradients group -> (H, size))`` for
     one item ``(params, robot, scenario, realism, key)``: a rollout at the gains ``params``
     (log-gains over ``base``), the objective of its log cut at each of ``steps`` rows, and
     their gradients (one reverse pass per horizon)."""
 
-    def horizon_losses(params, base, mask, model_robot, robot, scenario, realism, key):
+    def horizon_losses(params, base, mask, objective, model_robot, robot, scenario, realism, key):
         gains = gains_from_params(params, base, mask)
         _, log = rollout(
             robot,
@@ -116,9 +116,9 @@ def make_item_function(controller: str, objective: Objective, steps, segment, pi
         )
         return jnp.stack([objective_parts(jax.tree.map(lambda x: x[:rows], log), objective)["loss"] for rows in steps])
 
-    def item(base, mask, model_robot, arguments):
+    def item(base, mask, objective, model_robot, arguments):
         params, *loop = arguments
-        losses, pullback = jax.vjp(lambda p: horizon_losses(p, base, mask, model_robot, *loop), params)
+        losses, pullback = jax.vjp(lambda p: horizon_losses(p, base, mask, objective, model_robot, *loop), params)
         (gradients,) = jax.vmap(pullback)(jnp.eye(len(steps), dtype=losses.dtype))
         return losses, gradients
 
@@ -158,12 +158,12 @@ def envelope_gradients(
     items, model_robot, perturbations = _nominal_first(robot, scenario, seed, n, ranges, realism)
     steps = horizon_steps(scenario.n_steps, horizons)
     segment = 1 if items[2] is not None else checkpoint_segment(scenario.n_steps)
-    item = make_item_function(controller, objective, steps, segment, pinv_damping)
-    replicated = (gains, mask) if model_robot is None else (gains, mask, model_robot)
+    item = make_item_function(controller, steps, segment, pinv_damping)
+    replicated = (gains, mask, objective) if model_robot is None else (gains, mask, objective, model_robot)
 
     def block(*arguments):  # one device's share, one item after another (the tape of one)
-        base, mask, *believed, batch = arguments
-        return jax.lax.map(lambda one: item(base, mask, believed[0] if believed else None, one), batch)
+        base, mask, objective, *believed, batch = arguments
+        return jax.lax.map(lambda one: item(base, mask, objective, believed[0] if believed else None, one), batch)
 
     def evaluate(item_params, rows):
         batched = (item_params, *batching.take(items, np.asarray(rows)))
@@ -173,7 +173,7 @@ def envelope_gradients(
             replicated,
             batched,
             chunk=chunk,
-            key=(controller, steps, segment, objective, pinv_damping),
+            key=(controller, steps, segment, pinv_damping),
             progress=progress,
             label="gradients",
         )

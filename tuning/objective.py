@@ -46,6 +46,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from spacegrasp_jax import metrics
 
@@ -53,9 +54,22 @@ from spacegrasp_jax import metrics
 OBJECTIVES = ("capture", "weighted")
 
 
+def _concrete(*values) -> bool:
+    """Whether every value is a number known now: the objects below are pytrees, rebuilt
+    by JAX with placeholders (tracers, argument descriptions) inside compiled programs,
+    whose numbers were checked when the object was first made."""
+    numbers = (int, float, np.ndarray, np.generic)
+    return all(
+        isinstance(leaf, numbers) or (isinstance(leaf, jax.Array) and not isinstance(leaf, jax.core.Tracer))
+        for leaf in jax.tree.leaves(values)
+    )
+
+
+@jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Weights:
-    """Weights of the objective's parts (dimensionless; each part is scaled first)."""
+    """Weights of the objective's parts (dimensionless; each part is scaled first). A
+    pytree of numbers: programs take them as arguments, so other weights reuse a program."""
 
     final_position: float = 1.0
     final_orientation: float = 0.1
@@ -84,9 +98,14 @@ class Weights:
         return cls(**values)
 
 
+@jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Objective:
     """The objective (module docstring): which, and its weights, scales and tolerances.
+
+    A pytree whose numbers are leaves and whose ``kind`` is static: a compiled program takes
+    the objective as an argument, so weights, scales and tolerances are values (another
+    set reuses the program) and only ``kind`` shapes it.
 
     Attributes:
         weights: the ``weighted`` objective's weights.
@@ -111,7 +130,7 @@ class Objective:
     contact_scale_N: float = 10.0
     target_speed_scale_mps: float = 1e-3
     temperature: float = 0.02
-    kind: str = "weighted"
+    kind: str = dataclasses.field(default="weighted", metadata=dict(static=True))
     torque_limit_Nm: tuple[float, ...] = (10.0, 10.0, 10.0, 5.0, 5.0, 2.0, 2.0)
     position_tolerance_m: float = 0.005
     orientation_tolerance_rad: float = 0.017453292519943295  # 1 deg
@@ -121,14 +140,16 @@ class Objective:
     margin_temperature: float = 0.05
 
     def __post_init__(self):
+        if self.kind not in OBJECTIVES:
+            raise ValueError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {self.kind!r}")
+        if not _concrete([getattr(self, field.name) for field in dataclasses.fields(self)]):
+            return
         if len(self.torque_scale_Nm) != 7 or min(self.torque_scale_Nm) <= 0.0:
             raise ValueError(f"torque_scale_Nm: need 7 positive numbers, got {self.torque_scale_Nm}")
         if len(self.torque_limit_Nm) != 7 or min(self.torque_limit_Nm) <= 0.0:
             raise ValueError(f"torque_limit_Nm: need 7 positive numbers, got {self.torque_limit_Nm}")
         if not self.temperature > 0.0:
             raise ValueError(f"temperature: must be positive, got {self.temperature}")
-        if self.kind not in OBJECTIVES:
-            raise ValueError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {self.kind!r}")
         if not 0.0 <= self.safety < 1.0:
             raise ValueError(f"safety: must be in [0, 1), got {self.safety}")
         for name in ("position_tolerance_m", "orientation_tolerance_rad", "target_speed_limit_mps"):

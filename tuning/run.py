@@ -150,12 +150,12 @@ def new_record(config: TuneConfig, gains_file, scenario_file, robot_file, holdou
     }
 
 
-def _scenarios_parts(robot, gains, scenarios, *, controller: str, objective: Objective):
+def _scenarios_parts(robot, gains, objective: Objective, scenarios, *, controller: str):
     """[`scenario_parts()`][tuning.tune.scenario_parts] of each scenario of a batch (vmapped)."""
     return jax.vmap(lambda scenario: scenario_parts(robot, scenario, gains, controller, objective))(scenarios)
 
 
-def _samples_parts(model_robot, gains, samples, *, controller: str, objective: Objective):
+def _samples_parts(model_robot, gains, objective: Objective, samples, *, controller: str):
     """[`scenario_parts()`][tuning.tune.scenario_parts] of each sample of a flight-like
     batch ``samples = (robots, scenarios, realisms, keys)`` (vmapped)."""
 
@@ -167,15 +167,15 @@ def _samples_parts(model_robot, gains, samples, *, controller: str, objective: O
 
 def evaluate_flight(model_robot, batch: SampleLoops, gains, controller: str, objective: Objective, chunk: int = 10):
     """[`evaluate()`][tuning.run.evaluate] for samples of the flight-like loop ([`flight_batch()`][tuning.tune.flight_batch])."""
-    function = functools.partial(_samples_parts, controller=controller, objective=objective)
+    function = functools.partial(_samples_parts, controller=controller)
     samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
     return batching.map_in_chunks(
         "tuning.evaluate_flight",
         function,
-        (model_robot, gains),
+        (model_robot, gains, objective),
         samples,
         chunk=chunk,
-        key=(controller, objective),
+        key=(controller,),
         progress=None,
     )
 
@@ -183,11 +183,11 @@ def evaluate_flight(model_robot, batch: SampleLoops, gains, controller: str, obj
 def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chunk: int = 10) -> dict[str, np.ndarray]:
     """Objective parts for each scenario of a batch (exact or smooth per the scenarios),
     by vmapped rollouts in chunks of ``chunk`` ([`spacegrasp_jax.batching.map_in_chunks()`][spacegrasp_jax.batching.map_in_chunks]);
-    NaN marks a diverged sample. The gains are an argument of the compiled program, so
-    evaluating another gain set reuses it."""
-    function = functools.partial(_scenarios_parts, controller=controller, objective=objective)
+    NaN marks a diverged sample. The gains and the objective are arguments of the compiled
+    program, so evaluating another gain set or objective reuses it."""
+    function = functools.partial(_scenarios_parts, controller=controller)
     return batching.map_in_chunks(
-        "tuning.evaluate", function, (robot, gains), scenarios, chunk=chunk, key=(controller, objective), progress=None
+        "tuning.evaluate", function, (robot, gains, objective), scenarios, chunk=chunk, key=(controller,), progress=None
     )
 
 
@@ -274,7 +274,16 @@ def _optimise_gradient(robot, smooth, base, config, before, out, resume, progres
         value_and_grad = compilation.announce_first_call(
             value_and_grad,
             f"the {config.gradient}-mode gradient over {config.batch} scenario(s) (and its first step)",
-            ("tuning.gradient", json.dumps(config.to_dict(), sort_keys=True), smooth.n_steps, smooth.target is None),
+            (
+                "tuning.gradient",  # what shapes the program, not the values it runs on
+                config.controller,
+                config.objective,
+                config.gradient,
+                config.batch,
+                config.cvar_alpha,
+                smooth.n_steps,
+                smooth.target is None,
+            ),
         )
     resume_state = None
     if resume and checkpoint_path.exists():

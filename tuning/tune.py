@@ -306,41 +306,106 @@ def scenario_parts(
     return parts
 
 
+def batch_loss(params, values, *, controller: str, cvar_alpha: float | None, segment: int | None):
+    """``(loss, aux)`` at the log-gains ``params``: the batch mean (or CVaR) of the objective,
+    and the batch-mean parts plus the worst hard peak torque (N m) for the divergence guard.
+    ``values = (robot, scenarios, base, mask, objective)``, every number an argument of the
+    program (other scenarios, gains or weights reuse it); the keywords shape it. The
+    scenarios run one after another or vmapped, as [`batch_in_sequence()`][tuning.tune.batch_in_sequence] says."""
+    robot, scenarios, base, mask, objective = values
+    gains = gains_from_params(params, base, mask)
+
+    def one(scenario):
+        return scenario_parts(robot, scenario, gains, controller, objective, segment)
+
+    count = jax.tree.leaves(scenarios)[0].shape[0]
+    if count == 1:  # one scenario: the unbatched program
+        parts = jax.tree.map(lambda x: x[None], one(jax.tree.map(lambda x: x[0], scenarios)))
+    elif batch_in_sequence(count):
+        parts = jax.lax.map(one, scenarios)
+    else:
+        parts = jax.vmap(one)(scenarios)
+    losses = parts["loss"]
+    if cvar_alpha is None:
+        total = jnp.mean(losses)
+    else:
+        worst = max(1, math.ceil((1.0 - cvar_alpha) * losses.shape[0]))
+        total = jnp.mean(jnp.sort(losses)[-worst:])
+    aux = {name: jnp.mean(value) for name, value in parts.items()}
+    aux["largest_peak_torque_Nm"] = jnp.max(parts["largest_peak_torque_Nm"])
+    return total, aux
+
+
+@dataclasses.dataclass(frozen=True)
+class BoundLoss:
+    """``loss(params) -> (loss, aux)`` ([`batch_loss()`][tuning.tune.batch_loss]) with its values bound:
+    ``function(params, values)`` is what is compiled, ``values`` what it is called with."""
+
+    function: Callable
+    values: tuple
+
+    def __call__(self, params):
+        return self.function(params, self.values)
+
+
 def make_loss(
     robot: Robot, scenarios: Scenario, base: Gains, mask, config: TuneConfig, objective: Objective, segment: int | None
-):
-    """``loss(params) -> (loss, aux)``: the batch mean (or CVaR) of the objective, and the
-    batch-mean parts plus the worst hard peak torque (N m) for the divergence guard. The
-    scenarios run one after another or vmapped, as [`batch_in_sequence()`][tuning.tune.batch_in_sequence] says."""
+) -> BoundLoss:
+    """The tuning loss over ``scenarios`` (stacked), [`batch_loss()`][tuning.tune.batch_loss] with these values."""
+    function = _batch_loss_function(config.controller, config.cvar_alpha, segment)
+    return BoundLoss(function, (robot, scenarios, base, mask, objective))
 
-    def loss(params):
-        gains = gains_from_params(params, base, mask)
 
-        def one(scenario):
-            return scenario_parts(robot, scenario, gains, config.controller, objective, segment)
+@functools.cache
+def _batch_loss_function(controller: str, cvar_alpha: float | None, segment: int | None) -> Callable:
+    return functools.partial(batch_loss, controller=controller, cvar_alpha=cvar_alpha, segment=segment)
 
-        count = jax.tree.leaves(scenarios)[0].shape[0]
-        if count == 1:  # one scenario: the unbatched program
-            parts = jax.tree.map(lambda x: x[None], one(jax.tree.map(lambda x: x[0], scenarios)))
-        elif batch_in_sequence(count):
-            parts = jax.lax.map(one, scenarios)
-        else:
-            parts = jax.vmap(one)(scenarios)
-        losses = parts["loss"]
-        if config.cvar_alpha is None:
-            total = jnp.mean(losses)
-        else:
-            worst = max(1, math.ceil((1.0 - config.cvar_alpha) * losses.shape[0]))
-            total = jnp.mean(jnp.sort(losses)[-worst:])
-        aux = {name: jnp.mean(value) for name, value in parts.items()}
-        aux["largest_peak_torque_Nm"] = jnp.max(parts["largest_peak_torque_Nm"])
-        return total, aux
 
-    return loss
+@dataclasses.dataclass(frozen=True)
+class BoundProgram:
+    """A jitted ``program(params, values)`` called as ``program(params)``: the values are
+    arguments of the compiled program, not constants in it, so a loss over other scenarios,
+    gains or weights of the same shapes runs the same program (compiled once per process,
+    and loaded from the persistent cache by later processes)."""
+
+    program: Callable
+    values: tuple
+
+    def __call__(self, params):
+        return self.program(params, self.values)
+
+    def lower(self, params):
+        """The program's ``jax.stages.Lowered`` for these ``params`` and values."""
+        return self.program.lower(params, self.values)
+
+
+@functools.cache
+def _gradient_program(function: Callable, mode: str, structure) -> Callable:
+    """The jitted gradient of ``function(params, values)`` with respect to ``params``, one
+    per loss function, mode and parameter structure (``structure``: their tree)."""
+    if mode == "reverse":
+        return compilation.jit(jax.value_and_grad(function, has_aux=True))
+
+    def forward(params, values):
+        flat, unravel = ravel_pytree(params)
+
+        def flat_loss(x):
+            value, aux = function(unravel(x), values)
+            return value, (value, aux)
+
+        gradient, (value, aux) = jax.jacfwd(flat_loss, has_aux=True)(flat)
+        return (value, aux), unravel(gradient)
+
+    return compilation.jit(forward)
 
 
 def make_value_and_grad(loss: Callable, params, mode: str):
-    """Jitted ``params -> ((loss, aux), gradient)`` by reverse or forward mode."""
+    """Jitted ``params -> ((loss, aux), gradient)`` by reverse or forward mode. For a
+    [`BoundLoss`][tuning.tune.BoundLoss] (what [`make_loss()`][tuning.tune.make_loss] returns) the compiled program takes the loss's
+    values as arguments and is shared by every loss of the same settings and shapes."""
+    if isinstance(loss, BoundLoss):
+        program = _gradient_program(loss.function, mode, jax.tree.structure(params))
+        return BoundProgram(program, loss.values)
     if mode == "reverse":
         return compilation.jit(jax.value_and_grad(loss, has_aux=True))
     _, unravel = ravel_pytree(params)
@@ -391,7 +456,7 @@ def aggregate_gradients(losses, gradients, config: TuneConfig):
     return total, gradient, jnp.sum(scale < 1.0)
 
 
-def _per_sample_gradients(params, base, mask, model_robot, samples, *, controller: str, objective: Objective):
+def _per_sample_gradients(params, base, mask, model_robot, objective: Objective, samples, *, controller: str):
     """``(losses, parts, gradients)``, each with the samples' leading axis: each sample's
     objective and its reverse-mode gradient (one control period a checkpoint), one sample
     after another (``lax.map``: the tape of one rollout at a time)."""
@@ -418,7 +483,7 @@ def make_flight_value_and_grad(
     ([`spacegrasp_jax.batching.map_in_chunks()`][spacegrasp_jax.batching.map_in_chunks]: a share of the batch per core or GPU),
     then [`aggregate_gradients()`][tuning.tune.aggregate_gradients] on the host. ``aux`` has the batch-mean parts, the worst
     hard peak torque and ``clipped_samples``."""
-    function = functools.partial(_per_sample_gradients, controller=config.controller, objective=objective)
+    function = functools.partial(_per_sample_gradients, controller=config.controller)
     samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
     count = int(batch.keys.shape[0])
 
@@ -426,10 +491,10 @@ def make_flight_value_and_grad(
         losses, parts, gradients = batching.map_in_chunks(
             "tuning.flight_gradient",
             function,
-            (params, base, mask, batch.model_robot),
+            (params, base, mask, batch.model_robot, objective),
             samples,
             chunk=count,
-            key=(config.controller, objective),
+            key=(config.controller,),
             progress=None,
         )
         losses, gradients = jnp.asarray(losses), jax.tree.map(jnp.asarray, gradients)

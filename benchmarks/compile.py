@@ -1,0 +1,225 @@
+"""Compile cost of every program a user meets: time to trace, to lower and to compile, cold,
+the compiled program's size, and its run time.
+
+    python -m spacegrasp_jax.benchmarks.compile [--out results/benchmarks] [--duration 17]
+        [--programs rollout_ideal,...] [--repeats 3]
+
+Each program is built in a process of its own, with no persistent compilation cache, through
+the same code the commands use (``PROGRAMS``):
+
+* ``rollout_ideal``, ``rollout_flight``: one admittance rollout (``spacegrasp simulate``),
+  the paper's loop and the ``flight`` preset;
+* ``tuning_gradient_ideal``: the gradient of the tuning objective (reverse mode,
+  checkpointed) over one scenario (``spacegrasp tune --method gradient``);
+* ``tuning_gradient_flight``: the same under the ``flight`` preset, one sample per device;
+* ``montecarlo_chunk_ideal``, ``montecarlo_chunk_flight``: one campaign chunk of 64 samples
+  (``spacegrasp montecarlo``);
+* ``gradients_command``: the envelope gradients of ``spacegrasp gradients`` (four horizons,
+  8 items a call).
+
+Trace, lower and compile are JAX's own records of the build (``jax.monitoring`` events: the
+jaxpr's tracing, its lowering to StableHLO, XLA's compile); ``hlo_instructions`` counts the
+compiled (optimised) HLO's instructions, every computation's (a loop body counts once).
+``run_s`` is the median of ``--repeats`` calls after the first. The gradients' ``run_s`` is
+compared with ``forward_s``, one forward rollout of the same scenario in the same process.
+Writes ``compile.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+#: The programs, in the order they are measured.
+PROGRAMS = (
+    "rollout_ideal",
+    "rollout_flight",
+    "tuning_gradient_ideal",
+    "tuning_gradient_flight",
+    "montecarlo_chunk_ideal",
+    "montecarlo_chunk_flight",
+    "gradients_command",
+)
+
+#: JAX's events for the three phases of a build.
+EVENTS = {
+    "trace_s": "/jax/core/compile/jaxpr_trace_duration",
+    "lower_s": "/jax/core/compile/jaxpr_to_mlir_module_duration",
+    "compile_s": "/jax/core/compile/backend_compile_duration",
+}
+
+#: Executables compiled outside ``compilation.compile_once`` by a program's build.
+_SEEN: list = []
+
+_INSTRUCTION = re.compile(r"^\s*(ROOT\s+)?[%\w.\-]+ = ")
+
+
+def hlo_instructions(executable) -> int:
+    """Instructions of a compiled program's optimised HLO, summed over its computations."""
+    text = executable.as_text() or ""
+    return sum(1 for line in text.splitlines() if _INSTRUCTION.match(line))
+
+
+def _build(name: str, duration: float):
+    """``(run, forward)``: ``run()`` builds (first call) and runs the program ``name`` and
+    returns what it computed; ``forward()`` runs one forward rollout of the same scenario
+    (``None`` for the rollouts themselves)."""
+    import jax
+    import numpy as np
+
+    import spacegrasp_jax as sg
+    from spacegrasp_jax import campaign, experiment
+    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.realism import flight
+    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.tuning import gradients, tune
+    from spacegrasp_jax.tuning.objective import Objective
+
+    robot, gains = sg.paper_robot(), paper_gains()
+    flight_like = name.endswith("_flight")
+    realism = flight() if flight_like else None
+    scenario = paper_scenario(robot, contact_law="smooth" if "gradient" in name else "exact", duration=duration)
+
+    def forward():
+        return experiment.run(robot, scenario, gains, "admittance", realism=realism, check=False).log
+
+    if name.startswith("rollout_"):
+        return (lambda: experiment.run(robot, scenario, gains, "admittance", realism=realism, check=False).log), None
+    if name.startswith("tuning_gradient_"):
+        config = tune.TuneConfig(
+            batch=1 if realism is None else jax.device_count(),
+            method="gradient",
+            realism=None if realism is None else realism.to_dict(),
+        )
+        _, _, params, value_and_grad = tune.setup(robot, scenario, gains, config, (1.0,) * 7)
+        if realism is None:  # a jitted function: compile it here, where its program can be read
+            compiled = []
+
+            def gradient():
+                if not compiled:
+                    compiled.append(value_and_grad.lower(params).compile())
+                    _SEEN.append(compiled[0])
+                return compiled[0](params, value_and_grad.values)
+
+            return gradient, forward
+        return (lambda: value_and_grad(params)), forward
+    if name.startswith("montecarlo_chunk_"):
+        config = campaign.CampaignConfig(n=64, chunk=64, realism=realism)
+        variant = campaign.Variant("admittance", gains, "paper")
+        return (lambda: campaign.evaluate_indices(robot, scenario, variant, config, np.arange(64))), forward
+    if name == "gradients_command":
+        objective = Objective(weights=tune.TuneConfig().weights, torque_scale_Nm=(1.0,) * 7, kind="capture")
+
+        def envelope():
+            return gradients.envelope_gradients(robot, scenario, gains, "admittance", objective, n=7, chunk=8)[0]
+
+        return envelope, forward
+    raise ValueError(f"unknown program {name!r}; expected one of {', '.join(PROGRAMS)}")
+
+
+def measure(name: str, duration: float, repeats: int) -> dict:
+    """Build and run ``name`` once, cold, then ``repeats`` more times (module docstring)."""
+    import jax
+
+    from spacegrasp_jax import compilation
+    from spacegrasp_jax.benchmarks.dynamics import timed
+
+    totals = collections.Counter()
+    counts = collections.Counter()
+
+    def listener(event: str, duration_s: float, **_):
+        totals[event] += duration_s
+        counts[event] += 1
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    run, forward = _build(name, duration)
+    compiled_before = set(compilation._EXECUTABLES)
+    start = time.perf_counter()
+    jax.block_until_ready(run())
+    first_call_s = time.perf_counter() - start
+    phases = {key: totals[event] for key, event in EVENTS.items()}
+    compiles = counts[EVENTS["compile_s"]]
+    new = [compilation._EXECUTABLES[key][0] for key in compilation._EXECUTABLES if key not in compiled_before]
+    new += _SEEN
+    report = {
+        "program": name,
+        "duration_s": duration,
+        **phases,
+        "build_s": sum(phases.values()),
+        "first_call_s": first_call_s,
+        "xla_compiles": compiles,
+        "hlo_instructions": sum(hlo_instructions(executable) for executable in new) if new else None,
+    }
+    timing = timed(lambda: jax.block_until_ready(run()), repeats)
+    report["run_s"] = timing["median_s"]
+    report["run_spread_s"] = [timing["min_s"], timing["max_s"]]
+    if forward is not None:
+        jax.block_until_ready(forward())
+        report["forward_s"] = timed(lambda: jax.block_until_ready(forward()), repeats)["median_s"]
+        report["over_forward"] = report["run_s"] / report["forward_s"]
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="results/benchmarks")
+    parser.add_argument("--duration", type=float, default=17.0, help="scenario duration (s)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--programs", default=",".join(PROGRAMS), help="comma-separated subset of the programs")
+    parser.add_argument("--one", help=argparse.SUPPRESS)  # internal: measure one program in this process
+    args = parser.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.one:
+        from spacegrasp_jax.batching import use_all_cpu_cores
+        from spacegrasp_jax.compilation import configure
+
+        use_all_cpu_cores()
+        configure(compile_cache=False)  # cold: float64, loops compiled whole, no persistent cache
+        (out / f"compile-{args.one}.json").write_text(json.dumps(measure(args.one, args.duration, args.repeats)))
+        return 0
+    names = [name for name in args.programs.split(",") if name]
+    unknown = sorted(set(names) - set(PROGRAMS))
+    if unknown:
+        parser.error(f"--programs: unknown {', '.join(unknown)}; expected some of {', '.join(PROGRAMS)}")
+    results = {}
+    header = f"{'program':26} {'trace':>7} {'lower':>7} {'compile':>8} {'HLO instr':>10} {'run [s]':>8} {'/ fwd':>6}"
+    print(header, flush=True)
+    for name in names:
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "spacegrasp_jax.benchmarks.compile",
+                "--one",
+                name,
+                "--out",
+                str(out),
+                "--duration",
+                str(args.duration),
+                "--repeats",
+                str(args.repeats),
+            ],
+            check=True,
+        )
+        part = out / f"compile-{name}.json"
+        results[name] = r = json.loads(part.read_text())
+        part.unlink()
+        ratio = f"{r['over_forward']:.2f}" if "over_forward" in r else ""
+        print(
+            f"{name:26} {r['trace_s']:>7.1f} {r['lower_s']:>7.1f} {r['compile_s']:>8.1f} "
+            f"{r['hlo_instructions'] or 0:>10} {r['run_s']:>8.3f} {ratio:>6}",
+            flush=True,
+        )
+    (out / "compile.json").write_text(json.dumps({"duration_s": args.duration, "programs": results}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

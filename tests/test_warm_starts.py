@@ -1,0 +1,110 @@
+"""Runs that differ only in values share one compiled program: gains, seeds, perturbation
+ranges, realism noise levels and the objective's weights are arguments of the programs,
+never constants in them, so the process's cache of compiled programs and JAX's persistent
+cache (whose key is the program's text) both find the program again. Settings that shape a
+program (which ranges are zero, the objective's kind) still make another."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+
+from spacegrasp_jax import campaign, compilation
+from spacegrasp_jax.perturbations import PerturbationRanges
+from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.tuning import run as tuning_run
+from spacegrasp_jax.tuning.objective import Objective, Weights
+from spacegrasp_jax.tuning.parameters import initial_params, make_mask
+from spacegrasp_jax.tuning.tune import TuneConfig, make_loss, make_value_and_grad, training_scenarios
+
+
+class _Compiles:
+    """A ``compilation.listening`` listener that keeps the labels of the compiles it hears."""
+
+    def __init__(self):
+        self.labels = []
+
+    def before(self, label, key):
+        self.labels.append(label)
+
+    def after(self, label, key, seconds):
+        pass
+
+
+def test_a_campaign_of_another_seed_ranges_and_gains_reuses_its_program(robot, gains):
+    scenario = paper_scenario(robot, duration=0.03)
+    first = campaign.CampaignConfig(n=2, chunk=2, seed=1)
+    other_ranges = dataclasses.replace(first.ranges, q_init_rad=0.05, lar_position_m=0.01, stiffness_factor=3.0)
+    second = dataclasses.replace(first, seed=2, ranges=other_ranges)
+    other_gains = dataclasses.replace(gains, Kd=2.0 * gains.Kd)
+    heard = _Compiles()
+    with compilation.listening(heard):
+        a = campaign.evaluate_indices(robot, scenario, campaign.Variant("admittance", gains), first, [0, 1])
+        compiled_for_the_first = len(heard.labels)  # 0 if another test of this process compiled it
+        b = campaign.evaluate_indices(robot, scenario, campaign.Variant("admittance", other_gains), second, [0, 1])
+        assert len(heard.labels) == compiled_for_the_first  # nothing compiled for the second
+        # the values were used: the second campaign drew from its own seed and ranges
+        assert not np.allclose(a["perturbation.dq_init"], b["perturbation.dq_init"])
+        assert np.max(np.abs(b["perturbation.dq_init"])) > 0.02
+        # a range switched off changes what the program computes: another program
+        still = dataclasses.replace(
+            second,
+            ranges=dataclasses.replace(other_ranges, satellite_mass_fraction=0.0, satellite_inertia_fraction=0.0),
+        )
+        campaign.evaluate_indices(robot, scenario, campaign.Variant("admittance", gains), still, [0, 1])
+        assert len(heard.labels) == compiled_for_the_first + 1
+
+
+def test_an_objective_with_other_weights_and_tolerances_reuses_the_evaluation(robot, gains):
+    scenarios = jax.tree.map(lambda x: np.stack([x, x]), paper_scenario(robot, duration=0.03))
+    first = Objective(Weights(), (1.0,) * 7, kind="weighted")
+    second = Objective(
+        Weights(peak_torque=2.0, final_position=3.0), (2.0,) * 7, kind="weighted", position_tolerance_m=0.01
+    )
+    heard = _Compiles()
+    with compilation.listening(heard):
+        a = tuning_run.evaluate(robot, scenarios, gains, "admittance", first, chunk=2)
+        compiled_for_the_first = len(heard.labels)
+        b = tuning_run.evaluate(robot, scenarios, gains, "admittance", second, chunk=2)
+        assert len(heard.labels) == compiled_for_the_first
+    np.testing.assert_allclose(b["final_position_m"], a["final_position_m"], rtol=0, atol=0)
+    assert not np.allclose(b["weighted_loss"], a["weighted_loss"])  # the new weights were used
+    np.testing.assert_allclose(b["position_margin"], a["position_margin"] / 2.0, rtol=1e-12)
+
+
+def test_the_tuning_gradient_is_one_program_for_other_seeds_gains_and_weights(robot, gains):
+    """The persistent cache's key is a hash of the lowered program's text: equal texts are
+    one compile, for this process and the next."""
+    scenario = paper_scenario(robot, contact_law="smooth", duration=0.02)
+    texts, programs = [], []
+    for seed, scale, weights in ((0, 1.0, Weights()), (5, 1.5, Weights(peak_torque=3.0, rms_tracking=0.0))):
+        config = TuneConfig(batch=2, seed=seed, objective="weighted", weights=weights, method="gradient")
+        base = dataclasses.replace(gains, Kd=scale * gains.Kd)
+        objective = Objective(weights, (scale,) * 7)
+        mask = make_mask(base, "admittance")
+        loss = make_loss(robot, training_scenarios(scenario, config), base, mask, config, objective, 2)
+        params = initial_params(base, "admittance")
+        value_and_grad = make_value_and_grad(loss, params, "reverse")
+        programs.append(value_and_grad.program)
+        texts.append(value_and_grad.lower(params).as_text())
+    assert programs[0] is programs[1]  # one jitted function: this process compiles it once
+    assert texts[0] == texts[1]  # one text: the persistent cache finds it in the next process
+    assert "stablehlo.constant dense<5.000000e-03>" not in texts[0]  # no range or tolerance baked in
+
+
+def test_ranges_travel_as_values_with_their_zero_pattern_as_structure():
+    ranges = PerturbationRanges()
+    leaves, structure = jax.tree.flatten(ranges)
+    assert len(leaves) == len(dataclasses.fields(ranges))
+    rebuilt = jax.tree.unflatten(structure, leaves)
+    assert rebuilt == ranges and rebuilt.perturbs_robot and rebuilt.draws_estimate_errors
+    quiet = PerturbationRanges(
+        satellite_mass_fraction=0.0,
+        satellite_inertia_fraction=0.0,
+        lar_estimate_position_m=0.0,
+        lar_estimate_angle_rad=0.0,
+    )
+    assert jax.tree.structure(quiet) != structure
+    assert jax.tree.structure(dataclasses.replace(ranges, q_init_rad=0.3)) == structure
