@@ -399,26 +399,11 @@ def _gradient_program(function: Callable, mode: str, structure) -> Callable:
     return compilation.jit(forward)
 
 
-def make_value_and_grad(loss: Callable, params, mode: str):
-    """Jitted ``params -> ((loss, aux), gradient)`` by reverse or forward mode. For a
-    [`BoundLoss`][tuning.tune.BoundLoss] (what [`make_loss()`][tuning.tune.make_loss] returns) the compiled program takes the loss's
-    values as arguments and is shared by every loss of the same settings and shapes."""
-    if isinstance(loss, BoundLoss):
-        program = _gradient_program(loss.function, mode, jax.tree.structure(params))
-        return BoundProgram(program, loss.values)
-    if mode == "reverse":
-        return compilation.jit(jax.value_and_grad(loss, has_aux=True))
-    _, unravel = ravel_pytree(params)
-
-    def forward(params):
-        def flat_loss(x):
-            value, aux = loss(unravel(x))
-            return value, (value, aux)
-
-        gradient, (value, aux) = jax.jacfwd(flat_loss, has_aux=True)(ravel_pytree(params)[0])
-        return (value, aux), unravel(gradient)
-
-    return compilation.jit(forward)
+def make_value_and_grad(loss: BoundLoss, params, mode: str) -> BoundProgram:
+    """``params -> ((loss, aux), gradient)`` by reverse or forward mode, for a loss of
+    [`make_loss()`][tuning.tune.make_loss]: the compiled program takes the loss's values as arguments and is shared
+    by every loss of the same settings and shapes."""
+    return BoundProgram(_gradient_program(loss.function, mode, jax.tree.structure(params)), loss.values)
 
 
 #: Under ``aggregate="clip"``, a sample's gradient is clipped to this many times the batch's
