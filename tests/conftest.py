@@ -2,14 +2,37 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
+
 import pytest
 from random_states import RandomState, make_random_states
 
 import spacegrasp_jax as sg
 
-# As the command line does: float64, loops compiled whole (before anything compiles). No
-# persistent compilation cache: every test compiles what it runs.
-sg.configure(compile_cache=False)
+#: The test run's own persistent compilation cache: a program compiled by one process of the
+#: run (a worker, a command run as a subprocess, a notebook's kernel, which all inherit this
+#: variable) is loaded by the others instead of compiled again. The run's first process makes
+#: a fresh, empty folder (never the user's cache) and removes it at the end, so every run
+#: compiles each program once. Tests of the cache itself give their processes their own folder.
+RUN_CACHE_VARIABLE = "JAX_COMPILATION_CACHE_DIR"
+_RUN_CACHE_OWNER = "PYTEST_XDIST_WORKER" not in os.environ
+if _RUN_CACHE_OWNER:
+    _USERS_CACHE = os.environ.get(RUN_CACHE_VARIABLE)
+    os.environ[RUN_CACHE_VARIABLE] = tempfile.mkdtemp(prefix="spacegrasp-test-run-xla-")
+
+# As the command line does: float64, loops compiled whole (before anything compiles), and the
+# run's compilation cache.
+sg.configure(compile_cache=os.environ[RUN_CACHE_VARIABLE])
+
+
+def pytest_unconfigure(config):
+    if _RUN_CACHE_OWNER:
+        shutil.rmtree(os.environ.pop(RUN_CACHE_VARIABLE), ignore_errors=True)
+        if _USERS_CACHE is not None:
+            os.environ[RUN_CACHE_VARIABLE] = _USERS_CACHE
+
 
 N_RANDOM_STATES = 20
 

@@ -9,9 +9,12 @@ import math
 import subprocess
 import sys
 
+import pytest
+
 from spacegrasp_jax.benchmarks.suite import KEYS
 
 
+@pytest.mark.slow
 def test_quick_benchmark_writes_every_key(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "spacegrasp_jax.cli", "benchmark", "--quick", "--out", str(tmp_path)],

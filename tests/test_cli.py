@@ -172,6 +172,7 @@ def test_simulate_one_controller_with_gains_and_scenario_files(tmp_path, gains):
     assert json.loads((out / "config.json").read_text())["gains"]["Kd"] == [300.0] * 6
 
 
+@pytest.mark.slow
 def test_compare_overlays_runs_of_different_realisms(tmp_path, capsys):
     """Two runs that differ in their loop only: ``compare`` labels them by it, names what
     they share in the figures' caption, and its table holds each run's own numbers;
@@ -203,6 +204,7 @@ def test_compare_overlays_runs_of_different_realisms(tmp_path, capsys):
     assert "compare: needs at least two runs, found 1" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_xlas_own_log_is_hidden_unless_verbose(tmp_path):
     """XLA's C++ log (where its "Very slow compile?" banner is written, at ERROR level) made
     to write its INFO lines too: the command hides every line of it written after it
@@ -223,6 +225,7 @@ def test_xlas_own_log_is_hidden_unless_verbose(tmp_path):
     assert xla_line.search(simulate("verbose", "--verbose"))
 
 
+@pytest.mark.slow
 def test_simulate_never_overwrites_a_run_without_overwrite(tmp_path, capsys):
     """The folder rule end to end: a folder of the user's files is refused, then shared with
     ``--overwrite``; a second run is refused, then replaces the first with ``--overwrite``
@@ -332,6 +335,7 @@ def test_compile_cache_folder_and_precedence(tmp_path, case):
         assert written and all(expected in p.parents for p in written), written
 
 
+@pytest.mark.slow
 def test_a_command_keeps_its_programs_in_the_compile_cache_and_loads_them_for_other_values(tmp_path, gains):
     """A second run with other values (gains, the scenario's numbers, the realism's noise
     levels, the noise seed) loads every program from the persistent cache: the cache key

@@ -36,6 +36,7 @@ def test_options_that_xla_rejects_are_dropped(monkeypatch):
     assert compilation.compiler_options() == compilation.CPU_OPTIONS
 
 
+@pytest.mark.slow
 def test_a_rollout_compiled_with_the_options_matches_the_default_compile(robot, gains):
     scenario = paper_scenario(robot, duration=0.3)
     arguments = (robot, scenario, gains)
@@ -46,6 +47,7 @@ def test_a_rollout_compiled_with_the_options_matches_the_default_compile(robot, 
             np.testing.assert_allclose(getattr(ours, name), value, rtol=1e-9, atol=1e-12, err_msg=name)
 
 
+@pytest.mark.slow
 def test_loops_compiled_whole_give_the_results_of_loops_run_kernel_by_kernel(robot, gains, tmp_path):
     # The same rollout in a process where XLA runs loops kernel by kernel (the user's opt-out,
     # spacegrasp_jax.compilation): same log to rounding.

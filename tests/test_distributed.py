@@ -14,6 +14,9 @@ import sys
 import time
 
 import numpy as np
+import pytest
+
+pytestmark = pytest.mark.slow  # two processes compiling and running a campaign each
 
 N, CHUNK = 32, 4  # eight chunks of four samples, one per device
 SCENARIO = "duration = 1.0\n[trajectory]\nduration = 1.0\n"

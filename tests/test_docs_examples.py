@@ -8,13 +8,15 @@ import subprocess
 import sys
 
 import pytest
-from test_docs import PAGES, ROOT, docs_compile_cache, python_blocks
+from test_docs import PAGES, ROOT, python_blocks
+
+pytestmark = pytest.mark.slow  # each page in a fresh process, compiling what it runs
 
 
 @pytest.mark.parametrize("page", [page for page in PAGES if python_blocks(page)], ids=lambda page: page.name)
-def test_every_python_block_runs(page, tmp_path_factory):
+def test_every_python_block_runs(page):
     script = "\n\n".join(python_blocks(page))
-    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(docs_compile_cache(tmp_path_factory)), MPLBACKEND="Agg")
+    env = dict(os.environ, MPLBACKEND="Agg")  # the test run's compilation cache comes with it (conftest.py)
     result = subprocess.run(
         [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, env=env, timeout=900
     )

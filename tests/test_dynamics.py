@@ -93,6 +93,7 @@ def test_inverse_dynamics_matches_pinocchio_rnea(robot, random_states, pinocchio
         assert relative_error(actual, expected) <= RTOL
 
 
+@pytest.mark.slow
 def test_forward_dynamics_derivatives_match_the_solve(robot, random_states):
     """forward_dynamics is differentiated through inverse dynamics (its own rule); both
     autodiff modes must agree with autodiff of ``M^-1 (Q - bias)`` written with a dense
@@ -243,6 +244,7 @@ def test_vmap_equals_loop(robot, random_states, name):
             np.testing.assert_allclose(got[i], want, rtol=1e-13, atol=1e-13)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(API_CASES))
 def test_gradients_match_central_differences(robot, random_states, name):
     """Directional derivative along a random direction of every real-valued argument

@@ -14,6 +14,8 @@ import pytest
 from spacegrasp_jax import cli
 from spacegrasp_jax.tuning.parameters import GROUPS as TUNED_GROUPS
 
+pytestmark = pytest.mark.slow  # the gradients command's program: reverse mode over a batch
+
 N = 3
 SCENARIO = "duration = 0.4\n[trajectory]\nduration = 0.4\n"
 GROUPS = TUNED_GROUPS["admittance"]  # what the report covers: the tuned groups

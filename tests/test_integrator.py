@@ -88,6 +88,7 @@ def test_energy_conserved_with_fourth_order_convergence(robot, random_states):
     assert abs(float(energy_of(robot, final)) - energy_0) <= 1e-11 * energy_0
 
 
+@pytest.mark.slow
 def test_dynamic_jacobian_matches_simulated_ee_twist(robot, random_states):
     """At zero momentum, J_dyn qd equals the EE twist measured by central differences of
     the EE pose along a simulated free motion (forward and backward in time)."""

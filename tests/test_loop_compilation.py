@@ -179,7 +179,7 @@ def test_importing_the_package_makes_xla_compile_small_loops_whole():
 
 
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])
-@pytest.mark.parametrize("program", ["rollout", "rollout_metrics"])
+@pytest.mark.parametrize("program", ["rollout", pytest.param("rollout_metrics", marks=pytest.mark.slow)])
 def test_the_step_loop_is_compiled_whole(compiled_hlo, controller, program):
     hlo = compiled_hlo(program, controller)
     bodies = computations(hlo)
@@ -188,6 +188,7 @@ def test_the_step_loop_is_compiled_whole(compiled_hlo, controller, program):
     assert "custom-call" not in hlo
 
 
+@pytest.mark.slow
 def test_the_gradient_step_loops_are_compiled_whole(compiled_hlo):
     hlo = compiled_hlo("gradient")
     step_loops = gradient_step_loops(hlo)
@@ -197,13 +198,14 @@ def test_the_gradient_step_loops_are_compiled_whole(compiled_hlo):
 
 
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])
-@pytest.mark.parametrize("program", ["rollout", "rollout_metrics"])
+@pytest.mark.parametrize("program", ["rollout", pytest.param("rollout_metrics", marks=pytest.mark.slow)])
 def test_the_step_loop_holds_no_array_over_512_bytes(compiled_hlo, controller, program):
     instructions, too_big = step_loop_oversized(compiled_hlo(program, controller))
     assert instructions > 300  # the whole step: controller, contact, the RK4 stages
     assert too_big == [], f"{len(too_big)} arrays over {SEQUENTIAL_LIMIT_BYTES} B in the step loop: {too_big[:5]}"
 
 
+@pytest.mark.slow
 def test_the_gradient_step_loops_hold_no_array_over_512_bytes(compiled_hlo):
     # The outermost loops, over blocks of steps, hold the tape and are exempt. Without
     # jax.checkpoint on RK4's stage loop, the backward loops hold the stages' stacked

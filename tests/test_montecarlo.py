@@ -52,6 +52,7 @@ def five_samples(robot, short_scenario, variant):
     }
 
 
+@pytest.mark.slow
 def test_zero_perturbation_reproduces_the_nominal_rollout(robot, short_scenario, gains, variant):
     config = CampaignConfig(n=2, chunk=2, ranges=PerturbationRanges.nominal(), timeseries_every=10)
     result = run_campaign(robot, short_scenario, [variant], config, progress=None)
@@ -71,6 +72,7 @@ def test_zero_perturbation_reproduces_the_nominal_rollout(robot, short_scenario,
             np.testing.assert_allclose(getattr(rows, name)[1], series[::10], rtol=1e-11, atol=1e-12, err_msg=name)
 
 
+@pytest.mark.slow
 def test_running_metrics_match_the_metrics_module_on_a_perturbed_sample(
     robot, short_scenario, gains, variant, five_samples
 ):
@@ -104,6 +106,7 @@ def assert_close(actual, expected, rtol, err_msg):
         np.testing.assert_allclose(actual, expected, rtol=rtol, err_msg=err_msg)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("other", [4, "4/2"])
 def test_results_do_not_depend_on_the_chunk_or_sub_batch_size(five_samples, variant, other):
     by_two, by_other = five_samples[2], five_samples[other]
@@ -132,6 +135,7 @@ def four_device_campaign(tmp_path_factory):
     return folder
 
 
+@pytest.mark.slow
 def test_four_devices_give_the_results_of_one(four_device_campaign, five_samples, variant):
     tmp_path = four_device_campaign
     assert all((tmp_path / "mc" / name).stat().st_size > 0 for name in ("histograms.png", "torque_vs_error.png"))
@@ -148,6 +152,7 @@ def test_four_devices_give_the_results_of_one(four_device_campaign, five_samples
         assert_csv_holds(tmp_path / "mc" / "samples.csv", dict(samples), rows=5)
 
 
+@pytest.mark.slow
 def test_replay_runs_a_campaigns_sample_again(four_device_campaign, tmp_path, capsys):
     """``spacegrasp replay``: sample 3 of a campaign (four devices, in another process) run
     again in this one equals the campaign's own record of it: its log rows to 1e-12, its
@@ -189,6 +194,7 @@ def test_replay_runs_a_campaigns_sample_again(four_device_campaign, tmp_path, ca
     assert "cannot resume, the config differs from the interrupted campaign's (seed)" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_diverging_sample_is_reported_and_leaves_the_others_alone(robot, short_scenario, variant):
     # Initial joint rates of up to 10 rad/s make every sample violently unstable (1e5 N m and
     # more). Sample 1 of seed 0 reaches a NaN at about 0.83 s whatever the rounding; whether
@@ -214,6 +220,7 @@ def test_a_diverging_sample_is_reported_and_leaves_the_others_alone(robot, short
         np.testing.assert_array_equal(swapped[name][[0, 2, 3]], sample_metrics[name][[0, 2, 3]], err_msg=name)
 
 
+@pytest.mark.slow
 def test_interrupted_campaign_resumes_chunk_by_chunk(tmp_path, robot, short_scenario, variant, five_samples):
     config = CampaignConfig(n=5, chunk=2)
     stop = runfiles.StopRequest("chunk")  # used as a flag only: no signal handlers installed
@@ -249,6 +256,7 @@ def test_interrupted_campaign_resumes_chunk_by_chunk(tmp_path, robot, short_scen
     assert {p.name for p in out.iterdir()} >= {"campaign.json", "samples.npz", "summary.json"}
 
 
+@pytest.mark.slow
 def test_summary_statistics_are_those_of_the_samples(five_samples, variant):
     result = five_samples[2]
     errors = result.metrics[variant.key]["final_position_error_m"]
@@ -347,6 +355,7 @@ def test_montecarlo_command_rejects_bad_input(tmp_path, capsys):
     assert not any((tmp_path / name).exists() for name in "abcde")
 
 
+@pytest.mark.slow
 def test_unstable_samples_are_counted_and_are_not_successes(five_samples, variant):
     """A sample whose peak torque passes the limit is unstable (not a success), whatever its
     final errors; the limit is checked against the samples' own peaks."""

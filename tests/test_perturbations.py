@@ -120,6 +120,7 @@ def test_ranges_from_a_file(tmp_path):
         load_ranges(path)
 
 
+@pytest.mark.slow
 def test_the_free_target_envelope_stays_within_its_bounds_and_fills_them(robot):
     from spacegrasp_jax.perturbations import FREE_TARGET_RANGES, sample
     from spacegrasp_jax.scenario import load_scenario

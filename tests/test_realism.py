@@ -45,6 +45,7 @@ def test_neutral_settings_run_the_papers_loop(robot, gains, short_scenario, cont
     np.testing.assert_array_equal(same.u, ideal_log.u)
 
 
+@pytest.mark.slow
 def test_sensor_noise_and_bias_have_the_configured_statistics(robot, gains, quiet_scenario):
     std_f, bias_f = np.array([0.05, 0.1, 0.2]), np.array([0.2, -0.1, 0.3])
     std_t, bias_t = np.array([0.002, 0.004, 0.001]), np.array([0.01, 0.0, -0.02])
@@ -92,6 +93,7 @@ def test_sensor_noise_and_bias_have_the_configured_statistics(robot, gains, quie
     )
 
 
+@pytest.mark.slow
 def test_saturation_holds_and_anti_windup_bounds_the_integrator(robot, gains, short_scenario):
     limits = [0.3] * 7  # N m, below the paper's peaks
     runs = {}
@@ -107,6 +109,7 @@ def test_saturation_holds_and_anti_windup_bounds_the_integrator(robot, gains, sh
     assert np.max(runs[True]) < 0.5 * np.max(runs[False])
 
 
+@pytest.mark.slow
 def test_torques_are_held_over_the_control_period_and_commands_arrive_late(robot, gains, short_scenario):
     realism = make_realism({"timing": {"control_period": 0.005, "delay_periods": 3}})
     log = FLIGHT_ROLLOUT(robot, short_scenario, gains, "cartesian", realism, jax.random.PRNGKey(0))[1]
@@ -119,6 +122,7 @@ def test_torques_are_held_over_the_control_period_and_commands_arrive_late(robot
     assert np.max(np.abs(computed)) > 1e-4
 
 
+@pytest.mark.slow
 def test_the_joint_servos_run_at_their_own_period_on_their_own_readings(robot, gains, short_scenario):
     # Controller every 4 ms with one period of delay; joint PID every 2 ms on noisy rates.
     realism = make_realism(
@@ -153,6 +157,7 @@ def test_the_joint_servos_run_at_their_own_period_on_their_own_readings(robot, g
     assert abs(np.std(reading_error) - 1e-3) < 1e-4
 
 
+@pytest.mark.slow
 def test_the_controllers_model_is_its_own_and_the_plant_stays_the_plant(robot, gains, quiet_scenario):
     believing = make_realism({"controller_model": {"satellite_mass_factor": 0.3, "satellite_inertia_factor": 3.0}})
     final, log = FLIGHT_ROLLOUT(robot, quiet_scenario, gains, "cartesian", believing, jax.random.PRNGKey(0))
@@ -178,6 +183,7 @@ def test_the_controllers_model_is_its_own_and_the_plant_stays_the_plant(robot, g
     np.testing.assert_allclose(replayed.V_base, final.plant.V_base, rtol=1e-9, atol=1e-15)
 
 
+@pytest.mark.slow
 def test_gradients_with_a_fixed_key_and_smooth_saturation_match_central_differences(robot, gains):
     scenario = paper_scenario(robot, duration=1.0, move_duration=1.0, contact_law="smooth")
     document = {table: dict(keys) for table, keys in FLIGHT.items()}
@@ -202,6 +208,7 @@ def test_gradients_with_a_fixed_key_and_smooth_saturation_match_central_differen
         np.testing.assert_allclose(gradient[joint], central, rtol=1e-4, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_the_encoder_grid_keeps_the_position_feedback_in_the_gradient(robot, gains, short_scenario):
     # round() is flat between grid steps; its exact derivative would open the position loop
     # in every gradient (the error's sensitivity then grows without bound). With a 16-bit

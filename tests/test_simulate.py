@@ -64,6 +64,7 @@ def test_without_contact_tracks_and_keeps_zero_momentum(robot, gains, controller
     assert np.max(np.abs(log.momentum)) <= 1e-9 * satellite_momentum
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])
 def test_halving_dt_changes_peak_torques_by_less_than_one_percent(robot, gains, full_runs, controller):
     fine = experiment.run(robot, paper_scenario(robot, dt=5e-4), gains, controller)
@@ -85,6 +86,7 @@ def test_unknown_controller_is_rejected_before_compiling(robot, gains, short_sce
         rollout(robot, short_scenario, gains, "impedance")
 
 
+@pytest.mark.slow
 def test_vmap_over_scenarios_equals_loop(robot, gains):
     q_init = np.asarray(paper_scenario(robot).initial.q)
     scenarios = [
@@ -103,6 +105,7 @@ def test_vmap_over_scenarios_equals_loop(robot, gains):
     assert np.max(np.linalg.norm(logs.contact_force, axis=-1)) > 0.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])
 def test_gradient_of_final_position_error_wrt_gains(robot, gains, short_scenario, controller):
     """jax.grad through the whole rollout (smooth contact): finite, non-zero, and along a
@@ -135,7 +138,11 @@ def test_rollout_rejects_a_checkpoint_segment_that_does_not_divide_the_steps(rob
             rollout(robot, scenario, gains, "admittance", checkpoint_segment=segment)
 
 
-@pytest.mark.parametrize("law", [Admittance(), Cartesian(pinv_damping=0.01)], ids=["admittance", "cartesian-damped"])
+@pytest.mark.parametrize(
+    "law",
+    [Admittance(), pytest.param(Cartesian(pinv_damping=0.01), marks=pytest.mark.slow)],
+    ids=["admittance", "cartesian-damped"],
+)
 def test_a_law_object_runs_the_loop_its_name_runs(robot, gains, short_scenario, law):
     """The law is chosen by its object (static), and the name with ``pinv_damping`` builds the
     same object: the two rollouts are the same program, bit for bit."""

@@ -52,6 +52,7 @@ def test_bad_sweep_input_fails_before_compiling(robot, short_scenario, gains):
         sweep.evaluate_gains(robot, short_scenario, gains, "admittance")
 
 
+@pytest.mark.slow
 def test_a_sweep_equals_single_rollouts_of_each_gain_set(robot, short_scenario, gains):
     # 3 sets in chunks of 2: the second chunk is padded, and the padding must not leak.
     scales = {"Kd": [0.5, 1.0, 2.0], "kp": [1.5, 1.0, 0.5]}

@@ -44,6 +44,7 @@ def test_a_stationary_scenario_has_no_target_and_logs_none(robot, gains, short_s
     assert log.target_position is None and log.momentum_total is None
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])
 def test_a_very_heavy_target_is_the_stationary_target(robot, gains, short_scenario, controller):
     heavy = free(None, robot, mass=1e9, inertia=[1e9, 1e9, 1e9])
@@ -108,6 +109,7 @@ def test_a_torque_free_target_keeps_its_energy_and_momentum_and_precesses_as_pre
     np.testing.assert_allclose(omega[:, 2], w[2], rtol=1e-13)
 
 
+@pytest.mark.slow
 def test_the_controllers_relative_twist_is_the_rate_of_the_relative_pose(robot, gains):
     # A drifting, tumbling target: the relative twist must include the frame's motion.
     scenario = free(None, robot, velocity=[0.01, -0.005, 0.002], angular_velocity=[0.02, -0.03, 0.05])
@@ -125,6 +127,7 @@ def test_the_controllers_relative_twist_is_the_rate_of_the_relative_pose(robot, 
     np.testing.assert_allclose(twist[1:-1, 3:], w_rel, rtol=0, atol=1e-4 * np.abs(w_rel).max())
 
 
+@pytest.mark.slow
 def test_gradients_through_a_free_target_match_central_differences(robot, gains):
     scenario = free(None, robot, velocity=[0.0, 0.0, 0.002], angular_velocity=[0.0, 0.0, 0.01])
 
@@ -206,6 +209,7 @@ def test_samples_move_and_vary_the_target_with_its_frame(robot):
     np.testing.assert_array_equal(again.p_lar, before.p_lar)
 
 
+@pytest.mark.slow
 def test_a_campaign_counts_a_pushed_away_target_as_a_failed_capture(robot, gains):
     from spacegrasp_jax import campaign
     from spacegrasp_jax.perturbations import PerturbationRanges
@@ -256,6 +260,7 @@ def test_the_tuning_objective_can_weigh_the_targets_final_speed(pushed, tmp_path
     assert not (tmp_path / "run" / "run.json").exists()
 
 
+@pytest.mark.slow
 def test_the_flight_like_loop_carries_the_target_as_the_ideal_loop_does(robot, gains):
     # Every realism stage neutral: the flight-like loop's plant, controller view and log
     # with a drifting, tumbling target are the ideal loop's.
@@ -270,6 +275,7 @@ def test_the_flight_like_loop_carries_the_target_as_the_ideal_loop_does(robot, g
             np.testing.assert_allclose(getattr(log, name), value, rtol=1e-12, atol=1e-12, err_msg=name)
 
 
+@pytest.mark.slow
 def test_simulate_reports_the_target_and_whether_it_was_a_capture(tmp_path):
     import json
     import subprocess

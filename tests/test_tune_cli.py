@@ -88,6 +88,7 @@ def uninterrupted(tmp_path_factory):
     return tmp_path, out, result
 
 
+@pytest.mark.slow
 def test_tune_writes_every_file(uninterrupted):
     _, out, result = uninterrupted
     assert f"step {TUNE_STEPS}/{TUNE_STEPS}" in result.stderr  # the progress bar
@@ -130,6 +131,7 @@ def test_tune_writes_every_file(uninterrupted):
     assert summary["evaluated_with"].startswith("exact contact law")
 
 
+@pytest.mark.slow
 def test_tuning_under_flight_converges(uninterrupted):
     _, out, _ = uninterrupted
     run = json.loads((out / "run.json").read_text())
@@ -143,6 +145,7 @@ def test_tuning_under_flight_converges(uninterrupted):
     assert holdout["tuned_better_fraction"] >= 2 / 3
 
 
+@pytest.mark.slow
 def test_interrupted_run_resumes_to_the_same_result(uninterrupted):
     tmp_path, full, _ = uninterrupted
     out = tmp_path / "interrupted"
@@ -161,6 +164,7 @@ def test_interrupted_run_resumes_to_the_same_result(uninterrupted):
     assert [row["loss"] for row in history] == [row["loss"] for row in reference]
 
 
+@pytest.mark.slow
 def test_tune_refuses_to_overwrite_and_rejects_bad_options(uninterrupted, tmp_path):
     _, full, _ = uninterrupted
     result = subprocess.run(tune_command(tmp_path, full), capture_output=True, text=True, timeout=300)
@@ -229,6 +233,7 @@ def cmaes_command(tmp_path, out, steps):
     return command
 
 
+@pytest.mark.slow
 def test_the_default_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tmp_path):
     env = tune_environment(tmp_path)
     full = tmp_path / "cmaes_full"

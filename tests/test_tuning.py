@@ -152,6 +152,7 @@ def short_problem(robot, gains, full_runs):
     return build
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])
 def test_gradient_of_each_gain_group_matches_central_differences(short_problem, controller):
     loss, params, value_and_grad = short_problem(controller)
@@ -172,6 +173,7 @@ def test_gradient_of_each_gain_group_matches_central_differences(short_problem, 
         assert abs(analytic - numeric) <= 1e-4 * abs(numeric) + 1e-9, (group, analytic, numeric)
 
 
+@pytest.mark.slow
 def test_forward_mode_gradient_equals_reverse_mode(robot, short_problem):
     scenario = paper_scenario(robot, contact_law="smooth", duration=0.25, move_duration=1.0)
     loss, params, value_and_grad = short_problem("cartesian", scenario, segment=None)
@@ -181,6 +183,7 @@ def test_forward_mode_gradient_equals_reverse_mode(robot, short_problem):
         np.testing.assert_allclose(forward[group], reverse[group], rtol=1e-8, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_gradient_finite_when_the_ee_passes_through_the_sphere_centre(robot, gains, short_problem):
     """With a tiny stiffness the EE follows the desired path straight through the sphere's
     centre (it starts 65 mm below it and reaches it at about 6 s): no NaN or inf, although
@@ -197,6 +200,7 @@ def test_gradient_finite_when_the_ee_passes_through_the_sphere_centre(robot, gai
     assert distance.min() < 1e-3  # within a millimetre of the centre
 
 
+@pytest.mark.slow
 def test_divergence_guard_rejects_and_shrinks_the_step(short_problem):
     """A learning rate of 3 in log space multiplies gains by up to e^3 in one step: the
     closed loop blows up, the step is rejected, the step size halved and the event logged;
@@ -229,6 +233,7 @@ def test_shipped_tuned_gains_capture_with_less_torque_on_the_nominal_scenario(ro
     assert np.isnan(tuned["first_runaway_s"])
 
 
+@pytest.mark.slow
 def test_shipped_flight_tuned_gains_capture_closer_than_the_paper_under_flight(robot):
     """``tuned_gains("flight")`` (tuned for capture success) under the flight preset, nominal
     17 s scenario, exact contact law, noise key 0: a capture by the campaigns' criteria,
@@ -252,6 +257,7 @@ def test_shipped_flight_tuned_gains_capture_closer_than_the_paper_under_flight(r
         tuned_gains("orbit")
 
 
+@pytest.mark.slow
 def test_shipped_free_target_gains_capture_the_envelopes_nominal_target_without_pushing_it_away(robot):
     """``tuned_gains("free_target")`` under the flight preset against the free_target
     envelope's nominal target (632 kg at rest, CoM 0.25 m behind the ring), 17 s, exact

@@ -15,6 +15,8 @@ from spacegrasp_jax.tuning.objective import Objective, Weights
 from spacegrasp_jax.tuning.parameters import initial_params, make_mask
 from spacegrasp_jax.tuning.tune import TuneConfig, make_loss, make_value_and_grad, training_scenarios
 
+pytestmark = pytest.mark.slow  # three reverse-mode gradient programs
+
 
 @pytest.fixture(scope="module")
 def batch_problem(robot, gains):

@@ -10,6 +10,7 @@ import dataclasses
 
 import jax
 import numpy as np
+import pytest
 
 from spacegrasp_jax import campaign, compilation
 from spacegrasp_jax.perturbations import PerturbationRanges
@@ -33,6 +34,7 @@ class _Compiles:
         pass
 
 
+@pytest.mark.slow
 def test_a_campaign_of_another_seed_ranges_and_gains_reuses_its_program(robot, gains):
     scenario = paper_scenario(robot, duration=0.03)
     first = campaign.CampaignConfig(n=2, chunk=2, seed=1)
@@ -74,6 +76,7 @@ def test_an_objective_with_other_weights_and_tolerances_reuses_the_evaluation(ro
     np.testing.assert_allclose(b["position_margin"], a["position_margin"] / 2.0, rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_the_tuning_gradient_is_one_program_for_other_seeds_gains_and_weights(robot, gains):
     """The persistent cache's key is a hash of the lowered program's text: equal texts are
     one compile, for this process and the next."""
