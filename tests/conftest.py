@@ -14,8 +14,8 @@ import spacegrasp_jax as sg
 #: The test run's own persistent compilation cache: a program compiled by one process of the
 #: run (a worker, a command run as a subprocess, a notebook's kernel, which all inherit this
 #: variable) is loaded by the others instead of compiled again. The run's first process makes
-#: a fresh, empty folder (never the user's cache) and removes it at the end, so every run
-#: compiles each program once. Tests of the cache itself give their processes their own folder.
+#: a fresh, empty folder (never the user's cache) and removes it at the end, so no run loads a
+#: program an earlier run compiled. Tests of the cache itself give their processes their own folder.
 RUN_CACHE_VARIABLE = "JAX_COMPILATION_CACHE_DIR"
 _RUN_CACHE_OWNER = "PYTEST_XDIST_WORKER" not in os.environ
 if _RUN_CACHE_OWNER:
