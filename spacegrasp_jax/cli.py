@@ -323,8 +323,10 @@ def _realism(args, scenario) -> Realism | None:
     if getattr(args, "realism", None) is None:
         return None
     realism = load_realism(args.realism)
-    if scenario.n_steps % realism.steps_per_period(scenario.dt):
-        raise RealismError(f"--realism {args.realism}: timing.control_period does not divide the scenario's duration")
+    try:
+        realism.check_timing(scenario.dt, scenario.n_steps)
+    except RealismError as error:
+        raise RealismError(f"--realism {args.realism}: {error}") from None
     return realism
 
 
@@ -623,6 +625,7 @@ _TUNE_OPTIONS = {
     "population": "--population",
     "step_size": "--step-size",
     "method": "--method",
+    "gradient": "--gradient",
     "objective": "--objective",
     "weights": "--weights",
 }
@@ -731,7 +734,7 @@ def _tune_config(args: argparse.Namespace) -> TuneConfig:
         gradient=args.gradient,
         torque_guard_Nm=args.torque_guard,
         realism=load_realism(args.realism).to_dict() if args.realism else None,
-        aggregate=args.aggregate or ("clip" if args.realism else "mean"),
+        aggregate=args.aggregate or ("clip" if args.realism and args.method == "gradient" else "mean"),
         ranges=_ranges(args, TUNING_RANGES),
         objective=args.objective,
         method=args.method,
@@ -1246,7 +1249,8 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument(
         "--aggregate",
         choices=("mean", "clip"),
-        help="combine the batch's gradients as their mean, or clip each to 3x the median norm first (default: clip under --realism, else mean)",
+        help="the gradient method under --realism: combine the samples' gradients as their mean, or clip each to 3x "
+        "the median norm first (default: clip there, else mean)",
     )
     _add_compile_cache_option(tune)
     tune.set_defaults(run=_tune)

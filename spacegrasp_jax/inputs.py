@@ -13,14 +13,12 @@ rather than read as 1 and 1.5.
 from __future__ import annotations
 
 import json
+import sys
 import tomllib
 from pathlib import Path
 
 import jax
 import numpy as np
-
-#: The file formats [`read_document()`][spacegrasp_jax.inputs.read_document] parses, by name.
-FORMATS = ("json", "toml")
 
 
 def read_text(path: str | Path, error: type[ValueError]) -> str:
@@ -91,19 +89,26 @@ def numbers(value, where: str, error: type[ValueError]) -> np.ndarray:
             if isinstance(item, (list, tuple)):
                 pending.extend(item)
             elif isinstance(item, bool) or not isinstance(item, (int, float, np.integer, np.floating)):
-                raise error(f"{where}: expected numbers, got {_short(value)}")
+                raise error(f"{where}: expected numbers, got {short(value)}")
     try:
         array = np.asarray(value, dtype=np.float64)
     except (ValueError, OverflowError):
-        raise error(f"{where}: expected a rectangular array of numbers, got {_short(value)}") from None
+        raise error(f"{where}: expected a rectangular array of numbers, got {short(value)}") from None
     if not np.all(np.isfinite(array)):
-        raise error(f"{where}: must be finite, got {_short(array.tolist())}")
+        raise error(f"{where}: must be finite, got {short(array.tolist())}")
     return array
 
 
-def _short(value, limit: int = 80) -> str:
+def is_real(value) -> bool:
+    """Whether ``value`` is a finite real number as a file writes one: an int or a float (not
+    a bool) within float64's range (``10**400`` is not)."""
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and abs(value) <= sys.float_info.max
+
+
+def short(value, limit: int = 80) -> str:
+    """``repr(value)``, cut to ``limit`` characters for an error message."""
     text = repr(value)
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-__all__ = ["FORMATS", "numbers", "parse_document", "read_document", "read_text"]
+__all__ = ["is_real", "numbers", "parse_document", "read_document", "read_text", "short"]

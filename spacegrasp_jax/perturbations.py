@@ -61,7 +61,7 @@ import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import spatial
-from spacegrasp_jax.inputs import read_document
+from spacegrasp_jax.inputs import is_real, read_document, short
 from spacegrasp_jax.model import N_JOINTS, Robot
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.target import initial_target_state
@@ -107,8 +107,8 @@ class PerturbationRanges:
     def __post_init__(self):
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise PerturbationError(f"{field.name}: must be a finite number, got {value!r}")
+            if not is_real(value):
+                raise PerturbationError(f"{field.name}: must be a finite number, got {short(value)}")
             if value < 0.0:
                 raise PerturbationError(f"{field.name}: must be non-negative, got {value}")
         if self.stiffness_factor < 1.0:

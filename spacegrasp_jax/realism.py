@@ -56,7 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax.compilation import require_float64
-from spacegrasp_jax.inputs import read_document
+from spacegrasp_jax.inputs import is_real, read_document, short
 
 
 class RealismError(ValueError):
@@ -164,6 +164,17 @@ class Realism:
             )
         return per_servo
 
+    def check_timing(self, dt: float, n_steps: int) -> None:
+        """Raise ``RealismError`` unless the control and servo periods suit a scenario of
+        step ``dt`` (s) and ``n_steps`` steps: each a whole number of steps, the servo's
+        dividing the control period, and the control period dividing the duration."""
+        self.steps_per_servo(dt)
+        if n_steps % self.steps_per_period(dt):
+            raise RealismError(
+                f"timing.control_period: {self.control_period} s does not divide the scenario's duration "
+                f"({n_steps} steps of {dt} s)"
+            )
+
     def to_dict(self) -> dict:
         """The settings as the TOML tables (JSON-ready; ``None`` for an infinite limit)."""
         values = {
@@ -215,6 +226,8 @@ def _number(where: str, value, shape, *, allow_null_as_inf: bool = False) -> np.
             continue
         if isinstance(item, bool) or not isinstance(item, (int, float)):
             raise RealismError(f"{where}: expected numbers, got {value!r}")
+        if isinstance(item, int) and not is_real(item):
+            raise RealismError(f"{where}: {short(item)} is beyond float64's range")
     array = np.asarray(
         [math.inf if item is None else item for item in items]
         if isinstance(value, list)
@@ -296,22 +309,14 @@ def make_realism(document: dict | None = None, *, source: str = "realism") -> Re
         )
 
     period = get("timing", "control_period")
-    if period is not None and (
-        isinstance(period, bool)
-        or not isinstance(period, (int, float))
-        or not (math.isfinite(period) and 0 < period <= 1.0)
-    ):
+    if period is not None and not (is_real(period) and 0 < period <= 1.0):
         raise RealismError(
-            f"{where('timing', 'control_period')}: must be a number of seconds in (0, 1], got {period!r}"
+            f"{where('timing', 'control_period')}: must be a number of seconds in (0, 1], got {short(period)}"
         )
     servo = get("timing", "servo_period")
-    if servo is not None and (
-        isinstance(servo, bool)
-        or not isinstance(servo, (int, float))
-        or not (math.isfinite(servo) and 0 < servo <= (1.0 if period is None else period))
-    ):
+    if servo is not None and not (is_real(servo) and 0 < servo <= (1.0 if period is None else period)):
         raise RealismError(
-            f"{where('timing', 'servo_period')}: must be a number of seconds in (0, control_period], got {servo!r}"
+            f"{where('timing', 'servo_period')}: must be a number of seconds in (0, control_period], got {short(servo)}"
         )
     if servo is not None and period is not None and abs(period / servo - round(period / servo)) > 1e-9 * period / servo:
         raise RealismError(
@@ -319,11 +324,13 @@ def make_realism(document: dict | None = None, *, source: str = "realism") -> Re
         )
     delay = get("timing", "delay_periods")
     if isinstance(delay, bool) or not isinstance(delay, int) or not 0 <= delay <= 100:
-        raise RealismError(f"{where('timing', 'delay_periods')}: must be a whole number in [0, 100], got {delay!r}")
-    cutoff = get("force_torque_sensor", "cutoff_hz")
-    if isinstance(cutoff, bool) or not isinstance(cutoff, (int, float)) or not (math.isfinite(cutoff) and cutoff >= 0):
         raise RealismError(
-            f"{where('force_torque_sensor', 'cutoff_hz')}: must be a non-negative number of Hz, got {cutoff!r}"
+            f"{where('timing', 'delay_periods')}: must be a whole number in [0, 100], got {short(delay)}"
+        )
+    cutoff = get("force_torque_sensor", "cutoff_hz")
+    if not (is_real(cutoff) and cutoff >= 0):
+        raise RealismError(
+            f"{where('force_torque_sensor', 'cutoff_hz')}: must be a non-negative number of Hz, got {short(cutoff)}"
         )
     saturation = get("actuators", "saturation")
     if saturation not in ("hard", "smooth"):

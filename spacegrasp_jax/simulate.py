@@ -644,12 +644,9 @@ def flight_loop(
     (state, rows)`` of control period ``k`` (a float) with its plant steps' log rows (a
     [`Log`][spacegrasp_jax.simulate.Log] with a leading axis of the period's steps), and the number of periods."""
     law = as_law(controller, pinv_damping)
+    realism.check_timing(scenario.dt, scenario.n_steps)
     per_period = realism.steps_per_period(scenario.dt)
     per_servo = realism.steps_per_servo(scenario.dt)
-    if scenario.n_steps % per_period:
-        raise ValueError(
-            f"timing.control_period: {realism.control_period} s does not divide the scenario's {scenario.duration} s"
-        )
     periods = scenario.n_steps // per_period
     ticks = per_period // per_servo  # servo ticks per control period
     period, servo_period = per_period * scenario.dt, per_servo * scenario.dt

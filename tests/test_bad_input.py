@@ -72,6 +72,10 @@ def files(folder):
         "dt_tiny.toml": b"dt = 1e-300",
         "ragged.json": b'{"q_init": [0.1, [0.2, 0.3]]}',
         "lar_not_table.toml": b"lar = 5",
+        "noise_huge_int.toml": b"[force_torque_sensor]\nforce_noise_std = " + b"9" * 400,
+        "period_huge_int.toml": b"[timing]\ncontrol_period = " + b"9" * 400,
+        "range_huge_int.toml": b"q_init_rad = " + b"9" * 400,
+        "servo_below_dt.toml": b"[timing]\ncontrol_period = 0.01\nservo_period = 0.0005",
     }
     paper_robot = (Path(__file__).resolve().parents[1] / "configs" / "paper_robot.toml").read_text()
     assert "mass = 500.0" in paper_robot
@@ -182,6 +186,44 @@ def cases(paths, out):
             [*MONTECARLO, "--num-processes", "2", "--process-id", "2", "--out", out],
             "--process-id: must be below --num-processes",
         ),
+        "realism int beyond float64": (
+            [*SIMULATE, "--realism", p["noise_huge_int.toml"], "--out", out],
+            "force_torque_sensor.force_noise_std: 99999",
+        ),
+        "realism period int beyond float64": (
+            [*TUNE, "--realism", p["period_huge_int.toml"], "--out", out],
+            "timing.control_period: must be a number of seconds",
+        ),
+        "ranges int beyond float64": (
+            [*MONTECARLO, "--ranges", p["range_huge_int.toml"], "--out", out],
+            "q_init_rad: must be a finite number",
+        ),
+        "servo period below the step": (  # the scenario's dt = 1 ms
+            [*SIMULATE, "--realism", p["servo_below_dt.toml"], "--out", out],
+            "timing.servo_period: 0.0005 s is not a whole multiple of the scenario's dt",
+        ),
+        "montecarlo servo period below the step": (
+            [*MONTECARLO, "--realism", p["servo_below_dt.toml"], "--out", out],
+            "timing.servo_period: 0.0005 s",
+        ),
+        # tuning options the chosen method or loop would not read
+        "tune aggregate clip in the ideal loop": (
+            [*TUNE, "--method", "gradient", "--aggregate", "clip", "--out", out],
+            "--aggregate: clip combines the samples' separate gradients of a run under a realism",
+        ),
+        "tune aggregate under CMA-ES": (
+            [*TUNE, "--realism", "flight", "--aggregate", "clip", "--out", out],
+            "--aggregate: a setting of the gradient method; CMA-ES does not use it",
+        ),
+        "tune lr under CMA-ES": ([*TUNE, "--lr", "0.3", "--out", out], "--lr: a setting of the gradient method"),
+        "tune torque guard under CMA-ES": (
+            [*TUNE, "--torque-guard", "50", "--out", out],
+            "--torque-guard: a setting of the gradient method",
+        ),
+        "tune forward mode under a realism": (
+            [*TUNE, "--method", "gradient", "--gradient", "forward", "--realism", "flight", "--out", out],
+            "--gradient: tuning under a realism takes each sample's reverse-mode gradient",
+        ),
         # output folders that cannot be created
         "simulate out under a file": ([*SIMULATE, "--out", p["under_a_file"]], "a_file/results: cannot write"),
         "reproduce out under a file": (["reproduce", "--out", p["under_a_file"]], "a_file/results: cannot write"),
@@ -250,7 +292,8 @@ def rejected(tmp_path_factory):
 _FILE_NAMES = (
     "binary.json binary.toml deep.json deep.toml list.json number.json null.json kp_string.json kp_true.json "
     "Md_nested_string.json duration_string.toml duration_true.toml dt_string.json target_mass_true.toml "
-    "duration_huge.toml dt_tiny.toml ragged.json lar_not_table.toml satellite_mass_string.toml a_folder missing "
+    "duration_huge.toml dt_tiny.toml ragged.json lar_not_table.toml noise_huge_int.toml period_huge_int.toml "
+    "range_huge_int.toml servo_below_dt.toml satellite_mass_string.toml a_folder missing "
     "under_a_file occupied foreign simulated"
 ).split()
 

@@ -4,6 +4,7 @@ divergence guard, and the shipped tuned gains. A batch's gradient: test_tuning_b
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -72,6 +73,13 @@ def test_config_validation():
         (dict(objective="weighted", torque_cap_Nm=4.0), "the weighted objective has none"),
         (dict(step_size=0.0), "step_size: must be positive"),
         (dict(method="gradient", step_size=0.1), "the gradient method's is the learning rate"),
+        (dict(learning_rate=0.3), "learning_rate: a setting of the gradient method"),  # CMA-ES: the default method
+        (dict(optimizer="sgd"), "optimizer: a setting of the gradient method"),
+        (dict(gradient="forward"), "gradient: a setting of the gradient method"),
+        (dict(torque_guard_Nm=50.0), "torque_guard_Nm: a setting of the gradient method"),
+        (dict(realism={}, aggregate="clip"), "aggregate: a setting of the gradient method"),
+        (dict(method="gradient", aggregate="clip"), "aggregate: clip combines the samples' separate gradients"),
+        (dict(method="gradient", realism={}, gradient="forward"), "gradient: tuning under a realism"),
     ]:
         with pytest.raises(ValueError, match=message):
             TuneConfig(**change)
@@ -287,14 +295,15 @@ def test_a_chaotic_samples_gradient_is_clipped_to_a_multiple_of_the_median():
     losses = jnp.array([1.0, 2.0, 3.0, 4.0])
     gradients = {"kp": jnp.array([[1.0, 0.0], [0.0, 1.0], [0.6, 0.8], [100.0, 0.0]])}  # norms 1, 1, 1, 100
     total, plain, clipped = aggregate_gradients(losses, gradients, TuneConfig(aggregate="mean"))
+    clipping = TuneConfig(method="gradient", realism={}, aggregate="clip")  # the flight-like batch's option
     assert float(total) == 2.5 and int(clipped) == 0
     np.testing.assert_allclose(plain["kp"], [101.6 / 4, 1.8 / 4])
-    total, robust, clipped = aggregate_gradients(losses, gradients, TuneConfig(aggregate="clip"))
+    total, robust, clipped = aggregate_gradients(losses, gradients, clipping)
     assert float(total) == 2.5 and int(clipped) == 1
     # The fourth gradient scaled to 3 x the median norm (1), its direction kept.
     np.testing.assert_allclose(robust["kp"], [(1.6 + CLIP_FACTOR) / 4, 1.8 / 4])
     # CVaR: the worst half only.
-    total, worst, _ = aggregate_gradients(losses, gradients, TuneConfig(aggregate="clip", cvar_alpha=0.5))
+    total, worst, _ = aggregate_gradients(losses, gradients, dataclasses.replace(clipping, cvar_alpha=0.5))
     assert float(total) == 3.5
     np.testing.assert_allclose(worst["kp"], [(0.6 + CLIP_FACTOR) / 2, 0.8 / 2])
     with pytest.raises(ValueError, match="aggregate"):
@@ -327,3 +336,15 @@ def test_a_candidate_whose_loss_runs_away_is_rejected_even_within_the_torque_gua
     assert status == "done" and calls == [0.0, 2.0, 1.0]
     assert len(state.events) == 1 and state.events[0]["loss"] == 1e3
     assert float(state.params["kp"][0]) == 1.0
+
+
+def test_a_cmaes_record_that_wrote_the_unused_clip_still_resumes():
+    """Records written before the gradient method's settings were refused under CMA-ES hold
+    ``aggregate = "clip"`` for flight-like CMA-ES runs, which never read it: such a record
+    reads as the same run, and a resume that asks for the same options finds no difference."""
+    from spacegrasp_jax.tuning.run import resume_differences
+
+    config = TuneConfig(realism={}, batch=2)
+    old_record = {"config": config.to_dict() | {"aggregate": "clip"}}
+    assert TuneConfig.from_dict(old_record["config"]) == config
+    assert resume_differences(old_record, config, None, None, None) == []

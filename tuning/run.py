@@ -96,7 +96,7 @@ def resume_differences(
     schedule decays over the steps it was started with."""
     differences = []
     if config is not None:
-        recorded = record["config"]
+        recorded = TuneConfig.from_dict(record["config"]).to_dict()
         for field, asked in config.to_dict().items():
             if _same(asked, recorded.get(field)):
                 continue

@@ -197,6 +197,21 @@ class TuneConfig:
             raise ValueError(
                 f"optimizer: {self.optimizer!r} is not an optax optimiser taking a learning rate (e.g. adam, sgd, lamb)"
             )
+        if self.method == "cmaes":
+            for name in GRADIENT_METHOD_FIELDS:
+                if getattr(self, name) != _DEFAULTS[name]:
+                    raise ValueError(
+                        f"{name}: a setting of the gradient method; CMA-ES does not use it (choose --method gradient)"
+                    )
+        elif self.realism is None and self.aggregate == "clip":
+            raise ValueError(
+                "aggregate: clip combines the samples' separate gradients of a run under a realism; "
+                "the ideal loop's batch has one gradient of the mean (choose --realism, or mean)"
+            )
+        if self.realism is not None and self.gradient != "reverse":
+            raise ValueError(
+                "gradient: tuning under a realism takes each sample's reverse-mode gradient; forward mode runs the ideal loop only"
+            )
 
     def to_dict(self) -> dict:
         document = dataclasses.asdict(self)
@@ -206,10 +221,26 @@ class TuneConfig:
     @classmethod
     def from_dict(cls, document: dict) -> TuneConfig:
         document = dict(document)
+        if document.get("method") == "cmaes":  # older records wrote clip, which CMA-ES never read
+            document["aggregate"] = "mean"
         document["weights"] = Weights(**document["weights"])
         document["ranges"] = PerturbationRanges.from_mapping(document["ranges"], base=TUNING_RANGES)
         document["frozen"] = tuple(document["frozen"])
         return cls(**document)
+
+
+#: TuneConfig's fields that only the gradient method reads: under CMA-ES they must keep their defaults.
+GRADIENT_METHOD_FIELDS = (
+    "learning_rate",
+    "optimizer",
+    "clip_norm",
+    "gradient",
+    "torque_guard_Nm",
+    "loss_guard",
+    "aggregate",
+)
+
+_DEFAULTS = {field.name: field.default for field in dataclasses.fields(TuneConfig)}
 
 
 def is_optimizer(name: str) -> bool:
@@ -684,8 +715,6 @@ def setup(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torq
     mask = make_mask(base, config.controller, config.frozen)
     params = initial_params(base, config.controller)
     if config.realism is not None:
-        if config.gradient != "reverse":
-            raise ValueError("gradient: tuning under a realism is reverse mode")
         batch = training_batch(robot, nominal, config)
         return objective, mask, params, make_flight_value_and_grad(robot, batch, base, mask, config, objective)
     scenarios = training_batch(robot, nominal, config)
