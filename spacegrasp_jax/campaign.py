@@ -437,7 +437,8 @@ def run_campaign(
 
     starts = list(range(0, config.n, config.chunk))
     total_chunks = len(starts) * len(variants)
-    done_chunks, compile_s, run_s, computed_samples = 0, 0.0, 0.0, 0
+    done_chunks, run_s, computed_samples = 0, 0.0, 0
+    compile_s_by_program: dict[int, float] = {}  # variants of one law share a program: counted once
     chunks: dict[str, dict[int, dict]] = {variant.key: {} for variant in variants}
     status = "done"
     for variant in variants:
@@ -448,7 +449,8 @@ def run_campaign(
             arrays = _load_chunk(path) if path is not None and path.exists() else None
             if arrays is None:
                 if not compiled:
-                    compile_s += compiled_chunk(robot, scenario, variant, config)[1]
+                    executable, seconds = compiled_chunk(robot, scenario, variant, config)
+                    compile_s_by_program[id(executable)] = seconds
                     compiled = True
                 start = time.perf_counter()
                 # Indices past n pad the last chunk; they are computed and dropped.
@@ -492,7 +494,7 @@ def run_campaign(
         "device_kind": jax.devices()[0].device_kind,
         "platform": jax.devices()[0].platform,
         "processes": jax.process_count(),
-        "compile_s": compile_s,
+        "compile_s": sum(compile_s_by_program.values()),
         "run_s": run_s,
         "rollouts_computed_this_run": computed_samples,
         "rollouts_per_s": computed_samples / run_s if run_s > 0 else None,

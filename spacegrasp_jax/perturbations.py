@@ -211,6 +211,13 @@ class Perturbation:
         stiffness_scale: (). V_base_init: (6,) ``[m/s, rad/s]`` inertial frame.
         qd_init: (7,) rad/s. radius_scale: (). satellite_mass_scale: ().
         satellite_inertia_scale: (3,) the diagonal of ``D^2``.
+        dp_lar_estimate: (3,) m, LAR axes, and dr_lar_estimate: (3,) rad, rotation vector in
+            LAR axes: the error of the LAR pose the controller believes.
+        target_mass_scale: (). target_inertia_scale: (3,) the diagonal of ``D^2``, LAR axes.
+        target_velocity: (3,) m/s and target_angular_velocity: (3,) rad/s, LAR axes: added
+            to the target's initial motion.
+        target_mass_log_scale: (), the log of the factor on the target's mass and inertia.
+        target_com_offset: (3,) m, LAR axes, the target CoM's displacement.
     """
 
     dq_init: jax.Array
@@ -233,18 +240,23 @@ class Perturbation:
 
 
 def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Perturbation:
-    """The perturbation of one sample, drawn with ``key``."""
+    """The perturbation of one sample, drawn with ``key``.
+
+    Each group of draws has a stream of its own, so a group added later leaves the samples of
+    the others as they were: ``split(key, 4)`` the initial joint angles, the LAR pose and the
+    stiffness; ``fold_in(key, 1)`` the initial velocities, the sphere radius and the
+    satellite's mass and inertia; ``fold_in(key, 2)`` the target estimate's error;
+    ``fold_in(key, 3)`` the target's mass, inertia and motion; ``fold_in(key, 4)`` the free
+    target envelope's mass scale and CoM offset."""
 
     def uniform(k, shape):
         return jax.random.uniform(k, shape, dtype, -1.0, 1.0)
 
-    # The first four draws keep the stream they had before the state and model draws were
-    # added, so that earlier tuning runs (which use only those four) reproduce.
     k_q, k_p, k_r, k_k = jax.random.split(key, 4)
     k_v, k_w, k_qd, k_radius, k_mass, k_inertia = jax.random.split(jax.random.fold_in(key, 1), 6)
-    k_estimate_p, k_estimate_r = jax.random.split(jax.random.fold_in(key, 2), 2)  # the same streams above
+    k_estimate_p, k_estimate_r = jax.random.split(jax.random.fold_in(key, 2), 2)
     k_target_m, k_target_i, k_target_v, k_target_w = jax.random.split(jax.random.fold_in(key, 3), 4)
-    k_target_log_m, k_target_com = jax.random.split(jax.random.fold_in(key, 4), 2)  # the envelope's, on their own
+    k_target_log_m, k_target_com = jax.random.split(jax.random.fold_in(key, 4), 2)
     return Perturbation(
         dq_init=ranges.q_init_rad * uniform(k_q, (N_JOINTS,)),
         dp_lar=ranges.lar_position_m * uniform(k_p, (3,)),

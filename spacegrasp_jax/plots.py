@@ -1,4 +1,7 @@
-"""The paper's Figures 4-9 from rollout logs (NumPy in, matplotlib figures out).
+"""Figures, NumPy in and matplotlib figures out: the paper's Figures 4-9 from rollout logs
+(``FIGURES``, with the free-floating target's motion beside them), and the figures of the
+commands built on the rollout: tuning (loss, peak torques), Monte-Carlo campaigns
+(histograms, scatter, failures), gradient health, the EE path and trade-off plots.
 
 Style of the paper: blue dashed line for the admittance law (the paper's "active 6 DoF
 force/torque control"), red dotted for the Cartesian law, black solid for the desired

@@ -37,7 +37,7 @@ class Scenario:
 
     Attributes:
         initial: the system's state at t = 0.
-        p_lar: (3,) m, origin of the LAR frame in the inertial frame (the target is stationary).
+        p_lar: (3,) m, origin of the LAR frame in the inertial frame (at t = 0 for a free-floating target).
         R_lar: (3, 3) LAR to inertial rotation.
         trajectory: desired EE pose in LAR.
         sphere_centre: (3,) m, contact sphere centre in LAR.

@@ -104,18 +104,12 @@ def target_momentum(body: TargetBody, state: TargetState) -> jax.Array:
     return jnp.concatenate([P, L])
 
 
-def target_energy(body: TargetBody, state: TargetState) -> jax.Array:
-    """() J, the target's kinetic energy."""
-    return 0.5 * body.mass * jnp.dot(state.v, state.v) + 0.5 * jnp.dot(state.w, spatial.matvec(body.inertia, state.w))
-
-
 __all__ = [
     "TargetBody",
     "TargetState",
     "initial_target_state",
     "lar_frame",
     "lar_velocity",
-    "target_energy",
     "target_momentum",
     "target_rate",
 ]

@@ -64,12 +64,25 @@ def test_zero_perturbation_reproduces_the_nominal_rollout(robot, short_scenario,
                 np.testing.assert_allclose(sample_metrics[name][i], expected, rtol=1e-12, atol=1e-15, err_msg=name)
     assert np.all(np.isnan(sample_metrics["first_nonfinite_s"]))
     rows = result.timeseries[variant.key]
-    # The batch solves its 7x7 systems with unrolled code, the single rollout with LAPACK:
-    # the same arithmetic in another order, whose last-bit differences the closed loop
-    # carries over 2,000 steps (largest seen: 1.5e-13 N m on a torque of 4e-3 N m).
+    # The batch runs the same unrolled code vectorised across its samples, the single rollout
+    # one system at a time: XLA orders some of the arithmetic differently, and the closed loop
+    # carries the last-bit differences over 2,000 steps (largest seen: 1.5e-13 N m on a
+    # torque of 4e-3 N m).
     for name, series in vars(nominal.log).items():
         if series is not None:  # the flight-like loop's fields
             np.testing.assert_allclose(getattr(rows, name)[1], series[::10], rtol=1e-11, atol=1e-12, err_msg=name)
+
+
+@pytest.mark.slow
+def test_variants_sharing_a_program_count_its_compile_once(robot, short_scenario, gains, variant, five_samples):
+    # Two gain sets of one law run the same compiled chunk program (gains are values): the
+    # campaign's compile time is that program's compile, not once per variant.
+    config = CampaignConfig(n=2, chunk=2)
+    again = Variant("admittance", gains, "again")
+    result = run_campaign(robot, short_scenario, [variant, again], config, progress=None)
+    executable, seconds = campaign.compiled_chunk(robot, short_scenario, variant, config)
+    assert campaign.compiled_chunk(robot, short_scenario, again, config)[0] is executable
+    assert seconds > 0.0 and result.summary["throughput"]["compile_s"] == seconds
 
 
 @pytest.mark.slow
