@@ -40,11 +40,11 @@ def variant(gains):
 
 @pytest.fixture(scope="module")
 def five_samples(robot, short_scenario, variant):
-    """n = 5 with the default ranges in chunks of 2 and of 4 (the last chunk padded), and in
-    chunks of 4 run as sub-batches of 2 (``device_batch``)."""
+    """n = 5 with the default ranges in chunks of 2, and in chunks of 4 run as sub-batches of
+    2 (``device_batch``): the last chunk padded by one and by three samples. (Chunks of 4 run
+    whole are the four-device campaign's, below.)"""
     configs = {
         2: CampaignConfig(n=5, chunk=2),
-        4: CampaignConfig(n=5, chunk=4),
         "4/2": CampaignConfig(n=5, chunk=4, device_batch=2),
     }
     return {
@@ -120,9 +120,8 @@ def assert_close(actual, expected, rtol, err_msg):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("other", [4, "4/2"])
-def test_results_do_not_depend_on_the_chunk_or_sub_batch_size(five_samples, variant, other):
-    by_two, by_other = five_samples[2], five_samples[other]
+def test_results_do_not_depend_on_the_chunk_or_sub_batch_size(five_samples, variant):
+    by_two, by_other = five_samples[2], five_samples["4/2"]
     for name, value in by_two.perturbations.items():
         np.testing.assert_array_equal(value, by_other.perturbations[name])
     for name, value in by_two.metrics[variant.key].items():
@@ -155,7 +154,7 @@ def test_four_devices_give_the_results_of_one(four_device_campaign, five_samples
     perturbations, by_variant = campaign.load_samples(tmp_path / "mc" / "samples.npz")
     summary = json.loads((tmp_path / "mc" / "summary.json").read_text())
     assert summary["throughput"]["devices"] == 4
-    reference = five_samples[4]
+    reference = five_samples["4/2"]  # chunks of 4 on one device
     for name, value in reference.perturbations.items():
         np.testing.assert_array_equal(perturbations[name], value)
     for name, value in reference.metrics[variant.key].items():

@@ -183,49 +183,56 @@ def test_the_controllers_model_is_its_own_and_the_plant_stays_the_plant(robot, g
     np.testing.assert_allclose(replayed.V_base, final.plant.V_base, rtol=1e-9, atol=1e-15)
 
 
-@pytest.mark.slow
-def test_gradients_with_a_fixed_key_and_smooth_saturation_match_central_differences(robot, gains):
-    scenario = paper_scenario(robot, duration=1.0, move_duration=1.0, contact_law="smooth")
+def _smooth_flight(**joint_sensors):
+    """The flight preset with smooth saturation at 0.4 N m, 2 ms control with a delay, and
+    joint sensors of rate noise 1e-3 rad/s plus ``joint_sensors``: the realism of the
+    gradient tests below, which share one compiled gradient (its numbers are values)."""
     document = {table: dict(keys) for table, keys in FLIGHT.items()}
-    document["joint_sensors"] = {"rate_noise_std_radps": 1e-3}  # no encoder quantum: round() is a staircase
+    document["joint_sensors"] = {"rate_noise_std_radps": 1e-3, **joint_sensors}
     document["actuators"] = {"torque_limit_Nm": [0.4] * 7, "saturation": "smooth"}
     document["timing"] = {"control_period": 0.002, "delay_periods": 1}
-    realism = make_realism(document)
+    return make_realism(document)
+
+
+def _flight_error(kp, robot, scenario, gains, realism, key):
+    log = flight_rollout(robot, scenario, dataclasses.replace(gains, kp=kp), "admittance", realism, key)[1]
+    return metrics.final_position_error(log) + 0.1 * metrics.rms_position_error(log)
+
+
+_flight_error_value_and_grad = jax.jit(jax.value_and_grad(_flight_error))
+
+
+@pytest.fixture(scope="module")
+def one_second(robot):
+    return paper_scenario(robot, duration=1.0, move_duration=1.0, contact_law="smooth")
+
+
+@pytest.mark.slow
+def test_gradients_with_a_fixed_key_and_smooth_saturation_match_central_differences(robot, gains, one_second):
+    realism = _smooth_flight()  # no encoder quantum: round() is a staircase
     key = jax.random.PRNGKey(11)
-
-    def error(kp):
-        log = flight_rollout(robot, scenario, dataclasses.replace(gains, kp=kp), "admittance", realism, key)[1]
-        return metrics.final_position_error(log) + 0.1 * metrics.rms_position_error(log)
-
-    value_and_grad = jax.jit(jax.value_and_grad(error))
-    value, gradient = value_and_grad(gains.kp)
+    value, gradient = _flight_error_value_and_grad(gains.kp, robot, one_second, gains, realism, key)
     assert np.isfinite(value) and np.all(np.isfinite(gradient))
-    forward = jax.jit(error)
+    forward = jax.jit(_flight_error)
     for joint in (0, 1, 4):
         h = 1e-4 * float(gains.kp[joint])
         step = jnp.zeros(7).at[joint].set(h)
-        central = (forward(gains.kp + step) - forward(gains.kp - step)) / (2 * h)
-        np.testing.assert_allclose(gradient[joint], central, rtol=1e-4, atol=1e-12)
+        plus = forward(gains.kp + step, robot, one_second, gains, realism, key)
+        minus = forward(gains.kp - step, robot, one_second, gains, realism, key)
+        np.testing.assert_allclose(gradient[joint], (plus - minus) / (2 * h), rtol=1e-4, atol=1e-12)
 
 
 @pytest.mark.slow
-def test_the_encoder_grid_keeps_the_position_feedback_in_the_gradient(robot, gains, short_scenario):
+def test_the_encoder_grid_keeps_the_position_feedback_in_the_gradient(robot, gains, one_second):
     # round() is flat between grid steps; its exact derivative would open the position loop
     # in every gradient (the error's sensitivity then grows without bound). With a 16-bit
-    # encoder the gradient must stay the loop's: within 1% of the gradient without the grid
-    # (the exact derivative of round() is 42% off here).
-    def error(kp, realism):
-        log = flight_rollout(
-            robot, short_scenario, dataclasses.replace(gains, kp=kp), "admittance", realism, jax.random.PRNGKey(0)
-        )[1]
-        return metrics.final_position_error(log)
-
-    error_gradient = jax.jit(jax.grad(error))  # one program: the resolution is an array of the realism
-
+    # encoder the gradient must stay the loop's: within 1% of the gradient without the grid.
+    # The resolution is a number of the realism: the program of the test above serves both.
     def gradient(resolution):
-        # Rate noise keeps the sensor stage on for both (the same noise: the same key).
-        realism = make_realism({"joint_sensors": {"angle_resolution_rad": resolution, "rate_noise_std_radps": 1e-3}})
-        return np.asarray(error_gradient(gains.kp, realism))
+        realism = _smooth_flight(angle_resolution_rad=resolution)  # the same noise: the same key
+        return np.asarray(
+            _flight_error_value_and_grad(gains.kp, robot, one_second, gains, realism, jax.random.PRNGKey(0))[1]
+        )
 
     on_grid, exact = gradient(2 * np.pi / 2**16), gradient(0.0)
     assert np.linalg.norm(on_grid - exact) < 1e-2 * np.linalg.norm(exact)

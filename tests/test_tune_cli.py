@@ -21,14 +21,11 @@ from spacegrasp_jax.control import load_gains
 from spacegrasp_jax.realism import load_realism
 
 
-def tune_environment(tmp_path):
-    """The tune subprocesses share JAX's persistent compilation cache: the first run
-    compiles, the interrupted and resumed runs reuse its executables."""
-    return {
-        **os.environ,
-        "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache"),
-        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
-    }
+def tune_environment():
+    """The tune subprocesses keep every program they compile in the test run's compilation
+    cache (inherited, tests/conftest.py): the first run compiles, the interrupted and
+    resumed runs, and the CMA-ES runs' nominal rollouts and held-out evaluation, load it."""
+    return {**os.environ, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
 
 
 #: Optimiser steps of the tune runs below: the interrupted run gets SIGINT after step 2, and
@@ -82,7 +79,7 @@ def uninterrupted(tmp_path_factory):
     tmp_path = tmp_path_factory.mktemp("tune")
     out = tmp_path / "full"
     result = subprocess.run(
-        tune_command(tmp_path, out), capture_output=True, text=True, timeout=900, env=tune_environment(tmp_path)
+        tune_command(tmp_path, out), capture_output=True, text=True, timeout=900, env=tune_environment()
     )
     assert result.returncode == 0, result.stderr
     return tmp_path, out, result
@@ -149,13 +146,13 @@ def test_tuning_under_flight_converges(uninterrupted):
 def test_interrupted_run_resumes_to_the_same_result(uninterrupted):
     tmp_path, full, _ = uninterrupted
     out = tmp_path / "interrupted"
-    code, err = run_until_step(tune_command(tmp_path, out), out / "history.csv", step=2, env=tune_environment(tmp_path))
+    code, err = run_until_step(tune_command(tmp_path, out), out / "history.csv", step=2, env=tune_environment())
     assert code == 130, err
     assert "--resume" in err
     steps_done = len((out / "history.csv").read_text().splitlines()) - 2
     assert 2 <= steps_done < TUNE_STEPS
     resume = [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--resume"]
-    result = subprocess.run(resume, capture_output=True, text=True, timeout=900, env=tune_environment(tmp_path))
+    result = subprocess.run(resume, capture_output=True, text=True, timeout=900, env=tune_environment())
     assert result.returncode == 0, result.stderr
     assert f"resuming after step {steps_done}/{TUNE_STEPS}" in result.stderr
     assert json.loads((out / "gains.json").read_text()) == json.loads((full / "gains.json").read_text())
@@ -235,7 +232,7 @@ def cmaes_command(tmp_path, out, steps):
 
 @pytest.mark.slow
 def test_the_default_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tmp_path):
-    env = tune_environment(tmp_path)
+    env = tune_environment()
     full = tmp_path / "cmaes_full"
     result = subprocess.run(cmaes_command(tmp_path, full, 4), capture_output=True, text=True, timeout=900, env=env)
     assert result.returncode == 0, result.stderr
