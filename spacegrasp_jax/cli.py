@@ -28,6 +28,7 @@ from spacegrasp_jax import (
     campaign,
     compilation,
     experiment,
+    export,
     metrics,
     paper,
     plausibility,
@@ -97,6 +98,13 @@ def _real(low: float, high: float, *, above: bool = False):
 _SEED = _whole(0, 2**32 - 1)
 
 
+def _c_identifier(text: str) -> str:
+    """An option's type: a C identifier (letters, digits and underscores, not starting with a digit)."""
+    if not (text.isascii() and text.isidentifier()):
+        raise argparse.ArgumentTypeError(f"expected a C identifier such as SG, got {text!r}")
+    return text
+
+
 def _info(args: argparse.Namespace) -> int:
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     q = jnp.asarray(sg.PAPER_Q_INIT)
@@ -117,6 +125,31 @@ def _info(args: argparse.Namespace) -> int:
     for row in np.asarray(R_ee):
         print(f"    [{row[0]: .6f}, {row[1]: .6f}, {row[2]: .6f}]")
     print(f"mass matrix (13x13) condition number: {np.linalg.cond(M):.6g}")
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    """``spacegrasp export``: a gain set with its units, equations and the loop's settings, as
+    one file of ``--format`` (printed without ``--out``)."""
+    robot, scenario, gains = _load_inputs(args)
+    realism = _realism(args, scenario)
+    settings = export.loop_settings(realism, scenario.dt)
+    text = export.export_text(
+        gains, args.controller, settings, args.format, source=args.gains or "paper_gains()", prefix=args.prefix
+    )
+    if args.out is None:
+        sys.stdout.write(text)
+        return 0
+    out = Path(args.out)
+    if out.is_dir():
+        raise UsageError(f"--out {out}: is a folder; give a file name")
+    if out.exists() and not args.overwrite:
+        raise UsageError(f"--out {out}: exists; pass --overwrite to replace it")
+    try:
+        runfiles.write_atomically(out, lambda target: target.write_text(text))
+    except OSError as error:
+        raise UsageError(f"--out {out}: cannot write ({error.strerror or error})") from None
+    print(f"wrote {out}: the {args.controller} gains, their units and equations, and the loop's settings")
     return 0
 
 
@@ -597,9 +630,11 @@ def _resume_tune(args: argparse.Namespace):
     given = args.given - {"out", "resume", "compile_cache", "overwrite", "holdout", "gains", "scenario", "robot"}
     config = None
     if record is not None and given:
-        fresh = _tune_config(args).to_dict()
+        # The options given replace the record's (checked together, as the run would be):
+        # the command line's defaults of the others (CMA-ES's, say) are not the run's.
+        fresh = _tune_fields(args)
         asked = {_TUNE_FIELDS.get(dest, dest) for dest in given} & set(fresh)
-        config = TuneConfig.from_dict(record["config"] | {field: fresh[field] for field in asked})
+        config = TuneConfig.from_dict(record["config"] | {field: runfiles.plain(fresh[field]) for field in asked})
     return tune(
         Path(args.out),
         resume=True,
@@ -721,7 +756,12 @@ def _tune_finished(out: Path, result) -> int:
 
 def _tune_config(args: argparse.Namespace) -> TuneConfig:
     """The tuning options of the command line (validated by TuneConfig and Weights)."""
-    return TuneConfig(
+    return TuneConfig(**_tune_fields(args))
+
+
+def _tune_fields(args: argparse.Namespace) -> dict:
+    """TuneConfig's fields as the command line gives them, not yet checked together."""
+    return dict(
         controller=args.controller,
         steps=args.steps,
         learning_rate=args.lr,
@@ -1157,6 +1197,22 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--out", required=True, help="output folder")
     _add_overwrite_option(compare)
     compare.set_defaults(run=_compare)
+
+    export_gains = _add_command(
+        commands, "export", help="write gains for flight software: JSON, YAML, a C header or CSV, with units"
+    )
+    export_gains.add_argument("--gains", help="gains JSON file (default: the paper's)")
+    export_gains.add_argument("--controller", choices=CONTROLLERS, default="admittance")
+    export_gains.add_argument("--format", choices=export.FORMATS, required=True)
+    _add_realism_option(export_gains)
+    export_gains.add_argument("--scenario", help="scenario TOML or JSON file, for its step (default: the paper's)")
+    export_gains.add_argument("--robot", help="robot TOML (default: the paper's)")
+    export_gains.add_argument(
+        "--prefix", type=_c_identifier, default="SG", help="the C header's names: PREFIX_kp, ... (default SG)"
+    )
+    export_gains.add_argument("--out", metavar="FILE", help="the file to write (default: print it)")
+    export_gains.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    export_gains.set_defaults(run=_export)
 
     tune = _add_command(
         commands, "tune", help="tune the gains for capture success: CMA-ES or gradient descent (resumable)"

@@ -352,3 +352,30 @@ def test_a_cmaes_record_that_wrote_the_unused_clip_still_resumes():
     old_record = {"config": config.to_dict() | {"aggregate": "clip"}}
     assert TuneConfig.from_dict(old_record["config"]) == config
     assert resume_differences(old_record, config, None, None, None) == []
+
+
+def test_a_resume_checks_the_options_given_against_the_recorded_run(tmp_path, capsys):
+    """``tune --resume --lr 0.5`` on a gradient-method run: the options given are compared
+    with the record, not checked against the command line's defaults of the others (CMA-ES,
+    which takes no learning rate); on a CMA-ES run the same option is refused as unused."""
+    import json
+
+    from spacegrasp_jax import cli
+    from spacegrasp_jax.realism import flight
+    from spacegrasp_jax.tuning.run import new_record
+
+    runs = {
+        "gradient": TuneConfig(method="gradient", realism=flight().to_dict(), aggregate="clip", batch=2),
+        "cmaes": TuneConfig(realism=flight().to_dict(), batch=2),
+    }
+    for name, config in runs.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "run.json").write_text(json.dumps(new_record(config, None, None, None, 3)))
+        (tmp_path / name / ".spacegrasp-run.json").write_text(json.dumps({"command": "tune"}))
+    capsys.readouterr()
+    assert cli.main(["tune", "--out", str(tmp_path / "gradient"), "--resume", "--lr", "0.5", "--batch", "2"]) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--lr 0.5 (the run's: 0.15)" in line and "--batch" not in line, line
+    assert cli.main(["tune", "--out", str(tmp_path / "cmaes"), "--resume", "--lr", "0.5"]) == 2
+    line = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--lr: a setting of the gradient method" in line, line
