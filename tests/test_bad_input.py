@@ -224,6 +224,18 @@ def cases(paths, out):
             [*TUNE, "--method", "gradient", "--gradient", "forward", "--realism", "flight", "--out", out],
             "--gradient: tuning under a realism takes each sample's reverse-mode gradient",
         ),
+        # export
+        "export prefix not a C identifier": (
+            ["export", "--format", "c-header", "--prefix", "9x", "--out", out],
+            "argument --prefix: expected a C identifier",
+        ),
+        "export unknown format": (["export", "--format", "xml", "--out", out], "argument --format: invalid choice"),
+        "export out a folder": (["export", "--format", "json", "--out", p["a_folder"]], "a_folder: is a folder"),
+        "export out an existing file": (
+            ["export", "--format", "json", "--out", p["list.json"]],
+            "list.json: exists; pass --overwrite to replace it",
+        ),
+        "export gains kp string": (["export", "--format", "yaml", "--gains", p["kp_string.json"]], ": kp: expected"),
         # output folders that cannot be created
         "simulate out under a file": ([*SIMULATE, "--out", p["under_a_file"]], "a_file/results: cannot write"),
         "reproduce out under a file": (["reproduce", "--out", p["under_a_file"]], "a_file/results: cannot write"),

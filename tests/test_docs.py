@@ -80,6 +80,7 @@ def test_the_pages_with_examples_are_the_ones_expected():
         "file-formats.md",
         "flight-like-loop.md",
         "free-target.md",
+        "flight-software.md",
     }
 
 
