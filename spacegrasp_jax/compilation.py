@@ -191,10 +191,22 @@ def jit(fun: Callable, **jit_kwargs) -> Callable:
 
 def argument_signature(arguments) -> tuple:
     """What a compiled program depends on in its arguments: their tree structure and each
-    leaf's shape, dtype and (for sharded placeholders) sharding. Hashable."""
+    leaf's shape, dtype and placement. Hashable.
+
+    A NumPy array, a Python number and a ``jax.Array`` on the default device are placed
+    alike (the same executable takes each), so they share a program; a leaf sharded over
+    devices or on another device has its sharding in the signature."""
     leaves, structure = jax.tree.flatten(arguments)
+    default = jax.devices()[0]
+
+    def placement(leaf):
+        sharding = getattr(leaf, "sharding", None)
+        if isinstance(sharding, jax.sharding.SingleDeviceSharding) and sharding.device_set == {default}:
+            return None
+        return sharding
+
     specs = tuple(
-        (np.shape(leaf), str(np.dtype(getattr(leaf, "dtype", np.asarray(leaf).dtype))), getattr(leaf, "sharding", None))
+        (np.shape(leaf), str(np.dtype(getattr(leaf, "dtype", np.asarray(leaf).dtype))), placement(leaf))
         for leaf in leaves
     )
     return structure, specs

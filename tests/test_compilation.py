@@ -231,3 +231,29 @@ def test_compiles_are_announced_once_each_with_a_history_across_processes(tmp_pa
     silent = io.StringIO()  # no history file: nothing to say about earlier compiles
     compilation.CompileAnnouncer(silent).before("the square", key)
     assert silent.getvalue() == "compiling the square...\n"
+
+
+def test_numpy_and_jax_arrays_on_the_default_device_share_one_program():
+    """One program for arguments placed alike: NumPy arrays and numbers, and jax.Arrays on
+    the default device (the same executable takes either); a sharded placeholder is another."""
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    function = jax.jit(lambda x, y: 2.0 * x + y)
+    as_numpy = (np.arange(3.0), np.float64(1.0))
+    as_jax = (jax.numpy.arange(3.0), jax.numpy.asarray(1.0))
+    lowered = []
+
+    def lower(arguments):
+        lowered.append(arguments)
+        return function.lower(*arguments)
+
+    def compiled(arguments):
+        key = ("test.shared-program", compilation.argument_signature(arguments))
+        return compilation.compile_once(key, lambda: lower(arguments))[0]
+
+    executable = compiled(as_numpy)
+    assert compiled(as_jax) is executable and len(lowered) == 1
+    np.testing.assert_array_equal(executable(*as_jax), executable(*as_numpy))
+    mesh = Mesh(np.array(jax.devices()[:1]), ("batch",))
+    placeholder = jax.ShapeDtypeStruct((3,), np.float64, sharding=NamedSharding(mesh, PartitionSpec("batch")))
+    assert compilation.argument_signature((placeholder,)) != compilation.argument_signature(as_numpy[:1])
