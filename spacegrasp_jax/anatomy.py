@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax import spatial
+from spacegrasp_jax.realism import Stage
 
 #: The parts of the final position error: name -> (shape, unit, meaning).
 ANATOMY_METRICS = {
@@ -45,12 +46,12 @@ def error_parts(final_metrics: dict, scenario, realism=None) -> dict[str, jax.Ar
         scenario: the run's [`Scenario`][spacegrasp_jax.scenario.Scenario] (sphere radius and
             stiffness, the held desired pose ``trajectory.end_pose``).
         realism: the run's [`Realism`][spacegrasp_jax.realism.Realism]; its LAR estimate error
-            counts when its ``"estimate"`` stage is on (``None``: the paper's loop, none).
+            counts when its ``Stage.ESTIMATE`` is on (``None``: the paper's loop, none).
     """
     force = jnp.asarray(final_metrics["final_contact_force_N"])
     compliance = -force * scenario.sphere_radius**3 / scenario.contact_stiffness
     p_des = scenario.trajectory.end_pose[:3]
-    if realism is not None and "estimate" in realism.stages:
+    if realism is not None and Stage.ESTIMATE in realism.stages:
         rotation = spatial.rotation_exp(realism.lar_angle_error_rad)
         estimate = realism.lar_position_error_m + spatial.matvec(rotation, p_des) - p_des
     else:

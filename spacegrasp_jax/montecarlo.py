@@ -22,7 +22,7 @@ from spacegrasp_jax import anatomy, metrics
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.perturbations import PerturbationRanges, sample, sample_keys
-from spacegrasp_jax.realism import Realism, ideal
+from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import Log, closed_loop_step, flight_loop, initial_state
 
@@ -207,7 +207,7 @@ def sample_loops(
         return SampleLoops(robots, scenarios, perturbations, None, None, None)
     base = ideal() if realism is None else realism
     if estimates:
-        base = dataclasses.replace(base, stages=base.stages | {"estimate"})
+        base = dataclasses.replace(base, stages=base.stages | Stage.ESTIMATE)
     realisms = jax.vmap(
         lambda p: dataclasses.replace(
             base,

@@ -48,6 +48,7 @@ TOML (``--realism FILE``; every key optional, unknown keys rejected)::
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 from pathlib import Path
 
@@ -79,8 +80,23 @@ SCHEMA = {
     "target_estimate": {"position_error_m": ((3,), 0.0), "angle_error_rad": ((3,), 0.0)},
 }
 
-#: The stages a realism can switch on (``Realism.stages``).
-STAGES = ("sensors", "actuators", "model", "estimate")
+
+class Stage(enum.Flag):
+    """The stages of the flight-like loop a realism can switch on (``Realism.stages``, a
+    combination of them: ``Stage.SENSORS | Stage.ACTUATORS``; ``Stage(0)``: none). A flag, not
+    a string: a misspelt stage is an ``AttributeError``, not a test that is silently false.
+
+    Attributes:
+        SENSORS: F/T sensor noise and bias, encoder quantum and joint-rate noise.
+        ACTUATORS: joint torque saturation (with the PID's anti-windup).
+        MODEL: the controller's own model of the satellite (mass and inertia it believes).
+        ESTIMATE: the error of the LAR pose the controller believes.
+    """
+
+    SENSORS = enum.auto()
+    ACTUATORS = enum.auto()
+    MODEL = enum.auto()
+    ESTIMATE = enum.auto()
 
 
 def _static(default):
@@ -112,7 +128,7 @@ class Realism:
             static).
         saturation: ``"hard"`` (clip) or ``"smooth"`` (``limit tanh(u / limit)``; static).
         anti_windup: stop the PID's integrator while the torque saturates (static).
-        stages: the stages that are on, a subset of ``STAGES`` (static).
+        stages: the stages that are on ([`Stage`][spacegrasp_jax.realism.Stage] flags; static).
     """
 
     force_noise_std: jax.Array
@@ -132,7 +148,7 @@ class Realism:
     cutoff_hz: float = _static(0.0)
     saturation: str = _static("hard")
     anti_windup: bool = _static(True)
-    stages: frozenset = _static(frozenset())
+    stages: Stage = _static(Stage(0))
 
     def is_ideal(self, dt: float) -> bool:
         """Whether this is the paper's loop for a scenario of step ``dt`` (s)."""
@@ -340,7 +356,7 @@ def make_realism(document: dict | None = None, *, source: str = "realism") -> Re
         raise RealismError(f"{where('actuators', 'anti_windup')}: expected true or false, got {anti_windup!r}")
 
     a = {key: arrays[(table, key)] for table, key in arrays}
-    stages = set()
+    stages = Stage(0)
     if any(
         np.any(a[key] != 0)
         for key in (
@@ -352,13 +368,13 @@ def make_realism(document: dict | None = None, *, source: str = "realism") -> Re
             "rate_noise_std_radps",
         )
     ):
-        stages.add("sensors")
+        stages |= Stage.SENSORS
     if np.any(np.isfinite(a["torque_limit_Nm"])):
-        stages.add("actuators")
+        stages |= Stage.ACTUATORS
     if a["satellite_mass_factor"] != 1.0 or a["satellite_inertia_factor"] != 1.0:
-        stages.add("model")
+        stages |= Stage.MODEL
     if np.any(a["position_error_m"] != 0) or np.any(a["angle_error_rad"] != 0):
-        stages.add("estimate")
+        stages |= Stage.ESTIMATE
     return Realism(
         force_noise_std=jnp.asarray(a["force_noise_std"]),
         torque_noise_std=jnp.asarray(a["torque_noise_std"]),
@@ -377,7 +393,7 @@ def make_realism(document: dict | None = None, *, source: str = "realism") -> Re
         cutoff_hz=float(cutoff),
         saturation=saturation,
         anti_windup=anti_windup,
-        stages=frozenset(stages),
+        stages=stages,
     )
 
 
@@ -430,4 +446,4 @@ def load_realism(name_or_path: str | Path) -> Realism:
     return make_realism(document, source=str(path))
 
 
-__all__ = ["FLIGHT", "PRESETS", "STAGES", "Realism", "RealismError", "flight", "ideal", "load_realism", "make_realism"]
+__all__ = ["FLIGHT", "PRESETS", "Realism", "RealismError", "Stage", "flight", "ideal", "load_realism", "make_realism"]

@@ -39,7 +39,7 @@ from spacegrasp_jax.dynamics import (
 from spacegrasp_jax.integrator import PlantState, rk4_step, state_rate
 from spacegrasp_jax.kinematics import Frames, point_jacobian_blocks
 from spacegrasp_jax.model import N_JOINTS, Robot
-from spacegrasp_jax.realism import Realism, ideal
+from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.target import lar_frame, lar_velocity, target_momentum, target_rate
 from spacegrasp_jax.trajectory import desired_state
@@ -519,7 +519,7 @@ def rollout(
     if (realism is not None and not realism.is_ideal(scenario.dt)) or model_robot is not None:
         realism = ideal() if realism is None else realism
         if key is None:
-            if "sensors" in realism.stages:
+            if Stage.SENSORS in realism.stages:
                 raise ValueError("key: a realism with noisy sensors needs a jax.random key")
             key = jax.random.PRNGKey(0)  # drawn from by no stage
         return flight_rollout(
@@ -652,8 +652,8 @@ def flight_loop(
     period, servo_period = per_period * scenario.dt, per_servo * scenario.dt
     dtype = scenario.initial.q.dtype
     pid = PID(saturation=realism.saturation, anti_windup=realism.anti_windup)
-    limit = realism.torque_limit_Nm if "actuators" in realism.stages else None
-    own_model = bool(realism.stages & {"sensors", "model"}) or model_robot is not None
+    limit = realism.torque_limit_Nm if Stage.ACTUATORS in realism.stages else None
+    own_model = bool(realism.stages & (Stage.SENSORS | Stage.MODEL)) or model_robot is not None
     model = believed_robot(robot if model_robot is None else model_robot, realism) if own_model else robot
     # First-order low-pass, discretised exactly at the control period.
     smoothing = 1.0 - math.exp(-2.0 * math.pi * realism.cutoff_hz * period) if realism.cutoff_hz > 0.0 else 1.0
@@ -665,7 +665,7 @@ def flight_loop(
     def joint_reading(plant: PlantState, noise):
         """The joint sensors' (q, qd) from the true state and the tick's (7,) rate noise."""
         q, qd = plant.q, plant.qd
-        if "sensors" in realism.stages:
+        if Stage.SENSORS in realism.stages:
             quantum = realism.angle_resolution_rad
             safe = jnp.where(quantum > 0.0, quantum, 1.0)
             # The encoder's grid, with a straight-through gradient: round() is flat between
@@ -681,7 +681,7 @@ def flight_loop(
         plant, t = state.plant, k * period
         truth = plant_kinematics(robot, scenario, plant)
         force_fts, torque_fts = sensor_reading(robot, scenario, truth)
-        if "sensors" in realism.stages:
+        if Stage.SENSORS in realism.stages:
             force_fts = force_fts + realism.force_bias + realism.force_noise_std * noise[:3]
             torque_fts = torque_fts + realism.torque_bias + realism.torque_noise_std * noise[3:6]
         q, qd = joint_reading(plant, noise[6 : 6 + N_JOINTS])
@@ -694,7 +694,7 @@ def flight_loop(
             else truth
         )
         p_lar, R_lar = truth.p_lar, truth.R_lar
-        if "estimate" in realism.stages:
+        if Stage.ESTIMATE in realism.stages:
             p_lar = p_lar + spatial.matvec(R_lar, realism.lar_position_error_m)
             R_lar = spatial.matmul(R_lar, spatial.rotation_exp(realism.lar_angle_error_rad))
         inputs, _ = controller_inputs(

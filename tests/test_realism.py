@@ -14,7 +14,7 @@ import pytest
 
 from spacegrasp_jax import metrics
 from spacegrasp_jax.integrator import rk4_step
-from spacegrasp_jax.realism import FLIGHT, RealismError, flight, ideal, load_realism, make_realism
+from spacegrasp_jax.realism import FLIGHT, RealismError, Stage, flight, ideal, load_realism, make_realism
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import flight_rollout, plant_derivative, rollout
 
@@ -38,7 +38,7 @@ def test_neutral_settings_run_the_papers_loop(robot, gains, short_scenario, cont
             np.testing.assert_allclose(getattr(flight_log, name), value, rtol=1e-12, atol=1e-12, err_msg=name)
     # Neutral values in a file are the ideal loop (the same program as no realism at all).
     neutral = make_realism({table: dict(keys) for table, keys in ideal().to_dict().items()})
-    assert neutral.is_ideal(short_scenario.dt) and neutral.stages == frozenset()
+    assert neutral.is_ideal(short_scenario.dt) and neutral.stages == Stage(0)
     same = jax.jit(rollout, static_argnames=("controller",))(robot, short_scenario, gains, controller, realism=neutral)[
         1
     ]
@@ -240,7 +240,9 @@ def test_the_encoder_grid_keeps_the_position_feedback_in_the_gradient(robot, gai
 
 def test_the_flight_preset_and_its_limits(robot, gains):
     preset = flight()
-    assert preset.stages == frozenset({"sensors", "actuators", "model", "estimate"})
+    assert preset.stages == Stage.SENSORS | Stage.ACTUATORS | Stage.MODEL | Stage.ESTIMATE
+    with pytest.raises(AttributeError):
+        Stage.SENSOR  # a misspelt stage is an error, not a test that is silently false  # noqa: B018
     assert preset.steps_per_period(1e-3) == 10 and preset.delay_periods == 1 and preset.steps_per_servo(1e-3) == 1
     scenario = paper_scenario(robot, duration=2.0, move_duration=2.0)
     log = jax.jit(rollout, static_argnames=("controller",))(
@@ -258,7 +260,7 @@ def test_settings_files_are_validated_and_read_back(tmp_path):
         "[timing]\ncontrol_period = 0.01\n[actuators]\ntorque_limit_Nm = [5.0, 5.0, 5.0, 2.0, 2.0, 1.0, inf]\n"
     )
     realism = load_realism(path)
-    assert realism.control_period == 0.01 and realism.stages == frozenset({"actuators"})
+    assert realism.control_period == 0.01 and realism.stages == Stage.ACTUATORS
     # config.json's form reads back to the same settings.
     config = tmp_path / "config.json"
     config.write_text(json.dumps({"realism": realism.to_dict()}))
