@@ -485,7 +485,7 @@ def rollout(
     realism: Realism | None = None,
     key: jax.Array | None = None,
     model_robot: Robot | None = None,
-) -> tuple[SimState, Log]:
+) -> tuple[SimState | FlightState, Log]:
     """Simulate the closed loop over ``scenario.duration`` with one ``jax.lax.scan``.
 
     Args:
@@ -506,16 +506,22 @@ def rollout(
             ``None``: blocks of ``LOG_BLOCK`` steps, nothing checkpointed.
         realism: ``None`` or an ideal [`Realism`][spacegrasp_jax.realism.Realism]: the paper's
             loop. Otherwise the flight-like loop of [`flight_rollout()`][spacegrasp_jax.simulate.flight_rollout] (static fields
-            fix the program; any ``checkpoint_segment`` checkpoints each control period).
+            fix the program; a ``checkpoint_segment``, which must divide the steps there
+            too, checkpoints each control period).
         key: the ``jax.random`` key of the sensors' noise (flight-like loop with noise).
         model_robot: the robot the controller believes, if not ``robot`` (the flight-like
             loop; [`flight_rollout()`][spacegrasp_jax.simulate.flight_rollout]).
 
     Returns:
-        ``(final_state, log)``: the state after ``scenario.n_steps`` steps and the
+        ``(final_state, log)``: the state after ``scenario.n_steps`` steps (a
+        [`SimState`][spacegrasp_jax.simulate.SimState] in the paper's loop, a
+        [`FlightState`][spacegrasp_jax.simulate.FlightState] in the flight-like loop) and the
         [`Log`][spacegrasp_jax.simulate.Log]. A diverging rollout carries non-finite values from the first bad
         step on; [`first_nonfinite_time()`][spacegrasp_jax.simulate.first_nonfinite_time] finds it (``experiment.run`` reports it).
     """
+    n_steps = scenario.n_steps
+    if checkpoint_segment is not None and (checkpoint_segment < 1 or n_steps % checkpoint_segment):
+        raise ValueError(f"checkpoint_segment: {checkpoint_segment} must be a positive divisor of the {n_steps} steps")
     if (realism is not None and not realism.is_ideal(scenario.dt)) or model_robot is not None:
         realism = ideal() if realism is None else realism
         if key is None:
@@ -533,9 +539,6 @@ def rollout(
             pinv_damping=pinv_damping,
             checkpoint=checkpoint_segment is not None,
         )
-    n_steps = scenario.n_steps
-    if checkpoint_segment is not None and (checkpoint_segment < 1 or n_steps % checkpoint_segment):
-        raise ValueError(f"checkpoint_segment: {checkpoint_segment} must be a positive divisor of the {n_steps} steps")
     step = closed_loop_step(robot, scenario, gains, controller, pinv_damping, checkpoint=checkpoint_segment is not None)
     block = largest_divisor(n_steps, LOG_BLOCK) if checkpoint_segment is None else checkpoint_segment
     # Blocks of a few steps, each an inner scan whose buffers (log rows, saved states) stay

@@ -134,10 +134,15 @@ def test_gradient_of_final_position_error_wrt_gains(robot, gains, short_scenario
 
 
 def test_rollout_rejects_a_checkpoint_segment_that_does_not_divide_the_steps(robot, gains):
+    # The same rule in the paper's loop and in the flight-like loop, before anything is traced.
+    from spacegrasp_jax.realism import flight
+
     scenario = paper_scenario(robot, duration=0.1)  # 100 steps
+    loops = {"ideal": {}, "flight": dict(realism=flight(), key=jax.random.PRNGKey(0))}
     for segment in (0, 3):
-        with pytest.raises(ValueError, match="checkpoint_segment"):
-            rollout(robot, scenario, gains, "admittance", checkpoint_segment=segment)
+        for loop, settings in loops.items():
+            with pytest.raises(ValueError, match="checkpoint_segment: .* the 100 steps"):
+                rollout(robot, scenario, gains, "admittance", checkpoint_segment=segment, **settings)
 
 
 @pytest.mark.parametrize(
