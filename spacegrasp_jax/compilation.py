@@ -289,28 +289,6 @@ class CompileAnnouncer:
             pass  # a history that cannot be written only loses the next run's estimate
 
 
-def announce_first_call(function: Callable, label: str, key) -> Callable:
-    """``function`` (a jitted program that compiles on its first call) whose first call is
-    announced to the :func:`listening` listeners like a compile of :func:`compile_once`;
-    the time they hear is that of the compile and the first run together (s)."""
-    called = False
-
-    def first_call_announced(*args, **kwargs):
-        nonlocal called
-        if called:
-            return function(*args, **kwargs)
-        called = True
-        for listener in _LISTENERS:
-            listener.before(label, key)
-        start = time.perf_counter()
-        result = jax.block_until_ready(function(*args, **kwargs))
-        for listener in _LISTENERS:
-            listener.after(label, key, time.perf_counter() - start)
-        return result
-
-    return first_call_announced
-
-
 def compile_once(key, lower: Callable[[], Any], label: str | None = None) -> tuple[Any, float]:
     """The executable of ``lower().compile()``, compiled the first time ``key`` is asked for
     in this process and reused after: the package's one cache of compiled programs (JAX's

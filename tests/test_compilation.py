@@ -197,26 +197,35 @@ class _Heard:
 
 
 def test_compiles_are_announced_once_each_with_a_history_across_processes(tmp_path):
-    """``compile_once`` and ``announce_first_call`` tell the listeners of the one compile of
-    a program (not of its reuse); the command line's announcer names the program and, from
-    the history file, the last compile's time."""
+    """``compile_once`` tells the listeners of the one compile of a program (not of its
+    reuse), and so does a tuning program bound to its values, whose key is derived from its
+    settings and its arguments' shapes: other values run it again unannounced, other shapes
+    compile another; the command line's announcer names the program and, from the history
+    file, the last compile's time."""
+    from spacegrasp_jax.tuning.tune import BoundProgram
+
     heard = _Heard()
     key = ("test.square", 3)
     with compilation.listening(heard):
         for _ in range(2):
             compilation.compile_once(key, lambda: jax.jit(lambda x: x * x).lower(np.ones(3)), label="the square")
-        twice = compilation.announce_first_call(jax.jit(lambda x: 2.0 * x), "the double", ("test.double",))
-        np.testing.assert_array_equal(twice(np.ones(2)), 2.0)
-        np.testing.assert_array_equal(twice(np.ones(2)), 2.0)
-    assert [event[:3] for event in heard.events] == [
-        ("before", "the square", key),
-        ("after", "the square", key),
-        ("before", "the double", ("test.double",)),
-        ("after", "the double", ("test.double",)),
+        scale = jax.jit(lambda params, values: params["gain"] * values)
+        for values in (np.ones(2), np.full(2, 3.0), np.ones(5)):
+            bound = BoundProgram(scale, values, settings=("test.scale",), label="the scale")
+            np.testing.assert_array_equal(bound({"gain": 2.0}), 2.0 * values)
+    bound_keys = [event[2] for event in heard.events if event[1] == "the scale"]
+    assert [event[:2] for event in heard.events] == [
+        ("before", "the square"),
+        ("after", "the square"),
+        ("before", "the scale"),  # values of two shapes: two programs
+        ("after", "the scale"),
+        ("before", "the scale"),
+        ("after", "the scale"),
     ]
+    assert heard.events[0][2] == heard.events[1][2] == key and bound_keys[0] != bound_keys[2]
     assert all(event[3] >= 0.0 for event in heard.events if event[0] == "after")
     compilation.compile_once(("test.unheard",), lambda: jax.jit(lambda x: x + 1).lower(1.0))  # no listener: silent
-    assert len(heard.events) == 4
+    assert len(heard.events) == 6
 
     history = tmp_path / "times.json"
     first, second = io.StringIO(), io.StringIO()

@@ -30,7 +30,7 @@ import jax
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import batching, campaign, compilation, experiment, runfiles, statistics
+from spacegrasp_jax import batching, campaign, experiment, runfiles, statistics
 from spacegrasp_jax.control import load_gains, make_gains, paper_gains
 from spacegrasp_jax.model import robot_from_toml
 from spacegrasp_jax.montecarlo import SampleLoops, success
@@ -270,21 +270,6 @@ def _optimise_gradient(robot, smooth, base, config, before, out, resume, progres
     gains, history, events, steps done, status)``."""
     checkpoint_path = out / CHECKPOINT
     objective, mask, params, value_and_grad = setup(robot, smooth, base, config, before.summary["max_abs_torque_Nm"])
-    if config.realism is None:  # the flight-like gradient's programs are announced as they compile
-        value_and_grad = compilation.announce_first_call(
-            value_and_grad,
-            f"the {config.gradient}-mode gradient over {config.batch} scenario(s) (and its first step)",
-            (
-                "tuning.gradient",  # what shapes the program, not the values it runs on
-                config.controller,
-                config.objective,
-                config.gradient,
-                config.batch,
-                config.cvar_alpha,
-                smooth.n_steps,
-                smooth.target is None,
-            ),
-        )
     resume_state = None
     if resume and checkpoint_path.exists():
         resume_state, _ = load_checkpoint(checkpoint_path, params, make_optimizer(config)[0].init(params))
@@ -295,8 +280,8 @@ def _optimise_gradient(robot, smooth, base, config, before, out, resume, progres
         _write_history(out / "history.csv", state.history)
 
     print(
-        f"compiling the {config.gradient}-mode gradient of the {config.controller} {config.objective} objective "
-        f"over {config.batch} scenario(s)...",
+        f"optimising the {config.controller} {config.objective} objective over {config.batch} scenario(s) "
+        f"by its {config.gradient}-mode gradient...",
         file=progress,
         flush=True,
     )

@@ -396,14 +396,29 @@ def _batch_loss_function(controller: str, cvar_alpha: float | None, segment: int
 class BoundProgram:
     """A jitted ``program(params, values)`` called as ``program(params)``: the values are
     arguments of the compiled program, not constants in it, so a loss over other scenarios,
-    gains or weights of the same shapes runs the same program (compiled once per process,
-    and loaded from the persistent cache by later processes)."""
+    gains or weights of the same shapes runs the same program (compiled once per process by
+    [`compile_once()`][spacegrasp_jax.compilation.compile_once], which announces it, and loaded
+    from the persistent cache by later processes).
+
+    Attributes:
+        program: the jitted function.
+        values: its second argument.
+        settings: what shapes the program besides its arguments' shapes (its name and the
+            loss's static settings); with [`argument_signature()`][spacegrasp_jax.compilation.argument_signature]
+            of the arguments, the program's key.
+        label: the program's name for people (the compile line).
+    """
 
     program: Callable
     values: tuple
+    settings: tuple = ("tuning.program",)
+    label: str = "a tuning program"
 
     def __call__(self, params):
-        return self.program(params, self.values)
+        arguments = (params, self.values)
+        key = (*self.settings, compilation.argument_signature(arguments))
+        executable, _ = compilation.compile_once(key, lambda: self.program.lower(*arguments), label=self.label)
+        return executable(*arguments)
 
     def lower(self, params):
         """The program's ``jax.stages.Lowered`` for these ``params`` and values."""
@@ -434,7 +449,13 @@ def make_value_and_grad(loss: BoundLoss, params, mode: str) -> BoundProgram:
     """``params -> ((loss, aux), gradient)`` by reverse or forward mode, for a loss of
     [`make_loss()`][tuning.tune.make_loss]: the compiled program takes the loss's values as arguments and is shared
     by every loss of the same settings and shapes."""
-    return BoundProgram(_gradient_program(loss.function, mode, jax.tree.structure(params)), loss.values)
+    static = loss.function.keywords  # the loss's static settings: controller, cvar_alpha, segment
+    return BoundProgram(
+        _gradient_program(loss.function, mode, jax.tree.structure(params)),
+        loss.values,
+        settings=("tuning.gradient", mode, *sorted(static.items())),
+        label=f"the {mode}-mode gradient of the {static['controller']} law's tuning loss",
+    )
 
 
 #: Under ``aggregate="clip"``, a sample's gradient is clipped to this many times the batch's
