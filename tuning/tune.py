@@ -405,14 +405,15 @@ class BoundProgram:
         values: its second argument.
         settings: what shapes the program besides its arguments' shapes (its name and the
             loss's static settings); with [`argument_signature()`][spacegrasp_jax.compilation.argument_signature]
-            of the arguments, the program's key.
+            of the arguments, the program's key. No default: two programs given the same
+            settings would share one executable.
         label: the program's name for people (the compile line).
     """
 
     program: Callable
     values: tuple
-    settings: tuple = ("tuning.program",)
-    label: str = "a tuning program"
+    settings: tuple
+    label: str
 
     def __call__(self, params):
         arguments = (params, self.values)
