@@ -29,6 +29,7 @@ from spacegrasp_jax import (
     compilation,
     experiment,
     export,
+    margins,
     metrics,
     paper,
     plausibility,
@@ -858,22 +859,17 @@ def _montecarlo(args: argparse.Namespace) -> int:
         variants = _montecarlo_variants(args)
         devices = jax.device_count()
         chunk = batching.chunk_size(args.chunk, args.n)
-        config = campaign.CampaignConfig(
+        config = _criteria(
+            args,
             n=args.n,
             seed=args.seed,
             chunk=chunk,
             ranges=ranges,
-            position_tolerance_m=args.tolerance_mm * 1e-3,
-            orientation_tolerance_rad=math.radians(args.tolerance_deg),
-            torque_limit_Nm=args.torque_limit if args.torque_limit > 0 else None,
-            target_speed_limit_mps=args.target_speed_limit,
             timeseries_every=args.timeseries_every,
-            pinv_damping=args.pinv_damping,
             device_batch=args.device_batch
             if args.device_batch is not None
             else (128 if jax.default_backend() == "cpu" else None),
             realism=load_realism(args.realism) if args.realism else None,
-            identified=args.identified,
         )
     except (PerturbationError, campaign.CampaignError) as error:
         raise UsageError(str(error)) from None
@@ -1010,6 +1006,78 @@ def _gradients(args: argparse.Namespace) -> int:
     _print_gradient_report(document)
     print(f"wrote {out}/: gradients.json, gradients.npz, gradients.png")
     return 0
+
+
+def _margins(args: argparse.Namespace) -> int:
+    """``spacegrasp margins``: the gain and delay margins of one gain set, by bisection on
+    batched rollouts over envelope samples (``spacegrasp_jax.margins``)."""
+    batching.use_all_cpu_cores()  # before anything touches a device
+    try:
+        ranges = _ranges(args, PerturbationRanges())
+        settings = margins.MarginSettings(
+            samples=args.samples,
+            max_factor=args.max_factor,
+            factor_resolution=args.factor_resolution,
+            max_delay_periods=args.max_delay,
+        )
+    except (margins.MarginError, PerturbationError) as error:
+        raise UsageError(str(error)) from None
+    robot, scenario, gains = _load_inputs(args)
+    realism = _realism(args, scenario)
+    config = _criteria(args, n=args.samples, seed=args.seed, ranges=ranges, realism=realism)
+    _warn(plausibility.input_warnings(scenario))
+    _check_envelope(args, scenario)
+    out = Path(args.out)
+    _claim(args, out)
+    period = margins.control_period(scenario, realism)
+    print(
+        f"margins of the {args.controller} law: probes of {args.samples} envelope samples, {scenario.duration:g} s each, "
+        f"control period {period:g} s, over {jax.device_count()} device(s)...",
+        file=sys.stderr,
+        flush=True,
+    )
+    result = margins.find_margins(
+        robot,
+        scenario,
+        gains,
+        args.controller,
+        config,
+        settings,
+        progress=lambda line: print(line, file=sys.stderr, flush=True),
+    )
+    result["settings"] |= {
+        "gains": gains.to_dict(args.controller),
+        "gains_source": args.gains or "paper_gains()",
+        "criteria": _capture_tolerances(config),
+        "campaign": config.to_dict(),
+        "scenario_duration_s": scenario.duration,
+        **runfiles.provenance(),
+    }
+    runfiles.write_json(out / "margins.json", result)
+    title = f"{args.controller}, {args.gains or 'paper gains'}, {args.samples} samples" + (
+        f", realism {args.realism}" if args.realism else ""
+    )
+    plots.save_margin_figures(out, result, 1e3 * config.position_tolerance_m, title, runfiles.write_atomically)
+    for line in margins.margin_lines(result):
+        print(line)
+    print(f"wrote {out}/: margins.json, margins.png")
+    return 0
+
+
+def _criteria(args: argparse.Namespace, **fields) -> campaign.CampaignConfig:
+    """The campaign's settings with the capture criteria of ``_add_criteria_options()``."""
+    try:
+        return campaign.CampaignConfig(
+            position_tolerance_m=args.tolerance_mm * 1e-3,
+            orientation_tolerance_rad=math.radians(args.tolerance_deg),
+            torque_limit_Nm=args.torque_limit if args.torque_limit > 0 else None,
+            target_speed_limit_mps=args.target_speed_limit,
+            pinv_damping=args.pinv_damping,
+            identified=args.identified,
+            **fields,
+        )
+    except campaign.CampaignError as error:
+        raise UsageError(str(error)) from None
 
 
 def _horizons(text: str) -> tuple[float, ...]:
@@ -1341,32 +1409,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_overwrite_option(montecarlo)
     _add_csv_option(montecarlo, "samples.npz")
     add_ranges_arguments(montecarlo, "montecarlo")
-    montecarlo.add_argument(
-        "--tolerance-mm",
-        type=_real(0.0, 1e6, above=True),
-        default=5.0,
-        help="success: final position error at most this (default 5 mm)",
-    )
-    montecarlo.add_argument(
-        "--tolerance-deg",
-        type=_real(0.0, 180.0, above=True),
-        default=1.0,
-        help="success: final orientation error at most this (default 1 deg)",
-    )
-    montecarlo.add_argument(
-        "--torque-limit",
-        type=_real(0.0, 1e6),
-        default=100.0,
-        metavar="NM",
-        help="success: peak |u_i| at most this, else the sample counts as unstable (default 100 N m; 0: no limit)",
-    )
-    montecarlo.add_argument(
-        "--target-speed-limit",
-        type=_real(0.0, 100.0, above=True),
-        default=0.005,
-        metavar="MPS",
-        help="success, with a free-floating target: its final speed at most this (default 0.005 m/s)",
-    )
+    _add_criteria_options(montecarlo)
     montecarlo.add_argument(
         "--timeseries-every",
         type=_whole(1, 100_000_000),
@@ -1381,11 +1424,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     montecarlo.add_argument("--resume", action="store_true", help="continue the campaign in --out chunk by chunk")
     _add_realism_option(montecarlo)
-    montecarlo.add_argument(
-        "--identified",
-        action="store_true",
-        help="tell the controller each sample's perturbed satellite (default: it believes the nominal robot)",
-    )
     cluster = montecarlo.add_argument_group("several hosts (jax.distributed; run the same command on every host)")
     cluster.add_argument(
         "--distributed",
@@ -1435,6 +1473,47 @@ def build_parser() -> argparse.ArgumentParser:
     _add_compile_cache_option(gradient_health)
     gradient_health.set_defaults(run=_gradients)
 
+    margin = _add_command(
+        commands, "margins", help="gain and delay margins of a gain set, by bisection on envelope samples"
+    )
+    margin.add_argument("--controller", choices=CONTROLLERS, default="admittance")
+    margin.add_argument("--gains", help="gains JSON file (default: the paper's)")
+    margin.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
+    _add_realism_option(margin)
+    add_ranges_arguments(margin, "montecarlo")
+    margin.add_argument("--seed", type=_SEED, default=0, help="campaign seed of the samples (default 0)")
+    margin.add_argument(
+        "--samples",
+        type=_whole(1, 100_000),
+        default=margins.MarginSettings.samples,
+        help=f"envelope samples every probe runs (default {margins.MarginSettings.samples})",
+    )
+    margin.add_argument(
+        "--max-factor",
+        type=_real(1.0, 1e6, above=True),
+        default=margins.MarginSettings.max_factor,
+        help=f"search the gain factors in [1/F, F] (default {margins.MarginSettings.max_factor:g})",
+    )
+    margin.add_argument(
+        "--factor-resolution",
+        type=_real(1.0, 1e6, above=True),
+        default=margins.MarginSettings.factor_resolution,
+        metavar="RATIO",
+        help="stop bisecting when the factor that holds and the one that fails differ by at most this ratio "
+        f"(default {margins.MarginSettings.factor_resolution:g})",
+    )
+    margin.add_argument(
+        "--max-delay",
+        type=_whole(1, 100_000),
+        default=margins.MarginSettings.max_delay_periods,
+        metavar="PERIODS",
+        help=f"the largest extra delay searched, in control periods (default {margins.MarginSettings.max_delay_periods})",
+    )
+    _add_criteria_options(margin)
+    _add_run_options(margin, "results/margins")
+    _add_compile_cache_option(margin)
+    margin.set_defaults(run=_margins)
+
     benchmark = _add_command(
         commands, "benchmark", help="speed and memory against MuJoCo and a Pinocchio loop (needs the test extra)"
     )
@@ -1465,6 +1544,42 @@ def _add_realism_option(parser: argparse.ArgumentParser) -> None:
 #: The file in the compile cache's folder that keeps each program's last compile time, for
 #: the line printed before the program compiles again (``compilation.CompileAnnouncer``).
 COMPILE_TIMES = "spacegrasp-compile-times.json"
+
+
+def _add_criteria_options(parser: argparse.ArgumentParser) -> None:
+    """A capture's success criteria, as a campaign's (``campaign.CampaignConfig``), and what
+    the controller is told of each sample."""
+    parser.add_argument(
+        "--tolerance-mm",
+        type=_real(0.0, 1e6, above=True),
+        default=5.0,
+        help="success: final position error at most this (default 5 mm)",
+    )
+    parser.add_argument(
+        "--tolerance-deg",
+        type=_real(0.0, 180.0, above=True),
+        default=1.0,
+        help="success: final orientation error at most this (default 1 deg)",
+    )
+    parser.add_argument(
+        "--torque-limit",
+        type=_real(0.0, 1e6),
+        default=100.0,
+        metavar="NM",
+        help="success: peak |u_i| at most this, else the sample counts as unstable (default 100 N m; 0: no limit)",
+    )
+    parser.add_argument(
+        "--target-speed-limit",
+        type=_real(0.0, 100.0, above=True),
+        default=0.005,
+        metavar="MPS",
+        help="success, with a free-floating target: its final speed at most this (default 0.005 m/s)",
+    )
+    parser.add_argument(
+        "--identified",
+        action="store_true",
+        help="tell the controller each sample's perturbed satellite (default: it believes the nominal robot)",
+    )
 
 
 def _add_compile_cache_option(parser: argparse.ArgumentParser) -> None:

@@ -1,7 +1,7 @@
 """Figures, NumPy in and matplotlib figures out: the paper's Figures 4-9 from rollout logs
 (``FIGURES``, with the free-floating target's motion beside them), and the figures of the
 commands built on the rollout: tuning (loss, peak torques), Monte-Carlo campaigns
-(histograms, scatter, failures), gradient health, the EE path and trade-off plots.
+(histograms, scatter, failures), gradient health, stability margins, the EE path and trade-off plots.
 
 Style of the paper: blue dashed line for the admittance law (the paper's "active 6 DoF
 force/torque control"), red dotted for the Cartesian law, black solid for the desired
@@ -510,6 +510,85 @@ def save_gradient_figures(out_dir, norm_ratios, cosines, horizon_norms, outlier_
     """``gradients.png`` of ``spacegrasp gradients`` ([`figure_gradient_health()`][spacegrasp_jax.plots.figure_gradient_health])."""
     figure = figure_gradient_health(norm_ratios, cosines, horizon_norms, outlier_factor, title)
     save({"gradients.png": figure}, out_dir, write_atomically)
+
+
+def _probe_outcome(probe: dict, captured_at_nominal: np.ndarray) -> float:
+    """mm: the largest final position error of a probe's samples that capture at the nominal
+    gains (all samples if none does); inf if one of them ran away or diverged."""
+    errors = np.array([np.nan if e is None else e for e in probe["final_position_error_m"]], dtype=float)
+    chosen = captured_at_nominal if captured_at_nominal.any() else np.ones_like(captured_at_nominal)
+    if not np.all(np.asarray(probe["bounded"])[chosen]) or not np.all(np.isfinite(errors[chosen])):
+        return np.inf
+    return 1e3 * float(np.max(errors[chosen]))
+
+
+def figure_margins(result: dict, tolerance_mm: float, title: str):
+    """The margin searches of ``spacegrasp margins`` (``spacegrasp_jax.margins.find_margins()``'s
+    result): for the joint PID's gain factor, the law's gain factor and the extra delay, each
+    probe's outcome (the largest final position error of the samples that capture at the
+    nominal gains, log scale; a probe where one ran away drawn at the top), green where the
+    loop holds and red where it fails, the tolerance and the margins marked."""
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.0), sharey=True)
+    fig.suptitle(title)
+    captured = np.asarray(result["nominal"]["success"], dtype=bool)
+    probes = result["probes"]
+    finite = [_probe_outcome(p, captured) for p in probes]
+    finite = [v for v in finite if np.isfinite(v)]
+    top = 3.0 * max(finite + [tolerance_mm])
+    panels = (
+        ("pid", "joint PID gain factor", axes[0]),
+        ("law", f"{result['controller']} law gain factor", axes[1]),
+        (
+            "delay",
+            f"extra delay at the controller's output [control periods of {result['control_period_s']:g} s]",
+            axes[2],
+        ),
+    )
+    for loop, label, ax in panels:
+        chosen = [p for p in probes if p["loop"] in (loop, "nominal")]
+        for p in chosen:
+            x = (0 if loop == "delay" else 1.0) if p["loop"] == "nominal" else p["value"]
+            y = _probe_outcome(p, captured)
+            ax.plot(
+                x,
+                min(y, top),
+                "x" if not np.isfinite(y) else "o",
+                color="tab:green" if p["holds"] else "tab:red",
+                markersize=7,
+            )
+        ax.axhline(tolerance_mm, color="black", linestyle="--", linewidth=1, label=f"tolerance {tolerance_mm:g} mm")
+        if loop == "delay":
+            margin = result["delay_margin"]
+            ax.axvline(margin["holds_periods"], color="tab:green", linestyle=":", label="margin (holds)")
+            if margin["fails_periods"] is not None:
+                ax.axvline(margin["fails_periods"], color="tab:red", linestyle=":", label="fails")
+            ax.set_xscale("symlog", linthresh=1.0)
+        else:
+            for direction in ("increase", "decrease"):
+                margin = result["gain_margins"][loop][direction]
+                ax.axvline(margin["holds"], color="tab:green", linestyle=":")
+                if margin["fails"] is not None:
+                    ax.axvline(margin["fails"], color="tab:red", linestyle=":")
+            ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(label)
+        ax.grid(True, alpha=0.3)
+    axes[0].set_ylabel("largest final position error [mm]\n(x: a sample ran away)")
+    handles = [
+        plt.Line2D([], [], marker="o", linestyle="", color="tab:green", label="holds"),
+        plt.Line2D([], [], marker="o", linestyle="", color="tab:red", label="fails"),
+        plt.Line2D([], [], color="black", linestyle="--", label=f"tolerance {tolerance_mm:g} mm"),
+        plt.Line2D([], [], color="tab:green", linestyle=":", label="margin: last factor that holds"),
+        plt.Line2D([], [], color="tab:red", linestyle=":", label="first that fails"),
+    ]
+    axes[2].legend(handles=handles, fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def save_margin_figures(out_dir, result: dict, tolerance_mm: float, title: str, write_atomically) -> None:
+    """``margins.png`` of ``spacegrasp margins`` ([`figure_margins()`][spacegrasp_jax.plots.figure_margins])."""
+    save({"margins.png": figure_margins(result, tolerance_mm, title)}, out_dir, write_atomically)
 
 
 # ---- the EE path around the contact sphere, and gain sweeps ----------------------------

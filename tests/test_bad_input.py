@@ -49,6 +49,7 @@ DRIVER = textwrap.dedent(
 SIMULATE = ["simulate", "--controller", "admittance"]
 TUNE = ["tune", "--steps", "1", "--holdout", "0"]
 MONTECARLO = ["montecarlo", "--n", "2", "--chunk", "2"]
+MARGINS = ["margins", "--samples", "2"]
 
 
 def files(folder):
@@ -243,20 +244,21 @@ def cases(paths, out):
         "tune out under a file": ([*TUNE, "--out", p["under_a_file"]], "a_file/results: cannot write"),
         "gradients out under a file": (["gradients", "--n", "2", "--out", p["under_a_file"]], "a_file/results: cannot"),
         "benchmark out under a file": (["benchmark", "--quick", "--out", p["under_a_file"]], "a_file/results: cannot"),
+        "margins out under a file": ([*MARGINS, "--out", p["under_a_file"]], "a_file/results: cannot write"),
         # occupied output folders, the same rule and message for every command
         **{
             f"{argv[0]} out occupied": (
                 [*argv, "--out", p["occupied"]],
                 "occupied already holds a tune run (started 2026-01-01",
             )
-            for argv in (SIMULATE, ["reproduce"], TUNE, MONTECARLO, ["gradients", "--n", "2"], ["benchmark", "--quick"])
+            for argv in (SIMULATE, ["reproduce"], TUNE, MONTECARLO, ["gradients", "--n", "2"], ["benchmark", "--quick"], MARGINS)
         },
         **{
             f"{argv[0]} out foreign": (
                 [*argv, "--out", p["foreign"]],
                 "foreign already holds files this tool did not write (notes.txt)",
             )
-            for argv in (SIMULATE, ["reproduce"], TUNE, MONTECARLO, ["gradients", "--n", "2"], ["benchmark", "--quick"])
+            for argv in (SIMULATE, ["reproduce"], TUNE, MONTECARLO, ["gradients", "--n", "2"], ["benchmark", "--quick"], MARGINS)
         },
         "tune resume another command's run": (
             ["tune", "--out", p["occupied"].replace("occupied", "foreign"), "--resume"],
@@ -281,6 +283,21 @@ def cases(paths, out):
         ),
         "gradients horizons": (["gradients", "--n", "2", "--horizons", "0.5,0.25", "--out", out], "--horizons"),
         "gradients n 0": (["gradients", "--n", "0", "--out", out], "argument --n:"),
+        "margins samples 0": (["margins", "--samples", "0", "--out", out], "argument --samples:"),
+        "margins resolution 1": ([*MARGINS, "--factor-resolution", "1", "--out", out], "argument --factor-resolution:"),
+        "margins resolution above the factor": (
+            [*MARGINS, "--max-factor", "2", "--factor-resolution", "3", "--out", out],
+            "factor_resolution: must be a ratio above 1 and below max_factor",
+        ),
+        "margins max delay 0": ([*MARGINS, "--max-delay", "0", "--out", out], "argument --max-delay:"),
+        "margins law": ([*MARGINS, "--controller", "pid", "--out", out], "argument --controller:"),
+        "margins gains kp string": ([*MARGINS, "--gains", p["kp_string.json"], "--out", out], ": kp: expected"),
+        "margins servo below dt": (
+            [*MARGINS, "--realism", p["servo_below_dt.toml"], "--out", out],
+            "timing.servo_period: 0.0005 s is not a whole multiple",
+        ),
+        "margins range huge int": ([*MARGINS, "--ranges", p["range_huge_int.toml"], "--out", out], "range_huge_int"),
+        "margins tolerance 0": ([*MARGINS, "--tolerance-mm", "0", "--out", out], "argument --tolerance-mm:"),
     }
 
 

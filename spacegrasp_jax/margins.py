@@ -1,0 +1,485 @@
+"""Time-domain stability margins of a gain set: how much extra loop gain and how much extra
+delay the closed loop takes before a capture fails.
+
+Each margin is found by bisection on *probes*. A probe runs the same ``samples`` envelope
+samples of a Monte-Carlo campaign (``CampaignConfig``'s seed, ranges, realism and
+criteria; samples 0 .. samples-1) with one change to the loop, in one batched call of one
+compiled program: every probe of a margin search differs from the others in values only.
+
+The changes probed:
+
+* **PID gain factor** ``c``: the joint PID's ``kp``, ``ki`` and ``kd`` times ``c`` (the
+  servo loop's gain times ``c``).
+* **Law gain factor** ``c``: the law's loop gain times ``c``. The Cartesian law's ``K_lin``
+  and ``K_eul`` are multiplied by ``c``; the admittance law's ``Md``, ``Bd`` and ``Kd`` are
+  divided by ``c``, which multiplies the motion it commands per newton of contact force by
+  ``c`` and leaves its pose-tracking dynamics (``Md^-1 Bd``, ``Md^-1 Kd``) as they are.
+* **Extra delay** of ``d`` whole control periods at the controller's output, between the
+  law and the joint PID (on top of the realism's own ``delay_periods``), in a delay line of
+  ``max_delay_periods + 1`` entries whose length in use is a value: every ``d`` runs one
+  program. The line starts full of zero commands, as the realism's does.
+
+A probe *fails* when a sample that captures at the nominal gains no longer captures (the
+campaign's criteria: tolerances, torque limit, target speed, no runaway), or a sample that
+stays bounded at the nominal gains runs away or diverges (``RUNAWAY_FACTOR`` times a joint
+limit, or a non-finite state). A sample that already fails at the nominal gains can only
+make a probe fail by running away. The gain margins are searched in both directions
+(increase and decrease) on a logarithmic scale, first doubling (halving) the factor until a
+probe fails or ``max_factor`` (``1 / max_factor``) holds, then bisecting until the factor
+that holds and the one that fails differ by at most ``factor_resolution`` (a ratio). The
+delay margin doubles the delay from 1 period until a probe fails, then bisects to the
+period: the result is the smallest failing delay if failures are monotone in the delay
+(check with a sweep: ``sweep_delays()``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from spacegrasp_jax import batching
+from spacegrasp_jax.campaign import CampaignConfig, CampaignError
+from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.law import law_named
+from spacegrasp_jax.model import N_JOINTS, Robot
+from spacegrasp_jax.montecarlo import evaluate_samples, success
+from spacegrasp_jax.scenario import Scenario
+
+#: The gain groups each loop's factor scales, per controller, and how: ``+1`` multiplies by
+#: the factor, ``-1`` divides by it.
+LOOP_GROUPS = {
+    "pid": {"kp": 1, "ki": 1, "kd": 1},
+    "law": {
+        "admittance": {"Md": -1, "Bd": -1, "Kd": -1},
+        "cartesian": {"K_lin": 1, "K_eul": 1},
+    },
+}
+LOOPS = ("pid", "law")
+
+
+class MarginError(ValueError):
+    """An invalid margin setting; names the cause."""
+
+
+@dataclasses.dataclass(frozen=True)
+class MarginSettings:
+    """How the margins are searched.
+
+    Attributes:
+        samples: envelope samples each probe runs (samples 0 .. samples-1 of the campaign).
+        max_factor: the gain factors searched, ``[1 / max_factor, max_factor]``.
+        factor_resolution: the bisection stops when the factor that holds and the one that
+            fails differ by at most this ratio (> 1).
+        max_delay_periods: the largest extra delay searched, in control periods.
+    """
+
+    samples: int = 8
+    max_factor: float = 64.0
+    factor_resolution: float = 1.05
+    max_delay_periods: int = 64
+
+    def __post_init__(self):
+        if isinstance(self.samples, bool) or not isinstance(self.samples, int) or self.samples < 1:
+            raise MarginError(f"samples: must be a positive integer, got {self.samples!r}")
+        if not (math.isfinite(self.max_factor) and self.max_factor > 1.0):
+            raise MarginError(f"max_factor: must be finite and above 1, got {self.max_factor!r}")
+        if not (math.isfinite(self.factor_resolution) and 1.0 < self.factor_resolution < self.max_factor):
+            raise MarginError(
+                f"factor_resolution: must be a ratio above 1 and below max_factor, got {self.factor_resolution!r}"
+            )
+        if (
+            isinstance(self.max_delay_periods, bool)
+            or not isinstance(self.max_delay_periods, int)
+            or self.max_delay_periods < 1
+        ):
+            raise MarginError(f"max_delay_periods: must be a positive integer, got {self.max_delay_periods!r}")
+
+
+# ---- the delay at the controller's output ----------------------------------------------
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class OutputDelayState:
+    """The delayed law's memory.
+
+    Attributes:
+        law: the wrapped law's state.
+        commands: (capacity, 7) rad/s, the law's last ``capacity`` desired joint rates, a
+            ring written at ``head``.
+        head: () int, where the next command is written.
+    """
+
+    law: object
+    commands: jax.Array
+    head: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputDelay:
+    """A law whose desired joint rates reach the joint PID ``periods`` control periods late.
+
+    Attributes:
+        law: the law delayed (a law object: ``init``, ``update``, ``reference_twist``).
+        capacity: the delay line's length (static); ``periods`` must be below it.
+        periods: () int, the delay in control periods (a value: any delay below
+            ``capacity`` runs the same program).
+    """
+
+    law: object
+    capacity: int
+    periods: jax.Array
+
+    def init(self, dtype=jnp.float64) -> OutputDelayState:
+        return OutputDelayState(
+            self.law.init(dtype), jnp.zeros((self.capacity, N_JOINTS), dtype), jnp.zeros((), jnp.int32)
+        )
+
+    def update(self, gains: Gains, inputs, state: OutputDelayState, dt):
+        computed, law_state = self.law.update(gains, inputs, state.law, dt)
+        commands = state.commands.at[state.head].set(computed)
+        applied = commands[(state.head - self.periods) % self.capacity]
+        return applied, OutputDelayState(law_state, commands, (state.head + 1) % self.capacity)
+
+    def reference_twist(self, state: OutputDelayState):
+        return self.law.reference_twist(state.law)
+
+
+# ---- probes ---------------------------------------------------------------------------
+
+
+def scaled_loop(gains: Gains, controller: str, loop: str, factor: float) -> Gains:
+    """``gains`` with ``loop``'s gain (``"pid"`` or ``"law"``; module docstring) times ``factor``."""
+    if loop not in LOOPS:
+        raise MarginError(f"loop: expected one of {', '.join(LOOPS)}, got {loop!r}")
+    groups = LOOP_GROUPS["pid"] if loop == "pid" else LOOP_GROUPS["law"][controller]
+    return dataclasses.replace(
+        gains,
+        **{name: np.asarray(getattr(gains, name), float) * factor**power for name, power in groups.items()},
+    )
+
+
+def _probe(
+    robot,
+    scenario,
+    gains,
+    seed,
+    realism,
+    ranges,
+    delay_periods,
+    indices,
+    *,
+    controller,
+    capacity,
+    pinv_damping,
+    identified,
+):
+    law = OutputDelay(law_named(controller, pinv_damping), capacity, delay_periods)
+    _, sample_metrics, _ = evaluate_samples(
+        robot, scenario, gains, seed, indices, controller=law, ranges=ranges, realism=realism, identified=identified
+    )
+    return sample_metrics
+
+
+@dataclasses.dataclass
+class Prober:
+    """Runs probes of one gain set and one controller and keeps each outcome.
+
+    Attributes:
+        probes: one dict a probe run: ``loop`` (``"pid"``, ``"law"`` or ``"delay"``),
+            ``value`` (the factor or the delay in periods), ``holds``, and per sample
+            ``success``, ``bounded``, ``final_position_error_m``, ``largest_peak_torque_Nm``.
+        compile_s: the compile time of the probes' program (s; 0 when loaded).
+    """
+
+    robot: Robot
+    scenario: Scenario
+    gains: Gains
+    controller: str
+    config: CampaignConfig
+    settings: MarginSettings
+    probes: list = dataclasses.field(default_factory=list)
+    compile_s: float = 0.0
+    nominal: dict | None = None
+    progress: Callable[[str], None] | None = None
+
+    def __post_init__(self):
+        chunk = batching.chunk_size(self.settings.samples, self.settings.samples)
+        self._indices = np.minimum(np.arange(chunk), self.settings.samples - 1).astype(np.uint32)
+        function = functools.partial(
+            _probe,
+            controller=self.controller,
+            capacity=self.settings.max_delay_periods + 1,
+            pinv_damping=self.config.pinv_damping,
+            identified=self.config.identified,
+        )
+        key = (self.controller, self.settings.max_delay_periods, self.config.pinv_damping, self.config.identified)
+        try:
+            self._executable, self.compile_s = batching.compile_chunk(
+                "margins", function, self._replicated(self.gains, 0), self._indices, key=key
+            )
+        except batching.BatchingError as error:
+            raise CampaignError(str(error)) from None
+
+    def _replicated(self, gains, delay_periods):
+        config = self.config
+        return (
+            self.robot,
+            self.scenario,
+            gains,
+            np.uint32(config.seed),
+            config.realism,
+            config.ranges,
+            np.int32(delay_periods),
+        )
+
+    def outcome(self, gains: Gains, delay_periods: int = 0) -> dict[str, np.ndarray]:
+        """The samples' metrics with ``gains`` and an extra delay of ``delay_periods``, plus
+        ``success`` and ``bounded`` (n,) bool."""
+        if not 0 <= delay_periods <= self.settings.max_delay_periods:
+            raise MarginError(f"delay: {delay_periods} periods is outside 0 .. {self.settings.max_delay_periods}")
+        sample_metrics = batching.run_chunk(self._executable, self._replicated(gains, delay_periods), self._indices)
+        sample_metrics = {name: value[: self.settings.samples] for name, value in sample_metrics.items()}
+        config = self.config
+        captured = success(
+            sample_metrics,
+            config.position_tolerance_m,
+            config.orientation_tolerance_rad,
+            config.torque_limit_Nm,
+            config.target_speed_limit_mps,
+        )
+        bounded = ~(np.isfinite(sample_metrics["first_runaway_s"]) | np.isfinite(sample_metrics["first_nonfinite_s"]))
+        return sample_metrics | {"success": captured, "bounded": bounded}
+
+    def holds(self, loop: str, value) -> bool:
+        """Run one probe (``loop``: ``"pid"`` or ``"law"`` with a gain factor, ``"delay"``
+        with periods) and say whether the loop holds (module docstring)."""
+        if self.nominal is None:
+            self.nominal = self.outcome(self.gains)
+            self._record("nominal", 1.0, self.nominal, True)
+        if loop == "delay":
+            result = self.outcome(self.gains, int(value))
+        else:
+            result = self.outcome(scaled_loop(self.gains, self.controller, loop, value))
+        nominal = self.nominal
+        held = bool(np.all(result["success"] | ~nominal["success"]) and np.all(result["bounded"] | ~nominal["bounded"]))
+        self._record(loop, value, result, held)
+        return held
+
+    def _record(self, loop, value, result, held):
+        self.probes.append(
+            {
+                "loop": loop,
+                "value": float(value) if loop != "delay" else int(value),
+                "holds": held,
+                "success": result["success"].tolist(),
+                "bounded": result["bounded"].tolist(),
+                "final_position_error_m": [_finite_or_none(x) for x in result["final_position_error_m"]],
+                "largest_peak_torque_Nm": [_finite_or_none(x) for x in result["largest_peak_torque_Nm"]],
+            }
+        )
+        if self.progress is not None:
+            what = {"nominal": "nominal gains", "delay": f"extra delay {int(value)} periods"}.get(
+                loop, f"{loop} gain x{value:.4g}"
+            )
+            self.progress(
+                f"probe {len(self.probes)}: {what}: {int(np.sum(result['success']))}/{len(result['success'])} captured, "
+                f"{int(np.sum(~result['bounded']))} ran away -> {'holds' if held else 'fails'}"
+            )
+
+
+def _finite_or_none(x) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+# ---- the searches -------------------------------------------------------------------------
+
+
+def gain_margin(prober: Prober, loop: str, direction: str) -> dict:
+    """The factor on ``loop``'s gain (``"pid"`` or ``"law"``) at which the capture fails,
+    searched upward (``direction="increase"``) or downward (``"decrease"``).
+
+    Returns:
+        ``holds``: the factor furthest from 1 found to hold; ``fails``: the nearest found to
+        fail (``None`` if every factor up to ``max_factor`` holds); ``margin_db``: ``20
+        log10(holds)``, the gain margin in dB (negative for a decrease); ``probes``: the
+        probes this search ran.
+    """
+    if direction not in ("increase", "decrease"):
+        raise MarginError(f"direction: expected increase or decrease, got {direction!r}")
+    settings = prober.settings
+    sign = 1.0 if direction == "increase" else -1.0
+    start = len(prober.probes)
+    held, failed = 0.0, None  # log2 of the factors
+    step = 1.0
+    limit = math.log2(settings.max_factor)
+    while failed is None and held < limit:
+        trial = min(held + step, limit)
+        if prober.holds(loop, 2.0 ** (sign * trial)):
+            held = trial
+        else:
+            failed = trial
+        step *= 2.0
+    if failed is not None:
+        while failed - held > math.log2(settings.factor_resolution):
+            middle = 0.5 * (held + failed)
+            if prober.holds(loop, 2.0 ** (sign * middle)):
+                held = middle
+            else:
+                failed = middle
+    holds = 2.0 ** (sign * held)
+    return {
+        "holds": holds,
+        "fails": None if failed is None else 2.0 ** (sign * failed),
+        "margin_db": 20.0 * math.log10(holds),
+        "probes": len(prober.probes) - start,
+    }
+
+
+def delay_margin(prober: Prober, period_s: float) -> dict:
+    """The extra delay at the controller's output (whole control periods of ``period_s``
+    seconds) at which the capture fails.
+
+    Returns:
+        ``holds_periods``: the largest delay found to hold; ``fails_periods``: the smallest
+        found to fail (``None`` if every delay up to ``max_delay_periods`` holds); the same
+        in seconds (``holds_s``, ``fails_s``); ``probes``.
+    """
+    start = len(prober.probes)
+    limit = prober.settings.max_delay_periods
+    held, failed, trial = 0, None, 1
+    while failed is None and held < limit:
+        trial = min(trial, limit)
+        if prober.holds("delay", trial):
+            held = trial
+        else:
+            failed = trial
+        trial *= 2
+    if failed is not None:
+        while failed - held > 1:
+            middle = (held + failed) // 2
+            if prober.holds("delay", middle):
+                held = middle
+            else:
+                failed = middle
+    return {
+        "holds_periods": held,
+        "fails_periods": failed,
+        "holds_s": held * period_s,
+        "fails_s": None if failed is None else failed * period_s,
+        "probes": len(prober.probes) - start,
+    }
+
+
+def sweep_delays(prober: Prober, delays) -> list[bool]:
+    """Whether the loop holds at each extra delay of ``delays`` (periods): the brute-force
+    check of ``delay_margin()``."""
+    return [prober.holds("delay", int(d)) for d in delays]
+
+
+def control_period(scenario: Scenario, realism) -> float:
+    """The controller's period (s): the realism's, or the scenario's ``dt``."""
+    return scenario.dt * (1 if realism is None else realism.steps_per_period(scenario.dt))
+
+
+def find_margins(
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller: str,
+    config: CampaignConfig,
+    settings: MarginSettings = MarginSettings(),
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """Every margin of one gain set and controller (module docstring).
+
+    Args:
+        robot, scenario, gains, controller: the nominal loop.
+        config: the envelope (``seed``, ``ranges``), the realism and the success criteria;
+            its ``n`` and ``chunk`` are not used (``settings.samples`` are).
+        settings: the searches' extents and resolution.
+        progress: called with one line per probe (``None``: silent).
+
+    Returns:
+        A JSON-ready dict: ``gain_margins`` (loop -> direction -> ``gain_margin()``'s
+        result), ``delay_margin`` (``delay_margin()``'s), ``nominal`` (the nominal probe's
+        samples), ``probes`` (every probe), ``rollouts``, ``compile_s``, ``search_s``,
+        ``control_period_s``, ``realism_delay_periods``.
+    """
+    started = time.perf_counter()
+    prober = Prober(robot, scenario, gains, controller, config, settings, progress=progress)
+    gain_margins = {
+        loop: {direction: gain_margin(prober, loop, direction) for direction in ("increase", "decrease")}
+        for loop in LOOPS
+    }
+    period = control_period(scenario, config.realism)
+    delay = delay_margin(prober, period)
+    return {
+        "controller": controller,
+        "samples": settings.samples,
+        "settings": dataclasses.asdict(settings),
+        "control_period_s": period,
+        "realism_delay_periods": 0 if config.realism is None else config.realism.delay_periods,
+        "gain_margins": gain_margins,
+        "delay_margin": delay,
+        "nominal": prober.probes[0],
+        "probes": prober.probes,
+        "rollouts": len(prober.probes) * settings.samples,
+        "compile_s": prober.compile_s,
+        "search_s": time.perf_counter() - started - prober.compile_s,
+    }
+
+
+def margin_lines(result: dict) -> list[str]:
+    """The margins in words, with their units."""
+
+    def factor(entry):
+        if entry["fails"] is None:
+            return f"holds to x{entry['holds']:.3g} (the search's limit)"
+        return f"x{entry['holds']:.3g} ({entry['margin_db']:+.1f} dB; fails at x{entry['fails']:.3g})"
+
+    lines = []
+    for loop, title in (("pid", "joint PID gain"), ("law", f"{result['controller']} law gain")):
+        margins = result["gain_margins"][loop]
+        lines.append(f"{title}: increase {factor(margins['increase'])}, decrease {factor(margins['decrease'])}")
+    delay = result["delay_margin"]
+    if delay["fails_periods"] is None:
+        lines.append(
+            f"extra delay at the controller's output: holds to {delay['holds_periods']} periods "
+            f"({delay['holds_s']:.4g} s, the search's limit)"
+        )
+    else:
+        lines.append(
+            f"extra delay at the controller's output: {delay['holds_periods']} control periods "
+            f"({delay['holds_s']:.4g} s) holds, {delay['fails_periods']} ({delay['fails_s']:.4g} s) fails"
+        )
+    lines.append(
+        f"{len(result['probes'])} probes of {result['samples']} samples ({result['rollouts']} rollouts) in "
+        f"{result['search_s']:.1f} s, after {result['compile_s']:.1f} s compiling"
+    )
+    return lines
+
+
+__all__ = [
+    "LOOPS",
+    "LOOP_GROUPS",
+    "MarginError",
+    "MarginSettings",
+    "OutputDelay",
+    "OutputDelayState",
+    "Prober",
+    "control_period",
+    "delay_margin",
+    "find_margins",
+    "gain_margin",
+    "margin_lines",
+    "scaled_loop",
+    "sweep_delays",
+]
