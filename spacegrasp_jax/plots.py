@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 STYLES = {
     "admittance": dict(color="tab:blue", linestyle="--", label="admittance control"),
@@ -562,7 +563,7 @@ def figure_margins(result: dict, tolerance_mm: float, title: str):
             ax.axvline(margin["holds_periods"], color="tab:green", linestyle=":", label="margin (holds)")
             if margin["fails_periods"] is not None:
                 ax.axvline(margin["fails_periods"], color="tab:red", linestyle=":", label="fails")
-            ax.set_xscale("symlog", linthresh=1.0)
+            ax.set_xlim(-0.5, max(p["value"] for p in chosen if p["loop"] == "delay") + 1.0 if len(chosen) > 1 else 1.0)
         else:
             for direction in ("increase", "decrease"):
                 margin = result["gain_margins"][loop][direction]
@@ -570,7 +571,13 @@ def figure_margins(result: dict, tolerance_mm: float, title: str):
                 if margin["fails"] is not None:
                     ax.axvline(margin["fails"], color="tab:red", linestyle=":")
             ax.set_xscale("log")
+            ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+            ax.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+            ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_yscale("log")
+        ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        ax.yaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel(label)
         ax.grid(True, alpha=0.3)
     axes[0].set_ylabel("largest final position error [mm]\n(x: a sample ran away)")
