@@ -222,8 +222,10 @@ class Prober:
         )
         key = (self.controller, self.settings.max_delay_periods, self.config.pinv_damping, self.config.identified)
         try:
+            realism = self.config.realism
+            loop = "ideal loop" if realism is None or realism.is_ideal(self.scenario.dt) else "flight-like loop"
             self._executable, self.compile_s = batching.compile_chunk(
-                "margins", function, self._replicated(self.gains, 0), self._indices, key=key
+                f"margins, {self.controller}, {loop}", function, self._replicated(self.gains, 0), self._indices, key=key
             )
         except batching.BatchingError as error:
             raise CampaignError(str(error)) from None

@@ -251,14 +251,30 @@ def cases(paths, out):
                 [*argv, "--out", p["occupied"]],
                 "occupied already holds a tune run (started 2026-01-01",
             )
-            for argv in (SIMULATE, ["reproduce"], TUNE, MONTECARLO, ["gradients", "--n", "2"], ["benchmark", "--quick"], MARGINS)
+            for argv in (
+                SIMULATE,
+                ["reproduce"],
+                TUNE,
+                MONTECARLO,
+                ["gradients", "--n", "2"],
+                ["benchmark", "--quick"],
+                MARGINS,
+            )
         },
         **{
             f"{argv[0]} out foreign": (
                 [*argv, "--out", p["foreign"]],
                 "foreign already holds files this tool did not write (notes.txt)",
             )
-            for argv in (SIMULATE, ["reproduce"], TUNE, MONTECARLO, ["gradients", "--n", "2"], ["benchmark", "--quick"], MARGINS)
+            for argv in (
+                SIMULATE,
+                ["reproduce"],
+                TUNE,
+                MONTECARLO,
+                ["gradients", "--n", "2"],
+                ["benchmark", "--quick"],
+                MARGINS,
+            )
         },
         "tune resume another command's run": (
             ["tune", "--out", p["occupied"].replace("occupied", "foreign"), "--resume"],

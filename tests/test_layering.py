@@ -10,11 +10,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: The command line, the figures and the benchmarks: they may import anything.
 FACES = {"spacegrasp_jax.cli", "spacegrasp_jax.plots", "spacegrasp_jax.benchmarks"}
-#: The host side: runs, batches, files, campaigns, sweeps, tuning.
+#: The host side: runs, batches, files, campaigns, sweeps, margins, tuning.
 HOST = {
     "spacegrasp_jax.batching",
     "spacegrasp_jax.campaign",
     "spacegrasp_jax.experiment",
+    "spacegrasp_jax.margins",
     "spacegrasp_jax.runfiles",
     "spacegrasp_jax.sweep",
     "spacegrasp_jax.tuning",
