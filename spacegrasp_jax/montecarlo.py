@@ -21,7 +21,14 @@ import jax.numpy as jnp
 from spacegrasp_jax import anatomy, metrics
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.perturbations import PerturbationRanges, sample, sample_keys
+from spacegrasp_jax.perturbations import (
+    Perturbation,
+    PerturbationRanges,
+    apply_to_robot,
+    apply_to_scenario,
+    draw,
+    sample_keys,
+)
 from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import Log, closed_loop_step, flight_loop, initial_state
@@ -200,23 +207,47 @@ def sample_loops(
     robot, scenario, seed, indices, ranges: PerturbationRanges, realism=None, identified=False
 ) -> SampleLoops:
     """The samples ``indices`` of a campaign and the loop each runs ([`evaluate_samples()`][spacegrasp_jax.montecarlo.evaluate_samples])."""
-    robots, scenarios, perturbations = sample(robot, scenario, seed, indices, ranges)
+    perturbations = jax.vmap(lambda key: draw(key, ranges, scenario.initial.q.dtype))(sample_keys(seed, indices))
+    robots, scenarios, realisms, model_robot = jax.vmap(
+        lambda p: perturbed_loop(robot, scenario, p, ranges, realism, identified), out_axes=(0, 0, 0, None)
+    )(perturbations)
+    if realisms is None:
+        return SampleLoops(robots, scenarios, perturbations, None, None, None)
+    keys = jax.vmap(lambda k: jax.random.fold_in(k, NOISE_STREAM))(sample_keys(seed, indices))
+    return SampleLoops(robots, scenarios, perturbations, realisms, keys, model_robot)
+
+
+def perturbed_loop(
+    robot: Robot,
+    scenario: Scenario,
+    perturbation: Perturbation,
+    ranges: PerturbationRanges,
+    realism: Realism | None = None,
+    identified: bool = False,
+) -> tuple[Robot, Scenario, Realism | None, Robot | None]:
+    """The loop one perturbation runs, as a campaign runs it ([`evaluate_samples()`][spacegrasp_jax.montecarlo.evaluate_samples]).
+
+    Returns:
+        ``(plant, scenario, realism, model_robot)``: the perturbed robot and scenario; the
+        loop's realism, its target estimate error the perturbation's on top of
+        ``realism``'s (``None``: the paper's loop, when nothing needs another); the robot
+        the controller believes (``None``: the plant itself), the nominal ``robot`` unless
+        ``identified`` or the ranges leave the satellite as it is.
+    """
+    plant, perturbed = apply_to_robot(robot, perturbation), apply_to_scenario(scenario, perturbation)
     believes_nominal = not identified and ranges.perturbs_robot
     estimates = ranges.draws_estimate_errors
     if not (believes_nominal or estimates or (realism is not None and not realism.is_ideal(scenario.dt))):
-        return SampleLoops(robots, scenarios, perturbations, None, None, None)
+        return plant, perturbed, None, None
     base = ideal() if realism is None else realism
     if estimates:
         base = dataclasses.replace(base, stages=base.stages | Stage.ESTIMATE)
-    realisms = jax.vmap(
-        lambda p: dataclasses.replace(
-            base,
-            lar_position_error_m=base.lar_position_error_m + p.dp_lar_estimate,
-            lar_angle_error_rad=base.lar_angle_error_rad + p.dr_lar_estimate,
-        )
-    )(perturbations)
-    keys = jax.vmap(lambda k: jax.random.fold_in(k, NOISE_STREAM))(sample_keys(seed, indices))
-    return SampleLoops(robots, scenarios, perturbations, realisms, keys, robot if believes_nominal else None)
+    loop_realism = dataclasses.replace(
+        base,
+        lar_position_error_m=base.lar_position_error_m + perturbation.dp_lar_estimate,
+        lar_angle_error_rad=base.lar_angle_error_rad + perturbation.dr_lar_estimate,
+    )
+    return plant, perturbed, loop_realism, robot if believes_nominal else None
 
 
 def success(

@@ -240,7 +240,15 @@ class Perturbation:
 
 
 def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Perturbation:
-    """The perturbation of one sample, drawn with ``key``.
+    """The perturbation of one sample, drawn with ``key``: ``from_units(draw_units(key), ranges)``."""
+    return from_units(draw_units(key, dtype), ranges)
+
+
+def draw_units(key: jax.Array, dtype=jnp.float64) -> Perturbation:
+    """The uniform numbers ``U`` of one sample (module docstring), drawn with ``key``, as a
+    [`Perturbation`][spacegrasp_jax.perturbations.Perturbation] of units: every field in [-1, 1]
+    (``target_com_offset`` in the unit ball), the ``satellite_inertia_scale``-like fields
+    holding their ``U`` (``from_units()`` scales them).
 
     Each group of draws has a stream of its own, so a group added later leaves the samples of
     the others as they were: ``split(key, 4)`` the initial joint angles, the LAR pose and the
@@ -258,26 +266,62 @@ def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Pertu
     k_target_m, k_target_i, k_target_v, k_target_w = jax.random.split(jax.random.fold_in(key, 3), 4)
     k_target_log_m, k_target_com = jax.random.split(jax.random.fold_in(key, 4), 2)
     return Perturbation(
-        dq_init=ranges.q_init_rad * uniform(k_q, (N_JOINTS,)),
-        dp_lar=ranges.lar_position_m * uniform(k_p, (3,)),
-        dr_lar=ranges.lar_angle_rad * uniform(k_r, (3,)),
-        stiffness_scale=jnp.asarray(ranges.stiffness_factor, dtype) ** uniform(k_k, ()),
-        V_base_init=jnp.concatenate(
-            [ranges.base_speed_mps * uniform(k_v, (3,)), ranges.base_rate_radps * uniform(k_w, (3,))]
-        ),
-        qd_init=ranges.joint_rate_radps * uniform(k_qd, (N_JOINTS,)),
-        radius_scale=1.0 + ranges.radius_fraction * uniform(k_radius, ()),
-        satellite_mass_scale=1.0 + ranges.satellite_mass_fraction * uniform(k_mass, ()),
-        satellite_inertia_scale=1.0 + ranges.satellite_inertia_fraction * uniform(k_inertia, (3,)),
-        dp_lar_estimate=ranges.lar_estimate_position_m * uniform(k_estimate_p, (3,)),
-        dr_lar_estimate=ranges.lar_estimate_angle_rad * uniform(k_estimate_r, (3,)),
-        target_mass_scale=1.0 + ranges.target_mass_fraction * uniform(k_target_m, ()),
-        target_inertia_scale=1.0 + ranges.target_inertia_fraction * uniform(k_target_i, (3,)),
-        target_velocity=ranges.target_speed_mps * uniform(k_target_v, (3,)),
-        target_angular_velocity=ranges.target_rate_radps * uniform(k_target_w, (3,)),
-        target_mass_log_scale=ranges.target_mass_log_range * uniform(k_target_log_m, ()),
-        target_com_offset=ranges.target_com_offset_m * _in_unit_ball(k_target_com, dtype),
+        dq_init=uniform(k_q, (N_JOINTS,)),
+        dp_lar=uniform(k_p, (3,)),
+        dr_lar=uniform(k_r, (3,)),
+        stiffness_scale=uniform(k_k, ()),
+        V_base_init=jnp.concatenate([uniform(k_v, (3,)), uniform(k_w, (3,))]),
+        qd_init=uniform(k_qd, (N_JOINTS,)),
+        radius_scale=uniform(k_radius, ()),
+        satellite_mass_scale=uniform(k_mass, ()),
+        satellite_inertia_scale=uniform(k_inertia, (3,)),
+        dp_lar_estimate=uniform(k_estimate_p, (3,)),
+        dr_lar_estimate=uniform(k_estimate_r, (3,)),
+        target_mass_scale=uniform(k_target_m, ()),
+        target_inertia_scale=uniform(k_target_i, (3,)),
+        target_velocity=uniform(k_target_v, (3,)),
+        target_angular_velocity=uniform(k_target_w, (3,)),
+        target_mass_log_scale=uniform(k_target_log_m, ()),
+        target_com_offset=_in_unit_ball(k_target_com, dtype),
     )
+
+
+def from_units(units: Perturbation, ranges: PerturbationRanges) -> Perturbation:
+    """The perturbation whose uniform numbers are ``units`` (``draw_units()``'s; any point of
+    the box [-1, 1], ``target_com_offset`` of the unit ball), with the half-widths ``ranges``.
+    Differentiable in ``units``: the worst-case search ascends through it."""
+    u = units
+    dtype = jnp.result_type(u.dq_init)
+    return Perturbation(
+        dq_init=ranges.q_init_rad * u.dq_init,
+        dp_lar=ranges.lar_position_m * u.dp_lar,
+        dr_lar=ranges.lar_angle_rad * u.dr_lar,
+        stiffness_scale=jnp.asarray(ranges.stiffness_factor, dtype) ** u.stiffness_scale,
+        V_base_init=jnp.concatenate(
+            [ranges.base_speed_mps * u.V_base_init[:3], ranges.base_rate_radps * u.V_base_init[3:]]
+        ),
+        qd_init=ranges.joint_rate_radps * u.qd_init,
+        radius_scale=1.0 + ranges.radius_fraction * u.radius_scale,
+        satellite_mass_scale=1.0 + ranges.satellite_mass_fraction * u.satellite_mass_scale,
+        satellite_inertia_scale=1.0 + ranges.satellite_inertia_fraction * u.satellite_inertia_scale,
+        dp_lar_estimate=ranges.lar_estimate_position_m * u.dp_lar_estimate,
+        dr_lar_estimate=ranges.lar_estimate_angle_rad * u.dr_lar_estimate,
+        target_mass_scale=1.0 + ranges.target_mass_fraction * u.target_mass_scale,
+        target_inertia_scale=1.0 + ranges.target_inertia_fraction * u.target_inertia_scale,
+        target_velocity=ranges.target_speed_mps * u.target_velocity,
+        target_angular_velocity=ranges.target_rate_radps * u.target_angular_velocity,
+        target_mass_log_scale=ranges.target_mass_log_range * u.target_mass_log_scale,
+        target_com_offset=ranges.target_com_offset_m * u.target_com_offset,
+    )
+
+
+def project_units(units: Perturbation) -> Perturbation:
+    """The nearest point of the units' domain: every field clipped to [-1, 1], the
+    ``target_com_offset`` scaled back into the unit ball."""
+    clipped = jax.tree.map(lambda x: jnp.clip(x, -1.0, 1.0), units)
+    offset = units.target_com_offset
+    norm = jnp.sqrt(jnp.sum(offset * offset))
+    return dataclasses.replace(clipped, target_com_offset=offset / jnp.maximum(norm, 1.0))
 
 
 def _in_unit_ball(key: jax.Array, dtype) -> jax.Array:
