@@ -37,9 +37,17 @@ from spacegrasp_jax import (
     runfiles,
     spatial,
     statistics,
+    worstcase,
 )
 from spacegrasp_jax.control import CONTROLLERS, GainsError, UnusedGainsWarning, load_gains, paper_gains
-from spacegrasp_jax.perturbations import FREE_TARGET_RANGES, PerturbationError, PerturbationRanges, load_ranges
+from spacegrasp_jax.montecarlo import perturbed_loop
+from spacegrasp_jax.perturbations import (
+    FREE_TARGET_RANGES,
+    PerturbationError,
+    PerturbationRanges,
+    from_units,
+    load_ranges,
+)
 from spacegrasp_jax.realism import Realism, RealismError, ideal, load_realism
 from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
 from spacegrasp_jax.simulate import Log
@@ -364,13 +372,31 @@ def _realism(args, scenario) -> Realism | None:
     return realism
 
 
+def _perturbed(path: str, robot, scenario, realism):
+    """``--perturbation FILE``: the nominal robot, scenario and realism perturbed as the file
+    says, as a campaign runs a sample (``montecarlo.perturbed_loop()``), and its noise key:
+    ``(robot, scenario, realism, model_robot, key)``."""
+    try:
+        units, ranges, noise_key, identified = worstcase.load_perturbation(path)
+    except worstcase.WorstCaseError as error:
+        raise UsageError(f"--perturbation {error}") from None
+    perturbation = from_units(jax.tree.map(jnp.asarray, units), ranges)
+    plant, perturbed, loop_realism, model_robot = perturbed_loop(
+        robot, scenario, perturbation, ranges, realism, identified
+    )
+    return plant, perturbed, loop_realism, model_robot, jnp.asarray(noise_key, dtype=jnp.uint32)
+
+
 def _run_controllers(args, controllers) -> int:
     robot, scenario, gains = _load_inputs(args)
     realism = _realism(args, scenario)
     _warn(plausibility.input_warnings(scenario))
+    key = jax.random.PRNGKey(getattr(args, "seed", 0))
+    model_robot = None
+    if getattr(args, "perturbation", None):
+        robot, scenario, realism, model_robot, key = _perturbed(args.perturbation, robot, scenario, realism)
     out = Path(args.out)
     _claim(args, out)  # before the first compile, not after the run
-    key = jax.random.PRNGKey(getattr(args, "seed", 0))
     results, diverged = {}, []
     for controller in controllers:
         print(
@@ -378,7 +404,14 @@ def _run_controllers(args, controllers) -> int:
         )
         try:
             results[controller] = experiment.run(
-                robot, scenario, gains, controller, pinv_damping=args.pinv_damping, realism=realism, key=key
+                robot,
+                scenario,
+                gains,
+                controller,
+                pinv_damping=args.pinv_damping,
+                realism=realism,
+                key=key,
+                model_robot=model_robot,
             )
         except experiment.SimulationDiverged as error:  # keep what it has: written below
             results[controller] = error.result
@@ -392,6 +425,7 @@ def _run_controllers(args, controllers) -> int:
     ) | {
         "gains_source": args.gains if "gains" in args else None,
         "realism_source": args.realism if "realism" in args else None,
+        "perturbation_source": getattr(args, "perturbation", None),
     }
     _write_results(
         out,
@@ -1064,6 +1098,152 @@ def _margins(args: argparse.Namespace) -> int:
     return 0
 
 
+def _worstcase(args: argparse.Namespace) -> int:
+    """``spacegrasp worstcase``: the worst capture of the envelope by gradient ascent, against
+    a campaign of the same rollouts (``spacegrasp_jax.worstcase``)."""
+    batching.use_all_cpu_cores()  # before anything touches a device
+    try:
+        ranges = _ranges(args, PerturbationRanges())
+        settings = worstcase.SearchSettings(budget=args.budget, measure=args.measure, starts=args.starts)
+    except (worstcase.WorstCaseError, PerturbationError) as error:
+        raise UsageError(str(error)) from None
+    robot, scenario, gains = _load_inputs(args)
+    realism = _realism(args, scenario)
+    config = _criteria(args, n=1, seed=args.seed, ranges=ranges, realism=realism)
+    if args.measure == "criteria" and config.torque_limit_Nm is None:
+        _warn(["--measure criteria with --torque-limit 0: the peak torque is not among the criteria"])
+    _warn(plausibility.input_warnings(scenario))
+    _check_envelope(args, scenario)
+    out = Path(args.out)
+    _claim(args, out)
+    unit, meaning = worstcase.MEASURES[args.measure]
+    print(
+        f"worst case of the {args.controller} law: {meaning}, {args.budget} rollouts "
+        f"({settings.screening} screened, {settings.ascent_steps} ascent steps of {settings.starts} starts), "
+        f"{scenario.duration:g} s each, over {jax.device_count()} device(s)...",
+        file=sys.stderr,
+        flush=True,
+    )
+    say = lambda line: print(line, file=sys.stderr, flush=True)
+    found = worstcase.search(robot, scenario, gains, args.controller, config, settings, progress=say)
+    say(f"the campaign of the same {args.budget} rollouts...")
+    baseline = worstcase.compare_with_campaign(
+        robot, scenario, gains, args.controller, config, args.budget, args.measure, chunk=settings.campaign_chunk
+    )
+    units = jax.tree.map(jnp.asarray, found.units)
+    replay_file = out / "worst_perturbation.json"
+    runfiles.write_json(replay_file, worstcase.perturbation_document(found.units, ranges, found.key, config.identified))
+    campaign_units = jax.tree.map(lambda x: x[0], worstcase.units_of_samples(args.seed, [baseline["sample"]]))
+    campaign_key = worstcase.noise_keys(args.seed, [baseline["sample"]])[0]
+    runfiles.write_json(
+        out / "campaign_worst_perturbation.json",
+        worstcase.perturbation_document(campaign_units, ranges, campaign_key, config.identified),
+    )
+    plant, perturbed, loop_realism, model_robot = perturbed_loop(
+        robot, scenario, from_units(units, ranges), ranges, realism, config.identified
+    )
+    say("the worst capture again, with its whole log...")
+    result = experiment.run(
+        plant,
+        perturbed,
+        gains,
+        args.controller,
+        pinv_damping=args.pinv_damping,
+        realism=loop_realism,
+        key=jnp.asarray(found.key, dtype=jnp.uint32),
+        model_robot=model_robot,
+        check=False,
+    )
+    perturbation = jax.tree.map(lambda x: np.asarray(x).tolist(), vars(from_units(units, ranges)))
+    replay_command = ["spacegrasp", "simulate", "--controller", args.controller]
+    for option, value in (("--gains", args.gains), ("--scenario", args.scenario), ("--robot", args.robot)):
+        if value:
+            replay_command += [option, value]
+    if args.realism:
+        replay_command += ["--realism", args.realism]
+    if args.pinv_damping:
+        replay_command += ["--pinv-damping", f"{args.pinv_damping:g}"]
+    replay_command += ["--perturbation", str(replay_file), "--out", str(out / "replay")]
+    document = {
+        "measure": args.measure,
+        "unit": unit,
+        "meaning": meaning,
+        "worst_found": {
+            "value": found.value,
+            "start": found.start,
+            "start_sample": None if found.start < 0 else found.start_samples[found.start],
+            "units": worstcase.units_to_dict(found.units),
+            "perturbation": perturbation,
+            "noise_key": [int(x) for x in found.key],
+            "summary": _with_capture(result.summary, config),
+        },
+        "campaign": {
+            "n": args.budget,
+            "seed": args.seed,
+            "worst": baseline["value"],
+            "worst_sample": baseline["sample"],
+        },
+        "worse_than_the_campaign": bool(found.value >= baseline["value"]),
+        "rollouts": found.rollouts,
+        "screening": int(len(found.screening)),
+        "compile_s": found.compile_s,
+        "search_s": found.search_s,
+        "history": found.history,
+        "replay": shlex.join(replay_command),
+        "settings": dataclasses.asdict(settings)
+        | {
+            "controller": args.controller,
+            "gains": gains.to_dict(args.controller),
+            "gains_source": args.gains or "paper_gains()",
+            "criteria": _capture_tolerances(config),
+            "campaign": config.to_dict(),
+            "scenario_duration_s": scenario.duration,
+            **runfiles.provenance(),
+        },
+    }
+    runfiles.write_json(out / "worstcase.json", document)
+    loop = "ideal loop" if realism is None else "flight-like loop"
+    _write_results(
+        out,
+        {args.controller: result},
+        {"worstcase": str(out / "worstcase.json")},
+        beside_paper=False,
+        caption=_run_caption(f"the worst capture found ({args.measure}): {loop}", "its gains", scenario),
+        torque_limit_Nm=np.asarray(robot.joint_torque_limit),
+        criteria=config,
+    )
+    label = f"{args.measure} [{unit}]" if unit else args.measure
+    title = f"worst case, {args.controller}, {args.gains or 'paper gains'}" + (
+        f", realism {args.realism}" if args.realism else ""
+    )
+    plots.save(
+        {
+            "search.png": plots.figure_worst_case_search(
+                found.history, baseline["values"], len(found.screening), label, title
+            )
+        },
+        out,
+        runfiles.write_atomically,
+    )
+    where = "a screened sample" if found.start < 0 else f"the ascent from start {found.start}"
+    print(
+        f"worst {args.measure} found: {found.value:.6g} {unit} ({where}); worst of a campaign of {args.budget}: "
+        f"{baseline['value']:.6g} {unit} (sample {baseline['sample']})"
+    )
+    print(f"{found.rollouts} rollouts in {found.search_s:.1f} s, after {found.compile_s:.1f} s compiling")
+    print(f"replay it: {shlex.join(replay_command)}")
+    if baseline["value"] > found.value:
+        print(
+            "the campaign's worst sample is worse than the search's: replay it with --perturbation "
+            f"{out / 'campaign_worst_perturbation.json'}"
+        )
+    print(
+        f"wrote {out}/: worstcase.json, worst_perturbation.json, campaign_worst_perturbation.json, search.png, "
+        "the worst capture's summary.json, figures, timeseries"
+    )
+    return 0
+
+
 def _criteria(args: argparse.Namespace, **fields) -> campaign.CampaignConfig:
     """The campaign's settings with the capture criteria of ``_add_criteria_options()``."""
     try:
@@ -1241,6 +1421,12 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--scenario", help="scenario TOML or JSON file (default: the paper's)")
     _add_realism_option(simulate)
     simulate.add_argument("--seed", type=_SEED, default=0, help="seed of the sensors' noise key (default 0)")
+    simulate.add_argument(
+        "--perturbation",
+        metavar="FILE",
+        help="run the capture a perturbation file describes (worstcase's worst_perturbation.json), "
+        "with its noise key, on the nominal robot and scenario",
+    )
     _add_run_options(simulate, "results/simulate")
     _add_csv_option(simulate, "the time series")
     _add_compile_cache_option(simulate)
@@ -1513,6 +1699,39 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_options(margin, "results/margins")
     _add_compile_cache_option(margin)
     margin.set_defaults(run=_margins)
+
+    worst = _add_command(
+        commands, "worstcase", help="the worst capture of the envelope by gradient ascent, against a campaign"
+    )
+    worst.add_argument("--controller", choices=CONTROLLERS, default="admittance")
+    worst.add_argument("--gains", help="gains JSON file (default: the paper's)")
+    worst.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
+    _add_realism_option(worst)
+    add_ranges_arguments(worst, "montecarlo")
+    worst.add_argument("--seed", type=_SEED, default=0, help="campaign seed of the screening (default 0)")
+    worst.add_argument(
+        "--budget",
+        type=_whole(1, 10_000_000),
+        default=worstcase.SearchSettings.budget,
+        help=f"rollouts in all, a gradient counting {worstcase.GRADIENT_COST} (default {worstcase.SearchSettings.budget})",
+    )
+    worst.add_argument(
+        "--measure",
+        choices=tuple(worstcase.MEASURES),
+        default=worstcase.SearchSettings.measure,
+        help="what makes a capture worse: its final position error, its largest peak torque, or its largest "
+        "ratio to the success criteria (default %(default)s)",
+    )
+    worst.add_argument(
+        "--starts",
+        type=_whole(1, 1_000),
+        default=worstcase.SearchSettings.starts,
+        help=f"ascents side by side: the screening's worst and a random corner (default {worstcase.SearchSettings.starts})",
+    )
+    _add_criteria_options(worst)
+    _add_run_options(worst, "results/worstcase")
+    _add_compile_cache_option(worst)
+    worst.set_defaults(run=_worstcase)
 
     benchmark = _add_command(
         commands, "benchmark", help="speed and memory against MuJoCo and a Pinocchio loop (needs the test extra)"

@@ -1,7 +1,7 @@
 """Figures, NumPy in and matplotlib figures out: the paper's Figures 4-9 from rollout logs
 (``FIGURES``, with the free-floating target's motion beside them), and the figures of the
 commands built on the rollout: tuning (loss, peak torques), Monte-Carlo campaigns
-(histograms, scatter, failures), gradient health, stability margins, the EE path and trade-off plots.
+(histograms, scatter, failures), gradient health, stability margins, the worst-case search, the EE path and trade-off plots.
 
 Style of the paper: blue dashed line for the admittance law (the paper's "active 6 DoF
 force/torque control"), red dotted for the Cartesian law, black solid for the desired
@@ -511,6 +511,31 @@ def save_gradient_figures(out_dir, norm_ratios, cosines, horizon_norms, outlier_
     """``gradients.png`` of ``spacegrasp gradients`` ([`figure_gradient_health()`][spacegrasp_jax.plots.figure_gradient_health])."""
     figure = figure_gradient_health(norm_ratios, cosines, horizon_norms, outlier_factor, title)
     save({"gradients.png": figure}, out_dir, write_atomically)
+
+
+def figure_worst_case_search(history: list, campaign_values, screening: int, label: str, title: str):
+    """The worst-case search of ``spacegrasp worstcase`` against a campaign of the same
+    rollouts: each start's worst measure so far against the rollouts spent (from the end of
+    the screening), the campaign's worst so far against its samples, and the worst of the
+    whole campaign (dashed)."""
+    fig, ax = plt.subplots(figsize=(8.0, 4.5))
+    fig.suptitle(title)
+    values = np.asarray(campaign_values, dtype=float)
+    top = np.nanmax(np.where(np.isfinite(values), values, np.nan)) if np.isfinite(values).any() else 1.0
+    rollouts = np.array([row["rollouts"] for row in history])
+    best = np.array([row["best"] for row in history], dtype=float)
+    for start in range(best.shape[1]):
+        ax.plot(rollouts, np.minimum(best[:, start], 3.0 * top), "o-", markersize=3, label=f"ascent from start {start}")
+    running = np.maximum.accumulate(np.where(np.isfinite(values), values, 3.0 * top))
+    ax.plot(np.arange(1, len(values) + 1), running, color="black", label="campaign: worst so far")
+    ax.axhline(running[-1], color="black", linestyle="--", linewidth=1, label=f"campaign of {len(values)}: worst")
+    ax.axvline(screening, color="tab:gray", linestyle=":", label="end of the screening")
+    ax.set_xlabel("rollouts")
+    ax.set_ylabel(label)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
 
 
 def _probe_outcome(probe: dict, captured_at_nominal: np.ndarray) -> float:

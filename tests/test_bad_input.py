@@ -50,6 +50,7 @@ SIMULATE = ["simulate", "--controller", "admittance"]
 TUNE = ["tune", "--steps", "1", "--holdout", "0"]
 MONTECARLO = ["montecarlo", "--n", "2", "--chunk", "2"]
 MARGINS = ["margins", "--samples", "2"]
+WORSTCASE = ["worstcase", "--budget", "40"]
 
 
 def files(folder):
@@ -313,6 +314,18 @@ def cases(paths, out):
             "timing.servo_period: 0.0005 s is not a whole multiple",
         ),
         "margins range huge int": ([*MARGINS, "--ranges", p["range_huge_int.toml"], "--out", out], "range_huge_int"),
+        "worstcase budget below one step": (
+            ["worstcase", "--budget", "10", "--out", out],
+            "budget: must be an integer of at least 20 rollouts",
+        ),
+        "worstcase measure": ([*WORSTCASE, "--measure", "energy", "--out", out], "argument --measure:"),
+        "worstcase starts 0": ([*WORSTCASE, "--starts", "0", "--out", out], "argument --starts:"),
+        "worstcase gains kp string": ([*WORSTCASE, "--gains", p["kp_string.json"], "--out", out], ": kp: expected"),
+        "simulate perturbation list": (
+            [*SIMULATE, "--perturbation", p["list.json"], "--out", out],
+            "list.json: expected a JSON object of settings at the top level",
+        ),
+        "simulate perturbation missing": ([*SIMULATE, "--perturbation", p["missing"], "--out", out], "missing"),
         "margins tolerance 0": ([*MARGINS, "--tolerance-mm", "0", "--out", out], "argument --tolerance-mm:"),
     }
 

@@ -19,6 +19,7 @@ HOST = {
     "spacegrasp_jax.runfiles",
     "spacegrasp_jax.sweep",
     "spacegrasp_jax.tuning",
+    "spacegrasp_jax.worstcase",
 }
 
 

@@ -1,0 +1,536 @@
+"""The worst capture in the perturbation envelope, searched by gradient.
+
+A Monte-Carlo campaign samples the envelope (``spacegrasp_jax.perturbations``) and can miss
+its corners. This search climbs to them: it ascends a *measure* of the capture (the final
+position error, the largest peak torque, or the largest ratio of a result to its success
+criterion) in the perturbation's uniform numbers ``U`` (``perturbations.draw_units()``:
+every perturbation in [-1, 1], the box of the envelope), with the exact gradient of the
+closed loop.
+
+1. **Screening.** The first ``budget / 4`` samples of the campaign ``seed`` are run
+   forward, as ``spacegrasp montecarlo`` runs them.
+2. **Starts.** The ``starts - 1`` worst of them, and one random corner of the box (every
+   ``U`` at -1 or +1, drawn from the seed).
+3. **Ascent.** Each start takes steps of the box's steepest ascent, ``U + step sign(dm/dU)``,
+   projected on the box. A step that raises the measure is kept and the next step grows
+   by 1.5; one that does not is undone and the step halves. Where the gradient is not
+   finite, or halving has brought the step below ``min_step`` (the measure is rough at the
+   scale the gradient sees: a chaotic capture), the start goes on without gradients: a
+   random sign step of size ``random_step``, kept only if it raises the measure. Every
+   start keeps the noise key of the sample it started from, so its measure is a function
+   of ``U`` alone.
+
+The budget counts rollouts: a screening sample costs 1, a point of the ascent
+``GRADIENT_COST`` (its reverse-mode gradient costs 3.5-3.8 forward rollouts on a CPU;
+documentation, Performance). The worst capture is compared with the worst of a campaign of
+the same number of rollouts and seed (``compare_with_campaign()``). A capture that runs
+away or diverges has the measure ``inf``: no capture is worse.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from spacegrasp_jax import anatomy, batching, metrics
+from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, compiled_chunk, evaluate_indices
+from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.inputs import read_document, short
+from spacegrasp_jax.model import Robot
+from spacegrasp_jax.montecarlo import NOISE_STREAM, perturbed_loop
+from spacegrasp_jax.perturbations import (
+    Perturbation,
+    PerturbationError,
+    PerturbationRanges,
+    draw_units,
+    from_units,
+    project_units,
+    sample_keys,
+)
+from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.simulate import largest_divisor, rollout
+
+#: The measures a search can climb: name -> (unit, meaning).
+MEASURES = {
+    "final_error": ("m", "the EE's final position error in the LAR frame"),
+    "peak_torque": ("N m", "the largest peak |u_i| over the joints"),
+    "criteria": (
+        "",
+        "the largest of final position error / tolerance, final orientation error / tolerance and "
+        "largest peak torque / torque limit: above 1, the capture fails",
+    ),
+}
+
+#: Rollouts one point of the ascent is counted as: its value and reverse-mode gradient.
+GRADIENT_COST = 4
+
+
+class WorstCaseError(ValueError):
+    """An invalid worst-case setting; names the cause."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SearchSettings:
+    """How the worst case is searched (module docstring).
+
+    Attributes:
+        budget: rollouts in all (screening samples count 1, ascent points ``GRADIENT_COST``).
+        measure: one of ``MEASURES``.
+        starts: ascents run side by side (the screening's ``starts - 1`` worst and a corner).
+        first_step: the first step in ``U``, the box being [-1, 1].
+        min_step: below this the ascent's step gives way to random steps.
+        random_step: the size of a random step.
+    """
+
+    budget: int = 512
+    measure: str = "final_error"
+    starts: int = 4
+    first_step: float = 0.25
+    min_step: float = 1.0 / 64.0
+    random_step: float = 0.1
+
+    def __post_init__(self):
+        if self.measure not in MEASURES:
+            raise WorstCaseError(f"measure: expected one of {', '.join(MEASURES)}, got {self.measure!r}")
+        if isinstance(self.starts, bool) or not isinstance(self.starts, int) or self.starts < 1:
+            raise WorstCaseError(f"starts: must be a positive integer, got {self.starts!r}")
+        if isinstance(self.budget, bool) or not isinstance(self.budget, int) or self.budget < self.minimum_budget:
+            raise WorstCaseError(
+                f"budget: must be an integer of at least {self.minimum_budget} rollouts (screening {self.starts} "
+                f"samples and one ascent step of {self.starts} starts at {GRADIENT_COST} rollouts each), "
+                f"got {self.budget!r}"
+            )
+        for name in ("first_step", "min_step", "random_step"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and 0.0 < value <= 2.0):
+                raise WorstCaseError(f"{name}: must be in (0, 2], got {value!r}")
+
+    @property
+    def minimum_budget(self) -> int:
+        return self.starts + GRADIENT_COST * self.starts
+
+    @property
+    def screening(self) -> int:
+        """Samples run forward before the ascent."""
+        return max(self.starts, self.budget // 4)
+
+    @property
+    def campaign_chunk(self) -> int:
+        """Samples per call of the forward program, the screening's and the comparison's."""
+        return batching.chunk_size(min(64, self.screening), self.screening)
+
+    @property
+    def ascent_steps(self) -> int:
+        """Batched points of the ascent the budget leaves."""
+        return (self.budget - self.screening) // (GRADIENT_COST * self.starts)
+
+
+# ---- the measure -------------------------------------------------------------------------
+
+
+def measure_of_metrics(sample_metrics: dict, measure: str, config: CampaignConfig) -> np.ndarray:
+    """(n,) the measure of samples from a campaign's metrics; ``inf`` where a sample ran
+    away or diverged (NumPy)."""
+    if measure == "final_error":
+        values = np.asarray(sample_metrics["final_position_error_m"], dtype=float)
+    elif measure == "peak_torque":
+        values = np.asarray(sample_metrics["largest_peak_torque_Nm"], dtype=float)
+    else:
+        margins = anatomy.failure_classes(
+            sample_metrics, config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm
+        )
+        parts = [margins["position_margin"], margins["orientation_margin"]]
+        if config.torque_limit_Nm is not None:
+            parts.append(margins["torque_margin"])
+        values = np.max(np.stack(parts), axis=0)
+    lost = np.isfinite(np.asarray(sample_metrics["first_runaway_s"], dtype=float)) | np.isfinite(
+        np.asarray(sample_metrics["first_nonfinite_s"], dtype=float)
+    )
+    return np.where(lost | ~np.isfinite(values), np.inf, values)
+
+
+def _measure_of_log(log, measure: str, criteria: tuple) -> jax.Array:
+    position_tolerance, orientation_tolerance, torque_limit = criteria
+    if measure == "final_error":
+        return metrics.final_position_error(log)
+    peak = jnp.max(jnp.abs(log.u))
+    if measure == "peak_torque":
+        return peak
+    ratios = [
+        metrics.final_position_error(log) / position_tolerance,
+        metrics.final_orientation_error(log) / orientation_tolerance,
+    ]
+    if torque_limit is not None:
+        ratios.append(peak / torque_limit)
+    return jnp.max(jnp.stack(ratios))
+
+
+def _value_and_gradient(
+    robot, scenario, gains, ranges, realism, block, *, controller, measure, criteria, identified, pinv_damping, segment
+):
+    """The measure and its gradient in ``U`` for a block ``(units, keys)`` of points."""
+
+    def value(units, key):
+        perturbation = from_units(units, ranges)
+        plant, perturbed, loop_realism, model_robot = perturbed_loop(
+            robot, scenario, perturbation, ranges, realism, identified
+        )
+        _, log = rollout(
+            plant,
+            perturbed,
+            gains,
+            controller,
+            pinv_damping,
+            checkpoint_segment=segment,
+            realism=loop_realism,
+            key=key,
+            model_robot=model_robot,
+        )
+        return _measure_of_log(log, measure, criteria)
+
+    units, keys = block
+    return jax.vmap(jax.value_and_grad(value))(units, keys)
+
+
+# ---- the search -------------------------------------------------------------------------------
+
+
+def units_of_samples(seed: int, indices, dtype=jnp.float64) -> Perturbation:
+    """The uniform numbers of the campaign's samples ``indices`` (leading axis n; NumPy)."""
+    units = jax.jit(jax.vmap(lambda key: draw_units(key, dtype)))(sample_keys(seed, indices))
+    return jax.tree.map(np.asarray, units)
+
+
+def noise_keys(seed: int, indices) -> np.ndarray:
+    """(n, 2) the sensor noise keys of the campaign's samples ``indices`` (as a campaign's)."""
+    keys = jax.vmap(lambda k: jax.random.fold_in(k, NOISE_STREAM))(sample_keys(seed, indices))
+    return np.asarray(keys)
+
+
+def random_corner(seed: int, like: Perturbation) -> Perturbation:
+    """A corner of the box (every ``U`` at -1 or +1; the ball's part on its surface), drawn
+    from ``seed`` (one point, shaped as ``like``'s first item)."""
+    rng = np.random.default_rng(seed)
+    corner = jax.tree.map(lambda x: rng.choice([-1.0, 1.0], size=np.shape(x)[1:]), like)
+    offset = corner.target_com_offset
+    return dataclasses.replace(corner, target_com_offset=offset / np.linalg.norm(offset))
+
+
+@dataclasses.dataclass
+class SearchResult:
+    """What ``search()`` returns.
+
+    Attributes:
+        value: the worst measure found. units: its point (a ``Perturbation`` of units).
+        key: (2,) its sensor noise key. start: which start found it (-1: the screening).
+        screening: the screening samples' measures (n,). history: per ascent step, each
+            start's best measure so far and mode (``"gradient"`` or ``"random"``).
+        rollouts: rollouts spent. compile_s: the programs' compile time (s).
+    """
+
+    value: float
+    units: Perturbation
+    key: np.ndarray
+    start: int
+    screening: np.ndarray
+    history: list
+    rollouts: int
+    compile_s: float
+    search_s: float
+    start_samples: list
+
+
+def search(
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller: str,
+    config: CampaignConfig,
+    settings: SearchSettings = SearchSettings(),
+    progress: Callable[[str], None] | None = None,
+) -> SearchResult:
+    """The worst capture of the envelope ``config.ranges`` (module docstring).
+
+    Args:
+        robot, scenario, gains, controller: the nominal loop.
+        config: the envelope and campaign seed, the realism, the criteria (for the
+            ``criteria`` measure) and whether the controller is told each plant
+            (``identified``); its ``n`` and ``chunk`` are not used.
+        settings: the budget, the measure and the ascent's steps.
+        progress: called with one line per ascent step (``None``: silent).
+    """
+    started = time.perf_counter()
+    say = progress or (lambda line: None)
+    chunk = settings.campaign_chunk
+    screening = chunk * math.ceil(settings.screening / chunk)
+    screen_config = dataclasses.replace(config, n=screening, chunk=chunk)
+    variant = Variant(controller, gains)
+    _, compile_s = compiled_chunk(robot, scenario, variant, screen_config)
+    pieces = []
+    for first in range(0, screening, chunk):
+        pieces.append(evaluate_indices(robot, scenario, variant, screen_config, np.arange(first, first + chunk)))
+    sample_metrics = {name: np.concatenate([piece[name] for piece in pieces]) for name in pieces[0]}
+    values = measure_of_metrics(sample_metrics, settings.measure, config)
+    say(f"screening: {screening} samples, worst {settings.measure} {np.max(values):.6g}")
+
+    worst_samples = [int(i) for i in np.argsort(-values, kind="stable")[: settings.starts - 1]]
+    units = units_of_samples(config.seed, worst_samples)
+    corner = random_corner(config.seed, units_of_samples(config.seed, [0]))
+    units = jax.tree.map(lambda many, one: np.concatenate([many, np.asarray(one)[None]]), units, corner)
+    keys = np.concatenate([noise_keys(config.seed, worst_samples), noise_keys(config.seed, [screening])])
+    starts = settings.starts
+    batch = batching.chunk_size(starts, starts)
+    pad = lambda x: np.concatenate([x, np.repeat(x[-1:], batch - starts, axis=0)])
+
+    function = functools.partial(
+        _value_and_gradient,
+        controller=controller,
+        measure=settings.measure,
+        criteria=(config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm),
+        identified=config.identified,
+        pinv_damping=config.pinv_damping,
+        segment=largest_divisor(scenario.n_steps, 2)
+        if config.realism is None or config.realism.is_ideal(scenario.dt)
+        else config.realism.steps_per_period(scenario.dt),
+    )
+    replicated = (robot, scenario, gains, config.ranges, config.realism)
+    key = ("worstcase", controller, settings.measure, config.identified, config.pinv_damping)
+    try:
+        executable, gradient_compile_s = batching.compile_chunk(
+            f"worst-case gradient, {controller}",
+            function,
+            replicated,
+            jax.tree.map(pad, (units, keys)),
+            device_batch=1,
+            key=key,
+        )
+    except batching.BatchingError as error:
+        raise CampaignError(str(error)) from None
+    compile_s += gradient_compile_s
+
+    def evaluate(points):
+        block = jax.tree.map(pad, (points, keys))
+        values, gradients = batching.run_chunk(executable, replicated, block)
+        return values[:starts], jax.tree.map(lambda x: x[:starts], gradients)
+
+    best_values, best_units, history = ascend(
+        evaluate, units, settings, np.random.default_rng([config.seed, 1]), screening, say
+    )
+    rollouts = history[-1]["rollouts"]
+
+    best_start = int(np.argmax(best_values))
+    screening_worst = int(np.argmax(values))
+    if values[screening_worst] > best_values[best_start]:
+        value, start = float(values[screening_worst]), -1
+        found_units = jax.tree.map(lambda x: x[0], units_of_samples(config.seed, [screening_worst]))
+        found_key = noise_keys(config.seed, [screening_worst])[0]
+    else:
+        value, start = float(best_values[best_start]), best_start
+        found_units = jax.tree.map(lambda x: np.asarray(x[best_start]), best_units)
+        found_key = keys[best_start]
+    return SearchResult(
+        value=value,
+        units=found_units,
+        key=np.asarray(found_key),
+        start=start,
+        screening=values,
+        history=history,
+        rollouts=rollouts,
+        compile_s=compile_s,
+        search_s=time.perf_counter() - started - compile_s,
+        start_samples=worst_samples + [None],
+    )
+
+
+def ascend(evaluate, units: Perturbation, settings: SearchSettings, rng, rollouts_before: int = 0, say=None):
+    """The ascent of the module docstring from the batch of points ``units`` (leading axis:
+    the starts), for ``settings.ascent_steps`` evaluations.
+
+    Args:
+        evaluate: ``points -> (values (n,), gradients)``, the measure and its gradient in
+            ``U`` at a batch of points (gradients shaped as the points).
+        units: the starts, a ``Perturbation`` of units with leading axis n.
+        settings: the steps (``first_step``, ``min_step``, ``random_step``) and their number.
+        rng: a NumPy generator, for the random steps.
+        rollouts_before: rollouts spent before the ascent (for ``history``).
+        say: called with one line per step (``None``: silent).
+
+    Returns:
+        ``(values, units, history)``: each start's best measure (``inf``: a capture that
+        ran away) and its point, and per evaluation the rollouts spent so far, each start's
+        best measure and its mode (``"gradient"`` or ``"random"``).
+    """
+    starts = len(jax.tree.leaves(units)[0])
+    best_values, best_gradients = evaluate(units)
+    best_values = np.where(np.isfinite(best_values), best_values, np.inf)
+    best_units = units
+    steps = np.full(starts, settings.first_step)
+    modes = ["gradient"] * starts
+    rollouts = rollouts_before + GRADIENT_COST * starts
+    history = [{"rollouts": rollouts, "best": best_values.tolist(), "modes": list(modes)}]
+    for step_number in range(settings.ascent_steps - 1):
+        finite_gradient = [
+            all(np.all(np.isfinite(leaf[i])) for leaf in jax.tree.leaves(best_gradients)) for i in range(starts)
+        ]
+        for i in range(starts):
+            if modes[i] == "gradient" and (not finite_gradient[i] or steps[i] < settings.min_step):
+                modes[i], steps[i] = "random", settings.random_step
+
+        def proposal(u, g, i):
+            direction = np.sign(g) if modes[i] == "gradient" else rng.choice([-1.0, 1.0], size=np.shape(u))
+            return u + steps[i] * direction
+
+        proposals = jax.tree.map(
+            lambda u, g: np.stack([proposal(u[i], g[i], i) for i in range(starts)]), best_units, best_gradients
+        )
+        proposals = jax.tree.map(np.asarray, jax.vmap(project_units)(proposals))
+        values_now, gradients_now = evaluate(proposals)
+        values_now = np.where(np.isfinite(values_now), values_now, np.inf)
+        rollouts += GRADIENT_COST * starts
+        for i in range(starts):
+            if np.isfinite(best_values[i]) and values_now[i] > best_values[i]:
+                best_values[i] = values_now[i]
+                take = lambda best, new, i=i: _set_row(best, i, new[i])
+                best_units = jax.tree.map(take, best_units, proposals)
+                best_gradients = jax.tree.map(take, best_gradients, gradients_now)
+                if modes[i] == "gradient":
+                    steps[i] = min(1.0, 1.5 * steps[i])
+            elif modes[i] == "gradient":
+                steps[i] *= 0.5
+        history.append({"rollouts": rollouts, "best": best_values.tolist(), "modes": list(modes)})
+        if say is not None:
+            say(
+                f"ascent step {step_number + 2}/{settings.ascent_steps}: best {settings.measure} "
+                + ", ".join(f"{v:.6g} ({m[0]})" for v, m in zip(best_values, modes))
+            )
+    return best_values, best_units, history
+
+
+def _set_row(array, i, row):
+    array = np.array(array, copy=True)
+    array[i] = row
+    return array
+
+
+def compare_with_campaign(
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller: str,
+    config: CampaignConfig,
+    n: int,
+    measure: str,
+    chunk: int = 64,
+) -> dict:
+    """The worst of a campaign of ``n`` samples (seed ``config.seed``), run ``chunk`` at a
+    time (the screening's ``SearchSettings.campaign_chunk`` shares its program): ``value``,
+    ``sample`` (its index), and every sample's measure (``values``)."""
+    padded = chunk * math.ceil(n / chunk)
+    campaign_config = dataclasses.replace(config, n=padded, chunk=chunk)
+    variant = Variant(controller, gains)
+    pieces = [
+        evaluate_indices(robot, scenario, variant, campaign_config, np.arange(first, first + chunk))
+        for first in range(0, padded, chunk)
+    ]
+    sample_metrics = {name: np.concatenate([piece[name] for piece in pieces])[:n] for name in pieces[0]}
+    values = measure_of_metrics(sample_metrics, measure, config)
+    worst = int(np.argmax(values))
+    return {"value": float(values[worst]), "sample": worst, "values": values}
+
+
+def units_to_dict(units: Perturbation) -> dict[str, list[float]]:
+    """The units as plain lists (JSON)."""
+    return {name: np.ravel(np.asarray(value, dtype=float)).tolist() for name, value in vars(units).items()}
+
+
+def units_from_dict(document: dict, dtype=np.float64) -> Perturbation:
+    """``units_to_dict()``'s inverse; every field required, each of its shape, in the box."""
+    like = jax.tree.map(np.asarray, draw_units(jax.random.PRNGKey(0), dtype))
+    fields = {}
+    for name, reference in vars(like).items():
+        if name not in document:
+            raise WorstCaseError(f"units: {name} is missing")
+        try:
+            value = np.asarray(document[name], dtype=dtype)
+        except (TypeError, ValueError):
+            raise WorstCaseError(f"units.{name}: expected numbers, got {short(document[name])}") from None
+        if value.size != reference.size or not np.all(np.isfinite(value)):
+            raise WorstCaseError(f"units.{name}: expected {reference.size} finite numbers, got {document[name]!r}")
+        if np.any(np.abs(value) > 1.0 + 1e-12):
+            raise WorstCaseError(f"units.{name}: outside the box [-1, 1]: {value.tolist()}")
+        if name == "target_com_offset" and np.linalg.norm(value) > 1.0 + 1e-12:
+            raise WorstCaseError(f"units.{name}: outside the unit ball: {value.tolist()}")
+        fields[name] = value.reshape(reference.shape)
+    unknown = set(document) - set(fields)
+    if unknown:
+        raise WorstCaseError(f"units: unknown field(s) {', '.join(sorted(unknown))}")
+    return Perturbation(**fields)
+
+
+def perturbation_document(units: Perturbation, ranges, key, identified: bool) -> dict:
+    """A perturbation file's content (``spacegrasp simulate --perturbation``): the units,
+    the half-widths they scale, the sensor noise key and whether the controller is told
+    the perturbed satellite."""
+    return {
+        "units": units_to_dict(units),
+        "ranges": ranges.to_dict(),
+        "noise_key": [int(x) for x in np.asarray(key, dtype=np.uint32).ravel()],
+        "identified": bool(identified),
+    }
+
+
+def load_perturbation(path) -> tuple[Perturbation, PerturbationRanges, np.ndarray, bool]:
+    """A perturbation file (``perturbation_document()``): ``(units, ranges, key, identified)``."""
+    document = read_document(Path(path), WorstCaseError)
+    if not isinstance(document, dict):
+        raise WorstCaseError(f"{path}: expected a table with units, ranges, noise_key and identified")
+    for name in ("units", "ranges", "noise_key", "identified"):
+        if name not in document:
+            raise WorstCaseError(f"{path}: {name} is missing")
+    if not isinstance(document["units"], dict):
+        raise WorstCaseError(f"{path}: units: expected a table of fields")
+    if not isinstance(document["ranges"], dict):
+        raise WorstCaseError(f"{path}: ranges: expected a table of half-widths")
+    key = document["noise_key"]
+    if not (
+        isinstance(key, list)
+        and len(key) == 2
+        and all(isinstance(x, int) and not isinstance(x, bool) and 0 <= x < 2**32 for x in key)
+    ):
+        raise WorstCaseError(f"{path}: noise_key: expected two integers in [0, 2^32), got {short(key)}")
+    if not isinstance(document["identified"], bool):
+        raise WorstCaseError(f"{path}: identified: expected true or false, got {short(document['identified'])}")
+    try:
+        units = units_from_dict(document["units"])
+        ranges = PerturbationRanges.from_mapping(document["ranges"], base=PerturbationRanges.nominal())
+    except (WorstCaseError, PerturbationError) as error:
+        raise WorstCaseError(f"{path}: {error}") from None
+    return units, ranges, np.asarray(key, dtype=np.uint32), document["identified"]
+
+
+__all__ = [
+    "GRADIENT_COST",
+    "MEASURES",
+    "SearchResult",
+    "SearchSettings",
+    "WorstCaseError",
+    "ascend",
+    "compare_with_campaign",
+    "load_perturbation",
+    "perturbation_document",
+    "measure_of_metrics",
+    "noise_keys",
+    "random_corner",
+    "search",
+    "units_from_dict",
+    "units_of_samples",
+    "units_to_dict",
+]
