@@ -233,7 +233,9 @@ class SearchResult:
         key: (2,) its sensor noise key. start: which start found it (-1: the screening).
         screening: the screening samples' measures (n,). history: per ascent step, each
             start's best measure so far and mode (``"gradient"`` or ``"random"``).
-        rollouts: rollouts spent. compile_s: the programs' compile time (s).
+        rollouts: rollouts spent. compile_s: the programs' compile time (s). search_s:
+            the screening's and the ascent's run time (s).
+        start_samples: the campaign sample each start began at (``None``: the corner).
     """
 
     value: float
