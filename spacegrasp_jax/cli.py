@@ -1662,12 +1662,7 @@ def build_parser() -> argparse.ArgumentParser:
     margin = _add_command(
         commands, "margins", help="gain and delay margins of a gain set, by bisection on envelope samples"
     )
-    margin.add_argument("--controller", choices=CONTROLLERS, default="admittance")
-    margin.add_argument("--gains", help="gains JSON file (default: the paper's)")
-    margin.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
-    _add_realism_option(margin)
-    add_ranges_arguments(margin, "montecarlo")
-    margin.add_argument("--seed", type=_SEED, default=0, help="campaign seed of the samples (default 0)")
+    _add_envelope_options(margin, seed_help="campaign seed of the samples (default 0)")
     margin.add_argument(
         "--samples",
         type=_whole(1, 100_000),
@@ -1703,12 +1698,7 @@ def build_parser() -> argparse.ArgumentParser:
     worst = _add_command(
         commands, "worstcase", help="the worst capture of the envelope by gradient ascent, against a campaign"
     )
-    worst.add_argument("--controller", choices=CONTROLLERS, default="admittance")
-    worst.add_argument("--gains", help="gains JSON file (default: the paper's)")
-    worst.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
-    _add_realism_option(worst)
-    add_ranges_arguments(worst, "montecarlo")
-    worst.add_argument("--seed", type=_SEED, default=0, help="campaign seed of the screening (default 0)")
+    _add_envelope_options(worst, seed_help="campaign seed of the screening (default 0)")
     worst.add_argument(
         "--budget",
         type=_whole(1, 10_000_000),
@@ -1763,6 +1753,17 @@ def _add_realism_option(parser: argparse.ArgumentParser) -> None:
 #: The file in the compile cache's folder that keeps each program's last compile time, for
 #: the line printed before the program compiles again (``compilation.CompileAnnouncer``).
 COMPILE_TIMES = "spacegrasp-compile-times.json"
+
+
+def _add_envelope_options(parser: argparse.ArgumentParser, seed_help: str) -> None:
+    """The gain set, its law and loop, and the envelope and seed its captures are drawn from
+    (``margins`` and ``worstcase``)."""
+    parser.add_argument("--controller", choices=CONTROLLERS, default="admittance")
+    parser.add_argument("--gains", help="gains JSON file (default: the paper's)")
+    parser.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
+    _add_realism_option(parser)
+    add_ranges_arguments(parser, "montecarlo")
+    parser.add_argument("--seed", type=_SEED, default=0, help=seed_help)
 
 
 def _add_criteria_options(parser: argparse.ArgumentParser) -> None:
