@@ -1126,9 +1126,17 @@ def _worstcase(args: argparse.Namespace) -> int:
     )
     say = lambda line: print(line, file=sys.stderr, flush=True)
     found = worstcase.search(robot, scenario, gains, args.controller, config, settings, progress=say)
-    say(f"the campaign of the same {args.budget} rollouts...")
+    say(f"the campaign of the same {args.budget} rollouts (its first {len(found.screening)} are the screening's)...")
     baseline = worstcase.compare_with_campaign(
-        robot, scenario, gains, args.controller, config, args.budget, args.measure, chunk=settings.campaign_chunk
+        robot,
+        scenario,
+        gains,
+        args.controller,
+        config,
+        args.budget,
+        args.measure,
+        chunk=settings.campaign_chunk,
+        screened=found.screening,
     )
     units = jax.tree.map(jnp.asarray, found.units)
     replay_file = out / "worst_perturbation.json"

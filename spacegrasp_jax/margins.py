@@ -49,7 +49,7 @@ from spacegrasp_jax.campaign import CampaignConfig, CampaignError
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.law import law_named
 from spacegrasp_jax.model import N_JOINTS, Robot
-from spacegrasp_jax.montecarlo import evaluate_samples, success
+from spacegrasp_jax.montecarlo import evaluate_samples, lost, success
 from spacegrasp_jax.scenario import Scenario
 
 #: The gain groups each loop's factor scales, per controller, and how: ``+1`` multiplies by
@@ -196,7 +196,9 @@ class Prober:
         probes: one dict a probe run: ``loop`` (``"pid"``, ``"law"`` or ``"delay"``),
             ``value`` (the factor or the delay in periods), ``holds``, and per sample
             ``success``, ``bounded``, ``final_position_error_m``, ``largest_peak_torque_Nm``.
-        compile_s: the compile time of the probes' program (s; 0 when loaded).
+        compile_s: the time the probes' program took to build in this process (s; a load
+            from the compilation cache counts its load).
+        nominal: the nominal gains' probe (``outcome()``'s dict), run at the first probe.
     """
 
     robot: Robot
@@ -257,7 +259,7 @@ class Prober:
             config.torque_limit_Nm,
             config.target_speed_limit_mps,
         )
-        bounded = ~(np.isfinite(sample_metrics["first_runaway_s"]) | np.isfinite(sample_metrics["first_nonfinite_s"]))
+        bounded = ~lost(sample_metrics)
         return sample_metrics | {"success": captured, "bounded": bounded}
 
     def holds(self, loop: str, value) -> bool:

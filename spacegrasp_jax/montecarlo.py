@@ -17,6 +17,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from spacegrasp_jax import anatomy, metrics
 from spacegrasp_jax.control.gains import Gains
@@ -248,6 +249,14 @@ def perturbed_loop(
         lar_angle_error_rad=base.lar_angle_error_rad + perturbation.dr_lar_estimate,
     )
     return plant, perturbed, loop_realism, robot if believes_nominal else None
+
+
+def lost(sample_metrics: dict) -> np.ndarray:
+    """(n,) bool: the sample ran away (``first_runaway_s``) or diverged
+    (``first_nonfinite_s``) (NumPy)."""
+    return np.isfinite(np.asarray(sample_metrics["first_runaway_s"], dtype=float)) | np.isfinite(
+        np.asarray(sample_metrics["first_nonfinite_s"], dtype=float)
+    )
 
 
 def success(

@@ -45,7 +45,7 @@ from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, comp
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.inputs import read_document, short
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.montecarlo import NOISE_STREAM, perturbed_loop
+from spacegrasp_jax.montecarlo import NOISE_STREAM, lost, perturbed_loop
 from spacegrasp_jax.perturbations import (
     Perturbation,
     PerturbationError,
@@ -151,10 +151,7 @@ def measure_of_metrics(sample_metrics: dict, measure: str, config: CampaignConfi
         if config.torque_limit_Nm is not None:
             parts.append(margins["torque_margin"])
         values = np.max(np.stack(parts), axis=0)
-    lost = np.isfinite(np.asarray(sample_metrics["first_runaway_s"], dtype=float)) | np.isfinite(
-        np.asarray(sample_metrics["first_nonfinite_s"], dtype=float)
-    )
-    return np.where(lost | ~np.isfinite(values), np.inf, values)
+    return np.where(lost(sample_metrics) | ~np.isfinite(values), np.inf, values)
 
 
 def _measure_of_log(log, measure: str, criteria: tuple) -> jax.Array:
@@ -273,14 +270,9 @@ def search(
     say = progress or (lambda line: None)
     chunk = settings.campaign_chunk
     screening = chunk * math.ceil(settings.screening / chunk)
-    screen_config = dataclasses.replace(config, n=screening, chunk=chunk)
-    variant = Variant(controller, gains)
-    _, compile_s = compiled_chunk(robot, scenario, variant, screen_config)
-    pieces = []
-    for first in range(0, screening, chunk):
-        pieces.append(evaluate_indices(robot, scenario, variant, screen_config, np.arange(first, first + chunk)))
-    sample_metrics = {name: np.concatenate([piece[name] for piece in pieces]) for name in pieces[0]}
-    values = measure_of_metrics(sample_metrics, settings.measure, config)
+    values, compile_s = campaign_measures(
+        robot, scenario, gains, controller, config, settings.measure, 0, screening, chunk
+    )
     say(f"screening: {screening} samples, worst {settings.measure} {np.max(values):.6g}")
 
     worst_samples = [int(i) for i in np.argsort(-values, kind="stable")[: settings.starts - 1]]
@@ -422,6 +414,31 @@ def _set_row(array, i, row):
     return array
 
 
+def campaign_measures(
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller: str,
+    config: CampaignConfig,
+    measure: str,
+    first: int,
+    stop: int,
+    chunk: int,
+) -> tuple[np.ndarray, float]:
+    """The measures of the campaign's samples ``first .. stop - 1`` (``stop - first`` a
+    multiple of ``chunk``), run ``chunk`` at a time as ``spacegrasp montecarlo`` runs them,
+    and the compile time of their program (s)."""
+    campaign_config = dataclasses.replace(config, n=stop, chunk=chunk)
+    variant = Variant(controller, gains)
+    _, compile_s = compiled_chunk(robot, scenario, variant, campaign_config)
+    pieces = [
+        evaluate_indices(robot, scenario, variant, campaign_config, np.arange(start, start + chunk))
+        for start in range(first, stop, chunk)
+    ]
+    sample_metrics = {name: np.concatenate([piece[name] for piece in pieces]) for name in pieces[0]}
+    return measure_of_metrics(sample_metrics, measure, config), compile_s
+
+
 def compare_with_campaign(
     robot: Robot,
     scenario: Scenario,
@@ -431,19 +448,20 @@ def compare_with_campaign(
     n: int,
     measure: str,
     chunk: int = 64,
+    screened: np.ndarray | None = None,
 ) -> dict:
     """The worst of a campaign of ``n`` samples (seed ``config.seed``), run ``chunk`` at a
     time (the screening's ``SearchSettings.campaign_chunk`` shares its program): ``value``,
-    ``sample`` (its index), and every sample's measure (``values``)."""
-    padded = chunk * math.ceil(n / chunk)
-    campaign_config = dataclasses.replace(config, n=padded, chunk=chunk)
-    variant = Variant(controller, gains)
-    pieces = [
-        evaluate_indices(robot, scenario, variant, campaign_config, np.arange(first, first + chunk))
-        for first in range(0, padded, chunk)
-    ]
-    sample_metrics = {name: np.concatenate([piece[name] for piece in pieces])[:n] for name in pieces[0]}
-    values = measure_of_metrics(sample_metrics, measure, config)
+    ``sample`` (its index), and every sample's measure (``values``). ``screened``: the
+    measures of its first samples, already run (``SearchResult.screening``): not run again."""
+    known = np.zeros(0) if screened is None else np.asarray(screened, dtype=float)[:n]
+    if len(known) % chunk:
+        raise WorstCaseError(f"screened: {len(known)} samples is not a whole number of chunks of {chunk}")
+    rest = np.zeros(0)
+    if len(known) < n:
+        stop = len(known) + chunk * math.ceil((n - len(known)) / chunk)
+        rest, _ = campaign_measures(robot, scenario, gains, controller, config, measure, len(known), stop, chunk)
+    values = np.concatenate([known, rest])[:n]
     worst = int(np.argmax(values))
     return {"value": float(values[worst]), "sample": worst, "values": values}
 
@@ -525,6 +543,7 @@ __all__ = [
     "SearchSettings",
     "WorstCaseError",
     "ascend",
+    "campaign_measures",
     "compare_with_campaign",
     "load_perturbation",
     "perturbation_document",
