@@ -2,11 +2,12 @@
 
     python -m spacegrasp_jax.benchmarks.margins [--out results/benchmarks] [--realism ideal|flight]
 
-Runs every search of ``spacegrasp_jax.margins.find_margins()`` (the paper's admittance gains,
-the paper's 17 s scenario, 8 envelope samples a probe, the campaign's criteria) over every
-CPU core, with the compilation cache off, and reports the compile time of the probes'
-program, the search's time, the probes and rollouts it ran, and the process's peak memory.
-Writes ``margins.json``.
+Runs what the command runs on its defaults (the paper's admittance gains, the paper's 17 s
+scenario, 8 envelope samples a probe, the campaign's criteria) over every CPU core, with the
+compilation cache off: every search of ``spacegrasp_jax.margins.find_margins()``, then the
+linear analysis of ``spacegrasp_jax.stability.linear_analysis()``. Reports each part's
+compile time and search time, the probes, rollouts and linearisations, and the process's
+peak memory. Writes ``margins.json``.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from pathlib import Path
 import jax
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import batching, margins
+from spacegrasp_jax import batching, margins, stability
 from spacegrasp_jax.benchmarks.dynamics import machine
 from spacegrasp_jax.campaign import CampaignConfig
 from spacegrasp_jax.control import paper_gains
@@ -41,18 +42,25 @@ def main(argv: list[str] | None = None) -> dict:
     config = CampaignConfig(n=margins.MarginSettings.samples, realism=None if args.realism == "ideal" else realism)
     started = time.perf_counter()
     result = margins.find_margins(robot, scenario, paper_gains(), "admittance", config)
+    time_domain_s = time.perf_counter() - started
+    linear = stability.linear_analysis(robot, scenario, paper_gains(), "admittance", config.realism)
     wall = time.perf_counter() - started
     report = {
         "machine": machine(),
         "devices": jax.device_count(),
         "realism": args.realism,
         "wall_s": wall,
+        "time_domain_s": time_domain_s,
         "compile_s": result["compile_s"],
         "search_s": result["search_s"],
         "probes": len(result["probes"]),
         "rollouts": result["rollouts"],
+        "linear_s": wall - time_domain_s,
+        "linear_compile_s": linear["compile_s"],
+        "linear_search_s": linear["search_s"],
+        "linearisations": len(linear["probes"]),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "margins": margins.margin_lines(result),
+        "margins": margins.margin_lines(result) + stability.linear_lines(linear),
     }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

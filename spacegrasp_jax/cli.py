@@ -36,6 +36,7 @@ from spacegrasp_jax import (
     plots,
     runfiles,
     spatial,
+    stability,
     statistics,
     worstcase,
 )
@@ -1079,6 +1080,28 @@ def _margins(args: argparse.Namespace) -> int:
         settings,
         progress=lambda line: print(line, file=sys.stderr, flush=True),
     )
+    result["linear"] = None
+    if args.no_linear:
+        result["linear_skipped"] = "--no-linear"
+    elif scenario.target is not None:
+        result["linear_skipped"] = "the linear analysis covers the paper's stationary target only"
+        print(f"linear analysis skipped: {result['linear_skipped']}", file=sys.stderr)
+    else:
+        print(
+            "linearising the loop at the end of the nominal capture (one compile, then one Jacobian a factor)...",
+            file=sys.stderr,
+            flush=True,
+        )
+        result["linear"] = stability.linear_analysis(
+            robot,
+            scenario,
+            gains,
+            args.controller,
+            realism,
+            settings,
+            growth_limit_per_s=args.growth_limit,
+            pinv_damping=config.pinv_damping,
+        )
     result["settings"] |= {
         "gains": gains.to_dict(args.controller),
         "gains_source": args.gains or "paper_gains()",
@@ -1092,9 +1115,9 @@ def _margins(args: argparse.Namespace) -> int:
         f", realism {args.realism}" if args.realism else ""
     )
     plots.save_margin_figures(out, result, 1e3 * config.position_tolerance_m, title, runfiles.write_atomically)
-    for line in margins.margin_lines(result):
+    for line in margins.margin_lines(result) + (stability.linear_lines(result["linear"]) if result["linear"] else []):
         print(line)
-    print(f"wrote {out}/: margins.json, margins.png")
+    print(f"wrote {out}/: margins.json, margins.png" + (", eigenvalues.png" if result["linear"] else ""))
     return 0
 
 
@@ -1697,6 +1720,18 @@ def build_parser() -> argparse.ArgumentParser:
         default=margins.MarginSettings.max_delay_periods,
         metavar="PERIODS",
         help=f"the largest extra delay searched, in control periods (default {margins.MarginSettings.max_delay_periods})",
+    )
+    margin.add_argument(
+        "--growth-limit",
+        type=_real(0.0, 1e6),
+        default=1.0,
+        metavar="PER_S",
+        help="the linear analysis counts a mode growing faster than this (1/s) as unstable (default 1)",
+    )
+    margin.add_argument(
+        "--no-linear",
+        action="store_true",
+        help="skip the linear analysis (the period map's eigenvalues and the linear gain margins)",
     )
     _add_criteria_options(margin)
     _add_run_options(margin, "results/margins")

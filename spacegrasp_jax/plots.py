@@ -618,9 +618,59 @@ def figure_margins(result: dict, tolerance_mm: float, title: str):
     return fig
 
 
+def figure_eigenvalues(linear: dict, title: str):
+    """The period map's eigenvalues (``spacegrasp_jax.stability.linear_analysis()``'s
+    result) for the nominal gains and at the first failing factor of each linear gain
+    margin: in the unit disc (left; a mode is stable inside the circle) and as poles
+    ``s = ln(lambda) / T`` (right): growth rate ``Re s`` against frequency ``|Im s| / 2 pi``,
+    where the slow modes a short control period crowds near ``z = 1`` stand apart. The
+    growth limit the margins use is the dashed line."""
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.5))
+    fig.suptitle(title)
+    sets = [("nominal gains", np.asarray([m["eigenvalue"] for m in linear["modes"]]), "k", "o")]
+    markers = {"pid": "^", "law": "s"}
+    for loop, directions in linear["eigenvalues_at_margins"].items():
+        for direction, values in directions.items():
+            if values is not None:
+                factor = linear["gain_margins"][loop][direction]["fails"]
+                colour = "tab:red" if direction == "increase" else "tab:blue"
+                sets.append((f"{loop} gain x{factor:.3g} (fails)", np.asarray(values), colour, markers[loop]))
+    angle = np.linspace(0.0, 2.0 * np.pi, 721)
+    disc, poles = axes
+    disc.plot(np.cos(angle), np.sin(angle), color="0.6", lw=1.0)
+    period = linear["control_period_s"]
+    for label, values, colour, marker in sets:
+        disc.plot(values[:, 0], values[:, 1], marker, mfc="none", color=colour, label=label, ms=6)
+        z = values[:, 0] + 1j * values[:, 1]
+        z = z[np.abs(z) > 0.0]
+        s = np.log(z) / period
+        poles.plot(s.real, np.abs(s.imag) / (2.0 * np.pi), marker, mfc="none", color=colour, label=label, ms=6)
+    disc.set_aspect("equal")
+    disc.set(xlabel="Re z", ylabel="Im z", title="eigenvalues of the control-period map")
+    disc.legend(fontsize=8, loc="lower left")
+    poles.axvline(0.0, color="0.4", lw=1.0)
+    poles.axvline(linear["growth_limit_per_s"], color="tab:red", ls="--", lw=1.0, label="growth limit")
+    poles.set_xscale("symlog", linthresh=0.01)
+    poles.set_yscale("symlog", linthresh=0.01)
+    poles.set_ylim(bottom=0.0)
+    poles.set(
+        xlabel="growth rate Re s [1/s] (right of 0: grows)",
+        ylabel="frequency |Im s| / 2 pi [Hz]",
+        title="the same modes as poles s = ln(z) / T",
+    )
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
 def save_margin_figures(out_dir, result: dict, tolerance_mm: float, title: str, write_atomically) -> None:
-    """``margins.png`` of ``spacegrasp margins`` ([`figure_margins()`][spacegrasp_jax.plots.figure_margins])."""
-    save({"margins.png": figure_margins(result, tolerance_mm, title)}, out_dir, write_atomically)
+    """``margins.png`` of ``spacegrasp margins`` ([`figure_margins()`][spacegrasp_jax.plots.figure_margins]) and, with a
+    linear analysis in ``result["linear"]``, ``eigenvalues.png`` ([`figure_eigenvalues()`][spacegrasp_jax.plots.figure_eigenvalues])."""
+    figures = {"margins.png": figure_margins(result, tolerance_mm, title)}
+    if result.get("linear"):
+        figures["eigenvalues.png"] = figure_eigenvalues(result["linear"], title)
+    save(figures, out_dir, write_atomically)
 
 
 # ---- the EE path around the contact sphere, and gain sweeps ----------------------------

@@ -307,6 +307,10 @@ def cases(paths, out):
             "factor_resolution: must be a ratio above 1 and below max_factor",
         ),
         "margins max delay 0": ([*MARGINS, "--max-delay", "0", "--out", out], "argument --max-delay:"),
+        "margins growth limit negative": (
+            [*MARGINS, "--growth-limit", "-1", "--out", out],
+            "argument --growth-limit:",
+        ),
         "margins law": ([*MARGINS, "--controller", "pid", "--out", out], "argument --controller:"),
         "margins gains kp string": ([*MARGINS, "--gains", p["kp_string.json"], "--out", out], ": kp: expected"),
         "margins servo below dt": (

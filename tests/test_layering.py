@@ -17,6 +17,7 @@ HOST = {
     "spacegrasp_jax.experiment",
     "spacegrasp_jax.margins",
     "spacegrasp_jax.runfiles",
+    "spacegrasp_jax.stability",
     "spacegrasp_jax.sweep",
     "spacegrasp_jax.tuning",
     "spacegrasp_jax.worstcase",

@@ -211,3 +211,23 @@ def test_the_margins_command_writes_its_files_and_prints_the_margins(flight_capt
     assert document["rollouts"] == len(document["probes"]) * SAMPLES
     assert document["settings"]["criteria"]["final_position_m"] == pytest.approx(0.025)
     assert set(document["gain_margins"]) == {"pid", "law"}
+    # The linear analysis (tests/test_stability.py checks it): its margins, modes and figure.
+    linear = document["linear"]
+    assert (out / "eigenvalues.png").stat().st_size > 10_000
+    assert "linear joint PID gain margin" in printed and "least stable mode" in printed
+    assert linear["control_period_s"] == pytest.approx(0.01)
+    assert (
+        len(linear["modes"])
+        == len(linear["operating_point"]["coordinates"]) - linear["operating_point"]["neutral_modes_removed"]
+    )
+    magnitudes = [mode["magnitude"] for mode in linear["modes"]]
+    assert linear["spectral_radius"] == pytest.approx(max(magnitudes))
+    for mode in linear["modes"]:
+        if mode["growth_rate_per_s"] is not None:
+            assert mode["growth_rate_per_s"] == pytest.approx(math.log(mode["magnitude"]) / 0.01)
+    skipped = tmp_path / "no-linear"
+    assert cli.main([*argv[:-1], str(skipped), "--no-linear"]) == 0
+    again = json.loads((skipped / "margins.json").read_text())
+    assert again["linear"] is None and again["linear_skipped"] == "--no-linear"
+    assert not (skipped / "eigenvalues.png").exists()
+    assert again["gain_margins"] == document["gain_margins"]
