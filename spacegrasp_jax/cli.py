@@ -1054,6 +1054,7 @@ def _margins(args: argparse.Namespace) -> int:
             max_factor=args.max_factor,
             factor_resolution=args.factor_resolution,
             max_delay_periods=args.max_delay,
+            max_servo_delay_ticks=args.max_servo_delay,
         )
     except (margins.MarginError, PerturbationError) as error:
         raise UsageError(str(error)) from None
@@ -1720,6 +1721,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=margins.MarginSettings.max_delay_periods,
         metavar="PERIODS",
         help=f"the largest extra delay searched, in control periods (default {margins.MarginSettings.max_delay_periods})",
+    )
+    margin.add_argument(
+        "--max-servo-delay",
+        type=_whole(1, 100_000),
+        default=margins.MarginSettings.max_servo_delay_ticks,
+        metavar="TICKS",
+        help="the largest delay at the servo's input searched, in servo ticks, where the servos run at their own "
+        f"rate (default {margins.MarginSettings.max_servo_delay_ticks})",
     )
     margin.add_argument(
         "--growth-limit",

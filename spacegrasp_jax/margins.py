@@ -18,6 +18,11 @@ The changes probed:
   law and the joint PID (on top of the realism's own ``delay_periods``), in a delay line of
   ``max_delay_periods + 1`` entries whose length in use is a value: every ``d`` runs one
   program. The line starts full of zero commands, as the realism's does.
+* **Extra delay at the servo's input** of ``d`` whole servo ticks, between the joint
+  sensors and the joint PID, where the realism runs the servos faster than the controller
+  (``servo_period`` below ``control_period``): the PID reads the joint rates measured ``d``
+  ticks before (``simulate.ServoInputDelay``, ``max_servo_delay_ticks + 1`` entries, one
+  program for every ``d``; the line starts full of zero readings).
 
 A probe *fails* when a sample that captures at the nominal gains no longer captures (the
 campaign's criteria: tolerances, torque limit, target speed, no runaway), or a sample that
@@ -51,6 +56,7 @@ from spacegrasp_jax.control.law import law_named
 from spacegrasp_jax.model import N_JOINTS, Robot
 from spacegrasp_jax.montecarlo import evaluate_samples, lost, success
 from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.simulate import ServoInputDelay
 
 #: The gain groups each loop's factor scales, per controller, and how: ``+1`` multiplies by
 #: the factor, ``-1`` divides by it.
@@ -78,12 +84,15 @@ class MarginSettings:
         factor_resolution: the bisection stops when the factor that holds and the one that
             fails differ by at most this ratio (> 1).
         max_delay_periods: the largest extra delay searched, in control periods.
+        max_servo_delay_ticks: the largest delay at the servo's input searched, in servo
+            ticks (where the servos run at their own rate).
     """
 
     samples: int = 8
     max_factor: float = 64.0
     factor_resolution: float = 1.05
     max_delay_periods: int = 64
+    max_servo_delay_ticks: int = 64
 
     def __post_init__(self):
         if isinstance(self.samples, bool) or not isinstance(self.samples, int) or self.samples < 1:
@@ -100,6 +109,12 @@ class MarginSettings:
             or self.max_delay_periods < 1
         ):
             raise MarginError(f"max_delay_periods: must be a positive integer, got {self.max_delay_periods!r}")
+        if (
+            isinstance(self.max_servo_delay_ticks, bool)
+            or not isinstance(self.max_servo_delay_ticks, int)
+            or self.max_servo_delay_ticks < 1
+        ):
+            raise MarginError(f"max_servo_delay_ticks: must be a positive integer, got {self.max_servo_delay_ticks!r}")
 
 
 # ---- the delay at the controller's output ----------------------------------------------
@@ -174,18 +189,35 @@ def _probe(
     realism,
     ranges,
     delay_periods,
+    servo_delay_ticks,
     indices,
     *,
     controller,
     capacity,
+    servo_capacity,
     pinv_damping,
     identified,
 ):
     law = OutputDelay(law_named(controller, pinv_damping), capacity, delay_periods)
+    servo_delay = None if servo_capacity is None else ServoInputDelay(servo_capacity, servo_delay_ticks)
     _, sample_metrics, _ = evaluate_samples(
-        robot, scenario, gains, seed, indices, controller=law, ranges=ranges, realism=realism, identified=identified
+        robot,
+        scenario,
+        gains,
+        seed,
+        indices,
+        controller=law,
+        ranges=ranges,
+        realism=realism,
+        identified=identified,
+        servo_input_delay=servo_delay,
     )
     return sample_metrics
+
+
+def servo_runs_at_its_own_rate(scenario: Scenario, realism) -> bool:
+    """Whether ``realism`` ticks the joint PID more than once a control period."""
+    return realism is not None and realism.steps_per_servo(scenario.dt) < realism.steps_per_period(scenario.dt)
 
 
 @dataclasses.dataclass
@@ -193,8 +225,9 @@ class Prober:
     """Runs probes of one gain set and one controller and keeps each outcome.
 
     Attributes:
-        probes: one dict a probe run: ``loop`` (``"pid"``, ``"law"`` or ``"delay"``),
-            ``value`` (the factor or the delay in periods), ``holds``, and per sample
+        probes: one dict a probe run: ``loop`` (``"pid"``, ``"law"``, ``"delay"`` or
+            ``"servo_delay"``), ``value`` (the factor, the delay in control periods or in servo
+            ticks), ``holds``, and per sample
             ``success``, ``bounded``, ``final_position_error_m``, ``largest_peak_torque_Nm``.
         compile_s: the time the probes' program took to build in this process (s; a load
             from the compilation cache counts its load).
@@ -215,14 +248,23 @@ class Prober:
     def __post_init__(self):
         chunk = batching.chunk_size(self.settings.samples, self.settings.samples)
         self._indices = np.minimum(np.arange(chunk), self.settings.samples - 1).astype(np.uint32)
+        self.servo_delay = servo_runs_at_its_own_rate(self.scenario, self.config.realism)
+        servo_capacity = self.settings.max_servo_delay_ticks + 1 if self.servo_delay else None
         function = functools.partial(
             _probe,
             controller=self.controller,
             capacity=self.settings.max_delay_periods + 1,
+            servo_capacity=servo_capacity,
             pinv_damping=self.config.pinv_damping,
             identified=self.config.identified,
         )
-        key = (self.controller, self.settings.max_delay_periods, self.config.pinv_damping, self.config.identified)
+        key = (
+            self.controller,
+            self.settings.max_delay_periods,
+            servo_capacity,
+            self.config.pinv_damping,
+            self.config.identified,
+        )
         try:
             realism = self.config.realism
             loop = "ideal loop" if realism is None or realism.is_ideal(self.scenario.dt) else "flight-like loop"
@@ -232,7 +274,7 @@ class Prober:
         except batching.BatchingError as error:
             raise CampaignError(str(error)) from None
 
-    def _replicated(self, gains, delay_periods):
+    def _replicated(self, gains, delay_periods, servo_delay_ticks=0):
         config = self.config
         return (
             self.robot,
@@ -242,14 +284,24 @@ class Prober:
             config.realism,
             config.ranges,
             np.int32(delay_periods),
+            np.int32(servo_delay_ticks),
         )
 
-    def outcome(self, gains: Gains, delay_periods: int = 0) -> dict[str, np.ndarray]:
-        """The samples' metrics with ``gains`` and an extra delay of ``delay_periods``, plus
+    def outcome(self, gains: Gains, delay_periods: int = 0, servo_delay_ticks: int = 0) -> dict[str, np.ndarray]:
+        """The samples' metrics with ``gains``, an extra delay of ``delay_periods`` at the
+        controller's output and one of ``servo_delay_ticks`` at the servo's input, plus
         ``success`` and ``bounded`` (n,) bool."""
         if not 0 <= delay_periods <= self.settings.max_delay_periods:
             raise MarginError(f"delay: {delay_periods} periods is outside 0 .. {self.settings.max_delay_periods}")
-        sample_metrics = batching.run_chunk(self._executable, self._replicated(gains, delay_periods), self._indices)
+        if servo_delay_ticks and not self.servo_delay:
+            raise MarginError("servo delay: the servos run at the control period here; use the controller's delay")
+        if not 0 <= servo_delay_ticks <= self.settings.max_servo_delay_ticks:
+            raise MarginError(
+                f"servo delay: {servo_delay_ticks} ticks is outside 0 .. {self.settings.max_servo_delay_ticks}"
+            )
+        sample_metrics = batching.run_chunk(
+            self._executable, self._replicated(gains, delay_periods, servo_delay_ticks), self._indices
+        )
         sample_metrics = {name: value[: self.settings.samples] for name, value in sample_metrics.items()}
         config = self.config
         captured = success(
@@ -270,6 +322,8 @@ class Prober:
             self._record("nominal", 1.0, self.nominal, True)
         if loop == "delay":
             result = self.outcome(self.gains, int(value))
+        elif loop == "servo_delay":
+            result = self.outcome(self.gains, servo_delay_ticks=int(value))
         else:
             result = self.outcome(scaled_loop(self.gains, self.controller, loop, value))
         nominal = self.nominal
@@ -281,7 +335,7 @@ class Prober:
         self.probes.append(
             {
                 "loop": loop,
-                "value": float(value) if loop != "delay" else int(value),
+                "value": int(value) if loop in ("delay", "servo_delay") else float(value),
                 "holds": held,
                 "success": result["success"].tolist(),
                 "bounded": result["bounded"].tolist(),
@@ -290,9 +344,11 @@ class Prober:
             }
         )
         if self.progress is not None:
-            what = {"nominal": "nominal gains", "delay": f"extra delay {int(value)} periods"}.get(
-                loop, f"{loop} gain x{value:.4g}"
-            )
+            what = {
+                "nominal": "nominal gains",
+                "delay": f"extra delay {int(value)} periods",
+                "servo_delay": f"servo input delay {int(value)} ticks",
+            }.get(loop, f"{loop} gain x{value:.4g}")
             self.progress(
                 f"probe {len(self.probes)}: {what}: {int(np.sum(result['success']))}/{len(result['success'])} captured, "
                 f"{int(np.sum(~result['bounded']))} ran away -> {'holds' if held else 'fails'}"
@@ -347,21 +403,22 @@ def gain_margin(prober: Prober, loop: str, direction: str) -> dict:
     }
 
 
-def delay_margin(prober: Prober, period_s: float) -> dict:
-    """The extra delay at the controller's output (whole control periods of ``period_s``
-    seconds) at which the capture fails.
+def delay_margin(prober: Prober, period_s: float, loop: str = "delay") -> dict:
+    """The extra delay at which the capture fails: at the controller's output (``loop =
+    "delay"``, whole control periods of ``period_s`` seconds) or at the servo's input
+    (``"servo_delay"``, whole servo ticks of ``period_s`` seconds).
 
     Returns:
         ``holds_periods``: the largest delay found to hold; ``fails_periods``: the smallest
-        found to fail (``None`` if every delay up to ``max_delay_periods`` holds); the same
-        in seconds (``holds_s``, ``fails_s``); ``probes``.
+        found to fail (``None`` if every delay up to the settings' limit holds), both in
+        ``period_s``; the same in seconds (``holds_s``, ``fails_s``); ``probes``.
     """
     start = len(prober.probes)
-    limit = prober.settings.max_delay_periods
+    limit = prober.settings.max_delay_periods if loop == "delay" else prober.settings.max_servo_delay_ticks
     held, failed, trial = 0, None, 1
     while failed is None and held < limit:
         trial = min(trial, limit)
-        if prober.holds("delay", trial):
+        if prober.holds(loop, trial):
             held = trial
         else:
             failed = trial
@@ -369,7 +426,7 @@ def delay_margin(prober: Prober, period_s: float) -> dict:
     if failed is not None:
         while failed - held > 1:
             middle = (held + failed) // 2
-            if prober.holds("delay", middle):
+            if prober.holds(loop, middle):
                 held = middle
             else:
                 failed = middle
@@ -382,10 +439,10 @@ def delay_margin(prober: Prober, period_s: float) -> dict:
     }
 
 
-def sweep_delays(prober: Prober, delays) -> list[bool]:
-    """Whether the loop holds at each extra delay of ``delays`` (periods): the brute-force
-    check of ``delay_margin()``."""
-    return [prober.holds("delay", int(d)) for d in delays]
+def sweep_delays(prober: Prober, delays, loop: str = "delay") -> list[bool]:
+    """Whether the loop holds at each extra delay of ``delays`` (control periods, or servo
+    ticks with ``loop="servo_delay"``): the brute-force check of ``delay_margin()``."""
+    return [prober.holds(loop, int(d)) for d in delays]
 
 
 def control_period(scenario: Scenario, realism) -> float:
@@ -413,9 +470,11 @@ def find_margins(
 
     Returns:
         A JSON-ready dict: ``gain_margins`` (loop -> direction -> ``gain_margin()``'s
-        result), ``delay_margin`` (``delay_margin()``'s), ``nominal`` (the nominal probe's
-        samples), ``probes`` (every probe), ``rollouts``, ``compile_s``, ``search_s``,
-        ``control_period_s``, ``realism_delay_periods``.
+        result), ``delay_margin`` (``delay_margin()``'s), ``servo_delay_margin`` (the same at
+        the servo's input, in servo ticks, where the servos run at their own rate; else
+        ``None``), ``nominal`` (the nominal probe's samples), ``probes`` (every probe),
+        ``rollouts``, ``compile_s``, ``search_s``, ``control_period_s``, ``servo_period_s``,
+        ``realism_delay_periods``.
     """
     started = time.perf_counter()
     prober = Prober(robot, scenario, gains, controller, config, settings, progress=progress)
@@ -425,14 +484,18 @@ def find_margins(
     }
     period = control_period(scenario, config.realism)
     delay = delay_margin(prober, period)
+    servo_period = period if config.realism is None else config.realism.steps_per_servo(scenario.dt) * scenario.dt
+    servo_delay = delay_margin(prober, servo_period, "servo_delay") if prober.servo_delay else None
     return {
         "controller": controller,
         "samples": settings.samples,
         "settings": dataclasses.asdict(settings),
         "control_period_s": period,
+        "servo_period_s": servo_period,
         "realism_delay_periods": 0 if config.realism is None else config.realism.delay_periods,
         "gain_margins": gain_margins,
         "delay_margin": delay,
+        "servo_delay_margin": servo_delay,
         "nominal": prober.probes[0],
         "probes": prober.probes,
         "rollouts": len(prober.probes) * settings.samples,
@@ -464,6 +527,19 @@ def margin_lines(result: dict) -> list[str]:
             f"extra delay at the controller's output: {delay['holds_periods']} control periods "
             f"({delay['holds_s']:.4g} s) holds, {delay['fails_periods']} ({delay['fails_s']:.4g} s) fails"
         )
+    servo = result.get("servo_delay_margin")
+    if servo is None:
+        lines.append("delay at the servo's input: not searched (the servos run at the control period)")
+    elif servo["fails_periods"] is None:
+        lines.append(
+            f"extra delay at the servo's input: holds to {servo['holds_periods']} servo ticks "
+            f"({servo['holds_s']:.4g} s, the search's limit)"
+        )
+    elif servo is not None:
+        lines.append(
+            f"extra delay at the servo's input: {servo['holds_periods']} servo ticks ({servo['holds_s']:.4g} s) holds, "
+            f"{servo['fails_periods']} ({servo['fails_s']:.4g} s) fails"
+        )
     lines.append(
         f"{len(result['probes'])} probes of {result['samples']} samples ({result['rollouts']} rollouts) in "
         f"{result['search_s']:.1f} s, after {result['compile_s']:.1f} s compiling"
@@ -485,5 +561,6 @@ __all__ = [
     "gain_margin",
     "margin_lines",
     "scaled_loop",
+    "servo_runs_at_its_own_rate",
     "sweep_delays",
 ]

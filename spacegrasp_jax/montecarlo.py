@@ -32,7 +32,7 @@ from spacegrasp_jax.perturbations import (
 )
 from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import Log, closed_loop_step, flight_loop, initial_state
+from spacegrasp_jax.simulate import Log, ServoInputDelay, closed_loop_step, flight_loop, initial_state
 
 
 def rollout_metrics(
@@ -45,6 +45,7 @@ def rollout_metrics(
     realism: Realism | None = None,
     key: jax.Array | None = None,
     model_robot: Robot | None = None,
+    servo_input_delay: ServoInputDelay | None = None,
 ) -> tuple[dict[str, jax.Array], Log | None]:
     """One closed-loop rollout reduced to its ``METRICS`` and the
     parts of its final error (``ANATOMY_METRICS``), in one ``lax.scan``.
@@ -53,16 +54,23 @@ def rollout_metrics(
         robot, scenario, gains, controller, pinv_damping: as [`rollout()`][spacegrasp_jax.simulate.rollout].
         every: if set (static; must divide ``scenario.n_steps``), also return every
             ``every``-th log row, i.e. the rows at ``t = 0, every dt, 2 every dt, ...``.
-        realism, key, model_robot: the flight-like loop
-            ([`flight_rollout()`][spacegrasp_jax.simulate.flight_rollout]), run when the realism is not
-            ideal or the controller's model starts from another robot than the plant.
+        realism, key, model_robot, servo_input_delay: the flight-like loop
+            ([`flight_loop()`][spacegrasp_jax.simulate.flight_loop]), run when the realism is not
+            ideal, the controller's model starts from another robot than the plant, or a
+            servo input delay is given.
 
     Returns:
         ``(metrics, rows)``: a dict of the metrics' arrays and the decimated
         [`Log`][spacegrasp_jax.simulate.Log] (``None`` without ``every``).
     """
-    if (realism is not None and not realism.is_ideal(scenario.dt)) or model_robot is not None:
-        return _flight_metrics(robot, scenario, gains, controller, pinv_damping, every, realism, key, model_robot)
+    if (
+        (realism is not None and not realism.is_ideal(scenario.dt))
+        or model_robot is not None
+        or servo_input_delay is not None
+    ):
+        return _flight_metrics(
+            robot, scenario, gains, controller, pinv_damping, every, realism, key, model_robot, servo_input_delay
+        )
     step = closed_loop_step(robot, scenario, gains, controller, pinv_damping)
     n_steps = scenario.n_steps
     dtype = scenario.initial.q.dtype
@@ -103,12 +111,22 @@ def _finish(running, final, scenario, realism):
     return finished | anatomy.error_parts(finished, scenario, realism)
 
 
-def _flight_metrics(robot, scenario, gains, controller, pinv_damping, every, realism, key, model_robot):
+def _flight_metrics(
+    robot, scenario, gains, controller, pinv_damping, every, realism, key, model_robot, servo_input_delay=None
+):
     """[`rollout_metrics()`][spacegrasp_jax.montecarlo.rollout_metrics] of the flight-like loop: each control period's rows folded at once."""
     realism = ideal() if realism is None else realism
     key = jax.random.PRNGKey(0) if key is None else key
     start, one_period, periods = flight_loop(
-        robot, scenario, gains, controller, realism, key, model_robot=model_robot, pinv_damping=pinv_damping
+        robot,
+        scenario,
+        gains,
+        controller,
+        realism,
+        key,
+        model_robot=model_robot,
+        pinv_damping=pinv_damping,
+        servo_input_delay=servo_input_delay,
     )
     per_period = scenario.n_steps // periods
     dtype = scenario.initial.q.dtype
@@ -155,6 +173,7 @@ def evaluate_samples(
     every: int | None = None,
     realism: Realism | None = None,
     identified: bool = False,
+    servo_input_delay: ServoInputDelay | None = None,
 ):
     """Samples ``indices`` (n,) of the campaign ``seed`` (see
     [`perturbations`][spacegrasp_jax.perturbations]), each simulated and reduced to its metrics.
@@ -163,7 +182,8 @@ def evaluate_samples(
     plant is the sample's perturbed one; with ``identified`` it is told the perturbed robot
     (a perfectly identified plant). ``realism``: the loop (``None``: ideal); the sample's
     target estimate error is drawn on top of the realism's own, its sensor noise from
-    ``fold_in(fold_in(PRNGKey(seed), i), NOISE_STREAM)``.
+    ``fold_in(fold_in(PRNGKey(seed), i), NOISE_STREAM)``. ``servo_input_delay``: a delay
+    between the joint sensors and the PID (``spacegrasp_jax.margins``; the flight-like loop).
 
     Returns:
         ``(perturbations, metrics, rows)``, each with leading axis n: the drawn
@@ -173,11 +193,13 @@ def evaluate_samples(
     """
     samples = sample_loops(robot, scenario, seed, indices, ranges, realism, identified)
     if samples.realisms is None:
-        one = lambda r, s: rollout_metrics(r, s, gains, controller, pinv_damping, every)
+        one = lambda r, s: rollout_metrics(
+            r, s, gains, controller, pinv_damping, every, servo_input_delay=servo_input_delay
+        )
         sample_metrics, rows = jax.vmap(one)(samples.robots, samples.scenarios)
     else:
         one = lambda r, s, re, key: rollout_metrics(
-            r, s, gains, controller, pinv_damping, every, re, key, samples.model_robot
+            r, s, gains, controller, pinv_damping, every, re, key, samples.model_robot, servo_input_delay
         )
         sample_metrics, rows = jax.vmap(one)(samples.robots, samples.scenarios, samples.realisms, samples.keys)
     return samples.perturbations, sample_metrics, rows

@@ -550,11 +550,13 @@ def _probe_outcome(probe: dict, captured_at_nominal: np.ndarray) -> float:
 
 def figure_margins(result: dict, tolerance_mm: float, title: str):
     """The margin searches of ``spacegrasp margins`` (``spacegrasp_jax.margins.find_margins()``'s
-    result): for the joint PID's gain factor, the law's gain factor and the extra delay, each
+    result): for the joint PID's gain factor, the law's gain factor, the extra delay at the
+    controller's output and, where it was searched, the delay at the servo's input, each
     probe's outcome (the largest final position error of the samples that capture at the
     nominal gains, log scale; a probe where one ran away drawn at the top), green where the
     loop holds and red where it fails, the tolerance and the margins marked."""
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.0), sharey=True)
+    servo = result.get("servo_delay_margin") is not None
+    fig, axes = plt.subplots(1, 4 if servo else 3, figsize=(20 if servo else 15, 4.0), sharey=True)
     fig.suptitle(title)
     captured = np.asarray(result["nominal"]["success"], dtype=bool)
     probes = result["probes"]
@@ -570,10 +572,14 @@ def figure_margins(result: dict, tolerance_mm: float, title: str):
             axes[2],
         ),
     )
+    if servo:
+        label = f"delay at the servo's input [servo ticks of {result['servo_period_s']:g} s]"
+        panels += (("servo_delay", label, axes[3]),)
     for loop, label, ax in panels:
+        delay = loop in ("delay", "servo_delay")
         chosen = [p for p in probes if p["loop"] in (loop, "nominal")]
         for p in chosen:
-            x = (0 if loop == "delay" else 1.0) if p["loop"] == "nominal" else p["value"]
+            x = (0 if delay else 1.0) if p["loop"] == "nominal" else p["value"]
             y = _probe_outcome(p, captured)
             ax.plot(
                 x,
@@ -583,12 +589,12 @@ def figure_margins(result: dict, tolerance_mm: float, title: str):
                 markersize=7,
             )
         ax.axhline(tolerance_mm, color="black", linestyle="--", linewidth=1, label=f"tolerance {tolerance_mm:g} mm")
-        if loop == "delay":
-            margin = result["delay_margin"]
+        if delay:
+            margin = result["delay_margin" if loop == "delay" else "servo_delay_margin"]
             ax.axvline(margin["holds_periods"], color="tab:green", linestyle=":", label="margin (holds)")
             if margin["fails_periods"] is not None:
                 ax.axvline(margin["fails_periods"], color="tab:red", linestyle=":", label="fails")
-            ax.set_xlim(-0.5, max(p["value"] for p in chosen if p["loop"] == "delay") + 1.0 if len(chosen) > 1 else 1.0)
+            ax.set_xlim(-0.5, max(p["value"] for p in chosen if p["loop"] == loop) + 1.0 if len(chosen) > 1 else 1.0)
         else:
             for direction in ("increase", "decrease"):
                 margin = result["gain_margins"][loop][direction]

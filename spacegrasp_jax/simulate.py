@@ -564,12 +564,40 @@ class FlightState:
         wrench_reading: (6,) the low-passed F/T reading ``[f (N); n (N m)]``, sensor axes.
         commands_in_flight: (delay_periods, 7) rad/s, the desired joint rates computed but
             not yet applied, oldest first.
+        rates_in_flight: with a [`ServoInputDelay`][spacegrasp_jax.simulate.ServoInputDelay], its line of joint-rate
+            readings (``ServoInputDelay.init()``); ``None`` without.
     """
 
     plant: PlantState
     controller: ControllerState
     wrench_reading: jax.Array
     commands_in_flight: jax.Array
+    rates_in_flight: tuple | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class ServoInputDelay:
+    """A delay of whole servo ticks between the joint sensors and the joint PID: at tick j
+    the PID reads the joint rates measured at tick ``j - ticks`` (zeros before the first).
+
+    Attributes:
+        capacity: the line's length (static); ``ticks`` must be below it.
+        ticks: () int, the delay in servo ticks (a value: every delay below ``capacity``
+            runs the same program).
+    """
+
+    capacity: int
+    ticks: jax.Array
+
+    def init(self, dtype) -> tuple:
+        """``(readings (capacity, 7) rad/s, head () int)``: the line, empty."""
+        return jnp.zeros((self.capacity, N_JOINTS), dtype), jnp.zeros((), jnp.int32)
+
+    def push(self, line: tuple, reading: jax.Array) -> tuple[jax.Array, tuple]:
+        """``(the reading the PID gets (7,), the line after)`` when ``reading`` (7,) is measured."""
+        readings, head = line
+        readings = readings.at[head].set(reading)
+        return readings[(head - self.ticks) % self.capacity], (readings, (head + 1) % self.capacity)
 
 
 def believed_robot(robot: Robot, realism: Realism) -> Robot:
@@ -641,11 +669,15 @@ def flight_loop(
     model_robot: Robot | None = None,
     pinv_damping: float = 0.0,
     checkpoint: bool = False,
+    servo_input_delay: ServoInputDelay | None = None,
 ):
     """The parts of [`flight_rollout()`][spacegrasp_jax.simulate.flight_rollout] (same arguments): ``(start, one_period,
     periods)``, the initial [`FlightState`][spacegrasp_jax.simulate.FlightState], the scan body ``one_period(state, k) ->
     (state, rows)`` of control period ``k`` (a float) with its plant steps' log rows (a
-    [`Log`][spacegrasp_jax.simulate.Log] with a leading axis of the period's steps), and the number of periods."""
+    [`Log`][spacegrasp_jax.simulate.Log] with a leading axis of the period's steps), and the number of periods.
+
+    ``servo_input_delay``: a [`ServoInputDelay`][spacegrasp_jax.simulate.ServoInputDelay] between the joint sensors and the PID
+    (``spacegrasp_jax.margins``); the log's ``qd_measured`` is then the delayed reading."""
     law = as_law(controller, pinv_damping)
     realism.check_timing(scenario.dt, scenario.n_steps)
     per_period = realism.steps_per_period(scenario.dt)
@@ -740,30 +772,32 @@ def flight_loop(
 
     def servo_tick(carry, j, held, noise):
         """Servo tick j (a float) of the whole run: the joint sensors, the PID, its plant steps."""
-        plant, pid_state = carry
+        plant, pid_state, line = carry
         tick_noise = jax.lax.dynamic_slice_in_dim(noise, 6 + N_JOINTS * (j.astype(jnp.int32) % ticks), N_JOINTS)
         q, qd = joint_reading(plant, tick_noise)
+        if servo_input_delay is not None:
+            qd, line = servo_input_delay.push(line, qd)
         u, pid_state = pid.update(gains, pid_state, held["qd_des"] - qd, j * servo_period, servo_period, limit)
         steps = j * per_servo + jnp.arange(per_servo, dtype=dtype)
         held = dict(held, u=u, q_measured=q, qd_measured=qd)
         if per_servo == 1:
             plant, row = plant_step(plant, steps[0], held)
-            return (plant, pid_state), jax.tree.map(lambda x: x[None], row)
+            return (plant, pid_state, line), jax.tree.map(lambda x: x[None], row)
         plant, rows = jax.lax.scan(lambda p, i: plant_step(p, i, held), plant, steps)
-        return (plant, pid_state), rows
+        return (plant, pid_state, line), rows
 
     def one_period(state: FlightState, k):
         noise = period_noise(k)
         state, law_state, held = control(state, k, noise)
+        carry = (state.plant, state.controller.pid, state.rates_in_flight)
         if ticks == 1:
-            (plant, pid_state), rows = servo_tick((state.plant, state.controller.pid), k, held, noise)
+            (plant, pid_state, line), rows = servo_tick(carry, k, held, noise)
         else:
             tick = lambda carry, j: servo_tick(carry, j, held, noise)
-            (plant, pid_state), rows = jax.lax.scan(
-                tick, (state.plant, state.controller.pid), k * ticks + jnp.arange(ticks, dtype=dtype)
-            )
+            (plant, pid_state, line), rows = jax.lax.scan(tick, carry, k * ticks + jnp.arange(ticks, dtype=dtype))
             rows = jax.tree.map(lambda x: x.reshape((per_period,) + x.shape[2:]), rows)
-        return dataclasses.replace(state, plant=plant, controller=ControllerState(law_state, pid_state)), rows
+        controller_state = ControllerState(law_state, pid_state)
+        return dataclasses.replace(state, plant=plant, controller=controller_state, rates_in_flight=line), rows
 
     if checkpoint:  # inside a scan no CSE can undo it (see closed_loop_step)
         one_period = jax.checkpoint(one_period, prevent_cse=False)
@@ -772,6 +806,7 @@ def flight_loop(
         controller=ControllerState(law=law.init(dtype), pid=pid.init(dtype)),
         wrench_reading=jnp.zeros(6, dtype),
         commands_in_flight=jnp.zeros((realism.delay_periods, N_JOINTS), dtype),
+        rates_in_flight=None if servo_input_delay is None else servo_input_delay.init(dtype),
     )
     return start, one_period, periods
 

@@ -307,6 +307,10 @@ def cases(paths, out):
             "factor_resolution: must be a ratio above 1 and below max_factor",
         ),
         "margins max delay 0": ([*MARGINS, "--max-delay", "0", "--out", out], "argument --max-delay:"),
+        "margins max servo delay 0": (
+            [*MARGINS, "--max-servo-delay", "0", "--out", out],
+            "argument --max-servo-delay:",
+        ),
         "margins growth limit negative": (
             [*MARGINS, "--growth-limit", "-1", "--out", out],
             "argument --growth-limit:",

@@ -13,10 +13,12 @@ import dataclasses
 import json
 import math
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax import campaign, cli, margins
+from spacegrasp_jax import campaign, cli, margins, simulate, stability
 from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.montecarlo import success
 from spacegrasp_jax.realism import flight
@@ -168,6 +170,36 @@ def test_the_delay_margin_under_flight_matches_a_sweep_over_every_delay(flight_c
 
 
 @pytest.mark.slow
+def test_the_servo_input_delay_margin_matches_a_sweep_over_every_delay(flight_capture):
+    _, _, _, prober = flight_capture
+    assert prober.servo_delay  # flight: ten servo ticks a control period
+    found = margins.delay_margin(prober, period_s=0.001, loop="servo_delay")
+    swept = margins.sweep_delays(prober, range(prober.settings.max_servo_delay_ticks + 1), loop="servo_delay")
+    assert False in swept, "the sweep must reach a failure for the search to be checked"
+    first_failure = swept.index(False)
+    assert first_failure > 2
+    assert (found["holds_periods"], found["fails_periods"]) == (first_failure - 1, first_failure)
+    assert found["fails_s"] == pytest.approx(first_failure * 0.001)
+
+
+@pytest.mark.slow
+def test_the_servo_input_delay_hands_the_pid_the_reading_of_d_ticks_before(robot, short_scenario):
+    """In the log, what the PID read at each servo tick is the true joint rate d ticks
+    earlier (the sensors' noise off), and zero before the first reading."""
+    realism, d = stability.quiet(flight()), 7
+    delay = simulate.ServoInputDelay(capacity=16, ticks=jnp.int32(d))
+    start, one_period, _ = simulate.flight_loop(
+        robot, short_scenario, paper_gains(), "admittance", realism, jax.random.PRNGKey(0), servo_input_delay=delay
+    )
+    _, rows = jax.jit(lambda: jax.lax.scan(one_period, start, jnp.arange(50.0)))()
+    measured = np.asarray(rows.qd_measured).reshape(-1, 7)  # one row a plant step, one tick a step
+    true = np.asarray(rows.qd).reshape(-1, 7)
+    assert np.abs(true).max() > 1e-3  # the arm moves
+    np.testing.assert_array_equal(measured[d:], true[:-d])
+    np.testing.assert_array_equal(measured[:d], 0.0)
+
+
+@pytest.mark.slow
 def test_the_gain_margin_fails_at_its_factor_and_holds_just_below_it(flight_capture):
     """The bracket re-run through a campaign's program: the joint PID gains times the factor
     that fails lose a capture the nominal gains make (or a bounded sample runs away); times
@@ -206,6 +238,9 @@ def test_the_margins_command_writes_its_files_and_prints_the_margins(flight_capt
     delay = document["delay_margin"]
     assert f"{delay['holds_periods']} control periods ({delay['holds_s']:.4g} s) holds" in printed
     assert "joint PID gain: increase x" in printed and "admittance law gain:" in printed
+    servo = document["servo_delay_margin"]
+    assert document["servo_period_s"] == pytest.approx(0.001)
+    assert f"{servo['holds_periods']} servo ticks ({servo['holds_s']:.4g} s) holds" in printed
     _, _, _, prober = flight_capture
     assert delay["fails_periods"] == margins.delay_margin(prober, 0.01)["fails_periods"]
     assert document["rollouts"] == len(document["probes"]) * SAMPLES
