@@ -9,6 +9,7 @@ import functools
 import json
 import math
 import shlex
+import signal
 import sys
 import warnings
 from pathlib import Path
@@ -1950,5 +1951,17 @@ def main(argv: list[str] | None = None) -> int:
         return 3
 
 
+def run_command() -> None:
+    """The process's entry point (``spacegrasp``, ``python -m spacegrasp_jax.cli``): exits
+    with [`main()`][spacegrasp_jax.cli.main]'s code."""
+    code = main()
+    # The command is over and its files are written. A signal that lands while the
+    # interpreter shuts down (one sent to every process of a campaign, after this one had
+    # already stopped with the others) would otherwise end it by the signal, not this code.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run_command()

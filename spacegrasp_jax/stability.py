@@ -65,8 +65,11 @@ from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import FlightState, flight_loop, flight_rollout, observe, plant_kinematics
 
-#: The noise key of the linearised loop: its noise is off, so no stage draws from it.
-_KEY = jax.random.PRNGKey(0)
+
+def _key() -> jax.Array:
+    """The noise key of the linearised loop: its noise is off, so no stage draws from it.
+    (Made when needed: an array made at import would start JAX's backend.)"""
+    return jax.random.PRNGKey(0)
 
 
 class StabilityError(ValueError):
@@ -150,7 +153,7 @@ def settled_state(
         raise StabilityError("target: the linear analysis covers the paper's stationary target only")
     realism = quiet(realism)
     final, _ = jax.jit(
-        lambda g: flight_rollout(robot, scenario, g, controller, realism, _KEY, pinv_damping=pinv_damping)
+        lambda g: flight_rollout(robot, scenario, g, controller, realism, _key(), pinv_damping=pinv_damping)
     )(gains)
     return final, scenario.n_steps // realism.steps_per_period(scenario.dt)
 
@@ -267,7 +270,7 @@ class Linearizer:
         zero = jnp.zeros(n)
 
         def one_period(gains):
-            return flight_loop(robot, scenario, gains, controller, realism, _KEY, pinv_damping=pinv_damping)[1]
+            return flight_loop(robot, scenario, gains, controller, realism, _key(), pinv_damping=pinv_damping)[1]
 
         def advance(delta, scaled):
             return coordinates.to_local(one_period(scaled)(coordinates.from_local(delta), k)[0])
@@ -476,7 +479,7 @@ class HoldProber:
 
         def growth_rate(gains):
             _, one_period, _ = flight_loop(
-                self.robot, self.scenario, gains, self.controller, realism, _KEY, pinv_damping=self.pinv_damping
+                self.robot, self.scenario, gains, self.controller, realism, _key(), pinv_damping=self.pinv_damping
             )
             _, rows = jax.vmap(lambda start: jax.lax.scan(one_period, start, ks))(starts)
             difference = jnp.abs(rows.qd[1] - rows.qd[0])  # (periods, steps a period, 7)

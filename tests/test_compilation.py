@@ -117,6 +117,27 @@ def test_importing_the_package_changes_nothing_in_the_process():
     assert ours["hlo"] == theirs["hlo"]
 
 
+IMPORT_EVERY_MODULE = """
+import importlib, pkgutil
+import spacegrasp_jax
+from jax._src import xla_bridge  # no public way to ask whether a backend has started
+names = [m.name for m in pkgutil.walk_packages(spacegrasp_jax.__path__, "spacegrasp_jax.")]
+for name in names:
+    importlib.import_module(name)
+print(len(names), xla_bridge.backends_are_initialized())
+"""
+
+
+def test_importing_any_module_starts_no_jax_backend():
+    """No module makes an array at import: a backend started then would make
+    ``jax.distributed.initialize`` (multi-host campaigns) fail and would write XLA's log before
+    a command could hide it."""
+    result = subprocess.run([sys.executable, "-c", IMPORT_EVERY_MODULE], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    count, started = result.stdout.split()
+    assert int(count) > 30 and started == "False"
+
+
 @pytest.mark.parametrize(
     "call, expected",
     [
