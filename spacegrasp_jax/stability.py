@@ -284,20 +284,17 @@ class Linearizer:
             origin = jnp.zeros(len(LOOPS))
             # One forward pass per loop gives the Jacobian (the primal) and its derivative.
             jacobians, sensitivity = jax.vmap(lambda d: jax.jvp(jacobian_at, (origin,), (d,)))(jnp.eye(len(LOOPS)))
-            kinematics = plant_kinematics(robot, scenario, point.plant)
-            p_ee = point.plant.p_base + kinematics.frames.p_ee
-            from_centre = spatial.matvec(kinematics.R_lar.T, p_ee - kinematics.p_lar) - scenario.sphere_centre
-            return {
-                "jacobian": jacobians[0],
-                "sensitivity": sensitivity,
-                "moved": advance(zero, gains),
-                "invariant_rows": jax.jacfwd(invariants(robot, coordinates))(zero),
-                "contact_force_N": jnp.linalg.norm(kinematics.contact_force_lar),
-                "clearance_m": jnp.linalg.norm(from_centre) - scenario.sphere_radius,
-                "largest_rate_radps": jnp.max(jnp.abs(point.plant.qd)),
-            }
+            return {"jacobian": jacobians[0], "sensitivity": sensitivity, "moved": advance(zero, gains)}
 
         self._program = jax.jit(program)
+        # What depends on the point alone, once.
+        self._invariant_rows = np.asarray(jax.jit(jax.jacfwd(invariants(robot, coordinates)))(zero))
+        kinematics = plant_kinematics(robot, scenario, point.plant)
+        p_ee = point.plant.p_base + kinematics.frames.p_ee
+        from_centre = spatial.matvec(kinematics.R_lar.T, p_ee - kinematics.p_lar) - scenario.sphere_centre
+        self._contact_force = float(jnp.linalg.norm(kinematics.contact_force_lar))
+        self._clearance = float(jnp.linalg.norm(from_centre) - scenario.sphere_radius)
+        self._largest_rate = float(jnp.max(jnp.abs(point.plant.qd)))
 
     def __call__(self, gains: Gains) -> Linearisation:
         out = {name: np.asarray(value) for name, value in self._program(gains).items()}
@@ -307,11 +304,11 @@ class Linearizer:
             names=self.names,
             period_s=self.period_s,
             residual=float(np.max(np.abs(out["moved"]))),
-            invariant_rows=out["invariant_rows"],
-            contact_force_N=float(out["contact_force_N"]),
-            clearance_m=float(out["clearance_m"]),
-            free=bool(out["clearance_m"] > self._boundary),
-            largest_rate_radps=float(out["largest_rate_radps"]),
+            invariant_rows=self._invariant_rows,
+            contact_force_N=self._contact_force,
+            clearance_m=self._clearance,
+            free=self._clearance > self._boundary,
+            largest_rate_radps=self._largest_rate,
         )
 
 
