@@ -173,7 +173,9 @@ def _measure_of_log(log, measure: str, criteria: tuple) -> jax.Array:
 def _value_and_gradient(
     robot, scenario, gains, ranges, realism, block, *, controller, measure, criteria, identified, pinv_damping, segment
 ):
-    """The measure and its gradient in ``U`` for a block ``(units, keys)`` of points."""
+    """The measure and its gradient in ``U`` for a block ``(units, keys)`` of points, one
+    point after another (``lax.map``): the program then holds the gradient of one rollout,
+    not of a batch, and compiles in about two thirds of the time a ``vmap`` takes."""
 
     def value(units, key):
         perturbation = from_units(units, ranges)
@@ -193,8 +195,7 @@ def _value_and_gradient(
         )
         return _measure_of_log(log, measure, criteria)
 
-    units, keys = block
-    return jax.vmap(jax.value_and_grad(value))(units, keys)
+    return jax.lax.map(lambda point: jax.value_and_grad(value)(*point), block)
 
 
 # ---- the search -------------------------------------------------------------------------------
