@@ -7,7 +7,8 @@ Modes, each in its own process so that peak memory is its own:
 * ``reverse_checkpointed``: ``jax.value_and_grad`` with each step's parts under
   ``jax.checkpoint``, in inner scans of 2 steps (``spacegrasp_jax.tuning.tune.checkpoint_segment``, the
   tuning default);
-* ``reverse_plain``: ``jax.value_and_grad`` through one plain scan;
+* ``reverse_plain``: ``jax.value_and_grad`` of ``rollout`` as a user writes it (inner scans of
+  ``LOG_BLOCK`` steps, the parts of each step still under ``jax.checkpoint``: ``rollout`` always puts them there);
 * ``forward_mode``: ``jax.jacfwd`` over the 39 admittance log-gains.
 Reports wall time after compilation (median of ``--repeats``), its ratio to ``forward``,
 XLA's ``memory_analysis`` (temporary and argument/output buffers) and the process's peak RSS.

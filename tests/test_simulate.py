@@ -107,7 +107,7 @@ def test_vmap_over_scenarios_equals_loop(robot, gains):
 
 @pytest.mark.slow
 def test_gradient_of_final_position_error_wrt_gains(robot, gains, short_scenario):
-    """jax.grad through the whole rollout (smooth contact, no checkpointing: the plain path
+    """jax.grad through the whole rollout (smooth contact, no checkpoint_segment: the plain path
     a user differentiates): finite, non-zero, and along a random direction in log-gain space
     equal to a central difference. Both laws' gradients, gain group by gain group, are checked
     the same way through the tuning loss (tests/test_tuning.py)."""
@@ -165,6 +165,26 @@ def test_a_law_object_runs_the_loop_its_name_runs(robot, gains, short_scenario, 
         assert np.max(np.abs(by_object.V_ref)) > 1e-3
     with pytest.raises(ValueError, match="give it to the law object"):
         rollout(robot, short_scenario, gains, law, pinv_damping=0.1)
+
+
+def test_the_checkpointed_steps_of_rollout_change_nothing_in_a_forward_run(robot, gains, short_scenario):
+    """``rollout`` always puts each step's parts under ``jax.checkpoint`` (for gradients); a
+    forward run gives the log of the same steps scanned without it, bit for bit, so the
+    paper's reproduction does not depend on it."""
+    from spacegrasp_jax.simulate import LOG_BLOCK, closed_loop_step
+
+    def plain_rollout(robot, scenario, gains):  # the arguments as rollout's: nothing folded in
+        step = closed_loop_step(robot, scenario, gains, "admittance", checkpoint=False)
+        steps = jnp.arange(scenario.n_steps, dtype=jnp.float64).reshape(-1, LOG_BLOCK)
+        start = initial_state(scenario, "admittance")
+        return jax.lax.scan(lambda s, ks: jax.lax.scan(step, s, ks), start, steps)[1]
+
+    plain = jax.jit(plain_rollout)(robot, short_scenario, gains)
+    checkpointed = jax.jit(rollout, static_argnames="controller")(robot, short_scenario, gains, "admittance")[1]
+    for name, value in vars(checkpointed).items():
+        if value is not None:
+            expected = getattr(plain, name).reshape(value.shape)
+            np.testing.assert_array_equal(value, expected, err_msg=name)
 
 
 def test_a_diverging_run_writes_what_it_has(robot, gains, tmp_path, capsys):
