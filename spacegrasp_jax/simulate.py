@@ -500,9 +500,7 @@ def rollout(
             ([`closed_loop_step()`][spacegrasp_jax.simulate.closed_loop_step]), which changes nothing in a forward
             rollout (the same log, bit for bit) and makes a reverse-mode gradient's tape
             hold, per step, the state and the rates RK4's stages start from instead of
-            every intermediate: a plain ``jax.grad`` of a 17 s rollout costs 4.2
-            rollouts instead of 6.0 and 35 MB of XLA temporaries instead of 563 MB
-            (documentation, Performance). A stage's rate is at most 7
+            every intermediate (the measured cost: documentation, Performance). A stage's rate is at most 7
             numbers a field, so the three of one step are (3, 7) and inner scans of 2
             steps hold no array over 64 numbers, which matters where XLA runs loops
             kernel by kernel (with loops compiled whole the length does not).

@@ -176,3 +176,56 @@ def test_the_search_and_its_campaign_write_files_that_replay_their_captures(tmp_
     np.testing.assert_allclose(replayed["max_abs_torque_Nm"], summary["max_abs_torque_Nm"], rtol=1e-10)
     from_campaign = replay(out / "campaign_worst_perturbation.json", "replay_campaign")
     np.testing.assert_allclose(from_campaign["final_position_error_m"], campaign_worst, rtol=1e-10)
+
+
+@pytest.mark.slow
+def test_the_ascents_gradient_matches_central_differences(robot):
+    """The ascent's program (values and gradients in ``U``, one point after another) at the
+    campaign's samples 1-4 of a 2 s approach: each gradient, along a random direction,
+    equals the central difference of the program's own values. Built as ``search()`` builds
+    it, so it is the program the test above compiled (the same shapes and settings)."""
+    import functools
+
+    from spacegrasp_jax import batching
+    from spacegrasp_jax.campaign import CampaignConfig
+    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.simulate import largest_divisor
+
+    scenario = paper_scenario(robot, duration=2.0, move_duration=2.0)
+    config, controller = CampaignConfig(n=4), "admittance"
+    function = functools.partial(
+        worstcase._value_and_gradient,
+        controller=controller,
+        measure="final_error",
+        criteria=(config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm),
+        identified=config.identified,
+        pinv_damping=config.pinv_damping,
+        segment=largest_divisor(scenario.n_steps, 2),
+    )
+    replicated = (robot, scenario, paper_gains(), config.ranges, config.realism)
+    samples = [1, 2, 3, 4]
+    units = worstcase.units_of_samples(config.seed, samples)
+    keys = worstcase.noise_keys(config.seed, samples)
+    executable, _ = batching.compile_chunk(
+        f"worst-case gradient, {controller}",
+        function,
+        replicated,
+        (units, keys),
+        device_batch=1,
+        key=("worstcase", controller, "final_error", config.identified, config.pinv_damping),
+    )
+    values, gradients = batching.run_chunk(executable, replicated, (units, keys))
+    rng = np.random.default_rng(5)
+    direction = jax.tree.map(lambda x: rng.normal(size=np.shape(x)), units)
+    h = 1e-6
+    plus, _ = batching.run_chunk(executable, replicated, (jax.tree.map(lambda u, d: u + h * d, units, direction), keys))
+    minus, _ = batching.run_chunk(
+        executable, replicated, (jax.tree.map(lambda u, d: u - h * d, units, direction), keys)
+    )
+    slopes = sum(
+        np.sum(np.reshape(g * d, (len(samples), -1)), axis=1)
+        for g, d in zip(jax.tree.leaves(gradients), jax.tree.leaves(direction))
+    )
+    assert np.all(np.isfinite(values)) and np.all(np.abs(slopes) > 0)
+    np.testing.assert_allclose(slopes, (plus - minus) / (2 * h), rtol=1e-4, atol=1e-12)
