@@ -287,3 +287,69 @@ def test_numpy_and_jax_arrays_on_the_default_device_share_one_program():
     mesh = Mesh(np.array(jax.devices()[:1]), ("batch",))
     placeholder = jax.ShapeDtypeStruct((3,), np.float64, sharding=NamedSharding(mesh, PartitionSpec("batch")))
     assert compilation.argument_signature((placeholder,)) != compilation.argument_signature(as_numpy[:1])
+
+
+#: Both laws' 17 s reproduction logs, and the reverse-mode derivatives of one closed-loop step
+#: in contact (the next state with respect to the state and the gains), as a user's process
+#: computes them, saved to the file named by the first argument.
+RESULTS_AT_THIS_COMPILER_LEVEL = """
+import os, sys
+import jax, numpy as np
+import spacegrasp_jax as sg
+sg.configure(compile_cache=False)
+from jax.flatten_util import ravel_pytree
+from spacegrasp_jax import experiment
+from spacegrasp_jax.control import paper_gains
+from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.simulate import closed_loop_step, rollout
+robot, gains = sg.paper_robot(), paper_gains()
+out = {"xla_flags": np.asarray(os.environ.get("XLA_FLAGS", ""))}
+for law in ("admittance", "cartesian"):
+    log = experiment.run(robot, paper_scenario(robot), gains, law).log
+    out.update({f"{law}/{name}": np.asarray(v) for name, v in vars(log).items() if v is not None})
+# The 2 s approach stopped at 1.15 s, pressing on the sphere (about 27 N).
+short = paper_scenario(robot, duration=1.15, move_duration=2.0, contact_law="smooth")
+state, log = jax.jit(rollout, static_argnames="controller")(robot, short, gains, "admittance")
+out["step/contact_force_n"] = np.linalg.norm(np.asarray(log.contact_force)[-1])
+def next_state(state, gains):
+    return ravel_pytree(closed_loop_step(robot, short, gains, "admittance")(state, short.n_steps)[0])[0]
+by_state, by_gains = jax.jit(jax.jacrev(next_state, argnums=(0, 1)))(state, gains)
+out["step/by_state"] = ravel_pytree(by_state)[0]
+out["step/by_gains"] = ravel_pytree(by_gains)[0]
+np.savez(sys.argv[1], **out)
+"""
+
+
+@pytest.mark.slow
+def test_the_suites_compiler_level_gives_the_users_results(tmp_path):
+    """The suite compiles with LLVM's -O0 (``tests/conftest.py``); users' processes with
+    XLA's default -O3. The same programs at both levels: the reproduction's every logged field
+    and the reverse-mode derivatives of a step in contact agree to rounding, so what the suite
+    checks at -O0 holds for what users run. Measured: both to 3e-12 of each field's largest
+    magnitude; the tolerance, 1e-9, leaves room for other CPUs' instructions."""
+    from conftest import SUITE_XLA_FLAG
+
+    results = {}
+    for level, flags in (("suite", SUITE_XLA_FLAG), ("users", "")):
+        env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR")}
+        env["XLA_FLAGS"] = flags
+        path = tmp_path / f"{level}.npz"
+        result = subprocess.run(
+            [sys.executable, "-c", RESULTS_AT_THIS_COMPILER_LEVEL, str(path)],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=600,
+        )
+        assert result.returncode == 0, result.stderr[-3000:]
+        results[level] = dict(np.load(path))
+    suite, users = results["suite"], results["users"]
+    assert "xla_backend_optimization_level=0" in str(suite.pop("xla_flags"))
+    assert "optimization_level" not in str(users.pop("xla_flags"))
+    assert suite.keys() == users.keys() and len(suite) > 20
+    assert users["step/contact_force_n"] > 10.0  # the step is differentiated in contact
+    for name, ours in suite.items():
+        scale = float(np.max(np.abs(users[name])))
+        np.testing.assert_allclose(ours, users[name], rtol=0, atol=1e-9 * scale, err_msg=name)
+    differing = [name for name in suite if not np.array_equal(suite[name], users[name])]
+    assert differing, "the two levels gave identical bits: is the suite's flag still in effect?"
