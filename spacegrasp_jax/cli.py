@@ -39,6 +39,7 @@ from spacegrasp_jax import (
     spatial,
     stability,
     statistics,
+    urdf,
     worstcase,
 )
 from spacegrasp_jax.control import CONTROLLERS, GainsError, UnusedGainsWarning, load_gains, paper_gains
@@ -117,6 +118,9 @@ def _c_identifier(text: str) -> str:
 
 
 def _info(args: argparse.Namespace) -> int:
+    urdf_file = Path(args.urdf) if args.urdf else None
+    if urdf_file is not None and urdf_file.exists():
+        raise UsageError(f"--urdf: {urdf_file} exists; name a new file (info never overwrites one)")
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     q = jnp.asarray(sg.PAPER_Q_INIT)
     p_base, R_base = jnp.zeros(3), jnp.eye(3)
@@ -136,6 +140,10 @@ def _info(args: argparse.Namespace) -> int:
     for row in np.asarray(R_ee):
         print(f"    [{row[0]: .6f}, {row[1]: .6f}, {row[2]: .6f}]")
     print(f"mass matrix (13x13) condition number: {np.linalg.cond(M):.6g}")
+    if urdf_file is not None:
+        urdf_file.parent.mkdir(parents=True, exist_ok=True)
+        urdf_file.write_text(urdf.robot_to_urdf(robot))
+        print(f"URDF written to {urdf_file} (it has no free joint: load it with a floating base)")
     return 0
 
 
@@ -1438,6 +1446,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.commands = commands.choices  # command name -> its parser
     info = _add_command(commands, "info", help="print the robot's mass, CoM, EE pose at q_init and cond(M)")
     info.add_argument("--robot", help="robot TOML file (default: the paper's robot)")
+    info.add_argument(
+        "--urdf", metavar="FILE", help="also write the robot as URDF to FILE, a new file (for Pinocchio, Drake, ROS)"
+    )
     info.set_defaults(run=_info)
 
     reproduce = _add_command(
