@@ -62,12 +62,23 @@ def random_states() -> list[RandomState]:
     return make_random_states(seed=20261123, count=N_RANDOM_STATES)
 
 
-@pytest.fixture(scope="session")
-def pinocchio_model():
-    """``(model, data, ee_frame_id)`` of the paper robot built in Pinocchio from the tables."""
+@pytest.fixture(scope="session", params=["tables", "urdf"])
+def pinocchio_model(request, robot):
+    """``(model, data, ee_frame_id)`` of the paper robot in Pinocchio, two ways: built from the
+    paper's tables independently of this package (``tests/pinocchio_reference.py``), and read
+    by Pinocchio's URDF parser from the URDF ``spacegrasp_jax.urdf`` writes, with a free-flyer
+    root and no gravity (a URDF gives none; Pinocchio's default is the Earth's)."""
+    import pinocchio as pin
     import pinocchio_reference
 
-    model, ee_frame = pinocchio_reference.build_model()
+    if request.param == "tables":
+        model, ee_frame = pinocchio_reference.build_model()
+    else:
+        from spacegrasp_jax.urdf import robot_to_urdf
+
+        model = pin.buildModelFromXML(robot_to_urdf(robot), pin.JointModelFreeFlyer())
+        model.gravity = pin.Motion.Zero()
+        ee_frame = model.getFrameId("ee")
     return model, model.createData(), ee_frame
 
 

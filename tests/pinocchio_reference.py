@@ -93,10 +93,15 @@ def build_model() -> tuple[pin.Model, int]:
     return model, ee_frame
 
 
-def configuration(p_base, R_base, q) -> np.ndarray:
-    """Pinocchio configuration (14,): position, quaternion [x, y, z, w], joint angles."""
+def configuration(p_base, R_base, q, model: pin.Model | None = None) -> np.ndarray:
+    """Pinocchio configuration (14,): position, quaternion [x, y, z, w], joint angles. For a
+    ``model`` whose joints are unbounded (a URDF's ``continuous`` joints, ``nq`` = 21), each
+    joint angle is written ``(cos q, sin q)``."""
     quat = pin.Quaternion(np.asarray(R_base)).coeffs()  # x, y, z, w
-    return np.concatenate([np.asarray(p_base), quat, np.asarray(q)])
+    q = np.asarray(q, dtype=float)
+    if model is not None and model.nq == 7 + 2 * q.size:
+        q = np.column_stack([np.cos(q), np.sin(q)]).ravel()
+    return np.concatenate([np.asarray(p_base), quat, q])
 
 
 def velocity_map(R_base) -> np.ndarray:

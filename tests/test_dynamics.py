@@ -22,16 +22,20 @@ def relative_error(actual, expected) -> float:
 
 
 def pin_mass_matrix(model, data, state):
-    qp = ref.configuration(state.p_base, state.R_base, state.q)
+    qp = ref.configuration(state.p_base, state.R_base, state.q, model)
     M = pin.crba(model, data, qp)
     return np.triu(M) + np.triu(M, 1).T  # crba fills the upper triangle
 
 
-def pin_state(state):
+def pin_state(model, state):
     """``(T, configuration, velocity)`` of ``state`` in Pinocchio's conventions, with
     ``v_pin = T x_v`` (``ref.velocity_map``)."""
     T = ref.velocity_map(state.R_base)
-    return T, ref.configuration(state.p_base, state.R_base, state.q), T @ np.concatenate([state.V_base, state.qd])
+    return (
+        T,
+        ref.configuration(state.p_base, state.R_base, state.q, model),
+        T @ np.concatenate([state.V_base, state.qd]),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +64,7 @@ def test_mass_matrix_matches_pinocchio(robot, random_states, pinocchio_model, ji
 def test_bias_forces_match_pinocchio(robot, random_states, pinocchio_model, jitted):
     model, data, _ = pinocchio_model
     for state in random_states:
-        T, qp, v_pin = pin_state(state)
+        T, qp, v_pin = pin_state(model, state)
         nle = pin.nonLinearEffects(model, data, qp, v_pin)
         # tau_pin = M_pin (T xdot_v + c) + nle and Q = T^T tau_pin.
         c = ref.frame_acceleration_offset(state.R_base, state.V_base)
@@ -74,7 +78,7 @@ def test_forward_dynamics_matches_pinocchio_aba(robot, random_states, pinocchio_
     rng = np.random.default_rng(7)
     for state in random_states:
         Q = np.concatenate([rng.normal(scale=5.0, size=6), rng.normal(scale=2.0, size=7)])
-        T, qp, v_pin = pin_state(state)
+        T, qp, v_pin = pin_state(model, state)
         a_pin = pin.aba(model, data, qp, v_pin, T @ Q)
         expected = T.T @ (a_pin - ref.frame_acceleration_offset(state.R_base, state.V_base))
         actual = jitted["forward_dynamics"](robot, state.R_base, state.q, state.V_base, state.qd, Q)
@@ -86,7 +90,7 @@ def test_inverse_dynamics_matches_pinocchio_rnea(robot, random_states, pinocchio
     rng = np.random.default_rng(5)
     for state in random_states:
         xdd = np.concatenate([rng.normal(scale=0.5, size=6), rng.normal(scale=2.0, size=7)])
-        T, qp, v_pin = pin_state(state)
+        T, qp, v_pin = pin_state(model, state)
         a_pin = T @ xdd + ref.frame_acceleration_offset(state.R_base, state.V_base)
         expected = T.T @ pin.rnea(model, data, qp, v_pin, a_pin)
         actual = jitted["inverse_dynamics"](robot, state.R_base, state.q, state.V_base, state.qd, xdd)
@@ -126,7 +130,7 @@ def test_forward_dynamics_derivatives_match_the_solve(robot, random_states):
 def test_momentum_matches_pinocchio(robot, random_states, pinocchio_model, jitted):
     model, data, _ = pinocchio_model
     for state in random_states:
-        T, qp, v_pin = pin_state(state)
+        T, qp, v_pin = pin_state(model, state)
         h_com = pin.computeCentroidalMomentum(model, data, qp, v_pin)  # about the system CoM
         linear = h_com.linear
         angular_origin = h_com.angular + np.cross(data.com[0], linear)
@@ -140,7 +144,7 @@ def test_momentum_matches_pinocchio(robot, random_states, pinocchio_model, jitte
 def pinocchio_dynamic_jacobian(model, data, ee_frame, state):
     """J_dyn from Pinocchio's EE frame Jacobian and centroidal momentum matrix."""
     T = ref.velocity_map(state.R_base)
-    qp = ref.configuration(state.p_base, state.R_base, state.q)
+    qp = ref.configuration(state.p_base, state.R_base, state.q, model)
     J_ee = pin.computeFrameJacobian(model, data, qp, ee_frame, pin.LOCAL_WORLD_ALIGNED) @ T
     A = pin.computeCentroidalMap(model, data, qp) @ T  # momentum about the CoM, world axes
     base_velocity_per_qd = -np.linalg.solve(A[:, :6], A[:, 6:])
@@ -339,7 +343,7 @@ def test_property_mass_matrix_spd_and_matches_pinocchio(robot, pinocchio_model, 
     M = np.asarray(_mass_matrix(robot, R_base, np.asarray(q)))
     assert np.linalg.eigvalsh(M)[0] > 0.0
     T = ref.velocity_map(R_base)
-    M_pin = pin.crba(model, data, ref.configuration(np.zeros(3), R_base, q))
+    M_pin = pin.crba(model, data, ref.configuration(np.zeros(3), R_base, q, model))
     expected = T.T @ (np.triu(M_pin) + np.triu(M_pin, 1).T) @ T
     assert relative_error(M, expected) <= RTOL
 

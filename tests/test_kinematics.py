@@ -17,7 +17,7 @@ def test_frames_and_ee_pose_match_pinocchio(robot, random_states, pinocchio_mode
     model, data, ee_frame = pinocchio_model
     fk = jax.jit(sg.forward_kinematics)
     for s in random_states:
-        pin.framesForwardKinematics(model, data, ref.configuration(s.p_base, s.R_base, s.q))
+        pin.framesForwardKinematics(model, data, ref.configuration(s.p_base, s.R_base, s.q, model))
         frames = fk(robot, s.p_base, s.R_base, s.q)
         np.testing.assert_allclose(frames.p_ee, data.oMf[ee_frame].translation, rtol=0, atol=1e-12)
         np.testing.assert_allclose(frames.R_ee, data.oMf[ee_frame].rotation, rtol=0, atol=1e-12)
@@ -34,7 +34,7 @@ def test_frames_and_ee_pose_match_pinocchio(robot, random_states, pinocchio_mode
 def test_ee_jacobians_match_pinocchio(robot, random_states, pinocchio_model):
     model, data, ee_frame = pinocchio_model
     for s in random_states:
-        qp = ref.configuration(s.p_base, s.R_base, s.q)
+        qp = ref.configuration(s.p_base, s.R_base, s.q, model)
         J = pin.computeFrameJacobian(model, data, qp, ee_frame, pin.LOCAL_WORLD_ALIGNED) @ ref.velocity_map(s.R_base)
         J_s, J_m = sg.ee_jacobians(robot, s.R_base, s.q)
         np.testing.assert_allclose(J_s, J[:, :6], rtol=0, atol=RTOL * np.abs(J).max())

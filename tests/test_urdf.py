@@ -1,7 +1,7 @@
 """The robot written as URDF (``spacegrasp_jax.urdf``) read by Pinocchio's own URDF parser:
 the same rigid-body system as the model ``tests/pinocchio_reference.py`` builds from the
-paper's tables (which ``tests/test_dynamics.py`` checks ours against), and the robot's
-numbers read back from the XML."""
+paper's tables, and the robot's numbers read back from the XML. (``tests/test_dynamics.py``
+and ``tests/test_kinematics.py`` check ours against both Pinocchio models.)"""
 
 from __future__ import annotations
 
@@ -23,34 +23,22 @@ def relative_error(actual, expected) -> float:
     return float(np.max(np.abs(actual - expected)) / np.max(np.abs(expected)))
 
 
-@pytest.fixture(scope="module")
-def urdf_model(robot):
-    """Pinocchio's model of the URDF with a free-flyer root, without gravity (a URDF has none
-    to give; Pinocchio's default is the Earth's)."""
-    model = pin.buildModelFromXML(robot_to_urdf(robot), pin.JointModelFreeFlyer())
-    model.gravity = pin.Motion.Zero()
-    return model
-
-
-def urdf_configuration(state) -> np.ndarray:
-    """The URDF model's configuration (21,): its continuous joints are Pinocchio's unbounded
-    revolute joints, each written as ``(cos q, sin q)``."""
-    base = ref.configuration(state.p_base, state.R_base, state.q)[:7]
-    return np.concatenate([base, np.column_stack([np.cos(state.q), np.sin(state.q)]).ravel()])
-
-
-def test_pinocchio_reads_the_urdf_as_the_tables_robot(urdf_model, pinocchio_model, random_states):
+def test_pinocchio_reads_the_urdf_as_the_tables_robot(robot, random_states):
     """At 20 random states: every joint frame, the EE frame, the mass matrix, the bias forces,
     forward dynamics under random torques, the centroidal momentum matrix and the EE's frame
     Jacobian (what the Dynamic Jacobian is made of) equal the reference model's to 1e-12."""
-    reference, reference_data, reference_ee = pinocchio_model
-    model, data = urdf_model, urdf_model.createData()
+    reference, reference_ee = ref.build_model()
+    reference_data = reference.createData()
+    model = pin.buildModelFromXML(robot_to_urdf(robot), pin.JointModelFreeFlyer())
+    model.gravity = pin.Motion.Zero()  # a URDF gives none; Pinocchio's default is the Earth's
+    data = model.createData()
     assert (model.nq, model.nv) == (21, 13)
     assert [model.names[i] for i in range(2, model.njoints)] == [f"joint{i}" for i in range(1, 8)]
     ee = model.getFrameId("ee")
     rng = np.random.default_rng(11)
     for state in random_states:
-        q_ref, q_urdf = ref.configuration(state.p_base, state.R_base, state.q), urdf_configuration(state)
+        q_ref = ref.configuration(state.p_base, state.R_base, state.q)
+        q_urdf = ref.configuration(state.p_base, state.R_base, state.q, model)
         v = ref.velocity_map(state.R_base) @ np.concatenate([state.V_base, state.qd])
         tau = np.concatenate([np.zeros(6), rng.normal(scale=20.0, size=7)])
         pairs = {}
