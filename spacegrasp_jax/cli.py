@@ -118,9 +118,13 @@ def _c_identifier(text: str) -> str:
 
 
 def _info(args: argparse.Namespace) -> int:
-    urdf_file = Path(args.urdf) if args.urdf else None
-    if urdf_file is not None and urdf_file.exists():
-        raise UsageError(f"--urdf: {urdf_file} exists; name a new file (info never overwrites one)")
+    urdf_file = None if args.urdf is None else Path(args.urdf)
+    if urdf_file is not None:
+        if urdf_file.exists():
+            raise UsageError(f"--urdf: {urdf_file} exists; name a new file (info never overwrites one)")
+        folder = next(parent for parent in urdf_file.absolute().parents if parent.exists())
+        if not folder.is_dir():
+            raise UsageError(f"--urdf: {folder} is not a folder, so {urdf_file} cannot be written")
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     q = jnp.asarray(sg.PAPER_Q_INIT)
     p_base, R_base = jnp.zeros(3), jnp.eye(3)

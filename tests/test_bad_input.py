@@ -127,6 +127,8 @@ def cases(paths, out):
         "info missing robot": (["info", "--robot", p["missing"]], "missing.toml: no such file"),
         "info robot folder": (["info", "--robot", p["a_folder"]], "a_folder: is a folder"),
         "info urdf exists": (["info", "--urdf", p["binary.toml"]], "binary.toml exists; name a new file"),
+        "info urdf under a file": (["info", "--urdf", f"{p['binary.toml']}/arm.urdf"], "binary.toml is not a folder"),
+        "info urdf empty name": (["info", "--urdf", ""], "--urdf: . exists; name a new file"),
         "simulate gains folder": ([*SIMULATE, "--gains", p["a_folder"], "--out", out], "a_folder: is a folder"),
         "montecarlo gains folder": ([*MONTECARLO, "--gains", p["a_folder"], "--out", out], "a_folder: is a folder"),
         "tune scenario folder": ([*TUNE, "--scenario", p["a_folder"], "--out", out], "a_folder: is a folder"),
