@@ -56,12 +56,13 @@ def forward_kinematics_by_component(robot, p_base, R_base, q):
 
     theta = q + robot.joint_offset
     ct, st = jnp.cos(theta), jnp.sin(theta)
-    ca, sa = jnp.cos(robot.dh_alpha), jnp.sin(robot.dh_alpha)
+    # A DH chain (the paper's arm): frame_rotation is Rx(alpha), frame_position (L, 0, lambda).
+    ca, sa = robot.frame_rotation[..., 2, 2], robot.frame_rotation[..., 2, 1]
     R = [[R_base[i, j] for j in range(3)] for i in range(3)]
     p = [p_base[i] + sum(R[i][j] * robot.mount_position[j] for j in range(3)) for i in range(3)]
     R_link, origins, axes = [], [p], [[R[0][2], R[1][2], R[2][2]]]
     for i in range(len(theta)):
-        c, s, length, offset = ct[i], st[i], robot.dh_length[i], robot.dh_lambda[i]
+        c, s, length, offset = ct[i], st[i], robot.frame_position[i, 0], robot.frame_position[i, 2]
         p = [p[r] + R[r][0] * (length * c) + R[r][1] * (length * s) + R[r][2] * offset for r in range(3)]
         x = [R[r][0] * c + R[r][1] * s for r in range(3)]
         y_rz = [R[r][1] * c - R[r][0] * s for r in range(3)]

@@ -23,7 +23,7 @@ import numpy as np
 import pinocchio as pin
 
 from spacegrasp_jax.compilation import configure
-from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
+from spacegrasp_jax.model import Robot, body_inertials, n_joints
 
 
 def build_model(robot: Robot) -> tuple[pin.Model, int]:
@@ -38,19 +38,16 @@ def build_model(robot: Robot) -> tuple[pin.Model, int]:
         pin.Inertia(float(robot.satellite_mass), np.zeros(3), np.asarray(robot.satellite_inertia, dtype=float)),
         pin.SE3.Identity(),
     )
-    parent, placement = base, pin.SE3(np.eye(3), np.asarray(robot.mount_position, dtype=float))
-    for i in range(N_JOINTS):
-        offset, lam, length, alpha = (
-            float(np.asarray(getattr(robot, name))[i])
-            for name in ("joint_offset", "dh_lambda", "dh_length", "dh_alpha")
-        )
+    parent, placement = (
+        base,
+        pin.SE3(np.asarray(robot.mount_rotation, dtype=float), np.asarray(robot.mount_position, dtype=float)),
+    )
+    for i in range(n_joints(robot)):
+        offset = float(np.asarray(robot.joint_offset)[i])
         joint = model.addJoint(parent, pin.JointModelRZ(), placement, f"joint{i + 1}")
-        # Frame i seen from the joint frame: Rz(offset) Tz(lambda) Tx(L) Rx(alpha).
-        frame_i = (
-            pin.SE3(pin.utils.rpyToMatrix(0.0, 0.0, offset), np.zeros(3))
-            * pin.SE3(np.eye(3), np.array([0.0, 0.0, lam]))
-            * pin.SE3(np.eye(3), np.array([length, 0.0, 0.0]))
-            * pin.SE3(pin.utils.rpyToMatrix(alpha, 0.0, 0.0), np.zeros(3))
+        # Frame i seen from the joint frame: Rz(offset) F_i.
+        frame_i = pin.SE3(pin.utils.rpyToMatrix(0.0, 0.0, offset), np.zeros(3)) * pin.SE3(
+            np.asarray(robot.frame_rotation, dtype=float)[i], np.asarray(robot.frame_position, dtype=float)[i]
         )
         model.appendBodyToJoint(joint, pin.Inertia(mass[i], com[i], inertia[i]), frame_i)
         parent, placement = joint, frame_i

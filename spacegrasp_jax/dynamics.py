@@ -10,7 +10,7 @@ Algorithm: composite-rigid-body (CRBA) and recursive Newton-Euler (RNEA) on spat
 expressed in the inertial frame about the satellite CoM (MJX's ``smooth.py`` style). In those
 coordinates a joint's motion axis ``S_j = (z_j, o_j x z_j)`` needs no transform between
 bodies, so the RNEA velocity and velocity-product acceleration passes are cumulative sums
-over the joints and the composite inertias a reverse cumulative sum: apart from the 7
+over the joints and the composite inertias a reverse cumulative sum: apart from the N
 products of the kinematic chain nothing is sequential, which suits jit, vmap and GPUs.
 The accelerations come by block elimination on ``M``'s satellite and joint blocks.
 Their derivative is that of inverse dynamics ([`forward_dynamics_from_frames()`][spacegrasp_jax.dynamics.forward_dynamics_from_frames]).
@@ -31,9 +31,9 @@ import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
 from spacegrasp_jax import spatial
-from spacegrasp_jax.kinematics import N_DOF, body_com_positions, forward_kinematics, point_jacobian_blocks
+from spacegrasp_jax.kinematics import body_com_positions, forward_kinematics, point_jacobian_blocks
 from spacegrasp_jax.linalg import cho_solve, cholesky, solve_spd
-from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
+from spacegrasp_jax.model import Robot, body_inertials, n_joints
 from spacegrasp_jax.spatial import cross, symmetric_inverse
 
 
@@ -45,9 +45,9 @@ def frames_at_base(robot: Robot, R_base, q):
 
 
 def _link_inertias(robot: Robot, frames) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Spatial inertias of links 1..7 about the satellite CoM, which ``frames`` places at the
-    origin: mass (7,), first moment ``m c`` (7, 3) and rotational inertia about the origin
-    (7, 3, 3), inertial axes."""
+    """Spatial inertias of links 1..N about the satellite CoM, which ``frames`` places at the
+    origin: mass (N,), first moment ``m c`` (N, 3) and rotational inertia about the origin
+    (N, 3, 3), inertial axes."""
     mass, com_local, inertia_local = body_inertials(robot)
     R = frames.R_link
     com = frames.link_origin + spatial.matvec(R, com_local)
@@ -96,13 +96,13 @@ def _cumulative(arrays, reverse: bool):
 
 def _chain_sums(*arrays):
     """Cumulative sums down the chain (link i gets the sum over joints 1..i), each array
-    (7, ...) summed along its first axis."""
+    (N, ...) summed along its first axis."""
     return _cumulative(arrays, reverse=False)
 
 
 def _subtree_sums(*arrays):
-    """Sums over each link's subtree (link i gets the sum over links i..7), each array
-    (7, ...) summed along its first axis."""
+    """Sums over each link's subtree (link i gets the sum over links i..N), each array
+    (N, ...) summed along its first axis."""
     return _cumulative(arrays, reverse=True)
 
 
@@ -115,7 +115,7 @@ def _apply_inertia(mass, moment, inertia, w, v):
 
 
 def _joint_axes(frames) -> tuple[jax.Array, jax.Array]:
-    """Motion axes ``S_j = (z_j, o_j x z_j)`` of the 7 joints: two (7, 3) arrays."""
+    """Motion axes ``S_j = (z_j, o_j x z_j)`` of the N joints: two (N, 3) arrays."""
     axis = frames.joint_axis
     return axis, cross(frames.joint_origin, axis)
 
@@ -125,8 +125,8 @@ def mass_matrix_parts_from_frames(robot: Robot, frames):
     ``(m, h, I_O, M_coupling, M_joints)``. The satellite block
     ``M_base = [[m 1, -h x], [h x, I_O]]`` (6, 6) is the whole system's spatial inertia about
     the satellite CoM: mass ``m`` (), first moment ``h`` (3,) kg m, rotational inertia
-    ``I_O`` (3, 3); ``M_coupling`` (6, 7) couples ``[v_s, w_s]`` with ``qd``; ``M_joints``
-    (7, 7) is the joints' block."""
+    ``I_O`` (3, 3); ``M_coupling`` (6, N) couples ``[v_s, w_s]`` with ``qd``; ``M_joints``
+    (N, N) is the joints' block."""
     mass, moment, inertia = _link_inertias(robot, frames)
     # Composite inertia of the subtree of each link: a reverse cumulative sum.
     c_mass, c_moment, c_inertia = _subtree_sums(mass, moment, inertia)
@@ -135,7 +135,7 @@ def mass_matrix_parts_from_frames(robot: Robot, frames):
     F_n, F_f = _apply_inertia(c_mass, c_moment, c_inertia, S_w, S_v)
     # M_ij = S_i . F_max(i,j) for joints i, j.
     A = spatial.matmul(S_w, F_n.T) + spatial.matmul(S_v, F_f.T)  # A[i, j] = S_i . F_j
-    upper = jnp.triu(jnp.ones((N_JOINTS, N_JOINTS), dtype=bool))
+    upper = jnp.triu(jnp.ones(A.shape, dtype=bool))
     M_joints = jnp.where(upper, A, A.T)
     # Satellite rows (generalised velocities v_s, w_s): its columns are the whole system's
     # composite inertia applied to a pure translation and a pure rotation. Summed directly
@@ -232,9 +232,9 @@ def solve_base(m, h, I_O, rhs: jax.Array) -> jax.Array:
 def solve_mass_blocks(base, M_coupling, M_joints, base_per_joint, rhs) -> jax.Array:
     """``M^-1 rhs`` (13,) by block elimination, given the parts of
     [`mass_matrix_parts_from_frames()`][spacegrasp_jax.dynamics.mass_matrix_parts_from_frames] (``base = (m, h, I_O)``) and
-    ``base_per_joint = M_base^-1 M_coupling`` (6, 7) ([`solve_base()`][spacegrasp_jax.dynamics.solve_base]): the joint
+    ``base_per_joint = M_base^-1 M_coupling`` (6, N) ([`solve_base()`][spacegrasp_jax.dynamics.solve_base]): the joint
     accelerations from the Schur complement ``M_joints - M_coupling^T M_base^-1 M_coupling``
-    (7, 7), symmetric positive definite, by Cholesky, then the satellite's."""
+    (N, N), symmetric positive definite, by Cholesky, then the satellite's."""
     schur = M_joints - spatial.matmul(M_coupling.T, base_per_joint)
     return _solve_blocks(base, M_coupling, base_per_joint, rhs, lambda b: solve_spd(schur, b))
 
@@ -250,7 +250,7 @@ def mass_blocks_from_frames(robot: Robot, frames):
     """The mass matrix's blocks as the solves use them, from [`frames_at_base()`][spacegrasp_jax.dynamics.frames_at_base]:
     ``((m, h, I_O), M_coupling, M_joints, base_per_joint)``, the parts of
     [`mass_matrix_parts_from_frames()`][spacegrasp_jax.dynamics.mass_matrix_parts_from_frames] and ``base_per_joint = M_base^-1 M_coupling``
-    (6, 7) ([`solve_base()`][spacegrasp_jax.dynamics.solve_base])."""
+    (6, N) ([`solve_base()`][spacegrasp_jax.dynamics.solve_base])."""
     m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
     return (m, h, I_O), M_coupling, M_joints, solve_base(m, h, I_O, M_coupling)
 
@@ -311,7 +311,7 @@ def mass_matrix(robot: Robot, R_base: jax.Array, q: jax.Array) -> jax.Array:
     """Generalised mass matrix ``M`` (13, 13), symmetric positive definite, SI units.
 
     Args:
-        R_base: (3, 3) satellite attitude, satellite to inertial. q: (7,) rad.
+        R_base: (3, 3) satellite attitude, satellite to inertial. q: (N,) rad.
     """
     frames = frames_at_base(robot, R_base, q)
     return mass_matrix_from_frames(robot, frames)
@@ -322,8 +322,8 @@ def bias_forces(robot: Robot, R_base, q, V_base, qd) -> jax.Array:
     ``M xdot_v + bias = Q``.
 
     Args:
-        R_base: (3, 3) satellite to inertial. q: (7,) rad.
-        V_base: (6,) ``[v_s (m/s), w_s (rad/s)]`` in the inertial frame. qd: (7,) rad/s.
+        R_base: (3, 3) satellite to inertial. q: (N,) rad.
+        V_base: (6,) ``[v_s (m/s), w_s (rad/s)]`` in the inertial frame. qd: (N,) rad/s.
     """
     frames = frames_at_base(robot, R_base, q)
     return bias_from_frames(robot, frames, V_base, qd)
@@ -371,7 +371,7 @@ def momentum_matrix(robot: Robot, p_base, R_base, q) -> jax.Array:
     both in the inertial frame.
 
     Args:
-        p_base: (3,) m, satellite CoM. R_base: (3, 3) satellite to inertial. q: (7,) rad.
+        p_base: (3,) m, satellite CoM. R_base: (3, 3) satellite to inertial. q: (N,) rad.
     """
     # The first six rows of M are [P; L about the satellite CoM]; shift L to the origin.
     H = mass_matrix(robot, R_base, q)[:6]
@@ -379,7 +379,7 @@ def momentum_matrix(robot: Robot, p_base, R_base, q) -> jax.Array:
 
 
 def momentum_jacobians(robot: Robot, p_base, R_base, q) -> tuple[jax.Array, jax.Array]:
-    """``H2`` (6, 6) and ``H3`` (6, 7) of eq 6 (momentum about the inertial origin);
+    """``H2`` (6, 6) and ``H3`` (6, N) of eq 6 (momentum about the inertial origin);
     arguments as [`momentum_matrix()`][spacegrasp_jax.dynamics.momentum_matrix]."""
     H = momentum_matrix(robot, p_base, R_base, q)
     return H[:, :6], H[:, 6:]
@@ -388,7 +388,7 @@ def momentum_jacobians(robot: Robot, p_base, R_base, q) -> tuple[jax.Array, jax.
 def system_momentum(robot: Robot, p_base, R_base, q, V_base, qd) -> jax.Array:
     """``[P; L]`` (6,): total linear momentum (N s) and angular momentum about the
     inertial origin (N m s), inertial frame. Arguments as [`momentum_matrix()`][spacegrasp_jax.dynamics.momentum_matrix] plus
-    ``V_base`` (6,) ``[v_s, w_s]`` and ``qd`` (7,)."""
+    ``V_base`` (6,) ``[v_s, w_s]`` and ``qd`` (N,)."""
     return momentum_matrix(robot, p_base, R_base, q) @ jnp.concatenate([V_base, qd])
 
 
@@ -402,27 +402,27 @@ def system_com(robot: Robot, p_base, R_base, q) -> jax.Array:
 
 
 def dynamic_jacobian(robot: Robot, R_base, q) -> jax.Array:
-    """Dynamic (generalised) Jacobian ``J_dyn = J_m - J_s H2^-1 H3`` (6, 7) of eq 8.
+    """Dynamic (generalised) Jacobian ``J_dyn = J_m - J_s H2^-1 H3`` (6, N) of eq 8.
 
     Maps ``qd`` to the EE twist ``[v_ee; w_ee]`` (inertial frame) when the system's
     linear and angular momenta are zero.
 
     Args:
-        R_base: (3, 3) satellite to inertial. q: (7,) rad.
+        R_base: (3, 3) satellite to inertial. q: (N,) rad.
     """
     return _dynamic_jacobian_at(robot, frames_at_base(robot, R_base, q))
 
 
 def _dynamic_jacobian_at(robot: Robot, frames) -> jax.Array:
-    _, J_joints = point_jacobian_blocks(frames, jnp.zeros(3, dtype=frames.p_ee.dtype), frames.p_ee, N_JOINTS)
+    _, J_joints = point_jacobian_blocks(frames, jnp.zeros(3, dtype=frames.p_ee.dtype), frames.p_ee, n_joints(robot))
     m, h, I_O, M_coupling, _ = mass_matrix_parts_from_frames(robot, frames)
     return dynamic_jacobian_from_parts(solve_base(m, h, I_O, M_coupling), J_joints, frames.p_ee)
 
 
 def dynamic_jacobian_from_parts(base_per_joint: jax.Array, J_joints: jax.Array, r_ee: jax.Array) -> jax.Array:
-    """``J_dyn = J_m - J_s M_base^-1 M_coupling`` (6, 7), inertial frame, from
-    ``base_per_joint = M_base^-1 M_coupling`` (6, 7) ([`solve_base()`][spacegrasp_jax.dynamics.solve_base]), the joint block
-    ``J_m`` (6, 7) of the EE point Jacobian and ``r_ee`` (3,) m, the EE point from the
+    """``J_dyn = J_m - J_s M_base^-1 M_coupling`` (6, N), inertial frame, from
+    ``base_per_joint = M_base^-1 M_coupling`` (6, N) ([`solve_base()`][spacegrasp_jax.dynamics.solve_base]), the joint block
+    ``J_m`` (6, N) of the EE point Jacobian and ``r_ee`` (3,) m, the EE point from the
     satellite CoM. Zero momentum about the satellite CoM (rows 0-5 of ``M``) is the
     constraint of eq 6; ``J_s X = [X_v + X_w x r_ee; X_w]`` is applied as cross products."""
     X_v, X_w = jnp.split(base_per_joint, 2)
@@ -430,7 +430,7 @@ def dynamic_jacobian_from_parts(base_per_joint: jax.Array, J_joints: jax.Array, 
 
 
 def dynamic_jacobian_ee(robot: Robot, R_base, q) -> jax.Array:
-    """``J_dyn^(EE)`` (6, 7): the Dynamic Jacobian mapping ``qd`` to the EE twist expressed
+    """``J_dyn^(EE)`` (6, N): the Dynamic Jacobian mapping ``qd`` to the EE twist expressed
     in the EE frame (used by eqs 17 and 21). Arguments as [`dynamic_jacobian()`][spacegrasp_jax.dynamics.dynamic_jacobian]."""
     frames = frames_at_base(robot, R_base, q)
     R_ee_T = frames.R_ee.T
@@ -439,7 +439,6 @@ def dynamic_jacobian_ee(robot: Robot, R_base, q) -> jax.Array:
 
 
 __all__ = [
-    "N_DOF",
     "bias_forces",
     "bias_from_frames",
     "dynamic_jacobian",

@@ -72,9 +72,10 @@ def read_document(path: str | Path, error: type[ValueError], file_format: str | 
     return parse_document(read_text(path, error), file_format, str(path), error)
 
 
-def numbers(value, where: str, error: type[ValueError]) -> np.ndarray:
+def numbers(value, where: str, error: type[ValueError], allow_infinite: bool = False) -> np.ndarray:
     """``value`` (a number, nested lists of numbers, or a numeric array) as a finite float64
-    array. Booleans, strings, ``None`` and ragged lists are refused, naming ``where``.
+    array (``allow_infinite``: or infinite, never NaN). Booleans, strings, ``None`` and ragged
+    lists are refused, naming ``where``.
 
     Raises:
         error: not numbers, not rectangular, or not finite.
@@ -94,8 +95,10 @@ def numbers(value, where: str, error: type[ValueError]) -> np.ndarray:
         array = np.asarray(value, dtype=np.float64)
     except (ValueError, OverflowError):
         raise error(f"{where}: expected a rectangular array of numbers, got {short(value)}") from None
-    if not np.all(np.isfinite(array)):
-        raise error(f"{where}: must be finite, got {short(array.tolist())}")
+    if np.any(np.isnan(array)) or not (allow_infinite or np.all(np.isfinite(array))):
+        raise error(
+            f"{where}: must be {'a number (not NaN)' if allow_infinite else 'finite'}, got {short(array.tolist())}"
+        )
     return array
 
 

@@ -53,7 +53,7 @@ from spacegrasp_jax import batching
 from spacegrasp_jax.campaign import CampaignConfig, CampaignError
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.law import law_named
-from spacegrasp_jax.model import N_JOINTS, Robot
+from spacegrasp_jax.model import Robot, n_joints
 from spacegrasp_jax.montecarlo import evaluate_samples, lost, success
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import ServoInputDelay
@@ -127,7 +127,7 @@ class OutputDelayState:
 
     Attributes:
         law: the wrapped law's state.
-        commands: (capacity, 7) rad/s, the law's last ``capacity`` desired joint rates, a
+        commands: (capacity, N) rad/s, the law's last ``capacity`` desired joint rates, a
             ring written at ``head``.
         head: () int, where the next command is written.
     """
@@ -146,15 +146,17 @@ class OutputDelay:
         capacity: the delay line's length (static); ``periods`` must be below it.
         periods: () int, the delay in control periods (a value: any delay below
             ``capacity`` runs the same program).
+        n_joints: the arm's number of joints N (static).
     """
 
     law: object
     capacity: int
     periods: jax.Array
+    n_joints: int
 
     def init(self, dtype=jnp.float64) -> OutputDelayState:
         return OutputDelayState(
-            self.law.init(dtype), jnp.zeros((self.capacity, N_JOINTS), dtype), jnp.zeros((), jnp.int32)
+            self.law.init(dtype), jnp.zeros((self.capacity, self.n_joints), dtype), jnp.zeros((), jnp.int32)
         )
 
     def update(self, gains: Gains, inputs, state: OutputDelayState, dt):
@@ -198,7 +200,7 @@ def _probe(
     pinv_damping,
     identified,
 ):
-    law = OutputDelay(law_named(controller, pinv_damping), capacity, delay_periods)
+    law = OutputDelay(law_named(controller, pinv_damping), capacity, delay_periods, n_joints(robot))
     servo_delay = None if servo_capacity is None else ServoInputDelay(servo_capacity, servo_delay_ticks)
     _, sample_metrics, _ = evaluate_samples(
         robot,

@@ -1,12 +1,13 @@
 """The robot as a MuJoCo model (MJCF text), for side-by-side benchmarks and checks.
 
-The generated model has a free joint at the satellite CoM, seven hinges and the EE merged into
-link 7 (as [`body_inertials()`][spacegrasp_jax.model.body_inertials] does), no gravity, no geometry and so
+The generated model has a free joint at the satellite CoM, N hinges and the EE merged into
+link N (as [`body_inertials()`][spacegrasp_jax.model.body_inertials] does), no gravity, no geometry and so
 no contacts, the RK4 integrator at ``dt`` and one motor per joint (``ctrl`` = joint torque,
 N m). It describes the same rigid-body system as [`Robot`][spacegrasp_jax.model.Robot]:
 
-* body ``link<i>`` has the pose of DH frame ``i``. Its hinge sits at the origin of frame
-  ``i-1``, about ``z_{i-1}``; at ``q = 0`` the body is placed by ``T_{i-1,i}(0)``.
+* body ``link<i>`` has the pose of frame ``i``. Its hinge sits at the origin of frame
+  ``i-1``, about ``z_{i-1}``; at ``q = 0`` the body is placed by ``T_{i-1,i}(0)`` (link 1 in
+  the mounting frame's pose on the satellite).
 * MuJoCo's free-joint velocity is ``[v_s (world), R_s^T w_s (satellite frame)]``; ours is
   ``[v_s, w_s]``, both in the inertial frame (``qvel_from_state`` converts).
 * site ``ee`` is the EE frame's origin.
@@ -20,19 +21,13 @@ from __future__ import annotations
 import numpy as np
 
 from spacegrasp_jax import spatial
-from spacegrasp_jax.model import N_JOINTS, Robot, body_inertials
+from spacegrasp_jax.kinematics import joint_transforms
+from spacegrasp_jax.model import Robot, body_inertials, n_joints
 
 
 def _rotation_to_quat(R: np.ndarray) -> np.ndarray:
     """Unit quaternion ``[w, x, y, z]`` of a rotation matrix, as NumPy."""
     return np.asarray(spatial.rotation_to_quat(np.asarray(R, dtype=float)))
-
-
-def _dh_at_zero(offset: float, lam: float, length: float, alpha: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(p, R)`` of ``Rz(offset) Tz(lambda) Tx(length) Rx(alpha)``."""
-    c, s, ca, sa = np.cos(offset), np.sin(offset), np.cos(alpha), np.sin(alpha)
-    R = np.array([[c, -s * ca, s * sa], [s, c * ca, -c * sa], [0.0, sa, ca]])
-    return np.array([length * c, length * s, lam]), R
 
 
 def _numbers(values) -> str:
@@ -47,9 +42,11 @@ def _full_inertia(I: np.ndarray) -> str:
 def robot_to_mjcf(robot: Robot, dt: float = 1e-3) -> str:
     """MJCF text of ``robot`` (unbatched) with the RK4 integrator at ``dt`` (s)."""
     mass, com, inertia = (np.asarray(x, dtype=float) for x in body_inertials(robot))
-    lam, length, alpha, offset = (
-        np.asarray(getattr(robot, name), dtype=float) for name in ("dh_lambda", "dh_length", "dh_alpha", "joint_offset")
-    )
+    n = n_joints(robot)
+    R_rel, p_rel = (np.asarray(x, dtype=float) for x in joint_transforms(robot, np.zeros(n)))
+    frame_rotation = np.asarray(robot.frame_rotation, dtype=float)
+    frame_position = np.asarray(robot.frame_position, dtype=float)
+    mount_p, mount_R = (np.asarray(x, dtype=float) for x in (robot.mount_position, robot.mount_rotation))
     lines = [
         '<mujoco model="spacegrasp">',
         '  <compiler angle="radian" autolimits="true" inertiafromgeom="false"/>',
@@ -60,14 +57,12 @@ def robot_to_mjcf(robot: Robot, dt: float = 1e-3) -> str:
         f'      <inertial pos="0 0 0" mass="{float(robot.satellite_mass):.17g}" fullinertia="{_full_inertia(np.asarray(robot.satellite_inertia, dtype=float))}"/>',
     ]
     indent = "      "
-    for i in range(N_JOINTS):
-        p, R = _dh_at_zero(offset[i], lam[i], length[i], alpha[i])
+    for i in range(n):
+        p, R = p_rel[i], R_rel[i]
         if i == 0:
-            p = np.asarray(robot.mount_position, dtype=float) + p  # frame 0: the mount, satellite axes
-        hinge = -np.array(
-            [length[i], lam[i] * np.sin(alpha[i]), lam[i] * np.cos(alpha[i])]
-        )  # origin of frame i-1, frame i axes
-        axis = np.array([0.0, np.sin(alpha[i]), np.cos(alpha[i])])  # z_{i-1} in frame i axes
+            p, R = mount_p + mount_R @ p, mount_R @ R  # frame 0: the mount
+        hinge = -frame_rotation[i].T @ frame_position[i]  # origin of frame i-1, frame i axes
+        axis = frame_rotation[i][2]  # z_{i-1} in frame i axes: Rz(theta) leaves it alone
         lines += [
             f'{indent}<body name="link{i + 1}" pos="{_numbers(p)}" quat="{_numbers(_rotation_to_quat(R))}">',
             f'{indent}  <joint name="joint{i + 1}" type="hinge" pos="{_numbers(hinge)}" axis="{_numbers(axis)}"/>',
@@ -75,17 +70,17 @@ def robot_to_mjcf(robot: Robot, dt: float = 1e-3) -> str:
         ]
         indent += "  "
     lines.append(f'{indent}<site name="ee" pos="{_numbers(np.asarray(robot.ee_offset, dtype=float))}"/>')
-    for _ in range(N_JOINTS):
+    for _ in range(n):
         indent = indent[:-2]
         lines.append(f"{indent}</body>")
     lines += ["    </body>", "  </worldbody>", "  <actuator>"]
-    lines += [f'    <motor name="joint{i + 1}" joint="joint{i + 1}" gear="1"/>' for i in range(N_JOINTS)]
+    lines += [f'    <motor name="joint{i + 1}" joint="joint{i + 1}" gear="1"/>' for i in range(n)]
     lines += ["  </actuator>", "</mujoco>", ""]
     return "\n".join(lines)
 
 
 def qpos_from_state(p_base, R_base, q) -> np.ndarray:
-    """MuJoCo ``qpos`` (14,): satellite position, quaternion ``[w, x, y, z]``, joint angles."""
+    """MuJoCo ``qpos`` (7 + N,): satellite position, quaternion ``[w, x, y, z]``, joint angles."""
     return np.concatenate(
         [
             np.asarray(p_base, dtype=float),
@@ -96,7 +91,7 @@ def qpos_from_state(p_base, R_base, q) -> np.ndarray:
 
 
 def qvel_from_state(R_base, V_base, qd) -> np.ndarray:
-    """MuJoCo ``qvel`` (13,) from our ``[v_s, w_s]`` (inertial frame) and joint rates."""
+    """MuJoCo ``qvel`` (6 + N,) from our ``[v_s, w_s]`` (inertial frame) and joint rates."""
     V_base = np.asarray(V_base, dtype=float)
     return np.concatenate([V_base[:3], np.asarray(R_base, dtype=float).T @ V_base[3:], np.asarray(qd, dtype=float)])
 

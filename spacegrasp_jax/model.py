@@ -1,18 +1,25 @@
-"""The robot: a 7-joint arm on a free-floating satellite, as a static pytree.
+"""The robot: a serial arm of N revolute joints on a free-floating satellite, as a static pytree.
 
 Frames and conventions (the modelling notes of the documentation)
 ------------------------------------------------
 * Satellite (base) frame: origin at the satellite CoM.
-* Frame 0 is the mounting point ``mount_position`` (satellite frame), axes parallel to
-  the satellite's. Standard DH: ``T_{i-1,i} = Rz(q_i + joint_offset_i) Tz(dh_lambda_i)
-  Tx(dh_length_i) Rx(dh_alpha_i)``; joint ``i`` turns about the z axis of frame ``i-1``.
+* Frame 0 sits at ``mount_position`` with axes ``mount_rotation`` (satellite frame; the
+  paper's: parallel to the satellite's). Joint ``i`` (1..N) turns about the z axis of frame
+  ``i-1``, and ``T_{i-1,i} = Rz(q_i + joint_offset_i) F_i``: frame ``i`` is placed in frame
+  ``i-1`` turned by ``q_i`` by the fixed transform ``F_i = (frame_rotation_i,
+  frame_position_i)``. The paper's standard DH table is one such chain,
+  ``F_i = Tz(dh_lambda_i) Tx(dh_length_i) Rx(dh_alpha_i)``
+  ([`make_robot()`][spacegrasp_jax.model.make_robot] converts it); a URDF's joint origins and
+  axes are another ([`spacegrasp_jax.urdf`][spacegrasp_jax.urdf]).
 * ``link_com[i]`` (Table 2) is the vector from the origin of frame ``i-1`` to the CoM of
   link ``i``, expressed in frame ``i`` axes.
 * ``link_inertia[i]`` (Table 3) is the inertia tensor about the link CoM in frame ``i``
   axes; the products are the off-diagonal tensor elements as printed (``I[0, 2] = Ixz``).
-* The end-effector (EE) frame is frame 7 followed by a translation ``ee_offset``. The EE
-  body is rigidly fixed to link 7; ``ee_com`` is its CoM from the origin of frame 7, in
-  frame 7 axes, and ``ee_inertia`` its inertia about that CoM in frame 7 axes.
+* The end-effector (EE) frame is frame N followed by a translation ``ee_offset``. The EE
+  body is rigidly fixed to link N; ``ee_com`` is its CoM from the origin of frame N, in
+  frame N axes, and ``ee_inertia`` its inertia about that CoM in frame N axes. A robot may
+  have no EE body of its own (``ee_mass`` 0 and a zero ``ee_inertia``: a URDF's tool is
+  part of link N).
 
 Every leaf is a float64 array, so a batch of robots (e.g. perturbed satellite mass in a
 Monte-Carlo campaign) is simply a ``Robot`` with a leading batch axis under ``jax.vmap``.
@@ -30,10 +37,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from spacegrasp_jax import spatial
 from spacegrasp_jax.compilation import require_float64
 from spacegrasp_jax.inputs import numbers, parse_document, read_text
 
+#: The paper's arm has 7 joints; a robot's own number is [`n_joints()`][spacegrasp_jax.model.n_joints].
 N_JOINTS = 7
+#: The fewest joints an arm may have: both laws command a 6-DoF EE twist.
+MIN_JOINTS = 6
 
 #: The paper's initial joint angles q_init [rad] (section 4).
 PAPER_Q_INIT = (2.196, -2.386, -2.011, 2.595, 2.558, 0.756, 0.949)
@@ -52,21 +63,27 @@ class Robot:
         satellite_mass: () kg.
         satellite_inertia: (3, 3) kg m^2 about the satellite CoM, satellite axes.
         mount_position: (3,) m, origin of frame 0 in the satellite frame.
-        dh_lambda: (7,) m, DH offsets along z_{i-1} (Table 1, lambda_i).
-        dh_length: (7,) m, DH lengths along x_i (Table 1, L_i).
-        dh_alpha: (7,) rad, DH twists about x_i (Table 1, alpha_i).
-        joint_offset: (7,) rad, added to q_i to give the DH angle theta_i.
-        link_mass: (7,) kg.
-        link_com: (7, 3) m, from the origin of frame i-1 to the CoM of link i, frame i axes.
-        link_inertia: (7, 3, 3) kg m^2 about the CoM of link i, frame i axes.
-        ee_offset: (3,) m, origin of the EE frame in frame 7 (axes parallel to frame 7).
-        ee_mass: () kg, the EE body rigidly fixed to link 7.
-        ee_com: (3,) m, EE body CoM from the origin of frame 7, frame 7 axes.
-        ee_inertia: (3, 3) kg m^2 about the EE body CoM, frame 7 axes.
-        joint_rate_limit: (7,) rad/s, the fastest each joint can turn (the paper gives none:
+        mount_rotation: (3, 3) axes of frame 0 in the satellite frame (frame 0 to
+            satellite; the identity by default, as in the paper).
+        joint_offset: (N,) rad, added to q_i to give the angle of ``Rz`` (DH's theta_i).
+        frame_rotation: (N, 3, 3) axes of frame i in frame i-1 turned by q_i (the DH table's
+            ``Rx(alpha_i)``).
+        frame_position: (N, 3) m, origin of frame i in frame i-1 turned by q_i (the DH
+            table's ``(L_i, 0, lambda_i)``).
+        link_mass: (N,) kg.
+        link_com: (N, 3) m, from the origin of frame i-1 to the CoM of link i, frame i axes.
+        link_inertia: (N, 3, 3) kg m^2 about the CoM of link i, frame i axes.
+        ee_offset: (3,) m, origin of the EE frame in frame N (axes parallel to frame N).
+        ee_mass: () kg, the EE body rigidly fixed to link N (0: none).
+        ee_com: (3,) m, EE body CoM from the origin of frame N, frame N axes.
+        ee_inertia: (3, 3) kg m^2 about the EE body CoM, frame N axes.
+        joint_position_limit: (N, 2) rad, the lowest and highest angle of each joint
+            (``-inf, inf`` by default: the paper gives none). Not a constraint of the
+            dynamics: the run's report says when a joint leaves its range.
+        joint_rate_limit: (N,) rad/s, the fastest each joint can turn (the paper gives none:
             ``PAPER_JOINT_RATE_LIMIT`` by default). Not a constraint of the dynamics: a
             run whose rates go far beyond it is a runaway ([`spacegrasp_jax.anatomy`][spacegrasp_jax.anatomy]).
-        joint_torque_limit: (7,) N m, the largest torque each joint's motor gives
+        joint_torque_limit: (N,) N m, the largest torque each joint's motor gives
             (``PAPER_JOINT_TORQUE_LIMIT`` by default); the flight-like loop's actuators
             saturate at their own ``torque_limit_Nm``.
     """
@@ -74,10 +91,10 @@ class Robot:
     satellite_mass: jax.Array
     satellite_inertia: jax.Array
     mount_position: jax.Array
-    dh_lambda: jax.Array
-    dh_length: jax.Array
-    dh_alpha: jax.Array
+    mount_rotation: jax.Array
     joint_offset: jax.Array
+    frame_rotation: jax.Array
+    frame_position: jax.Array
     link_mass: jax.Array
     link_com: jax.Array
     link_inertia: jax.Array
@@ -85,8 +102,14 @@ class Robot:
     ee_mass: jax.Array
     ee_com: jax.Array
     ee_inertia: jax.Array
+    joint_position_limit: jax.Array
     joint_rate_limit: jax.Array
     joint_torque_limit: jax.Array
+
+
+def n_joints(robot: Robot) -> int:
+    """The number of joints N of ``robot`` (of every robot in a batch)."""
+    return robot.link_mass.shape[-1]
 
 
 #: Joint rate limits of the paper's arm (rad/s; the paper gives none): 1 rad/s, about one and
@@ -97,31 +120,49 @@ PAPER_JOINT_RATE_LIMIT = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0)
 #: realism preset's actuators, four to ten times Table 5's peaks.
 PAPER_JOINT_TORQUE_LIMIT = (10.0, 10.0, 10.0, 5.0, 5.0, 2.0, 2.0)
 
-# Field -> (shape, kind, key in the TOML file). Kinds select the validation rules.
-_FIELDS: dict[str, tuple[tuple[int, ...], str, str]] = {
+# Field -> (shape, kind, key in the TOML file); "N" is the number of joints. Kinds select
+# the validation rules.
+_FIELDS: dict[str, tuple[tuple, str, str]] = {
     "satellite_mass": ((), "mass", "satellite.mass"),
     "satellite_inertia": ((3, 3), "inertia", "satellite.inertia"),
     "mount_position": ((3,), "real", "satellite.mount_position"),
-    "dh_lambda": ((N_JOINTS,), "real", "arm.dh_lambda"),
-    "dh_length": ((N_JOINTS,), "real", "arm.dh_length"),
-    "dh_alpha": ((N_JOINTS,), "real", "arm.dh_alpha"),
-    "joint_offset": ((N_JOINTS,), "real", "arm.joint_offset"),
-    "link_mass": ((N_JOINTS,), "mass", "arm.link_mass"),
-    "link_com": ((N_JOINTS, 3), "real", "arm.link_com"),
-    "link_inertia": ((N_JOINTS, 3, 3), "inertia", "arm.link_inertia"),
+    "mount_rotation": ((3, 3), "rotation", "satellite.mount_rotation"),
+    "joint_offset": (("N",), "real", "arm.joint_offset"),
+    "frame_rotation": (("N", 3, 3), "rotation", "arm.frame_rotation"),
+    "frame_position": (("N", 3), "real", "arm.frame_position"),
+    "link_mass": (("N",), "mass", "arm.link_mass"),
+    "link_com": (("N", 3), "real", "arm.link_com"),
+    "link_inertia": (("N", 3, 3), "inertia", "arm.link_inertia"),
     "ee_offset": ((3,), "real", "end_effector.offset"),
-    "ee_mass": ((), "mass", "end_effector.mass"),
+    "ee_mass": ((), "mass or none", "end_effector.mass"),
     "ee_com": ((3,), "real", "end_effector.com"),
-    "ee_inertia": ((3, 3), "inertia", "end_effector.inertia"),
-    "joint_rate_limit": ((N_JOINTS,), "limit", "limits.joint_rate"),
-    "joint_torque_limit": ((N_JOINTS,), "limit", "limits.joint_torque"),
+    "ee_inertia": ((3, 3), "inertia or none", "end_effector.inertia"),
+    "joint_position_limit": (("N", 2), "range", "limits.joint_position"),
+    "joint_rate_limit": (("N",), "limit", "limits.joint_rate"),
+    "joint_torque_limit": (("N",), "limit", "limits.joint_torque"),
 }
 
-#: Fields a robot description may leave out, and the values they then take.
-_DEFAULTS = {"joint_rate_limit": PAPER_JOINT_RATE_LIMIT, "joint_torque_limit": PAPER_JOINT_TORQUE_LIMIT}
+#: The standard DH table, an input converted once to ``frame_rotation`` and ``frame_position``.
+_DH_FIELDS: dict[str, tuple[tuple, str, str]] = {
+    "dh_lambda": (("N",), "real", "arm.dh_lambda"),
+    "dh_length": (("N",), "real", "arm.dh_length"),
+    "dh_alpha": (("N",), "real", "arm.dh_alpha"),
+}
+
+#: Fields a robot description may leave out, and the values they then take (``N``: the
+#: number of joints). The paper's limits apply to a 7-joint arm only.
+_DEFAULTS = {
+    "mount_rotation": lambda n: np.eye(3),
+    "joint_offset": lambda n: np.zeros(n),
+    "joint_position_limit": lambda n: np.tile([-np.inf, np.inf], (n, 1)),
+    "joint_rate_limit": lambda n: PAPER_JOINT_RATE_LIMIT if n == N_JOINTS else None,
+    "joint_torque_limit": lambda n: PAPER_JOINT_TORQUE_LIMIT if n == N_JOINTS else None,
+}
 
 # Relative tolerance of the inertia checks (symmetry, positive definiteness, triangle).
 _INERTIA_RTOL = 1e-9
+# How far from orthonormal a rotation matrix may be (numbers read from text).
+_ROTATION_ATOL = 1e-9
 
 
 def _check_inertia(name: str, tensor: np.ndarray) -> None:
@@ -144,40 +185,138 @@ def _check_inertia(name: str, tensor: np.ndarray) -> None:
 def make_robot(**fields) -> Robot:
     """Validate the fields of [`Robot`][spacegrasp_jax.model.Robot] and build it with float64 leaves.
 
+    The arm's geometry is given either as ``frame_rotation`` and ``frame_position`` or as
+    the standard DH table ``dh_lambda``, ``dh_length`` and ``dh_alpha`` (N,) (m, m, rad),
+    converted once: ``frame_rotation_i = Rx(dh_alpha_i)``, ``frame_position_i =
+    (dh_length_i, 0, dh_lambda_i)``. ``mount_rotation`` (identity), ``joint_offset`` (zeros)
+    and ``joint_position_limit`` (none) may be left out; the paper's joint rate and torque
+    limits are the default of a 7-joint arm only.
+
     Raises:
         RobotConfigError: a field is missing or unknown, has the wrong shape, holds a
-            non-finite number, a non-positive mass, or an inertia tensor that is not
-            symmetric positive definite or breaks the triangle inequality. The message
-            names the field.
+            non-finite number, a non-positive mass, a rotation that is not one, or an
+            inertia tensor that is not symmetric positive definite or breaks the triangle
+            inequality; the arm has fewer than ``MIN_JOINTS`` joints, or its fields
+            disagree on how many. The message names the field.
     """
     return Robot(**_validated(fields, label=lambda field: field))
 
 
+def _rotation_about_x(angle: np.ndarray) -> jax.Array:
+    """``Rx(angle)`` (..., 3, 3) with exact zeros and ones, computed as the closed loop computes
+    its own cosines (so that a DH robot's frames come out as the DH formula's, bit for bit)."""
+    angle = jnp.asarray(angle)
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
+    return jnp.stack([jnp.stack([one, zero, zero], -1), jnp.stack([zero, c, -s], -1), jnp.stack([zero, s, c], -1)], -2)
+
+
+def _from_dh_table(fields: dict, label) -> dict:
+    """``fields`` with a DH table replaced by the general chain's ``frame_rotation`` and ``frame_position``."""
+    given = [field for field in _DH_FIELDS if field in fields]
+    if not given:
+        return fields
+    missing = [label(field) for field in _DH_FIELDS if field not in fields]
+    if missing:
+        raise RobotConfigError(f"missing robot field(s): {', '.join(missing)} (a DH table needs all three)")
+    both = [label(field) for field in ("frame_rotation", "frame_position") if field in fields]
+    if both:
+        raise RobotConfigError(f"{', '.join(both)}: give the arm as a DH table or as frames, not both")
+    table = {}
+    for field in _DH_FIELDS:
+        value = numbers(fields[field], label(field), RobotConfigError)
+        if value.ndim != 1:
+            raise RobotConfigError(f"{label(field)}: expected one number per joint, got shape {value.shape}")
+        table[field] = value
+    lengths = {value.shape[0] for value in table.values()}
+    if len(lengths) != 1:
+        raise RobotConfigError(
+            "the DH table's columns differ in length: "
+            + ", ".join(f"{label(field)} has {value.shape[0]}" for field, value in table.items())
+        )
+    rest = {field: value for field, value in fields.items() if field not in _DH_FIELDS}
+    zero = np.zeros_like(table["dh_length"])
+    return rest | {
+        "frame_rotation": np.asarray(_rotation_about_x(table["dh_alpha"])),
+        "frame_position": np.stack([table["dh_length"], zero, table["dh_lambda"]], axis=-1),
+    }
+
+
+def _joint_count(fields: dict, label) -> int:
+    """N, from ``link_mass``; every field sized by the joints must agree (checked in ``_validated``)."""
+    if "link_mass" not in fields:
+        raise RobotConfigError(f"missing robot field(s): {label('link_mass')}")
+    link_mass = numbers(fields["link_mass"], label("link_mass"), RobotConfigError)
+    if link_mass.ndim != 1:
+        raise RobotConfigError(f"{label('link_mass')}: expected one mass per joint, got shape {link_mass.shape}")
+    n = link_mass.shape[0]
+    if n < MIN_JOINTS:
+        raise RobotConfigError(
+            f"{label('link_mass')}: an arm of {n} joint(s); both laws command a 6-DoF end-effector "
+            f"twist, so an arm needs at least {MIN_JOINTS} joints"
+        )
+    return n
+
+
 def _validated(fields: dict, label) -> dict[str, jax.Array]:
     require_float64("a Robot")
-    unknown = sorted(set(fields) - set(_FIELDS))
+    unknown = sorted(set(fields) - set(_FIELDS) - set(_DH_FIELDS))
     if unknown:
         raise RobotConfigError(f"unknown robot field(s): {', '.join(map(label, unknown))}")
-    fields = _DEFAULTS | fields
+    fields = _from_dh_table(fields, label)
+    n = _joint_count(fields, label)
+    lengths = {}
+    for field, (shape, _, _) in _FIELDS.items():
+        if shape[:1] == ("N",) and field in fields:
+            value = numbers(fields[field], label(field), RobotConfigError, allow_infinite=True)
+            lengths[label(field)] = value.shape[0] if value.ndim else 0
+    if set(lengths.values()) != {n}:
+        raise RobotConfigError(
+            "the arm's fields disagree on its number of joints: "
+            + ", ".join(f"{name} has {length}" for name, length in lengths.items())
+        )
+    defaults = {field: default(n) for field, default in _DEFAULTS.items()}
+    fields = {field: value for field, value in defaults.items() if value is not None} | fields
     missing = [field for field in _FIELDS if field not in fields]
     if missing:
-        raise RobotConfigError(f"missing robot field(s): {', '.join(map(label, missing))}")
+        needed = [label(field) for field in missing]
+        paper_only = {"joint_rate_limit", "joint_torque_limit"} & set(missing)
+        reason = f" (the default limits are the paper's 7-joint arm's; this arm has {n} joints)" if paper_only else ""
+        raise RobotConfigError(f"missing robot field(s): {', '.join(needed)}{reason}")
     arrays = {}
     for field, (shape, kind, _) in _FIELDS.items():
         name = label(field)
-        value = numbers(fields[field], name, RobotConfigError)
+        value = numbers(fields[field], name, RobotConfigError, allow_infinite=kind == "range")
+        shape = tuple(n if size == "N" else size for size in shape)
         if value.shape != shape:
-            raise RobotConfigError(f"{name}: expected shape {shape}, got {value.shape}")
+            joints = f" ({n} joints)" if "N" in _FIELDS[field][0] else ""
+            raise RobotConfigError(f"{name}: expected shape {shape}{joints}, got {value.shape}")
         if kind == "mass" and np.any(value <= 0.0):
             raise RobotConfigError(f"{name}: masses must be positive, got {value.tolist()}")
+        if kind == "mass or none" and np.any(value < 0.0):
+            raise RobotConfigError(f"{name}: a mass must be positive or 0 (none), got {value.tolist()}")
         if kind == "limit" and np.any(value <= 0.0):
             raise RobotConfigError(f"{name}: limits must be positive, got {value.tolist()}")
-        if kind == "inertia":
+        if kind == "range" and (np.any(np.isnan(value)) or np.any(value[:, 0] >= value[:, 1])):
+            raise RobotConfigError(f"{name}: each joint's [lower, upper] must have lower < upper, got {value.tolist()}")
+        if kind == "rotation":
+            for index, matrix in enumerate(value.reshape(-1, 3, 3)):
+                _check_rotation(f"{name}[{index}]" if value.ndim == 3 else name, matrix)
+        if kind == "inertia" or (kind == "inertia or none" and np.any(value != 0.0)):
             for index, tensor in enumerate(value.reshape(-1, 3, 3)):
                 where = f"{name}[{index}]" if value.ndim == 3 else name
                 _check_inertia(where, tensor)
         arrays[field] = jnp.asarray(value)
+    if (float(arrays["ee_mass"]) == 0.0) != bool(np.all(np.asarray(arrays["ee_inertia"]) == 0.0)):
+        raise RobotConfigError(
+            f"{label('ee_mass')}, {label('ee_inertia')}: an EE body without mass has no inertia, and one with mass has one"
+        )
     return arrays
+
+
+def _check_rotation(name: str, matrix: np.ndarray) -> None:
+    if not np.allclose(matrix.T @ matrix, np.eye(3), rtol=0.0, atol=_ROTATION_ATOL) or np.linalg.det(matrix) <= 0.0:
+        raise RobotConfigError(f"{name}: not a rotation matrix (orthonormal, determinant +1): {matrix.tolist()}")
 
 
 def paper_robot() -> Robot:
@@ -246,7 +385,7 @@ def robot_from_toml(text: str, source: str = "<robot TOML>") -> Robot:
     """[`load_robot()`][spacegrasp_jax.model.load_robot] on the text of a TOML file; errors name ``source``."""
     path = source
     document = parse_document(text, "toml", path, RobotConfigError)
-    key_to_field = {key: field for field, (_, _, key) in _FIELDS.items()}
+    key_to_field = {key: field for field, (_, _, key) in (_FIELDS | _DH_FIELDS).items()}
     fields = {}
     for section, table in document.items():
         if not isinstance(table, dict):
@@ -264,27 +403,21 @@ def robot_from_toml(text: str, source: str = "<robot TOML>") -> Robot:
 
 
 def body_inertials(robot: Robot) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Mass, CoM and inertia of the 7 moving bodies, the EE merged into link 7.
+    """Mass, CoM and inertia of the N moving bodies, the EE merged into link N.
 
     Returns:
-        mass: (7,) kg.
-        com: (7, 3) m, CoM of body i from the origin of frame i, in frame i axes.
-        inertia: (7, 3, 3) kg m^2 about the CoM of body i, frame i axes.
+        mass: (N,) kg.
+        com: (N, 3) m, CoM of body i from the origin of frame i, in frame i axes.
+        inertia: (N, 3, 3) kg m^2 about the CoM of body i, frame i axes.
     """
     # Table 2 gives the CoM from the origin of frame i-1; the origin of frame i sits at
-    # (L_i, lambda_i sin(alpha_i), lambda_i cos(alpha_i)) from it, in frame i axes.
-    origin_offset = jnp.stack(
-        [
-            robot.dh_length,
-            robot.dh_lambda * jnp.sin(robot.dh_alpha),
-            robot.dh_lambda * jnp.cos(robot.dh_alpha),
-        ],
-        axis=-1,
-    )
+    # frame_rotation_i^T frame_position_i from it, in frame i axes (the DH table's
+    # (L_i, lambda_i sin(alpha_i), lambda_i cos(alpha_i))).
+    origin_offset = spatial.matvec(jnp.swapaxes(robot.frame_rotation, -1, -2), robot.frame_position)
     com = robot.link_com - origin_offset
     mass = robot.link_mass
 
-    # Link 7 and the EE body form one rigid body: combine by the parallel-axis theorem.
+    # Link N and the EE body form one rigid body: combine by the parallel-axis theorem.
     m7, me = mass[-1], robot.ee_mass
     m_total = m7 + me
     c7, ce = com[-1], robot.ee_com

@@ -230,7 +230,9 @@ def sample_loops(
     robot, scenario, seed, indices, ranges: PerturbationRanges, realism=None, identified=False
 ) -> SampleLoops:
     """The samples ``indices`` of a campaign and the loop each runs ([`evaluate_samples()`][spacegrasp_jax.montecarlo.evaluate_samples])."""
-    perturbations = jax.vmap(lambda key: draw(key, ranges, scenario.initial.q.dtype))(sample_keys(seed, indices))
+    perturbations = jax.vmap(lambda key: draw(key, ranges, scenario.initial.q.dtype, scenario.initial.q.shape[-1]))(
+        sample_keys(seed, indices)
+    )
     robots, scenarios, realisms, model_robot = jax.vmap(
         lambda p: perturbed_loop(robot, scenario, p, ranges, realism, identified), out_axes=(0, 0, 0, None)
     )(perturbations)

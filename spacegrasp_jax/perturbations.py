@@ -207,9 +207,9 @@ class Perturbation:
     """The numbers drawn for one sample (module docstring for their meaning).
 
     Attributes:
-        dq_init: (7,) rad. dp_lar: (3,) m, LAR axes. dr_lar: (3,) rad, rotation vector, LAR axes.
+        dq_init: (N,) rad. dp_lar: (3,) m, LAR axes. dr_lar: (3,) rad, rotation vector, LAR axes.
         stiffness_scale: (). V_base_init: (6,) ``[m/s, rad/s]`` inertial frame.
-        qd_init: (7,) rad/s. radius_scale: (). satellite_mass_scale: ().
+        qd_init: (N,) rad/s. radius_scale: (). satellite_mass_scale: ().
         satellite_inertia_scale: (3,) the diagonal of ``D^2``.
         dp_lar_estimate: (3,) m, LAR axes, and dr_lar_estimate: (3,) rad, rotation vector in
             LAR axes: the error of the LAR pose the controller believes.
@@ -239,16 +239,16 @@ class Perturbation:
     target_com_offset: jax.Array
 
 
-def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64) -> Perturbation:
+def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64, n_joints: int = N_JOINTS) -> Perturbation:
     """The perturbation of one sample, drawn with ``key``: ``from_units(draw_units(key), ranges)``."""
-    return from_units(draw_units(key, dtype), ranges)
+    return from_units(draw_units(key, dtype, n_joints), ranges)
 
 
-def draw_units(key: jax.Array, dtype=jnp.float64) -> Perturbation:
+def draw_units(key: jax.Array, dtype=jnp.float64, n_joints: int = N_JOINTS) -> Perturbation:
     """The uniform numbers ``U`` of one sample (module docstring), drawn with ``key``, as a
     [`Perturbation`][spacegrasp_jax.perturbations.Perturbation] of units: every field in [-1, 1]
     (``target_com_offset`` in the unit ball), the ``satellite_inertia_scale``-like fields
-    holding their ``U`` (``from_units()`` scales them).
+    holding their ``U`` (``from_units()`` scales them). ``n_joints``: the arm's N (the paper's 7).
 
     Each group of draws has a stream of its own, so a group added later leaves the samples of
     the others as they were: ``split(key, 4)`` the initial joint angles, the LAR pose and the
@@ -266,12 +266,12 @@ def draw_units(key: jax.Array, dtype=jnp.float64) -> Perturbation:
     k_target_m, k_target_i, k_target_v, k_target_w = jax.random.split(jax.random.fold_in(key, 3), 4)
     k_target_log_m, k_target_com = jax.random.split(jax.random.fold_in(key, 4), 2)
     return Perturbation(
-        dq_init=uniform(k_q, (N_JOINTS,)),
+        dq_init=uniform(k_q, (n_joints,)),
         dp_lar=uniform(k_p, (3,)),
         dr_lar=uniform(k_r, (3,)),
         stiffness_scale=uniform(k_k, ()),
         V_base_init=jnp.concatenate([uniform(k_v, (3,)), uniform(k_w, (3,))]),
-        qd_init=uniform(k_qd, (N_JOINTS,)),
+        qd_init=uniform(k_qd, (n_joints,)),
         radius_scale=uniform(k_radius, ()),
         satellite_mass_scale=uniform(k_mass, ()),
         satellite_inertia_scale=uniform(k_inertia, (3,)),
@@ -386,7 +386,9 @@ def sample(
 ) -> tuple[Robot, Scenario, Perturbation]:
     """Samples ``indices`` of the campaign ``seed``: the perturbed robots and scenarios and
     the drawn perturbations, each with a leading batch axis."""
-    perturbations = jax.vmap(lambda key: draw(key, ranges, scenario.initial.q.dtype))(sample_keys(seed, indices))
+    perturbations = jax.vmap(lambda key: draw(key, ranges, scenario.initial.q.dtype, scenario.initial.q.shape[-1]))(
+        sample_keys(seed, indices)
+    )
     robots = jax.vmap(lambda p: apply_to_robot(robot, p))(perturbations)
     scenarios = jax.vmap(lambda p: apply_to_scenario(scenario, p))(perturbations)
     return robots, scenarios, perturbations
@@ -399,5 +401,7 @@ def sample_scenarios(scenario: Scenario, seed: int, indices, ranges: Perturbatio
         raise PerturbationError(
             "these ranges perturb the satellite's mass or inertia: use sample(), which returns the robots too"
         )
-    perturbations = jax.vmap(lambda key: draw(key, ranges, scenario.initial.q.dtype))(sample_keys(seed, indices))
+    perturbations = jax.vmap(lambda key: draw(key, ranges, scenario.initial.q.dtype, scenario.initial.q.shape[-1]))(
+        sample_keys(seed, indices)
+    )
     return jax.vmap(lambda p: apply_to_scenario(scenario, p))(perturbations)

@@ -38,7 +38,7 @@ from spacegrasp_jax.dynamics import (
 )
 from spacegrasp_jax.integrator import PlantState, rk4_step, state_rate
 from spacegrasp_jax.kinematics import Frames, point_jacobian_blocks
-from spacegrasp_jax.model import N_JOINTS, Robot
+from spacegrasp_jax.model import Robot, n_joints
 from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.target import lar_frame, lar_velocity, target_momentum, target_rate
@@ -208,7 +208,7 @@ def plant_kinematics(robot: Robot, scenario: Scenario, state: PlantState, with_c
     zeros) the contact force at ``state``."""
     frames = frames_at_base(robot, state.R_base, state.q)  # satellite CoM at the origin
     m, h, I_O, M_coupling, M_joints = mass_matrix_parts_from_frames(robot, frames)
-    _, J_joints = point_jacobian_blocks(frames, jnp.zeros(3, dtype=state.q.dtype), frames.p_ee, N_JOINTS)
+    _, J_joints = point_jacobian_blocks(frames, jnp.zeros(3, dtype=state.q.dtype), frames.p_ee, n_joints(robot))
     p_lar, R_lar = lar_pose(scenario, state)
     force = (
         contact_force_lar(scenario, state.p_base + frames.p_ee, p_lar, R_lar)
@@ -268,7 +268,8 @@ def initial_state(scenario: Scenario, controller="admittance") -> SimState:
     (``V_ref(0) = 0`` for the admittance law), the PID at rest."""
     dtype = scenario.initial.q.dtype
     law = as_law(controller)
-    return SimState(plant=scenario.initial, controller=ControllerState(law=law.init(dtype), pid=PID().init(dtype)))
+    pid_state = PID().init(scenario.initial.q.shape[-1], dtype)
+    return SimState(plant=scenario.initial, controller=ControllerState(law=law.init(dtype), pid=pid_state))
 
 
 def control_step(
@@ -426,7 +427,7 @@ def controller_inputs(
 
     pose_des, twist_des, twist_rate_des = desired_state(trajectory, t)
     J_dyn = dynamic_jacobian_from_parts(kinematics.base_per_joint, kinematics.J_joints, r_ee)  # eq 8
-    J_dyn_ee = spatial.matmul(frames.R_ee.T, J_dyn.reshape(2, 3, N_JOINTS)).reshape(6, N_JOINTS)
+    J_dyn_ee = spatial.matmul(frames.R_ee.T, J_dyn.reshape(2, 3, -1)).reshape(J_dyn.shape)
     inputs = ControlInputs(
         pose, twist, wrench_lar, pose_des, twist_des, twist_rate_des, J_dyn_ee, R_lar_ee, frame_twist
     )
@@ -589,9 +590,9 @@ class ServoInputDelay:
     capacity: int
     ticks: jax.Array
 
-    def init(self, dtype) -> tuple:
-        """``(readings (capacity, 7) rad/s, head () int)``: the line, empty."""
-        return jnp.zeros((self.capacity, N_JOINTS), dtype), jnp.zeros((), jnp.int32)
+    def init(self, n_joints: int, dtype) -> tuple:
+        """``(readings (capacity, n_joints) rad/s, head () int)``: the line, empty."""
+        return jnp.zeros((self.capacity, n_joints), dtype), jnp.zeros((), jnp.int32)
 
     def push(self, line: tuple, reading: jax.Array) -> tuple[jax.Array, tuple]:
         """``(the reading the PID gets (7,), the line after)`` when ``reading`` (7,) is measured."""
@@ -686,6 +687,7 @@ def flight_loop(
     ticks = per_period // per_servo  # servo ticks per control period
     period, servo_period = per_period * scenario.dt, per_servo * scenario.dt
     dtype = scenario.initial.q.dtype
+    n = n_joints(robot)
     pid = PID(saturation=realism.saturation, anti_windup=realism.anti_windup)
     limit = realism.torque_limit_Nm if Stage.ACTUATORS in realism.stages else None
     own_model = bool(realism.stages & (Stage.SENSORS | Stage.MODEL)) or model_robot is not None
@@ -694,8 +696,8 @@ def flight_loop(
     smoothing = 1.0 - math.exp(-2.0 * math.pi * realism.cutoff_hz * period) if realism.cutoff_hz > 0.0 else 1.0
 
     def period_noise(k):
-        """(6 + 7 ticks,) standard normals of period k: the wrench's, then each tick's rates."""
-        return jax.random.normal(jax.random.fold_in(key, k.astype(jnp.uint32)), (6 + N_JOINTS * ticks,), dtype)
+        """(6 + N ticks,) standard normals of period k: the wrench's, then each tick's rates."""
+        return jax.random.normal(jax.random.fold_in(key, k.astype(jnp.uint32)), (6 + n * ticks,), dtype)
 
     def joint_reading(plant: PlantState, noise):
         """The joint sensors' (q, qd) from the true state and the tick's (7,) rate noise."""
@@ -719,7 +721,7 @@ def flight_loop(
         if Stage.SENSORS in realism.stages:
             force_fts = force_fts + realism.force_bias + realism.force_noise_std * noise[:3]
             torque_fts = torque_fts + realism.torque_bias + realism.torque_noise_std * noise[3:6]
-        q, qd = joint_reading(plant, noise[6 : 6 + N_JOINTS])
+        q, qd = joint_reading(plant, noise[6 : 6 + n])
         reading = jnp.concatenate([force_fts, torque_fts])
         if realism.cutoff_hz > 0.0:
             reading = state.wrench_reading + smoothing * (reading - state.wrench_reading)
@@ -773,7 +775,7 @@ def flight_loop(
     def servo_tick(carry, j, held, noise):
         """Servo tick j (a float) of the whole run: the joint sensors, the PID, its plant steps."""
         plant, pid_state, line = carry
-        tick_noise = jax.lax.dynamic_slice_in_dim(noise, 6 + N_JOINTS * (j.astype(jnp.int32) % ticks), N_JOINTS)
+        tick_noise = jax.lax.dynamic_slice_in_dim(noise, 6 + n * (j.astype(jnp.int32) % ticks), n)
         q, qd = joint_reading(plant, tick_noise)
         if servo_input_delay is not None:
             qd, line = servo_input_delay.push(line, qd)
@@ -803,10 +805,10 @@ def flight_loop(
         one_period = jax.checkpoint(one_period, prevent_cse=False)
     start = FlightState(
         plant=scenario.initial,
-        controller=ControllerState(law=law.init(dtype), pid=pid.init(dtype)),
+        controller=ControllerState(law=law.init(dtype), pid=pid.init(n, dtype)),
         wrench_reading=jnp.zeros(6, dtype),
-        commands_in_flight=jnp.zeros((realism.delay_periods, N_JOINTS), dtype),
-        rates_in_flight=None if servo_input_delay is None else servo_input_delay.init(dtype),
+        commands_in_flight=jnp.zeros((realism.delay_periods, n), dtype),
+        rates_in_flight=None if servo_input_delay is None else servo_input_delay.init(n, dtype),
     )
     return start, one_period, periods
 

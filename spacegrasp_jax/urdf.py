@@ -6,16 +6,18 @@ Pinocchio's ``buildModelFromXML(text, JointModelFreeFlyer())``). No gravity is w
 URDF has none) and no geometry (visual only).
 
 * link ``satellite`` is the satellite body, its frame at the satellite CoM.
-* joint ``joint<i>`` turns link ``link<i>`` about the ``z`` axis of DH frame ``i-1``: the frame
-  of link ``i`` is DH frame ``i-1`` turned by ``q_i`` (URDF places a joint's axis through its
-  child link's origin), so joint ``i+1`` sits in it at ``Rz(offset_i) Tz(lambda_i) Tx(L_i)
-  Rx(alpha_i)`` (Table 1 at ``q = 0``) and joint 1 at the mount, satellite axes.
-* each link's ``<inertial>`` keeps Tables 2 and 3 as they are: its frame has DH frame ``i``'s
-  axes, at the CoM.
-* the joints are ``continuous`` (the paper gives no position limits) with the motors' torque
-  and rate limits as ``effort`` (N m) and ``velocity`` (rad/s).
-* link ``ee`` is the end-effector frame (frame 7 moved by ``ee_offset``), fixed to link 7,
-  with the EE body's inertial; readers that merge fixed joints add it to link 7, as
+* joint ``joint<i>`` turns link ``link<i>`` about the ``z`` axis of frame ``i-1``: the frame
+  of link ``i`` is frame ``i-1`` turned by ``q_i`` (URDF places a joint's axis through its
+  child link's origin), so joint ``i+1`` sits in it at ``Rz(joint_offset_i) F_i`` (for the
+  paper's arm, Table 1 at ``q = 0``) and joint 1 at the mount.
+* each link's ``<inertial>`` keeps the robot's numbers as they are (Tables 2 and 3 for the
+  paper's arm): its frame has frame ``i``'s axes, at the CoM.
+* the joints are ``continuous`` where the robot has no position limits (the paper gives
+  none), else ``revolute`` with ``lower`` and ``upper``; the motors' torque and rate limits
+  are ``effort`` (N m) and ``velocity`` (rad/s).
+* link ``ee`` is the end-effector frame (frame N moved by ``ee_offset``), fixed to link N,
+  with the EE body's inertial (none if it has no mass); readers that merge fixed joints add
+  it to link N, as
   [`body_inertials()`][spacegrasp_jax.model.body_inertials] does.
 """
 
@@ -25,8 +27,8 @@ import dataclasses
 
 import numpy as np
 
-from spacegrasp_jax.kinematics import dh_transforms
-from spacegrasp_jax.model import N_JOINTS, Robot
+from spacegrasp_jax.kinematics import joint_transforms
+from spacegrasp_jax.model import Robot
 
 
 def _number(value) -> str:
@@ -67,28 +69,33 @@ def robot_to_urdf(robot: Robot, name: str = "spacegrasp") -> str:
     """URDF text of ``robot`` (unbatched; module docstring). Each number is written as the
     shortest text that reads back as the robot's float64 value."""
     as_array = {f.name: np.asarray(getattr(robot, f.name), dtype=float) for f in dataclasses.fields(robot)}
-    if as_array["link_mass"].shape != (N_JOINTS,):
+    if as_array["link_mass"].ndim != 1:
         raise ValueError(f"robot_to_urdf: one robot, not a batch (link_mass has shape {as_array['link_mass'].shape})")
-    # Table 1 at q = 0: DH frame i in the frame of link i (DH frame i-1 turned by q_i).
-    R_rel, p_rel = (np.asarray(x, dtype=float) for x in dh_transforms(robot, np.zeros(N_JOINTS)))
+    n = as_array["link_mass"].shape[0]
+    # The chain at q = 0: frame i in the frame of link i (frame i-1 turned by q_i).
+    R_rel, p_rel = (np.asarray(x, dtype=float) for x in joint_transforms(robot, np.zeros(n)))
     lines = ['<?xml version="1.0"?>', f'<robot name="{name}">', '  <link name="satellite">']
     lines += _inertial(as_array["satellite_mass"], np.zeros(3), np.eye(3), as_array["satellite_inertia"])
     lines.append("  </link>")
-    parent, placement = "satellite", (as_array["mount_position"], np.eye(3))
-    for i in range(N_JOINTS):
+    parent, placement = "satellite", (as_array["mount_position"], as_array["mount_rotation"])
+    for i in range(n):
         link = f"link{i + 1}"
+        lower, upper = as_array["joint_position_limit"][i]
+        bounded = np.isfinite(lower) and np.isfinite(upper)
+        position_limit = f' lower="{_number(lower)}" upper="{_number(upper)}"' if bounded else ""
         lines += [
-            f'  <joint name="joint{i + 1}" type="continuous">',
+            f'  <joint name="joint{i + 1}" type="{"revolute" if bounded else "continuous"}">',
             f'    <parent link="{parent}"/>',
             f'    <child link="{link}"/>',
             f"    {_origin(*placement)}",
             '    <axis xyz="0 0 1"/>',
-            f'    <limit effort="{_number(as_array["joint_torque_limit"][i])}" velocity="{_number(as_array["joint_rate_limit"][i])}"/>',
+            f'    <limit effort="{_number(as_array["joint_torque_limit"][i])}"{position_limit} '
+            f'velocity="{_number(as_array["joint_rate_limit"][i])}"/>',
             "  </joint>",
         ]
         p, R = p_rel[i], R_rel[i]
-        # Table 2's CoM starts at DH frame i-1's origin (this link's) and is written in
-        # frame i's axes; Table 3's inertia too.
+        # Table 2's CoM starts at frame i-1's origin (this link's) and is written in frame
+        # i's axes; Table 3's inertia too.
         lines += [
             f'  <link name="{link}">',
             *_inertial(as_array["link_mass"][i], R @ as_array["link_com"][i], R, as_array["link_inertia"][i]),
@@ -97,6 +104,7 @@ def robot_to_urdf(robot: Robot, name: str = "spacegrasp") -> str:
         parent, placement = link, (p, R)
     p7, R7 = placement
     ee_offset = as_array["ee_offset"]
+    ee_body = _inertial(as_array["ee_mass"], as_array["ee_com"] - ee_offset, np.eye(3), as_array["ee_inertia"])
     lines += [
         '  <joint name="ee_joint" type="fixed">',
         f'    <parent link="{parent}"/>',
@@ -104,7 +112,7 @@ def robot_to_urdf(robot: Robot, name: str = "spacegrasp") -> str:
         f"    {_origin(p7 + R7 @ ee_offset, R7)}",
         "  </joint>",
         '  <link name="ee">',
-        *_inertial(as_array["ee_mass"], as_array["ee_com"] - ee_offset, np.eye(3), as_array["ee_inertia"]),
+        *(ee_body if as_array["ee_mass"] > 0.0 else []),
         "  </link>",
         "</robot>",
         "",

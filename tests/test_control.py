@@ -91,7 +91,7 @@ def test_a_gains_file_holds_what_its_controller_uses(tmp_path):
 
 def test_pid_hand_computed():
     gains = paper_gains()
-    state = pid_init()
+    state = pid_init(7)
     error = jnp.arange(1.0, 8.0)
     dt = 1e-3
     # At t = 0.5 s the ramp is 0.25; first step: integral = e dt, derivative = e / dt.
@@ -103,7 +103,7 @@ def test_pid_hand_computed():
     expected = gains.kp * 2 * error + gains.ki * 3 * error * dt + gains.kd * error / dt
     np.testing.assert_allclose(torque, expected, rtol=1e-14)
     # At t = 0 every gain is ramped to zero.
-    torque, _ = pid_torque(gains, pid_init(), error, 0.0, dt)
+    torque, _ = pid_torque(gains, pid_init(7), error, 0.0, dt)
     np.testing.assert_array_equal(torque, 0.0)
 
 

@@ -79,7 +79,7 @@ def test_samples_stay_within_their_ranges(robot, nominal):
     diagonal = np.einsum("nii->ni", np.asarray(robots.satellite_inertia)) / np.diag(np.asarray(robot.satellite_inertia))
     assert 0.7 <= diagonal.min() < 0.75 and 1.25 < diagonal.max() <= 1.3
     # Only the satellite's mass and inertia vary in the robot.
-    for name in ("link_mass", "dh_length", "ee_mass"):
+    for name in ("link_mass", "frame_position", "ee_mass"):
         np.testing.assert_array_equal(getattr(robots, name)[17], getattr(robot, name))
 
 

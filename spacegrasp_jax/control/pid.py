@@ -16,17 +16,17 @@ class PIDState:
     """The joint PID loops' memory.
 
     Attributes:
-        integral: (7,) rad, running integral of the rate error.
-        previous_error: (7,) rad/s, rate error at the previous control step.
+        integral: (N,) rad, running integral of the rate error.
+        previous_error: (N,) rad/s, rate error at the previous control step.
     """
 
     integral: jax.Array
     previous_error: jax.Array
 
 
-def pid_init(dtype=jnp.float64) -> PIDState:
-    """Integral and previous error start at zero (modelling notes)."""
-    return PIDState(integral=jnp.zeros(7, dtype=dtype), previous_error=jnp.zeros(7, dtype=dtype))
+def pid_init(n_joints: int, dtype=jnp.float64) -> PIDState:
+    """Integral and previous error of ``n_joints`` loops start at zero (modelling notes)."""
+    return PIDState(integral=jnp.zeros(n_joints, dtype=dtype), previous_error=jnp.zeros(n_joints, dtype=dtype))
 
 
 def gain_ramp(t):
@@ -73,8 +73,8 @@ class PID:
     saturation: str = "hard"
     anti_windup: bool = True
 
-    def init(self, dtype=jnp.float64) -> PIDState:
-        return pid_init(dtype)
+    def init(self, n_joints: int, dtype=jnp.float64) -> PIDState:
+        return pid_init(n_joints, dtype)
 
     def update(
         self, gains: Gains, state: PIDState, rate_error: jax.Array, t, dt, limit=None
