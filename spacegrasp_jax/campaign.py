@@ -38,7 +38,7 @@ from spacegrasp_jax import anatomy, batching, runfiles, statistics
 from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
-from spacegrasp_jax.model import Robot
+from spacegrasp_jax.model import Robot, n_joints
 from spacegrasp_jax.montecarlo import evaluate_samples, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges
 from spacegrasp_jax.realism import Realism, ideal
@@ -621,7 +621,8 @@ def load_campaign(out: Path) -> tuple[Robot, Scenario, list[Variant], CampaignCo
     realism = make_realism(fields["realism"], source=str(path))
     fields["realism"] = None if realism.to_dict() == ideal().to_dict() else realism
     variants = [
-        Variant(item["controller"], make_gains(**item["gains"]), item["gains_label"]) for item in record["variants"]
+        Variant(item["controller"], make_gains(n_joints=n_joints(robot), **item["gains"]), item["gains_label"])
+        for item in record["variants"]
     ]
     return robot, scenario_from_dict(record["scenario"]), variants, CampaignConfig(**fields)
 

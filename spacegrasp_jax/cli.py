@@ -43,6 +43,7 @@ from spacegrasp_jax import (
     worstcase,
 )
 from spacegrasp_jax.control import CONTROLLERS, GainsError, UnusedGainsWarning, load_gains, paper_gains
+from spacegrasp_jax.model import body_inertials, n_joints
 from spacegrasp_jax.montecarlo import perturbed_loop
 from spacegrasp_jax.perturbations import (
     FREE_TARGET_RANGES,
@@ -126,7 +127,14 @@ def _info(args: argparse.Namespace) -> int:
         if not folder.is_dir():
             raise UsageError(f"--urdf: {folder} is not a folder, so {urdf_file} cannot be written")
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
-    q = jnp.asarray(sg.PAPER_Q_INIT)
+    n = n_joints(robot)
+    if args.scenario:
+        q_init, where = load_scenario(robot, args.scenario).initial.q, f"the scenario's q_init ({args.scenario})"
+    elif n == len(sg.PAPER_Q_INIT):
+        q_init, where = sg.PAPER_Q_INIT, "the paper's q_init"
+    else:
+        q_init, where = np.zeros(n), "q = 0 (give --scenario for its q_init)"
+    q = jnp.asarray(q_init, dtype=jnp.float64)
     p_base, R_base = jnp.zeros(3), jnp.eye(3)
     total_mass = float(robot.satellite_mass + jnp.sum(robot.link_mass) + robot.ee_mass)
     com = np.asarray(jax.jit(sg.system_com)(robot, p_base, R_base, q))
@@ -134,8 +142,28 @@ def _info(args: argparse.Namespace) -> int:
     euler = np.asarray(spatial.euler_zyx(R_ee))
     M = np.asarray(jax.jit(sg.mass_matrix)(robot, R_base, q))
     source = args.robot or "paper robot (Tables 1-3)"
-    print(f"robot: {source}")
-    print(f"configuration: q_init = {list(sg.PAPER_Q_INIT)} rad, satellite CoM at the origin, identity attitude")
+    print(f"robot: {source}, {n} joints")
+    mount = np.asarray(robot.mount_position)
+    print(
+        f"satellite: {float(robot.satellite_mass):.3f} kg (with what is fixed to the arm's base), principal moments "
+        f"{np.array2string(np.linalg.eigvalsh(np.asarray(robot.satellite_inertia)), precision=4)} kg m^2; "
+        f"frame 0 at [{mount[0]: .4f}, {mount[1]: .4f}, {mount[2]: .4f}] m from its CoM"
+    )
+    mass, _, _ = body_inertials(robot)
+    print(
+        f"{'joint':>5}  {'link mass [kg]':>14}  {'range [rad]':>20}  {'rate limit [rad/s]':>18}  {'torque limit [N m]':>18}"
+    )
+    for i in range(n):
+        lower, upper = np.asarray(robot.joint_position_limit)[i]
+        span = "none" if np.isinf(lower) and np.isinf(upper) else f"[{lower:.4f}, {upper:.4f}]"
+        print(
+            f"{i + 1:>5}  {float(mass[i]):>14.4f}  {span:>20}  {float(robot.joint_rate_limit[i]):>18.4g}  "
+            f"{float(robot.joint_torque_limit[i]):>18.4g}"
+        )
+    print(f"(link {n}'s mass includes the end-effector's and everything fixed to it)")
+    print(
+        f"configuration: {where} = {np.round(np.asarray(q), 6).tolist()} rad, satellite CoM at the origin, identity attitude"
+    )
     print(f"total mass:               {total_mass:.3f} kg")
     print(f"system CoM (inertial):    [{com[0]: .6f}, {com[1]: .6f}, {com[2]: .6f}] m")
     print(f"EE position (inertial):   [{float(p_ee[0]): .6f}, {float(p_ee[1]): .6f}, {float(p_ee[2]): .6f}] m")
@@ -143,7 +171,7 @@ def _info(args: argparse.Namespace) -> int:
     print("EE rotation (EE to inertial):")
     for row in np.asarray(R_ee):
         print(f"    [{row[0]: .6f}, {row[1]: .6f}, {row[2]: .6f}]")
-    print(f"mass matrix (13x13) condition number: {np.linalg.cond(M):.6g}")
+    print(f"mass matrix ({6 + n}x{6 + n}) condition number: {np.linalg.cond(M):.6g}")
     if urdf_file is not None:
         urdf_file.parent.mkdir(parents=True, exist_ok=True)
         urdf_file.write_text(urdf.robot_to_urdf(robot))
@@ -156,7 +184,7 @@ def _export(args: argparse.Namespace) -> int:
     one file of ``--format`` (printed without ``--out``)."""
     robot, scenario, gains = _load_inputs(args)
     realism = _realism(args, scenario)
-    settings = export.loop_settings(realism, scenario.dt)
+    settings = export.loop_settings(realism, scenario.dt, n_joints(robot))
     text = export.export_text(
         gains, args.controller, settings, args.format, source=args.gains or "paper_gains()", prefix=args.prefix
     )
@@ -181,8 +209,20 @@ def _load_inputs(args):
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     scenario = load_scenario(robot, args.scenario) if getattr(args, "scenario", None) else paper_scenario(robot)
     controller = getattr(args, "controller", None)
-    gains = load_gains(args.gains, controller) if getattr(args, "gains", None) else paper_gains()
+    gains = (
+        load_gains(args.gains, controller, n_joints(robot)) if getattr(args, "gains", None) else _paper_gains_for(robot)
+    )
     return robot, scenario, gains
+
+
+def _paper_gains_for(robot) -> sg.control.Gains:
+    """The paper's gains, when the arm is the paper's 7-joint one: Table 4 is for it."""
+    if n_joints(robot) != len(paper_gains().kp):
+        raise UsageError(
+            f"--gains: required for an arm of {n_joints(robot)} joints (the paper's Table 4 gains are for its "
+            f"{len(paper_gains().kp)}); give a gains file with kp, ki and kd for each joint"
+        )
+    return paper_gains()
 
 
 def _is_papers_run(args: argparse.Namespace) -> bool:
@@ -206,7 +246,7 @@ def _print_table(results: dict, beside_paper: bool) -> None:
     )
     print("\nTable 5: maximal absolute joint torques" if beside_paper else "\nmaximal absolute joint torques")
     print(header)
-    for joint in range(7):
+    for joint in range(len(next(iter(results.values())).log.u[0])):
         row = f"{joint + 1:>5}"
         for c in controllers:
             peak = results[c].summary.get("max_abs_torque_Nm")
@@ -343,7 +383,7 @@ def _write_results(
     out.mkdir(parents=True, exist_ok=True)
     columns = [f"{c}_Nm" for c in results] + ([f"paper_{c}_Nm" for c in results] if beside_paper else [])
     lines = ["joint," + ",".join(columns)]
-    for joint in range(7):  # a diverged run's cells are empty
+    for joint in range(np.shape(next(iter(results.values())).log.u)[-1]):  # a diverged run's cells are empty
         ours = [
             f"{results[c].summary['max_abs_torque_Nm'][joint]:.6g}" if "max_abs_torque_Nm" in results[c].summary else ""
             for c in results
@@ -381,6 +421,7 @@ def _realism(args, scenario) -> Realism | None:
     realism = load_realism(args.realism)
     try:
         realism.check_timing(scenario.dt, scenario.n_steps)
+        realism.check_joints(scenario.initial.q.shape[-1])
     except RealismError as error:
         raise RealismError(f"--realism {args.realism}: {error}") from None
     return realism
@@ -655,7 +696,9 @@ def _tune(args: argparse.Namespace) -> int:
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
     if args.gains:
-        load_gains(args.gains, args.controller)
+        load_gains(args.gains, args.controller, n_joints(robot))
+    else:
+        _paper_gains_for(robot)
     _claim(args, Path(args.out))
     try:
         result = tune(
@@ -883,15 +926,19 @@ def _ranges(args: argparse.Namespace, default: PerturbationRanges) -> Perturbati
     return PerturbationRanges.from_mapping(overrides, base=ranges)
 
 
-def _montecarlo_variants(args: argparse.Namespace) -> list[campaign.Variant]:
-    """The paper's gains for each selected controller, plus each ``--gains`` file."""
+def _montecarlo_variants(args: argparse.Namespace, robot) -> list[campaign.Variant]:
+    """The paper's gains for each selected controller (for the paper's 7-joint arm), plus each
+    ``--gains`` file."""
     controllers = CONTROLLERS if args.controller == "both" else (args.controller,)
-    gain_sets = [("paper", paper_gains())]
+    n = n_joints(robot)
+    if n != len(paper_gains().kp) and not args.gains:
+        _paper_gains_for(robot)
+    gain_sets = [("paper", paper_gains())] if n == len(paper_gains().kp) else []
     for path in args.gains:
         label = Path(path).stem
         if label in {existing for existing, _ in gain_sets}:
             raise UsageError(f"--gains {path}: two gain sets would both be called {label!r}; rename one file")
-        gain_sets.append((label, load_gains(path, None if args.controller == "both" else args.controller)))
+        gain_sets.append((label, load_gains(path, None if args.controller == "both" else args.controller, n)))
     return [campaign.Variant(controller, gains, label) for controller in controllers for label, gains in gain_sets]
 
 
@@ -902,9 +949,10 @@ def _montecarlo(args: argparse.Namespace) -> int:
     if args.distributed:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     batching.use_all_cpu_cores()
+    robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     try:
         ranges = _ranges(args, PerturbationRanges())
-        variants = _montecarlo_variants(args)
+        variants = _montecarlo_variants(args, robot)
         devices = jax.device_count()
         chunk = batching.chunk_size(args.chunk, args.n)
         config = _criteria(
@@ -921,7 +969,6 @@ def _montecarlo(args: argparse.Namespace) -> int:
         )
     except (PerturbationError, campaign.CampaignError) as error:
         raise UsageError(str(error)) from None
-    robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
     _realism(args, scenario)  # the control period against the scenario, before compiling
     _warn(plausibility.input_warnings(scenario))
@@ -1414,6 +1461,13 @@ def _claim(args: argparse.Namespace, out: Path) -> None:
     multihost_utils.sync_global_devices("spacegrasp: output folder claimed")
 
 
+#: The help of every command's ``--robot``.
+ROBOT_HELP = (
+    "robot file (default: the paper's robot): a robot TOML, a URDF (its base link is the satellite), "
+    "or a TOML whose [urdf] table mounts a URDF arm on a satellite"
+)
+
+
 def _add_overwrite_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--overwrite",
@@ -1429,7 +1483,7 @@ def _add_csv_option(parser: argparse.ArgumentParser, what: str) -> None:
 def _add_run_options(parser: argparse.ArgumentParser, default_out: str) -> None:
     parser.add_argument("--out", default=default_out, help=f"output folder (default {default_out})")
     _add_overwrite_option(parser)
-    parser.add_argument("--robot", help="robot TOML file (default: the paper's robot)")
+    parser.add_argument("--robot", help=ROBOT_HELP)
     parser.add_argument(
         "--pinv-damping",
         type=_real(0.0, 1e3),
@@ -1449,7 +1503,8 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
     parser.commands = commands.choices  # command name -> its parser
     info = _add_command(commands, "info", help="print the robot's mass, CoM, EE pose at q_init and cond(M)")
-    info.add_argument("--robot", help="robot TOML file (default: the paper's robot)")
+    info.add_argument("--robot", help=ROBOT_HELP)
+    info.add_argument("--scenario", help="scenario TOML/JSON whose q_init to show the robot at")
     info.add_argument(
         "--urdf", metavar="FILE", help="also write the robot as URDF to FILE, a new file (for Pinocchio, Drake, ROS)"
     )
@@ -1508,7 +1563,7 @@ def build_parser() -> argparse.ArgumentParser:
     export_gains.add_argument("--format", choices=export.FORMATS, required=True)
     _add_realism_option(export_gains)
     export_gains.add_argument("--scenario", help="scenario TOML or JSON file, for its step (default: the paper's)")
-    export_gains.add_argument("--robot", help="robot TOML (default: the paper's)")
+    export_gains.add_argument("--robot", help=ROBOT_HELP)
     export_gains.add_argument(
         "--prefix", type=_c_identifier, default="SG", help="the C header's names: PREFIX_kp, ... (default SG)"
     )
@@ -1600,7 +1655,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tune.add_argument("--gains", help="starting gains JSON (default: the paper's)")
     tune.add_argument("--scenario", help="scenario TOML/JSON (default: the paper's)")
-    tune.add_argument("--robot", help="robot TOML (default: the paper's)")
+    tune.add_argument("--robot", help=ROBOT_HELP)
     tune.add_argument("--resume", action="store_true", help="continue the run in --out from its last completed step")
     add_ranges_arguments(tune, "tuning")
     _add_realism_option(tune)
@@ -1652,7 +1707,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="also keep every K-th log row of every sample",
     )
     montecarlo.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
-    montecarlo.add_argument("--robot", help="robot TOML (default: the paper's)")
+    montecarlo.add_argument("--robot", help=ROBOT_HELP)
     montecarlo.add_argument(
         "--pinv-damping", type=_real(0.0, 1e3), default=0.0, help="damping of the pseudoinverse (0: exact, the paper)"
     )

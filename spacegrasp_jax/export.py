@@ -51,9 +51,9 @@ GROUPS = {
     ),
     "K_lin": GroupDescription("1/s", "Cartesian law's position gain K_lin, diagonal", "eqs (21), (22)"),
     "K_eul": GroupDescription("1/s", "Cartesian law's Euler-angle gain K_eul, diagonal", "eqs (21), (22)"),
-    "kp": GroupDescription("N m s/rad", "joint PID proportional gain on the joint-rate error, joints 1-7", "Table 4"),
-    "ki": GroupDescription("N m/rad", "joint PID integral gain, joints 1-7", "Table 4"),
-    "kd": GroupDescription("N m s^2/rad", "joint PID derivative gain, joints 1-7", "Table 4"),
+    "kp": GroupDescription("N m s/rad", "joint PID proportional gain on the joint-rate error, one a joint", "Table 4"),
+    "ki": GroupDescription("N m/rad", "joint PID integral gain, one a joint", "Table 4"),
+    "kd": GroupDescription("N m s^2/rad", "joint PID derivative gain, one a joint", "Table 4"),
     "pinv_damping": GroupDescription(
         "as the Dynamic Jacobian's entries",
         "damping d of the pseudoinverse J^T (J J^T + d^2 1)^-1 (0: the exact pseudoinverse)",
@@ -71,7 +71,7 @@ class LoopSettings:
             Cartesian law, and the F/T sensor's reading).
         servo_period_s: s, the joint PID's period (reads the joint sensors at each tick).
         delay_periods: whole control periods between measurement and actuation.
-        torque_limit_Nm: (7,) N m, each joint's torque limit (``inf``: none).
+        torque_limit_Nm: (N,) N m, each joint's torque limit (``inf``: none).
         saturation: ``"hard"`` (clip) or ``"smooth"`` (``limit tanh(u / limit)``).
         anti_windup: whether the PID's integrator holds while the torque saturates.
         ft_cutoff_hz: Hz, the first-order low-pass on the measured wrench (0: none).
@@ -99,7 +99,7 @@ SETTINGS = {
     "control_period_s": ("s", "period of the law (admittance or Cartesian) and of the F/T reading"),
     "servo_period_s": ("s", "period of the joint PID, which reads the joint sensors"),
     "delay_periods": ("control periods", "delay between measurement and actuation"),
-    "torque_limit_Nm": ("N m", "joint torque limits, joints 1-7 (inf: none)"),
+    "torque_limit_Nm": ("N m", "joint torque limits, one a joint (inf: none)"),
     "saturation": ("", "saturation law: hard (clip) or smooth (limit tanh(u / limit))"),
     "anti_windup": ("", "the PID integrator holds while the torque saturates"),
     "ft_cutoff_hz": ("Hz", "first-order low-pass on the measured wrench (0: none)"),
@@ -107,11 +107,11 @@ SETTINGS = {
 }
 
 
-def loop_settings(realism: Realism | None, dt: float) -> LoopSettings:
+def loop_settings(realism: Realism | None, dt: float, n_joints: int = 7) -> LoopSettings:
     """The settings of a loop: ``realism`` (``None``: the paper's ideal loop) on a scenario
-    of step ``dt`` (s)."""
+    of step ``dt`` (s), for an arm of ``n_joints`` joints (the paper's 7)."""
     if realism is None:
-        return LoopSettings(dt, dt, 0, (math.inf,) * 7, "hard", True, 0.0)
+        return LoopSettings(dt, dt, 0, (math.inf,) * n_joints, "hard", True, 0.0)
     return LoopSettings(
         control_period_s=realism.steps_per_period(dt) * dt,
         servo_period_s=realism.steps_per_servo(dt) * dt,

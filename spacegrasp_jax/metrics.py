@@ -31,7 +31,7 @@ METRICS = {
     "final_position_error_m": ((), "m", "EE position error in LAR at the last step"),
     "final_orientation_error_rad": ((), "rad", "angle between desired and actual EE orientation at the last step"),
     "rms_position_error_m": ((), "m", "RMS EE position tracking error over the run"),
-    "max_abs_torque_Nm": ((7,), "N m", "peak |u_i| per joint (Table 5)"),
+    "max_abs_torque_Nm": (("N",), "N m", "peak |u_i| per joint (Table 5)"),
     "largest_peak_torque_Nm": ((), "N m", "the largest peak |u_i| over the joints"),
     "max_contact_force_N": ((), "N", "peak contact force magnitude"),
     "max_linear_momentum_Ns": ((), "N s", "peak |P| of the whole system"),
@@ -40,7 +40,7 @@ METRICS = {
     "max_base_rate_radps": ((), "rad/s", "peak satellite angular rate"),
     "first_contact_s": ((), "s", "first time the contact force is non-zero; NaN if never"),
     "first_nonfinite_s": ((), "s", "first step with a non-finite value; NaN if none"),
-    "max_joint_rate_radps": ((7,), "rad/s", "peak |qd_i| per joint"),
+    "max_joint_rate_radps": (("N",), "rad/s", "peak |qd_i| per joint"),
     "first_runaway_s": (
         (),
         "s",
@@ -107,7 +107,7 @@ def rms_position_error(log):
 
 
 def max_abs_torque(log):
-    """(7,) N m, ``max_t |u_i(t)|`` per joint (Table 5)."""
+    """(N,) N m, ``max_t |u_i(t)|`` per joint (Table 5)."""
     return jnp.max(jnp.abs(log.u), axis=0)
 
 
@@ -168,14 +168,14 @@ class RunningMetrics:
 
     Attributes:
         rows: () number of rows folded. sum_squared_position_error: () m^2.
-        max_abs_torque: (7,) N m. max_contact_force: () N.
+        max_abs_torque: (N,) N m. max_contact_force: () N.
         max_linear_momentum: () N s. max_angular_momentum: () N m s.
         max_base_speed: () m/s. max_base_rate: () rad/s.
         first_contact_s, first_nonfinite_s: () s, ``inf`` until it happens.
         last_pose_ee, last_pose_des: (6,) the latest row's EE and desired pose in LAR.
-        max_joint_rate: (7,) rad/s. first_runaway_s: () s, ``inf`` until it happens.
+        max_joint_rate: (N,) rad/s. first_runaway_s: () s, ``inf`` until it happens.
         last_contact_force: (3,) N, the latest row's contact force, LAR axes.
-        runaway_rate, runaway_torque: (7,) rad/s, N m, the thresholds of a runaway
+        runaway_rate, runaway_torque: (N,) rad/s, N m, the thresholds of a runaway
             (``inf``: none).
         target: the free-floating target's ([`RunningTargetMetrics`][spacegrasp_jax.metrics.RunningTargetMetrics]), or ``None``.
     """
@@ -200,13 +200,15 @@ class RunningMetrics:
     target: RunningTargetMetrics | None = None
 
 
-def start(dtype=jnp.float64, free_target: bool = False, robot=None) -> RunningMetrics:
+def start(dtype=jnp.float64, free_target: bool = False, robot=None, n_joints: int = 7) -> RunningMetrics:
     """Nothing folded yet; ``free_target``: the rows will carry a free-floating target;
     ``robot``: the [`Robot`][spacegrasp_jax.model.Robot] whose limits define a runaway
-    (``None``: no runaway is detected)."""
+    (``None``: no runaway is detected, for an arm of ``n_joints`` joints)."""
     zero, never = jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)
+    if robot is not None:
+        n_joints = robot.link_mass.shape[-1]
     if robot is None:
-        runaway_rate = runaway_torque = jnp.full(7, jnp.inf, dtype)
+        runaway_rate = runaway_torque = jnp.full(n_joints, jnp.inf, dtype)
     else:
         runaway_rate = RUNAWAY_FACTOR * jnp.asarray(robot.joint_rate_limit, dtype)
         runaway_torque = RUNAWAY_FACTOR * jnp.asarray(robot.joint_torque_limit, dtype)
@@ -217,7 +219,7 @@ def start(dtype=jnp.float64, free_target: bool = False, robot=None) -> RunningMe
     return RunningMetrics(
         zero,
         zero,
-        jnp.zeros(7, dtype),
+        jnp.zeros(n_joints, dtype),
         zero,
         zero,
         zero,
@@ -227,7 +229,7 @@ def start(dtype=jnp.float64, free_target: bool = False, robot=None) -> RunningMe
         never,
         jnp.zeros(6, dtype),
         jnp.zeros(6, dtype),
-        jnp.zeros(7, dtype),
+        jnp.zeros(n_joints, dtype),
         never,
         jnp.zeros(3, dtype),
         runaway_rate,
@@ -339,7 +341,8 @@ def finish(running: RunningMetrics, nonfinite_after_s=None) -> dict[str, jax.Arr
 def log_metrics(log, robot=None) -> dict[str, jax.Array]:
     """The ``METRICS`` of a whole log (arrays), and the ``TARGET_METRICS`` if it
     carries a free-floating target; ``robot``: whose limits define a runaway ([`start()`][spacegrasp_jax.metrics.start])."""
-    return finish(accumulate(start(jnp.asarray(log.t).dtype, log.target_velocity is not None, robot), log))
+    n_joints = jnp.shape(log.u)[-1]
+    return finish(accumulate(start(jnp.asarray(log.t).dtype, log.target_velocity is not None, robot, n_joints), log))
 
 
 def summary(log, robot=None) -> dict:

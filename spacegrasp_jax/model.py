@@ -165,7 +165,9 @@ _INERTIA_RTOL = 1e-9
 _ROTATION_ATOL = 1e-9
 
 
-def _check_inertia(name: str, tensor: np.ndarray) -> None:
+def check_inertia(name: str, tensor: np.ndarray) -> None:
+    """Raise ``RobotConfigError`` naming ``name`` unless ``tensor`` (3, 3) kg m^2 is a rigid body's
+    inertia: symmetric, positive definite, its principal moments obeying the triangle inequality."""
     scale = np.max(np.abs(tensor))
     if not np.allclose(tensor, tensor.T, rtol=0.0, atol=_INERTIA_RTOL * scale):
         raise RobotConfigError(f"{name}: inertia tensor is not symmetric: {tensor.tolist()}")
@@ -305,7 +307,7 @@ def _validated(fields: dict, label) -> dict[str, jax.Array]:
         if kind == "inertia" or (kind == "inertia or none" and np.any(value != 0.0)):
             for index, tensor in enumerate(value.reshape(-1, 3, 3)):
                 where = f"{name}[{index}]" if value.ndim == 3 else name
-                _check_inertia(where, tensor)
+                check_inertia(where, tensor)
         arrays[field] = jnp.asarray(value)
     if (float(arrays["ee_mass"]) == 0.0) != bool(np.all(np.asarray(arrays["ee_inertia"]) == 0.0)):
         raise RobotConfigError(
@@ -366,25 +368,50 @@ def inertia_from_table(row) -> np.ndarray:
 
 
 def load_robot(path: str | Path) -> Robot:
-    """Read a robot from a TOML file (schema in the documentation's File formats and ``configs/paper_robot.toml``).
+    """Read a robot from a TOML or URDF file.
 
-    The file has three tables, ``[satellite]``, ``[arm]`` and ``[end_effector]``, and an
-    optional ``[limits]`` (``joint_rate`` in rad/s, ``joint_torque`` in N m); each key
-    maps to one [`Robot`][spacegrasp_jax.model.Robot] field (``satellite.mass`` -> ``satellite_mass``,
-    ``end_effector.offset`` -> ``ee_offset``, ``arm.link_com`` -> ``link_com``, ...).
+    * A TOML robot (schema in the documentation's File formats and
+      ``configs/paper_robot.toml``) has three tables, ``[satellite]``, ``[arm]`` and
+      ``[end_effector]``, and an optional ``[limits]`` (``joint_rate`` in rad/s,
+      ``joint_torque`` in N m, ``joint_position`` in rad); each key maps to one
+      [`Robot`][spacegrasp_jax.model.Robot] field (``satellite.mass`` -> ``satellite_mass``,
+      ``end_effector.offset`` -> ``ee_offset``, ``arm.link_com`` -> ``link_com``, ...). The arm
+      is a DH table (``arm.dh_lambda``, ``arm.dh_length``, ``arm.dh_alpha``) or the chain's
+      frames (``arm.frame_rotation``, ``arm.frame_position``).
+    * A TOML with a ``[urdf]`` table mounts a URDF arm on a satellite
+      ([`spacegrasp_jax.urdf.robot_from_mounting()`][spacegrasp_jax.urdf.robot_from_mounting]).
+    * A ``.urdf`` file is the whole system: its base link is the satellite body
+      ([`spacegrasp_jax.urdf.robot_from_urdf()`][spacegrasp_jax.urdf.robot_from_urdf]).
 
     Raises:
-        RobotConfigError: the file is not valid TOML, or a key is missing, unknown or
-            invalid; the message names the file and the key (``arm.link_mass``).
+        RobotConfigError: the file is not valid TOML or URDF, or a key or element is
+            missing, unknown or invalid; the message names the file and the key
+            (``arm.link_mass``) or the element.
     """
     path = Path(path)
-    return robot_from_toml(read_text(path, RobotConfigError), source=str(path))
+    return robot_from_text(read_text(path, RobotConfigError), source=str(path))
+
+
+def robot_from_text(text: str, source: str) -> Robot:
+    """[`load_robot()`][spacegrasp_jax.model.load_robot] on the text of the file ``source``
+    (URDF if its name ends in ``.urdf``, else TOML)."""
+    # The URDF reader builds its robots with this module: imported here, not at the top.
+    from spacegrasp_jax import urdf
+
+    if Path(source).suffix.lower() == ".urdf":
+        return urdf.robot_from_urdf(text, source=source)
+    return robot_from_toml(text, source=source)
 
 
 def robot_from_toml(text: str, source: str = "<robot TOML>") -> Robot:
-    """[`load_robot()`][spacegrasp_jax.model.load_robot] on the text of a TOML file; errors name ``source``."""
+    """[`load_robot()`][spacegrasp_jax.model.load_robot] on the text of a TOML file; errors name
+    ``source``, and a ``[urdf]`` table's file is found from ``source``'s folder."""
+    from spacegrasp_jax import urdf
+
     path = source
     document = parse_document(text, "toml", path, RobotConfigError)
+    if "urdf" in document:
+        return urdf.robot_from_mounting(document, source)
     key_to_field = {key: field for field, (_, _, key) in (_FIELDS | _DH_FIELDS).items()}
     fields = {}
     for section, table in document.items():

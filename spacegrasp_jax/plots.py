@@ -129,13 +129,14 @@ def figure_base_velocity(logs, caption: str | None = None):
 
 
 def figure_joint_torques(logs, caption: str | None = None, torque_limit_Nm=None):
-    """Figure 8: joint torques of the seven joints; ``torque_limit_Nm`` (7,) N m: each
-    joint's motor limit, drawn at +-limit where the joint's peak reaches half of it, else
+    """Figure 8: joint torques of the N joints (the paper's seven); ``torque_limit_Nm`` (N,) N m:
+    each joint's motor limit, drawn at +-limit where the joint's peak reaches half of it, else
     written in the panel's corner (a line far above the curves would flatten them)."""
-    fig, axes = _grid(4, 2, "Fig. 8  Joint torques", height=2.0, caption=caption)
-    _plot_columns(axes, logs, lambda log: log.u, range(7))
+    joints = np.shape(next(iter(logs.values())).u)[-1]
+    fig, axes = _grid((joints + 1) // 2, 2, "Fig. 8  Joint torques", height=2.0, caption=caption)
+    _plot_columns(axes, logs, lambda log: log.u, range(joints))
     if torque_limit_Nm is not None:
-        for joint, ax in zip(range(7), axes.flat):
+        for joint, ax in zip(range(joints), axes.flat):
             limit = float(np.asarray(torque_limit_Nm)[joint])
             peak = max(float(np.max(np.abs(np.asarray(log.u)[:, joint]))) for log in logs.values())
             if peak >= 0.5 * limit:
@@ -145,10 +146,11 @@ def figure_joint_torques(logs, caption: str | None = None, torque_limit_Nm=None)
                 ax.text(
                     0.99, 0.95, f"motor limit ±{limit:g} N m", transform=ax.transAxes, ha="right", va="top", fontsize=7
                 )
-    axes.flat[7].set_visible(False)
-    axes.flat[5].xaxis.set_tick_params(labelbottom=True)
-    axes.flat[5].set_xlabel("time [s]")
-    return _finish(fig, axes, [f"u_{i + 1} [N m]" for i in range(7)], caption=caption)
+    if joints % 2:  # an odd count leaves the last panel empty: the one above it gets the time axis
+        axes.flat[joints].set_visible(False)
+        axes.flat[joints - 2].xaxis.set_tick_params(labelbottom=True)
+        axes.flat[joints - 2].set_xlabel("time [s]")
+    return _finish(fig, axes, [f"u_{i + 1} [N m]" for i in range(joints)], caption=caption)
 
 
 def figure_sensor_loads(logs, caption: str | None = None):
@@ -210,7 +212,7 @@ def save(figures: dict, out_dir, write_atomically) -> list[str]:
 
 def save_figures(logs, out_dir, write_atomically, caption: str | None = None, torque_limit_Nm=None) -> list[str]:
     """Write Figures 4-9 into ``out_dir``, each with ``caption`` under its title and Fig. 8
-    with the motor limits ``torque_limit_Nm`` (7,) N m; with a free-floating target in any
+    with the motor limits ``torque_limit_Nm`` (N,) N m; with a free-floating target in any
     log, ``target_motion.png`` too (:func:`figure_target_motion`). Returns the file names."""
     figures = {
         name: build(logs, caption=caption, torque_limit_Nm=torque_limit_Nm)
@@ -267,9 +269,9 @@ def figure_loss_curve(history: list[dict], caption: str | None = None):
 
 def figure_peak_torques(before, after, caption: str | None = None, torque_limit_Nm=None):
     """Tuning: per-joint peak |u| before and after (exact contact law); each joint's motor
-    limit ``torque_limit_Nm`` (7,) N m as a black mark where given."""
+    limit ``torque_limit_Nm`` (N,) N m as a black mark where given."""
     fig, ax = plt.subplots(figsize=(8, 3.6))
-    joints = np.arange(1, 8)
+    joints = np.arange(1, len(before) + 1)
     ax.bar(joints - 0.2, before, width=0.4, color=STYLES["start"]["color"], label=STYLES["start"]["label"])
     ax.bar(joints + 0.2, after, width=0.4, color=STYLES["tuned"]["color"], label=STYLES["tuned"]["label"])
     if torque_limit_Nm is not None:

@@ -114,7 +114,9 @@ class Realism:
         force_bias, torque_bias: (3,) N, N m, constant sensor bias, sensor axes.
         angle_resolution_rad: () rad, encoder quantum of q (0: exact).
         rate_noise_std_radps: () rad/s, white noise std on each joint rate.
-        torque_limit_Nm: (7,) N m, saturation of each joint torque (``inf``: none).
+        torque_limit_Nm: (N,) N m, saturation of each joint torque (``inf``: none); a file's
+            single number is one for each of the paper's 7 joints, and a list has one a joint
+            of the arm it runs with ([`check_joints()`][spacegrasp_jax.realism.Realism.check_joints]).
         satellite_mass_factor, satellite_inertia_factor: () the controller's belief over
             the satellite's true mass and inertia.
         lar_position_error_m: (3,) m, error of the LAR origin the controller uses, LAR axes.
@@ -149,6 +151,17 @@ class Realism:
     saturation: str = _static("hard")
     anti_windup: bool = _static(True)
     stages: Stage = _static(Stage(0))
+
+    def check_joints(self, n_joints: int) -> None:
+        """Raise ``RealismError`` if the actuators saturate and ``torque_limit_Nm`` has not one
+        limit a joint of an arm of ``n_joints`` joints (the ``flight`` preset's are the paper's
+        arm's seven motors)."""
+        limits = np.shape(self.torque_limit_Nm)[-1]
+        if Stage.ACTUATORS in self.stages and limits != n_joints:
+            raise RealismError(
+                f"actuators.torque_limit_Nm: {limits} limits for an arm of {n_joints} joints; write a "
+                "realism file with one limit a joint (the flight preset's are the paper's arm's motors)"
+            )
 
     def is_ideal(self, dt: float) -> bool:
         """Whether this is the paper's loop for a scenario of step ``dt`` (s)."""
@@ -290,6 +303,8 @@ def make_realism(document: dict | None = None, *, source: str = "realism") -> Re
                 ("actuators", "anti_windup"),
             }:
                 continue
+            if key == "torque_limit_Nm" and isinstance(get(table, key), list):
+                shape = (len(get(table, key)),)  # one a joint, for an arm of any number of joints
             arrays[(table, key)] = _number(
                 where(table, key), get(table, key), shape, allow_null_as_inf=key == "torque_limit_Nm"
             )
@@ -311,6 +326,8 @@ def make_realism(document: dict | None = None, *, source: str = "realism") -> Re
         if not (math.isfinite(value) and value >= 0.0):
             raise RealismError(f"{where(table, key)}: must be finite and non-negative, got {value}")
     limits = arrays[("actuators", "torque_limit_Nm")]
+    if limits.size == 0:
+        raise RealismError(f"{where('actuators', 'torque_limit_Nm')}: one limit a joint (or one for all), got none")
     if np.any(limits <= 0):
         raise RealismError(
             f"{where('actuators', 'torque_limit_Nm')}: limits must be positive (inf: none), got {limits.tolist()}"

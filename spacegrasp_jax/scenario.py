@@ -19,7 +19,7 @@ from spacegrasp_jax.compilation import require_float64
 from spacegrasp_jax.inputs import numbers, read_document
 from spacegrasp_jax.integrator import PlantState, plant_state
 from spacegrasp_jax.kinematics import ee_pose
-from spacegrasp_jax.model import PAPER_Q_INIT, Robot
+from spacegrasp_jax.model import N_JOINTS, PAPER_Q_INIT, Robot, n_joints
 from spacegrasp_jax.target import TargetBody, TargetState, initial_target_state
 from spacegrasp_jax.trajectory import Trajectory
 
@@ -75,7 +75,7 @@ class Scenario:
 def paper_scenario(
     robot: Robot,
     *,
-    q_init=PAPER_Q_INIT,
+    q_init=None,
     duration: float = 17.0,
     dt: float = 1e-3,
     lar_offset: float = 0.08,
@@ -92,7 +92,8 @@ def paper_scenario(
     """The paper's grasping scenario (section 4; modelling notes), every number overridable.
 
     The satellite starts at the origin with identity attitude and the system at rest at
-    ``q_init``. The LAR frame has the orientation of the initial EE frame and its origin
+    ``q_init`` (N,) rad (``PAPER_Q_INIT`` by default, for an arm of the paper's 7 joints;
+    required for any other). The LAR frame has the orientation of the initial EE frame and its origin
     ``lar_offset`` (m) along the initial EE z axis. The desired EE pose goes from
     ``start_pose`` to ``end_pose`` (LAR, ``[m, m, m, rad, rad, rad]``) over ``move_duration``
     (s), then is held. The contact sphere (eq 20) is centred at ``sphere_centre`` (LAR).
@@ -107,7 +108,13 @@ def paper_scenario(
         ScenarioError: a value is out of range or not finite; the message names it.
     """
     require_float64("a Scenario")
+    n = n_joints(robot)
+    if q_init is None:
+        if n != N_JOINTS:
+            raise ScenarioError(f"q_init: required for an arm of {n} joints (the default is the paper's 7-joint arm's)")
+        q_init = PAPER_Q_INIT
     _check_scenario_numbers(
+        n,
         q_init=q_init,
         duration=duration,
         dt=dt,
@@ -126,7 +133,7 @@ def paper_scenario(
     p_base, R_base = jnp.zeros(3), jnp.eye(3)
     p_ee, R_ee = ee_pose(robot, p_base, R_base, q)
     p_lar, R_lar = p_ee + lar_offset * R_ee[:, 2], R_ee
-    initial = plant_state(p_base, R_base, q, jnp.zeros(6), jnp.zeros(7))
+    initial = plant_state(p_base, R_base, q, jnp.zeros(6), jnp.zeros(n))
     body = None
     if free_target is not None:
         body = TargetBody(
@@ -157,7 +164,7 @@ def paper_scenario(
 
 
 _SHAPES = {
-    "q_init": (7,),
+    "q_init": ("N",),
     "duration": (),
     "dt": (),
     "lar_offset": (),
@@ -176,14 +183,17 @@ MAX_STEPS = 10_000_000
 DT_LIMITS_S = (1e-6, 0.1)
 
 
-def _check_scenario_numbers(**values) -> None:
+def _check_scenario_numbers(n: int, **values) -> None:
+    """Check the scenario's numbers for an arm of ``n`` joints (``"N"`` in ``_SHAPES``)."""
     law = values.pop("contact_law")
     if not isinstance(law, str) or law not in CONTACT_LAWS:
         raise ScenarioError(f"contact_law: expected one of {CONTACT_LAWS}, got {law!r}")
     for name, shape in _SHAPES.items():
         value = numbers(values[name], name, ScenarioError)
+        shape = tuple(n if size == "N" else size for size in shape)
         if value.shape != shape:
-            raise ScenarioError(f"{name}: expected shape {shape}, got {value.shape}")
+            joints = f" (one angle per joint of this {n}-joint arm)" if name == "q_init" else ""
+            raise ScenarioError(f"{name}: expected shape {shape}{joints}, got {value.shape}")
         if name in _POSITIVE and value <= 0.0:
             raise ScenarioError(f"{name}: must be positive, got {float(value)}")
         values[name] = value

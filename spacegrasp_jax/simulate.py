@@ -96,19 +96,19 @@ class Log:
         contact_force: (N, 3) N, force of the contact on the EE, LAR axes.
         momentum: (N, 6) ``[P (N s); L about the inertial origin (N m s)]``, inertial frame.
         V_base: (N, 6) satellite ``[v_s (m/s); w_s (rad/s)]``, inertial frame.
-        u: (N, 7) N m, joint torques.
-        fts_force: (N, 3) N, F/T sensor force, sensor (frame 7) axes.
+        u: (N, J) N m, joint torques (J: the arm's number of joints, the paper's 7).
+        fts_force: (N, 3) N, F/T sensor force, sensor (frame J, the last) axes.
         fts_torque: (N, 3) N m, F/T sensor torque about the sensor point, sensor axes.
         V_ref: (N, 6) reference twist in LAR (admittance; zeros for the Cartesian law).
-        qd_des: (N, 7) rad/s, desired joint rates (with a delay: those the PID applies).
-        q: (N, 7) rad. qd: (N, 7) rad/s.
+        qd_des: (N, J) rad/s, desired joint rates (with a delay: those the PID applies).
+        q: (N, J) rad. qd: (N, J) rad/s.
         fts_force_measured, fts_torque_measured: (N, 3) N, N m, the F/T sensor's reading
             the controller used (noise, bias, low-pass; held over the control period),
             sensor axes; ``None`` in the ideal loop, where it is ``fts_force``/``fts_torque``.
-        q_measured, qd_measured: (N, 7) rad, rad/s, the joint sensors' readings at the
+        q_measured, qd_measured: (N, J) rad, rad/s, the joint sensors' readings at the
             latest servo tick (the PID's; at the start of a control period also the
             controller's); ``None`` in the ideal loop.
-        qd_des_computed: (N, 7) rad/s, the desired joint rates the law computed in this
+        qd_des_computed: (N, J) rad/s, the desired joint rates the law computed in this
             control period (they reach the PID ``delay_periods`` later); ``None`` in the
             ideal loop, where they are ``qd_des``.
         target_position: (N, 3) m, the free-floating target's CoM, inertial frame.
@@ -182,8 +182,8 @@ class PlantKinematics:
             origin ([`frames_at_base()`][spacegrasp_jax.dynamics.frames_at_base]).
         base: ``(m, h, I_O)``, the mass matrix's satellite block
             ``M_base = [[m 1, -h x], [h x, I_O]]`` ([`mass_matrix_parts_from_frames()`][spacegrasp_jax.dynamics.mass_matrix_parts_from_frames]).
-        M_coupling, M_joints: (6, 7), (7, 7) blocks of the mass matrix.
-        base_per_joint: (6, 7) ``M_base^-1 M_coupling``: minus the satellite velocity per
+        M_coupling, M_joints: (6, N), (N, N) blocks of the mass matrix.
+        base_per_joint: (6, N) ``M_base^-1 M_coupling``: minus the satellite velocity per
             unit joint rate at zero momentum (eq 6).
         J_joints: (6, 7) joint block ``J_m`` of the EE point Jacobian, inertial frame. Its
             satellite block ``J_s = [[1, -r x], [0, 1]]`` needs only ``r = frames.p_ee``,
@@ -688,6 +688,7 @@ def flight_loop(
     period, servo_period = per_period * scenario.dt, per_servo * scenario.dt
     dtype = scenario.initial.q.dtype
     n = n_joints(robot)
+    realism.check_joints(n)
     pid = PID(saturation=realism.saturation, anti_windup=realism.anti_windup)
     limit = realism.torque_limit_Nm if Stage.ACTUATORS in realism.stages else None
     own_model = bool(realism.stages & (Stage.SENSORS | Stage.MODEL)) or model_robot is not None

@@ -146,7 +146,9 @@ def evaluate_gains(
     if not isinstance(chunk, int) or chunk < 1:
         raise SweepError(f"chunk: expected a positive integer, got {chunk!r}")
     leaves = [np.asarray(getattr(gains, name), dtype=float) for name in GAIN_SHAPES]
-    if any(leaf.ndim != 2 or leaf.shape[1] != GAIN_SHAPES[name] for leaf, name in zip(leaves, GAIN_SHAPES)):
+    joints = leaves[list(GAIN_SHAPES).index("kp")].shape[-1]
+    sizes = {name: joints if size == "N" else size for name, size in GAIN_SHAPES.items()}
+    if any(leaf.ndim != 2 or leaf.shape[1] != sizes[name] for leaf, name in zip(leaves, GAIN_SHAPES)):
         shapes = {name: leaf.shape for leaf, name in zip(leaves, GAIN_SHAPES)}
         raise SweepError(f"gains: expected a batch (N, size) on every field, got shapes {shapes}")
     n = leaves[0].shape[0]

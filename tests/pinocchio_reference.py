@@ -94,28 +94,30 @@ def build_model() -> tuple[pin.Model, int]:
 
 
 def configuration(p_base, R_base, q, model: pin.Model | None = None) -> np.ndarray:
-    """Pinocchio configuration (14,): position, quaternion [x, y, z, w], joint angles. For a
-    ``model`` whose joints are unbounded (a URDF's ``continuous`` joints, ``nq`` = 21), each
-    joint angle is written ``(cos q, sin q)``."""
+    """Pinocchio configuration (7 + N,): position, quaternion [x, y, z, w], joint angles. A
+    ``model``'s unbounded joints (a URDF's ``continuous`` joints: ``nq`` = 2) have each angle
+    written ``(cos q, sin q)``."""
     quat = pin.Quaternion(np.asarray(R_base)).coeffs()  # x, y, z, w
     q = np.asarray(q, dtype=float)
-    if model is not None and model.nq == 7 + 2 * q.size:
-        q = np.column_stack([np.cos(q), np.sin(q)]).ravel()
+    if model is not None:  # joint 0 is the universe, joint 1 the free flyer
+        q = np.concatenate(
+            [[np.cos(angle), np.sin(angle)] if joint.nq == 2 else [angle] for joint, angle in zip(model.joints[2:], q)]
+        )
     return np.concatenate([np.asarray(p_base), quat, q])
 
 
-def velocity_map(R_base) -> np.ndarray:
-    """T (13, 13) with ``v_pin = T x_v``; orthogonal, so ``x_v = T.T v_pin``."""
-    T = np.eye(13)
+def velocity_map(R_base, n_joints: int = 7) -> np.ndarray:
+    """T (6 + N, 6 + N) with ``v_pin = T x_v``; orthogonal, so ``x_v = T.T v_pin``."""
+    T = np.eye(6 + n_joints)
     T[:3, :3] = np.asarray(R_base).T
     T[3:6, 3:6] = np.asarray(R_base).T
     return T
 
 
-def frame_acceleration_offset(R_base, V_base) -> np.ndarray:
-    """c (13,) with ``a_pin = T xdot_v + c``: the body-frame derivative of ``R^T v_s``
+def frame_acceleration_offset(R_base, V_base, n_joints: int = 7) -> np.ndarray:
+    """c (6 + N,) with ``a_pin = T xdot_v + c``: the body-frame derivative of ``R^T v_s``
     picks up ``-R^T (w_s x v_s)``."""
     R, v_s, w_s = np.asarray(R_base), np.asarray(V_base[:3]), np.asarray(V_base[3:])
-    c = np.zeros(13)
+    c = np.zeros(6 + n_joints)
     c[:3] = -R.T @ np.cross(w_s, v_s)
     return c

@@ -14,9 +14,9 @@ class RandomState:
 
     p_base: np.ndarray  # (3,) m
     R_base: np.ndarray  # (3, 3) satellite to inertial
-    q: np.ndarray  # (7,) rad
+    q: np.ndarray  # (N,) rad, N the arm's joints (the paper's 7)
     V_base: np.ndarray  # (6,) [v_s, w_s], inertial frame
-    qd: np.ndarray  # (7,) rad/s
+    qd: np.ndarray  # (N,) rad/s
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -31,15 +31,15 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     )
 
 
-def make_random_states(seed: int, count: int) -> list[RandomState]:
+def make_random_states(seed: int, count: int, n_joints: int = 7) -> list[RandomState]:
     rng = np.random.default_rng(seed)
     return [
         RandomState(
             p_base=rng.normal(scale=2.0, size=3),
             R_base=random_rotation(rng),
-            q=rng.uniform(-np.pi, np.pi, size=7),
+            q=rng.uniform(-np.pi, np.pi, size=n_joints),
             V_base=np.concatenate([rng.normal(scale=0.2, size=3), rng.normal(scale=0.3, size=3)]),
-            qd=rng.normal(scale=1.0, size=7),
+            qd=rng.normal(scale=1.0, size=n_joints),
         )
         for _ in range(count)
     ]

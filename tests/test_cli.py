@@ -55,7 +55,7 @@ def test_info_reports_a_bad_robot_file_clearly(tmp_path):
     path.write_text(CONFIG.read_text().replace("mass = 7.0", "mass = -7.0", 1))
     result = run_cli("info", "--robot", str(path))
     assert result.returncode == 2
-    assert "end_effector.mass: masses must be positive" in result.stderr
+    assert "end_effector.mass: a mass must be positive or 0" in result.stderr
     assert "Traceback" not in result.stderr
 
 

@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from spacegrasp_jax import metrics
+from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.integrator import rk4_step
 from spacegrasp_jax.realism import FLIGHT, RealismError, Stage, flight, ideal, load_realism, make_realism
 from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import flight_rollout, plant_derivative, rollout
+from spacegrasp_jax.simulate import flight_loop, flight_rollout, plant_derivative, rollout
 
 ROLLOUT = jax.jit(rollout, static_argnames=("controller",))
 FLIGHT_ROLLOUT = jax.jit(flight_rollout, static_argnames=("controller",))
@@ -272,7 +273,7 @@ def test_settings_files_are_validated_and_read_back(tmp_path):
         "[sensors]\n": "unknown table",
         "[joint_sensors]\nrate_noise_std_radps = true\n": "joint_sensors.rate_noise_std_radps: expected numbers",
         '[force_torque_sensor]\nforce_bias = "0.1"\n': "force_torque_sensor.force_bias: expected numbers",
-        "[actuators]\ntorque_limit_Nm = [1.0, 2.0]\n": r"torque_limit_Nm: expected shape \(7,\)",
+        "[actuators]\ntorque_limit_Nm = []\n": r"torque_limit_Nm: one limit a joint \(or one for all\), got none",
         "[actuators]\ntorque_limit_Nm = -1.0\n": "limits must be positive",
         '[actuators]\nsaturation = "soft"\n': "actuators.saturation",
         "[timing]\ndelay_periods = 1.5\n": "timing.delay_periods",
@@ -291,3 +292,18 @@ def test_settings_files_are_validated_and_read_back(tmp_path):
         make_realism({"timing": {"control_period": 0.01, "servo_period": 0.0025}}).steps_per_servo(1e-3)
     with pytest.raises(RealismError, match="missing.toml: no such file"):
         load_realism(tmp_path / "missing.toml")
+
+
+def test_torque_limits_are_one_a_joint_of_the_arm_they_run_with(robot, short_scenario):
+    """A realism file's list has any length; the flight loop refuses one that is not the arm's
+    number of joints before compiling, and the flight preset's seven motors fit the paper's
+    arm only."""
+    two = make_realism({"actuators": {"torque_limit_Nm": [1.0, 2.0]}})
+    with pytest.raises(RealismError, match=r"2 limits for an arm of 7 joints"):
+        two.check_joints(7)
+    with pytest.raises(RealismError, match=r"2 limits for an arm of 7 joints"):
+        flight_loop(robot, short_scenario, paper_gains(), "admittance", two, jax.random.PRNGKey(0))
+    flight().check_joints(7)
+    with pytest.raises(RealismError, match=r"7 limits for an arm of 6 joints.*flight preset's are the paper's arm's"):
+        flight().check_joints(6)
+    ideal().check_joints(6)  # no actuator stage: its limits are not used

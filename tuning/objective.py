@@ -109,11 +109,12 @@ class Objective:
 
     Attributes:
         weights: the ``weighted`` objective's weights.
-        torque_scale_Nm: (7,) per-joint torque scale of the ``weighted`` objective;
+        torque_scale_Nm: (N,) per-joint torque scale of the ``weighted`` objective;
             ``tuning`` sets it to the peaks of the initial gains on the nominal scenario.
         kind: ``"capture"`` or ``"weighted"``.
-        torque_limit_Nm: (7,) the motors' limits of the ``capture`` objective (the robot's
-            ``joint_torque_limit``).
+        torque_limit_Nm: (N,) the motors' limits of the ``capture`` objective (the robot's
+            ``joint_torque_limit``; the paper's arm's by default), one a joint like
+            ``torque_scale_Nm``.
         position_tolerance_m, orientation_tolerance_rad, target_speed_limit_mps: the
             success criteria of the ``capture`` objective (the campaigns' defaults).
         safety: ``d``, the share of each tolerance kept in reserve (the hinge sits at
@@ -144,10 +145,11 @@ class Objective:
             raise ValueError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {self.kind!r}")
         if not _concrete([getattr(self, field.name) for field in dataclasses.fields(self)]):
             return
-        if len(self.torque_scale_Nm) != 7 or min(self.torque_scale_Nm) <= 0.0:
-            raise ValueError(f"torque_scale_Nm: need 7 positive numbers, got {self.torque_scale_Nm}")
-        if len(self.torque_limit_Nm) != 7 or min(self.torque_limit_Nm) <= 0.0:
-            raise ValueError(f"torque_limit_Nm: need 7 positive numbers, got {self.torque_limit_Nm}")
+        n = len(self.torque_scale_Nm)
+        if n < 6 or min(self.torque_scale_Nm) <= 0.0:
+            raise ValueError(f"torque_scale_Nm: need one positive number a joint, got {self.torque_scale_Nm}")
+        if len(self.torque_limit_Nm) != n or min(self.torque_limit_Nm) <= 0.0:
+            raise ValueError(f"torque_limit_Nm: need {n} positive numbers (one a joint), got {self.torque_limit_Nm}")
         if not self.temperature > 0.0:
             raise ValueError(f"temperature: must be positive, got {self.temperature}")
         if not 0.0 <= self.safety < 1.0:

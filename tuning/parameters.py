@@ -31,9 +31,9 @@ def make_mask(base: Gains, controller: str, frozen: tuple[str, ...] = ()) -> dic
     if unknown:
         raise ValueError(f"--freeze: unknown gain group(s) {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")
     return {
-        name: jnp.zeros(GAIN_SHAPES[name], dtype=bool)
+        name: jnp.zeros(jnp.shape(getattr(base, name)), dtype=bool)
         if name in frozen
-        else jnp.ones(GAIN_SHAPES[name], dtype=bool)
+        else jnp.ones(jnp.shape(getattr(base, name)), dtype=bool)
         if name == "pinv_damping"
         else jnp.asarray(getattr(base, name)) > 0.0
         for name in GROUPS[controller]

@@ -31,8 +31,8 @@ import numpy as np
 
 import spacegrasp_jax as sg
 from spacegrasp_jax import batching, campaign, experiment, runfiles, statistics
-from spacegrasp_jax.control import load_gains, make_gains, paper_gains
-from spacegrasp_jax.model import robot_from_toml
+from spacegrasp_jax.control import GainsError, load_gains, make_gains, paper_gains, require_joints
+from spacegrasp_jax.model import load_robot, n_joints, robot_from_text
 from spacegrasp_jax.montecarlo import SampleLoops, success
 from spacegrasp_jax.perturbations import sample_scenarios
 from spacegrasp_jax.realism import make_realism
@@ -104,7 +104,8 @@ def resume_differences(
                 continue
             differences.append((field, asked, recorded.get(field)))
     if gains_file is not None:
-        asked = load_gains(gains_file, record["config"]["controller"]).to_dict()
+        n = n_joints(record_robot(record))
+        asked = load_gains(gains_file, record["config"]["controller"], n).to_dict()
         if not _same(asked, record["base_gains"]):
             differences.append(("gains", gains_file, record["gains_source"]))
     if scenario_file is not None and _read_optional(scenario_file) != record["scenario_text"]:
@@ -119,10 +120,11 @@ def _read_optional(path: str | None) -> str | None:
 
 
 def record_robot(record: dict):
-    """The robot of a tuning run's record (``run.json``): the paper's, or its TOML as recorded."""
+    """The robot of a tuning run's record (``run.json``): the paper's, or its file's text as
+    recorded (a TOML or URDF; a mounting TOML's URDF is read from beside its file again)."""
     if record["robot_toml"] is None:
         return sg.paper_robot()
-    return robot_from_toml(record["robot_toml"], source=record["robot_source"])
+    return robot_from_text(record["robot_toml"], source=record["robot_source"])
 
 
 def record_scenario(robot, record: dict):
@@ -136,7 +138,15 @@ def record_scenario(robot, record: dict):
 
 def new_record(config: TuneConfig, gains_file, scenario_file, robot_file, holdout: int) -> dict:
     """The run's definition, with the sources' contents so the run can be redone anywhere."""
-    base = load_gains(gains_file, config.controller) if gains_file else paper_gains()
+    robot = load_robot(robot_file) if robot_file else sg.paper_robot()
+    if gains_file:
+        base = load_gains(gains_file, config.controller, n_joints(robot))
+    else:
+        try:
+            require_joints(paper_gains(), n_joints(robot), "the paper's gains")
+        except GainsError as error:
+            raise TuneSetupError(f"--gains: required: {error}") from None
+        base = paper_gains()
     return {
         "config": config.to_dict(),
         "base_gains": base.to_dict(),
@@ -418,7 +428,7 @@ def tune(
         runfiles.write_json(record_path, record)
 
     robot = record_robot(record)
-    base = make_gains(**record["base_gains"])
+    base = make_gains(n_joints=n_joints(robot), **record["base_gains"])
     exact = dataclasses.replace(record_scenario(robot, record), contact_law="exact")
     smooth = dataclasses.replace(exact, contact_law="smooth")  # gradients need the smooth law
 

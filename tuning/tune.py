@@ -716,7 +716,7 @@ def make_objective(robot: Robot, config: TuneConfig, torque_scale_Nm) -> Objecti
 
 
 def torque_constraint_Nm(robot: Robot, config: TuneConfig) -> tuple[float, ...]:
-    """(7,) the capture objective's torque constraint per joint (N m):
+    """(N,) the capture objective's torque constraint per joint (N m):
     ``min(torque_fraction * joint_torque_limit_i, torque_cap_Nm)``."""
     cap = math.inf if config.torque_cap_Nm is None else config.torque_cap_Nm
     return tuple(min(config.torque_fraction * float(x), cap) for x in robot.joint_torque_limit)

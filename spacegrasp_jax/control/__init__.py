@@ -14,6 +14,7 @@ from spacegrasp_jax.control.gains import (
     load_gains,
     make_gains,
     paper_gains,
+    require_joints,
     tuned_gains,
 )
 from spacegrasp_jax.control.law import ControlInputs, law_named
@@ -38,6 +39,7 @@ __all__ = [
     "UnusedGainsWarning",
     "load_gains",
     "make_gains",
+    "require_joints",
     "paper_gains",
     "tuned_gains",
 ]

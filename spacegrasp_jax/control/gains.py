@@ -9,9 +9,9 @@ Every gain matrix of the paper is diagonal, so each is held as its diagonal:
 | ``Kd`` | (6,) | N/m, N m/rad | 600 (desired stiffness) |
 | ``K_lin`` | (3,) | 1/s | 3 (Cartesian law, eq 22) |
 | ``K_eul`` | (3,) | 1/s | 3 |
-| ``kp`` | (7,) | N m s/rad | Table 4 (joint PID on the rate error) |
-| ``ki`` | (7,) | N m/rad | Table 4 |
-| ``kd`` | (7,) | N m s^2/rad | Table 4 |
+| ``kp`` | (N,) | N m s/rad | Table 4 (joint PID on the rate error) |
+| ``ki`` | (N,) | N m/rad | Table 4 |
+| ``kd`` | (N,) | N m s^2/rad | Table 4 |
 | ``pinv_damping`` | (1,) | as ``J_dyn``'s entries | 0 (the exact pseudoinverse of eqs 17, 21) |
 
 ``pinv_damping`` is the damping a mission sets at design time to keep the law's
@@ -19,7 +19,8 @@ pseudoinverse bounded near Dynamic-Jacobian singularities (``J^T (J J^T + dampin
 it adds to a law's own (static) ``pinv_damping``, so the paper's gains keep the exact law.
 
 The first three rows of ``Md``/``Bd``/``Kd`` act on the position in the LAR frame, the last
-three on the ZYX Euler angles ``[roll, pitch, yaw]``.
+three on the ZYX Euler angles ``[roll, pitch, yaw]``. The joint groups have one gain per
+joint of the arm (N; the paper's has 7, and Table 4 is for it).
 """
 
 from __future__ import annotations
@@ -35,7 +36,12 @@ import numpy as np
 from spacegrasp_jax.compilation import require_float64
 from spacegrasp_jax.inputs import numbers, read_document
 
-GAIN_SHAPES = {"Md": 6, "Bd": 6, "Kd": 6, "K_lin": 3, "K_eul": 3, "kp": 7, "ki": 7, "kd": 7, "pinv_damping": 1}
+#: Each group's length; ``"N"``: the arm's number of joints.
+GAIN_SHAPES = {"Md": 6, "Bd": 6, "Kd": 6, "K_lin": 3, "K_eul": 3, "kp": "N", "ki": "N", "kd": "N", "pinv_damping": 1}
+#: The groups with one gain per joint.
+JOINT_GROUPS = ("kp", "ki", "kd")
+#: The number of joints of the paper's arm, which Table 4's PID gains are for.
+PAPER_JOINTS = 7
 
 #: The gain groups each controller uses (the joint PID stage's with its law's).
 GAINS_USED = {
@@ -76,14 +82,15 @@ class Gains:
         return {name: np.asarray(getattr(self, name)).tolist() for name in names}
 
 
-def make_gains(**fields) -> Gains:
-    """Validate and build [`Gains`][spacegrasp_jax.control.gains.Gains]; a scalar is broadcast to the field's length, and
+def make_gains(*, n_joints: int = PAPER_JOINTS, **fields) -> Gains:
+    """Validate and build [`Gains`][spacegrasp_jax.control.gains.Gains] for an arm of ``n_joints``
+    joints (the paper's 7 by default); a scalar is broadcast to the field's length, and
     ``pinv_damping`` may be left out (0: the exact pseudoinverse).
 
     Raises:
-        GainsError: missing or unknown field, wrong length, non-finite, negative value, or
-            zero where the law needs a positive gain (``Md``, ``Bd``, ``Kd``, ``K_lin``,
-            ``K_eul``, ``kp``).
+        GainsError: missing or unknown field, wrong length (a joint group's not the arm's
+            number of joints), non-finite, negative value, or zero where the law needs a
+            positive gain (``Md``, ``Bd``, ``Kd``, ``K_lin``, ``K_eul``, ``kp``).
     """
     require_float64("Gains")
     unknown = sorted(set(fields) - set(GAIN_SHAPES))
@@ -96,10 +103,13 @@ def make_gains(**fields) -> Gains:
     arrays = {}
     for name, length in GAIN_SHAPES.items():
         value = numbers(fields[name], name, GainsError)
+        per_joint = length == "N"
+        length = n_joints if per_joint else length
         if value.ndim == 0:
             value = np.full(length, float(value))
         if value.shape != (length,):
-            raise GainsError(f"{name}: expected {length} values, got shape {value.shape}")
+            joints = f" (one a joint of this {n_joints}-joint arm)" if per_joint else ""
+            raise GainsError(f"{name}: expected {length} values{joints}, got shape {value.shape}")
         if np.any(value < 0.0) or (name in _STRICTLY_POSITIVE and np.any(value == 0.0)):
             bound = "positive" if name in _STRICTLY_POSITIVE else "non-negative"
             raise GainsError(f"{name}: gains must be {bound}, got {value.tolist()}")
@@ -155,26 +165,52 @@ def tuned_gains(loop: str = "ideal") -> Gains:
     return load_gains(Path(__file__).resolve().parents[1] / "data" / TUNED_GAINS_FILES[loop])
 
 
+def require_joints(gains: Gains, n_joints: int, source: str = "the gains") -> None:
+    """Raise ``GainsError`` unless ``gains``' joint groups have one gain per joint of an arm of
+    ``n_joints`` joints (the paper's gains are for its 7)."""
+    lengths = {name: np.shape(getattr(gains, name))[-1] for name in JOINT_GROUPS}
+    if set(lengths.values()) != {n_joints}:
+        raise GainsError(
+            f"{source}: {', '.join(f'{name} has {length}' for name, length in lengths.items())} gains, "
+            f"but the arm has {n_joints} joints (give a gains file with one per joint)"
+        )
+
+
 class UnusedGainsWarning(UserWarning):
     """A gains file holds groups the chosen controller does not use (they are ignored)."""
 
 
-def load_gains(path: str | Path, controller: str | None = None) -> Gains:
-    """Read gains from a JSON file ``{"Md": [...], "kp": [...], ...}`` (scalars allowed).
+def load_gains(path: str | Path, controller: str | None = None, n_joints: int = PAPER_JOINTS) -> Gains:
+    """Read gains for an arm of ``n_joints`` joints from a JSON file ``{"Md": [...], "kp": [...],
+    ...}`` (scalars allowed).
 
     A file may hold any subset of the groups: the others take the paper's values
-    ([`paper_gains()`][spacegrasp_jax.control.gains.paper_gains]). A file written for one controller holds the groups that
-    controller uses (``GAINS_USED``); given ``controller``, groups it does not use are
-    accepted and named in an [`UnusedGainsWarning`][spacegrasp_jax.control.gains.UnusedGainsWarning].
+    ([`paper_gains()`][spacegrasp_jax.control.gains.paper_gains]), but for an arm of other
+    than the paper's 7 joints the joint groups (``kp``, ``ki``, ``kd``) are required. A file
+    written for one controller holds the groups that controller uses (``GAINS_USED``); given
+    ``controller``, groups it does not use are accepted and named in an
+    [`UnusedGainsWarning`][spacegrasp_jax.control.gains.UnusedGainsWarning].
 
     Raises:
         GainsError: unreadable file, not a JSON object, or invalid gains (a value that is
-            not a number, ``"140"`` or ``true`` included); the message names the file.
+            not a number, ``"140"`` or ``true`` included, or a joint group of the wrong
+            length); the message names the file.
     """
     path = Path(path)
     document = read_document(path, GainsError, "json")
+    unknown = sorted(set(document) - set(GAIN_SHAPES))
+    if unknown:
+        raise GainsError(f"{path}: unknown gain(s): {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")
+    defaults = paper_gains().to_dict()
+    if n_joints != PAPER_JOINTS:
+        missing = [name for name in JOINT_GROUPS if name not in document]
+        if missing:
+            raise GainsError(
+                f"{path}: {', '.join(missing)}: required for an arm of {n_joints} joints "
+                f"(the paper's Table 4 is for its {PAPER_JOINTS})"
+            )
     try:
-        gains = make_gains(**(paper_gains().to_dict() | document))
+        gains = make_gains(n_joints=n_joints, **(defaults | document))
     except GainsError as error:
         raise GainsError(f"{path}: {error}") from None
     unused = [
