@@ -25,6 +25,7 @@ matplotlib.use("Agg")  # the command line only writes figures to files; before p
 import spacegrasp_jax as sg  # noqa: E402
 from spacegrasp_jax import (
     anatomy,
+    animation,
     batching,
     campaign,
     compilation,
@@ -53,7 +54,7 @@ from spacegrasp_jax.perturbations import (
     load_ranges,
 )
 from spacegrasp_jax.realism import Realism, RealismError, ideal, load_realism
-from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
+from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario, scenario_from_dict
 from spacegrasp_jax.simulate import Log
 from spacegrasp_jax.tuning.gradients import HORIZONS as GRADIENT_HORIZONS
 from spacegrasp_jax.tuning.gradients import central_differences, envelope_gradients, finite_rows
@@ -498,6 +499,10 @@ def _run_controllers(args, controllers) -> int:
     print(
         f"wrote {out}/: table5.csv, summary.json, figures, timeseries_*.npz{', .csv' if args.csv else ''}, config.json"
     )
+    if getattr(args, "animate", False):
+        failed = {error.controller for error in diverged}
+        logs = {controller: result.log for controller, result in results.items() if controller not in failed}
+        _films(args, out, list(logs), robot, scenario, logs)
     for error in diverged:
         print(
             f"spacegrasp: error: {error}; its log up to that step and the state there are in {out}/",
@@ -582,6 +587,85 @@ def _load_log(path: Path) -> Log:
         return Log(
             **{field.name: data[field.name] if field.name in data.files else None for field in dataclasses.fields(Log)}
         )
+
+
+def _run_robot_and_scenario(folder: Path, config: dict):
+    """The robot and scenario a run folder's ``config.json`` ran (a replay's: its campaign
+    sample's plant and scenario, from the campaign folder)."""
+    if "campaign_record" in config:
+        try:
+            robot, scenario, _, campaign_config = campaign.load_campaign(Path(config["campaign"]))
+        except campaign.CampaignError as error:
+            raise UsageError(f"{folder}: a replay of {config['campaign']}, which cannot be read: {error}") from None
+        return campaign.replay_sample(robot, scenario, campaign_config, int(config["sample"]))
+    source = config["robot"]
+    try:
+        robot = sg.paper_robot() if source == "paper_robot()" else sg.load_robot(source)
+    except sg.RobotConfigError as error:
+        raise UsageError(f"{folder}: its robot {source}: {error}") from None
+    return robot, scenario_from_dict(config["scenario"])
+
+
+def _films(args: argparse.Namespace, folder: Path, keys: list[str], robot, scenario, logs: dict) -> list[Path]:
+    """Write the film (and its poster) of each run ``keys`` of ``folder``; returns the films."""
+    written = []
+    for key in keys:
+        out = Path(args.film_out) if getattr(args, "film_out", None) else folder / f"capture_{_file_name(key)}.gif"
+        poster = out.with_name(out.stem + "_poster.png")
+        rows = animation.frame_rows(logs[key].t, args.fps, args.speed)
+        print(f"drawing {len(rows)} frames of the {key} capture into {out}...", flush=True)
+        scene = animation.capture_scene(robot, scenario, logs[key], rows)
+        title = f"{key}: {folder.name}"
+        runfiles.write_atomically(out, lambda target: animation.write_film(scene, target, args.fps, title=title))
+        runfiles.write_atomically(poster, lambda target: animation.write_poster(scene, target, title))
+        written += [out, poster]
+    return written
+
+
+def _animate(args: argparse.Namespace) -> int:
+    """``spacegrasp animate RUN_DIR``: a film of a run's capture (and a poster of its key frame)."""
+    folder = Path(args.run_dir)
+    if not (folder / "config.json").is_file() or not (folder / "summary.json").is_file():
+        raise UsageError(
+            f"{folder}: not a run folder of simulate, reproduce or replay (no config.json and summary.json)"
+        )
+    config = json.loads((folder / "config.json").read_text())
+    keys = [
+        key
+        for key in json.loads((folder / "summary.json").read_text())
+        if (folder / f"timeseries_{_file_name(key)}.npz").is_file()
+    ]
+    if args.controller is not None:
+        if args.controller not in keys:
+            raise UsageError(f"--controller: {folder} has no run {args.controller!r}; it has {', '.join(keys)}")
+        keys = [args.controller]
+    if not keys:
+        raise UsageError(f"{folder}: holds no time series (timeseries_*.npz) to animate")
+    if args.out is not None:
+        if len(keys) > 1:
+            raise UsageError(
+                f"--out: {folder} holds {len(keys)} runs ({', '.join(keys)}); choose one with --controller"
+            )
+        if Path(args.out).suffix.lower() not in (".gif", ".mp4"):
+            raise UsageError(f"--out {args.out}: a film is a .gif or an .mp4")
+    args.film_out = args.out
+    targets = [Path(args.out)] if args.out else [folder / f"capture_{_file_name(key)}.gif" for key in keys]
+    for target in targets:
+        for path in (target, target.with_name(target.stem + "_poster.png")):
+            if path.exists() and not args.overwrite:
+                raise UsageError(f"{path}: exists; pass --overwrite to replace it")
+    if args.out and Path(args.out).suffix.lower() == ".mp4":
+        try:
+            import imageio_ffmpeg  # noqa: F401
+        except ImportError:
+            raise UsageError(
+                "--out: an MP4 needs imageio-ffmpeg (pip install spacegrasp-jax[video]); a .gif needs nothing more"
+            ) from None
+    robot, scenario = _run_robot_and_scenario(folder, config)
+    logs = {key: _load_log(folder / f"timeseries_{_file_name(key)}.npz") for key in keys}
+    written = _films(args, folder, keys, robot, scenario, logs)
+    print(f"wrote {', '.join(str(path) for path in written)}")
+    return 0
 
 
 def _compare(args: argparse.Namespace) -> int:
@@ -1476,6 +1560,22 @@ def _add_overwrite_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_animate_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--animate",
+        action="store_true",
+        help="also film each capture: capture_<law>.gif and a poster (spacegrasp animate)",
+    )
+    _add_film_options(parser)
+
+
+def _add_film_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--fps", type=_real(1.0, 120.0), default=30.0, help="frames a second of film (default 30)")
+    parser.add_argument(
+        "--speed", type=_real(0.01, 100.0), default=1.0, help="simulated seconds a second of film (default 1)"
+    )
+
+
 def _add_csv_option(parser: argparse.ArgumentParser, what: str) -> None:
     parser.add_argument("--csv", action="store_true", help=f"also write {what} as CSV (one row per row of the .npz)")
 
@@ -1514,6 +1614,7 @@ def build_parser() -> argparse.ArgumentParser:
         commands, "reproduce", help="run both controllers with the paper's gains: Table 5 and Figures 4-9"
     )
     _add_run_options(reproduce, "results/reproduce")
+    _add_animate_option(reproduce)
     _add_csv_option(reproduce, "the time series")
     _add_compile_cache_option(reproduce)
     reproduce.set_defaults(run=_reproduce)
@@ -1531,6 +1632,7 @@ def build_parser() -> argparse.ArgumentParser:
         "with its noise key, on the nominal robot and scenario",
     )
     _add_run_options(simulate, "results/simulate")
+    _add_animate_option(simulate)
     _add_csv_option(simulate, "the time series")
     _add_compile_cache_option(simulate)
     simulate.set_defaults(run=_simulate)
@@ -1546,6 +1648,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add_csv_option(replay, "the time series")
     _add_compile_cache_option(replay)
     replay.set_defaults(run=_replay)
+
+    animate = _add_command(commands, "animate", help="film a run's capture in 3D: a GIF or an MP4, and a poster PNG")
+    animate.add_argument("run_dir", metavar="RUN_DIR", help="a run folder of simulate, reproduce or replay")
+    animate.add_argument("--controller", help="which of the folder's runs (default: each, one film apiece)")
+    animate.add_argument(
+        "--out", help="the film, .gif or .mp4 (default: RUN_DIR/capture_<run>.gif; the poster beside it, _poster.png)"
+    )
+    _add_film_options(animate)
+    _add_overwrite_option(animate)
+    animate.set_defaults(run=_animate)
 
     compare = _add_command(
         commands, "compare", help="overlay runs of simulate, reproduce or replay on the paper's figures"

@@ -96,6 +96,15 @@ def test_torque_constraint_is_the_lower_of_the_fraction_and_the_cap(robot):
     assert make_objective(robot, TuneConfig(torque_cap_Nm=4.0), (1.0,) * 7).torque_limit_Nm == capped
 
 
+def test_an_objective_has_one_torque_scale_and_limit_a_joint():
+    """A 6-joint arm's objective with the paper's seven limits is refused when it is made."""
+    Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 6, torque_limit_Nm=(5.0,) * 6)
+    with pytest.raises(ValueError, match=r"torque_limit_Nm: need 6 positive numbers \(one a joint\)"):
+        Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 6)
+    with pytest.raises(ValueError, match=r"torque_scale_Nm: need one positive number a joint"):
+        Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 6 + (0.0,), torque_limit_Nm=(5.0,) * 7)
+
+
 def test_parameters_round_trip_and_mask(gains):
     params = initial_params(gains, "admittance")
     assert sum(p.size for p in params.values()) == 39 + 1  # the gains and the damping

@@ -143,7 +143,8 @@ class Objective:
     def __post_init__(self):
         if self.kind not in OBJECTIVES:
             raise ValueError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {self.kind!r}")
-        if not _concrete([getattr(self, field.name) for field in dataclasses.fields(self)]):
+        numbers = [getattr(self, field.name) for field in dataclasses.fields(self) if not field.metadata.get("static")]
+        if not _concrete(numbers):
             return
         n = len(self.torque_scale_Nm)
         if n < 6 or min(self.torque_scale_Nm) <= 0.0:
