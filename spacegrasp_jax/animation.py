@@ -159,7 +159,7 @@ class _Frame:
 
         self.scene = scene
         self.figure = plt.figure(figsize=FIGURE_INCHES, dpi=DPI)
-        ax = self.figure.add_axes([0.0, 0.0, 1.0, 0.88], projection="3d")
+        ax = self.figure.add_axes([0.0, 0.04, 1.0, 0.84], projection="3d")
         ax.view_init(elev=ELEVATION_DEG, azim=AZIMUTH_DEG)
         centre, half = _limits(scene)
         ax.set_xlim(centre[0] - half, centre[0] + half)

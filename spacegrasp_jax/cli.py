@@ -1309,7 +1309,9 @@ def _worstcase(args: argparse.Namespace) -> int:
     units = jax.tree.map(jnp.asarray, found.units)
     replay_file = out / "worst_perturbation.json"
     runfiles.write_json(replay_file, worstcase.perturbation_document(found.units, ranges, found.key, config.identified))
-    campaign_units = jax.tree.map(lambda x: x[0], worstcase.units_of_samples(args.seed, [baseline["sample"]]))
+    campaign_units = jax.tree.map(
+        lambda x: x[0], worstcase.units_of_samples(args.seed, [baseline["sample"]], n_joints=n_joints(robot))
+    )
     campaign_key = worstcase.noise_keys(args.seed, [baseline["sample"]])[0]
     runfiles.write_json(
         out / "campaign_worst_perturbation.json",

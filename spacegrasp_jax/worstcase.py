@@ -201,9 +201,10 @@ def _value_and_gradient(
 # ---- the search -------------------------------------------------------------------------------
 
 
-def units_of_samples(seed: int, indices, dtype=jnp.float64) -> Perturbation:
-    """The uniform numbers of the campaign's samples ``indices`` (leading axis n; NumPy)."""
-    units = jax.jit(jax.vmap(lambda key: draw_units(key, dtype)))(sample_keys(seed, indices))
+def units_of_samples(seed: int, indices, dtype=jnp.float64, n_joints: int = 7) -> Perturbation:
+    """The uniform numbers of the campaign's samples ``indices`` (leading axis n; NumPy), for
+    an arm of ``n_joints`` joints (the paper's 7)."""
+    units = jax.jit(jax.vmap(lambda key: draw_units(key, dtype, n_joints)))(sample_keys(seed, indices))
     return jax.tree.map(np.asarray, units)
 
 
@@ -277,8 +278,9 @@ def search(
     say(f"screening: {screening} samples, worst {settings.measure} {np.max(values):.6g}")
 
     worst_samples = [int(i) for i in np.argsort(-values, kind="stable")[: settings.starts - 1]]
-    units = units_of_samples(config.seed, worst_samples)
-    corner = random_corner(config.seed, units_of_samples(config.seed, [0]))
+    joints = scenario.initial.q.shape[-1]
+    units = units_of_samples(config.seed, worst_samples, n_joints=joints)
+    corner = random_corner(config.seed, units_of_samples(config.seed, [0], n_joints=joints))
     units = jax.tree.map(lambda many, one: np.concatenate([many, np.asarray(one)[None]]), units, corner)
     keys = np.concatenate([noise_keys(config.seed, worst_samples), noise_keys(config.seed, [screening])])
     starts = settings.starts
@@ -325,7 +327,7 @@ def search(
     screening_worst = int(np.argmax(values))
     if values[screening_worst] > best_values[best_start]:
         value, start = float(values[screening_worst]), -1
-        found_units = jax.tree.map(lambda x: x[0], units_of_samples(config.seed, [screening_worst]))
+        found_units = jax.tree.map(lambda x: x[0], units_of_samples(config.seed, [screening_worst], n_joints=joints))
         found_key = noise_keys(config.seed, [screening_worst])[0]
     else:
         value, start = float(best_values[best_start]), best_start
@@ -473,8 +475,11 @@ def units_to_dict(units: Perturbation) -> dict[str, list[float]]:
 
 
 def units_from_dict(document: dict, dtype=np.float64) -> Perturbation:
-    """``units_to_dict()``'s inverse; every field required, each of its shape, in the box."""
-    like = jax.tree.map(np.asarray, draw_units(jax.random.PRNGKey(0), dtype))
+    """``units_to_dict()``'s inverse; every field required, each of its shape, in the box (the
+    arm's number of joints is ``dq_init``'s length)."""
+    angles = document.get("dq_init")
+    joints = len(angles) if isinstance(angles, list) and angles else 7  # else refused below as for the paper's arm
+    like = jax.tree.map(np.asarray, draw_units(jax.random.PRNGKey(0), dtype, joints))
     fields = {}
     for name, reference in vars(like).items():
         if name not in document:

@@ -133,11 +133,14 @@ LONGEST_FIRST = (
     "tests/test_montecarlo.py",
     "tests/test_worstcase.py",
     "tests/test_dynamics.py",
+    "tests/test_six_joint_arm.py",
     "tests/test_tuning_batch.py",
     "tests/test_gradients_cli.py",
     "notebooks/03_tuning.ipynb",
     "notebooks/06_free_target.ipynb",
     "tests/test_loop_compilation.py",
+    "tests/test_urdf_arms.py",
+    "tests/test_animation.py",
     "notebooks/04_monte_carlo.ipynb",
 )
 

@@ -191,3 +191,24 @@ def test_the_papers_arm_from_its_urdf_is_the_arm_of_its_tables():
             np.testing.assert_allclose(getattr(a, field), getattr(b, field), rtol=0, atol=1e-12, err_msg=field)
         expected = sg.bias_forces(tables, s.R_base, s.q, s.V_base, s.qd)
         assert relative_error(sg.bias_forces(urdf, s.R_base, s.q, s.V_base, s.qd), expected) <= 1e-12
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["panda", "ur5"])
+def test_the_shipped_scenario_and_gains_capture_with_each_arm(name):
+    """The 17 s approach of configs/<arm>_scenario.toml with configs/<arm>_gains.json: within
+    the campaigns' capture tolerances (5 mm, 1 degree) and the arm's motors' limits."""
+    from spacegrasp_jax import experiment
+    from spacegrasp_jax.control import load_gains
+    from spacegrasp_jax.scenario import load_scenario
+
+    arm = ARMS[name]
+    robot = sg.load_robot(CONFIGS / arm.mounting)
+    scenario = load_scenario(robot, CONFIGS / f"{name}_scenario.toml")
+    gains = load_gains(CONFIGS / f"{name}_gains.json", "admittance", n_joints=arm.joints)
+    summary = experiment.run(robot, scenario, gains, "admittance").summary
+    assert summary["final_position_error_m"] <= 0.005
+    assert np.degrees(summary["final_orientation_error_rad"]) <= 1.0
+    assert summary["max_contact_force_N"] > 0.0  # it did touch the ring
+    assert np.all(np.asarray(summary["max_abs_torque_Nm"]) <= np.asarray(robot.joint_torque_limit))
+
