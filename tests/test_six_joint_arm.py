@@ -125,3 +125,22 @@ def test_a_monte_carlo_chunk_of_16_equals_single_rollouts(ur5, short):
         ).summary
         for name in ("final_position_error_m", "max_abs_torque_Nm", "max_contact_force_N"):
             np.testing.assert_allclose(batch[name][index], alone[name], rtol=1e-9, atol=1e-15, err_msg=name)
+
+
+def test_a_flight_like_run_takes_a_realism_with_one_torque_limit_a_joint(short, tmp_path, capsys):
+    """The flight preset's seven motors are refused for the UR5 before compiling; a realism
+    file with six limits runs, and its saturation holds every torque within them."""
+    common = ["simulate", "--controller", "admittance", "--robot", str(ROBOT), "--scenario", str(short)]
+    common += ["--gains", str(GAINS)]
+    assert cli.main([*common, "--realism", "flight", "--out", str(tmp_path / "preset")]) == 2
+    assert "7 limits for an arm of 6 joints" in capsys.readouterr().err
+    realism = tmp_path / "ur5_flight.toml"
+    realism.write_text(
+        "[timing]\ncontrol_period = 0.01\nservo_period = 0.001\n"
+        "[joint_sensors]\nrate_noise_std_radps = 0.001\n"
+        "[actuators]\ntorque_limit_Nm = [1.0, 1.0, 1.0, 0.5, 0.5, 0.5]\n"
+    )
+    assert cli.main([*common, "--realism", str(realism), "--out", str(tmp_path / "run")]) == 0
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())["admittance"]
+    assert np.all(np.asarray(summary["max_abs_torque_Nm"]) <= np.array([1.0, 1.0, 1.0, 0.5, 0.5, 0.5]) + 1e-12)
+    assert summary["max_contact_force_N"] > 0.0

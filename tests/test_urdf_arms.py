@@ -211,4 +211,3 @@ def test_the_shipped_scenario_and_gains_capture_with_each_arm(name):
     assert np.degrees(summary["final_orientation_error_rad"]) <= 1.0
     assert summary["max_contact_force_N"] > 0.0  # it did touch the ring
     assert np.all(np.asarray(summary["max_abs_torque_Nm"]) <= np.asarray(robot.joint_torque_limit))
-
