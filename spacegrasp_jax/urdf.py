@@ -332,8 +332,9 @@ def _parse(text: str, source: str):
     return reader, links, joints, parent_joint
 
 
-def _path_up(link: str, parent_joint: dict, reader: _Reader, stop: str | None = None) -> list[_Joint]:
-    """The joints from ``link`` up to ``stop`` (or to its tree's root), nearest first."""
+def _path_up(link: str, parent_joint: dict, reader: _Reader, stop: str | None = None) -> list[_Joint] | None:
+    """The joints from ``link`` up to ``stop`` (or to its tree's root), nearest first; ``None``
+    if ``stop`` is not above ``link``."""
     path, seen = [], {link}
     while link != stop and link in parent_joint:
         joint = parent_joint[link]
@@ -379,7 +380,8 @@ class Mounting:
 
 def robot_from_urdf(text: str, mounting: Mounting = Mounting(), source: str = "<URDF>") -> Robot:
     """The [`Robot`][spacegrasp_jax.model.Robot] of the serial chain of URDF ``text`` from
-    ``mounting.base_link`` to ``mounting.tip_link`` (the modelling notes, "Your own arm").
+    ``mounting.base_link`` to ``mounting.tip_link`` (the documentation's "Your own arm" and
+    modelling notes).
 
     * The chain's ``revolute`` and ``continuous`` joints are the arm's N joints; ``fixed``
       joints are merged into the body they hang from; a ``prismatic``, ``planar`` or
@@ -387,8 +389,8 @@ def robot_from_urdf(text: str, mounting: Mounting = Mounting(), source: str = "<
     * Frame ``i`` of the model is joint ``i+1``'s frame turned to put its axis on z; frame N
       is the tip link's frame, which is the EE frame (the EE body is empty: the tip's links
       are part of link N).
-    * The base link and everything fixed to it join the satellite body (module docstring of
-      ``Mounting``); links past the tip (a gripper's fingers) ride with link N at their
+    * The base link and everything fixed to it join the satellite body (``Mounting``'s, if it
+      has one), the base frame at the CoM of the two; links past the tip (a gripper's fingers) ride with link N at their
       joints' zero; any other branch with a moving joint is refused.
     * Joint limits come from ``<limit>``: ``effort`` (N m) and ``velocity`` (rad/s), required;
       ``lower`` and ``upper`` (rad) for ``revolute`` joints, none for ``continuous``.
@@ -449,11 +451,10 @@ def robot_from_urdf(text: str, mounting: Mounting = Mounting(), source: str = "<
         return p, R
 
     aligned = [_aligning_z_with(joint.axis) for joint in moving]
-    # Joint k's frame (before its motion) in body k-1's start frame.
-    joint_frames = [
-        (lambda pr, joint: (pr[0] + pr[1] @ joint.p, pr[1] @ joint.R))(placement_in(start, joint.parent), joint)
-        for start, joint in zip(starts, moving)
-    ]
+    joint_frames = []  # joint k's frame (before its motion) in body k-1's start frame
+    for start, joint in zip(starts, moving):
+        p, R = placement_in(start, joint.parent)
+        joint_frames.append((p + R @ joint.p, R @ joint.R))
     tip_in_last = placement_in(starts[-1], tip)
     # Frame k (k < N) is joint k+1's frame turned by A_{k+1}; frame N is the tip's.
     frames = [(p, R @ A) for (p, R), A in zip(joint_frames[1:], aligned[1:])] + [tip_in_last]
