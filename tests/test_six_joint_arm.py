@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from central_differences import check_each_group
 
 import spacegrasp_jax as sg
 from spacegrasp_jax import cli, experiment
@@ -85,16 +86,7 @@ def test_the_tuning_gradient_matches_central_differences(loss_and_gradient):
     (_, aux), gradient = value_and_grad(params)
     assert float(aux["peak_contact_hard_N"]) > 0.0
     assert params["kp"].shape == (6,)
-    value_only = jax.jit(lambda p: loss(p)[0])
-    rng = np.random.default_rng(6)
-    for group in GROUPS["admittance"]:
-        h = 1e-3 if group == "pinv_damping" else 1e-5
-        direction = jnp.asarray(rng.normal(size=params[group].shape))
-        plus = value_only({**params, group: params[group] + h * direction})
-        minus = value_only({**params, group: params[group] - h * direction})
-        numeric = float(plus - minus) / (2 * h)
-        analytic = float(jnp.vdot(gradient[group], direction))
-        assert abs(analytic - numeric) <= 1e-4 * abs(numeric) + 1e-9, (group, analytic, numeric)
+    check_each_group(loss, params, gradient, GROUPS["admittance"], seed=6)
 
 
 def test_a_few_tuning_steps_run_and_keep_the_gains_finite(loss_and_gradient):

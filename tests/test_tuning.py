@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from central_differences import check_each_group
 
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
@@ -175,19 +176,7 @@ def test_gradient_of_each_gain_group_matches_central_differences(short_problem, 
     loss, params, value_and_grad = short_problem(controller)
     (value, aux), gradient = value_and_grad(params)
     assert float(aux["peak_contact_hard_N"]) > 0.0  # the scenario does include contact
-    value_only = jax.jit(lambda p: loss(p)[0])
-    rng = np.random.default_rng(5)
-    for group in GROUPS[controller]:
-        # The damping (from 1e-3) adds lambda^2 = 1e-6 to J J^T: its effect on the loss is
-        # 1e-4 of a gain's, so its difference needs a larger step to rise above the rollout's
-        # rounding (the loss is smooth in it; truncation stays far below the tolerance).
-        h = 1e-3 if group == "pinv_damping" else 1e-5
-        direction = jnp.asarray(rng.normal(size=params[group].shape))
-        plus = value_only({**params, group: params[group] + h * direction})
-        minus = value_only({**params, group: params[group] - h * direction})
-        numeric = float(plus - minus) / (2 * h)
-        analytic = float(jnp.vdot(gradient[group], direction))
-        assert abs(analytic - numeric) <= 1e-4 * abs(numeric) + 1e-9, (group, analytic, numeric)
+    check_each_group(loss, params, gradient, GROUPS[controller], seed=5)
 
 
 @pytest.mark.slow
