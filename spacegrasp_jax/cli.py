@@ -606,11 +606,14 @@ def _run_robot_and_scenario(folder: Path, config: dict):
     return robot, scenario_from_dict(config["scenario"])
 
 
-def _films(args: argparse.Namespace, folder: Path, keys: list[str], robot, scenario, logs: dict) -> list[Path]:
-    """Write the film (and its poster) of each run ``keys`` of ``folder``; returns the films."""
+def _films(
+    args: argparse.Namespace, folder: Path, keys: list[str], robot, scenario, logs: dict, film: Path | None = None
+) -> list[Path]:
+    """Write the film (and its poster) of each run ``keys`` of ``folder``, to ``film`` (one run)
+    or to ``capture_<run>.gif`` in ``folder``; returns the files written."""
     written = []
     for key in keys:
-        out = Path(args.film_out) if getattr(args, "film_out", None) else folder / f"capture_{_file_name(key)}.gif"
+        out = film if film is not None else folder / f"capture_{_file_name(key)}.gif"
         poster = out.with_name(out.stem + "_poster.png")
         rows = animation.frame_rows(logs[key].t, args.fps, args.speed)
         print(f"drawing {len(rows)} frames of the {key} capture into {out}...", flush=True)
@@ -648,7 +651,6 @@ def _animate(args: argparse.Namespace) -> int:
             )
         if Path(args.out).suffix.lower() not in (".gif", ".mp4"):
             raise UsageError(f"--out {args.out}: a film is a .gif or an .mp4")
-    args.film_out = args.out
     targets = [Path(args.out)] if args.out else [folder / f"capture_{_file_name(key)}.gif" for key in keys]
     for target in targets:
         for path in (target, target.with_name(target.stem + "_poster.png")):
@@ -663,7 +665,7 @@ def _animate(args: argparse.Namespace) -> int:
             ) from None
     robot, scenario = _run_robot_and_scenario(folder, config)
     logs = {key: _load_log(folder / f"timeseries_{_file_name(key)}.npz") for key in keys}
-    written = _films(args, folder, keys, robot, scenario, logs)
+    written = _films(args, folder, keys, robot, scenario, logs, Path(args.out) if args.out else None)
     print(f"wrote {', '.join(str(path) for path in written)}")
     return 0
 

@@ -79,7 +79,7 @@ class Robot:
         ee_inertia: (3, 3) kg m^2 about the EE body CoM, frame N axes.
         joint_position_limit: (N, 2) rad, the lowest and highest angle of each joint
             (``-inf, inf`` by default: the paper gives none). Not a constraint of the
-            dynamics: the run's report says when a joint leaves its range.
+            dynamics, and not yet checked by a run: ``info`` prints it, URDF carries it.
         joint_rate_limit: (N,) rad/s, the fastest each joint can turn (the paper gives none:
             ``PAPER_JOINT_RATE_LIMIT`` by default). Not a constraint of the dynamics: a
             run whose rates go far beyond it is a runaway ([`spacegrasp_jax.anatomy`][spacegrasp_jax.anatomy]).
