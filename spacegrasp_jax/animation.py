@@ -181,7 +181,7 @@ class _Frame:
         (self.sphere,) = ax.plot([], [], [], color="tab:orange", linewidth=0.8)
         (self.force,) = ax.plot([], [], [], color="tab:green", linewidth=2.5)
         (self.ee,) = ax.plot([], [], [], linestyle="none", marker="o", markersize=7, color=EE_COLOR)
-        self.title = self.figure.text(0.5, 0.98, title, ha="center", va="top", fontsize=10)
+        self.figure.text(0.5, 0.98, title, ha="center", va="top", fontsize=10)
         self.clock = self.figure.text(0.02, 0.93, "", fontsize=8, family="monospace", va="top")
         self.figure.text(
             0.98,

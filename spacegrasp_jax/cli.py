@@ -2128,6 +2128,7 @@ def main(argv: list[str] | None = None) -> int:
         PerturbationError,
         RealismError,
         UsageError,
+        animation.AnimationError,
         runfiles.OutputFolderError,
     ) as error:
         print(f"spacegrasp: error: {error}", file=sys.stderr)
