@@ -23,6 +23,7 @@ import numpy as np
 import pinocchio as pin
 
 from spacegrasp_jax.compilation import configure
+from spacegrasp_jax.control.registry import PAPER_CONTROLLERS
 from spacegrasp_jax.model import Robot, body_inertials, n_joints
 
 
@@ -235,7 +236,7 @@ def main(argv=None) -> int:
     configure(compile_cache=False)  # this process is the benchmark's: float64, loops compiled whole, no cache
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=17.0)
-    parser.add_argument("--controller", choices=("admittance", "cartesian"), default="admittance")
+    parser.add_argument("--controller", choices=PAPER_CONTROLLERS, default="admittance")
     args = parser.parse_args(argv)
     import spacegrasp_jax as sg
     from spacegrasp_jax import experiment

@@ -35,8 +35,8 @@ import numpy as np
 from jax.experimental import multihost_utils
 
 from spacegrasp_jax import anatomy, batching, runfiles, statistics
-from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.registry import CONTROLLERS
 from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
 from spacegrasp_jax.model import Robot, n_joints
 from spacegrasp_jax.montecarlo import evaluate_samples, sample_loops

@@ -43,7 +43,14 @@ from spacegrasp_jax import (
     urdf,
     worstcase,
 )
-from spacegrasp_jax.control import CONTROLLERS, GainsError, UnusedGainsWarning, load_gains, paper_gains
+from spacegrasp_jax.control import (
+    CONTROLLERS,
+    PAPER_CONTROLLERS,
+    GainsError,
+    UnusedGainsWarning,
+    load_gains,
+    paper_gains,
+)
 from spacegrasp_jax.model import body_inertials, n_joints
 from spacegrasp_jax.montecarlo import perturbed_loop
 from spacegrasp_jax.perturbations import (
@@ -211,13 +218,21 @@ def _load_inputs(args):
     scenario = load_scenario(robot, args.scenario) if getattr(args, "scenario", None) else paper_scenario(robot)
     controller = getattr(args, "controller", None)
     gains = (
-        load_gains(args.gains, controller, n_joints(robot)) if getattr(args, "gains", None) else _paper_gains_for(robot)
+        load_gains(args.gains, controller, n_joints(robot))
+        if getattr(args, "gains", None)
+        else _paper_gains_for(robot, controller)
     )
     return robot, scenario, gains
 
 
-def _paper_gains_for(robot) -> sg.control.Gains:
-    """The paper's gains, when the arm is the paper's 7-joint one: Table 4 is for it."""
+def _paper_gains_for(robot, controller: str | None = None) -> sg.control.Gains:
+    """The paper's gains, when the arm is the paper's 7-joint one (Table 4 is for it) and the
+    law one of the paper's (``None``: any)."""
+    if controller is not None and controller not in PAPER_CONTROLLERS:
+        raise UsageError(
+            f"--gains: required for the {controller} law (the paper's gains are for its "
+            f"{' and '.join(PAPER_CONTROLLERS)} laws; configs/{controller}_gains.json is a start)"
+        )
     if n_joints(robot) != len(paper_gains().kp):
         raise UsageError(
             f"--gains: required for an arm of {n_joints(robot)} joints (the paper's Table 4 gains are for its "
@@ -752,7 +767,7 @@ def _campaign_record(folder: Path) -> dict:
 
 
 def _reproduce(args: argparse.Namespace) -> int:
-    return _run_controllers(args, CONTROLLERS)
+    return _run_controllers(args, PAPER_CONTROLLERS)
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -784,7 +799,7 @@ def _tune(args: argparse.Namespace) -> int:
     if args.gains:
         load_gains(args.gains, args.controller, n_joints(robot))
     else:
-        _paper_gains_for(robot)
+        _paper_gains_for(robot, args.controller)
     _claim(args, Path(args.out))
     try:
         result = tune(
@@ -1015,11 +1030,12 @@ def _ranges(args: argparse.Namespace, default: PerturbationRanges) -> Perturbati
 def _montecarlo_variants(args: argparse.Namespace, robot) -> list[campaign.Variant]:
     """The paper's gains for each selected controller (for the paper's 7-joint arm), plus each
     ``--gains`` file."""
-    controllers = CONTROLLERS if args.controller == "both" else (args.controller,)
+    controllers = PAPER_CONTROLLERS if args.controller == "both" else (args.controller,)
     n = n_joints(robot)
-    if n != len(paper_gains().kp) and not args.gains:
-        _paper_gains_for(robot)
-    gain_sets = [("paper", paper_gains())] if n == len(paper_gains().kp) else []
+    papers = all(controller in PAPER_CONTROLLERS for controller in controllers)
+    if not args.gains:
+        _paper_gains_for(robot, None if papers else args.controller)
+    gain_sets = [("paper", paper_gains())] if n == len(paper_gains().kp) and papers else []
     for path in args.gains:
         label = Path(path).stem
         if label in {existing for existing, _ in gain_sets}:
@@ -1123,9 +1139,12 @@ def _gradients(args: argparse.Namespace) -> int:
     _check_envelope(args, scenario)
     out = Path(args.out)
     _claim(args, out)
-    objective = Objective(  # the torque scale of Table 5: reports at different gains compare
+    # A fixed torque scale, so that reports at different gains compare: Table 5's row for the
+    # paper's laws, 1 N m a joint for others.
+    torque_scale = paper.MAX_ABS_TORQUE_NM.get(args.controller, (1.0,) * n_joints(robot))
+    objective = Objective(
         weights=weights,
-        torque_scale_Nm=tuple(float(x) for x in paper.MAX_ABS_TORQUE_NM[args.controller]),
+        torque_scale_Nm=tuple(float(x) for x in torque_scale),
         temperature=TuneConfig().temperature,
     )
     smooth = dataclasses.replace(scenario, contact_law="smooth")  # as tuning: gradients need the smooth law
@@ -1194,6 +1213,7 @@ def _margins(args: argparse.Namespace) -> int:
     batched rollouts over envelope samples (``spacegrasp_jax.margins``)."""
     batching.use_all_cpu_cores()  # before anything touches a device
     try:
+        margins.require_joint_servo(args.controller)
         ranges = _ranges(args, PerturbationRanges())
         settings = margins.MarginSettings(
             samples=args.samples,
@@ -1788,7 +1808,9 @@ def build_parser() -> argparse.ArgumentParser:
         commands, "montecarlo", help="robustness campaign over perturbed captures (sharded, resumable)"
     )
     montecarlo.add_argument("--n", type=_whole(1, 100_000_000), required=True, help="number of perturbed samples")
-    montecarlo.add_argument("--controller", choices=(*CONTROLLERS, "both"), default="both")
+    montecarlo.add_argument(
+        "--controller", choices=(*CONTROLLERS, "both"), default="both", help="a law, or both of the paper's (default)"
+    )
     montecarlo.add_argument(
         "--gains",
         action="append",

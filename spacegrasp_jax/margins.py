@@ -52,26 +52,41 @@ import numpy as np
 from spacegrasp_jax import batching
 from spacegrasp_jax.campaign import CampaignConfig, CampaignError
 from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.control.law import law_named
+from spacegrasp_jax.control.law import Output
+from spacegrasp_jax.control.registry import LAWS, law_named
 from spacegrasp_jax.model import Robot, n_joints
 from spacegrasp_jax.montecarlo import evaluate_samples, lost, success
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import ServoInputDelay
 
-#: The gain groups each loop's factor scales, per controller, and how: ``+1`` multiplies by
-#: the factor, ``-1`` divides by it.
-LOOP_GROUPS = {
-    "pid": {"kp": 1, "ki": 1, "kd": 1},
-    "law": {
-        "admittance": {"Md": -1, "Bd": -1, "Kd": -1},
-        "cartesian": {"K_lin": 1, "K_eul": 1},
-    },
-}
+#: The loops whose gain is probed: the joint PID's and the law's.
 LOOPS = ("pid", "law")
+#: The gain groups the joint PID loop's factor scales (all multiplied by it).
+PID_LOOP_GROUPS = {"kp": 1, "ki": 1, "kd": 1}
 
 
 class MarginError(ValueError):
     """An invalid margin setting; names the cause."""
+
+
+def loop_groups(controller: str, loop: str) -> dict[str, int]:
+    """The gain groups ``loop``'s factor scales for ``controller``, and how: ``+1``
+    multiplies by the factor, ``-1`` divides by it (the law's own ``loop_gain``)."""
+    if loop not in LOOPS:
+        raise MarginError(f"loop: expected one of {', '.join(LOOPS)}, got {loop!r}")
+    return PID_LOOP_GROUPS if loop == "pid" else LAWS[controller].loop_gain
+
+
+def require_joint_servo(controller: str) -> None:
+    """Raise ``MarginError`` unless ``controller``'s law commands joint rates to the joint
+    PID: the margins are those of that two-loop structure (the PID's gain, the delay between
+    the law and the PID, the delay at the PID's input)."""
+    law = LAWS[controller]
+    if law.output is not Output.JOINT_RATES:
+        raise MarginError(
+            f"controller: the {controller} law commands joint torques; margins are searched for laws "
+            f"that command joint rates to the joint PID ({', '.join(n for n, c in LAWS.items() if c.output is Output.JOINT_RATES)})"
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,7 +157,7 @@ class OutputDelay:
     """A law whose desired joint rates reach the joint PID ``periods`` control periods late.
 
     Attributes:
-        law: the law delayed (a law object: ``init``, ``update``, ``reference_twist``).
+        law: the law delayed (a [`ControlLaw`][spacegrasp_jax.control.law.ControlLaw]).
         capacity: the delay line's length (static); ``periods`` must be below it.
         periods: () int, the delay in control periods (a value: any delay below
             ``capacity`` runs the same program).
@@ -154,9 +169,18 @@ class OutputDelay:
     periods: jax.Array
     n_joints: int
 
-    def init(self, dtype=jnp.float64) -> OutputDelayState:
+    # What the delayed law is, it is with the delay.
+    name = property(lambda self: self.law.name)
+    title = property(lambda self: self.law.title)
+    output = property(lambda self: self.law.output)
+    gain_groups = property(lambda self: self.law.gain_groups)
+    loop_gain = property(lambda self: self.law.loop_gain)
+    style = property(lambda self: self.law.style)
+    paper_max_abs_torque_Nm = property(lambda self: self.law.paper_max_abs_torque_Nm)
+
+    def init(self, n_joints: int, dtype=jnp.float64) -> OutputDelayState:
         return OutputDelayState(
-            self.law.init(dtype), jnp.zeros((self.capacity, self.n_joints), dtype), jnp.zeros((), jnp.int32)
+            self.law.init(n_joints, dtype), jnp.zeros((self.capacity, self.n_joints), dtype), jnp.zeros((), jnp.int32)
         )
 
     def update(self, gains: Gains, inputs, state: OutputDelayState, dt):
@@ -165,8 +189,8 @@ class OutputDelay:
         applied = commands[(state.head - self.periods) % self.capacity]
         return applied, OutputDelayState(law_state, commands, (state.head + 1) % self.capacity)
 
-    def reference_twist(self, state: OutputDelayState):
-        return self.law.reference_twist(state.law)
+    def log_fields(self, state: OutputDelayState) -> dict[str, jax.Array]:
+        return self.law.log_fields(state.law)
 
 
 # ---- probes ---------------------------------------------------------------------------
@@ -174,9 +198,7 @@ class OutputDelay:
 
 def scaled_loop(gains: Gains, controller: str, loop: str, factor: float) -> Gains:
     """``gains`` with ``loop``'s gain (``"pid"`` or ``"law"``; module docstring) times ``factor``."""
-    if loop not in LOOPS:
-        raise MarginError(f"loop: expected one of {', '.join(LOOPS)}, got {loop!r}")
-    groups = LOOP_GROUPS["pid"] if loop == "pid" else LOOP_GROUPS["law"][controller]
+    groups = loop_groups(controller, loop)
     return dataclasses.replace(
         gains,
         **{name: np.asarray(getattr(gains, name), float) * factor**power for name, power in groups.items()},
@@ -478,6 +500,7 @@ def find_margins(
         ``rollouts``, ``compile_s``, ``search_s``, ``control_period_s``, ``servo_period_s``,
         ``realism_delay_periods``.
     """
+    require_joint_servo(controller)
     started = time.perf_counter()
     prober = Prober(robot, scenario, gains, controller, config, settings, progress=progress)
     gain_margins = {
@@ -551,13 +574,15 @@ def margin_lines(result: dict) -> list[str]:
 
 __all__ = [
     "LOOPS",
-    "LOOP_GROUPS",
+    "PID_LOOP_GROUPS",
     "MarginError",
     "MarginSettings",
     "OutputDelay",
     "OutputDelayState",
     "Prober",
     "control_period",
+    "loop_groups",
+    "require_joint_servo",
     "delay_margin",
     "find_margins",
     "gain_margin",

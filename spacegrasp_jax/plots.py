@@ -5,8 +5,9 @@ commands built on the rollout: tuning (loss, peak torques), Monte-Carlo campaign
 
 Style of the paper: blue dashed line for the admittance law (the paper's "active 6 DoF
 force/torque control"), red dotted for the Cartesian law, black solid for the desired
-trajectory. ``logs`` maps a controller name
-(``"admittance"``, ``"cartesian"``) to a log with NumPy fields; either may be missing.
+trajectory; each law's style is its own (``ControlLaw.style``). ``logs`` maps a controller
+name (``"admittance"``, ``"cartesian"``, any of the registry's) to a log with NumPy fields;
+any may be missing.
 
 Every ``figure_*`` function returns a matplotlib figure and leaves the backend alone: a
 notebook shows it inline, the command line (which selects the file-only Agg backend) saves
@@ -19,9 +20,10 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-STYLES = {
-    "admittance": dict(color="tab:blue", linestyle="--", label="admittance control"),
-    "cartesian": dict(color="tab:red", linestyle=":", label="Cartesian control"),
+from spacegrasp_jax.control.registry import LAWS
+
+#: Line styles by name: each law's (the registry's), the desired trajectory's and a tuning's.
+STYLES = {name: dict(law.style) for name, law in LAWS.items()} | {
     "desired": dict(color="black", linestyle="-", label="desired"),
     "start": dict(color="tab:gray", linestyle="--", label="starting gains"),
     "tuned": dict(color="tab:green", linestyle="-", label="tuned gains"),

@@ -27,8 +27,8 @@ from spacegrasp_jax.contact import (
     wrench_at_ee,
 )
 from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.control.law import ControlInputs, law_named
-from spacegrasp_jax.control.pid import PID, PIDState
+from spacegrasp_jax.control.law import ControlInputs, ControllerState
+from spacegrasp_jax.control.registry import as_controller
 from spacegrasp_jax.dynamics import (
     dynamic_jacobian_from_parts,
     forward_dynamics_from_frames,
@@ -43,34 +43,6 @@ from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.target import lar_frame, lar_velocity, target_momentum, target_rate
 from spacegrasp_jax.trajectory import desired_state
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class ControllerState:
-    """The controller's memory from one control step to the next.
-
-    Attributes:
-        law: the law's own state (``AdmittanceState`` with its ``V_ref``, or the Cartesian law's
-            empty one).
-        pid: the joint PID loops' memory.
-    """
-
-    law: object
-    pid: PIDState
-
-
-def as_law(controller, pinv_damping: float = 0.0):
-    """The law object of ``controller``: a name (``"admittance"``, ``"cartesian"``), built
-    with ``pinv_damping``, or a law object (``control.Admittance``, ``control.Cartesian``),
-    which carries its own damping."""
-    if isinstance(controller, str):
-        return law_named(controller, pinv_damping)
-    if pinv_damping:
-        raise ValueError("pinv_damping: give it to the law object, not beside it")
-    if not (hasattr(controller, "init") and hasattr(controller, "update")):
-        raise ValueError(f"controller: expected a name or a law with init and update, got {controller!r}")
-    return controller
 
 
 @jax.tree_util.register_dataclass
@@ -99,8 +71,9 @@ class Log:
         u: (N, J) N m, joint torques (J: the arm's number of joints, the paper's 7).
         fts_force: (N, 3) N, F/T sensor force, sensor (frame J, the last) axes.
         fts_torque: (N, 3) N m, F/T sensor torque about the sensor point, sensor axes.
-        V_ref: (N, 6) reference twist in LAR (admittance; zeros for the Cartesian law).
-        qd_des: (N, J) rad/s, desired joint rates (with a delay: those the PID applies).
+        V_ref: (N, 6) reference twist in LAR (admittance; zeros for the other laws).
+        qd_des: (N, J) rad/s, desired joint rates (with a delay: those the PID applies;
+            zeros for a law that commands torques).
         q: (N, J) rad. qd: (N, J) rad/s.
         fts_force_measured, fts_torque_measured: (N, 3) N, N m, the F/T sensor's reading
             the controller used (noise, bias, low-pass; held over the control period),
@@ -265,11 +238,10 @@ def momentum_at(kinematics: PlantKinematics, plant: PlantState) -> jax.Array:
 
 def initial_state(scenario: Scenario, controller="admittance") -> SimState:
     """The scan's initial carry: the scenario's plant state, the law's initial state
-    (``V_ref(0) = 0`` for the admittance law), the PID at rest."""
+    (``V_ref(0) = 0`` for the admittance law), the joint servo at rest."""
     dtype = scenario.initial.q.dtype
-    law = as_law(controller)
-    pid_state = PID().init(scenario.initial.q.shape[-1], dtype)
-    return SimState(plant=scenario.initial, controller=ControllerState(law=law.init(dtype), pid=pid_state))
+    controller_state = as_controller(controller).init(scenario.initial.q.shape[-1], dtype)
+    return SimState(plant=scenario.initial, controller=controller_state)
 
 
 def control_step(
@@ -284,27 +256,19 @@ def control_step(
 ):
     """One controller update at time ``t``: returns ``(u (7,), new ControllerState, log row)``.
 
-    ``controller``: a law's name or object ([`as_law()`][spacegrasp_jax.simulate.as_law]). ``kinematics``:
+    ``controller``: a law's name, a law object or a controller
+    ([`as_controller()`][spacegrasp_jax.control.registry.as_controller]). ``kinematics``:
     [`plant_kinematics()`][spacegrasp_jax.simulate.plant_kinematics] of ``state.plant`` if the caller has it."""
-    law = as_law(controller, pinv_damping)
+    control = as_controller(controller, pinv_damping)
     plant = state.plant
     if kinematics is None:
         kinematics = plant_kinematics(robot, scenario, plant)
     observed = observe(robot, scenario, plant, kinematics, t)
-    qd_des, law_state = law.update(gains, observed.inputs, state.controller.law, scenario.dt)
-    u, pid = PID().update(gains, state.controller.pid, qd_des - plant.qd, t, scenario.dt)
-    V_ref = law.reference_twist(state.controller.law)
-    row = log_row(
-        plant,
-        kinematics,
-        t,
-        observed,
-        scenario.target,
-        u=u,
-        V_ref=jnp.zeros(6, dtype=plant.q.dtype) if V_ref is None else V_ref,
-        qd_des=qd_des,
-    )
-    return u, ControllerState(law=law_state, pid=pid), row
+    command, law_state = control.law.update(gains, observed.inputs, state.controller.law, scenario.dt)
+    u, servo_state = control.torque(gains, command, plant.qd, state.controller.pid, t, scenario.dt)
+    logged = control.logged(command, state.controller.law)
+    row = log_row(plant, kinematics, t, observed, scenario.target, u=u, **logged)
+    return u, ControllerState(law=law_state, pid=servo_state), row
 
 
 @dataclasses.dataclass(frozen=True)
@@ -332,6 +296,7 @@ def observe(robot: Robot, scenario: Scenario, plant: PlantState, kinematics: Pla
         scenario.trajectory,
         plant.p_base,
         plant.V_base,
+        plant.q,
         plant.qd,
         kinematics,
         kinematics.p_lar,
@@ -392,12 +357,12 @@ def sensor_reading(robot: Robot, scenario: Scenario, kinematics: PlantKinematics
 
 
 def controller_inputs(
-    robot, trajectory, p_base, V_base, qd, kinematics, p_lar, R_lar, force_fts, torque_fts, t, lar_motion=None
+    robot, trajectory, p_base, V_base, q, qd, kinematics, p_lar, R_lar, force_fts, torque_fts, t, lar_motion=None
 ):
     """What the law reads ([`ControlInputs`][spacegrasp_jax.control.law.ControlInputs]), and the EE
     pose and twist in LAR, from a view of the state: the satellite's position ``p_base`` (3,)
-    m and twist ``V_base`` (6,), the joint rates ``qd`` (7,) rad/s, ``kinematics`` of the
-    robot the controller believes at the joint angles it measured, the LAR frame it believes
+    m and twist ``V_base`` (6,), the joint angles ``q`` (N,) rad and rates ``qd`` (N,) rad/s
+    it measured, ``kinematics`` of the robot the controller believes at ``q``, the LAR frame it believes
     (``p_lar`` (3,) m, ``R_lar`` (3, 3), inertial), and the F/T reading ``force_fts``,
     ``torque_fts`` (3,) in sensor axes, at time ``t`` (s). ``lar_motion``: ``(v_lar, w)``
     (3,) m/s, rad/s, inertial, the LAR origin's velocity and the target's angular velocity
@@ -429,7 +394,7 @@ def controller_inputs(
     J_dyn = dynamic_jacobian_from_parts(kinematics.base_per_joint, kinematics.J_joints, r_ee)  # eq 8
     J_dyn_ee = spatial.matmul(frames.R_ee.T, J_dyn.reshape(2, 3, -1)).reshape(J_dyn.shape)
     inputs = ControlInputs(
-        pose, twist, wrench_lar, pose_des, twist_des, twist_rate_des, J_dyn_ee, R_lar_ee, frame_twist
+        pose, twist, wrench_lar, pose_des, twist_des, twist_rate_des, J_dyn_ee, R_lar_ee, q, qd, frame_twist
     )
     return inputs, (pose, twist)
 
@@ -445,12 +410,12 @@ def closed_loop_step(
     ``jax.checkpoint`` (RK4's later stages always are, one by one: ``integrator.rk4_step``).
     A reverse-mode gradient then keeps, per step, the state and the rates RK4's stages
     start from, and recomputes each part just before differentiating it."""
-    law = as_law(controller, pinv_damping)
+    control = as_controller(controller, pinv_damping)
 
     def control_and_first_rate(state: SimState, t):
         # The controller reads the state RK4's first stage starts from: share the kinematics.
         kinematics = plant_kinematics(robot, scenario, state.plant)
-        u, controller_state, row = control_step(robot, scenario, gains, law, state, t, kinematics=kinematics)
+        u, controller_state, row = control_step(robot, scenario, gains, control, state, t, kinematics=kinematics)
         return u, controller_state, row, plant_rate(robot, scenario, state.plant, kinematics, u)
 
     if checkpoint:
@@ -491,8 +456,10 @@ def rollout(
 
     Args:
         robot, scenario, gains: pytrees (any leaf may carry a vmap batch axis).
-        controller: the law, static: ``"admittance"`` (eqs 9-17) or ``"cartesian"`` (eqs
-            21-22), or a law object (``control.Admittance``, ``control.Cartesian``).
+        controller: static: a law's name (``"admittance"``, eqs 9-17; ``"cartesian"``, eqs
+            21-22; any of ``control.CONTROLLERS``), a law object (``control.Admittance()``)
+            or a ``control.Controller``
+            ([`as_controller()`][spacegrasp_jax.control.registry.as_controller]).
         pinv_damping: 0 for the exact pseudoinverse (the paper), > 0 for damped least
             squares, with a law's name; static.
         checkpoint_segment: the number of steps per inner scan (static; must divide
@@ -561,10 +528,10 @@ class FlightState:
     """The flight-like loop's carry.
 
     Attributes:
-        plant: the true state. controller: the law's and the PID's memory.
+        plant: the true state. controller: the law's and the joint servo's memory.
         wrench_reading: (6,) the low-passed F/T reading ``[f (N); n (N m)]``, sensor axes.
-        commands_in_flight: (delay_periods, 7) rad/s, the desired joint rates computed but
-            not yet applied, oldest first.
+        commands_in_flight: (delay_periods, N), the law's commands computed but not yet
+            applied, oldest first (desired joint rates, rad/s, or a torque law's N m).
         rates_in_flight: with a [`ServoInputDelay`][spacegrasp_jax.simulate.ServoInputDelay], its line of joint-rate
             readings (``ServoInputDelay.init()``); ``None`` without.
     """
@@ -679,7 +646,6 @@ def flight_loop(
 
     ``servo_input_delay``: a [`ServoInputDelay`][spacegrasp_jax.simulate.ServoInputDelay] between the joint sensors and the PID
     (``spacegrasp_jax.margins``); the log's ``qd_measured`` is then the delayed reading."""
-    law = as_law(controller, pinv_damping)
     realism.check_timing(scenario.dt, scenario.n_steps)
     per_period = realism.steps_per_period(scenario.dt)
     per_servo = realism.steps_per_servo(scenario.dt)
@@ -689,7 +655,7 @@ def flight_loop(
     dtype = scenario.initial.q.dtype
     n = n_joints(robot)
     realism.check_joints(n)
-    pid = PID(saturation=realism.saturation, anti_windup=realism.anti_windup)
+    control = as_controller(controller, pinv_damping).with_actuators(realism.saturation, realism.anti_windup)
     limit = realism.torque_limit_Nm if Stage.ACTUATORS in realism.stages else None
     own_model = bool(realism.stages & (Stage.SENSORS | Stage.MODEL)) or model_robot is not None
     model = believed_robot(robot if model_robot is None else model_robot, realism) if own_model else robot
@@ -715,7 +681,7 @@ def flight_loop(
             qd = qd + realism.rate_noise_std_radps * noise
         return q, qd
 
-    def control(state: FlightState, k, noise):
+    def control_period(state: FlightState, k, noise):
         plant, t = state.plant, k * period
         truth = plant_kinematics(robot, scenario, plant)
         force_fts, torque_fts = sensor_reading(robot, scenario, truth)
@@ -740,6 +706,7 @@ def flight_loop(
             scenario.trajectory,
             plant.p_base,
             plant.V_base,
+            q,
             qd,
             view,
             p_lar,
@@ -749,17 +716,16 @@ def flight_loop(
             t,
             lar_motion=target_motion(scenario, plant),
         )
-        computed, law_state = law.update(gains, inputs, state.controller.law, period)
+        computed, law_state = control.law.update(gains, inputs, state.controller.law, period)
         if realism.delay_periods:
             queue = jnp.concatenate([state.commands_in_flight, computed[None]])
-            qd_des, in_flight = queue[0], queue[1:]
+            command, in_flight = queue[0], queue[1:]
         else:
-            qd_des, in_flight = computed, state.commands_in_flight
-        V_ref = law.reference_twist(state.controller.law)
+            command, in_flight = computed, state.commands_in_flight
         held = dict(
-            V_ref=jnp.zeros(6, dtype) if V_ref is None else V_ref,
-            qd_des=qd_des,
-            qd_des_computed=computed,
+            control.logged(command, state.controller.law),
+            command=command,
+            qd_des_computed=control.logged(computed, state.controller.law)["qd_des"],
             fts_force_measured=reading[:3],
             fts_torque_measured=reading[3:],
         )
@@ -768,7 +734,8 @@ def flight_loop(
     def plant_step(plant: PlantState, k, held):
         t = k * scenario.dt
         kinematics = plant_kinematics(robot, scenario, plant)
-        row = log_row(plant, kinematics, t, observe(robot, scenario, plant, kinematics, t), scenario.target, **held)
+        logged = {name: value for name, value in held.items() if name != "command"}
+        row = log_row(plant, kinematics, t, observe(robot, scenario, plant, kinematics, t), scenario.target, **logged)
         u = held["u"]
         k1 = plant_rate(robot, scenario, plant, kinematics, u)
         return rk4_step(lambda s: plant_derivative(robot, scenario, s, u), plant, scenario.dt, rate_at_start=k1), row
@@ -780,7 +747,7 @@ def flight_loop(
         q, qd = joint_reading(plant, tick_noise)
         if servo_input_delay is not None:
             qd, line = servo_input_delay.push(line, qd)
-        u, pid_state = pid.update(gains, pid_state, held["qd_des"] - qd, j * servo_period, servo_period, limit)
+        u, pid_state = control.torque(gains, held["command"], qd, pid_state, j * servo_period, servo_period, limit)
         steps = j * per_servo + jnp.arange(per_servo, dtype=dtype)
         held = dict(held, u=u, q_measured=q, qd_measured=qd)
         if per_servo == 1:
@@ -791,7 +758,7 @@ def flight_loop(
 
     def one_period(state: FlightState, k):
         noise = period_noise(k)
-        state, law_state, held = control(state, k, noise)
+        state, law_state, held = control_period(state, k, noise)
         carry = (state.plant, state.controller.pid, state.rates_in_flight)
         if ticks == 1:
             (plant, pid_state, line), rows = servo_tick(carry, k, held, noise)
@@ -806,7 +773,7 @@ def flight_loop(
         one_period = jax.checkpoint(one_period, prevent_cse=False)
     start = FlightState(
         plant=scenario.initial,
-        controller=ControllerState(law=law.init(dtype), pid=pid.init(n, dtype)),
+        controller=control.init(n, dtype),
         wrench_reading=jnp.zeros(6, dtype),
         commands_in_flight=jnp.zeros((realism.delay_periods, n), dtype),
         rates_in_flight=None if servo_input_delay is None else servo_input_delay.init(n, dtype),

@@ -59,7 +59,7 @@ from jax.flatten_util import ravel_pytree
 from spacegrasp_jax import spatial
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.dynamics import system_com, system_momentum
-from spacegrasp_jax.margins import LOOP_GROUPS, LOOPS, MarginSettings, control_period, gain_margin
+from spacegrasp_jax.margins import LOOPS, MarginSettings, control_period, gain_margin, loop_groups, require_joint_servo
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
@@ -187,7 +187,7 @@ def scaled_gains(gains: Gains, controller: str, log_factors) -> Gains:
     ``exp(log_factors[i])``, traceable (``margins.scaled_loop()``'s scaling)."""
     changes = {}
     for log_factor, loop in zip(log_factors, LOOPS, strict=True):
-        groups = LOOP_GROUPS["pid"] if loop == "pid" else LOOP_GROUPS["law"][controller]
+        groups = loop_groups(controller, loop)
         changes |= {name: getattr(gains, name) * jnp.exp(power * log_factor) for name, power in groups.items()}
     return dataclasses.replace(gains, **changes)
 
@@ -551,6 +551,7 @@ def linear_analysis(
     """
     if not (math.isfinite(growth_limit_per_s) and growth_limit_per_s >= 0.0):
         raise StabilityError(f"growth_limit_per_s: must be finite and at least 0, got {growth_limit_per_s!r}")
+    require_joint_servo(controller)
     started = time.perf_counter()
     point, periods = settled_state(robot, scenario, gains, controller, realism, pinv_damping)
     period_s = control_period(scenario, realism)

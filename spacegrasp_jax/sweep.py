@@ -32,8 +32,8 @@ import jax
 import numpy as np
 
 from spacegrasp_jax import batching
-from spacegrasp_jax.control import CONTROLLERS
 from spacegrasp_jax.control.gains import GAIN_SHAPES, Gains
+from spacegrasp_jax.control.registry import CONTROLLERS
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import rollout_metrics
 from spacegrasp_jax.scenario import Scenario
@@ -132,7 +132,7 @@ def evaluate_gains(
     Args:
         robot, scenario: the system and the scenario, the same for every run.
         gains: a batch of N gain sets (leading axis N on every field).
-        controller: ``"admittance"`` or ``"cartesian"``.
+        controller: a law's name (``control.CONTROLLERS``).
         chunk: gain sets per compiled call (bounds memory).
         pinv_damping: damping of the pseudoinverse (0: exact, the paper).
         progress: stream for one line per chunk (``None``: silent).

@@ -121,3 +121,16 @@ def frame_acceleration_offset(R_base, V_base, n_joints: int = 7) -> np.ndarray:
     c = np.zeros(6 + n_joints)
     c[:3] = -R.T @ np.cross(w_s, v_s)
     return c
+
+
+def dynamic_jacobian(model: pin.Model, data: pin.Data, ee_frame: int, state) -> tuple[np.ndarray, np.ndarray]:
+    """``(J_dyn (6, N), J_ee (6, 6 + N))`` at ``state`` (a ``random_states.RandomState``), from
+    Pinocchio's EE frame Jacobian and centroidal momentum matrix, world axes at the EE point,
+    our velocity convention: the EE twist per joint rate when the momentum stays zero."""
+    n_joints = len(state.q)
+    T = velocity_map(state.R_base, n_joints)
+    qp = configuration(state.p_base, state.R_base, state.q, model)
+    J_ee = pin.computeFrameJacobian(model, data, qp, ee_frame, pin.LOCAL_WORLD_ALIGNED) @ T
+    A = pin.computeCentroidalMap(model, data, qp) @ T  # momentum about the CoM, world axes
+    base_velocity_per_qd = -np.linalg.solve(A[:, :6], A[:, 6:])
+    return J_ee[:, 6:] + J_ee[:, :6] @ base_velocity_per_qd, J_ee

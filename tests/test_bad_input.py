@@ -46,6 +46,7 @@ DRIVER = textwrap.dedent(
     """
 )
 
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 SIMULATE = ["simulate", "--controller", "admittance"]
 TUNE = ["tune", "--steps", "1", "--holdout", "0"]
 MONTECARLO = ["montecarlo", "--n", "2", "--chunk", "2"]
@@ -319,6 +320,22 @@ def cases(paths, out):
             "argument --growth-limit:",
         ),
         "margins law": ([*MARGINS, "--controller", "pid", "--out", out], "argument --controller:"),
+        "margins torque law": (
+            [*MARGINS, "--controller", "impedance", "--gains", str(CONFIGS / "impedance_gains.json"), "--out", out],
+            "the impedance law commands joint torques; margins are searched for laws that command joint rates",
+        ),
+        "simulate a law outside the paper without gains": (
+            ["simulate", "--controller", "impedance", "--out", out],
+            "--gains: required for the impedance law",
+        ),
+        "montecarlo a law outside the paper without gains": (
+            [*MONTECARLO, "--controller", "impedance", "--out", out],
+            "--gains: required for the impedance law",
+        ),
+        "tune a law outside the paper without gains": (
+            [*TUNE, "--controller", "impedance", "--out", out],
+            "--gains: required for the impedance law",
+        ),
         "margins gains kp string": ([*MARGINS, "--gains", p["kp_string.json"], "--out", out], ": kp: expected"),
         "margins servo below dt": (
             [*MARGINS, "--realism", p["servo_below_dt.toml"], "--out", out],

@@ -140,7 +140,9 @@ def test_admittance_reference_rate_eq14_by_hand():
     np.testing.assert_allclose(wrapped[5], 0.1, atol=1e-12)
     # The law object: the command from V_ref(k), then eq 15 by forward Euler over dt.
     J = jnp.eye(6, 7) + 0.1
-    inputs = ControlInputs(pose, twist, wrench, pose_des, twist_des, rate_des, J, jnp.eye(3))
+    inputs = ControlInputs(
+        pose, twist, wrench, pose_des, twist_des, rate_des, J, jnp.eye(3), jnp.zeros(7), jnp.zeros(7)
+    )
     law, dt = Admittance(), 1e-3
     state = AdmittanceState(V_ref=jnp.array([0.01, 0.0, 0.002, 0.0, 0.0, 0.001]))
     qd_des, after = law.update(gains, inputs, state, dt)
@@ -166,7 +168,16 @@ def test_the_gains_damping_is_the_damped_least_squares_law_and_differentiable():
     J = jnp.asarray(rng.normal(size=(6, 7)))
     twist = jnp.asarray(rng.normal(size=6))
     inputs = ControlInputs(
-        jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), jnp.zeros(6), J, jnp.eye(3)
+        jnp.zeros(6),
+        jnp.zeros(6),
+        jnp.zeros(6),
+        jnp.zeros(6),
+        jnp.zeros(6),
+        jnp.zeros(6),
+        J,
+        jnp.eye(3),
+        jnp.zeros(7),
+        jnp.zeros(7),
     )
     state = AdmittanceState(V_ref=twist)
     lam = 0.2

@@ -82,6 +82,7 @@ def test_the_pages_with_examples_are_the_ones_expected():
         "free-target.md",
         "flight-software.md",
         "your-own-arm.md",
+        "your-own-law.md",
     }
 
 

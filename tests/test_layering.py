@@ -64,4 +64,52 @@ def test_nothing_below_the_faces_imports_a_face():
 
 
 def test_the_plots_draw_data_and_run_nothing_of_the_package():
-    assert imported(ROOT / "spacegrasp_jax" / "plots.py") == set()
+    # The one import: the laws' registry, for each law's line style.
+    assert imported(ROOT / "spacegrasp_jax" / "plots.py") == {
+        "spacegrasp_jax.control.registry",
+        "spacegrasp_jax.control.registry.LAWS",
+    }
+
+
+#: The paper's laws written again in NumPy and Pinocchio, independently of the package, to
+#: check it: they must branch on the law themselves, not read it from the package.
+INDEPENDENT_REFERENCES = {"spacegrasp_jax.benchmarks.pinocchio_loop"}
+
+
+def law_names() -> set[str]:
+    from spacegrasp_jax.control.registry import LAWS
+
+    return set(LAWS)
+
+
+def test_the_registry_is_the_only_list_of_laws():
+    """No module writes two laws' names in one tuple, list, set or dict: the laws are
+    listed once, in ``control.registry`` (which lists their classes, not names)."""
+    names = law_names()
+    for module, path in module_files():
+        if module in INDEPENDENT_REFERENCES:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+                items = node.elts
+            elif isinstance(node, ast.Dict):
+                items = [key for key in node.keys if key is not None]
+            else:
+                continue
+            listed = {item.value for item in items if isinstance(item, ast.Constant) and item.value in names}
+            assert len(listed) < 2, f"{module}, line {node.lineno}: lists the laws {sorted(listed)}"
+
+
+def test_no_module_outside_the_laws_dispatches_on_a_laws_name():
+    """``controller == "admittance"``, ``controller in ("cartesian", ...)``: a branch on a
+    law's name belongs in the law (its class attributes), not beside it."""
+    names = law_names()
+    for module, path in module_files():
+        if within(module, {"spacegrasp_jax.control"}) or module in INDEPENDENT_REFERENCES:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Compare):
+                operands = [node.left, *node.comparators]
+                constants = [c for o in operands for c in ast.walk(o) if isinstance(c, ast.Constant)]
+                named = {c.value for c in constants if isinstance(c.value, str) and c.value in names}
+                assert not named, f"{module}, line {node.lineno}: compares with the law name(s) {sorted(named)}"

@@ -83,7 +83,7 @@ def test_divergence_is_reported_with_its_time(robot, gains):
 
 def test_unknown_controller_is_rejected_before_compiling(robot, gains, short_scenario):
     with pytest.raises(ValueError, match="controller: expected one of"):
-        rollout(robot, short_scenario, gains, "impedance")
+        rollout(robot, short_scenario, gains, "computed_torque")
 
 
 @pytest.mark.slow

@@ -45,7 +45,7 @@ def test_bad_scales_are_rejected_by_name(gains, scales, message):
 def test_bad_sweep_input_fails_before_compiling(robot, short_scenario, gains):
     batch = sweep.scaled_gains(gains, {"Kd": [1.0, 2.0]})
     with pytest.raises(SweepError, match="controller"):
-        sweep.evaluate_gains(robot, short_scenario, batch, "impedance")
+        sweep.evaluate_gains(robot, short_scenario, batch, "computed_torque")
     with pytest.raises(SweepError, match="chunk"):
         sweep.evaluate_gains(robot, short_scenario, batch, "admittance", chunk=0)
     with pytest.raises(SweepError, match=r"expected a batch \(N, size\)"):

@@ -11,13 +11,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from spacegrasp_jax.control.gains import GAIN_SHAPES, Gains
+from spacegrasp_jax.control.gains import GAIN_SHAPES, GAINS_USED, Gains
 
-#: Gain groups tuned for each controller (40 numbers for the admittance law).
-GROUPS = {
-    "admittance": ("Md", "Bd", "Kd", "kp", "ki", "kd", "pinv_damping"),
-    "cartesian": ("K_lin", "K_eul", "kp", "ki", "kd", "pinv_damping"),
-}
+#: Gain groups tuned for each controller: every group it uses (40 numbers for the admittance law).
+GROUPS = GAINS_USED
 
 #: Where a tuned ``pinv_damping`` starts when the base gains' is 0.
 DAMPING_START = 1e-3

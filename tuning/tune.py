@@ -29,6 +29,7 @@ from jax.flatten_util import ravel_pytree
 
 from spacegrasp_jax import batching, compilation
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.registry import CONTROLLERS
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import SampleLoops, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
@@ -69,7 +70,7 @@ class TuneConfig:
     """Everything that defines a tuning run (saved with its checkpoint).
 
     Attributes:
-        controller: ``"admittance"`` or ``"cartesian"``.
+        controller: a law's name (``control.CONTROLLERS``).
         steps: optimiser steps.
         learning_rate: initial step size in log-gain space (0.15: about 15% per step at most,
             before Adam's normalisation), decayed by a cosine schedule to a tenth.
@@ -140,8 +141,8 @@ class TuneConfig:
     torque_cap_Nm: float | None = None
 
     def __post_init__(self):
-        if self.controller not in ("admittance", "cartesian"):
-            raise ValueError(f"controller: expected admittance or cartesian, got {self.controller!r}")
+        if self.controller not in CONTROLLERS:
+            raise ValueError(f"controller: expected one of {', '.join(CONTROLLERS)}, got {self.controller!r}")
         if self.steps < 1 or self.batch < 1:
             raise ValueError("steps and batch must be at least 1")
         for name in (

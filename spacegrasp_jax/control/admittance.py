@@ -9,15 +9,17 @@ and eq 17 maps it to desired joint rates through the pseudoinverse of ``J_dyn^(E
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import spatial
-from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.control.law import ControlInputs
+from spacegrasp_jax.control.law import ControlInputs, Output
 from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
+
+if TYPE_CHECKING:
+    from spacegrasp_jax.control.gains import Gains
 
 
 def pose_error(pose_des: jax.Array, pose: jax.Array) -> jax.Array:
@@ -41,10 +43,10 @@ def reference_twist_rate(gains: Gains, pose, twist, pose_des, twist_des, twist_r
 
 
 def desired_joint_rates(J_dyn_ee: jax.Array, R_lar_ee: jax.Array, V_ref_lar: jax.Array, damping=0.0) -> jax.Array:
-    """Eqs 16-17: ``qd_des = (J_dyn^(EE))^# blockdiag(R_ee_lar, R_ee_lar) V_ref`` (7,) rad/s.
+    """Eqs 16-17: ``qd_des = (J_dyn^(EE))^# blockdiag(R_ee_lar, R_ee_lar) V_ref`` (N,) rad/s.
 
     Args:
-        J_dyn_ee: (6, 7) Dynamic Jacobian in the EE frame.
+        J_dyn_ee: (6, N) Dynamic Jacobian in the EE frame.
         R_lar_ee: (3, 3) EE to LAR rotation.
         V_ref_lar: (6,) reference twist in LAR.
     """
@@ -66,7 +68,8 @@ class AdmittanceState:
 
 @dataclasses.dataclass(frozen=True)
 class Admittance:
-    """The admittance law as a controller (eqs 9-17).
+    """The admittance law as a controller (eqs 9-17): the paper's "active 6 DoF force/torque
+    control"; it commands joint rates to the joint PID.
 
     Attributes:
         pinv_damping: damping of the pseudoinverse (0: exact, the paper; static), added to
@@ -75,14 +78,22 @@ class Admittance:
 
     pinv_damping: float = 0.0
     name: ClassVar[str] = "admittance"
+    title: ClassVar[str] = "admittance control"
+    output: ClassVar[Output] = Output.JOINT_RATES
+    gain_groups: ClassVar[tuple[str, ...]] = ("Md", "Bd", "Kd", "pinv_damping")
+    # A larger Md, Bd or Kd makes the EE follow the wrench and the error more slowly.
+    loop_gain: ClassVar[dict[str, int]] = {"Md": -1, "Bd": -1, "Kd": -1}
+    style: ClassVar[dict[str, str]] = dict(color="tab:blue", linestyle="--", label="admittance control")
+    #: Table 5 (section 5), joints 1-7.
+    paper_max_abs_torque_Nm: ClassVar[tuple[float, ...]] = (1.50, 2.45, 1.68, 0.86, 1.10, 0.17, 0.036)
 
-    def init(self, dtype=jnp.float64) -> AdmittanceState:
+    def init(self, n_joints: int = 7, dtype=jnp.float64) -> AdmittanceState:
         return AdmittanceState(V_ref=jnp.zeros(6, dtype=dtype))
 
     def update(
         self, gains: Gains, inputs: ControlInputs, state: AdmittanceState, dt
     ) -> tuple[jax.Array, AdmittanceState]:
-        """``(qd_des (7,) rad/s, next state)``: the command from ``V_ref(k)`` (eqs 16-17), then
+        """``(qd_des (N,) rad/s, next state)``: the command from ``V_ref(k)`` (eqs 16-17), then
         eq 15 by forward Euler over the control period ``dt`` (s)."""
         # Relative to a moving target, the command adds the LAR frame's own twist.
         V_command = state.V_ref if inputs.frame_twist is None else state.V_ref + inputs.frame_twist
@@ -94,6 +105,6 @@ class Admittance:
         )
         return qd_des, AdmittanceState(V_ref=state.V_ref + dt * rate)
 
-    def reference_twist(self, state: AdmittanceState) -> jax.Array:
-        """(6,) the reference twist in LAR the command was computed from (the log's ``V_ref``)."""
-        return state.V_ref
+    def log_fields(self, state: AdmittanceState) -> dict[str, jax.Array]:
+        """``V_ref`` (6,): the reference twist in LAR the command was computed from."""
+        return {"V_ref": state.V_ref}

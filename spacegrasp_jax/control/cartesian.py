@@ -4,22 +4,24 @@ mapped to joint rates through the pseudoinverse of ``J_dyn^(EE)``."""
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import spatial
 from spacegrasp_jax.control.admittance import pose_error
-from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.control.law import ControlInputs
+from spacegrasp_jax.control.law import ControlInputs, Output
 from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
+
+if TYPE_CHECKING:
+    from spacegrasp_jax.control.gains import Gains
 
 
 def desired_joint_rates(
     gains: Gains, J_dyn_ee: jax.Array, R_lar_ee: jax.Array, pose, pose_des, damping=0.0, frame_twist=None
 ) -> jax.Array:
-    """Eqs 21-22: ``qd_des`` (7,) rad/s.
+    """Eqs 21-22: ``qd_des`` (N,) rad/s.
 
     The position error (LAR) times ``K_lin`` is a velocity command rotated into the EE frame
     by ``R_ee_lar``. The Euler-angle error times ``K_eul`` is an Euler-rate command, which
@@ -28,7 +30,7 @@ def desired_joint_rates(
     rotation would apply twice, so the command is ``T_eul K_eul e``; documentation, modelling notes.)
 
     Args:
-        J_dyn_ee: (6, 7) Dynamic Jacobian in the EE frame. R_lar_ee: (3, 3) EE to LAR.
+        J_dyn_ee: (6, N) Dynamic Jacobian in the EE frame. R_lar_ee: (3, 3) EE to LAR.
         pose, pose_des: (6,) ``[p (m); roll, pitch, yaw (rad)]`` of the EE in LAR.
         frame_twist: (6,) the moving LAR frame's twist at the EE point, LAR axes, added to
             the command (``None``: a stationary target).
@@ -50,7 +52,8 @@ class CartesianState:
 
 @dataclasses.dataclass(frozen=True)
 class Cartesian:
-    """The Cartesian law as a controller (eqs 21-22).
+    """The Cartesian law as a controller (eqs 21-22): the paper's "classical Cartesian
+    control"; it commands joint rates to the joint PID.
 
     Attributes:
         pinv_damping: damping of the pseudoinverse (0: exact, the paper; static), added to
@@ -59,14 +62,21 @@ class Cartesian:
 
     pinv_damping: float = 0.0
     name: ClassVar[str] = "cartesian"
+    title: ClassVar[str] = "Cartesian control"
+    output: ClassVar[Output] = Output.JOINT_RATES
+    gain_groups: ClassVar[tuple[str, ...]] = ("K_lin", "K_eul", "pinv_damping")
+    loop_gain: ClassVar[dict[str, int]] = {"K_lin": 1, "K_eul": 1}
+    style: ClassVar[dict[str, str]] = dict(color="tab:red", linestyle=":", label="Cartesian control")
+    #: Table 5 (section 5), joints 1-7.
+    paper_max_abs_torque_Nm: ClassVar[tuple[float, ...]] = (1.89, 4.21, 2.72, 0.72, 1.55, 0.35, 0.027)
 
-    def init(self, dtype=jnp.float64) -> CartesianState:
+    def init(self, n_joints: int = 7, dtype=jnp.float64) -> CartesianState:
         return CartesianState()
 
     def update(
         self, gains: Gains, inputs: ControlInputs, state: CartesianState, dt
     ) -> tuple[jax.Array, CartesianState]:
-        """``(qd_des (7,) rad/s, state)`` from the pose error (``dt`` unused)."""
+        """``(qd_des (N,) rad/s, state)`` from the pose error (``dt`` unused)."""
         qd_des = desired_joint_rates(
             gains,
             inputs.J_dyn_ee,
@@ -78,6 +88,6 @@ class Cartesian:
         )
         return qd_des, state
 
-    def reference_twist(self, state: CartesianState) -> None:
+    def log_fields(self, state: CartesianState) -> dict[str, jax.Array]:
         """The Cartesian law has no reference twist (the log's ``V_ref`` holds zeros)."""
-        return None
+        return {}

@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax.compilation import require_float64
+from spacegrasp_jax.control.registry import CONTROLLERS, gains_used
 from spacegrasp_jax.inputs import numbers, read_document
 
 #: Each group's length; ``"N"``: the arm's number of joints.
@@ -43,11 +44,8 @@ JOINT_GROUPS = ("kp", "ki", "kd")
 #: The number of joints of the paper's arm, which Table 4's PID gains are for.
 PAPER_JOINTS = 7
 
-#: The gain groups each controller uses (the joint PID stage's with its law's).
-GAINS_USED = {
-    "admittance": ("Md", "Bd", "Kd", "kp", "ki", "kd", "pinv_damping"),
-    "cartesian": ("K_lin", "K_eul", "kp", "ki", "kd", "pinv_damping"),
-}
+#: The gain groups each controller uses (its law's with the joint servo's; the registry's).
+GAINS_USED = {name: gains_used(name) for name in CONTROLLERS}
 #: Groups a description may leave out, and the value they then take.
 _OPTIONAL = {"pinv_damping": 0.0}
 # Gains that must be strictly positive (the rest may be zero, e.g. no integral action).

@@ -1,18 +1,33 @@
-"""What every controller reads, and how a law is chosen.
+"""What every control law reads, the interface a law implements, and how a law and the
+joint servo after it make a controller.
 
-A law is a small frozen object with ``init(dtype) -> state`` and
-``update(gains, inputs, state, dt) -> (qd_des, state)`` (optax's and diffrax's style): the
-object fixes the program (it is static, hashable, a ``jit`` static argument), its state is a
-pytree the closed loop carries. [`Admittance`][spacegrasp_jax.control.admittance.Admittance] and
-[`Cartesian`][spacegrasp_jax.control.cartesian.Cartesian] are the two laws; the joint PID stage
-([`PID`][spacegrasp_jax.control.pid.PID]) turns their desired joint rates into torques.
+A law is a small frozen object (optax's and diffrax's style): the object fixes the program
+(it is static, hashable, a ``jit`` static argument) and closes over its settings, such as
+the pseudoinverse's damping; its state is a pytree the closed loop carries. Its class says
+what it is to the rest of the package ([`ControlLaw`][spacegrasp_jax.control.law.ControlLaw]):
+its name, what it commands (joint rates for a joint servo, or joint torques), the gain groups
+it reads, its plot style and, for the paper's two laws, Table 5's torques. The laws are
+listed once, in [`spacegrasp_jax.control.registry`][spacegrasp_jax.control.registry].
+
+A [`Controller`][spacegrasp_jax.control.law.Controller] chains a law with the joint servo
+that turns its joint-rate command into torques (the paper's joint PID), or, for a law that
+commands torques itself, with none: ``chain(Admittance(), PID())`` is the paper's
+admittance controller, ``chain(Impedance())`` a torque law on its own.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import enum
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 
 import jax
+import jax.numpy as jnp
+
+from spacegrasp_jax.control.pid import PID, PIDState, saturate
+
+if TYPE_CHECKING:
+    from spacegrasp_jax.control.gains import Gains
 
 
 @jax.tree_util.register_dataclass
@@ -27,8 +42,9 @@ class ControlInputs:
             (eqs 18-19).
         pose_des, twist_des, twist_rate_des: (6,) the desired trajectory and its first two
             derivatives (eqs 10-13).
-        J_dyn_ee: (6, 7) the Dynamic Jacobian in the EE frame (eq 8).
+        J_dyn_ee: (6, N) the Dynamic Jacobian in the EE frame (eq 8).
         R_lar_ee: (3, 3) EE to LAR rotation.
+        q, qd: (N,) rad, rad/s, the joint angles and rates as the controller measures them.
         frame_twist: (6,) the moving LAR frame's twist at the EE point ``[v (m/s); w
             (rad/s)]``, LAR axes, which the laws add to their commanded twist (the EE's
             inertial twist is the relative one plus this); ``None`` for a stationary target.
@@ -42,19 +58,137 @@ class ControlInputs:
     twist_rate_des: jax.Array
     J_dyn_ee: jax.Array
     R_lar_ee: jax.Array
+    q: jax.Array
+    qd: jax.Array
     frame_twist: jax.Array | None = None
 
 
-def law_named(name: str, pinv_damping: float = 0.0):
-    """The law called ``name`` (``"admittance"`` or ``"cartesian"``) with the pseudoinverse's
-    damping ``pinv_damping`` (0: exact, the paper)."""
-    from spacegrasp_jax.control.admittance import Admittance
-    from spacegrasp_jax.control.cartesian import Cartesian
+class Output(enum.Enum):
+    """What a law commands."""
 
-    laws = {"admittance": Admittance, "cartesian": Cartesian}
-    if name not in laws:
-        raise ValueError(f"controller: expected one of {', '.join(laws)}, got {name!r}")
-    return laws[name](pinv_damping=pinv_damping)
+    #: Desired joint rates (N,) rad/s, which a joint servo turns into torques.
+    JOINT_RATES = "joint rates"
+    #: Joint torques (N,) N m, applied as they are (through the actuators' limits).
+    JOINT_TORQUES = "joint torques"
 
 
-__all__ = ["ControlInputs", "law_named"]
+@runtime_checkable
+class ControlLaw(Protocol):
+    """The interface of a control law (class attributes, then two methods).
+
+    Attributes:
+        name: the law's name on the command line, in files, tables and figures.
+        title: how figures and tables name it (``"admittance control"``).
+        output: what ``update`` commands ([`Output`][spacegrasp_jax.control.law.Output]).
+        gain_groups: the [`Gains`][spacegrasp_jax.control.gains.Gains] groups the law reads
+            (a joint servo's are added by the [`Controller`][spacegrasp_jax.control.law.Controller]);
+            ``spacegrasp tune`` tunes these.
+        loop_gain: ``{group: +1 or -1}``, how the law's loop gain scales with each group
+            (``+1``: with it, ``-1``: against it); the stability margins scale the loop by
+            a factor this way.
+        style: matplotlib line style of its curves (``color``, ``linestyle``, ``label``).
+        paper_max_abs_torque_Nm: Table 5's maximal absolute joint torques (7,) N m for the
+            paper's two laws, ``None`` for laws the paper does not have.
+    """
+
+    name: ClassVar[str]
+    title: ClassVar[str]
+    output: ClassVar[Output]
+    gain_groups: ClassVar[tuple[str, ...]]
+    loop_gain: ClassVar[dict[str, int]]
+    style: ClassVar[dict[str, str]]
+    paper_max_abs_torque_Nm: ClassVar[tuple[float, ...] | None]
+
+    def init(self, n_joints: int, dtype=jnp.float64) -> Any:
+        """The law's state before its first update, for an arm of ``n_joints`` joints."""
+
+    def update(self, gains: Gains, inputs: ControlInputs, state: Any, dt) -> tuple[jax.Array, Any]:
+        """``(command (N,), next state)`` from ``inputs`` over the control period ``dt`` (s)."""
+
+    def log_fields(self, state: Any) -> dict[str, jax.Array]:
+        """The [`Log`][spacegrasp_jax.simulate.Log] fields the law fills from the state its
+        command was computed from (``{"V_ref": (6,)}`` for the admittance law; others are
+        logged as zeros)."""
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ControllerState:
+    """The controller's memory from one control step to the next.
+
+    Attributes:
+        law: the law's own state (``AdmittanceState`` with its ``V_ref``, or a memoryless
+            law's empty one).
+        pid: the joint servo's memory (``PIDState``), or ``()`` for a law that commands
+            torques.
+    """
+
+    law: Any
+    pid: PIDState | tuple
+
+
+@dataclasses.dataclass(frozen=True)
+class Controller:
+    """A law and the joint servo after it (``servo=None``: the law commands torques).
+
+    Attributes:
+        law: a [`ControlLaw`][spacegrasp_jax.control.law.ControlLaw].
+        servo: the joint [`PID`][spacegrasp_jax.control.pid.PID] for a law that commands
+            joint rates; ``None`` for one that commands torques.
+        saturation: with torque limits, how a torque law's command is limited (``"hard"``
+            or ``"smooth"``, [`saturate()`][spacegrasp_jax.control.pid.saturate]); a servo
+            limits its own.
+    """
+
+    law: ControlLaw
+    servo: PID | None = None
+    saturation: str = "hard"
+
+    def __post_init__(self):
+        if not isinstance(self.law, ControlLaw):
+            raise ValueError(f"controller: expected a control law (init, update, log_fields), got {self.law!r}")
+        rates = self.law.output is Output.JOINT_RATES
+        if rates and self.servo is None:
+            raise ValueError(f"the {self.law.name} law commands joint rates: chain it with a joint servo (PID())")
+        if not rates and self.servo is not None:
+            raise ValueError(f"the {self.law.name} law commands joint torques: it takes no joint servo")
+
+    @property
+    def name(self) -> str:
+        return self.law.name
+
+    def with_actuators(self, saturation: str, anti_windup: bool) -> Controller:
+        """This controller with the actuators' saturation law (and the servo's anti-windup)."""
+        servo = None if self.servo is None else PID(saturation=saturation, anti_windup=anti_windup)
+        return Controller(self.law, servo, saturation)
+
+    def init(self, n_joints: int, dtype=jnp.float64) -> ControllerState:
+        servo = () if self.servo is None else self.servo.init(n_joints, dtype)
+        return ControllerState(law=self.law.init(n_joints, dtype), pid=servo)
+
+    def torque(
+        self, gains: Gains, command: jax.Array, qd: jax.Array, state: PIDState | tuple, t, dt, limit=None
+    ) -> tuple[jax.Array, PIDState | tuple]:
+        """``(u (N,) N m, the servo's next state)`` for the law's ``command`` (N,), the joint
+        rates ``qd`` (N,) rad/s the servo reads at time ``t`` (s), the servo's period ``dt``
+        (s) and the torque limits ``limit`` (N,) N m (``None``: the paper's unlimited motors)."""
+        if self.servo is not None:
+            return self.servo.update(gains, command - qd, state, t, dt, limit)
+        return (command if limit is None else saturate(command, limit, self.saturation)), state
+
+    def logged(self, command: jax.Array, law_state: Any) -> dict[str, jax.Array]:
+        """The log's controller fields: ``V_ref`` (6,) and ``qd_des`` (N,) (zeros where the
+        law has none) from the ``command`` computed from ``law_state``."""
+        fields = {"V_ref": jnp.zeros(6, command.dtype), "qd_des": jnp.zeros_like(command)}
+        if self.servo is not None:
+            fields["qd_des"] = command
+        return fields | self.law.log_fields(law_state)
+
+
+def chain(law: ControlLaw, servo: PID | None = None) -> Controller:
+    """The controller of ``law`` followed by ``servo`` (``chain(Admittance(), PID())``; a
+    torque law alone: ``chain(Impedance())``)."""
+    return Controller(law, servo)
+
+
+__all__ = ["ControlInputs", "ControlLaw", "Controller", "ControllerState", "Output", "chain"]

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 
-from spacegrasp_jax.control.gains import Gains
+if TYPE_CHECKING:
+    from spacegrasp_jax.control.gains import Gains
 
 
 @jax.tree_util.register_dataclass
@@ -34,21 +36,23 @@ def gain_ramp(t):
     return jnp.minimum(t, 1.0) ** 2
 
 
+def _command(gains: Gains, ramp, rate_error, integral, derivative) -> jax.Array:
+    """The PID law's torques (N,) N m before any limit: ramp (kp e + ki integral + kd derivative)."""
+    return ramp * (gains.kp * rate_error + gains.ki * integral + gains.kd * derivative)
+
+
 def pid_torque(gains: Gains, state: PIDState, rate_error: jax.Array, t, dt) -> tuple[jax.Array, PIDState]:
-    """Joint torques (7,) N m from the rate error ``qd_des - qd`` (7,) rad/s at time ``t`` (s).
+    """Joint torques (N,) N m from the rate error ``qd_des - qd`` (N,) rad/s at time ``t`` (s).
 
     Discrete at the control period ``dt`` (s): the integral accumulates ``error dt``
     (including this step's error) and the derivative is the backward difference
     ``(error - previous_error) / dt``.
     """
-    integral = state.integral + rate_error * dt
-    derivative = (rate_error - state.previous_error) / dt
-    torque = gain_ramp(t) * (gains.kp * rate_error + gains.ki * integral + gains.kd * derivative)
-    return torque, PIDState(integral=integral, previous_error=rate_error)
+    return PID().update(gains, rate_error, state, t, dt)
 
 
 def saturate(torque: jax.Array, limit: jax.Array, law: str = "hard") -> jax.Array:
-    """Joint torques (7,) N m limited to ``[-limit, limit]`` (7,) N m (``inf``: none).
+    """Joint torques (N,) N m limited to ``[-limit, limit]`` (N,) N m (``inf``: none).
 
     ``law``: ``"hard"`` clips; ``"smooth"`` is ``limit tanh(torque / limit)``, which has a
     gradient everywhere and tends to the clip as the torque moves away from the limit."""
@@ -77,19 +81,19 @@ class PID:
         return pid_init(n_joints, dtype)
 
     def update(
-        self, gains: Gains, state: PIDState, rate_error: jax.Array, t, dt, limit=None
+        self, gains: Gains, rate_error: jax.Array, state: PIDState, t, dt, limit=None
     ) -> tuple[jax.Array, PIDState]:
-        """``(torque (7,) N m, next state)`` from the rate error ``qd_des - qd`` (7,) rad/s at
-        time ``t`` (s), control period ``dt`` (s). ``limit``: (7,) N m torque limits, or
-        ``None`` for the paper's unlimited motors ([`pid_torque()`][spacegrasp_jax.control.pid.pid_torque])."""
-        if limit is None:
-            return pid_torque(gains, state, rate_error, t, dt)
+        """``(torque (N,) N m, next state)`` from the rate error ``qd_des - qd`` (N,) rad/s at
+        time ``t`` (s), control period ``dt`` (s) ([`pid_torque()`][spacegrasp_jax.control.pid.pid_torque]).
+        ``limit``: (N,) N m torque limits, or ``None`` for the paper's unlimited motors."""
         integral = state.integral + rate_error * dt
         derivative = (rate_error - state.previous_error) / dt
         ramp = gain_ramp(t)
-        command = ramp * (gains.kp * rate_error + gains.ki * integral + gains.kd * derivative)
+        command = _command(gains, ramp, rate_error, integral, derivative)
+        if limit is None:
+            return command, PIDState(integral=integral, previous_error=rate_error)
         if self.anti_windup:
             winding = (jnp.abs(command) > limit) & (rate_error * command > 0.0)
             integral = jnp.where(winding, state.integral, integral)
-            command = ramp * (gains.kp * rate_error + gains.ki * integral + gains.kd * derivative)
+            command = _command(gains, ramp, rate_error, integral, derivative)
         return saturate(command, limit, self.saturation), PIDState(integral=integral, previous_error=rate_error)

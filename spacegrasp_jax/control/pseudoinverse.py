@@ -1,4 +1,4 @@
-"""Right pseudoinverse of the (6, 7) Dynamic Jacobian, applied to a twist (eqs 17, 21)."""
+"""Right pseudoinverse of the (6, N) Dynamic Jacobian, applied to a twist (eqs 17, 21)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from spacegrasp_jax.spatial import matmul, matvec
 
 
 def pseudoinverse_apply(J: jax.Array, twist: jax.Array, damping=0.0) -> jax.Array:
-    """``J^T (J J^T + damping^2 1)^-1 twist`` (7,) for ``J`` (6, 7) and ``twist`` (6,).
+    """``J^T (J J^T + damping^2 1)^-1 twist`` (N,) for ``J`` (6, N) and ``twist`` (6,).
 
     With ``damping = 0`` this is the exact Moore-Penrose pseudoinverse, valid (and with
     finite gradients) wherever ``J`` has full row rank, as along the paper's motion; a

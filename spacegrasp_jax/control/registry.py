@@ -1,0 +1,91 @@
+"""The control laws, listed once.
+
+Everything that offers a choice of law reads it from here: the command line's
+``--controller`` choices, the gain groups a controller uses and ``spacegrasp tune`` tunes,
+the campaigns' variants, the paper's reference torques (Table 5) and the figures' styles.
+A new law is one module with a class implementing
+[`ControlLaw`][spacegrasp_jax.control.law.ControlLaw] and one entry in ``LAWS``.
+"""
+
+from __future__ import annotations
+
+from spacegrasp_jax.control.admittance import Admittance
+from spacegrasp_jax.control.cartesian import Cartesian
+from spacegrasp_jax.control.impedance import Impedance
+from spacegrasp_jax.control.law import ControlLaw, Controller, Output, chain
+from spacegrasp_jax.control.pid import PID
+
+#: Name -> law class, in the order the command line and tables show them.
+LAWS: dict[str, type] = {law.name: law for law in (Admittance, Cartesian, Impedance)}
+
+#: The laws' names.
+CONTROLLERS: tuple[str, ...] = tuple(LAWS)
+
+#: The paper's two laws (those with Table 5's torques), in the paper's order.
+PAPER_CONTROLLERS: tuple[str, ...] = tuple(
+    name for name, law in LAWS.items() if law.paper_max_abs_torque_Nm is not None
+)
+
+#: The joint servo's gain groups (the joint PID's, Table 4).
+SERVO_GROUPS = ("kp", "ki", "kd")
+
+
+def _law_class(name: str) -> type:
+    if name not in LAWS:
+        raise ValueError(f"controller: expected one of {', '.join(LAWS)}, got {name!r}")
+    return LAWS[name]
+
+
+def law_named(name: str, pinv_damping: float = 0.0) -> ControlLaw:
+    """The law called ``name``, with the pseudoinverse's damping ``pinv_damping`` (0:
+    exact, the paper) for a law that has a pseudoinverse."""
+    law = _law_class(name)
+    if "pinv_damping" in law.gain_groups:
+        return law(pinv_damping=pinv_damping)
+    if pinv_damping:
+        raise ValueError(f"pinv_damping: the {name} law has no pseudoinverse to damp")
+    return law()
+
+
+def as_controller(controller: str | ControlLaw | Controller, pinv_damping: float = 0.0) -> Controller:
+    """``controller`` as a [`Controller`][spacegrasp_jax.control.law.Controller]: a law's name
+    (built with ``pinv_damping``, as [`law_named()`][spacegrasp_jax.control.registry.law_named])
+    or a law object (which carries its own damping), chained with the joint PID if it
+    commands joint rates; a controller as it is."""
+    if isinstance(controller, str):
+        controller = law_named(controller, pinv_damping)
+    elif pinv_damping:
+        raise ValueError("pinv_damping: give it to the law object, not beside it")
+    if isinstance(controller, Controller):
+        return controller
+    if not isinstance(controller, ControlLaw):
+        raise ValueError(f"controller: expected a name, a control law or a Controller, got {controller!r}")
+    return chain(controller, PID() if controller.output is Output.JOINT_RATES else None)
+
+
+def gains_used(name: str) -> tuple[str, ...]:
+    """The gain groups the controller ``name`` reads: its law's, then the joint servo's."""
+    law = _law_class(name)
+    servo = SERVO_GROUPS if law.output is Output.JOINT_RATES else ()
+    groups = tuple(g for g in law.gain_groups if g != "pinv_damping") + servo
+    return groups + (("pinv_damping",) if "pinv_damping" in law.gain_groups else ())
+
+
+def paper_max_abs_torque_Nm(name: str) -> tuple[float, ...]:
+    """Table 5's maximal absolute joint torques (7,) N m of the paper's law ``name``."""
+    law = _law_class(name)
+    if law.paper_max_abs_torque_Nm is None:
+        raise ValueError(f"the {name} law is not in the paper: no Table 5 torques")
+    return law.paper_max_abs_torque_Nm
+
+
+__all__ = [
+    "CONTROLLERS",
+    "LAWS",
+    "PAPER_CONTROLLERS",
+    "SERVO_GROUPS",
+    "as_controller",
+    "gains_used",
+    "law_named",
+    "paper_max_abs_torque_Nm",
+]
