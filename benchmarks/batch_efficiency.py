@@ -113,7 +113,7 @@ def _part_functions(gains):
 
     def controller(robot, scenario, state):
         shared = simulate.plant_kinematics(robot, scenario, state.plant)
-        return simulate.control_step(robot, scenario, gains, "admittance", state, 1.0, 0.0, shared)[:2]
+        return simulate.control_step(robot, scenario, gains, "admittance", state, 1.0, shared)[:2]
 
     def step(robot, scenario, state):
         return simulate.closed_loop_step(robot, scenario, gains, "admittance")(

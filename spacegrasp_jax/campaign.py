@@ -36,7 +36,7 @@ from jax.experimental import multihost_utils
 
 from spacegrasp_jax import anatomy, batching, runfiles, statistics
 from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.control.registry import CONTROLLERS
+from spacegrasp_jax.control.registry import CONTROLLERS, law_named
 from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
 from spacegrasp_jax.model import Robot, n_joints
 from spacegrasp_jax.montecarlo import evaluate_samples, sample_loops
@@ -175,18 +175,23 @@ def _evaluate_chunk(robot, scenario, gains, seed, realism, ranges, indices, **se
     return evaluate_samples(robot, scenario, gains, seed, indices, ranges=ranges, realism=realism, **settings)
 
 
+def variant_law(variant: Variant, config: CampaignConfig):
+    """The law ``variant`` runs, with the campaign's pseudoinverse damping."""
+    try:
+        return law_named(variant.controller, config.pinv_damping)
+    except ValueError as error:
+        raise CampaignError(str(error)) from None
+
+
 def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
     """The compiled evaluation of one chunk of ``config.chunk`` samples
     ([`compile_chunk()`][spacegrasp_jax.batching.compile_chunk]) and its compile time (s; that of the
     original compile)."""
+    law = variant_law(variant, config)
     function = functools.partial(
-        _evaluate_chunk,
-        controller=variant.controller,
-        pinv_damping=config.pinv_damping,
-        every=config.timeseries_every,
-        identified=config.identified,
+        _evaluate_chunk, controller=law, every=config.timeseries_every, identified=config.identified
     )
-    key = (variant.controller, config.pinv_damping, config.timeseries_every, config.identified)
+    key = (law, config.timeseries_every, config.identified)
     replicated = (robot, scenario, variant.gains, np.uint32(config.seed), config.realism, config.ranges)
     try:
         return batching.compile_chunk(
@@ -645,8 +650,7 @@ def replay(robot: Robot, scenario: Scenario, variant: Variant, config: CampaignC
         first(loops.robots),
         first(loops.scenarios),
         variant.gains,
-        variant.controller,
-        pinv_damping=config.pinv_damping,
+        variant_law(variant, config),
         realism=first(loops.realisms),
         key=first(loops.keys),
         model_robot=loops.model_robot,
@@ -666,6 +670,7 @@ __all__ = [
     "replay",
     "replay_sample",
     "figure_title",
+    "variant_law",
     "run_campaign",
     "variant_summary",
     "write_results",

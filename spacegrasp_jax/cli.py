@@ -48,6 +48,7 @@ from spacegrasp_jax.control import (
     PAPER_CONTROLLERS,
     GainsError,
     UnusedGainsWarning,
+    law_named,
     load_gains,
     paper_gains,
 )
@@ -458,8 +459,17 @@ def _perturbed(path: str, robot, scenario, realism):
     return plant, perturbed, loop_realism, model_robot, jnp.asarray(noise_key, dtype=jnp.uint32)
 
 
+def _law(controller: str, args: argparse.Namespace):
+    """The law ``controller`` with ``--pinv-damping`` (refused for a law with no pseudoinverse)."""
+    try:
+        return law_named(controller, getattr(args, "pinv_damping", 0.0))
+    except ValueError as error:
+        raise UsageError(f"--pinv-damping: {error}") from None
+
+
 def _run_controllers(args, controllers) -> int:
     robot, scenario, gains = _load_inputs(args)
+    laws = {controller: _law(controller, args) for controller in controllers}
     realism = _realism(args, scenario)
     _warn(plausibility.input_warnings(scenario))
     key = jax.random.PRNGKey(getattr(args, "seed", 0))
@@ -478,8 +488,7 @@ def _run_controllers(args, controllers) -> int:
                 robot,
                 scenario,
                 gains,
-                controller,
-                pinv_damping=args.pinv_damping,
+                laws[controller],
                 realism=realism,
                 key=key,
                 model_robot=model_robot,
@@ -1134,6 +1143,7 @@ def _gradients(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise UsageError(str(error)) from None
     robot, scenario, gains = _load_inputs(args)
+    law = _law(args.controller, args)
     realism = _realism(args, scenario)
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
@@ -1158,14 +1168,13 @@ def _gradients(args: argparse.Namespace) -> int:
         robot,
         smooth,
         gains,
-        args.controller,
+        law,
         objective,
         n=args.n,
         seed=args.seed,
         ranges=ranges,
         realism=realism,
         horizons=horizons,
-        pinv_damping=args.pinv_damping,
         chunk=batching.chunk_size(args.chunk, args.n + 1),
         progress=sys.stderr,
     )
@@ -1263,11 +1272,10 @@ def _margins(args: argparse.Namespace) -> int:
             robot,
             scenario,
             gains,
-            args.controller,
+            _law(args.controller, args),
             realism,
             settings,
             growth_limit_per_s=args.growth_limit,
-            pinv_damping=config.pinv_damping,
         )
     result["settings"] |= {
         "gains": gains.to_dict(args.controller),
@@ -1347,8 +1355,7 @@ def _worstcase(args: argparse.Namespace) -> int:
         plant,
         perturbed,
         gains,
-        args.controller,
-        pinv_damping=args.pinv_damping,
+        _law(args.controller, args),
         realism=loop_realism,
         key=jnp.asarray(found.key, dtype=jnp.uint32),
         model_robot=model_robot,

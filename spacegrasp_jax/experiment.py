@@ -16,6 +16,7 @@ import numpy as np
 
 from spacegrasp_jax import anatomy, compilation, metrics, paper, runfiles
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.registry import as_controller, controller_name
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario, scenario_to_dict
@@ -49,25 +50,24 @@ def compiled_rollout(
     robot: Robot,
     scenario: Scenario,
     gains: Gains,
-    controller: str,
-    pinv_damping: float = 0.0,
+    controller,
     realism: Realism | None = None,
     key=None,
     model_robot: Robot | None = None,
 ):
     """The compiled [`rollout()`][spacegrasp_jax.simulate.rollout] for these argument shapes and
     static settings (the realism's among them), compiled once per process, and its compile
-    time (s)."""
+    time (s). ``controller``: a law's name or object, as [`rollout()`][spacegrasp_jax.simulate.rollout]."""
     arguments = (robot, scenario, gains, realism, key, model_robot)
+    control = as_controller(controller)
 
     def lower():
-        function = compilation.jit(rollout, static_argnames=("controller", "pinv_damping"))
+        function = compilation.jit(rollout, static_argnames=("controller",))
         return function.lower(
             robot,
             scenario,
             gains,
-            controller=controller,
-            pinv_damping=pinv_damping,
+            controller=control,
             realism=realism,
             key=key,
             model_robot=model_robot,
@@ -75,9 +75,9 @@ def compiled_rollout(
 
     loop = "ideal" if realism is None and model_robot is None else "flight-like"
     return compilation.compile_once(
-        ("rollout", controller, pinv_damping, compilation.argument_signature(arguments)),
+        ("rollout", control, compilation.argument_signature(arguments)),
         lower,
-        label=f"the {controller} law's {loop} rollout",
+        label=f"the {control.name} law's {loop} rollout",
     )
 
 
@@ -85,15 +85,16 @@ def run(
     robot: Robot,
     scenario: Scenario,
     gains: Gains,
-    controller: str,
+    controller,
     *,
-    pinv_damping: float = 0.0,
     realism: Realism | None = None,
     key=None,
     model_robot: Robot | None = None,
     check: bool = True,
 ) -> RunResult:
-    """Run one closed-loop rollout and bring its log back as NumPy arrays. ``realism`` and
+    """Run one closed-loop rollout and bring its log back as NumPy arrays. ``controller``: a
+    law's name or a law object with its settings (``control.Admittance(pinv_damping=0.01)``;
+    [`rollout()`][spacegrasp_jax.simulate.rollout]); the result names the law. ``realism`` and
     ``key``: the flight-like loop ([`rollout()`][spacegrasp_jax.simulate.rollout]); the key
     defaults to ``PRNGKey(0)`` when the realism has noisy sensors.
 
@@ -107,9 +108,8 @@ def run(
         realism = None  # the paper's loop: one program with or without an ideal realism
     if (realism is not None or model_robot is not None) and key is None:
         key = jax.random.PRNGKey(0)
-    executable, compile_time = compiled_rollout(
-        robot, scenario, gains, controller, pinv_damping, realism, key, model_robot
-    )
+    executable, compile_time = compiled_rollout(robot, scenario, gains, controller, realism, key, model_robot)
+    controller = controller_name(controller)
     start = time.perf_counter()
     _, log = executable(robot, scenario, gains, realism=realism, key=key, model_robot=model_robot)
     log = jax.tree.map(np.asarray, jax.block_until_ready(log))

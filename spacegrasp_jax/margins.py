@@ -53,7 +53,7 @@ from spacegrasp_jax import batching
 from spacegrasp_jax.campaign import CampaignConfig, CampaignError
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.law import Output
-from spacegrasp_jax.control.registry import LAWS, law_named
+from spacegrasp_jax.control.registry import LAWS, as_controller, law_named
 from spacegrasp_jax.model import Robot, n_joints
 from spacegrasp_jax.montecarlo import evaluate_samples, lost, success
 from spacegrasp_jax.scenario import Scenario
@@ -69,22 +69,23 @@ class MarginError(ValueError):
     """An invalid margin setting; names the cause."""
 
 
-def loop_groups(controller: str, loop: str) -> dict[str, int]:
-    """The gain groups ``loop``'s factor scales for ``controller``, and how: ``+1``
-    multiplies by the factor, ``-1`` divides by it (the law's own ``loop_gain``)."""
+def loop_groups(controller, loop: str) -> dict[str, int]:
+    """The gain groups ``loop``'s factor scales for ``controller`` (a law's name or object),
+    and how: ``+1`` multiplies by the factor, ``-1`` divides by it (the law's own
+    ``loop_gain``)."""
     if loop not in LOOPS:
         raise MarginError(f"loop: expected one of {', '.join(LOOPS)}, got {loop!r}")
-    return PID_LOOP_GROUPS if loop == "pid" else LAWS[controller].loop_gain
+    return PID_LOOP_GROUPS if loop == "pid" else as_controller(controller).law.loop_gain
 
 
-def require_joint_servo(controller: str) -> None:
-    """Raise ``MarginError`` unless ``controller``'s law commands joint rates to the joint
-    PID: the margins are those of that two-loop structure (the PID's gain, the delay between
-    the law and the PID, the delay at the PID's input)."""
-    law = LAWS[controller]
-    if law.output is not Output.JOINT_RATES:
+def require_joint_servo(controller) -> None:
+    """Raise ``MarginError`` unless ``controller``'s law (a name or object) commands joint
+    rates to the joint PID: the margins are those of that two-loop structure (the PID's
+    gain, the delay between the law and the PID, the delay at the PID's input)."""
+    control = as_controller(controller)
+    if control.servo is None:
         raise MarginError(
-            f"controller: the {controller} law commands joint torques; margins are searched for laws "
+            f"controller: the {control.name} law commands joint torques; margins are searched for laws "
             f"that command joint rates to the joint PID ({', '.join(n for n, c in LAWS.items() if c.output is Output.JOINT_RATES)})"
         )
 
@@ -219,10 +220,9 @@ def _probe(
     controller,
     capacity,
     servo_capacity,
-    pinv_damping,
     identified,
 ):
-    law = OutputDelay(law_named(controller, pinv_damping), capacity, delay_periods, n_joints(robot))
+    law = OutputDelay(controller, capacity, delay_periods, n_joints(robot))
     servo_delay = None if servo_capacity is None else ServoInputDelay(servo_capacity, servo_delay_ticks)
     _, sample_metrics, _ = evaluate_samples(
         robot,
@@ -274,21 +274,15 @@ class Prober:
         self._indices = np.minimum(np.arange(chunk), self.settings.samples - 1).astype(np.uint32)
         self.servo_delay = servo_runs_at_its_own_rate(self.scenario, self.config.realism)
         servo_capacity = self.settings.max_servo_delay_ticks + 1 if self.servo_delay else None
+        law = law_named(self.controller, self.config.pinv_damping)
         function = functools.partial(
             _probe,
-            controller=self.controller,
+            controller=law,
             capacity=self.settings.max_delay_periods + 1,
             servo_capacity=servo_capacity,
-            pinv_damping=self.config.pinv_damping,
             identified=self.config.identified,
         )
-        key = (
-            self.controller,
-            self.settings.max_delay_periods,
-            servo_capacity,
-            self.config.pinv_damping,
-            self.config.identified,
-        )
+        key = (law, self.settings.max_delay_periods, servo_capacity, self.config.identified)
         try:
             realism = self.config.realism
             loop = "ideal loop" if realism is None or realism.is_ideal(self.scenario.dt) else "flight-like loop"

@@ -39,8 +39,7 @@ def rollout_metrics(
     robot: Robot,
     scenario: Scenario,
     gains: Gains,
-    controller: str,
-    pinv_damping: float = 0.0,
+    controller,
     every: int | None = None,
     realism: Realism | None = None,
     key: jax.Array | None = None,
@@ -51,7 +50,7 @@ def rollout_metrics(
     parts of its final error (``ANATOMY_METRICS``), in one ``lax.scan``.
 
     Args:
-        robot, scenario, gains, controller, pinv_damping: as [`rollout()`][spacegrasp_jax.simulate.rollout].
+        robot, scenario, gains, controller: as [`rollout()`][spacegrasp_jax.simulate.rollout].
         every: if set (static; must divide ``scenario.n_steps``), also return every
             ``every``-th log row, i.e. the rows at ``t = 0, every dt, 2 every dt, ...``.
         realism, key, model_robot, servo_input_delay: the flight-like loop
@@ -68,10 +67,8 @@ def rollout_metrics(
         or model_robot is not None
         or servo_input_delay is not None
     ):
-        return _flight_metrics(
-            robot, scenario, gains, controller, pinv_damping, every, realism, key, model_robot, servo_input_delay
-        )
-    step = closed_loop_step(robot, scenario, gains, controller, pinv_damping)
+        return _flight_metrics(robot, scenario, gains, controller, every, realism, key, model_robot, servo_input_delay)
+    step = closed_loop_step(robot, scenario, gains, controller)
     n_steps = scenario.n_steps
     dtype = scenario.initial.q.dtype
 
@@ -111,9 +108,7 @@ def _finish(running, final, scenario, realism):
     return finished | anatomy.error_parts(finished, scenario, realism)
 
 
-def _flight_metrics(
-    robot, scenario, gains, controller, pinv_damping, every, realism, key, model_robot, servo_input_delay=None
-):
+def _flight_metrics(robot, scenario, gains, controller, every, realism, key, model_robot, servo_input_delay=None):
     """[`rollout_metrics()`][spacegrasp_jax.montecarlo.rollout_metrics] of the flight-like loop: each control period's rows folded at once."""
     realism = ideal() if realism is None else realism
     key = jax.random.PRNGKey(0) if key is None else key
@@ -125,7 +120,6 @@ def _flight_metrics(
         realism,
         key,
         model_robot=model_robot,
-        pinv_damping=pinv_damping,
         servo_input_delay=servo_input_delay,
     )
     per_period = scenario.n_steps // periods
@@ -167,9 +161,8 @@ def evaluate_samples(
     seed,
     indices: jax.Array,
     *,
-    controller: str,
+    controller,
     ranges: PerturbationRanges,
-    pinv_damping: float = 0.0,
     every: int | None = None,
     realism: Realism | None = None,
     identified: bool = False,
@@ -193,13 +186,11 @@ def evaluate_samples(
     """
     samples = sample_loops(robot, scenario, seed, indices, ranges, realism, identified)
     if samples.realisms is None:
-        one = lambda r, s: rollout_metrics(
-            r, s, gains, controller, pinv_damping, every, servo_input_delay=servo_input_delay
-        )
+        one = lambda r, s: rollout_metrics(r, s, gains, controller, every, servo_input_delay=servo_input_delay)
         sample_metrics, rows = jax.vmap(one)(samples.robots, samples.scenarios)
     else:
         one = lambda r, s, re, key: rollout_metrics(
-            r, s, gains, controller, pinv_damping, every, re, key, samples.model_robot, servo_input_delay
+            r, s, gains, controller, every, re, key, samples.model_robot, servo_input_delay
         )
         sample_metrics, rows = jax.vmap(one)(samples.robots, samples.scenarios, samples.realisms, samples.keys)
     return samples.perturbations, sample_metrics, rows

@@ -251,7 +251,6 @@ def control_step(
     controller,
     state: SimState,
     t,
-    pinv_damping=0.0,
     kinematics: PlantKinematics | None = None,
 ):
     """One controller update at time ``t``: returns ``(u (7,), new ControllerState, log row)``.
@@ -259,7 +258,7 @@ def control_step(
     ``controller``: a law's name, a law object or a controller
     ([`as_controller()`][spacegrasp_jax.control.registry.as_controller]). ``kinematics``:
     [`plant_kinematics()`][spacegrasp_jax.simulate.plant_kinematics] of ``state.plant`` if the caller has it."""
-    control = as_controller(controller, pinv_damping)
+    control = as_controller(controller)
     plant = state.plant
     if kinematics is None:
         kinematics = plant_kinematics(robot, scenario, plant)
@@ -399,9 +398,7 @@ def controller_inputs(
     return inputs, (pose, twist)
 
 
-def closed_loop_step(
-    robot: Robot, scenario: Scenario, gains: Gains, controller, pinv_damping: float = 0.0, checkpoint: bool = False
-):
+def closed_loop_step(robot: Robot, scenario: Scenario, gains: Gains, controller, checkpoint: bool = False):
     """The scan body ``step(state: SimState, k) -> (next SimState, Log row)`` for step
     number ``k`` (a float, t = k dt): one controller update, then one RK4 step of the plant
     under the held torques. Arguments as [`rollout()`][spacegrasp_jax.simulate.rollout].
@@ -410,7 +407,7 @@ def closed_loop_step(
     ``jax.checkpoint`` (RK4's later stages always are, one by one: ``integrator.rk4_step``).
     A reverse-mode gradient then keeps, per step, the state and the rates RK4's stages
     start from, and recomputes each part just before differentiating it."""
-    control = as_controller(controller, pinv_damping)
+    control = as_controller(controller)
 
     def control_and_first_rate(state: SimState, t):
         # The controller reads the state RK4's first stage starts from: share the kinematics.
@@ -446,7 +443,6 @@ def rollout(
     scenario: Scenario,
     gains: Gains,
     controller,
-    pinv_damping: float = 0.0,
     checkpoint_segment: int | None = None,
     realism: Realism | None = None,
     key: jax.Array | None = None,
@@ -459,9 +455,9 @@ def rollout(
         controller: static: a law's name (``"admittance"``, eqs 9-17; ``"cartesian"``, eqs
             21-22; any of ``control.CONTROLLERS``), a law object (``control.Admittance()``)
             or a ``control.Controller``
-            ([`as_controller()`][spacegrasp_jax.control.registry.as_controller]).
-        pinv_damping: 0 for the exact pseudoinverse (the paper), > 0 for damped least
-            squares, with a law's name; static.
+            ([`as_controller()`][spacegrasp_jax.control.registry.as_controller]); a law
+            object carries its settings (``control.Admittance(pinv_damping=0.01)``: damped
+            least squares; a name: the paper's exact pseudoinverse).
         checkpoint_segment: the number of steps per inner scan (static; must divide
             ``n_steps``; ``None``: ``LOG_BLOCK`` or the largest divisor below it). In the
             paper's loop each step's parts are always under ``jax.checkpoint``
@@ -504,10 +500,9 @@ def rollout(
             realism,
             key,
             model_robot=model_robot,
-            pinv_damping=pinv_damping,
             checkpoint=checkpoint_segment is not None,
         )
-    step = closed_loop_step(robot, scenario, gains, controller, pinv_damping, checkpoint=True)
+    step = closed_loop_step(robot, scenario, gains, controller, checkpoint=True)
     block = largest_divisor(n_steps, LOG_BLOCK) if checkpoint_segment is None else checkpoint_segment
     # Blocks of a few steps, each an inner scan whose buffers (log rows, saved states) stay
     # within 64 numbers a field. Where XLA runs loops kernel by kernel, it then runs that
@@ -587,7 +582,6 @@ def flight_rollout(
     key: jax.Array,
     *,
     model_robot: Robot | None = None,
-    pinv_damping: float = 0.0,
     checkpoint: bool = False,
 ) -> tuple[FlightState, Log]:
     """The closed loop with the realism model (module [`spacegrasp_jax.realism`][spacegrasp_jax.realism]), one
@@ -603,7 +597,7 @@ def flight_rollout(
     contact force at every stage). The log has one row per plant step, as [`rollout()`][spacegrasp_jax.simulate.rollout]'s.
 
     Args:
-        robot, scenario, gains, controller, pinv_damping: as [`rollout()`][spacegrasp_jax.simulate.rollout].
+        robot, scenario, gains, controller: as [`rollout()`][spacegrasp_jax.simulate.rollout].
         realism: the realism settings (static fields fix the program).
         key: a ``jax.random`` key; same key, same rollout.
         model_robot: the robot the controller's model starts from (default ``robot``);
@@ -619,7 +613,6 @@ def flight_rollout(
         realism,
         key,
         model_robot=model_robot,
-        pinv_damping=pinv_damping,
         checkpoint=checkpoint,
     )
     final, rows = jax.lax.scan(one_period, start, jnp.arange(periods, dtype=scenario.initial.q.dtype))
@@ -635,7 +628,6 @@ def flight_loop(
     key: jax.Array,
     *,
     model_robot: Robot | None = None,
-    pinv_damping: float = 0.0,
     checkpoint: bool = False,
     servo_input_delay: ServoInputDelay | None = None,
 ):
@@ -655,7 +647,7 @@ def flight_loop(
     dtype = scenario.initial.q.dtype
     n = n_joints(robot)
     realism.check_joints(n)
-    control = as_controller(controller, pinv_damping).with_actuators(realism.saturation, realism.anti_windup)
+    control = as_controller(controller).with_actuators(realism.saturation, realism.anti_windup)
     limit = realism.torque_limit_Nm if Stage.ACTUATORS in realism.stages else None
     own_model = bool(realism.stages & (Stage.SENSORS | Stage.MODEL)) or model_robot is not None
     model = believed_robot(robot if model_robot is None else model_robot, realism) if own_model else robot

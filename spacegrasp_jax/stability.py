@@ -145,16 +145,14 @@ def small_signal(realism: Realism | None) -> Realism:
 
 
 def settled_state(
-    robot: Robot, scenario: Scenario, gains: Gains, controller, realism: Realism | None = None, pinv_damping=0.0
+    robot: Robot, scenario: Scenario, gains: Gains, controller, realism: Realism | None = None
 ) -> tuple[FlightState, int]:
     """``(state, periods)``: the loop's state after the scenario's ``periods`` control periods
     (the nominal capture, noise off: [`quiet()`][spacegrasp_jax.stability.quiet])."""
     if scenario.target is not None:
         raise StabilityError("target: the linear analysis covers the paper's stationary target only")
     realism = quiet(realism)
-    final, _ = jax.jit(
-        lambda g: flight_rollout(robot, scenario, g, controller, realism, _key(), pinv_damping=pinv_damping)
-    )(gains)
+    final, _ = jax.jit(lambda g: flight_rollout(robot, scenario, g, controller, realism, _key()))(gains)
     return final, scenario.n_steps // realism.steps_per_period(scenario.dt)
 
 
@@ -182,7 +180,7 @@ def invariants(robot: Robot, coordinates: Coordinates) -> Callable[[jax.Array], 
     return g
 
 
-def scaled_gains(gains: Gains, controller: str, log_factors) -> Gains:
+def scaled_gains(gains: Gains, controller, log_factors) -> Gains:
     """``gains`` with each loop's gain (``margins.LOOPS``: the joint PID, the law) times
     ``exp(log_factors[i])``, traceable (``margins.scaled_loop()``'s scaling)."""
     changes = {}
@@ -254,11 +252,10 @@ class Linearizer:
         self,
         robot: Robot,
         scenario: Scenario,
-        controller: str,
+        controller,
         realism: Realism | None,
         point: FlightState,
         period_index: int,
-        pinv_damping=0.0,
     ):
         realism = small_signal(realism)
         coordinates = Coordinates.about(point)
@@ -270,7 +267,7 @@ class Linearizer:
         zero = jnp.zeros(n)
 
         def one_period(gains):
-            return flight_loop(robot, scenario, gains, controller, realism, _key(), pinv_damping=pinv_damping)[1]
+            return flight_loop(robot, scenario, gains, controller, realism, _key())[1]
 
         def advance(delta, scaled):
             return coordinates.to_local(one_period(scaled)(coordinates.from_local(delta), k)[0])
@@ -461,7 +458,6 @@ class HoldProber:
     growth_limit_per_s: float = 1.0
     hold_s: float = 4.0
     kick_radps: float = 1e-6
-    pinv_damping: float = 0.0
     probes: list = dataclasses.field(default_factory=list)
 
     def __post_init__(self):
@@ -475,9 +471,7 @@ class HoldProber:
         window = half // 10
 
         def growth_rate(gains):
-            _, one_period, _ = flight_loop(
-                self.robot, self.scenario, gains, self.controller, realism, _key(), pinv_damping=self.pinv_damping
-            )
+            _, one_period, _ = flight_loop(self.robot, self.scenario, gains, self.controller, realism, _key())
             _, rows = jax.vmap(lambda start: jax.lax.scan(one_period, start, ks))(starts)
             difference = jnp.abs(rows.qd[1] - rows.qd[0])  # (periods, steps a period, 7)
             middle = jnp.max(difference[half - window : half])
@@ -528,17 +522,17 @@ def linear_analysis(
     robot: Robot,
     scenario: Scenario,
     gains: Gains,
-    controller: str,
+    controller,
     realism: Realism | None = None,
     settings: MarginSettings = MarginSettings(),
     growth_limit_per_s: float = 1.0,
-    pinv_damping: float = 0.0,
 ) -> dict:
     """The loop's modes where the nominal capture settles, and the linear gain margins: the
     factors on each loop's gain (``margins.gain_margin()``'s search, both directions) at
     which a mode of the loop there starts to grow faster than ``growth_limit_per_s`` (1/s).
     The operating point is the end of the nominal capture, its pose held
-    ([`holding()`][spacegrasp_jax.stability.holding]).
+    ([`holding()`][spacegrasp_jax.stability.holding]). ``controller``: a law's name or a law
+    object with its settings (``control.Admittance(pinv_damping=0.01)``).
 
     Returns:
         A JSON-ready dict: ``operating_point`` (``time_s``, ``residual``,
@@ -553,9 +547,9 @@ def linear_analysis(
         raise StabilityError(f"growth_limit_per_s: must be finite and at least 0, got {growth_limit_per_s!r}")
     require_joint_servo(controller)
     started = time.perf_counter()
-    point, periods = settled_state(robot, scenario, gains, controller, realism, pinv_damping)
+    point, periods = settled_state(robot, scenario, gains, controller, realism)
     period_s = control_period(scenario, realism)
-    linearizer = Linearizer(robot, holding(robot, scenario, point), controller, realism, point, periods, pinv_damping)
+    linearizer = Linearizer(robot, holding(robot, scenario, point), controller, realism, point, periods)
     linearisation = linearizer(gains)
     compile_s = time.perf_counter() - started
     if not linearisation.finite:

@@ -33,7 +33,7 @@ import numpy as np
 
 from spacegrasp_jax import batching
 from spacegrasp_jax.control.gains import GAIN_SHAPES, Gains
-from spacegrasp_jax.control.registry import CONTROLLERS
+from spacegrasp_jax.control.registry import as_controller
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import rollout_metrics
 from spacegrasp_jax.scenario import Scenario
@@ -107,19 +107,18 @@ def _check_factors(name: str, values: np.ndarray) -> None:
         raise SweepError(f"{name}: scale factors must be finite and positive, got {values.tolist()}")
 
 
-def _metrics_of_gain_sets(robot, scenario, gains, *, controller, pinv_damping):
+def _metrics_of_gain_sets(robot, scenario, gains, *, controller):
     """The per-run metrics of each gain set of the batch ``gains`` (vmapped)."""
-    return jax.vmap(lambda g: rollout_metrics(robot, scenario, g, controller, pinv_damping)[0])(gains)
+    return jax.vmap(lambda g: rollout_metrics(robot, scenario, g, controller)[0])(gains)
 
 
 def evaluate_gains(
     robot: Robot,
     scenario: Scenario,
     gains: Gains,
-    controller: str,
+    controller,
     *,
     chunk: int = 64,
-    pinv_damping: float = 0.0,
     progress=sys.stderr,
 ) -> dict[str, np.ndarray]:
     """Run the closed loop once per gain set and return the per-run metrics.
@@ -132,17 +131,19 @@ def evaluate_gains(
     Args:
         robot, scenario: the system and the scenario, the same for every run.
         gains: a batch of N gain sets (leading axis N on every field).
-        controller: a law's name (``control.CONTROLLERS``).
+        controller: a law's name (``control.CONTROLLERS``) or a law object
+            (``control.Admittance(pinv_damping=0.01)``).
         chunk: gain sets per compiled call (bounds memory).
-        pinv_damping: damping of the pseudoinverse (0: exact, the paper).
         progress: stream for one line per chunk (``None``: silent).
 
     Returns:
         Each metric of ``METRICS`` as an (N, ...) array, plus
         ``diverged`` (N,) bool, true where the run became non-finite.
     """
-    if controller not in CONTROLLERS:
-        raise SweepError(f"controller: expected one of {', '.join(CONTROLLERS)}, got {controller!r}")
+    try:
+        law = as_controller(controller)
+    except ValueError as error:
+        raise SweepError(str(error)) from None
     if not isinstance(chunk, int) or chunk < 1:
         raise SweepError(f"chunk: expected a positive integer, got {chunk!r}")
     leaves = [np.asarray(getattr(gains, name), dtype=float) for name in GAIN_SHAPES]
@@ -154,7 +155,7 @@ def evaluate_gains(
     n = leaves[0].shape[0]
     if any(leaf.shape[0] != n for leaf in leaves):
         raise SweepError(f"gains: every field needs the same batch size, got {[leaf.shape[0] for leaf in leaves]}")
-    function = functools.partial(_metrics_of_gain_sets, controller=controller, pinv_damping=float(pinv_damping))
+    function = functools.partial(_metrics_of_gain_sets, controller=law)
     batch = Gains(**dict(zip(GAIN_SHAPES, leaves)))
     results = batching.map_in_chunks(
         "sweep",
@@ -162,7 +163,7 @@ def evaluate_gains(
         (robot, scenario),
         batch,
         chunk=chunk,
-        key=(controller, float(pinv_damping)),
+        key=(law,),
         progress=progress,
         label="gain sets",
     )

@@ -43,6 +43,7 @@ import numpy as np
 from spacegrasp_jax import anatomy, batching, metrics
 from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, compiled_chunk, evaluate_indices
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.registry import law_named
 from spacegrasp_jax.inputs import read_document, short
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import NOISE_STREAM, lost, perturbed_loop
@@ -171,7 +172,7 @@ def _measure_of_log(log, measure: str, criteria: tuple) -> jax.Array:
 
 
 def _value_and_gradient(
-    robot, scenario, gains, ranges, realism, block, *, controller, measure, criteria, identified, pinv_damping, segment
+    robot, scenario, gains, ranges, realism, block, *, controller, measure, criteria, identified, segment
 ):
     """The measure and its gradient in ``U`` for a block ``(units, keys)`` of points, one
     point after another (``lax.map``): the program then holds the gradient of one rollout,
@@ -187,7 +188,6 @@ def _value_and_gradient(
             perturbed,
             gains,
             controller,
-            pinv_damping,
             checkpoint_segment=segment,
             realism=loop_realism,
             key=key,
@@ -287,19 +287,19 @@ def search(
     batch = batching.chunk_size(starts, starts)
     pad = lambda x: np.concatenate([x, np.repeat(x[-1:], batch - starts, axis=0)])
 
+    law = law_named(controller, config.pinv_damping)
     function = functools.partial(
         _value_and_gradient,
-        controller=controller,
+        controller=law,
         measure=settings.measure,
         criteria=(config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm),
         identified=config.identified,
-        pinv_damping=config.pinv_damping,
         segment=largest_divisor(scenario.n_steps, 2)
         if config.realism is None or config.realism.is_ideal(scenario.dt)
         else config.realism.steps_per_period(scenario.dt),
     )
     replicated = (robot, scenario, gains, config.ranges, config.realism)
-    key = ("worstcase", controller, settings.measure, config.identified, config.pinv_damping)
+    key = ("worstcase", law, settings.measure, config.identified)
     try:
         executable, gradient_compile_s = batching.compile_chunk(
             f"worst-case gradient, {controller}",

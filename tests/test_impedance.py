@@ -24,6 +24,7 @@ from spacegrasp_jax.control import (
     Output,
     as_controller,
     chain,
+    law_named,
     load_gains,
     paper_gains,
 )
@@ -88,7 +89,7 @@ def test_a_law_and_its_servo_make_a_controller_and_a_mismatch_is_refused():
     with pytest.raises(ValueError, match="commands joint torques: it takes no joint servo"):
         chain(Impedance(), PID())
     with pytest.raises(ValueError, match="no pseudoinverse to damp"):
-        as_controller("impedance", pinv_damping=0.1)
+        law_named("impedance", pinv_damping=0.1)
     with pytest.raises(ValueError, match="expected one of admittance, cartesian, impedance"):
         as_controller("impedence")
     with pytest.raises(ValueError, match="expected a name, a control law or a Controller"):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from spacegrasp_jax import experiment, metrics, plots
-from spacegrasp_jax.control import Admittance, Cartesian, make_gains
+from spacegrasp_jax.control import PID, Admittance, Cartesian, chain, law_named, make_gains
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import first_nonfinite_time, initial_state, rollout
 
@@ -151,20 +151,23 @@ def test_rollout_rejects_a_checkpoint_segment_that_does_not_divide_the_steps(rob
     ids=["admittance", "cartesian-damped"],
 )
 def test_a_law_object_runs_the_loop_its_name_runs(robot, gains, short_scenario, law):
-    """The law is chosen by its object (static), and the name with ``pinv_damping`` builds the
-    same object: the two rollouts are the same program, bit for bit."""
-    simulate = jax.jit(rollout, static_argnames=("controller", "pinv_damping"))
+    """The law is chosen by its object (static), which carries its settings; the object, the
+    object chained with the joint PID and the registry's law of that name and damping are
+    the same program, bit for bit."""
+    simulate = jax.jit(rollout, static_argnames=("controller",))
     by_object = simulate(robot, short_scenario, gains, controller=law)[1]
-    by_name = simulate(robot, short_scenario, gains, controller=law.name, pinv_damping=law.pinv_damping)[1]
-    for name, value in vars(by_name).items():
-        np.testing.assert_array_equal(getattr(by_object, name), value, err_msg=name)
+    same = [chain(law, PID()), law_named(law.name, law.pinv_damping)]
+    if law.pinv_damping == 0.0:
+        same.append(law.name)
+    for controller in same:
+        other = simulate(robot, short_scenario, gains, controller=controller)[1]
+        for name, value in vars(other).items():
+            np.testing.assert_array_equal(getattr(by_object, name), value, err_msg=f"{controller}: {name}")
     if law.name == "cartesian":  # memoryless: no reference twist carried, zeros logged
         np.testing.assert_array_equal(by_object.V_ref, 0.0)
         assert jax.tree.leaves(initial_state(short_scenario, law).controller.law) == []
     else:
         assert np.max(np.abs(by_object.V_ref)) > 1e-3
-    with pytest.raises(ValueError, match="give it to the law object"):
-        rollout(robot, short_scenario, gains, law, pinv_damping=0.1)
 
 
 def test_the_checkpointed_steps_of_rollout_change_nothing_in_a_forward_run(robot, gains, short_scenario):

@@ -188,19 +188,19 @@ def test_the_ascents_gradient_matches_central_differences(robot):
 
     from spacegrasp_jax import batching
     from spacegrasp_jax.campaign import CampaignConfig
-    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.control import law_named, paper_gains
     from spacegrasp_jax.scenario import paper_scenario
     from spacegrasp_jax.simulate import largest_divisor
 
     scenario = paper_scenario(robot, duration=2.0, move_duration=2.0)
     config, controller = CampaignConfig(n=4), "admittance"
+    law = law_named(controller, config.pinv_damping)
     function = functools.partial(
         worstcase._value_and_gradient,
-        controller=controller,
+        controller=law,
         measure="final_error",
         criteria=(config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm),
         identified=config.identified,
-        pinv_damping=config.pinv_damping,
         segment=largest_divisor(scenario.n_steps, 2),
     )
     replicated = (robot, scenario, paper_gains(), config.ranges, config.realism)
@@ -213,7 +213,7 @@ def test_the_ascents_gradient_matches_central_differences(robot):
         replicated,
         (units, keys),
         device_batch=1,
-        key=("worstcase", controller, "final_error", config.identified, config.pinv_damping),
+        key=("worstcase", law, "final_error", config.identified),
     )
     values, gradients = batching.run_chunk(executable, replicated, (units, keys))
     rng = np.random.default_rng(5)

@@ -36,6 +36,7 @@ from jax.flatten_util import ravel_pytree
 
 from spacegrasp_jax import batching
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.registry import as_controller, controller_name
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges
@@ -95,7 +96,7 @@ def horizon_steps(n_steps: int, horizons=HORIZONS) -> tuple[int, ...]:
     return tuple(max(1, round(fraction * n_steps)) for fraction in horizons)
 
 
-def make_item_function(controller: str, steps, segment, pinv_damping: float = 0.0):
+def make_item_function(controller, steps, segment):
     """``(base, mask, objective, model_robot, item) -> (losses (H,), gradients group -> (H, size))`` for
     one item ``(params, robot, scenario, realism, key)``: a rollout at the gains ``params``
     (log-gains over ``base``), the objective of its log cut at each of ``steps`` rows, and
@@ -108,7 +109,6 @@ def make_item_function(controller: str, steps, segment, pinv_damping: float = 0.
             scenario,
             gains,
             controller,
-            pinv_damping=pinv_damping,
             checkpoint_segment=segment,
             realism=realism,
             key=key,
@@ -129,7 +129,7 @@ def envelope_gradients(
     robot: Robot,
     scenario: Scenario,
     gains: Gains,
-    controller: str,
+    controller,
     objective: Objective,
     *,
     n: int,
@@ -137,14 +137,13 @@ def envelope_gradients(
     ranges: PerturbationRanges | None = None,
     realism: Realism | None = None,
     horizons=HORIZONS,
-    pinv_damping: float = 0.0,
     chunk: int = 8,
     progress=None,
 ) -> tuple[EnvelopeGradients, callable]:
     """The objective's gradient at ``gains`` on the nominal ``scenario`` and on the campaign
     samples 1..n of ``seed`` (``ranges``: the campaigns' default envelope), at each horizon.
-    The controller believes the nominal ``robot``, as in a campaign; ``pinv_damping`` is
-    the damping of its pseudoinverse (0: exact, the paper).
+    The controller believes the nominal ``robot``, as in a campaign; ``controller`` is a
+    law's name or a law object with its settings (``control.Admittance(pinv_damping=0.01)``).
 
     Returns:
         ``(gradients, evaluate)``: the [`EnvelopeGradients`][tuning.gradients.EnvelopeGradients], and ``evaluate(params,
@@ -153,12 +152,13 @@ def envelope_gradients(
         (for central differences without another compile).
     """
     ranges = PerturbationRanges() if ranges is None else ranges
-    mask = make_mask(gains, controller)
-    params = initial_params(gains, controller)
+    law, name = as_controller(controller), controller_name(controller)
+    mask = make_mask(gains, name)
+    params = initial_params(gains, name)
     items, model_robot, perturbations = _nominal_first(robot, scenario, seed, n, ranges, realism)
     steps = horizon_steps(scenario.n_steps, horizons)
     segment = 1 if items[2] is not None else checkpoint_segment(scenario.n_steps)
-    item = make_item_function(controller, steps, segment, pinv_damping)
+    item = make_item_function(law, steps, segment)
     replicated = (gains, mask, objective) if model_robot is None else (gains, mask, objective, model_robot)
 
     def block(*arguments):  # one device's share, one item after another (the tape of one)
@@ -173,7 +173,7 @@ def envelope_gradients(
             replicated,
             batched,
             chunk=chunk,
-            key=(controller, steps, segment, pinv_damping),
+            key=(law, steps, segment),
             progress=progress,
             label="gradients",
         )

@@ -47,20 +47,23 @@ def law_named(name: str, pinv_damping: float = 0.0) -> ControlLaw:
     return law()
 
 
-def as_controller(controller: str | ControlLaw | Controller, pinv_damping: float = 0.0) -> Controller:
+def as_controller(controller: str | ControlLaw | Controller) -> Controller:
     """``controller`` as a [`Controller`][spacegrasp_jax.control.law.Controller]: a law's name
-    (built with ``pinv_damping``, as [`law_named()`][spacegrasp_jax.control.registry.law_named])
-    or a law object (which carries its own damping), chained with the joint PID if it
-    commands joint rates; a controller as it is."""
+    (the law with its default settings: the paper's exact pseudoinverse) or a law object
+    (which carries its settings, [`law_named()`][spacegrasp_jax.control.registry.law_named]),
+    chained with the joint PID if it commands joint rates; a controller as it is."""
     if isinstance(controller, str):
-        controller = law_named(controller, pinv_damping)
-    elif pinv_damping:
-        raise ValueError("pinv_damping: give it to the law object, not beside it")
+        controller = law_named(controller)
     if isinstance(controller, Controller):
         return controller
     if not isinstance(controller, ControlLaw):
         raise ValueError(f"controller: expected a name, a control law or a Controller, got {controller!r}")
     return chain(controller, PID() if controller.output is Output.JOINT_RATES else None)
+
+
+def controller_name(controller: str | ControlLaw | Controller) -> str:
+    """The law's name of ``controller`` (a name, a law or a controller)."""
+    return controller if isinstance(controller, str) else as_controller(controller).name
 
 
 def gains_used(name: str) -> tuple[str, ...]:
@@ -85,6 +88,7 @@ __all__ = [
     "PAPER_CONTROLLERS",
     "SERVO_GROUPS",
     "as_controller",
+    "controller_name",
     "gains_used",
     "law_named",
     "paper_max_abs_torque_Nm",
