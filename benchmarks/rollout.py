@@ -23,7 +23,7 @@ import spacegrasp_jax as sg
 from spacegrasp_jax import compilation
 from spacegrasp_jax.benchmarks.dynamics import machine, timed
 from spacegrasp_jax.compilation import configure
-from spacegrasp_jax.control import CONTROLLERS, paper_gains
+from spacegrasp_jax.control import PAPER_CONTROLLERS, paper_gains
 from spacegrasp_jax.realism import flight
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
@@ -71,9 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     scenario = paper_scenario(robot, duration=args.duration)
     affinity = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
     result = {"machine": {**machine(), "cpu_affinity": affinity}, "duration_s": args.duration}
-    for controller in CONTROLLERS:
+    for controller in PAPER_CONTROLLERS:
         result[controller] = bench_controller(robot, scenario, gains, controller, args.repeats)
-    for controller in CONTROLLERS:  # the flight preset: 100 Hz control, own model, sensors, limits
+    for controller in PAPER_CONTROLLERS:  # the flight preset: 100 Hz control, own model, sensors, limits
         result[f"{controller}/flight"] = bench_controller(robot, scenario, gains, controller, args.repeats, flight())
     free_target = paper_scenario(robot, duration=args.duration, target=FREE_TARGET)  # a second body in the state
     result["admittance/free-target"] = bench_controller(robot, free_target, gains, "admittance", args.repeats)
@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{'controller':18} {'compile [s]':>12} {'run [s]':>10} {'spread [s]':>16} {'us/step':>9} {'sim s / wall s':>15}"
     )
-    for controller in [*CONTROLLERS, *(f"{c}/flight" for c in CONTROLLERS), "admittance/free-target"]:
+    for controller in [*PAPER_CONTROLLERS, *(f"{c}/flight" for c in PAPER_CONTROLLERS), "admittance/free-target"]:
         r = result[controller]
         spread = f"{r['run_spread_s'][0]:.3f}-{r['run_spread_s'][1]:.3f}"
         print(

@@ -12,13 +12,12 @@ Each step of length ``dt`` (modelling notes):
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from spacegrasp_jax import spatial
+from spacegrasp_jax import spatial, stages
 from spacegrasp_jax.contact import (
     contact_force_exact,
     contact_force_smooth,
@@ -563,16 +562,6 @@ class ServoInputDelay:
         return readings[(head - self.ticks) % self.capacity], (readings, (head + 1) % self.capacity)
 
 
-def believed_robot(robot: Robot, realism: Realism) -> Robot:
-    """The robot the controller believes: ``robot`` with the satellite's mass and inertia
-    times the realism's factors."""
-    return dataclasses.replace(
-        robot,
-        satellite_mass=robot.satellite_mass * realism.satellite_mass_factor,
-        satellite_inertia=robot.satellite_inertia * realism.satellite_inertia_factor,
-    )
-
-
 def flight_rollout(
     robot: Robot,
     scenario: Scenario,
@@ -650,49 +639,25 @@ def flight_loop(
     control = as_controller(controller).with_actuators(realism.saturation, realism.anti_windup)
     limit = realism.torque_limit_Nm if Stage.ACTUATORS in realism.stages else None
     own_model = bool(realism.stages & (Stage.SENSORS | Stage.MODEL)) or model_robot is not None
-    model = believed_robot(robot if model_robot is None else model_robot, realism) if own_model else robot
-    # First-order low-pass, discretised exactly at the control period.
-    smoothing = 1.0 - math.exp(-2.0 * math.pi * realism.cutoff_hz * period) if realism.cutoff_hz > 0.0 else 1.0
+    model = stages.believed_robot(robot if model_robot is None else model_robot, realism) if own_model else robot
+    smoothing = stages.low_pass_gain(realism, period)
 
     def period_noise(k):
         """(6 + N ticks,) standard normals of period k: the wrench's, then each tick's rates."""
         return jax.random.normal(jax.random.fold_in(key, k.astype(jnp.uint32)), (6 + n * ticks,), dtype)
 
-    def joint_reading(plant: PlantState, noise):
-        """The joint sensors' (q, qd) from the true state and the tick's (7,) rate noise."""
-        q, qd = plant.q, plant.qd
-        if Stage.SENSORS in realism.stages:
-            quantum = realism.angle_resolution_rad
-            safe = jnp.where(quantum > 0.0, quantum, 1.0)
-            # The encoder's grid, with a straight-through gradient: round() is flat between
-            # steps, so its exact derivative would cut the position feedback out of every
-            # gradient (an open loop whose sensitivity grows without bound). Averaged over
-            # where the grid falls, d E[reading] / dq = 1.
-            grid_error = jnp.round(q / safe) * safe - q
-            q = q + jnp.where(quantum > 0.0, jax.lax.stop_gradient(grid_error), 0.0)
-            qd = qd + realism.rate_noise_std_radps * noise
-        return q, qd
-
     def control_period(state: FlightState, k, noise):
         plant, t = state.plant, k * period
         truth = plant_kinematics(robot, scenario, plant)
-        force_fts, torque_fts = sensor_reading(robot, scenario, truth)
-        if Stage.SENSORS in realism.stages:
-            force_fts = force_fts + realism.force_bias + realism.force_noise_std * noise[:3]
-            torque_fts = torque_fts + realism.torque_bias + realism.torque_noise_std * noise[3:6]
-        q, qd = joint_reading(plant, noise[6 : 6 + n])
-        reading = jnp.concatenate([force_fts, torque_fts])
-        if realism.cutoff_hz > 0.0:
-            reading = state.wrench_reading + smoothing * (reading - state.wrench_reading)
+        reading = stages.wrench_reading(realism, *sensor_reading(robot, scenario, truth), noise)
+        q, qd = stages.joint_reading(realism, plant.q, plant.qd, noise[6 : 6 + n])
+        reading = stages.low_pass(realism, state.wrench_reading, reading, smoothing)
         view = (
             plant_kinematics(model, scenario, dataclasses.replace(plant, q=q), with_contact=False)
             if own_model
             else truth
         )
-        p_lar, R_lar = truth.p_lar, truth.R_lar
-        if Stage.ESTIMATE in realism.stages:
-            p_lar = p_lar + spatial.matvec(R_lar, realism.lar_position_error_m)
-            R_lar = spatial.matmul(R_lar, spatial.rotation_exp(realism.lar_angle_error_rad))
+        p_lar, R_lar = stages.lar_estimate(realism, truth.p_lar, truth.R_lar)
         inputs, _ = controller_inputs(
             robot,
             scenario.trajectory,
@@ -709,11 +674,7 @@ def flight_loop(
             lar_motion=target_motion(scenario, plant),
         )
         computed, law_state = control.law.update(gains, inputs, state.controller.law, period)
-        if realism.delay_periods:
-            queue = jnp.concatenate([state.commands_in_flight, computed[None]])
-            command, in_flight = queue[0], queue[1:]
-        else:
-            command, in_flight = computed, state.commands_in_flight
+        command, in_flight = stages.delay_line(realism, state.commands_in_flight, computed)
         held = dict(
             control.logged(command, state.controller.law),
             command=command,
@@ -736,7 +697,7 @@ def flight_loop(
         """Servo tick j (a float) of the whole run: the joint sensors, the PID, its plant steps."""
         plant, pid_state, line = carry
         tick_noise = jax.lax.dynamic_slice_in_dim(noise, 6 + n * (j.astype(jnp.int32) % ticks), n)
-        q, qd = joint_reading(plant, tick_noise)
+        q, qd = stages.joint_reading(realism, plant.q, plant.qd, tick_noise)
         if servo_input_delay is not None:
             qd, line = servo_input_delay.push(line, qd)
         u, pid_state = control.torque(gains, held["command"], qd, pid_state, j * servo_period, servo_period, limit)
