@@ -388,7 +388,7 @@ def test_unstable_samples_are_counted_and_are_not_successes(five_samples, varian
 
 def test_gain_sets_are_compared_pairwise_against_the_first_of_their_controller(capsys):
     from spacegrasp_jax import statistics
-    from spacegrasp_jax.cli import _print_campaign
+    from spacegrasp_jax.cli.montecarlo import _print_campaign
 
     rng = np.random.default_rng(9)
     gains = paper_gains()

@@ -194,7 +194,8 @@ def test_tune_refuses_to_overwrite_and_rejects_bad_options(uninterrupted, tmp_pa
 
 
 def test_tune_draws_from_the_envelope_it_is_given(tmp_path):
-    from spacegrasp_jax.cli import _tune_config, build_parser
+    from spacegrasp_jax.cli import build_parser
+    from spacegrasp_jax.cli.tune import _tune_config
     from spacegrasp_jax.perturbations import PerturbationRanges
     from spacegrasp_jax.tuning.tune import TUNING_RANGES
 

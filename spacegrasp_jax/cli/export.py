@@ -1,0 +1,69 @@
+"""``spacegrasp export``: gains and loop settings for flight software."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from spacegrasp_jax import (
+    export,
+    runfiles,
+)
+from spacegrasp_jax.cli.common import _load_inputs, _realism
+from spacegrasp_jax.cli.options import ROBOT_HELP, UsageError, _add_command, _add_realism_option
+from spacegrasp_jax.control import (
+    CONTROLLERS,
+)
+from spacegrasp_jax.model import n_joints
+
+
+def _c_identifier(text: str) -> str:
+    """An option's type: a C identifier (letters, digits and underscores, not starting with a digit)."""
+    if not (text.isascii() and text.isidentifier()):
+        raise argparse.ArgumentTypeError(f"expected a C identifier such as SG, got {text!r}")
+    return text
+
+
+def _export(args: argparse.Namespace) -> int:
+    """``spacegrasp export``: a gain set with its units, equations and the loop's settings, as
+    one file of ``--format`` (printed without ``--out``)."""
+    robot, scenario, gains = _load_inputs(args)
+    realism = _realism(args, scenario)
+    settings = export.loop_settings(realism, scenario.dt, n_joints(robot))
+    text = export.export_text(
+        gains, args.controller, settings, args.format, source=args.gains or "paper_gains()", prefix=args.prefix
+    )
+    if args.out is None:
+        sys.stdout.write(text)
+        return 0
+    out = Path(args.out)
+    if out.is_dir():
+        raise UsageError(f"--out {out}: is a folder; give a file name")
+    if out.exists() and not args.overwrite:
+        raise UsageError(f"--out {out}: exists; pass --overwrite to replace it")
+    try:
+        runfiles.write_atomically(out, lambda target: target.write_text(text))
+    except OSError as error:
+        raise UsageError(f"--out {out}: cannot write ({error.strerror or error})") from None
+    print(f"wrote {out}: the {args.controller} gains, their units and equations, and the loop's settings")
+    return 0
+
+
+def add_parsers(commands) -> None:
+    """The command's parser, added to ``commands``."""
+    export_gains = _add_command(
+        commands, "export", help="write gains for flight software: JSON, YAML, a C header or CSV, with units"
+    )
+    export_gains.add_argument("--gains", help="gains JSON file (default: the paper's)")
+    export_gains.add_argument("--controller", choices=CONTROLLERS, default="admittance")
+    export_gains.add_argument("--format", choices=export.FORMATS, required=True)
+    _add_realism_option(export_gains)
+    export_gains.add_argument("--scenario", help="scenario TOML or JSON file, for its step (default: the paper's)")
+    export_gains.add_argument("--robot", help=ROBOT_HELP)
+    export_gains.add_argument(
+        "--prefix", type=_c_identifier, default="SG", help="the C header's names: PREFIX_kp, ... (default SG)"
+    )
+    export_gains.add_argument("--out", metavar="FILE", help="the file to write (default: print it)")
+    export_gains.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    export_gains.set_defaults(run=_export)

@@ -1,0 +1,181 @@
+"""``spacegrasp margins``: gain and delay margins, time-domain and linear."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import jax
+
+from spacegrasp_jax import (
+    batching,
+    margins,
+    plausibility,
+    plots,
+    runfiles,
+    stability,
+)
+from spacegrasp_jax.cli.common import (
+    _capture_tolerances,
+    _check_envelope,
+    _claim,
+    _criteria,
+    _law,
+    _load_inputs,
+    _ranges,
+    _realism,
+    _warn,
+)
+from spacegrasp_jax.cli.options import (
+    UsageError,
+    _add_command,
+    _add_compile_cache_option,
+    _add_criteria_options,
+    _add_envelope_options,
+    _add_run_options,
+    _real,
+    _whole,
+)
+from spacegrasp_jax.perturbations import (
+    PerturbationError,
+    PerturbationRanges,
+)
+
+
+def _margins(args: argparse.Namespace) -> int:
+    """``spacegrasp margins``: the gain and delay margins of one gain set, by bisection on
+    batched rollouts over envelope samples (``spacegrasp_jax.margins``)."""
+    batching.use_all_cpu_cores()  # before anything touches a device
+    try:
+        margins.require_joint_servo(args.controller)
+        ranges = _ranges(args, PerturbationRanges())
+        settings = margins.MarginSettings(
+            samples=args.samples,
+            max_factor=args.max_factor,
+            factor_resolution=args.factor_resolution,
+            max_delay_periods=args.max_delay,
+            max_servo_delay_ticks=args.max_servo_delay,
+        )
+    except (margins.MarginError, PerturbationError) as error:
+        raise UsageError(str(error)) from None
+    robot, scenario, gains = _load_inputs(args)
+    realism = _realism(args, scenario)
+    config = _criteria(args, n=args.samples, seed=args.seed, ranges=ranges, realism=realism)
+    _warn(plausibility.input_warnings(scenario))
+    _check_envelope(args, scenario)
+    out = Path(args.out)
+    _claim(args, out)
+    period = margins.control_period(scenario, realism)
+    print(
+        f"margins of the {args.controller} law: probes of {args.samples} envelope samples, {scenario.duration:g} s each, "
+        f"control period {period:g} s, over {jax.device_count()} device(s)...",
+        file=sys.stderr,
+        flush=True,
+    )
+    result = margins.find_margins(
+        robot,
+        scenario,
+        gains,
+        args.controller,
+        config,
+        settings,
+        progress=lambda line: print(line, file=sys.stderr, flush=True),
+    )
+    result["linear"] = None
+    if args.no_linear:
+        result["linear_skipped"] = "--no-linear"
+    elif scenario.target is not None:
+        result["linear_skipped"] = "the linear analysis covers the paper's stationary target only"
+        print(f"linear analysis skipped: {result['linear_skipped']}", file=sys.stderr)
+    else:
+        print(
+            "linearising the loop at the end of the nominal capture (one compile, then one Jacobian a factor)...",
+            file=sys.stderr,
+            flush=True,
+        )
+        result["linear"] = stability.linear_analysis(
+            robot,
+            scenario,
+            gains,
+            _law(args.controller, args),
+            realism,
+            settings,
+            growth_limit_per_s=args.growth_limit,
+        )
+    result["settings"] |= {
+        "gains": gains.to_dict(args.controller),
+        "gains_source": args.gains or "paper_gains()",
+        "criteria": _capture_tolerances(config),
+        "campaign": config.to_dict(),
+        "scenario_duration_s": scenario.duration,
+        **runfiles.provenance(),
+    }
+    runfiles.write_json(out / "margins.json", result)
+    title = f"{args.controller}, {args.gains or 'paper gains'}, {args.samples} samples" + (
+        f", realism {args.realism}" if args.realism else ""
+    )
+    plots.save_margin_figures(out, result, 1e3 * config.position_tolerance_m, title, runfiles.write_atomically)
+    for line in margins.margin_lines(result) + (stability.linear_lines(result["linear"]) if result["linear"] else []):
+        print(line)
+    print(f"wrote {out}/: margins.json, margins.png" + (", eigenvalues.png" if result["linear"] else ""))
+    return 0
+
+
+def add_parsers(commands) -> None:
+    """The command's parser, added to ``commands``."""
+    margin = _add_command(
+        commands, "margins", help="gain and delay margins of a gain set, by bisection on envelope samples"
+    )
+    _add_envelope_options(margin, seed_help="campaign seed of the samples (default 0)")
+    margin.add_argument(
+        "--samples",
+        type=_whole(1, 100_000),
+        default=margins.MarginSettings.samples,
+        help=f"envelope samples every probe runs (default {margins.MarginSettings.samples})",
+    )
+    margin.add_argument(
+        "--max-factor",
+        type=_real(1.0, 1e6, above=True),
+        default=margins.MarginSettings.max_factor,
+        help=f"search the gain factors in [1/F, F] (default {margins.MarginSettings.max_factor:g})",
+    )
+    margin.add_argument(
+        "--factor-resolution",
+        type=_real(1.0, 1e6, above=True),
+        default=margins.MarginSettings.factor_resolution,
+        metavar="RATIO",
+        help="stop bisecting when the factor that holds and the one that fails differ by at most this ratio "
+        f"(default {margins.MarginSettings.factor_resolution:g})",
+    )
+    margin.add_argument(
+        "--max-delay",
+        type=_whole(1, 100_000),
+        default=margins.MarginSettings.max_delay_periods,
+        metavar="PERIODS",
+        help=f"the largest extra delay searched, in control periods (default {margins.MarginSettings.max_delay_periods})",
+    )
+    margin.add_argument(
+        "--max-servo-delay",
+        type=_whole(1, 100_000),
+        default=margins.MarginSettings.max_servo_delay_ticks,
+        metavar="TICKS",
+        help="the largest delay at the servo's input searched, in servo ticks, where the servos run at their own "
+        f"rate (default {margins.MarginSettings.max_servo_delay_ticks})",
+    )
+    margin.add_argument(
+        "--growth-limit",
+        type=_real(0.0, 1e6),
+        default=1.0,
+        metavar="PER_S",
+        help="the linear analysis counts a mode growing faster than this (1/s) as unstable (default 1)",
+    )
+    margin.add_argument(
+        "--no-linear",
+        action="store_true",
+        help="skip the linear analysis (the period map's eigenvalues and the linear gain margins)",
+    )
+    _add_criteria_options(margin)
+    _add_run_options(margin, "results/margins")
+    _add_compile_cache_option(margin)
+    margin.set_defaults(run=_margins)

@@ -1,0 +1,205 @@
+"""The options several commands share, their types, and the error a bad one raises."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from spacegrasp_jax.control import (
+    CONTROLLERS,
+)
+from spacegrasp_jax.perturbations import (
+    FREE_TARGET_RANGES,
+    PerturbationRanges,
+)
+from spacegrasp_jax.tuning.tune import TUNING_RANGES
+
+
+class UsageError(ValueError):
+    """A command-line option is invalid."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose every rejection is one line (exit 2), naming the option."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _whole(low: int, high: int):
+    """An option's type: a whole number in ``[low, high]``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be in [{low:,}, {high:,}], got {value:,}")
+        return value
+
+    parse.__name__ = "whole number"
+    return parse
+
+
+def _real(low: float, high: float, *, above: bool = False):
+    """An option's type: a finite number in ``[low, high]`` (``(low, high]`` if ``above``)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(value) or value < low or value > high or (above and value == low):
+            bounds = f"{'(' if above else '['}{low:g}, {high:g}]"
+            raise argparse.ArgumentTypeError(f"must be a finite number in {bounds}, got {text}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+#: Seeds are 32-bit (``jax.random.PRNGKey``).
+_SEED = _whole(0, 2**32 - 1)
+
+#: The help of every command's ``--robot``.
+ROBOT_HELP = (
+    "robot file (default: the paper's robot): a robot TOML, a URDF (its base link is the satellite), "
+    "or a TOML whose [urdf] table mounts a URDF arm on a satellite"
+)
+
+
+def _add_overwrite_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the run that --out holds (default: refuse a folder that holds anything)",
+    )
+
+
+def _add_animate_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--animate",
+        action="store_true",
+        help="also film each capture: capture_<law>.gif and a poster (spacegrasp animate)",
+    )
+    _add_film_options(parser)
+
+
+def _add_film_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--fps", type=_real(1.0, 120.0), default=30.0, help="frames a second of film (default 30)")
+    parser.add_argument(
+        "--speed", type=_real(0.01, 100.0), default=1.0, help="simulated seconds a second of film (default 1)"
+    )
+
+
+def _add_csv_option(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument("--csv", action="store_true", help=f"also write {what} as CSV (one row per row of the .npz)")
+
+
+def _add_run_options(parser: argparse.ArgumentParser, default_out: str) -> None:
+    parser.add_argument("--out", default=default_out, help=f"output folder (default {default_out})")
+    _add_overwrite_option(parser)
+    parser.add_argument("--robot", help=ROBOT_HELP)
+    parser.add_argument(
+        "--pinv-damping",
+        type=_real(0.0, 1e3),
+        default=0.0,
+        help="damping of the pseudoinverse (0: exact, the paper)",
+    )
+
+
+def _add_command(commands, name: str, help: str) -> argparse.ArgumentParser:
+    """A command's parser whose ``--help`` opens with the line ``spacegrasp --help`` lists."""
+    return commands.add_parser(name, help=help, description=help[0].upper() + help[1:] + ".")
+
+
+def _add_realism_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--realism",
+        metavar="ideal|flight|FILE",
+        help="the loop's realism: ideal (the paper's, default), flight, or a TOML file (documentation: Flight-like loop)",
+    )
+
+
+#: The envelopes ``--ranges`` knows by name: the campaigns' defaults, the tuning batch's and
+#: free-floating targets of 200 to 2,000 kg (with a scenario that has a [target]).
+NAMED_RANGES = {"montecarlo": PerturbationRanges(), "tuning": TUNING_RANGES, "free_target": FREE_TARGET_RANGES}
+
+
+def add_ranges_arguments(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--ranges`` and ``--range`` on ``parser``, whose envelope is ``default`` (a name)."""
+    parser.add_argument(
+        "--ranges",
+        metavar="montecarlo|tuning|free_target|FILE",
+        help=f"perturbation half-widths: a named envelope or a TOML file whose missing keys keep the {default} "
+        f"envelope's (default: {default}; documentation: File formats)",
+    )
+    parser.add_argument(
+        "--range",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="override one half-width, e.g. q_init_rad=0.05 (repeatable)",
+    )
+
+
+def _add_envelope_options(parser: argparse.ArgumentParser, seed_help: str) -> None:
+    """The gain set, its law and loop, and the envelope and seed its captures are drawn from
+    (``margins`` and ``worstcase``)."""
+    parser.add_argument("--controller", choices=CONTROLLERS, default="admittance")
+    parser.add_argument("--gains", help="gains JSON file (default: the paper's)")
+    parser.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
+    _add_realism_option(parser)
+    add_ranges_arguments(parser, "montecarlo")
+    parser.add_argument("--seed", type=_SEED, default=0, help=seed_help)
+
+
+def _add_criteria_options(parser: argparse.ArgumentParser) -> None:
+    """A capture's success criteria, as a campaign's (``campaign.CampaignConfig``), and what
+    the controller is told of each sample."""
+    parser.add_argument(
+        "--tolerance-mm",
+        type=_real(0.0, 1e6, above=True),
+        default=5.0,
+        help="success: final position error at most this (default 5 mm)",
+    )
+    parser.add_argument(
+        "--tolerance-deg",
+        type=_real(0.0, 180.0, above=True),
+        default=1.0,
+        help="success: final orientation error at most this (default 1 deg)",
+    )
+    parser.add_argument(
+        "--torque-limit",
+        type=_real(0.0, 1e6),
+        default=100.0,
+        metavar="NM",
+        help="success: peak |u_i| at most this, else the sample counts as unstable (default 100 N m; 0: no limit)",
+    )
+    parser.add_argument(
+        "--target-speed-limit",
+        type=_real(0.0, 100.0, above=True),
+        default=0.005,
+        metavar="MPS",
+        help="success, with a free-floating target: its final speed at most this (default 0.005 m/s)",
+    )
+    parser.add_argument(
+        "--identified",
+        action="store_true",
+        help="tell the controller each sample's perturbed satellite (default: it believes the nominal robot)",
+    )
+
+
+def _add_compile_cache_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--compile-cache",
+        metavar="DIR|none",
+        help="keep compiled programs in DIR for later runs (default: $JAX_COMPILATION_CACHE_DIR, "
+        "else ~/.cache/spacegrasp-jax/xla; 'none': compile everything afresh)",
+    )
+    parser.add_argument(
+        "--verbose",
+        action="store_true",
+        help="show XLA's and JAX's own log (XLA's slow-compile banner among it; hidden by default)",
+    )

@@ -1,0 +1,221 @@
+"""``spacegrasp reproduce``, ``simulate`` and ``replay``: closed-loop runs, with their torque
+table, verdicts, figures and files."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from spacegrasp_jax import (
+    campaign,
+    experiment,
+    plausibility,
+    runfiles,
+)
+from spacegrasp_jax.cli.common import (
+    _claim,
+    _films,
+    _is_papers_run,
+    _law,
+    _load_inputs,
+    _loop_words,
+    _perturbed,
+    _print_capture_verdicts,
+    _print_table,
+    _realism,
+    _run_caption,
+    _warn,
+    _write_results,
+)
+from spacegrasp_jax.cli.options import (
+    _SEED,
+    UsageError,
+    _add_animate_option,
+    _add_command,
+    _add_compile_cache_option,
+    _add_csv_option,
+    _add_overwrite_option,
+    _add_realism_option,
+    _add_run_options,
+    _whole,
+)
+from spacegrasp_jax.control import (
+    CONTROLLERS,
+    PAPER_CONTROLLERS,
+)
+
+
+def _run_controllers(args, controllers) -> int:
+    robot, scenario, gains = _load_inputs(args)
+    laws = {controller: _law(controller, args) for controller in controllers}
+    realism = _realism(args, scenario)
+    _warn(plausibility.input_warnings(scenario))
+    key = jax.random.PRNGKey(getattr(args, "seed", 0))
+    model_robot = None
+    if getattr(args, "perturbation", None):
+        robot, scenario, realism, model_robot, key = _perturbed(args.perturbation, robot, scenario, realism)
+    out = Path(args.out)
+    _claim(args, out)  # before the first compile, not after the run
+    results, diverged = {}, []
+    for controller in controllers:
+        print(
+            f"running the {controller} controller over {scenario.duration:g} s (dt = {scenario.dt:g} s)...", flush=True
+        )
+        try:
+            results[controller] = experiment.run(
+                robot,
+                scenario,
+                gains,
+                laws[controller],
+                realism=realism,
+                key=key,
+                model_robot=model_robot,
+            )
+        except experiment.SimulationDiverged as error:  # keep what it has: written below
+            results[controller] = error.result
+            diverged.append(error)
+    _print_table(results, beside_paper=_is_papers_run(args))
+    _print_capture_verdicts(results)
+    for controller, result in results.items():
+        _warn(plausibility.result_warnings(result.summary), f"{controller}: ")
+    config = experiment.run_config(
+        args.robot or "paper_robot()", scenario, gains, controllers, args.pinv_damping, realism
+    ) | {
+        "gains_source": args.gains if "gains" in args else None,
+        "realism_source": args.realism if "realism" in args else None,
+        "perturbation_source": getattr(args, "perturbation", None),
+    }
+    _write_results(
+        out,
+        results,
+        config,
+        beside_paper=_is_papers_run(args),
+        caption=_run_caption(
+            _loop_words(config["realism_source"]),
+            "the paper's gains" if config["gains_source"] is None else f"gains {Path(config['gains_source']).name}",
+            scenario,
+        ),
+        torque_limit_Nm=np.asarray(robot.joint_torque_limit),
+        csv=args.csv,
+    )
+    print(
+        f"wrote {out}/: table5.csv, summary.json, figures, timeseries_*.npz{', .csv' if args.csv else ''}, config.json"
+    )
+    if getattr(args, "animate", False):
+        failed = {error.controller for error in diverged}
+        logs = {controller: result.log for controller, result in results.items() if controller not in failed}
+        _films(args, out, list(logs), robot, scenario, logs)
+    for error in diverged:
+        print(
+            f"spacegrasp: error: {error}; its log up to that step and the state there are in {out}/",
+            file=sys.stderr,
+        )
+    return 3 if diverged else 0
+
+
+def _reproduce(args: argparse.Namespace) -> int:
+    return _run_controllers(args, PAPER_CONTROLLERS)
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    return _run_controllers(args, [args.controller])
+
+
+def _campaign_record(folder: Path) -> dict:
+    return json.loads((folder / "campaign.json").read_text())
+
+
+def _replay(args: argparse.Namespace) -> int:
+    """``spacegrasp replay CAMPAIGN --sample K``: one sample of a campaign again, with its
+    full log, as the campaign ran it (plant, scenario, loop, noise), for each variant."""
+    folder = Path(args.campaign)
+    try:
+        robot, scenario, variants, config = campaign.load_campaign(folder)
+    except campaign.CampaignError as error:
+        raise UsageError(str(error)) from None
+    if args.sample >= config.n:
+        raise UsageError(f"--sample: {args.sample} is beyond the campaign's {config.n} samples (0 to {config.n - 1})")
+    if args.variant is not None:
+        variants = [variant for variant in variants if variant.key == args.variant]
+        if not variants:
+            keys = ", ".join(
+                item["controller"] + "/" + item["gains_label"] for item in _campaign_record(folder)["variants"]
+            )
+            raise UsageError(f"--variant: {folder} has no variant {args.variant!r}; it has {keys}")
+    out = Path(args.out)
+    _claim(args, out)
+    results = {}
+    for variant in variants:
+        print(f"replaying sample {args.sample} of {folder} with {variant.key}...", flush=True)
+        results[variant.key] = campaign.replay(robot, scenario, variant, config, args.sample)
+    _print_table(results, beside_paper=False)
+    _print_capture_verdicts(results, config)
+    for key, result in results.items():
+        _warn(plausibility.result_warnings(result.summary), f"{key}: ")
+    loop = "ideal loop" if config.realism is None else "flight-like loop"
+    record = {
+        "campaign": str(folder),
+        "sample": args.sample,
+        "variants": [variant.key for variant in variants],
+        "campaign_record": _campaign_record(folder),
+        **runfiles.provenance(),
+    }
+    _write_results(
+        out,
+        results,
+        record,
+        beside_paper=False,
+        caption=_run_caption(f"sample {args.sample} of the campaign {folder.name}: {loop}", "its gains", scenario),
+        torque_limit_Nm=np.asarray(robot.joint_torque_limit),
+        csv=args.csv,
+        criteria=config,
+    )
+    print(
+        f"wrote {out}/: table5.csv, summary.json, figures, timeseries_*.npz{', .csv' if args.csv else ''}, config.json"
+    )
+    return 0
+
+
+def add_parsers(commands) -> None:
+    """The command's parsers, added to ``commands``."""
+    reproduce = _add_command(
+        commands, "reproduce", help="run both controllers with the paper's gains: Table 5 and Figures 4-9"
+    )
+    _add_run_options(reproduce, "results/reproduce")
+    _add_animate_option(reproduce)
+    _add_csv_option(reproduce, "the time series")
+    _add_compile_cache_option(reproduce)
+    reproduce.set_defaults(run=_reproduce)
+    simulate = _add_command(commands, "simulate", help="run one controller with any gains and scenario")
+    simulate.add_argument("--controller", choices=CONTROLLERS, required=True)
+    simulate.add_argument("--gains", help="gains JSON file (default: the paper's)")
+    simulate.add_argument("--scenario", help="scenario TOML or JSON file (default: the paper's)")
+    _add_realism_option(simulate)
+    simulate.add_argument("--seed", type=_SEED, default=0, help="seed of the sensors' noise key (default 0)")
+    simulate.add_argument(
+        "--perturbation",
+        metavar="FILE",
+        help="run the capture a perturbation file describes (worstcase's worst_perturbation.json), "
+        "with its noise key, on the nominal robot and scenario",
+    )
+    _add_run_options(simulate, "results/simulate")
+    _add_animate_option(simulate)
+    _add_csv_option(simulate, "the time series")
+    _add_compile_cache_option(simulate)
+    simulate.set_defaults(run=_simulate)
+    replay = _add_command(commands, "replay", help="run one sample of a campaign again with its full log and figures")
+    replay.add_argument("campaign", metavar="CAMPAIGN_DIR", help="a montecarlo output folder")
+    replay.add_argument("--sample", type=_whole(0, 100_000_000), required=True, metavar="K", help="the sample's index")
+    replay.add_argument(
+        "--variant", metavar="LAW/GAINS", help="one variant, e.g. admittance/paper (default: every one)"
+    )
+    replay.add_argument("--out", required=True, help="output folder")
+    _add_overwrite_option(replay)
+    _add_csv_option(replay, "the time series")
+    _add_compile_cache_option(replay)
+    replay.set_defaults(run=_replay)

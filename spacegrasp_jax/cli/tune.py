@@ -1,0 +1,347 @@
+"""``spacegrasp tune``: tuning the gains, resumable."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import spacegrasp_jax as sg
+from spacegrasp_jax import (
+    batching,
+    plausibility,
+    plots,
+    runfiles,
+    statistics,
+)
+from spacegrasp_jax.cli.common import _check_envelope, _claim, _paper_gains_for, _ranges, _realism, _run_caption, _warn
+from spacegrasp_jax.cli.options import (
+    _SEED,
+    ROBOT_HELP,
+    UsageError,
+    _add_command,
+    _add_compile_cache_option,
+    _add_overwrite_option,
+    _add_realism_option,
+    _real,
+    _whole,
+    add_ranges_arguments,
+)
+from spacegrasp_jax.control import (
+    CONTROLLERS,
+    load_gains,
+)
+from spacegrasp_jax.model import n_joints
+from spacegrasp_jax.realism import ideal, load_realism
+from spacegrasp_jax.scenario import load_scenario, paper_scenario
+from spacegrasp_jax.tuning.objective import OBJECTIVES, Weights
+from spacegrasp_jax.tuning.run import ResumeMismatchError, TuneSetupError, record_robot, record_scenario, tune
+from spacegrasp_jax.tuning.tune import METHODS, TUNING_RANGES, TuneConfig
+
+
+def _tune(args: argparse.Namespace) -> int:
+    batching.use_all_cpu_cores()  # before anything touches a device: the batch shards over the cores
+    try:
+        if args.resume:
+            _claim(args, Path(args.out))
+            return _tune_finished(Path(args.out), _resume_tune(args))
+        config = _tune_config(args)
+    except ResumeMismatchError as error:
+        raise UsageError(
+            f"--resume: {args.out} holds another run: {error.listed(_tune_option)}. Resume with the run's options "
+            f"(more --steps may continue a CMA-ES run, --holdout may change), or start a new run in another --out"
+        ) from None
+    except (TuneSetupError, ValueError) as error:
+        field, separator, rest = str(error).partition(": ")
+        option = _TUNE_OPTIONS.get(field)
+        raise UsageError(f"{option}: {rest}" if separator and option else str(error)) from None
+    # Every file read and checked now: tune() reads them again after writing run.json.
+    robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
+    scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
+    _realism(args, scenario)
+    _warn(plausibility.input_warnings(scenario))
+    _check_envelope(args, scenario)
+    if args.gains:
+        load_gains(args.gains, args.controller, n_joints(robot))
+    else:
+        _paper_gains_for(robot, args.controller)
+    _claim(args, Path(args.out))
+    try:
+        result = tune(
+            Path(args.out),
+            config=config,
+            gains_file=args.gains,
+            scenario_file=args.scenario,
+            robot_file=args.robot,
+            holdout=args.holdout,
+            stop=args.stop,
+        )
+    except TuneSetupError as error:
+        raise UsageError(str(error)) from None
+    return _tune_finished(Path(args.out), result)
+
+
+def _resume_tune(args: argparse.Namespace):
+    """``tune --resume``: the options given on the command line (not their defaults) must
+    be the recorded run's, but for the ones a resume may change."""
+    record = json.loads((Path(args.out) / "run.json").read_text()) if (Path(args.out) / "run.json").exists() else None
+    given = args.given - {"out", "resume", "compile_cache", "overwrite", "holdout", "gains", "scenario", "robot"}
+    config = None
+    if record is not None and given:
+        # The options given replace the record's (checked together, as the run would be):
+        # the command line's defaults of the others (CMA-ES's, say) are not the run's.
+        fresh = _tune_fields(args)
+        asked = {_TUNE_FIELDS.get(dest, dest) for dest in given} & set(fresh)
+        config = TuneConfig.from_dict(record["config"] | {field: runfiles.plain(fresh[field]) for field in asked})
+    return tune(
+        Path(args.out),
+        resume=True,
+        config=config,
+        gains_file=args.gains,
+        scenario_file=args.scenario,
+        robot_file=args.robot,
+        holdout=args.holdout if "holdout" in args.given else None,
+        stop=args.stop,
+    )
+
+
+#: TuneConfig's fields -> the options of ``spacegrasp tune`` that set them (for messages).
+_TUNE_OPTIONS = {
+    "frozen": "--freeze",
+    "optimizer": "--optimizer",
+    "cvar_alpha": "--cvar",
+    "learning_rate": "--lr",
+    "torque_guard_Nm": "--torque-guard",
+    "aggregate": "--aggregate",
+    "torque_fraction": "--torque-fraction",
+    "torque_cap_Nm": "--torque-cap",
+    "population": "--population",
+    "step_size": "--step-size",
+    "method": "--method",
+    "gradient": "--gradient",
+    "objective": "--objective",
+    "weights": "--weights",
+}
+
+#: The options of ``spacegrasp tune`` (their destinations) -> the TuneConfig fields they set.
+_TUNE_FIELDS = {option[2:].replace("-", "_"): field for field, option in _TUNE_OPTIONS.items()} | {"range": "ranges"}
+
+
+def _tune_option(name: str) -> str:
+    """The option of ``spacegrasp tune`` that sets a TuneConfig field (or a file) ``name``."""
+    return _TUNE_OPTIONS.get(name, "--" + name.replace("_", "-"))
+
+
+#: The objective's parts ``tune`` prints before and after (history.csv's names -> label, scale, unit).
+_TUNE_PARTS = {
+    "loss": ("objective", 1.0, ""),
+    "final_position_m": ("final position error", 1e3, "mm"),
+    "final_orientation_rad": ("final orientation error", 180.0 / math.pi, "deg"),
+    "rms_tracking_m": ("rms tracking error", 1e3, "mm"),
+    "position_margin": ("position margin (error / tolerance)", 1.0, ""),
+    "orientation_margin": ("orientation margin", 1.0, ""),
+    "torque_margin": ("torque margin (peak / constraint)", 1.0, ""),
+    "target_speed_margin": ("target speed margin", 1.0, ""),
+    "largest_peak_torque_Nm": ("largest peak torque", 1.0, "N m"),
+    "peak_contact_hard_N": ("peak contact force", 1.0, "N"),
+}
+
+
+def _print_tune_report(out: Path, history: list) -> None:
+    """What a tuning run did: each part of the objective over the training batch (mean)
+    at the first and the last step, the nominal run's numbers, and the held-out result."""
+    first, last = history[0], history[-1]
+    print(f"\n{'training batch (mean)':38} {'start':>12} {'tuned':>12}")
+    for name, (label, scale, unit) in _TUNE_PARTS.items():
+        if name in first and name in last:
+            label = f"{label} [{unit}]" if unit else label
+            print(f"{label:38} {scale * float(first[name]):>12.4g} {scale * float(last[name]):>12.4g}")
+    summary = json.loads((out / "summary.json").read_text())
+    start = summary.get("paper_gains") or summary.get("starting_gains")
+    tuned = summary["tuned_gains"]
+    print(f"\n{'nominal run, exact contact':38} {'start':>12} {'tuned':>12}")
+    for name, label, scale in (
+        ("final_position_error_m", "final position error [mm]", 1e3),
+        ("final_orientation_error_rad", "final orientation error [deg]", 180.0 / math.pi),
+        ("largest_peak_torque_Nm", "largest peak torque [N m]", 1.0),
+        ("max_contact_force_N", "peak contact force [N]", 1.0),
+    ):
+        print(f"{label:38} {scale * start[name]:>12.4g} {scale * tuned[name]:>12.4g}")
+    holdout = summary.get("holdout")
+    if holdout:
+        paired = holdout["success_tuned_vs_start"]
+        print(
+            f"\nheld out ({holdout['scenarios']} samples, seed {holdout['seed']}): captured "
+            f"{statistics.format_interval(holdout['success_start'])} with the starting gains, "
+            f"{statistics.format_interval(holdout['success_tuned'])} tuned; exact McNemar p = {paired['p_value']:.2g} "
+            f"({paired['only_candidate']} captures only the tuned gains make, {paired['only_reference']} only the starting)"
+        )
+        print(
+            f"held-out objective: mean {holdout['mean_objective_start']:.4g} -> {holdout['mean_objective_tuned']:.4g}, "
+            f"median largest peak torque {holdout['median_largest_peak_torque_Nm_start']:.3g} -> "
+            f"{holdout['median_largest_peak_torque_Nm_tuned']:.3g} N m"
+        )
+
+
+def _tune_finished(out: Path, result) -> int:
+    """The report and figures of a finished tuning run; the exit code (130: interrupted)."""
+    if result.status == "interrupted":
+        return 130
+    _print_tune_report(out, result.history)
+    record = json.loads((out / "run.json").read_text())
+    robot = record_robot(record)
+    realism = record["config"]["realism"]
+    loop = "ideal loop (the paper's)" if realism is None or realism == ideal().to_dict() else "flight-like loop"
+    start = (
+        "from the paper's gains"
+        if record["gains_source"] == "paper_gains()"
+        else f"from {Path(record['gains_source']).name}"
+    )
+    plots.save_tuning_figures(
+        result.history,
+        result.log_before,
+        result.log_after,
+        out,
+        runfiles.write_atomically,
+        caption=_run_caption(loop, start, record_scenario(robot, record)),
+        torque_limit_Nm=np.asarray(robot.joint_torque_limit),
+    )
+    print(
+        f"wrote {out}/: gains.json, history.csv, summary.json, loss.png, peak_torques.png, ee_pose.png", file=sys.stderr
+    )
+    return 0
+
+
+def _tune_config(args: argparse.Namespace) -> TuneConfig:
+    """The tuning options of the command line (validated by TuneConfig and Weights)."""
+    return TuneConfig(**_tune_fields(args))
+
+
+def _tune_fields(args: argparse.Namespace) -> dict:
+    """TuneConfig's fields as the command line gives them, not yet checked together."""
+    return dict(
+        controller=args.controller,
+        steps=args.steps,
+        learning_rate=args.lr,
+        optimizer=args.optimizer,
+        weights=Weights.parse(args.weights),
+        batch=args.batch,
+        cvar_alpha=args.cvar,
+        seed=args.seed,
+        frozen=tuple(filter(None, args.freeze.split(","))),
+        gradient=args.gradient,
+        torque_guard_Nm=args.torque_guard,
+        realism=load_realism(args.realism).to_dict() if args.realism else None,
+        aggregate=args.aggregate or ("clip" if args.realism and args.method == "gradient" else "mean"),
+        ranges=_ranges(args, TUNING_RANGES),
+        objective=args.objective,
+        method=args.method,
+        population=args.population,
+        step_size=args.step_size,
+        torque_fraction=args.torque_fraction,
+        torque_cap_Nm=args.torque_cap,
+    )
+
+
+def add_parsers(commands) -> None:
+    """The command's parser, added to ``commands``."""
+    tune = _add_command(
+        commands, "tune", help="tune the gains for capture success: CMA-ES or gradient descent (resumable)"
+    )
+    tune.add_argument("--out", required=True, help="output folder (also holds the checkpoint)")
+    _add_overwrite_option(tune)
+    tune.add_argument("--controller", choices=CONTROLLERS, default="admittance")
+    tune.add_argument("--steps", type=_whole(1, 1_000_000), default=60, help="optimiser steps (default 60)")
+    tune.add_argument(
+        "--lr",
+        type=_real(0.0, 10.0, above=True),
+        default=0.15,
+        help="initial step size in log-gain space (default 0.15)",
+    )
+    tune.add_argument(
+        "--method",
+        choices=METHODS,
+        default=TuneConfig.method,
+        help=f"gradient: optax on the gradient; cmaes: CMA-ES, --steps generations of forward rollouts (default {TuneConfig.method})",
+    )
+    tune.add_argument(
+        "--population",
+        type=_whole(2, 10_000),
+        default=None,
+        help="CMA-ES candidates per generation (default 4 + 3 ln(number of tuned gains))",
+    )
+    tune.add_argument(
+        "--step-size",
+        type=_real(0.0, 10.0, above=True),
+        default=TuneConfig.step_size,
+        help=f"CMA-ES's initial step in log-gain units (default {TuneConfig.step_size}: about +-30%% on every gain)",
+    )
+    tune.add_argument(
+        "--objective",
+        choices=OBJECTIVES,
+        default=TuneConfig.objective,
+        help=f"capture: the margins to the success criteria, torque a constraint at the motors' limits; weighted: "
+        f"errors against torque relative to the starting gains (default {TuneConfig.objective})",
+    )
+    tune.add_argument(
+        "--torque-fraction",
+        type=_real(0.0, 10.0, above=True),
+        default=1.0,
+        help="the capture objective's torque constraint as a fraction of the motors' limits (default 1)",
+    )
+    tune.add_argument(
+        "--torque-cap",
+        type=_real(0.0, 1000.0, above=True),
+        default=None,
+        metavar="NM",
+        help="the capture objective's torque budget in N m for every joint, where below its fraction of the "
+        "limit (default: none)",
+    )
+    tune.add_argument(
+        "--weights",
+        default="",
+        help="the weighted objective's weights, e.g. final_position=1,peak_torque=4 (documentation: Tuning the gains)",
+    )
+    tune.add_argument(
+        "--batch", type=_whole(1, 65_536), default=4, help="scenarios per step: nominal + batch-1 perturbed (default 4)"
+    )
+    tune.add_argument(
+        "--cvar",
+        type=_real(0.0, 1.0),
+        default=None,
+        help="optimise CVaR at this level over the batch instead of the mean",
+    )
+    tune.add_argument("--seed", type=_SEED, default=0, help="seed of the perturbed scenarios")
+    tune.add_argument("--optimizer", default="adam", help="any optax optimiser taking a learning rate (default adam)")
+    tune.add_argument("--freeze", default="", help="gain groups to keep fixed, e.g. kd,ki")
+    tune.add_argument("--gradient", choices=("reverse", "forward"), default="reverse")
+    tune.add_argument(
+        "--torque-guard",
+        type=_real(0.0, 1e6, above=True),
+        default=100.0,
+        help="reject steps whose peak torque exceeds this (N m)",
+    )
+    tune.add_argument(
+        "--holdout",
+        type=_whole(0, 1_000_000),
+        default=100,
+        help="held-out perturbed scenarios for the final evaluation",
+    )
+    tune.add_argument("--gains", help="starting gains JSON (default: the paper's)")
+    tune.add_argument("--scenario", help="scenario TOML/JSON (default: the paper's)")
+    tune.add_argument("--robot", help=ROBOT_HELP)
+    tune.add_argument("--resume", action="store_true", help="continue the run in --out from its last completed step")
+    add_ranges_arguments(tune, "tuning")
+    _add_realism_option(tune)
+    tune.add_argument(
+        "--aggregate",
+        choices=("mean", "clip"),
+        help="the gradient method under --realism: combine the samples' gradients as their mean, or clip each to 3x "
+        "the median norm first (default: clip there, else mean)",
+    )
+    _add_compile_cache_option(tune)
+    tune.set_defaults(run=_tune)

@@ -1,0 +1,238 @@
+"""``spacegrasp worstcase``: the worst capture of the envelope, by gradient ascent."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import shlex
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from spacegrasp_jax import (
+    batching,
+    experiment,
+    plausibility,
+    plots,
+    runfiles,
+    worstcase,
+)
+from spacegrasp_jax.cli.common import (
+    _capture_tolerances,
+    _check_envelope,
+    _claim,
+    _criteria,
+    _law,
+    _load_inputs,
+    _ranges,
+    _realism,
+    _run_caption,
+    _warn,
+    _with_capture,
+    _write_results,
+)
+from spacegrasp_jax.cli.options import (
+    UsageError,
+    _add_command,
+    _add_compile_cache_option,
+    _add_criteria_options,
+    _add_envelope_options,
+    _add_run_options,
+    _whole,
+)
+from spacegrasp_jax.model import n_joints
+from spacegrasp_jax.montecarlo import perturbed_loop
+from spacegrasp_jax.perturbations import (
+    PerturbationError,
+    PerturbationRanges,
+    from_units,
+)
+
+
+def _worstcase(args: argparse.Namespace) -> int:
+    """``spacegrasp worstcase``: the worst capture of the envelope by gradient ascent, against
+    a campaign of the same rollouts (``spacegrasp_jax.worstcase``)."""
+    batching.use_all_cpu_cores()  # before anything touches a device
+    try:
+        ranges = _ranges(args, PerturbationRanges())
+        settings = worstcase.SearchSettings(budget=args.budget, measure=args.measure, starts=args.starts)
+    except (worstcase.WorstCaseError, PerturbationError) as error:
+        raise UsageError(str(error)) from None
+    robot, scenario, gains = _load_inputs(args)
+    realism = _realism(args, scenario)
+    config = _criteria(args, n=1, seed=args.seed, ranges=ranges, realism=realism)
+    if args.measure == "criteria" and config.torque_limit_Nm is None:
+        _warn(["--measure criteria with --torque-limit 0: the peak torque is not among the criteria"])
+    _warn(plausibility.input_warnings(scenario))
+    _check_envelope(args, scenario)
+    out = Path(args.out)
+    _claim(args, out)
+    unit, meaning = worstcase.MEASURES[args.measure]
+    print(
+        f"worst case of the {args.controller} law: {meaning}, {args.budget} rollouts "
+        f"({settings.screening} screened, {settings.ascent_steps} ascent steps of {settings.starts} starts), "
+        f"{scenario.duration:g} s each, over {jax.device_count()} device(s)...",
+        file=sys.stderr,
+        flush=True,
+    )
+    say = lambda line: print(line, file=sys.stderr, flush=True)
+    found = worstcase.search(robot, scenario, gains, args.controller, config, settings, progress=say)
+    say(f"the campaign of the same {args.budget} rollouts (its first {len(found.screening)} are the screening's)...")
+    baseline = worstcase.compare_with_campaign(
+        robot,
+        scenario,
+        gains,
+        args.controller,
+        config,
+        args.budget,
+        args.measure,
+        chunk=settings.campaign_chunk,
+        screened=found.screening,
+    )
+    units = jax.tree.map(jnp.asarray, found.units)
+    replay_file = out / "worst_perturbation.json"
+    runfiles.write_json(replay_file, worstcase.perturbation_document(found.units, ranges, found.key, config.identified))
+    campaign_units = jax.tree.map(
+        lambda x: x[0], worstcase.units_of_samples(args.seed, [baseline["sample"]], n_joints=n_joints(robot))
+    )
+    campaign_key = worstcase.noise_keys(args.seed, [baseline["sample"]])[0]
+    runfiles.write_json(
+        out / "campaign_worst_perturbation.json",
+        worstcase.perturbation_document(campaign_units, ranges, campaign_key, config.identified),
+    )
+    plant, perturbed, loop_realism, model_robot = perturbed_loop(
+        robot, scenario, from_units(units, ranges), ranges, realism, config.identified
+    )
+    say("the worst capture again, with its whole log...")
+    result = experiment.run(
+        plant,
+        perturbed,
+        gains,
+        _law(args.controller, args),
+        realism=loop_realism,
+        key=jnp.asarray(found.key, dtype=jnp.uint32),
+        model_robot=model_robot,
+        check=False,
+    )
+    perturbation = jax.tree.map(lambda x: np.asarray(x).tolist(), vars(from_units(units, ranges)))
+    replay_command = ["spacegrasp", "simulate", "--controller", args.controller]
+    for option, value in (("--gains", args.gains), ("--scenario", args.scenario), ("--robot", args.robot)):
+        if value:
+            replay_command += [option, value]
+    if args.realism:
+        replay_command += ["--realism", args.realism]
+    if args.pinv_damping:
+        replay_command += ["--pinv-damping", f"{args.pinv_damping:g}"]
+    replay_command += ["--perturbation", str(replay_file), "--out", str(out / "replay")]
+    document = {
+        "measure": args.measure,
+        "unit": unit,
+        "meaning": meaning,
+        "worst_found": {
+            "value": found.value,
+            "start": found.start,
+            "start_sample": None if found.start < 0 else found.start_samples[found.start],
+            "units": worstcase.units_to_dict(found.units),
+            "perturbation": perturbation,
+            "noise_key": [int(x) for x in found.key],
+            "summary": _with_capture(result.summary, config),
+        },
+        "campaign": {
+            "n": args.budget,
+            "seed": args.seed,
+            "worst": baseline["value"],
+            "worst_sample": baseline["sample"],
+        },
+        "worse_than_the_campaign": bool(found.value >= baseline["value"]),
+        "rollouts": found.rollouts,
+        "screening": int(len(found.screening)),
+        "compile_s": found.compile_s,
+        "search_s": found.search_s,
+        "history": found.history,
+        "replay": shlex.join(replay_command),
+        "settings": dataclasses.asdict(settings)
+        | {
+            "controller": args.controller,
+            "gains": gains.to_dict(args.controller),
+            "gains_source": args.gains or "paper_gains()",
+            "criteria": _capture_tolerances(config),
+            "campaign": config.to_dict(),
+            "scenario_duration_s": scenario.duration,
+            **runfiles.provenance(),
+        },
+    }
+    runfiles.write_json(out / "worstcase.json", document)
+    loop = "ideal loop" if realism is None else "flight-like loop"
+    _write_results(
+        out,
+        {args.controller: result},
+        {"worstcase": str(out / "worstcase.json")},
+        beside_paper=False,
+        caption=_run_caption(f"the worst capture found ({args.measure}): {loop}", "its gains", scenario),
+        torque_limit_Nm=np.asarray(robot.joint_torque_limit),
+        criteria=config,
+    )
+    label = f"{args.measure} [{unit}]" if unit else args.measure
+    title = f"worst case, {args.controller}, {args.gains or 'paper gains'}" + (
+        f", realism {args.realism}" if args.realism else ""
+    )
+    plots.save(
+        {
+            "search.png": plots.figure_worst_case_search(
+                found.history, baseline["values"], len(found.screening), label, title
+            )
+        },
+        out,
+        runfiles.write_atomically,
+    )
+    where = "a screened sample" if found.start < 0 else f"the ascent from start {found.start}"
+    print(
+        f"worst {args.measure} found: {found.value:.6g} {unit} ({where}); worst of a campaign of {args.budget}: "
+        f"{baseline['value']:.6g} {unit} (sample {baseline['sample']})"
+    )
+    print(f"{found.rollouts} rollouts in {found.search_s:.1f} s, after {found.compile_s:.1f} s compiling")
+    print(f"replay it: {shlex.join(replay_command)}")
+    if baseline["value"] > found.value:
+        print(
+            "the campaign's worst sample is worse than the search's: replay it with --perturbation "
+            f"{out / 'campaign_worst_perturbation.json'}"
+        )
+    print(
+        f"wrote {out}/: worstcase.json, worst_perturbation.json, campaign_worst_perturbation.json, search.png, "
+        "the worst capture's summary.json, figures, timeseries"
+    )
+    return 0
+
+
+def add_parsers(commands) -> None:
+    """The command's parser, added to ``commands``."""
+    worst = _add_command(
+        commands, "worstcase", help="the worst capture of the envelope by gradient ascent, against a campaign"
+    )
+    _add_envelope_options(worst, seed_help="campaign seed of the screening (default 0)")
+    worst.add_argument(
+        "--budget",
+        type=_whole(1, 10_000_000),
+        default=worstcase.SearchSettings.budget,
+        help=f"rollouts in all, a gradient counting {worstcase.GRADIENT_COST} (default {worstcase.SearchSettings.budget})",
+    )
+    worst.add_argument(
+        "--measure",
+        choices=tuple(worstcase.MEASURES),
+        default=worstcase.SearchSettings.measure,
+        help="what makes a capture worse: its final position error, its largest peak torque, or its largest "
+        "ratio to the success criteria (default %(default)s)",
+    )
+    worst.add_argument(
+        "--starts",
+        type=_whole(1, 1_000),
+        default=worstcase.SearchSettings.starts,
+        help=f"ascents side by side: the screening's worst and a random corner (default {worstcase.SearchSettings.starts})",
+    )
+    _add_criteria_options(worst)
+    _add_run_options(worst, "results/worstcase")
+    _add_compile_cache_option(worst)
+    worst.set_defaults(run=_worstcase)
