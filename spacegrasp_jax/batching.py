@@ -14,11 +14,12 @@ padded with copies of the last item (computed, then dropped).
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 
 import jax
 import numpy as np
@@ -75,6 +76,28 @@ def take(batched, rows):
     return jax.tree.map(lambda leaf: np.asarray(leaf)[rows], batched)
 
 
+def program_settings(function: Callable) -> Hashable:
+    """What, besides its arguments' shapes, identifies the program ``function`` makes: for a
+    ``functools.partial``, the function and every argument it fixes (the static settings, such
+    as the law object, the measure or the criteria: a setting added to the partial is in the
+    key with nothing else to change); for any other function, the function object itself (a
+    fresh closure is a new program).
+
+    Raises:
+        BatchingError: a fixed argument is not hashable (it could not tell programs apart).
+    """
+    if not isinstance(function, functools.partial):
+        return function
+    settings = (program_settings(function.func), function.args, tuple(sorted(function.keywords.items())))
+    try:
+        hash(settings)
+    except TypeError as error:
+        raise BatchingError(
+            f"{function}: a fixed argument is not hashable ({error}); pass arrays as arguments"
+        ) from None
+    return settings
+
+
 def compile_chunk(
     name: str,
     function: Callable,
@@ -82,22 +105,22 @@ def compile_chunk(
     chunk_example,
     *,
     device_batch: int | None = None,
-    key=(),
 ) -> tuple[Callable, float]:
     """Compile ``function(*replicated, block)`` for chunks shaped like ``chunk_example``,
     once per process ([`compile_once()`][spacegrasp_jax.compilation.compile_once]).
 
     Args:
-        name: the job's name; with ``key`` and the arguments' shapes it identifies the
-            program (``function`` itself may be a fresh ``functools.partial`` each call).
-        function: pure, batch in and batch out (e.g. a ``vmap``).
+        name: the job's name (the compile line's).
+        function: pure, batch in and batch out (e.g. a ``vmap``); with the arguments'
+            shapes, [`program_settings()`][spacegrasp_jax.batching.program_settings] of it
+            identifies the program, so a fresh ``functools.partial`` with the same settings
+            reuses it.
         replicated: arguments every device receives whole.
         chunk_example: a chunk (pytree, leading axis ``chunk``, a multiple of the device
             count); only its shapes matter.
         device_batch: items each device computes at once (``None``: its whole share). A
             share larger than this is run as a ``lax.map`` over sub-batches of it, if it
             divides the share; on a CPU, 128 keeps a sub-batch's states in cache.
-        key: hashable; whatever else shapes the program (static settings).
 
     Returns:
         ``(executable, compile_s)``.
@@ -133,7 +156,7 @@ def compile_chunk(
 
     signature = compilation.argument_signature((replicated, take(chunk_example, slice(0, 0))))
     return compilation.compile_once(
-        ("batch", name, key, chunk, sub_batch, tuple(jax.devices()), signature),
+        ("batch", name, program_settings(function), chunk, sub_batch, tuple(jax.devices()), signature),
         lower,
         label=f"{name} ({chunk} items a call)",
     )
@@ -159,7 +182,6 @@ def map_in_chunks(
     *,
     chunk: int = 64,
     device_batch: int | None = None,
-    key=(),
     progress=sys.stderr,
     label: str = "items",
 ):
@@ -177,7 +199,6 @@ def map_in_chunks(
         replicated,
         take(batched, np.minimum(np.arange(chunk), n - 1)),
         device_batch=device_batch,
-        key=key,
     )
     pieces = []
     for first in range(0, n, chunk):
@@ -202,6 +223,7 @@ __all__ = [
     "batch_size",
     "chunk_size",
     "compile_chunk",
+    "program_settings",
     "map_in_chunks",
     "run_chunk",
     "take",

@@ -191,7 +191,6 @@ def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
     function = functools.partial(
         _evaluate_chunk, controller=law, every=config.timeseries_every, identified=config.identified
     )
-    key = (law, config.timeseries_every, config.identified)
     replicated = (robot, scenario, variant.gains, np.uint32(config.seed), config.realism, config.ranges)
     try:
         return batching.compile_chunk(
@@ -200,7 +199,6 @@ def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
             replicated,
             np.zeros(config.chunk, np.uint32),
             device_batch=config.device_batch,
-            key=key,
         )
     except batching.BatchingError as error:
         raise CampaignError(str(error)) from None

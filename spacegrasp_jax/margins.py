@@ -282,12 +282,11 @@ class Prober:
             servo_capacity=servo_capacity,
             identified=self.config.identified,
         )
-        key = (law, self.settings.max_delay_periods, servo_capacity, self.config.identified)
         try:
             realism = self.config.realism
             loop = "ideal loop" if realism is None or realism.is_ideal(self.scenario.dt) else "flight-like loop"
             self._executable, self.compile_s = batching.compile_chunk(
-                f"margins, {self.controller}, {loop}", function, self._replicated(self.gains, 0), self._indices, key=key
+                f"margins, {self.controller}, {loop}", function, self._replicated(self.gains, 0), self._indices
             )
         except batching.BatchingError as error:
             raise CampaignError(str(error)) from None

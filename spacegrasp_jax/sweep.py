@@ -163,7 +163,6 @@ def evaluate_gains(
         (robot, scenario),
         batch,
         chunk=chunk,
-        key=(law,),
         progress=progress,
         label="gain sets",
     )

@@ -299,7 +299,6 @@ def search(
         else config.realism.steps_per_period(scenario.dt),
     )
     replicated = (robot, scenario, gains, config.ranges, config.realism)
-    key = ("worstcase", law, settings.measure, config.identified)
     try:
         executable, gradient_compile_s = batching.compile_chunk(
             f"worst-case gradient, {controller}",
@@ -307,7 +306,6 @@ def search(
             replicated,
             jax.tree.map(pad, (units, keys)),
             device_batch=1,
-            key=key,
         )
     except batching.BatchingError as error:
         raise CampaignError(str(error)) from None

@@ -111,3 +111,35 @@ def test_ranges_travel_as_values_with_their_zero_pattern_as_structure():
     )
     assert jax.tree.structure(quiet) != structure
     assert jax.tree.structure(dataclasses.replace(ranges, q_init_rad=0.3)) == structure
+
+
+def _scaled_sum(offset, block, *, scale):
+    return scale * (block + offset)
+
+
+def test_a_programs_settings_are_its_key_so_another_setting_is_another_program():
+    """``batching`` keys a program by the function and every setting a ``functools.partial``
+    fixes: the same settings in a fresh partial reuse the program, another value of any of
+    them makes a new one (a key written by hand that forgot one would run the old program)."""
+    import functools
+
+    from spacegrasp_jax import batching
+
+    block = np.arange(4.0)
+    listener = _Compiles()
+    with compilation.listening(listener):
+        twice = batching.map_in_chunks(
+            "settings test", functools.partial(_scaled_sum, scale=2.0), (1.0,), block, chunk=4, progress=None
+        )
+        again = batching.map_in_chunks(
+            "settings test", functools.partial(_scaled_sum, scale=2.0), (5.0,), block, chunk=4, progress=None
+        )
+        thrice = batching.map_in_chunks(
+            "settings test", functools.partial(_scaled_sum, scale=3.0), (1.0,), block, chunk=4, progress=None
+        )
+    np.testing.assert_array_equal(twice, 2.0 * (block + 1.0))
+    np.testing.assert_array_equal(again, 2.0 * (block + 5.0))  # a value: the same program
+    np.testing.assert_array_equal(thrice, 3.0 * (block + 1.0))  # a setting: another program
+    assert len(listener.labels) == 2, listener.labels
+    with pytest.raises(batching.BatchingError, match="not hashable"):
+        batching.program_settings(functools.partial(_scaled_sum, scale=np.ones(2)))

@@ -213,7 +213,6 @@ def test_the_ascents_gradient_matches_central_differences(robot):
         replicated,
         (units, keys),
         device_batch=1,
-        key=("worstcase", law, "final_error", config.identified),
     )
     values, gradients = batching.run_chunk(executable, replicated, (units, keys))
     rng = np.random.default_rng(5)

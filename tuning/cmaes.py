@@ -120,7 +120,6 @@ def make_population_evaluator(
             (model_robot, objective),
             items,
             chunk=chunk,
-            key=(controller, realism_loop),
             progress=None,
         )
         return {name: value.reshape(count, batch) for name, value in parts.items()}

@@ -27,6 +27,7 @@ larger gain raises the loss by about 0.005.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import jax
@@ -96,33 +97,44 @@ def horizon_steps(n_steps: int, horizons=HORIZONS) -> tuple[int, ...]:
     return tuple(max(1, round(fraction * n_steps)) for fraction in horizons)
 
 
-def make_item_function(controller, steps, segment):
-    """``(base, mask, objective, model_robot, item) -> (losses (H,), gradients group -> (H, size))`` for
-    one item ``(params, robot, scenario, realism, key)``: a rollout at the gains ``params``
-    (log-gains over ``base``), the objective of its log cut at each of ``steps`` rows, and
-    their gradients (one reverse pass per horizon)."""
+def _horizon_losses(
+    params, base, mask, objective, model_robot, robot, scenario, realism, key, *, controller, steps, segment
+):
+    """(H,) the objective of one rollout at the log-gains ``params`` (over ``base``), its log
+    cut at each of ``steps`` rows."""
+    gains = gains_from_params(params, base, mask)
+    _, log = rollout(
+        robot,
+        scenario,
+        gains,
+        controller,
+        checkpoint_segment=segment,
+        realism=realism,
+        key=key,
+        model_robot=model_robot,
+    )
+    return jnp.stack([objective_parts(jax.tree.map(lambda x: x[:rows], log), objective)["loss"] for rows in steps])
 
-    def horizon_losses(params, base, mask, objective, model_robot, robot, scenario, realism, key):
-        gains = gains_from_params(params, base, mask)
-        _, log = rollout(
-            robot,
-            scenario,
-            gains,
-            controller,
-            checkpoint_segment=segment,
-            realism=realism,
-            key=key,
-            model_robot=model_robot,
-        )
-        return jnp.stack([objective_parts(jax.tree.map(lambda x: x[:rows], log), objective)["loss"] for rows in steps])
 
-    def item(base, mask, objective, model_robot, arguments):
-        params, *loop = arguments
-        losses, pullback = jax.vjp(lambda p: horizon_losses(p, base, mask, objective, model_robot, *loop), params)
-        (gradients,) = jax.vmap(pullback)(jnp.eye(len(steps), dtype=losses.dtype))
-        return losses, gradients
+def _item_gradients(base, mask, objective, model_robot, item, *, controller, steps, segment):
+    """``(losses (H,), gradients group -> (H, size))`` of one item ``(params, robot, scenario,
+    realism, key)``: the horizon losses (``_horizon_losses()``)
+    and their gradients, one reverse pass per horizon."""
+    params, *loop = item
+    settings = dict(controller=controller, steps=steps, segment=segment)
+    losses, pullback = jax.vjp(
+        lambda p: _horizon_losses(p, base, mask, objective, model_robot, *loop, **settings), params
+    )
+    (gradients,) = jax.vmap(pullback)(jnp.eye(len(steps), dtype=losses.dtype))
+    return losses, gradients
 
-    return item
+
+def _block(*arguments, controller, steps, segment):
+    """One device's share of items, one after another (the tape of one at a time)."""
+    base, mask, objective, *believed, batch = arguments
+    model_robot = believed[0] if believed else None
+    settings = dict(controller=controller, steps=steps, segment=segment)
+    return jax.lax.map(lambda one: _item_gradients(base, mask, objective, model_robot, one, **settings), batch)
 
 
 def envelope_gradients(
@@ -158,12 +170,8 @@ def envelope_gradients(
     items, model_robot, perturbations = _nominal_first(robot, scenario, seed, n, ranges, realism)
     steps = horizon_steps(scenario.n_steps, horizons)
     segment = 1 if items[2] is not None else checkpoint_segment(scenario.n_steps)
-    item = make_item_function(law, steps, segment)
+    block = functools.partial(_block, controller=law, steps=steps, segment=segment)
     replicated = (gains, mask, objective) if model_robot is None else (gains, mask, objective, model_robot)
-
-    def block(*arguments):  # one device's share, one item after another (the tape of one)
-        base, mask, objective, *believed, batch = arguments
-        return jax.lax.map(lambda one: item(base, mask, objective, believed[0] if believed else None, one), batch)
 
     def evaluate(item_params, rows):
         batched = (item_params, *batching.take(items, np.asarray(rows)))
@@ -173,7 +181,6 @@ def envelope_gradients(
             replicated,
             batched,
             chunk=chunk,
-            key=(law, steps, segment),
             progress=progress,
             label="gradients",
         )

@@ -185,7 +185,6 @@ def evaluate_flight(model_robot, batch: SampleLoops, gains, controller: str, obj
         (model_robot, gains, objective),
         samples,
         chunk=chunk,
-        key=(controller,),
         progress=None,
     )
 
@@ -197,7 +196,7 @@ def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chu
     program, so evaluating another gain set or objective reuses it."""
     function = functools.partial(_scenarios_parts, controller=controller)
     return batching.map_in_chunks(
-        "tuning.evaluate", function, (robot, gains, objective), scenarios, chunk=chunk, key=(controller,), progress=None
+        "tuning.evaluate", function, (robot, gains, objective), scenarios, chunk=chunk, progress=None
     )
 
 

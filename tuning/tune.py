@@ -455,7 +455,7 @@ def make_value_and_grad(loss: BoundLoss, params, mode: str) -> BoundProgram:
     return BoundProgram(
         _gradient_program(loss.function, mode, jax.tree.structure(params)),
         loss.values,
-        settings=("tuning.gradient", mode, *sorted(static.items())),
+        settings=("tuning.gradient", mode, batching.program_settings(loss.function)),
         label=f"the {mode}-mode gradient of the {static['controller']} law's tuning loss",
     )
 
@@ -533,7 +533,6 @@ def make_flight_value_and_grad(
             (params, base, mask, batch.model_robot, objective),
             samples,
             chunk=count,
-            key=(config.controller,),
             progress=None,
         )
         losses, gradients = jnp.asarray(losses), jax.tree.map(jnp.asarray, gradients)
