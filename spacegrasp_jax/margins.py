@@ -53,6 +53,7 @@ from spacegrasp_jax import batching
 from spacegrasp_jax.campaign import CampaignConfig, CampaignError
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.law import Output
+from spacegrasp_jax.control.pid import PID
 from spacegrasp_jax.control.registry import LAWS, as_controller, law_named
 from spacegrasp_jax.model import Robot, n_joints
 from spacegrasp_jax.montecarlo import evaluate_samples, lost, success
@@ -62,7 +63,7 @@ from spacegrasp_jax.simulate import ServoInputDelay
 #: The loops whose gain is probed: the joint PID's and the law's.
 LOOPS = ("pid", "law")
 #: The gain groups the joint PID loop's factor scales (all multiplied by it).
-PID_LOOP_GROUPS = {"kp": 1, "ki": 1, "kd": 1}
+PID_LOOP_GROUPS = dict.fromkeys(PID.gain_groups, 1)
 
 
 class MarginError(ValueError):

@@ -678,7 +678,7 @@ def flight_loop(
         held = dict(
             control.logged(command, state.controller.law),
             command=command,
-            qd_des_computed=control.logged(computed, state.controller.law)["qd_des"],
+            qd_des_computed=control.desired_rates(computed),
             fts_force_measured=reading[:3],
             fts_torque_measured=reading[3:],
         )

@@ -332,6 +332,16 @@ def cases(paths, out):
             [*MONTECARLO, "--controller", "impedance", "--out", out],
             "--gains: required for the impedance law",
         ),
+        "simulate a damping the law has not": (
+            ["simulate", "--controller", "impedance", "--gains", str(CONFIGS / "impedance_gains.json")]
+            + ["--pinv-damping", "0.1", "--out", out],
+            "--pinv-damping: pinv_damping: the impedance law has no pseudoinverse to damp",
+        ),
+        "worstcase a damping the law has not": (
+            [*WORSTCASE, "--controller", "impedance", "--gains", str(CONFIGS / "impedance_gains.json")]
+            + ["--pinv-damping", "0.1", "--out", out],
+            "--pinv-damping: pinv_damping: the impedance law has no pseudoinverse to damp",
+        ),
         "tune a law outside the paper without gains": (
             [*TUNE, "--controller", "impedance", "--out", out],
             "--gains: required for the impedance law",

@@ -28,6 +28,7 @@ from spacegrasp_jax import (
 )
 from spacegrasp_jax.cli.options import NAMED_RANGES, UsageError
 from spacegrasp_jax.control import (
+    GAINS_USED,
     PAPER_CONTROLLERS,
     law_named,
     load_gains,
@@ -63,8 +64,8 @@ def _paper_gains_for(robot, controller: str | None = None) -> sg.control.Gains:
     law one of the paper's (``None``: any)."""
     if controller is not None and controller not in PAPER_CONTROLLERS:
         raise UsageError(
-            f"--gains: required for the {controller} law (the paper's gains are for its "
-            f"{' and '.join(PAPER_CONTROLLERS)} laws; configs/{controller}_gains.json is a start)"
+            f"--gains: required for the {controller} law, a file with its {', '.join(GAINS_USED[controller])} "
+            f"(the paper's gains are for its {' and '.join(PAPER_CONTROLLERS)} laws)"
         )
     if n_joints(robot) != len(paper_gains().kp):
         raise UsageError(
@@ -138,7 +139,10 @@ def _check_envelope(args: argparse.Namespace, scenario) -> None:
 
 
 def _criteria(args: argparse.Namespace, **fields) -> campaign.CampaignConfig:
-    """The campaign's settings with the capture criteria of ``_add_criteria_options()``."""
+    """The campaign's settings with the capture criteria of ``_add_criteria_options()``; the
+    law's damping checked (``--pinv-damping``) before anything compiles."""
+    if args.controller != "both":
+        _law(args.controller, args)
     try:
         return campaign.CampaignConfig(
             position_tolerance_m=args.tolerance_mm * 1e-3,

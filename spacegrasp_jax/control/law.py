@@ -176,12 +176,15 @@ class Controller:
             return self.servo.update(gains, command - qd, state, t, dt, limit)
         return (command if limit is None else saturate(command, limit, self.saturation)), state
 
+    def desired_rates(self, command: jax.Array) -> jax.Array:
+        """(N,) rad/s, the desired joint rates ``command`` stands for: itself for a law that
+        commands joint rates, zeros for a torque law."""
+        return command if self.servo is not None else jnp.zeros_like(command)
+
     def logged(self, command: jax.Array, law_state: Any) -> dict[str, jax.Array]:
         """The log's controller fields: ``V_ref`` (6,) and ``qd_des`` (N,) (zeros where the
         law has none) from the ``command`` computed from ``law_state``."""
-        fields = {"V_ref": jnp.zeros(6, command.dtype), "qd_des": jnp.zeros_like(command)}
-        if self.servo is not None:
-            fields["qd_des"] = command
+        fields = {"V_ref": jnp.zeros(6, command.dtype), "qd_des": self.desired_rates(command)}
         return fields | self.law.log_fields(law_state)
 
 

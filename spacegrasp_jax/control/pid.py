@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -76,6 +76,8 @@ class PID:
 
     saturation: str = "hard"
     anti_windup: bool = True
+    #: The gain groups the joint PID reads (Table 4), one gain a joint each.
+    gain_groups: ClassVar[tuple[str, ...]] = ("kp", "ki", "kd")
 
     def init(self, n_joints: int, dtype=jnp.float64) -> PIDState:
         return pid_init(n_joints, dtype)

@@ -26,9 +26,6 @@ PAPER_CONTROLLERS: tuple[str, ...] = tuple(
     name for name, law in LAWS.items() if law.paper_max_abs_torque_Nm is not None
 )
 
-#: The joint servo's gain groups (the joint PID's, Table 4).
-SERVO_GROUPS = ("kp", "ki", "kd")
-
 
 def _law_class(name: str) -> type:
     if name not in LAWS:
@@ -69,27 +66,17 @@ def controller_name(controller: str | ControlLaw | Controller) -> str:
 def gains_used(name: str) -> tuple[str, ...]:
     """The gain groups the controller ``name`` reads: its law's, then the joint servo's."""
     law = _law_class(name)
-    servo = SERVO_GROUPS if law.output is Output.JOINT_RATES else ()
+    servo = PID.gain_groups if law.output is Output.JOINT_RATES else ()
     groups = tuple(g for g in law.gain_groups if g != "pinv_damping") + servo
     return groups + (("pinv_damping",) if "pinv_damping" in law.gain_groups else ())
-
-
-def paper_max_abs_torque_Nm(name: str) -> tuple[float, ...]:
-    """Table 5's maximal absolute joint torques (7,) N m of the paper's law ``name``."""
-    law = _law_class(name)
-    if law.paper_max_abs_torque_Nm is None:
-        raise ValueError(f"the {name} law is not in the paper: no Table 5 torques")
-    return law.paper_max_abs_torque_Nm
 
 
 __all__ = [
     "CONTROLLERS",
     "LAWS",
     "PAPER_CONTROLLERS",
-    "SERVO_GROUPS",
     "as_controller",
     "controller_name",
     "gains_used",
     "law_named",
-    "paper_max_abs_torque_Nm",
 ]
