@@ -21,7 +21,7 @@ Parts, each including the ones it needs (so the cost of a part alone is a differ
   kinematics, mass matrix, EE Jacobian, satellite block solve, contact force);
 * ``plant_rate``: plant_kinematics and the state rate (``simulate.plant_rate``: Newton-Euler
   bias, the block solve of the mass matrix), one RK4 stage;
-* ``controller``: plant_kinematics and one controller update (``simulate.control_step``);
+* ``controller``: plant_kinematics, the ideal observation and one controller update;
 * ``step``: one whole closed-loop step (controller, four RK4 stages), the scan's body.
 
 A part's outputs are folded into the next iteration's joint angles (times 1e-12), so that no
@@ -87,11 +87,12 @@ def forward_kinematics_by_component(robot, p_base, R_base, q):
 
 
 def _part_functions(gains):
-    """name -> ``f(robot, scenario, state) -> outputs`` (``state`` a ``SimState``); ``step``'s
-    output is the next ``SimState``."""
+    """name -> ``f(robot, scenario, state) -> outputs`` (``state`` a ``LoopState``); ``step``'s
+    output is the next ``LoopState``."""
     import jax.numpy as jnp
 
     from spacegrasp_jax import simulate
+    from spacegrasp_jax.control import as_controller
     from spacegrasp_jax.dynamics import frames_at_base, mass_matrix_parts_from_frames
 
     def kinematics(robot, scenario, state):
@@ -112,13 +113,16 @@ def _part_functions(gains):
         return simulate.plant_rate(robot, scenario, state.plant, shared, jnp.zeros_like(state.plant.qd))
 
     def controller(robot, scenario, state):
+        control = as_controller("admittance")
         shared = simulate.plant_kinematics(robot, scenario, state.plant)
-        return simulate.control_step(robot, scenario, gains, "admittance", state, 1.0, shared)[:2]
+        observed = simulate.observe(robot, scenario, state.plant, shared, 1.0)
+        command, law_state = control.law.update(gains, observed.inputs, state.controller.law, scenario.dt)
+        u, servo_state = control.torque(gains, command, state.plant.qd, state.controller.pid, 1.0, scenario.dt)
+        return u, law_state, servo_state
 
     def step(robot, scenario, state):
-        return simulate.closed_loop_step(robot, scenario, gains, "admittance")(
-            state, jnp.ones((), state.plant.q.dtype)
-        )[0]
+        body = simulate.loop_body(robot, scenario, gains, "admittance")
+        return body.period(state, jnp.ones((), state.plant.q.dtype))[0]
 
     return dict(
         kinematics=kinematics,

@@ -105,7 +105,7 @@ def flops_per_step(controller: str = "admittance") -> float:
     from spacegrasp_jax import compilation
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.scenario import paper_scenario
-    from spacegrasp_jax.simulate import closed_loop_step, initial_state, plant_derivative
+    from spacegrasp_jax.simulate import loop_body, plant_derivative
 
     def flops(function, *arguments) -> float:
         analysis = compilation.jit(function).lower(*arguments).compile().cost_analysis()
@@ -113,9 +113,9 @@ def flops_per_step(controller: str = "admittance") -> float:
 
     robot = sg.paper_robot()
     scenario = paper_scenario(robot, duration=1.0)
-    step = closed_loop_step(robot, scenario, paper_gains(), controller)
+    body = loop_body(robot, scenario, paper_gains(), controller)
     stage = flops(lambda plant, u: plant_derivative(robot, scenario, plant, u), scenario.initial, jax.numpy.zeros(7))
-    return flops(step, initial_state(scenario, controller), 0.0) + 2 * stage
+    return flops(body.period, body.start, 0.0) + 2 * stage
 
 
 def run(out: Path, quick: bool, repeats: int) -> dict:

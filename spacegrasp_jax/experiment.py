@@ -20,7 +20,7 @@ from spacegrasp_jax.control.registry import as_controller, controller_name
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario, scenario_to_dict
-from spacegrasp_jax.simulate import Log, first_nonfinite_step, rollout
+from spacegrasp_jax.simulate import Log, first_nonfinite_step, loop_realism, rollout
 
 
 class SimulationDiverged(RuntimeError):
@@ -104,8 +104,7 @@ def run(
         SimulationDiverged: (when ``check``) the state became non-finite; the error gives
             the first non-finite time and, as ``result``, the log up to and including it.
     """
-    if realism is not None and realism.is_ideal(scenario.dt):
-        realism = None  # the paper's loop: one program with or without an ideal realism
+    realism = loop_realism(realism, scenario)
     if (realism is not None or model_robot is not None) and key is None:
         key = jax.random.PRNGKey(0)
     executable, compile_time = compiled_rollout(robot, scenario, gains, controller, realism, key, model_robot)

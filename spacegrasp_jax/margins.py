@@ -58,7 +58,7 @@ from spacegrasp_jax.control.registry import LAWS, as_controller, law_named
 from spacegrasp_jax.model import Robot, n_joints
 from spacegrasp_jax.montecarlo import evaluate_samples, lost, success
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import ServoInputDelay
+from spacegrasp_jax.simulate import ServoInputDelay, loop_realism
 
 #: The loops whose gain is probed: the joint PID's and the law's.
 LOOPS = ("pid", "law")
@@ -285,7 +285,7 @@ class Prober:
         )
         try:
             realism = self.config.realism
-            loop = "ideal loop" if realism is None or realism.is_ideal(self.scenario.dt) else "flight-like loop"
+            loop = "ideal loop" if loop_realism(realism, self.scenario) is None else "flight-like loop"
             self._executable, self.compile_s = batching.compile_chunk(
                 f"margins, {self.controller}, {loop}", function, self._replicated(self.gains, 0), self._indices
             )

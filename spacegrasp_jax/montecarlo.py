@@ -2,8 +2,8 @@
 evaluation of a Monte-Carlo campaign's samples.
 
 A full [`Log`][spacegrasp_jax.simulate.Log] of a 17 s rollout holds some 1.4 million numbers; a campaign
-needs a few numbers per sample. [`rollout_metrics()`][spacegrasp_jax.montecarlo.rollout_metrics] runs the same scan body as
-[`rollout()`][spacegrasp_jax.simulate.rollout] but folds every log row into the running metrics of
+needs a few numbers per sample. [`rollout_metrics()`][spacegrasp_jax.montecarlo.rollout_metrics] runs the same loop as
+[`rollout()`][spacegrasp_jax.simulate.rollout] with an observer that folds every log row into the running metrics of
 [`spacegrasp_jax.metrics`][spacegrasp_jax.metrics] as it goes (the functions that give a whole log's metrics), so
 a batch needs memory for its states only, plus, on request, every ``every``-th log row.
 
@@ -32,7 +32,49 @@ from spacegrasp_jax.perturbations import (
 )
 from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import Log, ServoInputDelay, closed_loop_step, flight_loop, initial_state
+from spacegrasp_jax.simulate import Log, ServoInputDelay, closed_loop, loop_realism
+
+
+@dataclasses.dataclass(frozen=True)
+class FoldedMetrics:
+    """The observer of a [`closed_loop()`][spacegrasp_jax.simulate.closed_loop] that folds every log row into the
+    running ``METRICS`` (and the parts of the final error, ``ANATOMY_METRICS``) as the scan
+    goes, and keeps every ``every``-th row.
+
+    Attributes:
+        every: if set (static; must divide ``scenario.n_steps`` and be a whole number of
+            control periods), also keep every ``every``-th log row, i.e. the rows at
+            ``t = 0, every dt, 2 every dt, ...``.
+    """
+
+    every: int | None = None
+
+    def periods_per_block(self, body) -> int:
+        if self.every is None:
+            return 1
+        steps = body.periods * body.steps_per_period
+        if self.every < 1 or self.every % body.steps_per_period or steps % self.every:
+            raise ValueError(
+                f"every: {self.every} must divide the {steps} steps and be a multiple of the "
+                f"{body.steps_per_period} steps of a control period"
+            )
+        return self.every // body.steps_per_period
+
+    def init(self, robot: Robot, scenario: Scenario) -> dict:
+        return metrics.start(scenario.initial.q.dtype, scenario.target is not None, robot)
+
+    def fold(self, running: dict, rows: Log) -> tuple[dict, Log | None]:
+        first = None if self.every is None else jax.tree.map(lambda x: x[0], rows)
+        return metrics.accumulate(running, rows), first
+
+    def keep(self, outputs: Log | None) -> Log | None:
+        return None if outputs is None else jax.tree.map(lambda x: x[0], outputs)
+
+    def finish(self, running: dict, kept: Log | None, final, scenario: Scenario, realism) -> tuple[dict, Log | None]:
+        # A state that turns non-finite in the very last step shows in no logged row.
+        final_finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(final)]))
+        finished = metrics.finish(running, nonfinite_after_s=jnp.where(final_finite, jnp.inf, scenario.duration))
+        return finished | anatomy.error_parts(finished, scenario, realism), kept
 
 
 def rollout_metrics(
@@ -46,107 +88,32 @@ def rollout_metrics(
     model_robot: Robot | None = None,
     servo_input_delay: ServoInputDelay | None = None,
 ) -> tuple[dict[str, jax.Array], Log | None]:
-    """One closed-loop rollout reduced to its ``METRICS`` and the
-    parts of its final error (``ANATOMY_METRICS``), in one ``lax.scan``.
+    """One closed-loop rollout reduced to its ``METRICS`` and the parts of its final error
+    (``ANATOMY_METRICS``): [`closed_loop()`][spacegrasp_jax.simulate.closed_loop] with the
+    [`FoldedMetrics`][spacegrasp_jax.montecarlo.FoldedMetrics] observer.
 
     Args:
         robot, scenario, gains, controller: as [`rollout()`][spacegrasp_jax.simulate.rollout].
-        every: if set (static; must divide ``scenario.n_steps``), also return every
-            ``every``-th log row, i.e. the rows at ``t = 0, every dt, 2 every dt, ...``.
-        realism, key, model_robot, servo_input_delay: the flight-like loop
-            ([`flight_loop()`][spacegrasp_jax.simulate.flight_loop]), run when the realism is not
-            ideal, the controller's model starts from another robot than the plant, or a
-            servo input delay is given.
+        every: if set, also return every ``every``-th log row ([`FoldedMetrics`][spacegrasp_jax.montecarlo.FoldedMetrics]).
+        realism, key, model_robot, servo_input_delay: the loop's settings
+            ([`loop_body()`][spacegrasp_jax.simulate.loop_body]).
 
     Returns:
         ``(metrics, rows)``: a dict of the metrics' arrays and the decimated
         [`Log`][spacegrasp_jax.simulate.Log] (``None`` without ``every``).
     """
-    if (
-        (realism is not None and not realism.is_ideal(scenario.dt))
-        or model_robot is not None
-        or servo_input_delay is not None
-    ):
-        return _flight_metrics(robot, scenario, gains, controller, every, realism, key, model_robot, servo_input_delay)
-    step = closed_loop_step(robot, scenario, gains, controller)
-    n_steps = scenario.n_steps
-    dtype = scenario.initial.q.dtype
-
-    # The step number rides in the carry rather than being scanned over: the loop then reads
-    # no array longer than 64 numbers, and XLA's CPU runtime runs its body as a sequence.
-    def step_and_fold(carry, _):
-        state, running, k = carry
-        state, row = step(state, k)
-        return (state, metrics.accumulate(running, jax.tree.map(lambda x: x[None], row)), k + 1), row
-
-    carry = (
-        initial_state(scenario, controller),
-        metrics.start(dtype, scenario.target is not None, robot),
-        jnp.zeros((), dtype),
-    )
-    if every is None:
-        (final, running, _), _ = jax.lax.scan(
-            lambda c, _: (step_and_fold(c, None)[0], None), carry, None, length=n_steps
-        )
-        rows = None
-    else:
-        if every < 1 or n_steps % every:
-            raise ValueError(f"every: {every} must be a positive divisor of the {n_steps} steps")
-
-        def block(carry, _):
-            carry, rows = jax.lax.scan(step_and_fold, carry, None, length=every)
-            return carry, jax.tree.map(lambda x: x[0], rows)
-
-        (final, running, _), rows = jax.lax.scan(block, carry, None, length=n_steps // every)
-    return _finish(running, final, scenario, realism), rows
-
-
-def _finish(running, final, scenario, realism):
-    # A state that turns non-finite in the very last step shows in no logged row.
-    final_finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(final)]))
-    finished = metrics.finish(running, nonfinite_after_s=jnp.where(final_finite, jnp.inf, scenario.duration))
-    return finished | anatomy.error_parts(finished, scenario, realism)
-
-
-def _flight_metrics(robot, scenario, gains, controller, every, realism, key, model_robot, servo_input_delay=None):
-    """[`rollout_metrics()`][spacegrasp_jax.montecarlo.rollout_metrics] of the flight-like loop: each control period's rows folded at once."""
-    realism = ideal() if realism is None else realism
-    key = jax.random.PRNGKey(0) if key is None else key
-    start, one_period, periods = flight_loop(
+    _, (sample_metrics, rows) = closed_loop(
         robot,
         scenario,
         gains,
         controller,
-        realism,
-        key,
+        FoldedMetrics(every),
+        realism=realism,
+        key=key,
         model_robot=model_robot,
         servo_input_delay=servo_input_delay,
     )
-    per_period = scenario.n_steps // periods
-    dtype = scenario.initial.q.dtype
-
-    def period_and_fold(carry, k):
-        state, running = carry
-        state, rows = one_period(state, k)
-        return (state, metrics.accumulate(running, rows)), rows
-
-    carry = (start, metrics.start(dtype, scenario.target is not None, robot))
-    ks = jnp.arange(periods, dtype=dtype)
-    if every is None:
-        (final, running), _ = jax.lax.scan(lambda c, k: (period_and_fold(c, k)[0], None), carry, ks)
-        rows = None
-    else:
-        if every < 1 or every % per_period or scenario.n_steps % every:
-            raise ValueError(
-                f"every: {every} must divide the {scenario.n_steps} steps and be a multiple of the {per_period} steps of a control period"
-            )
-
-        def block(carry, ks):
-            carry, rows = jax.lax.scan(period_and_fold, carry, ks)
-            return carry, jax.tree.map(lambda x: x[0, 0], rows)
-
-        (final, running), rows = jax.lax.scan(block, carry, ks.reshape(-1, every // per_period))
-    return _finish(running, final.plant, scenario, realism), rows
+    return sample_metrics, rows
 
 
 #: The stream of a sample's sensor noise: ``fold_in(fold_in(PRNGKey(seed), i), NOISE_STREAM)``
@@ -253,17 +220,17 @@ def perturbed_loop(
     plant, perturbed = apply_to_robot(robot, perturbation), apply_to_scenario(scenario, perturbation)
     believes_nominal = not identified and ranges.perturbs_robot
     estimates = ranges.draws_estimate_errors
-    if not (believes_nominal or estimates or (realism is not None and not realism.is_ideal(scenario.dt))):
+    if not (believes_nominal or estimates or loop_realism(realism, scenario) is not None):
         return plant, perturbed, None, None
     base = ideal() if realism is None else realism
     if estimates:
         base = dataclasses.replace(base, stages=base.stages | Stage.ESTIMATE)
-    loop_realism = dataclasses.replace(
+    sample_realism = dataclasses.replace(
         base,
         lar_position_error_m=base.lar_position_error_m + perturbation.dp_lar_estimate,
         lar_angle_error_rad=base.lar_angle_error_rad + perturbation.dr_lar_estimate,
     )
-    return plant, perturbed, loop_realism, robot if believes_nominal else None
+    return plant, perturbed, sample_realism, robot if believes_nominal else None
 
 
 def lost(sample_metrics: dict) -> np.ndarray:

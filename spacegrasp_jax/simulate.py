@@ -1,17 +1,25 @@
-"""The closed loop: contact -> sensor -> controller -> joint PID -> RK4, as one ``lax.scan``.
+"""The closed loop: contact -> sensors -> controller -> joint PID -> RK4, as one ``lax.scan``.
 
-Each step of length ``dt`` (modelling notes):
-1. the controller reads the state and the F/T sensor once (eqs 18-19), computes the desired
-   joint rates (admittance eqs 9-17 or Cartesian eqs 21-22) and the PID joint torques;
-2. the torques are held over the step (zero-order hold) while RK4 integrates the plant, the
-   contact force of eq 20 being evaluated at every RK4 stage from that stage's state.
+Each control period (in the paper's loop, each step of length ``dt``; modelling notes):
+1. the sensors read the state (the realism's stages: noise, bias, low-pass, the LAR
+   estimate, the controller's own model; all off in the paper's loop), the controller
+   computes its command (admittance eqs 9-17, Cartesian eqs 21-22: desired joint rates; or
+   a torque law's torques) and the command enters the delay line;
+2. at each servo tick the joint PID turns the rate error into torques (saturation and
+   anti-windup with the actuators' stage), held over the tick's plant steps (zero-order
+   hold) while RK4 integrates the plant, the contact force of eq 20 being evaluated at every
+   RK4 stage from that stage's state.
 
-``rollout`` is pure: jit, vmap (over scenarios, robots or gains) and grad apply to it.
+[`closed_loop()`][spacegrasp_jax.simulate.closed_loop] is the one scan driver; what it keeps of each step's log row is its
+observer's choice ([`FullLog`][spacegrasp_jax.simulate.FullLog] for [`rollout()`][spacegrasp_jax.simulate.rollout], metrics folded in the scan for a campaign).
+Everything is pure: jit, vmap (over scenarios, robots or gains) and grad apply.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -42,15 +50,6 @@ from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.target import lar_frame, lar_velocity, target_momentum, target_rate
 from spacegrasp_jax.trajectory import desired_state
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class SimState:
-    """The scan carry: the plant and the controller's memory."""
-
-    plant: PlantState
-    controller: ControllerState
 
 
 @jax.tree_util.register_dataclass
@@ -235,40 +234,6 @@ def momentum_at(kinematics: PlantKinematics, plant: PlantState) -> jax.Array:
     return jnp.concatenate([P, L + spatial.cross(plant.p_base, P)])
 
 
-def initial_state(scenario: Scenario, controller="admittance") -> SimState:
-    """The scan's initial carry: the scenario's plant state, the law's initial state
-    (``V_ref(0) = 0`` for the admittance law), the joint servo at rest."""
-    dtype = scenario.initial.q.dtype
-    controller_state = as_controller(controller).init(scenario.initial.q.shape[-1], dtype)
-    return SimState(plant=scenario.initial, controller=controller_state)
-
-
-def control_step(
-    robot: Robot,
-    scenario: Scenario,
-    gains: Gains,
-    controller,
-    state: SimState,
-    t,
-    kinematics: PlantKinematics | None = None,
-):
-    """One controller update at time ``t``: returns ``(u (7,), new ControllerState, log row)``.
-
-    ``controller``: a law's name, a law object or a controller
-    ([`as_controller()`][spacegrasp_jax.control.registry.as_controller]). ``kinematics``:
-    [`plant_kinematics()`][spacegrasp_jax.simulate.plant_kinematics] of ``state.plant`` if the caller has it."""
-    control = as_controller(controller)
-    plant = state.plant
-    if kinematics is None:
-        kinematics = plant_kinematics(robot, scenario, plant)
-    observed = observe(robot, scenario, plant, kinematics, t)
-    command, law_state = control.law.update(gains, observed.inputs, state.controller.law, scenario.dt)
-    u, servo_state = control.torque(gains, command, plant.qd, state.controller.pid, t, scenario.dt)
-    logged = control.logged(command, state.controller.law)
-    row = log_row(plant, kinematics, t, observed, scenario.target, u=u, **logged)
-    return u, ControllerState(law=law_state, pid=servo_state), row
-
-
 @dataclasses.dataclass(frozen=True)
 class Observation:
     """The true state as an ideal controller sees it ([`observe()`][spacegrasp_jax.simulate.observe]).
@@ -397,144 +362,31 @@ def controller_inputs(
     return inputs, (pose, twist)
 
 
-def closed_loop_step(robot: Robot, scenario: Scenario, gains: Gains, controller, checkpoint: bool = False):
-    """The scan body ``step(state: SimState, k) -> (next SimState, Log row)`` for step
-    number ``k`` (a float, t = k dt): one controller update, then one RK4 step of the plant
-    under the held torques. Arguments as [`rollout()`][spacegrasp_jax.simulate.rollout].
-
-    ``checkpoint``: put the controller update and RK4's first stage under
-    ``jax.checkpoint`` (RK4's later stages always are, one by one: ``integrator.rk4_step``).
-    A reverse-mode gradient then keeps, per step, the state and the rates RK4's stages
-    start from, and recomputes each part just before differentiating it."""
-    control = as_controller(controller)
-
-    def control_and_first_rate(state: SimState, t):
-        # The controller reads the state RK4's first stage starts from: share the kinematics.
-        kinematics = plant_kinematics(robot, scenario, state.plant)
-        u, controller_state, row = control_step(robot, scenario, gains, control, state, t, kinematics=kinematics)
-        return u, controller_state, row, plant_rate(robot, scenario, state.plant, kinematics, u)
-
-    if checkpoint:
-        # Inside a scan no CSE can undo the checkpoint; without the optimisation barriers of
-        # the default prevent_cse=True, XLA fuses more (integrator.rk4_step).
-        control_and_first_rate = jax.checkpoint(control_and_first_rate, prevent_cse=False)
-
-    def step(state: SimState, k):
-        u, controller_state, row, k1 = control_and_first_rate(state, k * scenario.dt)
-        plant = rk4_step(lambda s: plant_derivative(robot, scenario, s, u), state.plant, scenario.dt, rate_at_start=k1)
-        return SimState(plant=plant, controller=controller_state), row
-
-    return step
-
-
-def largest_divisor(n: int, at_most: int) -> int:
-    """The largest divisor of ``n`` that is at most ``at_most`` (1 if none larger)."""
-    return max(d for d in range(1, at_most + 1) if n % d == 0)
-
-
-#: Steps per inner scan of [`rollout()`][spacegrasp_jax.simulate.rollout]: the largest log field (7 numbers) times 8 is 56,
-#: under the 64 numbers (512 bytes) up to which XLA's CPU runtime runs a loop in sequence.
-LOG_BLOCK = 8
-
-
-def rollout(
-    robot: Robot,
-    scenario: Scenario,
-    gains: Gains,
-    controller,
-    checkpoint_segment: int | None = None,
-    realism: Realism | None = None,
-    key: jax.Array | None = None,
-    model_robot: Robot | None = None,
-) -> tuple[SimState | FlightState, Log]:
-    """Simulate the closed loop over ``scenario.duration`` with one ``jax.lax.scan``.
-
-    Args:
-        robot, scenario, gains: pytrees (any leaf may carry a vmap batch axis).
-        controller: static: a law's name (``"admittance"``, eqs 9-17; ``"cartesian"``, eqs
-            21-22; any of ``control.CONTROLLERS``), a law object (``control.Admittance()``)
-            or a ``control.Controller``
-            ([`as_controller()`][spacegrasp_jax.control.registry.as_controller]); a law
-            object carries its settings (``control.Admittance(pinv_damping=0.01)``: damped
-            least squares; a name: the paper's exact pseudoinverse).
-        checkpoint_segment: the number of steps per inner scan (static; must divide
-            ``n_steps``; ``None``: ``LOG_BLOCK`` or the largest divisor below it). In the
-            paper's loop each step's parts are always under ``jax.checkpoint``
-            ([`closed_loop_step()`][spacegrasp_jax.simulate.closed_loop_step]), which changes nothing in a forward
-            rollout (the same log, bit for bit) and makes a reverse-mode gradient's tape
-            hold, per step, the state and the rates RK4's stages start from instead of
-            every intermediate (the measured cost: documentation, Performance). A stage's rate is at most 7
-            numbers a field, so the three of one step are (3, 7) and inner scans of 2
-            steps hold no array over 64 numbers, which matters where XLA runs loops
-            kernel by kernel (with loops compiled whole the length does not).
-        realism: ``None`` or an ideal [`Realism`][spacegrasp_jax.realism.Realism]: the paper's
-            loop. Otherwise the flight-like loop of [`flight_rollout()`][spacegrasp_jax.simulate.flight_rollout] (static fields
-            fix the program; a ``checkpoint_segment``, which must divide the steps there
-            too, checkpoints each control period).
-        key: the ``jax.random`` key of the sensors' noise (flight-like loop with noise).
-        model_robot: the robot the controller believes, if not ``robot`` (the flight-like
-            loop; [`flight_rollout()`][spacegrasp_jax.simulate.flight_rollout]).
-
-    Returns:
-        ``(final_state, log)``: the state after ``scenario.n_steps`` steps (a
-        [`SimState`][spacegrasp_jax.simulate.SimState] in the paper's loop, a
-        [`FlightState`][spacegrasp_jax.simulate.FlightState] in the flight-like loop) and the
-        [`Log`][spacegrasp_jax.simulate.Log]. A diverging rollout carries non-finite values from the first bad
-        step on; [`first_nonfinite_time()`][spacegrasp_jax.simulate.first_nonfinite_time] finds it (``experiment.run`` reports it).
-    """
-    n_steps = scenario.n_steps
-    if checkpoint_segment is not None and (checkpoint_segment < 1 or n_steps % checkpoint_segment):
-        raise ValueError(f"checkpoint_segment: {checkpoint_segment} must be a positive divisor of the {n_steps} steps")
-    if (realism is not None and not realism.is_ideal(scenario.dt)) or model_robot is not None:
-        realism = ideal() if realism is None else realism
-        if key is None:
-            if Stage.SENSORS in realism.stages:
-                raise ValueError("key: a realism with noisy sensors needs a jax.random key")
-            key = jax.random.PRNGKey(0)  # drawn from by no stage
-        return flight_rollout(
-            robot,
-            scenario,
-            gains,
-            controller,
-            realism,
-            key,
-            model_robot=model_robot,
-            checkpoint=checkpoint_segment is not None,
-        )
-    step = closed_loop_step(robot, scenario, gains, controller, checkpoint=True)
-    block = largest_divisor(n_steps, LOG_BLOCK) if checkpoint_segment is None else checkpoint_segment
-    # Blocks of a few steps, each an inner scan whose buffers (log rows, saved states) stay
-    # within 64 numbers a field. Where XLA runs loops kernel by kernel, it then runs that
-    # inner loop's kernels in sequence, where a loop that writes into the whole log runs as
-    # a task graph; compiled whole (spacegrasp_jax.compilation), the inner loop is one
-    # kernel.
-    steps = jnp.arange(n_steps, dtype=scenario.initial.q.dtype).reshape(-1, block)
-    final, rows = jax.lax.scan(lambda s, ks: jax.lax.scan(step, s, ks), initial_state(scenario, controller), steps)
-    return final, jax.tree.map(lambda x: x.reshape((n_steps,) + x.shape[2:]), rows)
-
-
-# ---- the flight-like loop (spacegrasp_jax.realism) -----------------------------------------
+# ---- the closed loop -----------------------------------------------------------------------
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class FlightState:
-    """The flight-like loop's carry.
+class LoopState:
+    """The closed loop's carry. A stage that is off holds ``()``, so the paper's loop
+    carries the plant and the controller only.
 
     Attributes:
         plant: the true state. controller: the law's and the joint servo's memory.
-        wrench_reading: (6,) the low-passed F/T reading ``[f (N); n (N m)]``, sensor axes.
+        wrench_filter: (6,) the low-passed F/T reading ``[f (N); n (N m)]``, sensor axes,
+            with the realism's low-pass on (``cutoff_hz > 0``); ``()`` without.
         commands_in_flight: (delay_periods, N), the law's commands computed but not yet
-            applied, oldest first (desired joint rates, rad/s, or a torque law's N m).
+            applied, oldest first (desired joint rates, rad/s, or a torque law's N m), with
+            a delay line (``delay_periods > 0``); ``()`` without.
         rates_in_flight: with a [`ServoInputDelay`][spacegrasp_jax.simulate.ServoInputDelay], its line of joint-rate
-            readings (``ServoInputDelay.init()``); ``None`` without.
+            readings (``ServoInputDelay.init()``); ``()`` without.
     """
 
     plant: PlantState
     controller: ControllerState
-    wrench_reading: jax.Array
-    commands_in_flight: jax.Array
-    rates_in_flight: tuple | None = None
+    wrench_filter: jax.Array | tuple = ()
+    commands_in_flight: jax.Array | tuple = ()
+    rates_in_flight: tuple = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -562,71 +414,95 @@ class ServoInputDelay:
         return readings[(head - self.ticks) % self.capacity], (readings, (head + 1) % self.capacity)
 
 
-def flight_rollout(
+def initial_state(
+    scenario: Scenario,
+    controller="admittance",
+    realism: Realism | None = None,
+    servo_input_delay: ServoInputDelay | None = None,
+) -> LoopState:
+    """The loop's initial carry: the scenario's plant state, the law's initial state
+    (``V_ref(0) = 0`` for the admittance law), the joint servo at rest, the stages' memory
+    empty (zeros)."""
+    realism = ideal() if realism is None else realism
+    dtype = scenario.initial.q.dtype
+    n = scenario.initial.q.shape[-1]
+    return LoopState(
+        plant=scenario.initial,
+        controller=as_controller(controller).init(n, dtype),
+        wrench_filter=jnp.zeros(6, dtype) if realism.cutoff_hz > 0.0 else (),
+        commands_in_flight=jnp.zeros((realism.delay_periods, n), dtype) if realism.delay_periods else (),
+        rates_in_flight=() if servo_input_delay is None else servo_input_delay.init(n, dtype),
+    )
+
+
+def loop_realism(realism: Realism | None, scenario: Scenario) -> Realism | None:
+    """``realism``, or ``None`` where it runs the paper's loop for ``scenario`` (every stage
+    off, a control period of one step): the hosts pass that on, so that one compiled program
+    serves both."""
+    return None if realism is None or realism.is_ideal(scenario.dt) else realism
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopBody:
+    """The closed loop as [`closed_loop()`][spacegrasp_jax.simulate.closed_loop] runs it ([`loop_body()`][spacegrasp_jax.simulate.loop_body]).
+
+    Attributes:
+        start: the initial [`LoopState`][spacegrasp_jax.simulate.LoopState].
+        period: ``period(state, k) -> (state, rows)``: control period number ``k`` (a
+            float, ``t = k T``) and its plant steps' log rows, a [`Log`][spacegrasp_jax.simulate.Log] with a leading
+            axis of ``steps_per_period``.
+        periods: the number of control periods in the scenario.
+        steps_per_period: plant steps per control period (1: the paper's loop).
+    """
+
+    start: LoopState
+    period: Callable[[LoopState, jax.Array], tuple[LoopState, Log]]
+    periods: int
+    steps_per_period: int
+
+
+def loop_body(
     robot: Robot,
     scenario: Scenario,
     gains: Gains,
     controller,
-    realism: Realism,
-    key: jax.Array,
+    realism: Realism | None = None,
+    key: jax.Array | None = None,
     *,
     model_robot: Robot | None = None,
+    servo_input_delay: ServoInputDelay | None = None,
     checkpoint: bool = False,
-) -> tuple[FlightState, Log]:
-    """The closed loop with the realism model (module [`spacegrasp_jax.realism`][spacegrasp_jax.realism]), one
-    ``jax.lax.scan`` over control periods, each an inner scan over the plant's steps.
+) -> LoopBody:
+    """The closed loop's body: one control period, from the sensors to the plant's steps.
 
-    At the start of control period k (``t_k = k T``, ``T = realism.control_period``): the
-    sensors read the true state (noise drawn from ``fold_in(key, k)``), the controller runs
-    with its own model and LAR estimate, and its desired joint rates enter the delay line.
-    The rates leaving it are held over the period; at each servo tick (``j S``, ``S =
-    realism.servo_period``, by default ``T``: one tick a period) the PID reads the joint
-    sensors (noise from the same key of the period) and turns the rate error into torques
-    (anti-windup, saturation), held over the tick's plant steps (RK4 at ``scenario.dt``, the
-    contact force at every stage). The log has one row per plant step, as [`rollout()`][spacegrasp_jax.simulate.rollout]'s.
+    At the start of control period k (``t_k = k T``, ``T = realism.control_period``, by
+    default ``scenario.dt``): the sensors read the true state (noise drawn from
+    ``fold_in(key, k)``), the controller runs with its own model and LAR estimate, and its
+    command enters the delay line. The command leaving it is held over the period; at each
+    servo tick (``j S``, ``S = realism.servo_period``, by default ``T``) the joint PID reads
+    the joint sensors (noise from the same key of the period) and turns the rate error into
+    torques (anti-windup, saturation), held over the tick's plant steps (RK4 at
+    ``scenario.dt``, the contact force at every stage). Each stage is a function of
+    [`spacegrasp_jax.stages`][spacegrasp_jax.stages] that the realism switches on or off
+    (static fields: they fix the program); with every stage off and a period of one plant
+    step, this is the paper's loop (the modelling notes).
 
     Args:
         robot, scenario, gains, controller: as [`rollout()`][spacegrasp_jax.simulate.rollout].
-        realism: the realism settings (static fields fix the program).
-        key: a ``jax.random`` key; same key, same rollout.
-        model_robot: the robot the controller's model starts from (default ``robot``);
-            its satellite mass and inertia are scaled by the realism's factors.
-        checkpoint: put each control period under ``jax.checkpoint`` (reverse-mode
-            gradients of long rollouts: the tape keeps one state per period).
+        realism: the realism settings (``None``: [`ideal()`][spacegrasp_jax.realism.ideal], every stage off).
+        key: a ``jax.random`` key, needed with noisy sensors (``Stage.SENSORS``); same key,
+            same rollout.
+        model_robot: the robot the controller's model starts from (default ``robot``); its
+            satellite mass and inertia are scaled by the realism's factors.
+        servo_input_delay: a [`ServoInputDelay`][spacegrasp_jax.simulate.ServoInputDelay] between the joint sensors and the PID
+            (``spacegrasp_jax.margins``); the log's ``qd_measured`` is then the delayed reading.
+        checkpoint: put each control period under ``jax.checkpoint`` for reverse mode. A
+            period of one plant step puts its controller update with RK4's first rate there
+            (RK4's later stages always are, one by one: ``integrator.rk4_step``): the tape
+            keeps, per step, the state and the rates RK4's stages start from. A longer
+            period goes there whole: the tape keeps one state per period.
     """
-    start, one_period, periods = flight_loop(
-        robot,
-        scenario,
-        gains,
-        controller,
-        realism,
-        key,
-        model_robot=model_robot,
-        checkpoint=checkpoint,
-    )
-    final, rows = jax.lax.scan(one_period, start, jnp.arange(periods, dtype=scenario.initial.q.dtype))
-    return final, jax.tree.map(lambda x: x.reshape((scenario.n_steps,) + x.shape[2:]), rows)
-
-
-def flight_loop(
-    robot: Robot,
-    scenario: Scenario,
-    gains: Gains,
-    controller,
-    realism: Realism,
-    key: jax.Array,
-    *,
-    model_robot: Robot | None = None,
-    checkpoint: bool = False,
-    servo_input_delay: ServoInputDelay | None = None,
-):
-    """The parts of [`flight_rollout()`][spacegrasp_jax.simulate.flight_rollout] (same arguments): ``(start, one_period,
-    periods)``, the initial [`FlightState`][spacegrasp_jax.simulate.FlightState], the scan body ``one_period(state, k) ->
-    (state, rows)`` of control period ``k`` (a float) with its plant steps' log rows (a
-    [`Log`][spacegrasp_jax.simulate.Log] with a leading axis of the period's steps), and the number of periods.
-
-    ``servo_input_delay``: a [`ServoInputDelay`][spacegrasp_jax.simulate.ServoInputDelay] between the joint sensors and the PID
-    (``spacegrasp_jax.margins``); the log's ``qd_measured`` is then the delayed reading."""
+    realism = ideal() if realism is None else realism
     realism.check_timing(scenario.dt, scenario.n_steps)
     per_period = realism.steps_per_period(scenario.dt)
     per_servo = realism.steps_per_servo(scenario.dt)
@@ -636,22 +512,32 @@ def flight_loop(
     dtype = scenario.initial.q.dtype
     n = n_joints(robot)
     realism.check_joints(n)
+    noisy = Stage.SENSORS in realism.stages
+    if noisy and key is None:
+        raise ValueError("key: a realism with noisy sensors needs a jax.random key")
     control = as_controller(controller).with_actuators(realism.saturation, realism.anti_windup)
     limit = realism.torque_limit_Nm if Stage.ACTUATORS in realism.stages else None
     own_model = bool(realism.stages & (Stage.SENSORS | Stage.MODEL)) or model_robot is not None
     model = stages.believed_robot(robot if model_robot is None else model_robot, realism) if own_model else robot
+    # Whether the controller's view differs from the truth, and whether the log keeps its
+    # readings (the paper's loop reads the truth: they would repeat the true fields).
+    senses = own_model or bool(realism.stages & (Stage.SENSORS | Stage.ESTIMATE)) or realism.cutoff_hz > 0.0
+    logs_readings = not realism.is_ideal(scenario.dt) or model_robot is not None or servo_input_delay is not None
     smoothing = stages.low_pass_gain(realism, period)
 
     def period_noise(k):
         """(6 + N ticks,) standard normals of period k: the wrench's, then each tick's rates."""
+        if not noisy:
+            return jnp.zeros(6 + n * ticks, dtype)  # read by no stage
         return jax.random.normal(jax.random.fold_in(key, k.astype(jnp.uint32)), (6 + n * ticks,), dtype)
 
-    def control_period(state: FlightState, k, noise):
-        plant, t = state.plant, k * period
-        truth = plant_kinematics(robot, scenario, plant)
+    def sensed_inputs(state: LoopState, truth: PlantKinematics, t, noise):
+        """What the controller reads through its sensors, model and LAR estimate, and the
+        F/T reading (6,) (filtered)."""
+        plant = state.plant
         reading = stages.wrench_reading(realism, *sensor_reading(robot, scenario, truth), noise)
         q, qd = stages.joint_reading(realism, plant.q, plant.qd, noise[6 : 6 + n])
-        reading = stages.low_pass(realism, state.wrench_reading, reading, smoothing)
+        reading = stages.low_pass(realism, state.wrench_filter, reading, smoothing)
         view = (
             plant_kinematics(model, scenario, dataclasses.replace(plant, q=q), with_contact=False)
             if own_model
@@ -673,65 +559,294 @@ def flight_loop(
             t,
             lar_motion=target_motion(scenario, plant),
         )
+        return inputs, reading
+
+    def control_update(state: LoopState, k, noise, truth: PlantKinematics, observed: Observation | None):
+        """The controller's update at the start of period k: the state with the stages'
+        memory moved on, the law's next state, and the fields held over the period (the
+        command leaving the delay line, the log's controller fields)."""
+        t = k * period
+        if senses:
+            inputs, reading = sensed_inputs(state, truth, t, noise)
+        else:
+            inputs, reading = observed.inputs, jnp.concatenate([observed.force_fts, observed.torque_fts])
         computed, law_state = control.law.update(gains, inputs, state.controller.law, period)
         command, in_flight = stages.delay_line(realism, state.commands_in_flight, computed)
-        held = dict(
-            control.logged(command, state.controller.law),
-            command=command,
-            qd_des_computed=control.desired_rates(computed),
-            fts_force_measured=reading[:3],
-            fts_torque_measured=reading[3:],
-        )
-        return dataclasses.replace(state, wrench_reading=reading, commands_in_flight=in_flight), law_state, held
+        held = control.logged(command, state.controller.law)
+        if logs_readings:
+            held |= dict(
+                qd_des_computed=control.desired_rates(computed),
+                fts_force_measured=reading[:3],
+                fts_torque_measured=reading[3:],
+            )
+        memory = reading if realism.cutoff_hz > 0.0 else ()
+        state = dataclasses.replace(state, wrench_filter=memory, commands_in_flight=in_flight)
+        return state, law_state, command, held
 
-    def plant_step(plant: PlantState, k, held):
-        t = k * scenario.dt
-        kinematics = plant_kinematics(robot, scenario, plant)
-        logged = {name: value for name, value in held.items() if name != "command"}
-        row = log_row(plant, kinematics, t, observe(robot, scenario, plant, kinematics, t), scenario.target, **logged)
-        u = held["u"]
-        k1 = plant_rate(robot, scenario, plant, kinematics, u)
-        return rk4_step(lambda s: plant_derivative(robot, scenario, s, u), plant, scenario.dt, rate_at_start=k1), row
-
-    def servo_tick(carry, j, held, noise):
-        """Servo tick j (a float) of the whole run: the joint sensors, the PID, its plant steps."""
-        plant, pid_state, line = carry
-        tick_noise = jax.lax.dynamic_slice_in_dim(noise, 6 + n * (j.astype(jnp.int32) % ticks), n)
+    def servo_update(plant: PlantState, pid_state, line, j, command, held, noise):
+        """Servo tick j (a float) of the whole run: the joint sensors and the PID; returns the
+        torques' log fields (``u`` (N,) N m and the readings), the PID's and the line's state."""
+        tick = j.astype(jnp.int32) % ticks if noisy else 0
+        tick_noise = jax.lax.dynamic_slice_in_dim(noise, 6 + n * tick, n)
         q, qd = stages.joint_reading(realism, plant.q, plant.qd, tick_noise)
         if servo_input_delay is not None:
             qd, line = servo_input_delay.push(line, qd)
-        u, pid_state = control.torque(gains, held["command"], qd, pid_state, j * servo_period, servo_period, limit)
-        steps = j * per_servo + jnp.arange(per_servo, dtype=dtype)
-        held = dict(held, u=u, q_measured=q, qd_measured=qd)
-        if per_servo == 1:
-            plant, row = plant_step(plant, steps[0], held)
-            return (plant, pid_state, line), jax.tree.map(lambda x: x[None], row)
-        plant, rows = jax.lax.scan(lambda p, i: plant_step(p, i, held), plant, steps)
-        return (plant, pid_state, line), rows
+        u, pid_state = control.torque(gains, command, qd, pid_state, j * servo_period, servo_period, limit)
+        fields = dict(held, u=u, q_measured=q, qd_measured=qd) if logs_readings else dict(held, u=u)
+        return fields, pid_state, line
 
-    def one_period(state: FlightState, k):
+    def row_and_rate(plant: PlantState, step, fields, kinematics=None, observed=None):
+        """Plant step number ``step`` (a float)'s log row and the plant's rate at its start."""
+        t = step * scenario.dt
+        if kinematics is None:
+            kinematics = plant_kinematics(robot, scenario, plant)
+            observed = observe(robot, scenario, plant, kinematics, t)
+        row = log_row(plant, kinematics, t, observed, scenario.target, **fields)
+        return row, plant_rate(robot, scenario, plant, kinematics, fields["u"])
+
+    def advance(plant: PlantState, u, k1) -> PlantState:
+        return rk4_step(lambda s: plant_derivative(robot, scenario, s, u), plant, scenario.dt, rate_at_start=k1)
+
+    def period_of_one_step(state: LoopState, k):
+        # The controller reads the state RK4's first stage starts from: share the kinematics.
+        def control_and_first_rate(state: LoopState, k):
+            noise = period_noise(k)
+            truth = plant_kinematics(robot, scenario, state.plant)
+            observed = observe(robot, scenario, state.plant, truth, k * scenario.dt)
+            state, law_state, command, held = control_update(state, k, noise, truth, observed)
+            fields, pid_state, line = servo_update(
+                state.plant, state.controller.pid, state.rates_in_flight, k, command, held, noise
+            )
+            row, k1 = row_and_rate(state.plant, k, fields, truth, observed)
+            state = dataclasses.replace(state, controller=ControllerState(law_state, pid_state), rates_in_flight=line)
+            return state, fields["u"], row, k1
+
+        if checkpoint:
+            # Inside a scan no CSE can undo the checkpoint; without the optimisation barriers of
+            # the default prevent_cse=True, XLA fuses more (integrator.rk4_step).
+            control_and_first_rate = jax.checkpoint(control_and_first_rate, prevent_cse=False)
+        state, u, row, k1 = control_and_first_rate(state, k)
+        state = dataclasses.replace(state, plant=advance(state.plant, u, k1))
+        return state, jax.tree.map(lambda x: x[None], row)
+
+    def period_of_steps(state: LoopState, k):
         noise = period_noise(k)
-        state, law_state, held = control_period(state, k, noise)
+        truth = plant_kinematics(robot, scenario, state.plant)
+        state, law_state, command, held = control_update(
+            state, k, noise, truth, None if senses else (observe(robot, scenario, state.plant, truth, k * period))
+        )
+
+        def plant_step(plant, step, fields):
+            row, k1 = row_and_rate(plant, step, fields)
+            return advance(plant, fields["u"], k1), row
+
+        def servo_tick(carry, j):
+            plant, pid_state, line = carry
+            fields, pid_state, line = servo_update(plant, pid_state, line, j, command, held, noise)
+            steps = j * per_servo + jnp.arange(per_servo, dtype=dtype)
+            if per_servo == 1:
+                plant, row = plant_step(plant, steps[0], fields)
+                return (plant, pid_state, line), jax.tree.map(lambda x: x[None], row)
+            plant, rows = jax.lax.scan(lambda p, i: plant_step(p, i, fields), plant, steps)
+            return (plant, pid_state, line), rows
+
         carry = (state.plant, state.controller.pid, state.rates_in_flight)
         if ticks == 1:
-            (plant, pid_state, line), rows = servo_tick(carry, k, held, noise)
+            (plant, pid_state, line), rows = servo_tick(carry, k)
         else:
-            tick = lambda carry, j: servo_tick(carry, j, held, noise)
-            (plant, pid_state, line), rows = jax.lax.scan(tick, carry, k * ticks + jnp.arange(ticks, dtype=dtype))
+            (plant, pid_state, line), rows = jax.lax.scan(servo_tick, carry, k * ticks + jnp.arange(ticks, dtype=dtype))
             rows = jax.tree.map(lambda x: x.reshape((per_period,) + x.shape[2:]), rows)
         controller_state = ControllerState(law_state, pid_state)
         return dataclasses.replace(state, plant=plant, controller=controller_state, rates_in_flight=line), rows
 
-    if checkpoint:  # inside a scan no CSE can undo it (see closed_loop_step)
-        one_period = jax.checkpoint(one_period, prevent_cse=False)
-    start = FlightState(
-        plant=scenario.initial,
-        controller=control.init(n, dtype),
-        wrench_reading=jnp.zeros(6, dtype),
-        commands_in_flight=jnp.zeros((realism.delay_periods, n), dtype),
-        rates_in_flight=None if servo_input_delay is None else servo_input_delay.init(n, dtype),
+    if per_period == 1:
+        one_period = period_of_one_step
+    else:
+        one_period = jax.checkpoint(period_of_steps, prevent_cse=False) if checkpoint else period_of_steps
+    start = initial_state(scenario, control, realism, servo_input_delay)
+    return LoopBody(start=start, period=one_period, periods=periods, steps_per_period=per_period)
+
+
+class Observer(Protocol):
+    """What a [`closed_loop()`][spacegrasp_jax.simulate.closed_loop] keeps of the rows it produces: the whole log
+    ([`FullLog`][spacegrasp_jax.simulate.FullLog]), metrics folded in the scan with every k-th row
+    ([`FoldedMetrics`][spacegrasp_jax.montecarlo.FoldedMetrics]), or your own.
+
+    The loop runs its control periods in blocks of ``periods_per_block(body)`` (an inner
+    scan each; 1: no inner scan). Each period's rows (a [`Log`][spacegrasp_jax.simulate.Log] with a leading axis of
+    the period's steps) go through ``fold(memory, rows) -> (memory, output)``; a block's
+    outputs, stacked, through ``keep(outputs)``; at the end ``finish(memory, kept, final,
+    scenario, realism)`` gives the observer's result.
+    """
+
+    def periods_per_block(self, body: LoopBody) -> int: ...
+
+    def init(self, robot: Robot, scenario: Scenario) -> Any: ...
+
+    def fold(self, memory: Any, rows: Log) -> tuple[Any, Any]: ...
+
+    def keep(self, outputs: Any) -> Any: ...
+
+    def finish(self, memory: Any, kept: Any, final: LoopState, scenario: Scenario, realism: Realism | None) -> Any: ...
+
+
+def largest_divisor(n: int, at_most: int) -> int:
+    """The largest divisor of ``n`` that is at most ``at_most`` (1 if none larger)."""
+    return max(d for d in range(1, at_most + 1) if n % d == 0)
+
+
+#: Steps per inner scan of [`rollout()`][spacegrasp_jax.simulate.rollout]: the largest log field (7 numbers) times 8 is 56,
+#: under the 64 numbers (512 bytes) up to which XLA's CPU runtime runs a loop in sequence.
+LOG_BLOCK = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class FullLog:
+    """The observer that keeps every row: the [`Log`][spacegrasp_jax.simulate.Log] of the whole run.
+
+    Attributes:
+        block_steps: plant steps per inner scan (``None``: ``LOG_BLOCK``); a loop whose
+            control period spans several steps runs whole periods, as many as fit (at least
+            one).
+    """
+
+    block_steps: int | None = None
+
+    def periods_per_block(self, body: LoopBody) -> int:
+        steps = LOG_BLOCK if self.block_steps is None else self.block_steps
+        return largest_divisor(body.periods, max(1, steps // body.steps_per_period))
+
+    def init(self, robot: Robot, scenario: Scenario) -> tuple:
+        return ()
+
+    def fold(self, memory: tuple, rows: Log) -> tuple[tuple, Log]:
+        return memory, rows
+
+    def keep(self, outputs: Log) -> Log:
+        return _merge_leading_axes(outputs)
+
+    def finish(self, memory, kept: Log, final, scenario: Scenario, realism) -> Log:
+        return _merge_leading_axes(kept)
+
+
+def _merge_leading_axes(rows: Log) -> Log:
+    """Rows stacked as (A, B, ...) as (A B, ...)."""
+    return jax.tree.map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), rows)
+
+
+def closed_loop(
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller,
+    observer: Observer,
+    *,
+    realism: Realism | None = None,
+    key: jax.Array | None = None,
+    model_robot: Robot | None = None,
+    servo_input_delay: ServoInputDelay | None = None,
+    checkpoint: bool = False,
+) -> tuple[LoopState, Any]:
+    """The closed loop over ``scenario.duration``, one ``jax.lax.scan`` over control periods
+    ([`loop_body()`][spacegrasp_jax.simulate.loop_body], same arguments), with what ``observer`` keeps of it.
+
+    Returns:
+        ``(final, observed)``: the [`LoopState`][spacegrasp_jax.simulate.LoopState] after the
+        last step and the observer's result.
+    """
+    body = loop_body(
+        robot,
+        scenario,
+        gains,
+        controller,
+        realism,
+        key,
+        model_robot=model_robot,
+        servo_input_delay=servo_input_delay,
+        checkpoint=checkpoint,
     )
-    return start, one_period, periods
+    block = observer.periods_per_block(body)
+    if block < 1 or body.periods % block:
+        raise ValueError(f"the observer's block of {block} periods does not divide the {body.periods} control periods")
+    dtype = scenario.initial.q.dtype
+
+    # The period number rides in the carry rather than being scanned over: the loop then
+    # reads no array longer than 64 numbers, and XLA's CPU runtime runs its body as a sequence.
+    def period_and_fold(carry, _):
+        state, memory, k = carry
+        state, rows = body.period(state, k)
+        memory, output = observer.fold(memory, rows)
+        return (state, memory, k + 1), output
+
+    carry = (body.start, observer.init(robot, scenario), jnp.zeros((), dtype))
+    if block == 1:
+        (final, memory, _), kept = jax.lax.scan(period_and_fold, carry, None, length=body.periods)
+    else:
+
+        def run_block(carry, _):
+            carry, outputs = jax.lax.scan(period_and_fold, carry, None, length=block)
+            return carry, observer.keep(outputs)
+
+        (final, memory, _), kept = jax.lax.scan(run_block, carry, None, length=body.periods // block)
+    return final, observer.finish(memory, kept, final, scenario, realism)
+
+
+def rollout(
+    robot: Robot,
+    scenario: Scenario,
+    gains: Gains,
+    controller,
+    checkpoint_segment: int | None = None,
+    realism: Realism | None = None,
+    key: jax.Array | None = None,
+    model_robot: Robot | None = None,
+) -> tuple[LoopState, Log]:
+    """Simulate the closed loop over ``scenario.duration`` and keep its whole log
+    ([`closed_loop()`][spacegrasp_jax.simulate.closed_loop] with [`FullLog`][spacegrasp_jax.simulate.FullLog]).
+
+    Args:
+        robot, scenario, gains: pytrees (any leaf may carry a vmap batch axis).
+        controller: static: a law's name (``"admittance"``, eqs 9-17; ``"cartesian"``, eqs
+            21-22; any of ``control.CONTROLLERS``), a law object (``control.Admittance()``)
+            or a ``control.Controller``
+            ([`as_controller()`][spacegrasp_jax.control.registry.as_controller]); a law
+            object carries its settings (``control.Admittance(pinv_damping=0.01)``: damped
+            least squares; a name: the paper's exact pseudoinverse).
+        checkpoint_segment: the number of steps per inner scan (static; must divide
+            ``n_steps``; ``None``: ``LOG_BLOCK`` or the largest divisor below it; a loop
+            whose control period spans several steps runs whole periods). Each control
+            period is always under ``jax.checkpoint`` ([`loop_body()`][spacegrasp_jax.simulate.loop_body]), which changes
+            nothing in a forward rollout (the same log, bit for bit) and makes a
+            reverse-mode gradient's tape hold, per step, the state and the rates RK4's
+            stages start from instead of every intermediate (the measured cost:
+            documentation, Performance). A stage's rate is at most 7 numbers a field, so
+            the three of one step are (3, 7) and inner scans of 2 steps hold no array over
+            64 numbers, which matters where XLA runs loops kernel by kernel (with loops
+            compiled whole the length does not).
+        realism: the realism settings ([`loop_body()`][spacegrasp_jax.simulate.loop_body]; ``None``: the paper's loop).
+        key: the ``jax.random`` key of the sensors' noise (needed with noisy sensors).
+        model_robot: the robot the controller believes, if not ``robot``.
+
+    Returns:
+        ``(final_state, log)``: the [`LoopState`][spacegrasp_jax.simulate.LoopState] after
+        ``scenario.n_steps`` steps and the [`Log`][spacegrasp_jax.simulate.Log]. A diverging rollout carries non-finite
+        values from the first bad step on; [`first_nonfinite_time()`][spacegrasp_jax.simulate.first_nonfinite_time] finds it (``experiment.run`` reports it).
+    """
+    n_steps = scenario.n_steps
+    if checkpoint_segment is not None and (checkpoint_segment < 1 or n_steps % checkpoint_segment):
+        raise ValueError(f"checkpoint_segment: {checkpoint_segment} must be a positive divisor of the {n_steps} steps")
+    block_steps = largest_divisor(n_steps, LOG_BLOCK) if checkpoint_segment is None else checkpoint_segment
+    return closed_loop(
+        robot,
+        scenario,
+        gains,
+        controller,
+        FullLog(block_steps),
+        realism=realism,
+        key=key,
+        model_robot=model_robot,
+        checkpoint=True,
+    )
 
 
 def first_nonfinite_step(log: Log) -> int | None:

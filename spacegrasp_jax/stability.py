@@ -3,8 +3,9 @@ with each loop's gain, and the gain at which one starts to grow.
 
 The closed loop advanced by one control period is a map ``x_{k+1} = Phi(x_k)`` of its whole
 state: the plant, the law's and the PID's memory, the F/T sensor's low-pass and the delay
-line (the flight-like loop's [`FlightState`][spacegrasp_jax.simulate.FlightState]; the
-paper's loop is the flight-like loop with every stage off and a period of one step). Its
+line (the loop's [`LoopState`][spacegrasp_jax.simulate.LoopState]; the paper's loop is
+the loop with every stage off and a period of one step, whose state is the plant's and the
+controller's only). Its
 Jacobian at an operating point, by ``jax.jacfwd``, is the loop's linearisation; each
 eigenvalue ``lambda`` of it is a mode (stable inside the unit circle) and a continuous-time
 pole ``s = log(lambda) / T``: a growth rate ``Re s`` (1/s), a natural frequency
@@ -63,7 +64,7 @@ from spacegrasp_jax.margins import LOOPS, MarginSettings, control_period, gain_m
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import FlightState, flight_loop, flight_rollout, observe, plant_kinematics
+from spacegrasp_jax.simulate import LoopState, loop_body, observe, plant_kinematics, rollout
 
 
 def _key() -> jax.Array:
@@ -89,7 +90,7 @@ def quiet(realism: Realism | None) -> Realism:
     )
 
 
-def _with_attitude(state: FlightState, attitude) -> FlightState:
+def _with_attitude(state: LoopState, attitude) -> LoopState:
     return dataclasses.replace(state, plant=dataclasses.replace(state.plant, quat_base=attitude))
 
 
@@ -98,15 +99,15 @@ class Coordinates:
     """Local coordinates of the loop's state about ``reference`` (module docstring).
 
     Attributes:
-        reference: the operating point, a [`FlightState`][spacegrasp_jax.simulate.FlightState].
+        reference: the operating point, a [`LoopState`][spacegrasp_jax.simulate.LoopState].
         names: one name per coordinate, e.g. ``plant.q[3]``, ``plant.attitude[0]``.
     """
 
-    reference: FlightState
+    reference: LoopState
     names: tuple[str, ...]
 
     @classmethod
-    def about(cls, reference: FlightState) -> Coordinates:
+    def about(cls, reference: LoopState) -> Coordinates:
         if reference.plant.target is not None:
             raise StabilityError("target: the linear analysis covers the paper's stationary target only")
         template = _with_attitude(reference, jnp.zeros(3))
@@ -123,12 +124,12 @@ class Coordinates:
     def _flat_reference(self):
         return ravel_pytree(_with_attitude(self.reference, jnp.zeros(3)))
 
-    def to_local(self, state: FlightState) -> jax.Array:
+    def to_local(self, state: LoopState) -> jax.Array:
         """(n,) the coordinates of ``state``."""
         attitude = spatial.rotation_log(spatial.matmul(state.plant.R_base, self.reference.plant.R_base.T))
         return ravel_pytree(_with_attitude(state, attitude))[0] - self._flat_reference()[0]
 
-    def from_local(self, delta: jax.Array) -> FlightState:
+    def from_local(self, delta: jax.Array) -> LoopState:
         """The state at coordinates ``delta`` (n,)."""
         flat, unravel = self._flat_reference()
         state = unravel(flat + delta)
@@ -146,17 +147,17 @@ def small_signal(realism: Realism | None) -> Realism:
 
 def settled_state(
     robot: Robot, scenario: Scenario, gains: Gains, controller, realism: Realism | None = None
-) -> tuple[FlightState, int]:
+) -> tuple[LoopState, int]:
     """``(state, periods)``: the loop's state after the scenario's ``periods`` control periods
     (the nominal capture, noise off: [`quiet()`][spacegrasp_jax.stability.quiet])."""
     if scenario.target is not None:
         raise StabilityError("target: the linear analysis covers the paper's stationary target only")
     realism = quiet(realism)
-    final, _ = jax.jit(lambda g: flight_rollout(robot, scenario, g, controller, realism, _key()))(gains)
+    final, _ = jax.jit(lambda g: rollout(robot, scenario, g, controller, realism=realism, key=_key()))(gains)
     return final, scenario.n_steps // realism.steps_per_period(scenario.dt)
 
 
-def holding(robot: Robot, scenario: Scenario, state: FlightState) -> Scenario:
+def holding(robot: Robot, scenario: Scenario, state: LoopState) -> Scenario:
     """``scenario`` with its desired EE pose held, from the start, at the EE's pose (LAR) in
     ``state``: the reference of the loop at rest where the capture settled, so that no
     gain of the law changes what the law commands there."""
@@ -254,7 +255,7 @@ class Linearizer:
         scenario: Scenario,
         controller,
         realism: Realism | None,
-        point: FlightState,
+        point: LoopState,
         period_index: int,
     ):
         realism = small_signal(realism)
@@ -267,7 +268,7 @@ class Linearizer:
         zero = jnp.zeros(n)
 
         def one_period(gains):
-            return flight_loop(robot, scenario, gains, controller, realism, _key())[1]
+            return loop_body(robot, scenario, gains, controller, realism, _key()).period
 
         def advance(delta, scaled):
             return coordinates.to_local(one_period(scaled)(coordinates.from_local(delta), k)[0])
@@ -451,7 +452,7 @@ class HoldProber:
     scenario: Scenario
     controller: str
     realism: Realism | None
-    point: FlightState
+    point: LoopState
     period_index: int
     gains: Gains
     settings: MarginSettings = MarginSettings()
@@ -471,7 +472,7 @@ class HoldProber:
         window = half // 10
 
         def growth_rate(gains):
-            _, one_period, _ = flight_loop(self.robot, self.scenario, gains, self.controller, realism, _key())
+            one_period = loop_body(self.robot, self.scenario, gains, self.controller, realism, _key()).period
             _, rows = jax.vmap(lambda start: jax.lax.scan(one_period, start, ks))(starts)
             difference = jnp.abs(rows.qd[1] - rows.qd[0])  # (periods, steps a period, 7)
             middle = jnp.max(difference[half - window : half])

@@ -294,9 +294,7 @@ def search(
         measure=settings.measure,
         criteria=(config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm),
         identified=config.identified,
-        segment=largest_divisor(scenario.n_steps, 2)
-        if config.realism is None or config.realism.is_ideal(scenario.dt)
-        else config.realism.steps_per_period(scenario.dt),
+        segment=largest_divisor(scenario.n_steps, 2),
     )
     replicated = (robot, scenario, gains, config.ranges, config.realism)
     try:

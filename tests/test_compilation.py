@@ -301,7 +301,7 @@ from jax.flatten_util import ravel_pytree
 from spacegrasp_jax import experiment
 from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import closed_loop_step, rollout
+from spacegrasp_jax.simulate import loop_body, rollout
 robot, gains = sg.paper_robot(), paper_gains()
 out = {"xla_flags": np.asarray(os.environ.get("XLA_FLAGS", ""))}
 for law in ("admittance", "cartesian"):
@@ -312,7 +312,8 @@ short = paper_scenario(robot, duration=1.15, move_duration=2.0, contact_law="smo
 state, log = jax.jit(rollout, static_argnames="controller")(robot, short, gains, "admittance")
 out["step/contact_force_n"] = np.linalg.norm(np.asarray(log.contact_force)[-1])
 def next_state(state, gains):
-    return ravel_pytree(closed_loop_step(robot, short, gains, "admittance")(state, short.n_steps)[0])[0]
+    period = loop_body(robot, short, gains, "admittance").period
+    return ravel_pytree(period(state, jax.numpy.asarray(float(short.n_steps)))[0])[0]
 by_state, by_gains = jax.jit(jax.jacrev(next_state, argnums=(0, 1)))(state, gains)
 out["step/by_state"] = ravel_pytree(by_state)[0]
 out["step/by_gains"] = ravel_pytree(by_gains)[0]

@@ -30,13 +30,18 @@ from spacegrasp_jax.control import (
 )
 from spacegrasp_jax.control.admittance import Admittance
 from spacegrasp_jax.dynamics import dynamic_jacobian
-from spacegrasp_jax.realism import ideal, make_realism
+from spacegrasp_jax.realism import Stage, ideal, make_realism
 from spacegrasp_jax.scenario import paper_scenario
 
 GAINS_FILE = Path(__file__).resolve().parents[1] / "configs" / "impedance_gains.json"
 
 ROLLOUT = jax.jit(simulate.rollout, static_argnames=("controller",))
-FLIGHT_ROLLOUT = jax.jit(simulate.flight_rollout, static_argnames=("controller",))
+FLIGHT_ROLLOUT = jax.jit(
+    lambda robot, scenario, gains, controller, realism, key: simulate.rollout(
+        robot, scenario, gains, controller, realism=realism, key=key
+    ),
+    static_argnames=("controller",),
+)
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +107,9 @@ def test_the_flight_loop_runs_a_torque_law_as_the_ideal_loop_and_limits_its_torq
     np.testing.assert_array_equal(ideal_log.qd_des, 0.0)  # no servo: no desired joint rates
     np.testing.assert_array_equal(ideal_log.V_ref, 0.0)
     key = jax.random.PRNGKey(3)
-    flight_log = FLIGHT_ROLLOUT(robot, short_scenario, gains, "impedance", ideal(), key)[1]
+    # Every stage on at neutral values: the sensing, model and actuator code changes nothing.
+    neutral = dataclasses.replace(ideal(), stages=Stage.SENSORS | Stage.ACTUATORS | Stage.MODEL | Stage.ESTIMATE)
+    flight_log = FLIGHT_ROLLOUT(robot, short_scenario, gains, "impedance", neutral, key)[1]
     for name, value in vars(ideal_log).items():
         if value is not None:
             np.testing.assert_allclose(getattr(flight_log, name), value, rtol=1e-12, atol=1e-12, err_msg=name)

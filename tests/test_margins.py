@@ -188,10 +188,10 @@ def test_the_servo_input_delay_hands_the_pid_the_reading_of_d_ticks_before(robot
     earlier (the sensors' noise off), and zero before the first reading."""
     realism, d = stability.quiet(flight()), 7
     delay = simulate.ServoInputDelay(capacity=16, ticks=jnp.int32(d))
-    start, one_period, _ = simulate.flight_loop(
+    body = simulate.loop_body(
         robot, short_scenario, paper_gains(), "admittance", realism, jax.random.PRNGKey(0), servo_input_delay=delay
     )
-    _, rows = jax.jit(lambda: jax.lax.scan(one_period, start, jnp.arange(50.0)))()
+    _, rows = jax.jit(lambda: jax.lax.scan(body.period, body.start, jnp.arange(50.0)))()
     measured = np.asarray(rows.qd_measured).reshape(-1, 7)  # one row a plant step, one tick a step
     true = np.asarray(rows.qd).reshape(-1, 7)
     assert np.abs(true).max() > 1e-3  # the arm moves

@@ -172,15 +172,12 @@ def test_a_law_object_runs_the_loop_its_name_runs(robot, gains, short_scenario, 
 
 def test_the_checkpointed_steps_of_rollout_change_nothing_in_a_forward_run(robot, gains, short_scenario):
     """``rollout`` always puts each step's parts under ``jax.checkpoint`` (for gradients); a
-    forward run gives the log of the same steps scanned without it, bit for bit, so the
+    forward run gives the log of the same loop run without it, bit for bit, so the
     paper's reproduction does not depend on it."""
-    from spacegrasp_jax.simulate import LOG_BLOCK, closed_loop_step
+    from spacegrasp_jax.simulate import LOG_BLOCK, FullLog, closed_loop
 
     def plain_rollout(robot, scenario, gains):  # the arguments as rollout's: nothing folded in
-        step = closed_loop_step(robot, scenario, gains, "admittance", checkpoint=False)
-        steps = jnp.arange(scenario.n_steps, dtype=jnp.float64).reshape(-1, LOG_BLOCK)
-        start = initial_state(scenario, "admittance")
-        return jax.lax.scan(lambda s, ks: jax.lax.scan(step, s, ks), start, steps)[1]
+        return closed_loop(robot, scenario, gains, "admittance", FullLog(LOG_BLOCK), checkpoint=False)[1]
 
     plain = jax.jit(plain_rollout)(robot, short_scenario, gains)
     checkpointed = jax.jit(rollout, static_argnames="controller")(robot, short_scenario, gains, "admittance")[1]

@@ -262,17 +262,23 @@ def test_the_tuning_objective_can_weigh_the_targets_final_speed(pushed, tmp_path
 
 @pytest.mark.slow
 def test_the_flight_like_loop_carries_the_target_as_the_ideal_loop_does(robot, gains):
-    # Every realism stage neutral: the flight-like loop's plant, controller view and log
-    # with a drifting, tumbling target are the ideal loop's.
-    from spacegrasp_jax.realism import ideal
-    from spacegrasp_jax.simulate import flight_rollout
+    # Every realism stage on at neutral values: the sensed loop's plant, controller view and
+    # log with a drifting, tumbling target are the paper's loop's.
+    from spacegrasp_jax.realism import Stage, ideal
+    from spacegrasp_jax.simulate import rollout
 
     scenario = free(None, robot, velocity=[0.002, 0.0, -0.001], angular_velocity=[0.0, 0.01, 0.02])
     reference = ROLLOUT(robot, scenario, gains, "admittance")[1]
-    log = jax.jit(lambda: flight_rollout(robot, scenario, gains, "admittance", ideal(), jax.random.PRNGKey(0))[1])()
+    neutral = dataclasses.replace(ideal(), stages=Stage.SENSORS | Stage.ACTUATORS | Stage.MODEL | Stage.ESTIMATE)
+    log = jax.jit(
+        lambda: rollout(robot, scenario, gains, "admittance", realism=neutral, key=jax.random.PRNGKey(0))[1]
+    )()
+    # The neutral stages' arithmetic is exact (x + 0 noise, R exp(0)), but it is another
+    # program, whose sums XLA may order otherwise; the first touch of the exact contact law
+    # magnifies that last bit to a few 1e-12 of the force there.
     for name, value in vars(reference).items():
         if value is not None:
-            np.testing.assert_allclose(getattr(log, name), value, rtol=1e-12, atol=1e-12, err_msg=name)
+            np.testing.assert_allclose(getattr(log, name), value, rtol=1e-9, atol=1e-12, err_msg=name)
 
 
 @pytest.mark.slow
