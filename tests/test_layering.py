@@ -1,5 +1,6 @@
-"""The package's layers, read from its import statements: the core imports no host module,
-nothing below the faces imports a face, and the plots run nothing of the package."""
+"""The package's layers, read from its source: the core imports no host module, nothing
+below the faces imports a face, the plots run nothing of the package, the laws are listed
+once and dispatched on nowhere else, and only the loop dispatches on the realism."""
 
 from __future__ import annotations
 
@@ -113,3 +114,26 @@ def test_no_module_outside_the_laws_dispatches_on_a_laws_name():
                 constants = [c for o in operands for c in ast.walk(o) if isinstance(c, ast.Constant)]
                 named = {c.value for c in constants if isinstance(c.value, str) and c.value in names}
                 assert not named, f"{module}, line {node.lineno}: compares with the law name(s) {sorted(named)}"
+
+
+#: The loop: the modules that decide, from the realism, what runs in a control period.
+THE_LOOP = {"spacegrasp_jax.simulate", "spacegrasp_jax.stages", "spacegrasp_jax.realism"}
+#: Modules that read one stage's flag for what it means to a result, not to run a loop:
+#: the part of the final error the LAR estimate's error explains.
+READS_A_STAGES_VALUE = {"spacegrasp_jax.anatomy"}
+
+
+def test_no_module_outside_the_loop_dispatches_on_the_realism():
+    """What runs in a control period is decided in one place: no module outside the loop
+    asks whether a realism is the paper's loop (``is_ideal``) or tests a stage's flag
+    (``Stage.X in realism.stages``)."""
+    for module, path in module_files():
+        if module in THE_LOOP:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+                assert node.func.attr != "is_ideal", f"{module}, line {node.lineno}: asks is_ideal()"
+            if isinstance(node, ast.Compare) and module not in READS_A_STAGES_VALUE:
+                flags = [o for o in node.comparators if isinstance(o, ast.Attribute) and o.attr == "stages"]
+                tested = any(isinstance(op, (ast.In, ast.NotIn)) for op in node.ops)
+                assert not (flags and tested), f"{module}, line {node.lineno}: tests a realism stage's flag"
