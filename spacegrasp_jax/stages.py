@@ -8,7 +8,7 @@ in the compiled program.
 The other stages are the control laws' and the plant's own: the saturation with anti-windup
 is the joint PID's ([`PID.update()`][spacegrasp_jax.control.pid.PID.update]), the
 controller's model is [`believed_robot()`][spacegrasp_jax.stages.believed_robot].
-[`flight_loop()`][spacegrasp_jax.simulate.flight_loop] strings them together.
+[`loop_body()`][spacegrasp_jax.simulate.loop_body] strings them together.
 """
 
 from __future__ import annotations
