@@ -14,7 +14,6 @@ Every function returns plain floats and ints (``summary.json`` takes them as the
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
 #: The confidence level of every interval the project reports.
 CONFIDENCE = 0.95
@@ -22,6 +21,14 @@ CONFIDENCE = 0.95
 #: Resamples of the paired bootstrap, and its fixed seed (a report is reproducible).
 BOOTSTRAP_RESAMPLES = 4000
 BOOTSTRAP_SEED = 0
+
+
+def _stats():
+    """``scipy.stats``, imported on first use: importing it takes most of a second, which
+    every command would otherwise pay at start-up."""
+    from scipy import stats
+
+    return stats
 
 
 def success_interval(successes: int, samples: int) -> dict:
@@ -34,7 +41,7 @@ def success_interval(successes: int, samples: int) -> dict:
         raise ValueError(f"successes: need 0 <= successes <= samples, got {successes} of {samples}")
     if samples == 0:
         return {"rate": float("nan"), "low": float("nan"), "high": float("nan"), "successes": 0, "samples": 0}
-    interval = stats.binomtest(successes, samples).proportion_ci(confidence_level=CONFIDENCE, method="wilson")
+    interval = _stats().binomtest(successes, samples).proportion_ci(confidence_level=CONFIDENCE, method="wilson")
     return {
         "rate": successes / samples,
         "low": float(interval.low),
@@ -74,7 +81,7 @@ def compare_success(reference, candidate) -> dict:
     only_candidate = int(np.sum(candidate & ~reference))
     discordant = only_reference + only_candidate
     if discordant:
-        test = stats.binomtest(only_candidate, discordant, 0.5)
+        test = _stats().binomtest(only_candidate, discordant, 0.5)
         p_value = float(test.pvalue)
         share = test.proportion_ci(confidence_level=CONFIDENCE, method="exact")
         # difference = (only_candidate - only_reference) / n = discordant / n * (2 share - 1)
@@ -125,7 +132,7 @@ def compare_metric(reference, candidate) -> dict:
     rng = np.random.default_rng(BOOTSTRAP_SEED)
     resampled = difference[rng.integers(0, n, size=(BOOTSTRAP_RESAMPLES, n))]
     low, high = np.percentile(np.median(resampled, axis=1), [50 * (1 - CONFIDENCE), 50 * (1 + CONFIDENCE)])
-    p_value = 1.0 if not np.any(difference) else float(stats.wilcoxon(difference).pvalue)
+    p_value = 1.0 if not np.any(difference) else float(_stats().wilcoxon(difference).pvalue)
     return result | {
         "median_difference": float(np.median(difference)),
         "low": float(low),

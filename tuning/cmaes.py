@@ -23,8 +23,8 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import cma
 import jax
 import numpy as np
 
@@ -35,6 +35,9 @@ from spacegrasp_jax.montecarlo import SampleLoops
 from spacegrasp_jax.runfiles import StopRequest
 from spacegrasp_jax.tuning.objective import Objective
 from spacegrasp_jax.tuning.parameters import gains_from_params
+
+if TYPE_CHECKING:
+    import cma
 
 #: CMA-ES's default initial step in log-gain units: about +-30% on every tuned gain.
 SIGMA = 0.3
@@ -157,6 +160,8 @@ def new_strategy(
 ) -> cma.CMAEvolutionStrategy:
     """CMA-ES from ``x0`` with initial step ``step_size`` (log-gain units), seeded (its
     ``seed`` must not be 0, which ``cma`` reads as "draw one"), silent."""
+    import cma  # imported on first use: with scipy.stats, most of a second at every command's start
+
     options = {"seed": seed + 1, "verbose": -9, "verb_log": 0, "verb_disp": 0}
     if population is not None:
         options["popsize"] = population
