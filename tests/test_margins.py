@@ -9,6 +9,7 @@ campaign's program (which knows nothing of margins).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -224,8 +225,16 @@ def test_the_gain_margin_fails_at_its_factor_and_holds_just_below_it(flight_capt
 
 
 @pytest.mark.slow
-def test_the_margins_command_writes_its_files_and_prints_the_margins(flight_capture, tmp_path, capsys):
+def test_the_margins_command_writes_its_files_and_prints_the_margins(flight_capture, tmp_path, capsys, monkeypatch):
     """The command on the same loop and samples (it loads the program the tests above built)."""
+    probed, find_margins = [], margins.find_margins
+
+    def recording(*args, **kwargs):
+        result = find_margins(*args, **kwargs)
+        probed.append(copy.deepcopy(result))
+        return result
+
+    monkeypatch.setattr(margins, "find_margins", recording)
     scenario_file = tmp_path / "short.toml"
     scenario_file.write_text('duration = 2.0\n[trajectory]\nduration = 2.0\n[contact]\nlaw = "smooth"\n')
     out = tmp_path / "margins"
@@ -260,9 +269,14 @@ def test_the_margins_command_writes_its_files_and_prints_the_margins(flight_capt
     for mode in linear["modes"]:
         if mode["growth_rate_per_s"] is not None:
             assert mode["growth_rate_per_s"] == pytest.approx(math.log(mode["magnitude"]) / 0.01)
+    # --no-linear: the probes are the run's above (its 43 probes replayed, not run again),
+    # and the linear analysis is neither run nor written.
+    monkeypatch.setattr(margins, "find_margins", lambda *args, **kwargs: copy.deepcopy(probed[0]))
+    monkeypatch.setattr(stability, "linear_analysis", lambda *a, **k: pytest.fail("--no-linear ran the analysis"))
     skipped = tmp_path / "no-linear"
     assert cli.main([*argv[:-1], str(skipped), "--no-linear"]) == 0
     again = json.loads((skipped / "margins.json").read_text())
     assert again["linear"] is None and again["linear_skipped"] == "--no-linear"
     assert not (skipped / "eigenvalues.png").exists()
-    assert again["gain_margins"] == document["gain_margins"]
+    assert (skipped / "margins.png").stat().st_size > 10_000
+    assert again["delay_margin"] == document["delay_margin"]
