@@ -705,9 +705,9 @@ class FullLog:
     """The observer that keeps every row: the [`Log`][spacegrasp_jax.simulate.Log] of the whole run.
 
     Attributes:
-        block_steps: plant steps per inner scan (``None``: ``LOG_BLOCK``); a loop whose
-            control period spans several steps runs whole periods, as many as fit (at least
-            one).
+        block_steps: plant steps per inner scan at most (``None``: ``LOG_BLOCK``): the
+            largest number of whole control periods that fits and divides the run's (at
+            least one).
     """
 
     block_steps: int | None = None
@@ -835,13 +835,12 @@ def rollout(
     n_steps = scenario.n_steps
     if checkpoint_segment is not None and (checkpoint_segment < 1 or n_steps % checkpoint_segment):
         raise ValueError(f"checkpoint_segment: {checkpoint_segment} must be a positive divisor of the {n_steps} steps")
-    block_steps = largest_divisor(n_steps, LOG_BLOCK) if checkpoint_segment is None else checkpoint_segment
     return closed_loop(
         robot,
         scenario,
         gains,
         controller,
-        FullLog(block_steps),
+        FullLog(checkpoint_segment),
         realism=realism,
         key=key,
         model_robot=model_robot,
