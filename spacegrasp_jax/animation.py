@@ -83,10 +83,11 @@ def _box_edges(robot: Robot) -> np.ndarray:
 
 
 def lar_poses(log, scenario) -> tuple[np.ndarray, np.ndarray]:
-    """``(p_lar (T, 3), R_lar (T, 3, 3))``: the LAR's pose at each step, the scenario's, or the
-    free target's (its CoM and attitude moved by the LAR's place in it)."""
+    """``(p_lar (T, 3), R_lar (T, 3, 3))``: the LAR's pose at each step, the scenario's for the
+    paper's fixed target, or the free target's (its CoM and attitude moved by the LAR's place
+    in it)."""
     steps = len(np.asarray(log.t))
-    if scenario.target is None:
+    if not scenario.free_target:
         p = np.broadcast_to(np.asarray(scenario.p_lar, dtype=float), (steps, 3))
         R = np.broadcast_to(np.asarray(scenario.R_lar, dtype=float), (steps, 3, 3))
         return p, R

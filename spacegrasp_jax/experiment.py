@@ -117,7 +117,9 @@ def run(
     if bad_step is None:
         summary = run_summary(log, robot, scenario, realism) | dict(compile_time_s=compile_time, run_time_s=run_time)
         return RunResult(controller, log, summary, compile_time, run_time)
-    summary = divergence_summary(log, bad_step, robot) | dict(compile_time_s=compile_time, run_time_s=run_time)
+    summary = divergence_summary(log, bad_step, robot, free_target=scenario.free_target) | dict(
+        compile_time_s=compile_time, run_time_s=run_time
+    )
     if check:
         kept = jax.tree.map(lambda series: series[: bad_step + 1], log)
         raise SimulationDiverged(
@@ -130,20 +132,20 @@ def run_summary(log: Log, robot: Robot, scenario: Scenario, realism: Realism | N
     """The metrics of a whole log ([`spacegrasp_jax.metrics.summary()`][spacegrasp_jax.metrics.summary], runaways by
     ``robot``'s limits) and the parts of its final error ([`spacegrasp_jax.anatomy.error_parts()`][spacegrasp_jax.anatomy.error_parts]),
     as plain floats and lists."""
-    summary = metrics.summary(log, robot)
+    summary = metrics.summary(log, robot, free_target=scenario.free_target)
     parts = anatomy.error_parts(
         {"final_contact_force_N": np.asarray(summary["final_contact_force_N"])}, scenario, realism
     )
     return summary | {name: np.asarray(value).tolist() for name, value in parts.items()}
 
 
-def divergence_summary(log: Log, step: int, robot: Robot | None = None) -> dict:
+def divergence_summary(log: Log, step: int, robot: Robot | None = None, *, free_target: bool = False) -> dict:
     """What a diverged run tells: when (``first_nonfinite_s``, ``first_nonfinite_step``),
     which logged quantities were non-finite then (``nonfinite_fields``), every logged
     quantity at that step and at the step before (``state_at_divergence``,
     ``state_before_divergence``; units of [`Log`][spacegrasp_jax.simulate.Log]), and the
     metrics of the finite steps (``before_divergence``, [`metrics.summary()`][spacegrasp_jax.metrics.summary], runaways
-    by ``robot``'s limits)."""
+    by ``robot``'s limits; the target's with ``free_target``)."""
 
     def row(index: int) -> dict:
         return {name: np.asarray(series)[index] for name, series in vars(log).items() if series is not None}
@@ -156,7 +158,9 @@ def divergence_summary(log: Log, step: int, robot: Robot | None = None) -> dict:
         "nonfinite_fields": [name for name, value in at_step.items() if not np.all(np.isfinite(value))],
         "state_at_divergence": at_step,
         "state_before_divergence": row(step - 1) if step > 0 else None,
-        "before_divergence": metrics.summary(jax.tree.map(lambda series: series[:step], log), robot)
+        "before_divergence": metrics.summary(
+            jax.tree.map(lambda series: series[:step], log), robot, free_target=free_target
+        )
         if step > 0
         else None,
     }

@@ -1,7 +1,8 @@
 """The mechanical state of the free-floating system and its fixed-step RK4 integration.
 
 The satellite attitude is a unit quaternion (no Euler-angle singularity in the state); it
-is renormalised after every step, a projection that keeps RK4's 4th order.
+is renormalised after every step ([`PlantState.projected()`][spacegrasp_jax.integrator.PlantState.projected]),
+a projection that keeps RK4's 4th order.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import jax.numpy as jnp
 from spacegrasp_jax import spatial
 from spacegrasp_jax.dynamics import forward_dynamics
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.target import TargetState
+from spacegrasp_jax.target import TargetState, fixed_target_state
 
 
 @jax.tree_util.register_dataclass
@@ -31,9 +32,8 @@ class PlantState:
         V_base: (6,) ``[v_s (m/s), w_s (rad/s)]``, satellite CoM velocity and angular
             velocity in the inertial frame.
         qd: (7,) rad/s, joint rates.
-        target: the free-floating target's state
-            ([`TargetState`][spacegrasp_jax.target.TargetState]), or ``None`` for the paper's
-            stationary target.
+        target: the target's state ([`TargetState`][spacegrasp_jax.target.TargetState]):
+            the paper's fixed target or a free-floating one.
     """
 
     p_base: jax.Array
@@ -41,35 +41,48 @@ class PlantState:
     q: jax.Array
     V_base: jax.Array
     qd: jax.Array
-    target: TargetState | None = None
+    target: TargetState
 
     @property
     def R_base(self) -> jax.Array:
         """(3, 3) satellite attitude, satellite to inertial."""
         return spatial.quat_to_rotation(self.quat_base)
 
+    def projected(self) -> PlantState:
+        """The state back on its manifold after an integration step: the attitude
+        quaternions renormalised (the satellite's; a free target's)."""
+        return dataclasses.replace(
+            self, quat_base=self.quat_base / jnp.linalg.norm(self.quat_base), target=self.target.projected()
+        )
 
-def plant_state(p_base, R_base, q, V_base, qd) -> PlantState:
-    """A [`PlantState`][spacegrasp_jax.integrator.PlantState] from a rotation-matrix attitude ``R_base`` (3, 3)."""
+
+def plant_state(p_base, R_base, q, V_base, qd, target: TargetState | None = None) -> PlantState:
+    """A [`PlantState`][spacegrasp_jax.integrator.PlantState] from a rotation-matrix attitude
+    ``R_base`` (3, 3); ``target``: the target's state (by default a fixed target with its LAR
+    frame at the inertial origin, for a chaser on its own)."""
+    if target is None:
+        target = fixed_target_state(jnp.zeros(3, jnp.float64), jnp.eye(3, dtype=jnp.float64))
     return PlantState(
         p_base=jnp.asarray(p_base, dtype=jnp.float64),
         quat_base=spatial.rotation_to_quat(jnp.asarray(R_base, dtype=jnp.float64)),
         q=jnp.asarray(q, dtype=jnp.float64),
         V_base=jnp.asarray(V_base, dtype=jnp.float64),
         qd=jnp.asarray(qd, dtype=jnp.float64),
+        target=target,
     )
 
 
 def free_floating_derivative(robot: Robot, state: PlantState, Q: jax.Array) -> PlantState:
     """Time derivative of ``state`` under the generalised force ``Q`` (13,)
-    ``[f_s, tau_s, u]`` (inertial frame, N and N m); returned as a [`PlantState`][spacegrasp_jax.integrator.PlantState]
-    whose fields hold the rates."""
-    return state_rate(state, forward_dynamics(robot, state.R_base, state.q, state.V_base, state.qd, Q))
+    ``[f_s, tau_s, u]`` (inertial frame, N and N m), the target held where it is; returned as a
+    [`PlantState`][spacegrasp_jax.integrator.PlantState] whose fields hold the rates."""
+    xdd = forward_dynamics(robot, state.R_base, state.q, state.V_base, state.qd, Q)
+    return state_rate(state, xdd, state.target.at_rest())
 
 
-def state_rate(state: PlantState, xdd: jax.Array, target_rate: TargetState | None = None) -> PlantState:
-    """The rate of ``state`` given the chaser's generalised acceleration ``xdd`` (13,) and,
-    with a free-floating target, the target's rate."""
+def state_rate(state: PlantState, xdd: jax.Array, target_rate: TargetState) -> PlantState:
+    """The rate of ``state`` given the chaser's generalised acceleration ``xdd`` (13,) and
+    the target's rate."""
     v_s, w_s = jnp.split(state.V_base, 2)
     V_base_rate, qd_rate = jnp.split(xdd, [6])
     return PlantState(
@@ -121,11 +134,7 @@ def rk4_step(
     k1 = derivative(state) if rate_at_start is None else rate_at_start
     coefficients = jnp.asarray(_LATER_STAGES, dtype=state.q.dtype).T
     (_, weighted_sum), _ = jax.lax.scan(later_stage, (k1, k1), tuple(coefficients))
-    new = advance(state, weighted_sum, dt / 6)
-    if new.target is not None:
-        target = dataclasses.replace(new.target, quat=new.target.quat / jnp.linalg.norm(new.target.quat))
-        new = dataclasses.replace(new, target=target)
-    return dataclasses.replace(new, quat_base=new.quat_base / jnp.linalg.norm(new.quat_base))
+    return advance(state, weighted_sum, dt / 6).projected()
 
 
 def simulate_free_floating(

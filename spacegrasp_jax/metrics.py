@@ -116,8 +116,9 @@ def contact_force_norm(log):
     return safe_norm(log.contact_force)
 
 
-#: The per-run metrics of a free-floating target (added to ``METRICS``' where the
-#: scenario has one): name -> (shape, unit, meaning).
+#: The per-run metrics of a free-floating target, reported beside ``METRICS`` where the
+#: scenario has one (every run folds them; the paper's fixed target's speeds, rates and
+#: displacement are zero and are not reported): name -> (shape, unit, meaning).
 TARGET_METRICS = {
     "final_target_speed_mps": ((), "m/s", "the target CoM's speed at the last step"),
     "max_target_speed_mps": ((), "m/s", "the target CoM's peak speed"),
@@ -177,7 +178,7 @@ class RunningMetrics:
         last_contact_force: (3,) N, the latest row's contact force, LAR axes.
         runaway_rate, runaway_torque: (N,) rad/s, N m, the thresholds of a runaway
             (``inf``: none).
-        target: the free-floating target's ([`RunningTargetMetrics`][spacegrasp_jax.metrics.RunningTargetMetrics]), or ``None``.
+        target: the target's ([`RunningTargetMetrics`][spacegrasp_jax.metrics.RunningTargetMetrics]).
     """
 
     rows: jax.Array
@@ -197,13 +198,13 @@ class RunningMetrics:
     last_contact_force: jax.Array
     runaway_rate: jax.Array
     runaway_torque: jax.Array
-    target: RunningTargetMetrics | None = None
+    target: RunningTargetMetrics
 
 
-def start(dtype=jnp.float64, free_target: bool = False, robot=None, n_joints: int = 7) -> RunningMetrics:
-    """Nothing folded yet; ``free_target``: the rows will carry a free-floating target;
-    ``robot``: the [`Robot`][spacegrasp_jax.model.Robot] whose limits define a runaway
-    (``None``: no runaway is detected, for an arm of ``n_joints`` joints)."""
+def start(dtype=jnp.float64, robot=None, n_joints: int = 7) -> RunningMetrics:
+    """Nothing folded yet; ``robot``: the [`Robot`][spacegrasp_jax.model.Robot] whose
+    limits define a runaway (``None``: no runaway is detected, for an arm of ``n_joints``
+    joints)."""
     zero, never = jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)
     if robot is not None:
         n_joints = robot.link_mass.shape[-1]
@@ -212,10 +213,8 @@ def start(dtype=jnp.float64, free_target: bool = False, robot=None, n_joints: in
     else:
         runaway_rate = RUNAWAY_FACTOR * jnp.asarray(robot.joint_rate_limit, dtype)
         runaway_torque = RUNAWAY_FACTOR * jnp.asarray(robot.joint_torque_limit, dtype)
-    target = None
-    if free_target:
-        nothing = jnp.full(3, jnp.nan, dtype)
-        target = RunningTargetMetrics(nothing, nothing, zero, zero, zero, zero, jnp.zeros(3, dtype), never, never)
+    nothing = jnp.full(3, jnp.nan, dtype)
+    target = RunningTargetMetrics(nothing, nothing, zero, zero, zero, zero, jnp.zeros(3, dtype), never, never)
     return RunningMetrics(
         zero,
         zero,
@@ -275,7 +274,7 @@ def accumulate(running: RunningMetrics, rows) -> RunningMetrics:
         last_contact_force=rows.contact_force[-1],
         runaway_rate=r.runaway_rate,
         runaway_torque=r.runaway_torque,
-        target=None if r.target is None else _accumulate_target(r.target, rows),
+        target=_accumulate_target(r.target, rows),
     )
 
 
@@ -298,26 +297,25 @@ def _accumulate_target(running: RunningTargetMetrics, rows) -> RunningTargetMetr
     )
 
 
-def finish(running: RunningMetrics, nonfinite_after_s=None) -> dict[str, jax.Array]:
+def finish(running: RunningMetrics, nonfinite_after_s=None, *, free_target: bool = False) -> dict[str, jax.Array]:
     """The ``METRICS`` of everything folded into ``running`` (NaN where a time never
-    came). ``nonfinite_after_s``: a time (s) to report as ``first_nonfinite_s`` if no row
-    was non-finite (a state that turns non-finite in the last step shows in no row)."""
+    came), and the ``TARGET_METRICS`` with ``free_target`` (static: the scenario's target
+    floats free). ``nonfinite_after_s``: a time (s) to report as ``first_nonfinite_s`` if no
+    row was non-finite (a state that turns non-finite in the last step shows in no row)."""
     first_nonfinite = running.first_nonfinite_s
     if nonfinite_after_s is not None:
         first_nonfinite = jnp.where(jnp.isinf(first_nonfinite), nonfinite_after_s, first_nonfinite)
     never = lambda s: jnp.where(jnp.isinf(s), jnp.nan, s)
-    target = {}
-    if running.target is not None:
-        r = running.target
-        step = (r.last_t - r.first_t) / jnp.maximum(running.rows - 1, 1)  # the log's dt
-        target = {
-            "final_target_speed_mps": r.last_speed,
-            "max_target_speed_mps": r.max_speed,
-            "final_target_rate_radps": r.last_rate,
-            "max_target_rate_radps": r.max_rate,
-            "target_displacement_m": safe_norm(r.last_position - r.first_position),
-            "target_impulse_Ns": safe_norm(r.force_sum * step),
-        }
+    r = running.target
+    step = (r.last_t - r.first_t) / jnp.maximum(running.rows - 1, 1)  # the log's dt
+    target = {
+        "final_target_speed_mps": r.last_speed,
+        "max_target_speed_mps": r.max_speed,
+        "final_target_rate_radps": r.last_rate,
+        "max_target_rate_radps": r.max_rate,
+        "target_displacement_m": safe_norm(r.last_position - r.first_position),
+        "target_impulse_Ns": safe_norm(r.force_sum * step),
+    }
     return {
         "final_position_error_m": pose_position_error(running.last_pose_ee, running.last_pose_des),
         "final_orientation_error_rad": pose_orientation_error(running.last_pose_ee, running.last_pose_des),
@@ -335,20 +333,22 @@ def finish(running: RunningMetrics, nonfinite_after_s=None) -> dict[str, jax.Arr
         "first_runaway_s": never(running.first_runaway_s),
         "final_position_error_lar_m": running.last_pose_ee[:3] - running.last_pose_des[:3],
         "final_contact_force_N": running.last_contact_force,
-    } | target
+    } | (target if free_target else {})
 
 
-def log_metrics(log, robot=None) -> dict[str, jax.Array]:
-    """The ``METRICS`` of a whole log (arrays), and the ``TARGET_METRICS`` if it
-    carries a free-floating target; ``robot``: whose limits define a runaway ([`start()`][spacegrasp_jax.metrics.start])."""
+def log_metrics(log, robot=None, *, free_target: bool = False) -> dict[str, jax.Array]:
+    """The ``METRICS`` of a whole log (arrays), and the ``TARGET_METRICS`` with
+    ``free_target``; ``robot``: whose limits define a runaway ([`start()`][spacegrasp_jax.metrics.start])."""
     n_joints = jnp.shape(log.u)[-1]
-    return finish(accumulate(start(jnp.asarray(log.t).dtype, log.target_velocity is not None, robot, n_joints), log))
+    return finish(accumulate(start(jnp.asarray(log.t).dtype, robot, n_joints), log), free_target=free_target)
 
 
-def summary(log, robot=None) -> dict:
-    """The ``METRICS`` (and ``TARGET_METRICS``) of a whole log as plain floats and
-    lists (``summary.json``; NaN where a metric has no value); ``robot`` as [`log_metrics()`][spacegrasp_jax.metrics.log_metrics]."""
-    return {name: jnp.asarray(value).tolist() for name, value in log_metrics(log, robot).items()}
+def summary(log, robot=None, *, free_target: bool = False) -> dict:
+    """The ``METRICS`` (and, with ``free_target``, ``TARGET_METRICS``) of a whole log as
+    plain floats and lists (``summary.json``; NaN where a metric has no value); ``robot`` as
+    [`log_metrics()`][spacegrasp_jax.metrics.log_metrics]."""
+    metrics = log_metrics(log, robot, free_target=free_target)
+    return {name: jnp.asarray(value).tolist() for name, value in metrics.items()}
 
 
 __all__ = [

@@ -61,7 +61,7 @@ class FoldedMetrics:
         return self.every // body.steps_per_period
 
     def init(self, robot: Robot, scenario: Scenario) -> dict:
-        return metrics.start(scenario.initial.q.dtype, scenario.target is not None, robot)
+        return metrics.start(scenario.initial.q.dtype, robot)
 
     def fold(self, running: dict, rows: Log) -> tuple[dict, Log | None]:
         first = None if self.every is None else jax.tree.map(lambda x: x[0], rows)
@@ -73,7 +73,11 @@ class FoldedMetrics:
     def finish(self, running: dict, kept: Log | None, final, scenario: Scenario, realism) -> tuple[dict, Log | None]:
         # A state that turns non-finite in the very last step shows in no logged row.
         final_finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(final)]))
-        finished = metrics.finish(running, nonfinite_after_s=jnp.where(final_finite, jnp.inf, scenario.duration))
+        finished = metrics.finish(
+            running,
+            nonfinite_after_s=jnp.where(final_finite, jnp.inf, scenario.duration),
+            free_target=scenario.free_target,
+        )
         return finished | anatomy.error_parts(finished, scenario, realism), kept
 
 

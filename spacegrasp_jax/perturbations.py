@@ -64,7 +64,7 @@ from spacegrasp_jax import spatial
 from spacegrasp_jax.inputs import is_real, read_document, short
 from spacegrasp_jax.model import N_JOINTS, Robot
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.target import initial_target_state
+from spacegrasp_jax.target import fixed_target_state, initial_target_state
 
 
 class PerturbationError(ValueError):
@@ -343,8 +343,9 @@ def apply_to_robot(robot: Robot, perturbation: Perturbation) -> Robot:
 
 
 def apply_to_scenario(scenario: Scenario, perturbation: Perturbation) -> Scenario:
-    """The scenario with its initial state, LAR pose, contact sphere and (with a free-floating
-    target) the target perturbed."""
+    """The scenario with its initial state, LAR pose, contact sphere and target perturbed (a
+    fixed target moves with the LAR; only a free-floating one has mass properties and a
+    velocity to perturb)."""
     p, initial = perturbation, scenario.initial
     p_lar = scenario.p_lar + scenario.R_lar @ p.dp_lar
     R_lar = scenario.R_lar @ spatial.rotation_exp(p.dr_lar)
@@ -352,7 +353,9 @@ def apply_to_scenario(scenario: Scenario, perturbation: Perturbation) -> Scenari
         initial, q=initial.q + p.dq_init, V_base=initial.V_base + p.V_base_init, qd=initial.qd + p.qd_init
     )
     body = scenario.target
-    if body is not None:
+    if not scenario.free_target:
+        initial = dataclasses.replace(initial, target=fixed_target_state(p_lar, R_lar))
+    else:
         D = jnp.sqrt(p.target_inertia_scale)
         proportion = jnp.exp(p.target_mass_log_scale)
         body = dataclasses.replace(

@@ -59,7 +59,7 @@ def input_warnings(scenario: Scenario) -> list[str]:
         if ratio > CONTACT_FACTOR or ratio < 1.0 / CONTACT_FACTOR:
             hint = f": millimetres? ({value / 1e3:g} m)" if unit == "m" and ratio > CONTACT_FACTOR else ""
             lines.append(f"{name} = {value:g} {unit} is {ratio:.3g} times the paper's {paper:g} {unit}{hint}")
-    if scenario.target is not None:
+    if scenario.free_target:
         lines += _target_warnings(scenario)
     return lines
 

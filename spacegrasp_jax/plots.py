@@ -167,8 +167,8 @@ def figure_target_motion(logs, caption: str | None = None):
     """A free-floating target's motion: how far its CoM moved from where it started (mm),
     its speed (mm/s) and angular rate (deg/s), and the impulse the contact gave it (N s,
     the magnitude of the time integral of the contact force on the target). Only the logs
-    that carry a target are drawn."""
-    logs = {name: log for name, log in logs.items() if getattr(log, "target_position", None) is not None}
+    whose target moves are drawn ([`target_moves()`][spacegrasp_jax.plots.target_moves])."""
+    logs = {name: log for name, log in logs.items() if target_moves(log)}
     fig, axes = _grid(2, 2, "The free-floating target's motion", height=2.6, caption=caption)
 
     def series(log):
@@ -189,6 +189,15 @@ def figure_target_motion(logs, caption: str | None = None):
         axes,
         ["CoM displacement [mm]", "speed [mm/s]", "angular rate [deg/s]", "contact impulse [N s]"],
         caption=caption,
+    )
+
+
+def target_moves(log) -> bool:
+    """Whether ``log``'s target moves at some step (never the paper's fixed target; a log
+    written without target fields: no)."""
+    motion = (getattr(log, "target_velocity", None), getattr(log, "target_angular_velocity", None))
+    return all(series is not None for series in motion) and bool(
+        np.any(np.asarray(motion[0]) != 0.0) or np.any(np.asarray(motion[1]) != 0.0)
     )
 
 
@@ -215,14 +224,14 @@ def save(figures: dict, out_dir, write_atomically) -> list[str]:
 def save_figures(logs, out_dir, write_atomically, caption: str | None = None, torque_limit_Nm=None) -> list[str]:
     """Write Figures 4-9 into ``out_dir``, each with ``caption`` under its title and Fig. 8
     with the motor limits ``torque_limit_Nm`` (N,) N m; with a free-floating target in any
-    log, ``target_motion.png`` too (:func:`figure_target_motion`). Returns the file names."""
+    log that moves, ``target_motion.png`` too (:func:`figure_target_motion`). Returns the file names."""
     figures = {
         name: build(logs, caption=caption, torque_limit_Nm=torque_limit_Nm)
         if build is figure_joint_torques
         else build(logs, caption=caption)
         for name, build in FIGURES.items()
     }
-    if any(getattr(log, "target_position", None) is not None for log in logs.values()):
+    if any(target_moves(log) for log in logs.values()):
         figures["target_motion.png"] = figure_target_motion(logs, caption=caption)
     return save(figures, out_dir, write_atomically)
 

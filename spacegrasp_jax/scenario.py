@@ -20,7 +20,13 @@ from spacegrasp_jax.inputs import numbers, read_document
 from spacegrasp_jax.integrator import PlantState, plant_state
 from spacegrasp_jax.kinematics import ee_pose
 from spacegrasp_jax.model import N_JOINTS, PAPER_Q_INIT, Robot, n_joints
-from spacegrasp_jax.target import TargetBody, TargetState, initial_target_state
+from spacegrasp_jax.target import (
+    TargetBody,
+    TargetState,
+    fixed_target_body,
+    fixed_target_state,
+    initial_target_state,
+)
 from spacegrasp_jax.trajectory import Trajectory
 
 CONTACT_LAWS = ("exact", "smooth")
@@ -44,10 +50,11 @@ class Scenario:
         sphere_radius: () m.
         contact_stiffness: () N m^2 (``k`` of eq 20).
         contact_sharpness: () 1/m, sharpness of the smooth contact law.
-        target: the free-floating target's mass properties
-            ([`TargetBody`][spacegrasp_jax.target.TargetBody]; its state is ``initial.target``), or
-            ``None`` for the paper's stationary target. With a target, ``p_lar`` and ``R_lar``
-            are the LAR pose at t = 0.
+        target: the target's mass properties
+            ([`TargetBody`][spacegrasp_jax.target.TargetBody]; its state is ``initial.target``,
+            whose ``free`` flag says whether it floats): the paper's fixed target
+            ([`fixed_target_body()`][spacegrasp_jax.target.fixed_target_body]) or a
+            free-floating one, for which ``p_lar`` and ``R_lar`` are the LAR pose at t = 0.
         duration: s, simulated time (static).
         dt: s, integration and control period (static).
         contact_law: ``"exact"`` (eq 20) or ``"smooth"`` (static).
@@ -61,7 +68,7 @@ class Scenario:
     sphere_radius: jax.Array
     contact_stiffness: jax.Array
     contact_sharpness: jax.Array
-    target: TargetBody | None = None
+    target: TargetBody
     duration: float = dataclasses.field(default=17.0, metadata=dict(static=True))
     dt: float = dataclasses.field(default=1e-3, metadata=dict(static=True))
     contact_law: str = dataclasses.field(default="exact", metadata=dict(static=True))
@@ -70,6 +77,11 @@ class Scenario:
     def n_steps(self) -> int:
         """Number of control and integration steps, ``duration / dt``."""
         return int(round(self.duration / self.dt))
+
+    @property
+    def free_target(self) -> bool:
+        """Whether the target floats free (``False``: the paper's fixed target); static."""
+        return self.initial.target.free
 
 
 def paper_scenario(
@@ -133,16 +145,17 @@ def paper_scenario(
     p_base, R_base = jnp.zeros(3), jnp.eye(3)
     p_ee, R_ee = ee_pose(robot, p_base, R_base, q)
     p_lar, R_lar = p_ee + lar_offset * R_ee[:, 2], R_ee
-    initial = plant_state(p_base, R_base, q, jnp.zeros(6), jnp.zeros(n))
-    body = None
-    if free_target is not None:
+    if free_target is None:
+        body, target_state = fixed_target_body(), fixed_target_state(p_lar, R_lar)
+    else:
         body = TargetBody(
             mass=jnp.asarray(free_target["mass"]),
             inertia=jnp.asarray(free_target["inertia"]),
             com_in_lar=jnp.asarray(free_target["com_in_lar"]),
         )
         motion = (jnp.asarray(free_target["velocity"]), jnp.asarray(free_target["angular_velocity"]))
-        initial = dataclasses.replace(initial, target=initial_target_state(body, p_lar, R_lar, *motion))
+        target_state = initial_target_state(body, p_lar, R_lar, *motion)
+    initial = plant_state(p_base, R_base, q, jnp.zeros(6), jnp.zeros(n), target_state)
     return Scenario(
         initial=initial,
         p_lar=p_lar,
@@ -303,13 +316,21 @@ def scenario_from_mapping(robot: Robot, document: dict) -> Scenario:
 
 
 def scenario_to_dict(scenario: Scenario) -> dict:
-    """The scenario's numbers as plain JSON (initial state, LAR pose, trajectory, contact)."""
+    """The scenario's numbers as plain JSON (initial state, LAR pose, trajectory, contact,
+    target). A fixed target is written ``null`` (its body and state follow from the LAR pose),
+    a free one as its numbers."""
     leaves = dataclasses.asdict(scenario)  # nested dataclasses become dicts of arrays
+    if scenario.free_target:
+        del leaves["initial"]["target"]["free"]
+    else:
+        leaves["target"] = leaves["initial"]["target"] = None
 
     def plain(value):
         if isinstance(value, dict):
             return {key: plain(item) for key, item in value.items()}
-        return np.asarray(value).tolist() if not isinstance(value, (str, float, int)) else value
+        if value is None or isinstance(value, (str, float, int)):
+            return value
+        return np.asarray(value).tolist()
 
     return plain(leaves)
 
@@ -322,20 +343,25 @@ def scenario_from_dict(document: dict) -> Scenario:
     arrays = lambda cls, fields: cls(**{name: jnp.asarray(value, dtype=jnp.float64) for name, value in fields.items()})
     initial = dict(document["initial"])
     target_state = initial.pop("target")
+    p_lar = jnp.asarray(document["p_lar"], dtype=jnp.float64)
+    R_lar = jnp.asarray(document["R_lar"], dtype=jnp.float64)
+    if document["target"] is None:
+        body, target_state = fixed_target_body(), fixed_target_state(p_lar, R_lar)
+    else:
+        body, target_state = arrays(TargetBody, document["target"]), arrays(TargetState, target_state)
     initial = PlantState(
-        **{name: jnp.asarray(value, dtype=jnp.float64) for name, value in initial.items()},
-        target=None if target_state is None else arrays(TargetState, target_state),
+        **{name: jnp.asarray(value, dtype=jnp.float64) for name, value in initial.items()}, target=target_state
     )
     return Scenario(
         initial=initial,
-        p_lar=jnp.asarray(document["p_lar"], dtype=jnp.float64),
-        R_lar=jnp.asarray(document["R_lar"], dtype=jnp.float64),
+        p_lar=p_lar,
+        R_lar=R_lar,
         trajectory=arrays(Trajectory, document["trajectory"]),
         sphere_centre=jnp.asarray(document["sphere_centre"], dtype=jnp.float64),
         sphere_radius=jnp.asarray(document["sphere_radius"], dtype=jnp.float64),
         contact_stiffness=jnp.asarray(document["contact_stiffness"], dtype=jnp.float64),
         contact_sharpness=jnp.asarray(document["contact_sharpness"], dtype=jnp.float64),
-        target=None if document["target"] is None else arrays(TargetBody, document["target"]),
+        target=body,
         duration=float(document["duration"]),
         dt=float(document["dt"]),
         contact_law=str(document["contact_law"]),

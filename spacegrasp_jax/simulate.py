@@ -82,13 +82,15 @@ class Log:
         qd_des_computed: (N, J) rad/s, the desired joint rates the law computed in this
             control period (they reach the PID ``delay_periods`` later); ``None`` in the
             ideal loop, where they are ``qd_des``.
-        target_position: (N, 3) m, the free-floating target's CoM, inertial frame.
+        target_position: (N, 3) m, the target's CoM (a fixed target's: the LAR origin),
+            inertial frame.
         target_quat: (N, 4) its attitude ``[w, x, y, z]``, body (LAR axes) to inertial.
-        target_velocity: (N, 3) m/s, its CoM's velocity, inertial frame.
+        target_velocity: (N, 3) m/s, its CoM's velocity, inertial frame (zero for the
+            paper's fixed target).
         target_angular_velocity: (N, 3) rad/s, its angular velocity, body (LAR) axes.
         momentum_total: (N, 6) ``[P (N s); L (N m s)]``, the chaser's plus the target's
-            momentum about the inertial origin. The target's fields are ``None`` for the
-            paper's stationary target.
+            momentum about the inertial origin (a fixed target's is not counted: the
+            chaser's).
     """
 
     t: jax.Array
@@ -105,22 +107,23 @@ class Log:
     qd_des: jax.Array
     q: jax.Array
     qd: jax.Array
+    target_position: jax.Array
+    target_quat: jax.Array
+    target_velocity: jax.Array
+    target_angular_velocity: jax.Array
+    momentum_total: jax.Array
     fts_force_measured: jax.Array | None = None
     fts_torque_measured: jax.Array | None = None
     q_measured: jax.Array | None = None
     qd_measured: jax.Array | None = None
     qd_des_computed: jax.Array | None = None
-    target_position: jax.Array | None = None
-    target_quat: jax.Array | None = None
-    target_velocity: jax.Array | None = None
-    target_angular_velocity: jax.Array | None = None
-    momentum_total: jax.Array | None = None
 
 
 def lar_pose(scenario: Scenario, plant: PlantState) -> tuple[jax.Array, jax.Array]:
     """``(p_lar (3,) m, R_lar (3, 3))``, the LAR frame at ``plant`` (inertial): the
-    scenario's for a stationary target, carried by the target's state for a free one."""
-    if scenario.target is None:
+    scenario's, exactly, for the paper's fixed target; carried by the target's state for a
+    free one."""
+    if not plant.target.free:
         return scenario.p_lar, scenario.R_lar
     return lar_frame(scenario.target, plant.target)
 
@@ -212,8 +215,8 @@ def plant_rate(
     )
     mass_blocks = (k.base, k.M_coupling, k.M_joints, k.base_per_joint)
     xdd = forward_dynamics_from_frames(robot, k.frames, state.V_base, state.qd, Q, mass_blocks)
-    if scenario.target is None:
-        return state_rate(state, xdd)
+    if not state.target.free:
+        return state_rate(state, xdd, state.target.at_rest())
     # Equal and opposite on the target, at the same point.
     return state_rate(state, xdd, target_rate(scenario.target, state.target, -force, state.p_base + k.frames.p_ee))
 
@@ -272,28 +275,19 @@ def observe(robot: Robot, scenario: Scenario, plant: PlantState, kinematics: Pla
     return Observation(inputs, pose, twist, force_fts, torque_fts)
 
 
-def target_motion(scenario: Scenario, plant: PlantState):
+def target_motion(scenario: Scenario, plant: PlantState) -> tuple[jax.Array, jax.Array] | None:
     """``(v_lar (3,) m/s, w (3,) rad/s)``, the LAR origin's velocity and the target's
-    angular velocity (inertial), or ``None`` for a stationary target."""
-    return None if scenario.target is None else lar_velocity(scenario.target, plant.target)
+    angular velocity (inertial); ``None`` for the paper's fixed target, decided by its
+    static flag: a frame at rest, whose zero motion the loop does no arithmetic on."""
+    return lar_velocity(scenario.target, plant.target) if plant.target.free else None
 
 
-def log_row(plant: PlantState, kinematics: PlantKinematics, t, observed: Observation, target=None, **controller) -> Log:
+def log_row(plant: PlantState, kinematics: PlantKinematics, t, observed: Observation, target, **controller) -> Log:
     """One row of the [`Log`][spacegrasp_jax.simulate.Log]: the plant's true state at ``t`` (s) and ``controller``'s
     fields (``u``, ``V_ref``, ``qd_des`` and, in the flight-like loop, its readings);
-    ``target``: the scenario's [`TargetBody`][spacegrasp_jax.target.TargetBody] (``None``: a
-    stationary target)."""
+    ``target``: the scenario's [`TargetBody`][spacegrasp_jax.target.TargetBody]."""
     momentum = momentum_at(kinematics, plant)
-    target_fields = {}
-    if target is not None:
-        state = plant.target
-        target_fields = dict(
-            target_position=state.p,
-            target_quat=state.quat,
-            target_velocity=state.v,
-            target_angular_velocity=state.w,
-            momentum_total=momentum + target_momentum(target, state),
-        )
+    state = plant.target
     return Log(
         t=t,
         pose_ee=observed.pose,
@@ -306,7 +300,11 @@ def log_row(plant: PlantState, kinematics: PlantKinematics, t, observed: Observa
         fts_torque=observed.torque_fts,
         q=plant.q,
         qd=plant.qd,
-        **target_fields,
+        target_position=state.p,
+        target_quat=state.quat,
+        target_velocity=state.v,
+        target_angular_velocity=state.w,
+        momentum_total=momentum + target_momentum(target, state),
         **controller,
     )
 
@@ -320,7 +318,7 @@ def sensor_reading(robot: Robot, scenario: Scenario, kinematics: PlantKinematics
 
 
 def controller_inputs(
-    robot, trajectory, p_base, V_base, q, qd, kinematics, p_lar, R_lar, force_fts, torque_fts, t, lar_motion=None
+    robot, trajectory, p_base, V_base, q, qd, kinematics, p_lar, R_lar, force_fts, torque_fts, t, lar_motion
 ):
     """What the law reads ([`ControlInputs`][spacegrasp_jax.control.law.ControlInputs]), and the EE
     pose and twist in LAR, from a view of the state: the satellite's position ``p_base`` (3,)
@@ -329,8 +327,10 @@ def controller_inputs(
     (``p_lar`` (3,) m, ``R_lar`` (3, 3), inertial), and the F/T reading ``force_fts``,
     ``torque_fts`` (3,) in sensor axes, at time ``t`` (s). ``lar_motion``: ``(v_lar, w)``
     (3,) m/s, rad/s, inertial, the LAR origin's velocity and the target's angular velocity
-    ([`target_motion()`][spacegrasp_jax.simulate.target_motion]), or ``None`` for a stationary target; the twist is then relative
-    to the moving frame, ``[d p_rel/dt; R_lar^T (w_ee - w)]``."""
+    ([`target_motion()`][spacegrasp_jax.simulate.target_motion]); the twist is relative to the LAR frame,
+    ``[d p_rel/dt; R_lar^T (w_ee - w)]``. ``None``: the frame is at rest (the paper's fixed
+    target), and the laws read a zero ``frame_twist``: adding computed zeros would change
+    nothing but how XLA fuses the paper's loop, and so the last bits of its results."""
     frames = kinematics.frames
     p_ee = p_base + frames.p_ee
     R_lar_ee = spatial.matmul(R_lar.T, frames.R_ee)
@@ -341,10 +341,11 @@ def controller_inputs(
     twist_inertial = jnp.concatenate([v_s + spatial.cross(w_s, r_ee), w_s]) + spatial.matvec(kinematics.J_joints, qd)
     # Both 3-vectors of a twist (wrench, Jacobian) rotate at once as a (2, 3) array.
     twist = spatial.matvec(R_lar.T, twist_inertial.reshape(2, 3)).reshape(6)
-    frame_twist = None
-    if lar_motion is not None:
-        # The LAR frame's own twist at the EE point, LAR axes: the EE's inertial twist is
-        # the relative one plus this (d p_rel/dt = R^T (v_ee - v_lar) - (R^T w) x p_rel).
+    # The LAR frame's own twist at the EE point, LAR axes: the EE's inertial twist is the
+    # relative one plus this (d p_rel/dt = R^T (v_ee - v_lar) - (R^T w) x p_rel).
+    if lar_motion is None:
+        frame_twist = jnp.zeros(6, twist.dtype)
+    else:
         v_lar, w = (spatial.matvec(R_lar.T, x) for x in lar_motion)
         frame_twist = jnp.concatenate([v_lar + spatial.cross(w, p_rel), w])
         twist = twist - frame_twist

@@ -91,7 +91,9 @@ def quiet(realism: Realism | None) -> Realism:
 
 
 def _with_attitude(state: LoopState, attitude) -> LoopState:
-    return dataclasses.replace(state, plant=dataclasses.replace(state.plant, quat_base=attitude))
+    """``state`` as its coordinates see it: the satellite's attitude replaced by ``attitude``
+    and the fixed target left out (it never moves: a constant, not a coordinate)."""
+    return dataclasses.replace(state, plant=dataclasses.replace(state.plant, quat_base=attitude, target=()))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,7 +110,7 @@ class Coordinates:
 
     @classmethod
     def about(cls, reference: LoopState) -> Coordinates:
-        if reference.plant.target is not None:
+        if reference.plant.target.free:
             raise StabilityError("target: the linear analysis covers the paper's stationary target only")
         template = _with_attitude(reference, jnp.zeros(3))
         names = []
@@ -134,7 +136,10 @@ class Coordinates:
         flat, unravel = self._flat_reference()
         state = unravel(flat + delta)
         R_base = spatial.matmul(spatial.rotation_exp(state.plant.quat_base), self.reference.plant.R_base)
-        return _with_attitude(state, spatial.rotation_to_quat(R_base))
+        plant = dataclasses.replace(
+            state.plant, quat_base=spatial.rotation_to_quat(R_base), target=self.reference.plant.target
+        )
+        return dataclasses.replace(state, plant=plant)
 
 
 def small_signal(realism: Realism | None) -> Realism:
@@ -150,7 +155,7 @@ def settled_state(
 ) -> tuple[LoopState, int]:
     """``(state, periods)``: the loop's state after the scenario's ``periods`` control periods
     (the nominal capture, noise off: [`quiet()`][spacegrasp_jax.stability.quiet])."""
-    if scenario.target is not None:
+    if scenario.free_target:
         raise StabilityError("target: the linear analysis covers the paper's stationary target only")
     realism = quiet(realism)
     final, _ = jax.jit(lambda g: rollout(robot, scenario, g, controller, realism=realism, key=_key()))(gains)

@@ -1,11 +1,20 @@
-"""The free-floating target: a rigid body that carries the LAR frame and the contact sphere.
+"""The target: a rigid body that carries the LAR frame and the contact sphere.
 
-The paper's target is fixed in inertial space. A [`TargetBody`][spacegrasp_jax.target.TargetBody] in the scenario makes it
-a free rigid body (documentation, modelling notes): its body frame is the LAR frame moved to
-the target's centre of mass, ``com_in_lar`` (LAR coordinates), so its axes are the LAR axes
-and its inertia is about its CoM in those axes. Torque-free except for the contact, whose
-force acts on the EE and, opposite, on the target at the same point (the EE point). Its
-state ([`TargetState`][spacegrasp_jax.target.TargetState]) is integrated in the same RK4 step as the chaser's.
+Every scenario has one, and every state carries its [`TargetState`][spacegrasp_jax.target.TargetState]:
+
+* **Fixed** (the paper's): at rest in inertial space, an infinitely heavy body
+  ([`fixed_target_body()`][spacegrasp_jax.target.fixed_target_body],
+  [`fixed_target_state()`][spacegrasp_jax.target.fixed_target_state]). Its state's ``free``
+  flag is ``False``: its rate is zero, its state never changes, and the LAR frame is the
+  scenario's ``p_lar``, ``R_lar`` exactly.
+* **Free-floating** (documentation, modelling notes): its body frame is the LAR frame moved
+  to the target's centre of mass, ``com_in_lar`` (LAR coordinates), so its axes are the LAR
+  axes and its inertia is about its CoM in those axes. Torque-free except for the contact,
+  whose force acts on the EE and, opposite, on the target at the same point (the EE point).
+  Its state is integrated in the same RK4 step as the chaser's.
+
+The flag is static (part of the state's structure): it is decided once, when the scenario
+is made, and a compiled program serves one kind of target.
 """
 
 from __future__ import annotations
@@ -14,6 +23,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from spacegrasp_jax import spatial
 
@@ -40,21 +50,53 @@ class TargetState:
     """Position and velocity of the target.
 
     Attributes:
-        p: (3,) m, the target's CoM, inertial frame.
+        p: (3,) m, the target's CoM, inertial frame (a fixed target's: the LAR origin).
         quat: (4,) unit quaternion ``[w, x, y, z]``, body (LAR axes) to inertial.
         v: (3,) m/s, the CoM's velocity, inertial frame.
         w: (3,) rad/s, angular velocity in body (LAR) axes.
+        free: ``True`` for a free-floating target, ``False`` for the paper's fixed one
+            (static).
     """
 
     p: jax.Array
     quat: jax.Array
     v: jax.Array
     w: jax.Array
+    free: bool = dataclasses.field(default=True, metadata=dict(static=True))
 
     @property
     def R(self) -> jax.Array:
         """(3, 3) body (LAR axes) to inertial rotation."""
         return spatial.quat_to_rotation(self.quat)
+
+    def projected(self) -> TargetState:
+        """The state back on its manifold after an integration step: a free target's
+        quaternion renormalised; a fixed target's state as it is (it never moves)."""
+        if not self.free:
+            return self
+        return dataclasses.replace(self, quat=self.quat / jnp.linalg.norm(self.quat))
+
+    def at_rest(self) -> TargetState:
+        """The rate of a fixed target: zeros, in this state's structure."""
+        return jax.tree.map(jnp.zeros_like, self)
+
+
+def fixed_target_body(dtype=jnp.float64) -> TargetBody:
+    """The paper's fixed target as a body: infinite mass and inertia, its CoM at the LAR
+    origin. Nothing reads them: a fixed state's rate is zero
+    ([`TargetState.at_rest()`][spacegrasp_jax.target.TargetState.at_rest])."""
+    return TargetBody(
+        mass=jnp.asarray(np.inf, dtype),
+        inertia=jnp.asarray(np.diag(np.full(3, np.inf)), dtype),
+        com_in_lar=jnp.zeros(3, dtype),
+    )
+
+
+def fixed_target_state(p_lar, R_lar) -> TargetState:
+    """The paper's fixed target with its LAR frame at ``p_lar`` (3,) m, ``R_lar`` (3, 3)
+    (inertial), at rest."""
+    zero = jnp.zeros_like(p_lar)
+    return TargetState(p=p_lar, quat=spatial.rotation_to_quat(R_lar), v=zero, w=zero, free=False)
 
 
 def initial_target_state(body: TargetBody, p_lar, R_lar, velocity_lar, angular_velocity_lar) -> TargetState:
@@ -98,7 +140,10 @@ def target_rate(body: TargetBody, state: TargetState, force: jax.Array, point: j
 
 
 def target_momentum(body: TargetBody, state: TargetState) -> jax.Array:
-    """``[P (N s); L about the inertial origin (N m s)]`` (6,), inertial frame."""
+    """``[P (N s); L about the inertial origin (N m s)]`` (6,), inertial frame; zeros for a
+    fixed target (it is the inertial frame's anchor: what it absorbs is not counted)."""
+    if not state.free:
+        return jnp.zeros(6, state.p.dtype)
     P = body.mass * state.v
     L = spatial.matvec(state.R, spatial.matvec(body.inertia, state.w)) + spatial.cross(state.p, P)
     return jnp.concatenate([P, L])
@@ -107,6 +152,8 @@ def target_momentum(body: TargetBody, state: TargetState) -> jax.Array:
 __all__ = [
     "TargetBody",
     "TargetState",
+    "fixed_target_body",
+    "fixed_target_state",
     "initial_target_state",
     "lar_frame",
     "lar_velocity",

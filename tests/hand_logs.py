@@ -21,10 +21,18 @@ WIDTHS = dict(
     qd_des=7,
     q=7,
     qd=7,
+    target_position=3,
+    target_quat=4,
+    target_velocity=3,
+    target_angular_velocity=3,
+    momentum_total=6,
 )
 
 
 def log_of(t, **fields) -> Log:
-    """A log at the times ``t`` (N,), every required field zeros unless given."""
+    """A log at the times ``t`` (N,), every required field zeros unless given (the target's
+    attitude: the identity)."""
     n = len(t)
-    return Log(t=t, **{name: fields.get(name, np.zeros((n, width))) for name, width in WIDTHS.items()})
+    defaults = {name: np.zeros((n, width)) for name, width in WIDTHS.items()}
+    defaults["target_quat"] = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    return Log(t=t, **(defaults | fields))

@@ -141,7 +141,7 @@ def test_admittance_reference_rate_eq14_by_hand():
     # The law object: the command from V_ref(k), then eq 15 by forward Euler over dt.
     J = jnp.eye(6, 7) + 0.1
     inputs = ControlInputs(
-        pose, twist, wrench, pose_des, twist_des, rate_des, J, jnp.eye(3), jnp.zeros(7), jnp.zeros(7)
+        pose, twist, wrench, pose_des, twist_des, rate_des, J, jnp.eye(3), jnp.zeros(7), jnp.zeros(7), jnp.zeros(6)
     )
     law, dt = Admittance(), 1e-3
     state = AdmittanceState(V_ref=jnp.array([0.01, 0.0, 0.002, 0.0, 0.0, 0.001]))
@@ -159,7 +159,7 @@ def test_laws_drive_the_ee_towards_the_target():
     V_ref = jnp.array([0.01, -0.02, 0.03, 0.1, 0.2, 0.3])
     np.testing.assert_allclose(admittance.desired_joint_rates(J, R_lar_ee, V_ref)[:6], V_ref, atol=1e-14)
     pose, pose_des = jnp.zeros(6), jnp.array([0.0, 0.0, 0.01, 0.0, 0.0, 0.02])
-    qd = cartesian.desired_joint_rates(paper_gains(), J, R_lar_ee, pose, pose_des)
+    qd = cartesian.desired_joint_rates(paper_gains(), J, R_lar_ee, pose, pose_des, jnp.zeros(6))
     np.testing.assert_allclose(qd[:6], 3.0 * (pose_des - pose), atol=1e-14)
 
 
@@ -178,6 +178,7 @@ def test_the_gains_damping_is_the_damped_least_squares_law_and_differentiable():
         jnp.eye(3),
         jnp.zeros(7),
         jnp.zeros(7),
+        jnp.zeros(6),
     )
     state = AdmittanceState(V_ref=twist)
     lam = 0.2

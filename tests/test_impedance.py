@@ -73,6 +73,7 @@ def test_the_torques_are_pinocchios_generalised_jacobian_transpose_of_the_virtua
             R_lar_ee=jnp.asarray(R_lar.T @ R_ee),
             q=jnp.asarray(state.q),
             qd=jnp.asarray(state.qd),
+            frame_twist=jnp.zeros(6),
         )
         error = pose_des - pose
         error[3:] = (error[3:] + np.pi) % (2 * np.pi) - np.pi

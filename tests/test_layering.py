@@ -137,3 +137,21 @@ def test_no_module_outside_the_loop_dispatches_on_the_realism():
                 flags = [o for o in node.comparators if isinstance(o, ast.Attribute) and o.attr == "stages"]
                 tested = any(isinstance(op, (ast.In, ast.NotIn)) for op in node.ops)
                 assert not (flags and tested), f"{module}, line {node.lineno}: tests a realism stage's flag"
+
+
+#: The target's state and the log's target fields are always there: no module asks
+#: whether they are (``x.target is None``, ``log.target_velocity is not None``).
+TARGET_FIELDS = {"target", "frame_twist", "target_position", "target_quat", "target_velocity", "momentum_total"}
+
+
+def test_no_module_tests_the_target_for_none():
+    """Every scenario has a target body and every state and log its fields (the paper's
+    fixed target by a static flag): a ``None`` test on them would be a second path."""
+    for module, path in module_files():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.Compare) and any(isinstance(op, (ast.Is, ast.IsNot)) for op in node.ops)):
+                continue
+            sides = [node.left, *node.comparators]
+            none = any(isinstance(side, ast.Constant) and side.value is None for side in sides)
+            named = [side for side in sides if isinstance(side, ast.Attribute) and side.attr in TARGET_FIELDS]
+            assert not (none and named), f"{module}, line {node.lineno}: tests {named[0].attr} for None"

@@ -37,6 +37,11 @@ def hand_log():
         qd_des=zeros(7),
         q=zeros(7),
         qd=zeros(7),
+        target_position=zeros(3),
+        target_quat=np.tile([1.0, 0.0, 0.0, 0.0], (4, 1)),
+        target_velocity=zeros(3),
+        target_angular_velocity=zeros(3),
+        momentum_total=zeros(6),
     )
 
 

@@ -38,10 +38,22 @@ def rotations(log):
     return np.asarray(jax.vmap(spatial.quat_to_rotation)(log.target_quat))
 
 
-def test_a_stationary_scenario_has_no_target_and_logs_none(robot, gains, short_scenario):
-    assert short_scenario.target is None and short_scenario.initial.target is None
-    log = ROLLOUT(robot, short_scenario, gains, "cartesian")[1]
-    assert log.target_position is None and log.momentum_total is None
+def test_the_papers_fixed_target_is_a_body_at_rest_that_never_moves(robot, gains, short_scenario):
+    # The fixed target is in the state and the log like a free one, and stays exactly where
+    # the scenario put it: the LAR's origin and attitude, at rest; it counts no momentum.
+    assert not short_scenario.free_target and not short_scenario.initial.target.free
+    final, log = ROLLOUT(robot, short_scenario, gains, "cartesian")
+    assert float(jnp.max(jnp.linalg.norm(log.contact_force, axis=1))) > 0.1  # it was pushed
+    rows = len(log.t)
+    np.testing.assert_array_equal(log.target_position, np.tile(short_scenario.p_lar, (rows, 1)))
+    np.testing.assert_array_equal(log.target_quat, np.tile(short_scenario.initial.target.quat, (rows, 1)))
+    np.testing.assert_allclose(rotations(log)[0], short_scenario.R_lar, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(log.target_velocity, 0.0)
+    np.testing.assert_array_equal(log.target_angular_velocity, 0.0)
+    np.testing.assert_array_equal(log.momentum_total, log.momentum)
+    assert jax.tree.all(jax.tree.map(np.array_equal, final.plant.target, short_scenario.initial.target))
+    # Its report keeps the paper's metrics only (its speeds and drift are zero by construction).
+    assert "final_target_speed_mps" not in metrics.summary(log)
 
 
 @pytest.mark.slow
@@ -174,7 +186,7 @@ def test_the_target_table_is_checked_key_by_key(robot):
 
 def test_the_summary_reports_what_the_contact_did_to_the_target(pushed):
     scenario, log = pushed
-    summary = metrics.summary(log)
+    summary = metrics.summary(log, free_target=True)
     velocity, position = np.asarray(log.target_velocity), np.asarray(log.target_position)
     speed = np.linalg.norm(velocity, axis=1)
     assert summary["final_target_speed_mps"] == pytest.approx(speed[-1], rel=1e-12)
@@ -204,7 +216,8 @@ def test_samples_move_and_vary_the_target_with_its_frame(robot):
     # A stationary scenario's samples are what they were (the target's draws have a stream of their own).
     stationary = paper_scenario(robot, duration=2.0, move_duration=2.0)
     again = sample_scenarios(stationary, 3, range(4), ranges)
-    assert again.target is None
+    assert not again.free_target
+    np.testing.assert_array_equal(again.initial.target.p, again.p_lar)  # the fixed target moves with the LAR
     before = sample_scenarios(stationary, 3, range(4), dataclasses.replace(ranges, target_mass_fraction=0.0))
     np.testing.assert_array_equal(again.p_lar, before.p_lar)
 
@@ -248,8 +261,8 @@ def test_the_tuning_objective_can_weigh_the_targets_final_speed(pushed, tmp_path
 
     _, log = pushed
     scale = tuple(float(x) for x in metrics.max_abs_torque(log))
-    plain = objective_parts(log, Objective(Weights(), scale))
-    weighed = objective_parts(log, Objective(Weights(target_speed=2.0), scale))
+    plain = objective_parts(log, Objective(Weights(), scale), free_target=True)
+    weighed = objective_parts(log, Objective(Weights(target_speed=2.0), scale), free_target=True)
     speed = float(jnp.linalg.norm(log.target_velocity[-1]))
     assert float(plain["final_target_speed_mps"]) == pytest.approx(speed, rel=1e-12)
     assert float(weighed["loss"] - plain["loss"]) == pytest.approx(2.0 * speed / 1e-3, rel=1e-9)
@@ -302,3 +315,20 @@ def test_simulate_reports_the_target_and_whether_it_was_a_capture(tmp_path):
     assert summary["capture_success"] is False and summary["capture_criteria"]["target_speed_mps"] == 0.005
     with np.load(out / "timeseries_admittance.npz") as series:
         assert series["target_position"].shape == (2000, 3) and series["momentum_total"].shape == (2000, 6)
+
+
+@pytest.mark.parametrize("kind", ["fixed", "free"])
+def test_a_scenario_is_written_and_read_back_leaf_for_leaf(robot, kind):
+    # A run folder's config.json records the scenario: a fixed target as null (what folders
+    # written before the target was always a body hold), a free one as its numbers.
+    import json
+
+    from spacegrasp_jax.scenario import scenario_from_dict, scenario_to_dict
+
+    scenario = paper_scenario(robot, duration=2.0) if kind == "fixed" else free(None, robot, velocity=[0.001, 0, 0])
+    document = json.loads(json.dumps(scenario_to_dict(scenario)))
+    assert (document["target"] is None and document["initial"]["target"] is None) == (kind == "fixed")
+    again = scenario_from_dict(document)
+    assert again.free_target == scenario.free_target
+    assert jax.tree.structure(again) == jax.tree.structure(scenario)
+    assert jax.tree.all(jax.tree.map(np.array_equal, again, scenario))

@@ -113,7 +113,12 @@ def _horizon_losses(
         key=key,
         model_robot=model_robot,
     )
-    return jnp.stack([objective_parts(jax.tree.map(lambda x: x[:rows], log), objective)["loss"] for rows in steps])
+    return jnp.stack(
+        [
+            objective_parts(jax.tree.map(lambda x: x[:rows], log), objective, free_target=scenario.free_target)["loss"]
+            for rows in steps
+        ]
+    )
 
 
 def _item_gradients(base, mask, objective, model_robot, item, *, controller, steps, segment):

@@ -172,18 +172,20 @@ def smooth_max(values: jax.Array, temperature: float) -> jax.Array:
 _LOG_FLOOR = 1e-6
 
 
-def capture_margins(parts: dict[str, jax.Array], log, objective: Objective) -> dict[str, jax.Array]:
+def capture_margins(
+    parts: dict[str, jax.Array], log, objective: Objective, *, free_target: bool = False
+) -> dict[str, jax.Array]:
     """The ``capture`` objective's margins (value over tolerance; above 1 the capture
     fails) from the ``weighted`` parts and the log: ``position_margin``,
-    ``orientation_margin``, ``torque_margin`` (smooth) and, with a free-floating target,
-    ``target_speed_margin``."""
+    ``orientation_margin``, ``torque_margin`` (smooth) and, with ``free_target`` (static:
+    the scenario's target floats free), ``target_speed_margin``."""
     torque_ratio = jnp.abs(log.u) / jnp.asarray(objective.torque_limit_Nm)
     margins = {
         "position_margin": (parts["final_position_m"] + _LOG_FLOOR) / objective.position_tolerance_m,
         "orientation_margin": (parts["final_orientation_rad"] + _LOG_FLOOR) / objective.orientation_tolerance_rad,
         "torque_margin": smooth_max(torque_ratio, objective.temperature),
     }
-    if log.target_velocity is not None:
+    if free_target:
         speed = metrics.safe_norm(log.target_velocity[-1])
         margins["target_speed_margin"] = (speed + _LOG_FLOOR) / objective.target_speed_limit_mps
     return margins
@@ -196,11 +198,11 @@ def capture_loss(margins: dict[str, jax.Array], objective: Objective) -> jax.Arr
     return objective.hinge_width * jax.nn.softplus((worst - jnp.log1p(-objective.safety)) / objective.hinge_width)
 
 
-def objective_parts(log, objective: Objective) -> dict[str, jax.Array]:
+def objective_parts(log, objective: Objective, *, free_target: bool = False) -> dict[str, jax.Array]:
     """Every part of the objective, unweighted, the ``capture`` objective's margins
     ([`capture_margins()`][tuning.objective.capture_margins]) and its ``capture_loss``, the ``weighted_loss``, and ``loss``,
-    the one ``objective.kind`` names; with a free-floating target, its final speed
-    ``final_target_speed_mps`` too."""
+    the one ``objective.kind`` names; with ``free_target`` (static: the scenario's target
+    floats free), the target's final speed ``final_target_speed_mps`` too."""
     w = objective.weights
     torque_ratio = jnp.abs(log.u) / jnp.asarray(objective.torque_scale_Nm)
     contact = metrics.contact_force_norm(log)
@@ -221,12 +223,12 @@ def objective_parts(log, objective: Objective) -> dict[str, jax.Array]:
         + w.peak_torque * parts["peak_torque_smooth"]
         + w.contact_force * parts["peak_contact_smooth_N"] / objective.contact_scale_N
     )
-    if log.target_velocity is not None:
+    if free_target:
         parts["final_target_speed_mps"] = metrics.safe_norm(log.target_velocity[-1])
         parts["loss"] = (
             parts["loss"] + w.target_speed * parts["final_target_speed_mps"] / objective.target_speed_scale_mps
         )
-    margins = capture_margins(parts, log, objective)
+    margins = capture_margins(parts, log, objective, free_target=free_target)
     parts |= margins
     parts["weighted_loss"] = parts["loss"]
     parts["capture_loss"] = capture_loss(margins, objective)

@@ -421,7 +421,7 @@ def tune(
             raise TuneSetupError(f"--holdout: must be >= 0, got {holdout}")
         record = new_record(config or TuneConfig(), gains_file, scenario_file, robot_file, holdout)
         config = TuneConfig.from_dict(record["config"])
-        if config.weights.target_speed > 0.0 and record_scenario(record_robot(record), record).target is None:
+        if config.weights.target_speed > 0.0 and not record_scenario(record_robot(record), record).free_target:
             raise TuneSetupError("--weights target_speed: needs a scenario with a free-floating [target]")
         out.mkdir(parents=True, exist_ok=True)
         runfiles.write_json(record_path, record)

@@ -333,7 +333,7 @@ def scenario_parts(
         key=key,
         model_robot=model_robot,
     )
-    parts = objective_parts(log, objective)
+    parts = objective_parts(log, objective, free_target=scenario.free_target)
     parts["largest_peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
     return parts
 

@@ -132,7 +132,7 @@ def _ranges(args: argparse.Namespace, default: PerturbationRanges) -> Perturbati
 
 def _check_envelope(args: argparse.Namespace, scenario) -> None:
     """``--ranges free_target`` draws targets: refused for a scenario without one."""
-    if getattr(args, "ranges", None) == "free_target" and scenario.target is None:
+    if getattr(args, "ranges", None) == "free_target" and not scenario.free_target:
         raise UsageError(
             "--ranges free_target: needs a scenario with a free-floating [target], e.g. --scenario configs/free_target_envelope.toml"
         )
@@ -267,10 +267,10 @@ def _print_capture_verdicts(results: dict, criteria: campaign.CampaignConfig | N
 
 def _run_caption(loop: str, gains: str, scenario) -> str:
     """The second title line of a run's figures: its loop, its gains and its target."""
-    if scenario.target is None:
-        target = "fixed target (the paper's)"
-    else:
+    if scenario.free_target:
         target = f"free target {float(scenario.target.mass):g} kg"
+    else:
+        target = "fixed target (the paper's)"
     return f"{loop}, {gains}, {target}"
 
 

@@ -85,7 +85,7 @@ def _margins(args: argparse.Namespace) -> int:
     result["linear"] = None
     if args.no_linear:
         result["linear_skipped"] = "--no-linear"
-    elif scenario.target is not None:
+    elif scenario.free_target:
         result["linear_skipped"] = "the linear analysis covers the paper's stationary target only"
         print(f"linear analysis skipped: {result['linear_skipped']}", file=sys.stderr)
     else:

@@ -96,7 +96,7 @@ class Admittance:
         """``(qd_des (N,) rad/s, next state)``: the command from ``V_ref(k)`` (eqs 16-17), then
         eq 15 by forward Euler over the control period ``dt`` (s)."""
         # Relative to a moving target, the command adds the LAR frame's own twist.
-        V_command = state.V_ref if inputs.frame_twist is None else state.V_ref + inputs.frame_twist
+        V_command = state.V_ref + inputs.frame_twist
         qd_des = desired_joint_rates(
             inputs.J_dyn_ee, inputs.R_lar_ee, V_command, self.pinv_damping + gains.pinv_damping[0]
         )

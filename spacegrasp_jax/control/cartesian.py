@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 
 
 def desired_joint_rates(
-    gains: Gains, J_dyn_ee: jax.Array, R_lar_ee: jax.Array, pose, pose_des, damping=0.0, frame_twist=None
+    gains: Gains, J_dyn_ee: jax.Array, R_lar_ee: jax.Array, pose, pose_des, frame_twist, damping=0.0
 ) -> jax.Array:
     """Eqs 21-22: ``qd_des`` (N,) rad/s.
 
@@ -33,14 +33,13 @@ def desired_joint_rates(
         J_dyn_ee: (6, N) Dynamic Jacobian in the EE frame. R_lar_ee: (3, 3) EE to LAR.
         pose, pose_des: (6,) ``[p (m); roll, pitch, yaw (rad)]`` of the EE in LAR.
         frame_twist: (6,) the moving LAR frame's twist at the EE point, LAR axes, added to
-            the command (``None``: a stationary target).
+            the command (zeros for the paper's fixed target).
     """
     error = pose_error(pose_des, pose)
     v_ee = spatial.matvec(R_lar_ee.T, gains.K_lin * error[:3])
     w_ee = spatial.matvec(spatial.euler_rates_to_body(pose[3:]), gains.K_eul * error[3:])
     command = jnp.concatenate([v_ee, w_ee])
-    if frame_twist is not None:
-        command = command + spatial.matvec(R_lar_ee.T, frame_twist.reshape(2, 3)).reshape(6)
+    command = command + spatial.matvec(R_lar_ee.T, frame_twist.reshape(2, 3)).reshape(6)
     return pseudoinverse_apply(J_dyn_ee, command, damping)
 
 
@@ -83,8 +82,8 @@ class Cartesian:
             inputs.R_lar_ee,
             inputs.pose,
             inputs.pose_des,
-            self.pinv_damping + gains.pinv_damping[0],
             inputs.frame_twist,
+            self.pinv_damping + gains.pinv_damping[0],
         )
         return qd_des, state
 

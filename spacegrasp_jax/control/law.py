@@ -47,7 +47,7 @@ class ControlInputs:
         q, qd: (N,) rad, rad/s, the joint angles and rates as the controller measures them.
         frame_twist: (6,) the moving LAR frame's twist at the EE point ``[v (m/s); w
             (rad/s)]``, LAR axes, which the laws add to their commanded twist (the EE's
-            inertial twist is the relative one plus this); ``None`` for a stationary target.
+            inertial twist is the relative one plus this); zeros for the paper's fixed target.
     """
 
     pose: jax.Array
@@ -60,7 +60,7 @@ class ControlInputs:
     R_lar_ee: jax.Array
     q: jax.Array
     qd: jax.Array
-    frame_twist: jax.Array | None = None
+    frame_twist: jax.Array
 
 
 class Output(enum.Enum):
