@@ -139,7 +139,7 @@ def run_summary(log: Log, robot: Robot, scenario: Scenario, realism: Realism | N
     return summary | {name: np.asarray(value).tolist() for name, value in parts.items()}
 
 
-def divergence_summary(log: Log, step: int, robot: Robot | None = None, *, free_target: bool = False) -> dict:
+def divergence_summary(log: Log, step: int, robot: Robot | None = None, *, free_target: bool) -> dict:
     """What a diverged run tells: when (``first_nonfinite_s``, ``first_nonfinite_step``),
     which logged quantities were non-finite then (``nonfinite_fields``), every logged
     quantity at that step and at the step before (``state_at_divergence``,

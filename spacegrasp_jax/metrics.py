@@ -297,10 +297,10 @@ def _accumulate_target(running: RunningTargetMetrics, rows) -> RunningTargetMetr
     )
 
 
-def finish(running: RunningMetrics, nonfinite_after_s=None, *, free_target: bool = False) -> dict[str, jax.Array]:
+def finish(running: RunningMetrics, nonfinite_after_s=None, *, free_target: bool) -> dict[str, jax.Array]:
     """The ``METRICS`` of everything folded into ``running`` (NaN where a time never
-    came), and the ``TARGET_METRICS`` with ``free_target`` (static: the scenario's target
-    floats free). ``nonfinite_after_s``: a time (s) to report as ``first_nonfinite_s`` if no
+    came), and the ``TARGET_METRICS`` with ``free_target`` (static, required: the scenario's
+    target floats free; ``scenario.free_target``). ``nonfinite_after_s``: a time (s) to report as ``first_nonfinite_s`` if no
     row was non-finite (a state that turns non-finite in the last step shows in no row)."""
     first_nonfinite = running.first_nonfinite_s
     if nonfinite_after_s is not None:
@@ -336,14 +336,15 @@ def finish(running: RunningMetrics, nonfinite_after_s=None, *, free_target: bool
     } | (target if free_target else {})
 
 
-def log_metrics(log, robot=None, *, free_target: bool = False) -> dict[str, jax.Array]:
+def log_metrics(log, robot=None, *, free_target: bool) -> dict[str, jax.Array]:
     """The ``METRICS`` of a whole log (arrays), and the ``TARGET_METRICS`` with
-    ``free_target``; ``robot``: whose limits define a runaway ([`start()`][spacegrasp_jax.metrics.start])."""
+    ``free_target`` (required: ``scenario.free_target``; every log has the target's fields, so
+    they cannot say); ``robot``: whose limits define a runaway ([`start()`][spacegrasp_jax.metrics.start])."""
     n_joints = jnp.shape(log.u)[-1]
     return finish(accumulate(start(jnp.asarray(log.t).dtype, robot, n_joints), log), free_target=free_target)
 
 
-def summary(log, robot=None, *, free_target: bool = False) -> dict:
+def summary(log, robot=None, *, free_target: bool) -> dict:
     """The ``METRICS`` (and, with ``free_target``, ``TARGET_METRICS``) of a whole log as
     plain floats and lists (``summary.json``; NaN where a metric has no value); ``robot`` as
     [`log_metrics()`][spacegrasp_jax.metrics.log_metrics]."""

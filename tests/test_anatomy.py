@@ -104,11 +104,11 @@ def runaway_log(rate_radps: float, torque_Nm: float) -> Log:
 def test_a_runaway_is_caught_in_the_fold(rate, torque, runaway):
     robot = sg.paper_robot()
     log = runaway_log(rate, torque)
-    whole = metrics.log_metrics(log, robot)
+    whole = metrics.log_metrics(log, robot, free_target=False)
     running = metrics.start(robot=robot)
     for k in range(4):  # row by row, as the campaign's scan folds them
         running = metrics.accumulate(running, jax.tree.map(lambda x: x[k : k + 1], log))
-    one_by_one = metrics.finish(running)
+    one_by_one = metrics.finish(running, free_target=False)
     assert float(one_by_one["first_runaway_s"]) == float(whole["first_runaway_s"]) or (
         np.isnan(one_by_one["first_runaway_s"]) and np.isnan(whole["first_runaway_s"])
     )
@@ -116,7 +116,7 @@ def test_a_runaway_is_caught_in_the_fold(rate, torque, runaway):
     assert np.isnan(float(whole["first_runaway_s"])) == (not runaway)
     np.testing.assert_allclose(whole["max_joint_rate_radps"][2], abs(rate))
     # Without a robot nothing is a runaway.
-    assert np.isnan(float(metrics.log_metrics(log)["first_runaway_s"]))
+    assert np.isnan(float(metrics.log_metrics(log, free_target=False)["first_runaway_s"]))
     sample = {name: np.asarray(value)[None] for name, value in whole.items()}
     classes = anatomy.failure_classes(sample, **dict(TOLERANCES, torque_limit_Nm=None))
     assert (classes["failure"][0] == "runaway") == runaway

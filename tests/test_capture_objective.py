@@ -29,15 +29,15 @@ def make_log(final_offset_m, final_yaw_rad, torque_peaks_Nm, n: int = 50) -> Log
 
 
 def test_a_capture_with_room_to_spare_costs_next_to_nothing():
-    spare = objective_parts(make_log([0.001, 0.0, 0.0], 0.002, np.array(LIMITS) * 0.3), OBJECTIVE)
-    failing = objective_parts(make_log([0.006, 0.0, 0.0], 0.002, np.array(LIMITS) * 0.3), OBJECTIVE)
+    spare = objective_parts(make_log([0.001, 0.0, 0.0], 0.002, np.array(LIMITS) * 0.3), OBJECTIVE, free_target=False)
+    failing = objective_parts(make_log([0.006, 0.0, 0.0], 0.002, np.array(LIMITS) * 0.3), OBJECTIVE, free_target=False)
     assert float(spare["loss"]) < 1e-3 < 0.1 < float(failing["loss"])
     assert float(spare["loss"]) == float(spare["capture_loss"])
 
 
 def test_one_failing_margin_by_hand():
     # 7.5 mm off (margin 1.5); orientation and torque far inside theirs.
-    parts = objective_parts(make_log([0.0, 0.0, 0.0075], 0.0, np.array(LIMITS) * 0.1), OBJECTIVE)
+    parts = objective_parts(make_log([0.0, 0.0, 0.0075], 0.0, np.array(LIMITS) * 0.1), OBJECTIVE, free_target=False)
     margin = (0.0075 + 1e-6) / 0.005
     assert float(parts["position_margin"]) == pytest.approx(margin)
     # The smooth maximum of the log margins is the largest one, exceeding it by at most
@@ -47,25 +47,27 @@ def test_one_failing_margin_by_hand():
 
 
 def test_torque_is_a_constraint_at_the_motors_limits():
-    inside = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 0.5), OBJECTIVE)
-    at_limit = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 1.0), OBJECTIVE)
-    beyond = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 2.0), OBJECTIVE)
+    inside = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 0.5), OBJECTIVE, free_target=False)
+    at_limit = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 1.0), OBJECTIVE, free_target=False)
+    beyond = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 2.0), OBJECTIVE, free_target=False)
     assert float(inside["loss"]) < 0.01 < 0.1 < float(at_limit["loss"]) < float(beyond["loss"])
     # Well below the limits, halving the torque buys next to nothing: no trade of precision
     # for torque, where the weighted objective would halve its torque term.
-    halved = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 0.25), OBJECTIVE)
+    halved = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 0.25), OBJECTIVE, free_target=False)
     assert float(inside["loss"]) - float(halved["loss"]) < 0.005
 
 
 def test_a_runaway_weighs_its_log_not_its_size():
-    hundredfold = objective_parts(make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 100.0), OBJECTIVE)
+    hundredfold = objective_parts(
+        make_log([0.001, 0.0, 0.0], 0.0, np.array(LIMITS) * 100.0), OBJECTIVE, free_target=False
+    )
     assert float(hundredfold["loss"]) == pytest.approx(math.log(100.0 / 0.8), rel=0.02)
 
 
 def test_gradient_matches_central_differences():
     def loss(x):
         offset, yaw, torque = x[:3], x[3], x[4:]
-        return objective_parts(make_log(offset, yaw, torque), OBJECTIVE)["loss"]
+        return objective_parts(make_log(offset, yaw, torque), OBJECTIVE, free_target=False)["loss"]
 
     rng = np.random.default_rng(2)
     for x in (
@@ -83,7 +85,9 @@ def test_gradient_matches_central_differences():
 
 
 def test_the_gradient_is_finite_at_an_exact_capture():
-    gradient = jax.grad(lambda d: objective_parts(make_log(d, 0.0, np.ones(7)), OBJECTIVE)["loss"])(jnp.zeros(3))
+    gradient = jax.grad(lambda d: objective_parts(make_log(d, 0.0, np.ones(7)), OBJECTIVE, free_target=False)["loss"])(
+        jnp.zeros(3)
+    )
     assert np.all(np.isfinite(gradient))
 
 
@@ -92,7 +96,7 @@ def test_the_gradient_is_finite_at_an_exact_capture():
     [([0.001, 0, 0], 0.0, 0.3), ([0.0051, 0, 0], 0.0, 0.3), ([0.001, 0, 0], 0.02, 0.3), ([0, 0.002, 0], 0.0, 1.2)],
 )
 def test_the_margins_agree_with_the_campaigns_criteria(offset, yaw, scale):
-    parts = objective_parts(make_log(offset, yaw, np.array(LIMITS) * scale), OBJECTIVE)
+    parts = objective_parts(make_log(offset, yaw, np.array(LIMITS) * scale), OBJECTIVE, free_target=False)
     margins = [float(parts[name]) for name in ("position_margin", "orientation_margin", "torque_margin")]
     sample = {
         "final_position_error_m": np.array([float(parts["final_position_m"])]),

@@ -52,7 +52,7 @@ def test_hand_computed_measures():
     np.testing.assert_allclose(metrics.rms_position_error(log), np.sqrt((0.003**2 + 0.004**2) / 4))
     np.testing.assert_array_equal(metrics.max_abs_torque(log), [1.0, 3.0, 0, 0, 0, 0, 0.1])
     assert float(metrics.first_contact_time(log)) == 1.0
-    summary = metrics.summary(log)
+    summary = metrics.summary(log, free_target=False)
     assert summary["max_contact_force_N"] == 5.0 and summary["first_contact_s"] == 1.0
     assert summary["largest_peak_torque_Nm"] == 3.0 and summary["max_abs_torque_Nm"] == [1.0, 3.0, 0, 0, 0, 0, 0.1]
     np.testing.assert_allclose(summary["final_position_error_m"], 0.004)
@@ -67,7 +67,7 @@ def test_folding_rows_one_by_one_gives_the_whole_log_metrics():
     running = metrics.start()
     for k in range(4):
         running = metrics.accumulate(running, jax.tree.map(lambda x: x[k : k + 1], log))
-    one_by_one, whole = metrics.finish(running), metrics.log_metrics(log)
+    one_by_one, whole = metrics.finish(running, free_target=False), metrics.log_metrics(log, free_target=False)
     for name in metrics.METRICS:
         np.testing.assert_allclose(one_by_one[name], whole[name], rtol=1e-15, err_msg=name)
 
@@ -77,7 +77,7 @@ def test_missing_values_are_nan_in_both_paths_and_null_in_json(tmp_path):
 
     log = dataclasses.replace(hand_log(), contact_force=np.zeros((4, 3)))
     assert np.isnan(float(metrics.first_contact_time(log)))
-    summary = metrics.summary(log)
+    summary = metrics.summary(log, free_target=False)
     assert np.isnan(summary["first_contact_s"]) and np.isnan(summary["first_nonfinite_s"])
     runfiles.write_json(tmp_path / "summary.json", summary)
     written = json.loads((tmp_path / "summary.json").read_text())
@@ -88,7 +88,7 @@ def test_a_non_finite_row_is_reported_and_the_peaks_before_it_kept():
     log = hand_log()
     u = log.u.copy()
     u[3, 2] = np.nan
-    summary = metrics.summary(dataclasses.replace(log, u=u))
+    summary = metrics.summary(dataclasses.replace(log, u=u), free_target=False)
     assert summary["first_nonfinite_s"] == 1.5
     assert summary["max_abs_torque_Nm"] == [1.0, 3.0, 0, 0, 0, 0, 0.1]
 

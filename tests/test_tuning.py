@@ -128,7 +128,7 @@ def test_objective_parts_on_a_synthetic_log(full_runs):
     log = full_runs["admittance"].log
     scale = tuple(np.max(np.abs(log.u), axis=0))
     weights = Weights(final_position=1.0, final_orientation=0.1, rms_tracking=0.1, peak_torque=10.0, contact_force=0.5)
-    parts = objective_parts(log, Objective(weights=weights, torque_scale_Nm=scale))
+    parts = objective_parts(log, Objective(weights=weights, torque_scale_Nm=scale), free_target=False)
     assert float(parts["peak_torque_hard"]) == pytest.approx(1.0)  # the log's own peaks
     assert 0.0 <= float(parts["peak_torque_gap"]) <= 0.02 * math.log(log.u.size)
     expected = (

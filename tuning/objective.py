@@ -173,7 +173,7 @@ _LOG_FLOOR = 1e-6
 
 
 def capture_margins(
-    parts: dict[str, jax.Array], log, objective: Objective, *, free_target: bool = False
+    parts: dict[str, jax.Array], log, objective: Objective, *, free_target: bool
 ) -> dict[str, jax.Array]:
     """The ``capture`` objective's margins (value over tolerance; above 1 the capture
     fails) from the ``weighted`` parts and the log: ``position_margin``,
@@ -198,11 +198,12 @@ def capture_loss(margins: dict[str, jax.Array], objective: Objective) -> jax.Arr
     return objective.hinge_width * jax.nn.softplus((worst - jnp.log1p(-objective.safety)) / objective.hinge_width)
 
 
-def objective_parts(log, objective: Objective, *, free_target: bool = False) -> dict[str, jax.Array]:
+def objective_parts(log, objective: Objective, *, free_target: bool) -> dict[str, jax.Array]:
     """Every part of the objective, unweighted, the ``capture`` objective's margins
     ([`capture_margins()`][tuning.objective.capture_margins]) and its ``capture_loss``, the ``weighted_loss``, and ``loss``,
-    the one ``objective.kind`` names; with ``free_target`` (static: the scenario's target
-    floats free), the target's final speed ``final_target_speed_mps`` too."""
+    the one ``objective.kind`` names; with ``free_target`` (static, required:
+    ``scenario.free_target``), the target's final speed ``final_target_speed_mps`` too, its
+    weight and its margin."""
     w = objective.weights
     torque_ratio = jnp.abs(log.u) / jnp.asarray(objective.torque_scale_Nm)
     contact = metrics.contact_force_norm(log)
