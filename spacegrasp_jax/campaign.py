@@ -295,6 +295,59 @@ def classify(sample_metrics: dict[str, np.ndarray], config: CampaignConfig) -> d
     )
 
 
+def capture_criteria(config: CampaignConfig | None = None) -> dict:
+    """A campaign's success criteria (``None``: the campaigns' defaults) as a run's
+    ``summary.json`` names them: ``final_position_m``, ``final_orientation_rad``,
+    ``torque_limit_Nm``, ``target_speed_mps``."""
+    config = CampaignConfig(n=1) if config is None else config
+    return {
+        "final_position_m": config.position_tolerance_m,
+        "final_orientation_rad": config.orientation_tolerance_rad,
+        "torque_limit_Nm": config.torque_limit_Nm,
+        "target_speed_mps": config.target_speed_limit_mps,
+    }
+
+
+_REPORTED = (*METRICS, *TARGET_METRICS, *anatomy.ANATOMY_METRICS)
+
+
+def run_failure_classes(summary: dict, config: CampaignConfig | None = None) -> dict[str, np.ndarray]:
+    """[`classify()`][spacegrasp_jax.campaign.classify] of one run's summary (its metrics as
+    floats and lists, ``metrics.summary``) as a one-sample batch, by ``config``'s criteria
+    (``None``: the campaigns' defaults)."""
+    sample = {name: np.asarray([value], dtype=float) for name, value in summary.items() if name in _REPORTED}
+    return classify(sample, CampaignConfig(n=1) if config is None else config)
+
+
+def with_capture_verdict(summary: dict, config: CampaignConfig | None = None) -> dict:
+    """``summary`` (one run's, ``metrics.summary``) and its verdict by a campaign's criteria
+    (``None``: the defaults): whether the run is a capture (``capture_success``), the
+    criteria (``capture_criteria``), which it missed and by how much (``capture_failure``,
+    ``capture_missed``, ``capture_margins``: value over tolerance, ``None`` where a criterion
+    does not apply) and the parts of its final position error (``final_error_parts_m``). What
+    ``spacegrasp simulate`` writes into ``summary.json``. A diverged run's summary is returned
+    as it is."""
+    if summary.get("diverged"):
+        return summary
+    classes = run_failure_classes(summary, config)
+    parts = anatomy.error_decomposition(
+        {name: np.asarray([summary[name]]) for name in ("final_position_error_lar_m", *anatomy.ANATOMY_METRICS)}
+    )
+    return summary | {
+        "capture_success": bool(classes["failure"][0] == "success"),
+        "capture_criteria": capture_criteria(config),
+        "capture_failure": str(classes["failure"][0]),
+        "capture_missed": [name for name in anatomy.FAILURE_CLASSES if classes[f"failed_{name}"][0]],
+        "capture_margins": {
+            name: (None if not np.isfinite(classes[name][0]) else float(classes[name][0]))
+            for name in ("position_margin", "orientation_margin", "torque_margin", "target_speed_margin")
+        },
+        "final_error_parts_m": {
+            name.removeprefix("final_error_").removesuffix("_m"): float(v[0]) for name, v in parts.items()
+        },
+    }
+
+
 def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfig) -> dict:
     """Statistics of every metric over the samples that did not diverge, success rate with
     its 95% interval, the diverged and the unstable samples, the five worst samples by final
@@ -661,6 +714,8 @@ __all__ = [
     "CampaignError",
     "CampaignResult",
     "Variant",
+    "capture_criteria",
+    "classify",
     "compiled_chunk",
     "evaluate_indices",
     "load_campaign",
@@ -670,6 +725,8 @@ __all__ = [
     "figure_title",
     "variant_law",
     "run_campaign",
+    "run_failure_classes",
     "variant_summary",
+    "with_capture_verdict",
     "write_results",
 ]

@@ -180,3 +180,33 @@ def test_a_position_failure_is_said_in_one_line_with_its_parts(scenario):
     # residual |(0.6, -0.1, -0.1)| = 0.62.
     assert line.startswith("capture failed (position): final position error 5.86 mm > 5")
     assert "along the approach +1.90, across 5.55; estimate 5.39, compliance 0.00, residual 0.62" in line
+
+
+def test_one_runs_capture_verdict_is_its_margins_over_the_campaigns_tolerances():
+    # A run's summary.json verdict, from the library: each margin is the value over its
+    # tolerance (defaults: 5 mm, 1 deg, 100 N m), the first missed criterion names the class.
+    from spacegrasp_jax import campaign
+
+    summary = {
+        "final_position_error_m": 0.003,
+        "final_orientation_error_rad": np.radians(0.25),
+        "largest_peak_torque_Nm": 150.0,
+        "max_abs_torque_Nm": [150.0] + [1.0] * 6,
+        "first_nonfinite_s": float("nan"),
+        "first_runaway_s": float("nan"),
+        "final_position_error_lar_m": [0.0, 0.0, -0.003],
+        "estimate_offset_lar_m": [0.0, 0.0, 0.0],
+        "compliance_offset_lar_m": [0.0, 0.0, -0.001],
+    }
+    verdict = campaign.with_capture_verdict(summary)
+    assert verdict["capture_margins"]["position_margin"] == pytest.approx(0.6)
+    assert verdict["capture_margins"]["orientation_margin"] == pytest.approx(0.25)
+    assert verdict["capture_margins"]["torque_margin"] == pytest.approx(1.5)
+    assert verdict["capture_margins"]["target_speed_margin"] is None  # a fixed target: no such criterion
+    assert not verdict["capture_success"] and verdict["capture_missed"] == ["torque_limit"]
+    assert verdict["final_error_parts_m"]["along"] == pytest.approx(-0.003)
+    assert verdict["final_error_parts_m"]["residual"] == pytest.approx(0.002)
+    loose = campaign.CampaignConfig(n=1, torque_limit_Nm=200.0)
+    assert campaign.with_capture_verdict(summary, loose)["capture_success"]
+    assert campaign.capture_criteria(loose)["torque_limit_Nm"] == 200.0
+    assert campaign.with_capture_verdict({"diverged": True}) == {"diverged": True}

@@ -20,7 +20,6 @@ from spacegrasp_jax import (
     anatomy,
     animation,
     campaign,
-    metrics,
     paper,
     plots,
     runfiles,
@@ -185,70 +184,16 @@ def _warn(lines: list[str], prefix: str = "") -> None:
         print(f"spacegrasp: warning: {prefix}{line}", file=sys.stderr, flush=True)
 
 
-def _capture_tolerances(criteria: campaign.CampaignConfig | None = None) -> dict:
-    """A campaign's success criteria (default: the campaigns' defaults), as summary.json
-    names them."""
-    criteria = campaign.CampaignConfig(n=1) if criteria is None else criteria
-    return {
-        "final_position_m": criteria.position_tolerance_m,
-        "final_orientation_rad": criteria.orientation_tolerance_rad,
-        "torque_limit_Nm": criteria.torque_limit_Nm,
-        "target_speed_mps": criteria.target_speed_limit_mps,
-    }
-
-
-_NUMERIC = (*metrics.METRICS, *metrics.TARGET_METRICS, *anatomy.ANATOMY_METRICS)
-
-
-def _capture_classes(summary: dict, criteria: campaign.CampaignConfig | None = None) -> dict:
-    """``spacegrasp_jax.anatomy.failure_classes()`` of one run's summary (a one-sample batch)."""
-    tolerances = _capture_tolerances(criteria)
-    as_sample = {name: np.asarray([value], dtype=float) for name, value in summary.items() if name in _NUMERIC}
-    return anatomy.failure_classes(
-        as_sample,
-        tolerances["final_position_m"],
-        tolerances["final_orientation_rad"],
-        tolerances["torque_limit_Nm"],
-        tolerances["target_speed_mps"],
-    )
-
-
-def _with_capture(summary: dict, criteria: campaign.CampaignConfig | None = None) -> dict:
-    """``summary`` and whether the run is a capture by the Monte-Carlo campaigns' default
-    criteria (``capture_success``, ``capture_criteria``), which criteria it missed and by
-    how much (``capture_failure``, ``capture_margins``) and the parts of its final position
-    error (``final_error_parts_m``). A diverged run's summary is returned as it is."""
-    if summary.get("diverged"):
-        return summary
-    classes = _capture_classes(summary, criteria)
-    parts = anatomy.error_decomposition(
-        {name: np.asarray([summary[name]]) for name in ("final_position_error_lar_m", *anatomy.ANATOMY_METRICS)}
-    )
-    return summary | {
-        "capture_success": bool(classes["failure"][0] == "success"),
-        "capture_criteria": _capture_tolerances(criteria),
-        "capture_failure": str(classes["failure"][0]),
-        "capture_missed": [name for name in anatomy.FAILURE_CLASSES if classes[f"failed_{name}"][0]],
-        "capture_margins": {
-            name: (None if not np.isfinite(classes[name][0]) else float(classes[name][0]))
-            for name in ("position_margin", "orientation_margin", "torque_margin", "target_speed_margin")
-        },
-        "final_error_parts_m": {
-            name.removeprefix("final_error_").removesuffix("_m"): float(v[0]) for name, v in parts.items()
-        },
-    }
-
-
 def _print_capture_verdicts(results: dict, criteria: campaign.CampaignConfig | None = None) -> None:
     """Each run's capture verdict by ``criteria`` (default: the campaigns' defaults): one line that says why
     a failed capture failed (a result, not an error: exit 0), or the margins of a success;
     with a free-floating target, one more line for the target's motion."""
-    tolerances = _capture_tolerances(criteria)
+    tolerances = campaign.capture_criteria(criteria)
     for controller, result in results.items():
         summary = result.summary
         if summary.get("diverged"):
             continue
-        line = anatomy.verdict_line(summary, _capture_classes(summary, criteria), tolerances)
+        line = anatomy.verdict_line(summary, campaign.run_failure_classes(summary, criteria), tolerances)
         if line is None:
             line = (
                 f"capture succeeded: final position error {1e3 * summary['final_position_error_m']:.2f} mm <= "
@@ -352,7 +297,8 @@ def _write_results(
         lines.append(",".join([str(joint + 1)] + ours + reference))
     runfiles.write_text(out / "table5.csv", "\n".join(lines) + "\n")
     runfiles.write_json(
-        out / "summary.json", {c: _with_capture(result.summary, criteria) for c, result in results.items()}
+        out / "summary.json",
+        {c: campaign.with_capture_verdict(result.summary, criteria) for c, result in results.items()},
     )
     for c, result in results.items():
         runfiles.write_timeseries(out / f"timeseries_{_file_name(c)}.npz", result.log)

@@ -10,6 +10,7 @@ import jax
 
 from spacegrasp_jax import (
     batching,
+    campaign,
     margins,
     plausibility,
     plots,
@@ -17,7 +18,6 @@ from spacegrasp_jax import (
     stability,
 )
 from spacegrasp_jax.cli.common import (
-    _capture_tolerances,
     _check_envelope,
     _claim,
     _criteria,
@@ -106,7 +106,7 @@ def _margins(args: argparse.Namespace) -> int:
     result["settings"] |= {
         "gains": gains.to_dict(args.controller),
         "gains_source": args.gains or "paper_gains()",
-        "criteria": _capture_tolerances(config),
+        "criteria": campaign.capture_criteria(config),
         "campaign": config.to_dict(),
         "scenario_duration_s": scenario.duration,
         **runfiles.provenance(),

@@ -14,6 +14,7 @@ import numpy as np
 
 from spacegrasp_jax import (
     batching,
+    campaign,
     experiment,
     plausibility,
     plots,
@@ -21,7 +22,6 @@ from spacegrasp_jax import (
     worstcase,
 )
 from spacegrasp_jax.cli.common import (
-    _capture_tolerances,
     _check_envelope,
     _claim,
     _criteria,
@@ -31,7 +31,6 @@ from spacegrasp_jax.cli.common import (
     _realism,
     _run_caption,
     _warn,
-    _with_capture,
     _write_results,
 )
 from spacegrasp_jax.cli.options import (
@@ -138,7 +137,7 @@ def _worstcase(args: argparse.Namespace) -> int:
             "units": worstcase.units_to_dict(found.units),
             "perturbation": perturbation,
             "noise_key": [int(x) for x in found.key],
-            "summary": _with_capture(result.summary, config),
+            "summary": campaign.with_capture_verdict(result.summary, config),
         },
         "campaign": {
             "n": args.budget,
@@ -158,7 +157,7 @@ def _worstcase(args: argparse.Namespace) -> int:
             "controller": args.controller,
             "gains": gains.to_dict(args.controller),
             "gains_source": args.gains or "paper_gains()",
-            "criteria": _capture_tolerances(config),
+            "criteria": campaign.capture_criteria(config),
             "campaign": config.to_dict(),
             "scenario_duration_s": scenario.duration,
             **runfiles.provenance(),
