@@ -74,8 +74,19 @@ def plant_state(p_base, R_base, q, V_base, qd, target: TargetState | None = None
 
 def free_floating_derivative(robot: Robot, state: PlantState, Q: jax.Array) -> PlantState:
     """Time derivative of ``state`` under the generalised force ``Q`` (13,)
-    ``[f_s, tau_s, u]`` (inertial frame, N and N m), the target held where it is; returned as a
-    [`PlantState`][spacegrasp_jax.integrator.PlantState] whose fields hold the rates."""
+    ``[f_s, tau_s, u]`` (inertial frame, N and N m), for a chaser beside a fixed target (the
+    default of [`plant_state()`][spacegrasp_jax.integrator.plant_state]); returned as a
+    [`PlantState`][spacegrasp_jax.integrator.PlantState] whose fields hold the rates.
+
+    Raises:
+        ValueError: ``state`` holds a free-floating target, whose motion needs its body and
+            the contact (``spacegrasp_jax.simulate.plant_derivative``).
+    """
+    if state.target.free:
+        raise ValueError(
+            "state: a free-floating target moves with its body and the contact; "
+            "integrate it with spacegrasp_jax.simulate.plant_derivative"
+        )
     xdd = forward_dynamics(robot, state.R_base, state.q, state.V_base, state.qd, Q)
     return state_rate(state, xdd, state.target.at_rest())
 

@@ -4,6 +4,8 @@ the Dynamic Jacobian against the finite-difference EE twist of a simulated motio
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -119,3 +121,23 @@ def test_quaternion_stays_unit_and_matches_rotation(robot, random_states):
     final, path = simulate(robot, start, jnp.zeros((500, 7)), 1e-3)
     norms = np.linalg.norm(np.asarray(path.quat_base), axis=1)
     np.testing.assert_allclose(norms, 1.0, atol=1e-14)
+    # The fixed target beside the chaser is handed back as it was, bit for bit.
+    for name in ("p", "quat", "v", "w"):
+        np.testing.assert_array_equal(getattr(final.target, name), getattr(start.target, name))
+
+
+def test_the_projection_renormalises_a_free_targets_quaternion_only():
+    from spacegrasp_jax.target import TargetState
+
+    off = jnp.array([1.0, 0.1, -0.2, 0.05]) * 1.001  # a quaternion a step of RK4 left off the unit sphere
+    state = plant_state(jnp.zeros(3), jnp.eye(3), jnp.zeros(7), jnp.zeros(6), jnp.zeros(7))
+    free = TargetState(jnp.zeros(3), off, jnp.zeros(3), jnp.zeros(3))
+    fixed = TargetState(jnp.zeros(3), off, jnp.zeros(3), jnp.zeros(3), free=False)
+    moved = dataclasses.replace(state, quat_base=off, target=free).projected()
+    np.testing.assert_allclose(np.linalg.norm(moved.quat_base), 1.0, atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(moved.target.quat), 1.0, atol=1e-15)
+    np.testing.assert_allclose(moved.target.quat, off / np.linalg.norm(off), atol=1e-15)
+    kept = dataclasses.replace(state, target=fixed).projected()
+    np.testing.assert_array_equal(kept.target.quat, off)  # a fixed target is left as it is
+    with pytest.raises(ValueError, match="free-floating target"):
+        free_floating_derivative(sg.paper_robot(), dataclasses.replace(state, target=free), jnp.zeros(13))
