@@ -128,6 +128,17 @@ def run(
     return RunResult(controller, log, summary, compile_time, run_time)
 
 
+def read_log(path) -> Log:
+    """A run's ``timeseries_*.npz`` ([`runfiles.write_timeseries()`][spacegrasp_jax.runfiles.write_timeseries])
+    as a [`Log`][spacegrasp_jax.simulate.Log] of NumPy arrays; a field the file does not hold
+    (one the run's loop did not fill, or one added to the log after the file was written) is
+    ``None``."""
+    with np.load(path) as data:
+        return Log(
+            **{field.name: data[field.name] if field.name in data.files else None for field in dataclasses.fields(Log)}
+        )
+
+
 def run_summary(log: Log, robot: Robot, scenario: Scenario, realism: Realism | None = None) -> dict:
     """The metrics of a whole log ([`spacegrasp_jax.metrics.summary()`][spacegrasp_jax.metrics.summary], runaways by
     ``robot``'s limits) and the parts of its final error ([`spacegrasp_jax.anatomy.error_parts()`][spacegrasp_jax.anatomy.error_parts]),

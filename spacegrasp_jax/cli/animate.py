@@ -6,7 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from spacegrasp_jax.cli.common import _file_name, _films, _load_log, _run_robot_and_scenario
+from spacegrasp_jax import experiment
+from spacegrasp_jax.cli.common import _file_name, _films, _run_robot_and_scenario
 from spacegrasp_jax.cli.options import UsageError, _add_command, _add_film_options, _add_overwrite_option
 
 
@@ -49,7 +50,7 @@ def _animate(args: argparse.Namespace) -> int:
                 "--out: an MP4 needs imageio-ffmpeg (pip install spacegrasp-jax[video]); a .gif needs nothing more"
             ) from None
     robot, scenario = _run_robot_and_scenario(folder, config)
-    logs = {key: _load_log(folder / f"timeseries_{_file_name(key)}.npz") for key in keys}
+    logs = {key: experiment.read_log(folder / f"timeseries_{_file_name(key)}.npz") for key in keys}
     written = _films(args, folder, keys, robot, scenario, logs, Path(args.out) if args.out else None)
     print(f"wrote {', '.join(str(path) for path in written)}")
     return 0

@@ -4,7 +4,6 @@ output folder, warnings, the capture verdicts and the run files."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import functools
 import math
 import sys
@@ -42,7 +41,6 @@ from spacegrasp_jax.perturbations import (
 )
 from spacegrasp_jax.realism import Realism, RealismError, load_realism
 from spacegrasp_jax.scenario import load_scenario, paper_scenario, scenario_from_dict
-from spacegrasp_jax.simulate import Log
 
 
 def _load_inputs(args):
@@ -331,14 +329,6 @@ def _films(
         runfiles.write_atomically(poster, lambda target: animation.write_poster(scene, target, title))
         written += [out, poster]
     return written
-
-
-def _load_log(path: Path) -> Log:
-    """A run's ``timeseries_*.npz`` as a Log (fields the run's loop did not fill: None)."""
-    with np.load(path) as data:
-        return Log(
-            **{field.name: data[field.name] if field.name in data.files else None for field in dataclasses.fields(Log)}
-        )
 
 
 def _run_robot_and_scenario(folder: Path, config: dict):

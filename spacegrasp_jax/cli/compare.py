@@ -9,10 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from spacegrasp_jax import (
+    experiment,
     plots,
     runfiles,
 )
-from spacegrasp_jax.cli.common import _claim, _file_name, _load_log
+from spacegrasp_jax.cli.common import _claim, _file_name
 from spacegrasp_jax.cli.options import UsageError, _add_command, _add_overwrite_option
 from spacegrasp_jax.realism import ideal
 
@@ -65,7 +66,7 @@ def _compare(args: argparse.Namespace) -> int:
     common = ", ".join(
         f"{name} {descriptors[0][name]}" for name in descriptors[0] if name not in differing and name != "run"
     )
-    logs = {label: _load_log(path) for label, (_, _, _, _, path) in zip(labels, runs)}
+    logs = {label: experiment.read_log(path) for label, (_, _, _, _, path) in zip(labels, runs)}
     table = {}
     print(
         f"\n{'run':40} {'final pos [mm]':>15} {'orient [deg]':>13} {'peak |u| [N m]':>15} {'contact [N]':>12}  capture"
