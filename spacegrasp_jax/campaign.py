@@ -308,6 +308,7 @@ def capture_criteria(config: CampaignConfig | None = None) -> dict:
     }
 
 
+#: The metrics a run or a sample reports (a free target's where there is one).
 _REPORTED = (*METRICS, *TARGET_METRICS, *anatomy.ANATOMY_METRICS)
 
 
@@ -572,8 +573,7 @@ def run_campaign(
             for name, value in merged.items()
             if name.startswith("perturbation.")
         }
-        names = (*METRICS, *TARGET_METRICS, *anatomy.ANATOMY_METRICS)
-        sample_metrics = {name: merged[name] for name in names if name in merged}
+        sample_metrics = {name: merged[name] for name in _REPORTED if name in merged}
         classes = classify(sample_metrics, config)
         sample_metrics |= classes | {"success": classes["failure"] == "success"}
         sample_metrics |= anatomy.error_decomposition(sample_metrics)

@@ -131,15 +131,7 @@ def rk4_step(
     for XLA to merge the recomputation with, and the optimisation barriers that the default
     inserts would keep XLA from fusing across them.
     """
-    if state.target.free:
-        return _rk4(derivative, state, dt, rate_at_start).projected()
-    # A fixed target never moves: the stages integrate the chaser alone, the target a
-    # constant beside them (fewer arrays carried through the stages' loop).
-    target = state.target
-    chaser = lambda s: dataclasses.replace(s, target=())  # noqa: E731
-    with_target = lambda s: dataclasses.replace(s, target=target)  # noqa: E731
-    k1 = None if rate_at_start is None else chaser(rate_at_start)
-    return with_target(_rk4(lambda s: chaser(derivative(with_target(s))), chaser(state), dt, k1)).projected()
+    return _rk4(derivative, state, dt, rate_at_start).projected()
 
 
 def _rk4(derivative, state, dt, rate_at_start):
