@@ -131,11 +131,6 @@ def rk4_step(
     for XLA to merge the recomputation with, and the optimisation barriers that the default
     inserts would keep XLA from fusing across them.
     """
-    return _rk4(derivative, state, dt, rate_at_start).projected()
-
-
-def _rk4(derivative, state, dt, rate_at_start):
-    """RK4's step of any pytree ``state`` (its stages 2-4 one checkpointed loop)."""
 
     def advance(base, rate, h):
         return jax.tree.map(lambda x, dx: x + h * dx, base, rate)
@@ -150,7 +145,7 @@ def _rk4(derivative, state, dt, rate_at_start):
     k1 = derivative(state) if rate_at_start is None else rate_at_start
     coefficients = jnp.asarray(_LATER_STAGES, dtype=state.q.dtype).T
     (_, weighted_sum), _ = jax.lax.scan(later_stage, (k1, k1), tuple(coefficients))
-    return advance(state, weighted_sum, dt / 6)
+    return advance(state, weighted_sum, dt / 6).projected()
 
 
 def simulate_free_floating(
