@@ -35,10 +35,10 @@ import spacegrasp_jax as sg
 from spacegrasp_jax import metrics
 from spacegrasp_jax.compilation import configure
 from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.montecarlo import evaluate_samples
+from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples
 from spacegrasp_jax.perturbations import PerturbationRanges
 from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import rollout
+from spacegrasp_jax.simulate import RunSpec, rollout
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -81,8 +81,8 @@ def bench_arm(robot, scenario, short, gains, repeats: int) -> dict:
     executable, compile_s = _compiled(jax.value_and_grad(final_error), log_gains)
     results["gradient"] = _timed(executable, (log_gains,), repeats, compile_s)
 
-    chunk = functools.partial(evaluate_samples, controller="admittance", ranges=PerturbationRanges())
-    arguments = (robot, scenario, gains, 0, jnp.arange(16))
+    chunk = functools.partial(evaluate_samples, ranges=PerturbationRanges())
+    arguments = (RunSpec(robot, scenario, "admittance", observer=FoldedMetrics()), gains, 0, jnp.arange(16))
     executable, compile_s = _compiled(chunk, *arguments)
     results["chunk"] = _timed(executable, arguments, max(1, repeats // 2), compile_s)
     return results
@@ -92,7 +92,7 @@ def bench_film(robot, scenario, gains) -> dict:
     """``spacegrasp animate``'s drawing of a 17 s capture at 30 frames a second."""
     from spacegrasp_jax import animation, experiment
 
-    log = experiment.run(robot, scenario, gains, "admittance").log
+    log = experiment.run(RunSpec(robot, scenario, "admittance"), gains).log
     start = time.perf_counter()
     rows = animation.frame_rows(log.t, 30.0, 1.0)
     scene = animation.capture_scene(robot, scenario, log, rows)

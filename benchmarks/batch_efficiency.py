@@ -121,7 +121,7 @@ def _part_functions(gains):
         return u, law_state, servo_state
 
     def step(robot, scenario, state):
-        body = simulate.loop_body(robot, scenario, gains, "admittance")
+        body = simulate.loop_body(simulate.RunSpec(robot, scenario, "admittance"), gains)
         return body.period(state, jnp.ones((), state.plant.q.dtype))[0]
 
     return dict(
@@ -167,7 +167,7 @@ def measure(parts: list[str], batch: int, iterations: int, repeats: int) -> list
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, duration=1.0)
     robots, scenarios, _ = sample(robot, scenario, 0, range(batch), PerturbationRanges())
-    states = jax.vmap(simulate.initial_state)(scenarios)
+    states = jax.vmap(lambda r, s: simulate.initial_state(simulate.RunSpec(r, s)))(robots, scenarios)
     batched = (robots, scenarios, states)
     single = jax.tree.map(lambda x: x[0], batched)
     functions = _part_functions(gains)

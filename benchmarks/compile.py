@@ -78,6 +78,7 @@ def _build(name: str, duration: float):
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.realism import flight
     from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.simulate import RunSpec
     from spacegrasp_jax.tuning import gradients, tune
     from spacegrasp_jax.tuning.objective import Objective
 
@@ -87,10 +88,12 @@ def _build(name: str, duration: float):
     scenario = paper_scenario(robot, contact_law="smooth" if "gradient" in name else "exact", duration=duration)
 
     def forward():
-        return experiment.run(robot, scenario, gains, "admittance", realism=realism, check=False).log
+        return experiment.run(RunSpec(robot, scenario, "admittance", realism=realism), gains, check=False).log
 
     if name.startswith("rollout_"):
-        return (lambda: experiment.run(robot, scenario, gains, "admittance", realism=realism, check=False).log), None
+        return (
+            lambda: experiment.run(RunSpec(robot, scenario, "admittance", realism=realism), gains, check=False).log
+        ), None
     if name.startswith("tuning_gradient_"):
         config = tune.TuneConfig(
             batch=1 if realism is None else jax.device_count(),

@@ -4,8 +4,8 @@
 
 Each measurement runs in its own process, so that its peak memory is its own:
 * ``sequential``: ``--sequential`` samples of the campaign, one after the other, each a call
-  of the jit-compiled single-sample ``rollout_metrics`` (what a loop over ``spacegrasp
-  simulate`` would cost, without its log);
+  of the jit-compiled single-sample ``closed_loop`` folding its metrics (``FoldedMetrics``;
+  what a loop over ``spacegrasp simulate`` would cost, without its log);
 * ``batch B``: one chunk of B samples through the campaign's compiled, sharded kernel
   (``campaign.evaluate_indices``: sampling, vmapped rollouts, metrics gathered to the host),
   with one CPU device per core as ``spacegrasp montecarlo`` sets up (on a GPU host: the GPUs;
@@ -47,10 +47,11 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
     from spacegrasp_jax import compilation
     from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax.control import paper_gains
-    from spacegrasp_jax.montecarlo import rollout_metrics
+    from spacegrasp_jax.montecarlo import FoldedMetrics
     from spacegrasp_jax.perturbations import PerturbationRanges, sample
     from spacegrasp_jax.realism import flight
     from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.simulate import RunSpec, closed_loop
 
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, duration=duration)
@@ -58,13 +59,13 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
     if kind == "sequential":
         robots, scenarios, _ = sample(robot, scenario, 0, range(size), PerturbationRanges())
         samples = [(jax.tree.map(lambda x: x[i], robots), jax.tree.map(lambda x: x[i], scenarios)) for i in range(size)]
-        function = compilation.jit(rollout_metrics, static_argnames=("controller",))
-        compiled = function.lower(*samples[0], gains, controller="admittance").compile()
+        specs = [RunSpec(r, s, "admittance", observer=FoldedMetrics()) for r, s in samples]
+        compiled = compilation.jit(closed_loop).lower(specs[0], gains).compile()
         compile_s = time.perf_counter() - start
 
         def run():
-            for sample_robot, sample_scenario in samples:
-                jax.block_until_ready(compiled(sample_robot, sample_scenario, gains))
+            for spec in specs:
+                jax.block_until_ready(compiled(spec, gains))
 
     else:
         variant = campaign.Variant("admittance", gains)

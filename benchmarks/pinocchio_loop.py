@@ -25,6 +25,7 @@ import pinocchio as pin
 from spacegrasp_jax.compilation import configure
 from spacegrasp_jax.control.registry import PAPER_CONTROLLERS
 from spacegrasp_jax.model import Robot, body_inertials, n_joints
+from spacegrasp_jax.simulate import RunSpec
 
 
 def build_model(robot: Robot) -> tuple[pin.Model, int]:
@@ -249,7 +250,7 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     pose, peak = loop.run()
     seconds = time.perf_counter() - start
-    ours = experiment.run(robot, scenario, paper_gains(), args.controller)
+    ours = experiment.run(RunSpec(robot, scenario, args.controller), paper_gains())
     print(
         f"Pinocchio loop: {seconds:.2f} s for {scenario.n_steps} steps ({1e6 * seconds / scenario.n_steps:.0f} us/step)"
     )

@@ -36,6 +36,7 @@ import numpy as np
 from spacegrasp_jax.benchmarks import compile as compile_benchmark
 from spacegrasp_jax.compilation import configure
 from spacegrasp_jax.control import PAPER_CONTROLLERS
+from spacegrasp_jax.simulate import RunSpec
 
 #: Keys of benchmark.json (seconds unless the name says otherwise).
 KEYS = (
@@ -113,7 +114,7 @@ def flops_per_step(controller: str = "admittance") -> float:
 
     robot = sg.paper_robot()
     scenario = paper_scenario(robot, duration=1.0)
-    body = loop_body(robot, scenario, paper_gains(), controller)
+    body = loop_body(RunSpec(robot, scenario, controller), paper_gains())
     stage = flops(lambda plant, u: plant_derivative(robot, scenario, plant, u), scenario.initial, jax.numpy.zeros(7))
     return flops(body.period, body.start, 0.0) + 2 * stage
 
@@ -227,7 +228,7 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
     report["mujoco_rollout_batches"] = {b: r["scenario_steps_per_s"] for b, r in mujoco_batches.items()}
     report["mujoco_rollout_steps_per_s"] = mujoco_batches[str(batches[-1])]["scenario_steps_per_s"]
     pinocchio = peers.pinocchio_closed_loop(robot, scenario, gains)
-    ours = experiment.run(robot, scenario, gains, "admittance")
+    ours = experiment.run(RunSpec(robot, scenario, "admittance"), gains)
     difference = float(np.max(np.abs(np.asarray(pinocchio["final_pose"]) - ours.log.pose_ee[-1])))
     report["pinocchio_loop_rollout_s"] = pinocchio["run_s"]
     report["pinocchio_loop_max_pose_difference"] = difference

@@ -39,11 +39,11 @@ from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import CONTROLLERS, law_named
 from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
 from spacegrasp_jax.model import Robot, n_joints
-from spacegrasp_jax.montecarlo import evaluate_samples, sample_loops
+from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges
 from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario, scenario_to_dict
-from spacegrasp_jax.simulate import Log
+from spacegrasp_jax.simulate import Log, RunSpec
 
 PERCENTILES = (5, 50, 95)
 
@@ -171,8 +171,8 @@ class CampaignResult:
 # ---- the sharded, chunked evaluation --------------------------------------------------
 
 
-def _evaluate_chunk(robot, scenario, gains, seed, realism, ranges, indices, **settings):
-    return evaluate_samples(robot, scenario, gains, seed, indices, ranges=ranges, realism=realism, **settings)
+def _evaluate_chunk(spec, gains, seed, ranges, indices, *, identified):
+    return evaluate_samples(spec, gains, seed, indices, ranges=ranges, identified=identified)
 
 
 def variant_law(variant: Variant, config: CampaignConfig):
@@ -183,20 +183,34 @@ def variant_law(variant: Variant, config: CampaignConfig):
         raise CampaignError(str(error)) from None
 
 
+def variant_spec(robot: Robot, scenario: Scenario, variant: Variant, config: CampaignConfig) -> RunSpec:
+    """The nominal run of ``variant`` in the campaign, every sample a perturbation of it: its
+    law (with the campaign's pseudoinverse damping), the campaign's realism, its metrics
+    folded in the loop with every ``timeseries_every``-th row."""
+    return RunSpec(
+        robot,
+        scenario,
+        variant_law(variant, config),
+        realism=config.realism,
+        observer=FoldedMetrics(config.timeseries_every),
+    )
+
+
+def _replicated(robot, scenario, variant: Variant, config: CampaignConfig) -> tuple:
+    """The arguments every device of a chunk receives whole."""
+    return variant_spec(robot, scenario, variant, config), variant.gains, np.uint32(config.seed), config.ranges
+
+
 def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
     """The compiled evaluation of one chunk of ``config.chunk`` samples
     ([`compile_chunk()`][spacegrasp_jax.batching.compile_chunk]) and its compile time (s; that of the
     original compile)."""
-    law = variant_law(variant, config)
-    function = functools.partial(
-        _evaluate_chunk, controller=law, every=config.timeseries_every, identified=config.identified
-    )
-    replicated = (robot, scenario, variant.gains, np.uint32(config.seed), config.realism, config.ranges)
+    function = functools.partial(_evaluate_chunk, identified=config.identified)
     try:
         return batching.compile_chunk(
             "campaign",
             function,
-            replicated,
+            _replicated(robot, scenario, variant, config),
             np.zeros(config.chunk, np.uint32),
             device_batch=config.device_batch,
         )
@@ -212,7 +226,7 @@ def evaluate_indices(robot, scenario, variant: Variant, config: CampaignConfig, 
     indices = np.asarray(indices, dtype=np.uint32)
     if indices.shape != (config.chunk,):
         raise CampaignError(f"indices: expected {config.chunk} of them (the chunk size), got shape {indices.shape}")
-    replicated = (robot, scenario, variant.gains, np.uint32(config.seed), config.realism, config.ranges)
+    replicated = _replicated(robot, scenario, variant, config)
     perturbations, sample_metrics, rows = batching.run_chunk(executable, replicated, indices)
     arrays = {f"perturbation.{name}": value for name, value in vars(perturbations).items()}
     arrays |= dict(sample_metrics)
@@ -697,16 +711,14 @@ def replay(robot: Robot, scenario: Scenario, variant: Variant, config: CampaignC
 
     loops = sample_loops(robot, scenario, config.seed, [index], config.ranges, config.realism, config.identified)
     first = lambda tree: None if tree is None else jax.tree.map(lambda x: x[0], tree)
-    return experiment.run(
+    spec = RunSpec(
         first(loops.robots),
         first(loops.scenarios),
-        variant.gains,
         variant_law(variant, config),
         realism=first(loops.realisms),
-        key=first(loops.keys),
         model_robot=loops.model_robot,
-        check=check,
     )
+    return experiment.run(spec, variant.gains, key=first(loops.keys), check=check)
 
 
 __all__ = [
@@ -724,6 +736,7 @@ __all__ = [
     "replay_sample",
     "figure_title",
     "variant_law",
+    "variant_spec",
     "run_campaign",
     "run_failure_classes",
     "variant_summary",

@@ -1,7 +1,7 @@
 """Single rollouts on the host: compile once, time, check for divergence, summarise.
 
 This is the edge of the library where ``jit`` happens (the core never calls it). The CLI,
-the tests and the notebooks use [`run()`][spacegrasp_jax.experiment.run], so a rollout of a given controller, shapes and
+the tests and the notebooks use [`run()`][spacegrasp_jax.experiment.run] on a [`RunSpec`][spacegrasp_jax.simulate.RunSpec], so a rollout of a given controller, shapes and
 static settings compiles once per process.
 """
 
@@ -16,11 +16,10 @@ import numpy as np
 
 from spacegrasp_jax import anatomy, compilation, metrics, paper, runfiles
 from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.control.registry import as_controller, controller_name
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario, scenario_to_dict
-from spacegrasp_jax.simulate import Log, first_nonfinite_step, loop_realism, rollout
+from spacegrasp_jax.simulate import FullLog, Log, RunSpec, closed_loop, first_nonfinite_step, loop_realism
 
 
 class SimulationDiverged(RuntimeError):
@@ -46,76 +45,71 @@ class RunResult:
     run_time_s: float
 
 
-def compiled_rollout(
-    robot: Robot,
-    scenario: Scenario,
-    gains: Gains,
-    controller,
-    realism: Realism | None = None,
-    key=None,
-    model_robot: Robot | None = None,
-):
-    """The compiled [`rollout()`][spacegrasp_jax.simulate.rollout] for these argument shapes and
-    static settings (the realism's among them), compiled once per process, and its compile
-    time (s). ``controller``: a law's name or object, as [`rollout()`][spacegrasp_jax.simulate.rollout]."""
-    arguments = (robot, scenario, gains, realism, key, model_robot)
-    control = as_controller(controller)
+def program_key(spec: RunSpec, gains: Gains, key=None) -> tuple:
+    """What the compiled [`closed_loop()`][spacegrasp_jax.simulate.closed_loop] of ``(spec, gains, key)`` depends on, and nothing
+    else: the arguments' tree structure, which holds the spec's controller, observer and
+    checkpointing and every static setting of its parts (a setting added to any of them is
+    in it with nothing else to change), and their leaves' shapes, dtypes and placement
+    ([`argument_signature()`][spacegrasp_jax.compilation.argument_signature]). Hashable; equal for specs and gains that differ only in numbers."""
+    return ("closed_loop", compilation.argument_signature((spec, gains, key)))
+
+
+def compiled_loop(spec: RunSpec, gains: Gains, key=None):
+    """[`closed_loop()`][spacegrasp_jax.simulate.closed_loop] compiled for ``(spec, gains, key)``, once per process, and its
+    compile time (s). The program is looked up by [`program_key()`][spacegrasp_jax.experiment.program_key]: specs and gains that
+    differ only in numbers share it."""
 
     def lower():
-        function = compilation.jit(rollout, static_argnames=("controller",))
-        return function.lower(
-            robot,
-            scenario,
-            gains,
-            controller=control,
-            realism=realism,
-            key=key,
-            model_robot=model_robot,
-        )
+        return compilation.jit(closed_loop).lower(spec, gains, key)
 
-    loop = "ideal" if realism is None and model_robot is None else "flight-like"
+    loop = "ideal" if spec.realism is None and spec.model_robot is None else "flight-like"
+    kept = "rollout" if isinstance(spec.observer, FullLog) else f"loop ({type(spec.observer).__name__})"
     return compilation.compile_once(
-        ("rollout", control, compilation.argument_signature(arguments)),
+        program_key(spec, gains, key),
         lower,
-        label=f"the {control.name} law's {loop} rollout",
+        label=f"the {spec.controller.name} law's {loop} {kept}",
     )
 
 
-def run(
-    robot: Robot,
-    scenario: Scenario,
-    gains: Gains,
-    controller,
-    *,
-    realism: Realism | None = None,
-    key=None,
-    model_robot: Robot | None = None,
-    check: bool = True,
-) -> RunResult:
-    """Run one closed-loop rollout and bring its log back as NumPy arrays. ``controller``: a
-    law's name or a law object with its settings (``control.Admittance(pinv_damping=0.01)``;
-    [`rollout()`][spacegrasp_jax.simulate.rollout]); the result names the law. ``realism`` and
-    ``key``: the flight-like loop ([`rollout()`][spacegrasp_jax.simulate.rollout]); the key
-    defaults to ``PRNGKey(0)`` when the realism has noisy sensors.
+def run(spec: RunSpec, gains: Gains, *, key=None, check: bool = True) -> RunResult:
+    """Run one closed-loop rollout and bring its log back as NumPy arrays.
 
-    A run whose state becomes non-finite has a [`divergence_summary()`][spacegrasp_jax.experiment.divergence_summary] for summary.
+    Args:
+        spec: the run ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]: ``RunSpec(robot, scenario, "admittance")`` is the
+            paper's loop; a law object carries its settings, a realism and a model robot
+            make the flight-like loop); its observer must keep the whole log
+            ([`FullLog`][spacegrasp_jax.simulate.FullLog], the default). A realism that runs the paper's loop is run as
+            none ([`loop_realism()`][spacegrasp_jax.simulate.loop_realism]: one program for both).
+        gains: the gains.
+        key: the sensors' noise key; ``PRNGKey(0)`` by default where the loop is
+            flight-like.
+        check: raise on divergence.
+
+    A run whose state becomes non-finite has a [`divergence_summary()`][spacegrasp_jax.experiment.divergence_summary] for summary;
+    the result names the law.
 
     Raises:
+        ValueError: the spec's observer does not keep the whole log.
         SimulationDiverged: (when ``check``) the state became non-finite; the error gives
             the first non-finite time and, as ``result``, the log up to and including it.
     """
-    realism = loop_realism(realism, scenario)
-    if (realism is not None or model_robot is not None) and key is None:
+    if not isinstance(spec.observer, FullLog):
+        raise ValueError(f"run: the spec's observer must keep the whole log (FullLog), got {spec.observer!r}")
+    spec = dataclasses.replace(spec, realism=loop_realism(spec.realism, spec.scenario))
+    if (spec.realism is not None or spec.model_robot is not None) and key is None:
         key = jax.random.PRNGKey(0)
-    executable, compile_time = compiled_rollout(robot, scenario, gains, controller, realism, key, model_robot)
-    controller = controller_name(controller)
+    executable, compile_time = compiled_loop(spec, gains, key)
+    controller = spec.controller.name
+    robot, scenario = spec.robot, spec.scenario
     start = time.perf_counter()
-    _, log = executable(robot, scenario, gains, realism=realism, key=key, model_robot=model_robot)
+    _, log = executable(spec, gains, key)
     log = jax.tree.map(np.asarray, jax.block_until_ready(log))
     run_time = time.perf_counter() - start
     bad_step = first_nonfinite_step(log)
     if bad_step is None:
-        summary = run_summary(log, robot, scenario, realism) | dict(compile_time_s=compile_time, run_time_s=run_time)
+        summary = run_summary(log, robot, scenario, spec.realism) | dict(
+            compile_time_s=compile_time, run_time_s=run_time
+        )
         return RunResult(controller, log, summary, compile_time, run_time)
     summary = divergence_summary(log, bad_step, robot, free_target=scenario.free_target) | dict(
         compile_time_s=compile_time, run_time_s=run_time

@@ -56,9 +56,9 @@ from spacegrasp_jax.control.law import Output
 from spacegrasp_jax.control.pid import PID
 from spacegrasp_jax.control.registry import LAWS, as_controller, law_named
 from spacegrasp_jax.model import Robot, n_joints
-from spacegrasp_jax.montecarlo import evaluate_samples, lost, success
+from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, lost, success
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import ServoInputDelay, loop_realism
+from spacegrasp_jax.simulate import RunSpec, ServoInputDelay, loop_realism
 
 #: The loops whose gain is probed: the joint PID's and the law's.
 LOOPS = ("pid", "law")
@@ -208,35 +208,15 @@ def scaled_loop(gains: Gains, controller: str, loop: str, factor: float) -> Gain
 
 
 def _probe(
-    robot,
-    scenario,
-    gains,
-    seed,
-    realism,
-    ranges,
-    delay_periods,
-    servo_delay_ticks,
-    indices,
-    *,
-    controller,
-    capacity,
-    servo_capacity,
-    identified,
+    spec, gains, seed, ranges, delay_periods, servo_delay_ticks, indices, *, capacity, servo_capacity, identified
 ):
-    law = OutputDelay(controller, capacity, delay_periods, n_joints(robot))
+    controller = spec.controller
+    delayed = OutputDelay(controller.law, capacity, delay_periods, n_joints(spec.robot))
     servo_delay = None if servo_capacity is None else ServoInputDelay(servo_capacity, servo_delay_ticks)
-    _, sample_metrics, _ = evaluate_samples(
-        robot,
-        scenario,
-        gains,
-        seed,
-        indices,
-        controller=law,
-        ranges=ranges,
-        realism=realism,
-        identified=identified,
-        servo_input_delay=servo_delay,
+    spec = dataclasses.replace(
+        spec, controller=dataclasses.replace(controller, law=delayed), servo_input_delay=servo_delay
     )
+    _, sample_metrics, _ = evaluate_samples(spec, gains, seed, indices, ranges=ranges, identified=identified)
     return sample_metrics
 
 
@@ -275,10 +255,8 @@ class Prober:
         self._indices = np.minimum(np.arange(chunk), self.settings.samples - 1).astype(np.uint32)
         self.servo_delay = servo_runs_at_its_own_rate(self.scenario, self.config.realism)
         servo_capacity = self.settings.max_servo_delay_ticks + 1 if self.servo_delay else None
-        law = law_named(self.controller, self.config.pinv_damping)
         function = functools.partial(
             _probe,
-            controller=law,
             capacity=self.settings.max_delay_periods + 1,
             servo_capacity=servo_capacity,
             identified=self.config.identified,
@@ -294,12 +272,17 @@ class Prober:
 
     def _replicated(self, gains, delay_periods, servo_delay_ticks=0):
         config = self.config
-        return (
+        spec = RunSpec(
             self.robot,
             self.scenario,
+            law_named(self.controller, config.pinv_damping),
+            realism=config.realism,
+            observer=FoldedMetrics(),
+        )
+        return (
+            spec,
             gains,
             np.uint32(config.seed),
-            config.realism,
             config.ranges,
             np.int32(delay_periods),
             np.int32(servo_delay_ticks),

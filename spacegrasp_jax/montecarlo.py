@@ -2,8 +2,9 @@
 evaluation of a Monte-Carlo campaign's samples.
 
 A full [`Log`][spacegrasp_jax.simulate.Log] of a 17 s rollout holds some 1.4 million numbers; a campaign
-needs a few numbers per sample. [`rollout_metrics()`][spacegrasp_jax.montecarlo.rollout_metrics] runs the same loop as
-[`rollout()`][spacegrasp_jax.simulate.rollout] with an observer that folds every log row into the running metrics of
+needs a few numbers per sample. A [`RunSpec`][spacegrasp_jax.simulate.RunSpec] whose observer is
+[`FoldedMetrics`][spacegrasp_jax.montecarlo.FoldedMetrics] runs the same loop as
+[`rollout()`][spacegrasp_jax.simulate.rollout] and folds every log row into the running metrics of
 [`spacegrasp_jax.metrics`][spacegrasp_jax.metrics] as it goes (the functions that give a whole log's metrics), so
 a batch needs memory for its states only, plus, on request, every ``every``-th log row.
 
@@ -32,7 +33,7 @@ from spacegrasp_jax.perturbations import (
 )
 from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import Log, ServoInputDelay, closed_loop, loop_realism
+from spacegrasp_jax.simulate import Log, RunSpec, closed_loop, loop_realism
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,89 +82,52 @@ class FoldedMetrics:
         return finished | anatomy.error_parts(finished, scenario, realism), kept
 
 
-def rollout_metrics(
-    robot: Robot,
-    scenario: Scenario,
-    gains: Gains,
-    controller,
-    every: int | None = None,
-    realism: Realism | None = None,
-    key: jax.Array | None = None,
-    model_robot: Robot | None = None,
-    servo_input_delay: ServoInputDelay | None = None,
-) -> tuple[dict[str, jax.Array], Log | None]:
-    """One closed-loop rollout reduced to its ``METRICS`` and the parts of its final error
-    (``ANATOMY_METRICS``): [`closed_loop()`][spacegrasp_jax.simulate.closed_loop] with the
-    [`FoldedMetrics`][spacegrasp_jax.montecarlo.FoldedMetrics] observer.
-
-    Args:
-        robot, scenario, gains, controller: as [`rollout()`][spacegrasp_jax.simulate.rollout].
-        every: if set, also return every ``every``-th log row ([`FoldedMetrics`][spacegrasp_jax.montecarlo.FoldedMetrics]).
-        realism, key, model_robot, servo_input_delay: the loop's settings
-            ([`loop_body()`][spacegrasp_jax.simulate.loop_body]).
-
-    Returns:
-        ``(metrics, rows)``: a dict of the metrics' arrays and the decimated
-        [`Log`][spacegrasp_jax.simulate.Log] (``None`` without ``every``).
-    """
-    _, (sample_metrics, rows) = closed_loop(
-        robot,
-        scenario,
-        gains,
-        controller,
-        FoldedMetrics(every),
-        realism=realism,
-        key=key,
-        model_robot=model_robot,
-        servo_input_delay=servo_input_delay,
-    )
-    return sample_metrics, rows
-
-
 #: The stream of a sample's sensor noise: ``fold_in(fold_in(PRNGKey(seed), i), NOISE_STREAM)``
 #: (the perturbation draws use streams 0-2 of the same sample key).
 NOISE_STREAM = 1_000
 
 
 def evaluate_samples(
-    robot: Robot,
-    scenario: Scenario,
+    spec: RunSpec,
     gains: Gains,
     seed,
     indices: jax.Array,
     *,
-    controller,
     ranges: PerturbationRanges,
-    every: int | None = None,
-    realism: Realism | None = None,
     identified: bool = False,
-    servo_input_delay: ServoInputDelay | None = None,
 ):
     """Samples ``indices`` (n,) of the campaign ``seed`` (see
-    [`perturbations`][spacegrasp_jax.perturbations]), each simulated and reduced to its metrics.
+    [`perturbations`][spacegrasp_jax.perturbations]) of the nominal run ``spec``, each
+    simulated and reduced to its metrics.
 
-    The controller believes the nominal ``robot`` (times the realism's factors) while the
-    plant is the sample's perturbed one; with ``identified`` it is told the perturbed robot
-    (a perfectly identified plant). ``realism``: the loop (``None``: ideal); the sample's
-    target estimate error is drawn on top of the realism's own, its sensor noise from
-    ``fold_in(fold_in(PRNGKey(seed), i), NOISE_STREAM)``. ``servo_input_delay``: a delay
-    between the joint sensors and the PID (``spacegrasp_jax.margins``; the flight-like loop).
+    Each sample runs ``spec`` with its perturbed plant and scenario. The controller believes
+    the nominal ``spec.robot`` (times the realism's factors); with ``identified`` it is told
+    the perturbed robot (a perfectly identified plant). ``spec.realism``: the loop
+    (``None``: ideal); the sample's target estimate error is drawn on top of the realism's
+    own, its sensor noise from ``fold_in(fold_in(PRNGKey(seed), i), NOISE_STREAM)``.
+    ``spec.observer`` must be a [`FoldedMetrics`][spacegrasp_jax.montecarlo.FoldedMetrics] (its ``every``: the decimated rows
+    to keep).
 
     Returns:
         ``(perturbations, metrics, rows)``, each with leading axis n: the drawn
         [`Perturbation`][spacegrasp_jax.perturbations.Perturbation], the metrics dict and
         the decimated logs (``None`` without ``every``). A sample that diverges has NaN
         final errors and a finite ``first_nonfinite_s``; the others are unaffected.
+
+    Raises:
+        ValueError: the spec's observer is not a ``FoldedMetrics``.
     """
-    samples = sample_loops(robot, scenario, seed, indices, ranges, realism, identified)
-    if samples.realisms is None:
-        one = lambda r, s: rollout_metrics(r, s, gains, controller, every, servo_input_delay=servo_input_delay)
-        sample_metrics, rows = jax.vmap(one)(samples.robots, samples.scenarios)
-    else:
-        one = lambda r, s, re, key: rollout_metrics(
-            r, s, gains, controller, every, re, key, samples.model_robot, servo_input_delay
+    if not isinstance(spec.observer, FoldedMetrics):
+        raise ValueError(f"evaluate_samples: the spec's observer must be a FoldedMetrics, got {spec.observer!r}")
+    samples = sample_loops(spec.robot, spec.scenario, seed, indices, ranges, spec.realism, identified)
+
+    def one(robot, scenario, realism, key):
+        sample = dataclasses.replace(
+            spec, robot=robot, scenario=scenario, realism=realism, model_robot=samples.model_robot
         )
-        sample_metrics, rows = jax.vmap(one)(samples.robots, samples.scenarios, samples.realisms, samples.keys)
+        return closed_loop(sample, gains, key)[1]
+
+    sample_metrics, rows = jax.vmap(one)(samples.robots, samples.scenarios, samples.realisms, samples.keys)
     return samples.perturbations, sample_metrics, rows
 
 

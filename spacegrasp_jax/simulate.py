@@ -390,6 +390,7 @@ class LoopState:
     rates_in_flight: tuple = ()
 
 
+@jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class ServoInputDelay:
     """A delay of whole servo ticks between the joint sensors and the joint PID: at tick j
@@ -401,7 +402,7 @@ class ServoInputDelay:
             runs the same program).
     """
 
-    capacity: int
+    capacity: int = dataclasses.field(metadata=dict(static=True))
     ticks: jax.Array
 
     def init(self, n_joints: int, dtype) -> tuple:
@@ -415,24 +416,19 @@ class ServoInputDelay:
         return readings[(head - self.ticks) % self.capacity], (readings, (head + 1) % self.capacity)
 
 
-def initial_state(
-    scenario: Scenario,
-    controller="admittance",
-    realism: Realism | None = None,
-    servo_input_delay: ServoInputDelay | None = None,
-) -> LoopState:
-    """The loop's initial carry: the scenario's plant state, the law's initial state
-    (``V_ref(0) = 0`` for the admittance law), the joint servo at rest, the stages' memory
-    empty (zeros)."""
-    realism = ideal() if realism is None else realism
-    dtype = scenario.initial.q.dtype
-    n = scenario.initial.q.shape[-1]
+def initial_state(spec: RunSpec) -> LoopState:
+    """The initial carry of the loop of ``spec`` ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]): the scenario's plant state, the
+    law's initial state (``V_ref(0) = 0`` for the admittance law), the joint servo at rest,
+    the stages' memory empty (zeros)."""
+    realism = ideal() if spec.realism is None else spec.realism
+    initial = spec.scenario.initial
+    dtype, n = initial.q.dtype, initial.q.shape[-1]
     return LoopState(
-        plant=scenario.initial,
-        controller=as_controller(controller).init(n, dtype),
+        plant=initial,
+        controller=spec.controller.init(n, dtype),
         wrench_filter=jnp.zeros(6, dtype) if realism.cutoff_hz > 0.0 else (),
         commands_in_flight=jnp.zeros((realism.delay_periods, n), dtype) if realism.delay_periods else (),
-        rates_in_flight=() if servo_input_delay is None else servo_input_delay.init(n, dtype),
+        rates_in_flight=() if spec.servo_input_delay is None else spec.servo_input_delay.init(n, dtype),
     )
 
 
@@ -462,18 +458,7 @@ class LoopBody:
     steps_per_period: int
 
 
-def loop_body(
-    robot: Robot,
-    scenario: Scenario,
-    gains: Gains,
-    controller,
-    realism: Realism | None = None,
-    key: jax.Array | None = None,
-    *,
-    model_robot: Robot | None = None,
-    servo_input_delay: ServoInputDelay | None = None,
-    checkpoint: bool = False,
-) -> LoopBody:
+def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> LoopBody:
     """The closed loop's body: one control period, from the sensors to the plant's steps.
 
     At the start of control period k (``t_k = k T``, ``T = realism.control_period``, by
@@ -489,21 +474,16 @@ def loop_body(
     step, this is the paper's loop (the modelling notes).
 
     Args:
-        robot, scenario, gains, controller: as [`rollout()`][spacegrasp_jax.simulate.rollout].
-        realism: the realism settings (``None``: [`ideal()`][spacegrasp_jax.realism.ideal], every stage off).
+        spec: the run ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]: the plant, the
+            controller, the realism, the controller's model, a servo input delay and
+            checkpointing; its observer is not the body's concern).
+        gains: the gains (any leaf may carry a vmap batch axis).
         key: a ``jax.random`` key, needed with noisy sensors (``Stage.SENSORS``); same key,
             same rollout.
-        model_robot: the robot the controller's model starts from (default ``robot``); its
-            satellite mass and inertia are scaled by the realism's factors.
-        servo_input_delay: a [`ServoInputDelay`][spacegrasp_jax.simulate.ServoInputDelay] between the joint sensors and the PID
-            (``spacegrasp_jax.margins``); the log's ``qd_measured`` is then the delayed reading.
-        checkpoint: put each control period under ``jax.checkpoint`` for reverse mode. A
-            period of one plant step puts its controller update with RK4's first rate there
-            (RK4's later stages always are, one by one: ``integrator.rk4_step``): the tape
-            keeps, per step, the state and the rates RK4's stages start from. A longer
-            period goes there whole: the tape keeps one state per period.
     """
-    realism = ideal() if realism is None else realism
+    robot, scenario, model_robot = spec.robot, spec.scenario, spec.model_robot
+    servo_input_delay, checkpoint = spec.servo_input_delay, spec.checkpoint
+    realism = ideal() if spec.realism is None else spec.realism
     realism.check_timing(scenario.dt, scenario.n_steps)
     per_period = realism.steps_per_period(scenario.dt)
     per_servo = realism.steps_per_servo(scenario.dt)
@@ -516,7 +496,7 @@ def loop_body(
     noisy = Stage.SENSORS in realism.stages
     if noisy and key is None:
         raise ValueError("key: a realism with noisy sensors needs a jax.random key")
-    control = as_controller(controller).with_actuators(realism.saturation, realism.anti_windup)
+    control = spec.controller.with_actuators(realism.saturation, realism.anti_windup)
     limit = realism.torque_limit_Nm if Stage.ACTUATORS in realism.stages else None
     own_model = bool(realism.stages & (Stage.SENSORS | Stage.MODEL)) or model_robot is not None
     model = stages.believed_robot(robot if model_robot is None else model_robot, realism) if own_model else robot
@@ -664,7 +644,7 @@ def loop_body(
         one_period = period_of_one_step
     else:
         one_period = jax.checkpoint(period_of_steps, prevent_cse=False) if checkpoint else period_of_steps
-    start = initial_state(scenario, control, realism, servo_input_delay)
+    start = initial_state(spec)
     return LoopBody(start=start, period=one_period, periods=periods, steps_per_period=per_period)
 
 
@@ -735,37 +715,73 @@ def _merge_leading_axes(rows: Log) -> Log:
     return jax.tree.map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), rows)
 
 
-def closed_loop(
-    robot: Robot,
-    scenario: Scenario,
-    gains: Gains,
-    controller,
-    observer: Observer,
-    *,
-    realism: Realism | None = None,
-    key: jax.Array | None = None,
-    model_robot: Robot | None = None,
-    servo_input_delay: ServoInputDelay | None = None,
-    checkpoint: bool = False,
-) -> tuple[LoopState, Any]:
-    """The closed loop over ``scenario.duration``, one ``jax.lax.scan`` over control periods
-    ([`loop_body()`][spacegrasp_jax.simulate.loop_body], same arguments), with what ``observer`` keeps of it.
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    """One closed-loop run, all of it but the gains and the noise key: the plant, the
+    controller, the loop's stages and what the loop keeps. [`closed_loop()`][spacegrasp_jax.simulate.closed_loop] runs it,
+    [`experiment.run()`][spacegrasp_jax.experiment.run] on the host.
+
+    A pytree: the robot, the scenario, the realism's numbers, the controller's model and the
+    servo input delay are its arrays (each may carry a vmap batch axis); the controller, the
+    observer, checkpointing and every static setting of its parts (the realism's stages and
+    timing, the scenario's steps) are its structure. Two specs that differ only in numbers
+    run one compiled program, and the host looks programs up by the spec's structure and its
+    arrays' shapes ([`experiment.compiled_loop()`][spacegrasp_jax.experiment.compiled_loop]), never by a key written by hand.
+
+    Attributes:
+        robot: the plant's [`Robot`][spacegrasp_jax.model.Robot].
+        scenario: the [`Scenario`][spacegrasp_jax.scenario.Scenario] (initial state, LAR or target, contact sphere, trajectory,
+            ``dt``, duration).
+        controller: static: a [`Controller`][spacegrasp_jax.control.law.Controller]; a law's name (``"admittance"``, eqs 9-17;
+            ``"cartesian"``, eqs 21-22; any of ``control.CONTROLLERS``: the paper's exact
+            pseudoinverse) or a law object with its settings
+            (``control.Admittance(pinv_damping=0.01)``) is made one
+            ([`as_controller()`][spacegrasp_jax.control.registry.as_controller]).
+        realism: the realism settings ([`loop_body()`][spacegrasp_jax.simulate.loop_body]; ``None``: the paper's loop).
+        model_robot: the robot the controller's model starts from (``None``: ``robot``); its
+            satellite mass and inertia are scaled by the realism's factors.
+        servo_input_delay: a [`ServoInputDelay`][spacegrasp_jax.simulate.ServoInputDelay] between the joint sensors and the PID
+            (``spacegrasp_jax.margins``); the log's ``qd_measured`` is then the delayed
+            reading. ``None``: none.
+        observer: static: what the loop keeps ([`Observer`][spacegrasp_jax.simulate.Observer]; default
+            [`FullLog`][spacegrasp_jax.simulate.FullLog], the whole log).
+        checkpoint: static: put each control period under ``jax.checkpoint`` for reverse
+            mode. A period of one plant step puts its controller update with RK4's first
+            rate there (RK4's later stages always are, one by one: ``integrator.rk4_step``):
+            the tape keeps, per step, the state and the rates RK4's stages start from. A
+            longer period goes there whole: the tape keeps one state per period. A forward
+            run gives the same bits either way.
+    """
+
+    robot: Robot
+    scenario: Scenario
+    controller: Any = dataclasses.field(default="admittance", metadata=dict(static=True))
+    realism: Realism | None = None
+    model_robot: Robot | None = None
+    servo_input_delay: ServoInputDelay | None = None
+    observer: Any = dataclasses.field(default=FullLog(), metadata=dict(static=True))
+    checkpoint: bool = dataclasses.field(default=False, metadata=dict(static=True))
+
+    def __post_init__(self):
+        object.__setattr__(self, "controller", as_controller(self.controller))
+
+
+def closed_loop(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> tuple[LoopState, Any]:
+    """The closed loop of ``spec`` over its scenario's duration, one ``jax.lax.scan`` over
+    control periods ([`loop_body()`][spacegrasp_jax.simulate.loop_body]), with what ``spec.observer`` keeps of it.
+
+    Args:
+        spec: the run ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]).
+        gains: the gains (any leaf may carry a vmap batch axis).
+        key: the ``jax.random`` key of the sensors' noise (needed with noisy sensors).
 
     Returns:
         ``(final, observed)``: the [`LoopState`][spacegrasp_jax.simulate.LoopState] after the
         last step and the observer's result.
     """
-    body = loop_body(
-        robot,
-        scenario,
-        gains,
-        controller,
-        realism,
-        key,
-        model_robot=model_robot,
-        servo_input_delay=servo_input_delay,
-        checkpoint=checkpoint,
-    )
+    robot, scenario, observer = spec.robot, spec.scenario, spec.observer
+    body = loop_body(spec, gains, key)
     block = observer.periods_per_block(body)
     if block < 1 or body.periods % block:
         raise ValueError(f"the observer's block of {block} periods does not divide the {body.periods} control periods")
@@ -789,7 +805,7 @@ def closed_loop(
             return carry, observer.keep(outputs)
 
         (final, memory, _), kept = jax.lax.scan(run_block, carry, None, length=body.periods // block)
-    return final, observer.finish(memory, kept, final, scenario, realism)
+    return final, observer.finish(memory, kept, final, scenario, spec.realism)
 
 
 def rollout(
@@ -802,8 +818,10 @@ def rollout(
     key: jax.Array | None = None,
     model_robot: Robot | None = None,
 ) -> tuple[LoopState, Log]:
-    """Simulate the closed loop over ``scenario.duration`` and keep its whole log
-    ([`closed_loop()`][spacegrasp_jax.simulate.closed_loop] with [`FullLog`][spacegrasp_jax.simulate.FullLog]).
+    """Simulate the closed loop over ``scenario.duration`` and keep its whole log: in one
+    call, [`closed_loop()`][spacegrasp_jax.simulate.closed_loop] of ``RunSpec(robot, scenario, controller, realism=realism,
+    model_robot=model_robot, observer=FullLog(checkpoint_segment), checkpoint=True)``
+    ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]).
 
     Args:
         robot, scenario, gains: pytrees (any leaf may carry a vmap batch axis).
@@ -836,17 +854,16 @@ def rollout(
     n_steps = scenario.n_steps
     if checkpoint_segment is not None and (checkpoint_segment < 1 or n_steps % checkpoint_segment):
         raise ValueError(f"checkpoint_segment: {checkpoint_segment} must be a positive divisor of the {n_steps} steps")
-    return closed_loop(
+    spec = RunSpec(
         robot,
         scenario,
-        gains,
         controller,
-        FullLog(checkpoint_segment),
         realism=realism,
-        key=key,
         model_robot=model_robot,
+        observer=FullLog(checkpoint_segment),
         checkpoint=True,
     )
+    return closed_loop(spec, gains, key)
 
 
 def first_nonfinite_step(log: Log) -> int | None:

@@ -64,7 +64,7 @@ from spacegrasp_jax.margins import LOOPS, MarginSettings, control_period, gain_m
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import LoopState, loop_body, observe, plant_kinematics, rollout
+from spacegrasp_jax.simulate import LoopState, RunSpec, loop_body, observe, plant_kinematics, rollout
 
 
 def _key() -> jax.Array:
@@ -273,7 +273,7 @@ class Linearizer:
         zero = jnp.zeros(n)
 
         def one_period(gains):
-            return loop_body(robot, scenario, gains, controller, realism, _key()).period
+            return loop_body(RunSpec(robot, scenario, controller, realism=realism), gains, _key()).period
 
         def advance(delta, scaled):
             return coordinates.to_local(one_period(scaled)(coordinates.from_local(delta), k)[0])
@@ -477,7 +477,9 @@ class HoldProber:
         window = half // 10
 
         def growth_rate(gains):
-            one_period = loop_body(self.robot, self.scenario, gains, self.controller, realism, _key()).period
+            one_period = loop_body(
+                RunSpec(self.robot, self.scenario, self.controller, realism=realism), gains, _key()
+            ).period
             _, rows = jax.vmap(lambda start: jax.lax.scan(one_period, start, ks))(starts)
             difference = jnp.abs(rows.qd[1] - rows.qd[0])  # (periods, steps a period, 7)
             middle = jnp.max(difference[half - window : half])

@@ -24,7 +24,6 @@ Example (scale Kd and Bd of the paper's admittance by 1/2, 1 and 2, on a 2 s app
 
 from __future__ import annotations
 
-import functools
 import itertools
 import sys
 
@@ -35,8 +34,9 @@ from spacegrasp_jax import batching
 from spacegrasp_jax.control.gains import GAIN_SHAPES, Gains
 from spacegrasp_jax.control.registry import as_controller
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.montecarlo import rollout_metrics
+from spacegrasp_jax.montecarlo import FoldedMetrics
 from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.simulate import RunSpec, closed_loop
 
 
 class SweepError(ValueError):
@@ -107,9 +107,9 @@ def _check_factors(name: str, values: np.ndarray) -> None:
         raise SweepError(f"{name}: scale factors must be finite and positive, got {values.tolist()}")
 
 
-def _metrics_of_gain_sets(robot, scenario, gains, *, controller):
-    """The per-run metrics of each gain set of the batch ``gains`` (vmapped)."""
-    return jax.vmap(lambda g: rollout_metrics(robot, scenario, g, controller)[0])(gains)
+def _metrics_of_gain_sets(spec, gains):
+    """The per-run metrics of ``spec`` with each gain set of the batch ``gains`` (vmapped)."""
+    return jax.vmap(lambda g: closed_loop(spec, g)[1][0])(gains)
 
 
 def evaluate_gains(
@@ -155,12 +155,11 @@ def evaluate_gains(
     n = leaves[0].shape[0]
     if any(leaf.shape[0] != n for leaf in leaves):
         raise SweepError(f"gains: every field needs the same batch size, got {[leaf.shape[0] for leaf in leaves]}")
-    function = functools.partial(_metrics_of_gain_sets, controller=law)
     batch = Gains(**dict(zip(GAIN_SHAPES, leaves)))
     results = batching.map_in_chunks(
         "sweep",
-        function,
-        (robot, scenario),
+        _metrics_of_gain_sets,
+        (RunSpec(robot, scenario, law, observer=FoldedMetrics()),),
         batch,
         chunk=chunk,
         progress=progress,

@@ -57,7 +57,7 @@ from spacegrasp_jax.perturbations import (
     sample_keys,
 )
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import largest_divisor, rollout
+from spacegrasp_jax.simulate import RunSpec, largest_divisor, rollout
 
 #: The measures a search can climb: name -> (unit, meaning).
 MEASURES = {
@@ -538,7 +538,26 @@ def load_perturbation(path) -> tuple[Perturbation, PerturbationRanges, np.ndarra
     return units, ranges, np.asarray(key, dtype=np.uint32), document["identified"]
 
 
+def perturbed_spec(spec: RunSpec, path) -> tuple[RunSpec, jax.Array]:
+    """The nominal run ``spec`` perturbed as the perturbation file ``path`` says, as a campaign
+    runs that sample ([`montecarlo.perturbed_loop()`][spacegrasp_jax.montecarlo.perturbed_loop]: the perturbed plant and scenario,
+    the sample's realism, the robot the controller believes), and the sample's noise key
+    (2,) uint32.
+
+    Raises:
+        WorstCaseError: the file is not a perturbation file (names the field).
+    """
+    units, ranges, noise_key, identified = load_perturbation(path)
+    perturbation = from_units(jax.tree.map(jnp.asarray, units), ranges)
+    plant, perturbed, realism, model_robot = perturbed_loop(
+        spec.robot, spec.scenario, perturbation, ranges, spec.realism, identified
+    )
+    spec = dataclasses.replace(spec, robot=plant, scenario=perturbed, realism=realism, model_robot=model_robot)
+    return spec, jnp.asarray(noise_key, dtype=jnp.uint32)
+
+
 __all__ = [
+    "perturbed_spec",
     "GRADIENT_COST",
     "MEASURES",
     "SearchResult",

@@ -10,6 +10,7 @@ import pytest
 from random_states import RandomState, make_random_states
 
 import spacegrasp_jax as sg
+from spacegrasp_jax.simulate import RunSpec
 
 #: The test run's own persistent compilation cache: a program compiled by one process of the
 #: run (a worker, a command run as a subprocess, a notebook's kernel, which all inherit this
@@ -100,7 +101,8 @@ def full_runs(robot, gains):
 
     scenario = paper_scenario(robot)
     return {
-        controller: experiment.run(robot, scenario, gains, controller) for controller in ("admittance", "cartesian")
+        controller: experiment.run(RunSpec(robot, scenario, controller), gains)
+        for controller in ("admittance", "cartesian")
     }
 
 

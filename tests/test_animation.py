@@ -10,13 +10,14 @@ import pytest
 from PIL import Image
 
 from spacegrasp_jax import animation, cli, experiment
+from spacegrasp_jax.simulate import RunSpec
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
 def run(robot, gains, short_scenario):
-    return experiment.run(robot, short_scenario, gains, "admittance")
+    return experiment.run(RunSpec(robot, short_scenario, "admittance"), gains)
 
 
 @pytest.fixture(scope="module")

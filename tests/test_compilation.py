@@ -301,18 +301,18 @@ from jax.flatten_util import ravel_pytree
 from spacegrasp_jax import experiment
 from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import loop_body, rollout
+from spacegrasp_jax.simulate import RunSpec, loop_body, rollout
 robot, gains = sg.paper_robot(), paper_gains()
 out = {"xla_flags": np.asarray(os.environ.get("XLA_FLAGS", ""))}
 for law in ("admittance", "cartesian"):
-    log = experiment.run(robot, paper_scenario(robot), gains, law).log
+    log = experiment.run(RunSpec(robot, paper_scenario(robot), law), gains).log
     out.update({f"{law}/{name}": np.asarray(v) for name, v in vars(log).items() if v is not None})
 # The 2 s approach stopped at 1.15 s, pressing on the sphere (about 27 N).
 short = paper_scenario(robot, duration=1.15, move_duration=2.0, contact_law="smooth")
 state, log = jax.jit(rollout, static_argnames="controller")(robot, short, gains, "admittance")
 out["step/contact_force_n"] = np.linalg.norm(np.asarray(log.contact_force)[-1])
 def next_state(state, gains):
-    period = loop_body(robot, short, gains, "admittance").period
+    period = loop_body(RunSpec(robot, short, "admittance"), gains).period
     return ravel_pytree(period(state, jax.numpy.asarray(float(short.n_steps)))[0])[0]
 by_state, by_gains = jax.jit(jax.jacrev(next_state, argnums=(0, 1)))(state, gains)
 out["step/by_state"] = ravel_pytree(by_state)[0]

@@ -32,6 +32,7 @@ from spacegrasp_jax.control.admittance import Admittance
 from spacegrasp_jax.dynamics import dynamic_jacobian
 from spacegrasp_jax.realism import Stage, ideal, make_realism
 from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.simulate import RunSpec
 
 GAINS_FILE = Path(__file__).resolve().parents[1] / "configs" / "impedance_gains.json"
 
@@ -145,11 +146,11 @@ def test_the_shipped_gains_capture_within_the_papers_tolerances(robot, gains):
     """The whole 17 s approach and contact: 5 mm and 1 degree at the end, no joint above
     the admittance law's Table 5 peaks by more than half, and the paper's gains, made for
     the pseudoinverse laws, too stiff for this one at 1 kHz (the EE runs off)."""
-    result = experiment.run(robot, paper_scenario(robot), gains, "impedance")
+    result = experiment.run(RunSpec(robot, paper_scenario(robot), "impedance"), gains)
     summary = result.summary
     assert summary["final_position_error_m"] <= 5e-3
     assert summary["final_orientation_error_rad"] <= np.deg2rad(1.0)
     assert 0.0 < summary["first_contact_s"] < 17.0
     assert max(summary["max_abs_torque_Nm"]) <= 1.5 * max(Admittance.paper_max_abs_torque_Nm)
-    too_stiff = experiment.run(robot, paper_scenario(robot), paper_gains(), "impedance").summary
+    too_stiff = experiment.run(RunSpec(robot, paper_scenario(robot), "impedance"), paper_gains()).summary
     assert too_stiff["final_position_error_m"] > 10 * summary["final_position_error_m"]

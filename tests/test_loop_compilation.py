@@ -25,9 +25,9 @@ import jax
 import pytest
 
 from spacegrasp_jax import compilation
-from spacegrasp_jax.montecarlo import rollout_metrics
+from spacegrasp_jax.montecarlo import FoldedMetrics
 from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import rollout
+from spacegrasp_jax.simulate import RunSpec, closed_loop, rollout
 
 SEQUENTIAL_LIMIT_BYTES = 512
 BYTES = {"f64": 8, "s64": 8, "u64": 8, "f32": 4, "s32": 4, "u32": 4, "pred": 1, "s8": 1, "u8": 1}
@@ -105,7 +105,7 @@ def test_the_hlo_reader_finds_an_oversized_array():
 @pytest.fixture(scope="module")
 def compiled_hlo(robot, gains):
     """Optimised HLO text of a program, compiled once for this module's tests: ``"rollout"``
-    and ``"rollout_metrics"`` per controller, and the one-scenario tuning ``"gradient"``."""
+    and ``"folded_metrics"`` (a campaign's loop) per controller, and the one-scenario tuning ``"gradient"``."""
     texts = {}
 
     def get(program: str, controller: str = "admittance") -> str:
@@ -114,7 +114,7 @@ def compiled_hlo(robot, gains):
                 texts[program, controller] = _gradient_hlo(robot, gains)
             else:
                 scenario = paper_scenario(robot, duration=0.1)
-                function = {"rollout": rollout, "rollout_metrics": rollout_metrics}[program]
+                function = {"rollout": rollout, "folded_metrics": _folded_metrics}[program]
                 jitted = compilation.jit(function, static_argnames=("controller",))
                 texts[program, controller] = (
                     jitted.lower(robot, scenario, gains, controller=controller).compile().as_text()
@@ -122,6 +122,11 @@ def compiled_hlo(robot, gains):
         return texts[program, controller]
 
     return get
+
+
+def _folded_metrics(robot, scenario, gains, controller):
+    """A campaign sample's loop: its metrics folded in the scan."""
+    return closed_loop(RunSpec(robot, scenario, controller, observer=FoldedMetrics()), gains)[1]
 
 
 def _gradient_hlo(robot, gains) -> str:
@@ -179,7 +184,7 @@ def test_importing_the_package_makes_xla_compile_small_loops_whole():
 
 
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])
-@pytest.mark.parametrize("program", ["rollout", pytest.param("rollout_metrics", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("program", ["rollout", pytest.param("folded_metrics", marks=pytest.mark.slow)])
 def test_the_step_loop_is_compiled_whole(compiled_hlo, controller, program):
     hlo = compiled_hlo(program, controller)
     bodies = computations(hlo)
@@ -198,7 +203,7 @@ def test_the_gradient_step_loops_are_compiled_whole(compiled_hlo):
 
 
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])
-@pytest.mark.parametrize("program", ["rollout", pytest.param("rollout_metrics", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("program", ["rollout", pytest.param("folded_metrics", marks=pytest.mark.slow)])
 def test_the_step_loop_holds_no_array_over_512_bytes(compiled_hlo, controller, program):
     instructions, too_big = step_loop_oversized(compiled_hlo(program, controller))
     assert instructions > 300  # the whole step: controller, contact, the RK4 stages

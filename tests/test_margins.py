@@ -189,9 +189,8 @@ def test_the_servo_input_delay_hands_the_pid_the_reading_of_d_ticks_before(robot
     earlier (the sensors' noise off), and zero before the first reading."""
     realism, d = stability.quiet(flight()), 7
     delay = simulate.ServoInputDelay(capacity=16, ticks=jnp.int32(d))
-    body = simulate.loop_body(
-        robot, short_scenario, paper_gains(), "admittance", realism, jax.random.PRNGKey(0), servo_input_delay=delay
-    )
+    spec = simulate.RunSpec(robot, short_scenario, "admittance", realism=realism, servo_input_delay=delay)
+    body = simulate.loop_body(spec, paper_gains(), jax.random.PRNGKey(0))
     _, rows = jax.jit(lambda: jax.lax.scan(body.period, body.start, jnp.arange(50.0)))()
     measured = np.asarray(rows.qd_measured).reshape(-1, 7)  # one row a plant step, one tick a step
     true = np.asarray(rows.qd).reshape(-1, 7)

@@ -23,6 +23,7 @@ from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.metrics import METRICS
 from spacegrasp_jax.montecarlo import success
 from spacegrasp_jax.perturbations import PerturbationRanges
+from spacegrasp_jax.simulate import RunSpec
 
 SHORT_SCENARIO_TOML = """
 duration = 2.0
@@ -56,7 +57,7 @@ def five_samples(robot, short_scenario, variant):
 def test_zero_perturbation_reproduces_the_nominal_rollout(robot, short_scenario, gains, variant):
     config = CampaignConfig(n=2, chunk=2, ranges=PerturbationRanges.nominal(), timeseries_every=10)
     result = run_campaign(robot, short_scenario, [variant], config, progress=None)
-    nominal = experiment.run(robot, short_scenario, gains, "admittance")
+    nominal = experiment.run(RunSpec(robot, short_scenario, "admittance"), gains)
     sample_metrics = result.metrics[variant.key]
     for name, expected in nominal.summary.items():
         if name in METRICS:
@@ -104,7 +105,7 @@ def test_running_metrics_match_the_metrics_module_on_a_perturbed_sample(
         ranges=dataclasses.replace(PerturbationRanges(), lar_estimate_position_m=0.0, lar_estimate_angle_rad=0.0),
     )
     sample_robot, sample_scenario = campaign.replay_sample(robot, short_scenario, identified, 3)
-    told = experiment.run(sample_robot, sample_scenario, gains, "admittance")
+    told = experiment.run(RunSpec(sample_robot, sample_scenario, "admittance"), gains)
     np.testing.assert_allclose(
         campaign.replay(robot, short_scenario, variant, identified, 3).log.u, told.log.u, rtol=1e-12, atol=1e-12
     )

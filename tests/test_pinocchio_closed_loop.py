@@ -12,12 +12,13 @@ import pytest
 from spacegrasp_jax import experiment
 from spacegrasp_jax.benchmarks.pinocchio_loop import PinocchioClosedLoop
 from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.simulate import RunSpec
 
 
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])
 def test_pinocchio_closed_loop_ends_where_ours_does(robot, gains, controller):
     scenario = paper_scenario(robot, duration=2.0, move_duration=2.0, end_pose=(0.01, -0.005, 0.015, 0.05, -0.03, 0.02))
-    ours = experiment.run(robot, scenario, gains, controller)
+    ours = experiment.run(RunSpec(robot, scenario, controller), gains)
     # The contact is part of the check: the summary holds NaN for a run that never touched.
     assert 0.0 < ours.summary["first_contact_s"] < 2.0
     pose, peak = PinocchioClosedLoop(robot, scenario, gains, controller).run()

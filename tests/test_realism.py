@@ -17,7 +17,7 @@ from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.integrator import rk4_step
 from spacegrasp_jax.realism import FLIGHT, RealismError, Stage, flight, ideal, load_realism, make_realism
 from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import loop_body, plant_derivative, rollout
+from spacegrasp_jax.simulate import RunSpec, loop_body, plant_derivative, rollout
 
 ROLLOUT = jax.jit(rollout, static_argnames=("controller",))
 
@@ -311,7 +311,7 @@ def test_torque_limits_are_one_a_joint_of_the_arm_they_run_with(robot, short_sce
     with pytest.raises(RealismError, match=r"2 limits for an arm of 7 joints"):
         two.check_joints(7)
     with pytest.raises(RealismError, match=r"2 limits for an arm of 7 joints"):
-        loop_body(robot, short_scenario, paper_gains(), "admittance", two, jax.random.PRNGKey(0))
+        loop_body(RunSpec(robot, short_scenario, "admittance", realism=two), paper_gains(), jax.random.PRNGKey(0))
     flight().check_joints(7)
     with pytest.raises(RealismError, match=r"7 limits for an arm of 6 joints.*flight preset's are the paper's arm's"):
         flight().check_joints(6)

@@ -13,7 +13,7 @@ import pytest
 from spacegrasp_jax import experiment, metrics, plots
 from spacegrasp_jax.control import PID, Admittance, Cartesian, chain, law_named, make_gains
 from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import first_nonfinite_time, initial_state, rollout
+from spacegrasp_jax.simulate import RunSpec, first_nonfinite_time, initial_state, rollout
 
 # Table 5 of the paper, N m.
 PAPER_TABLE5 = {
@@ -53,7 +53,7 @@ def test_without_contact_tracks_and_keeps_zero_momentum(robot, gains, controller
     system's momentum stays zero (no external force) to 1e-9 relative to the momentum
     the satellite's own reaction motion carries."""
     scenario = paper_scenario(robot, contact_stiffness=0.0)
-    result = experiment.run(robot, scenario, gains, controller)
+    result = experiment.run(RunSpec(robot, scenario, controller), gains)
     log = result.log
     assert result.summary["max_contact_force_N"] == 0.0
     assert np.max(metrics.position_error(log)) < 0.01
@@ -67,7 +67,7 @@ def test_without_contact_tracks_and_keeps_zero_momentum(robot, gains, controller
 @pytest.mark.slow
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])
 def test_halving_dt_changes_peak_torques_by_less_than_one_percent(robot, gains, full_runs, controller):
-    fine = experiment.run(robot, paper_scenario(robot, dt=5e-4), gains, controller)
+    fine = experiment.run(RunSpec(robot, paper_scenario(robot, dt=5e-4), controller), gains)
     coarse = np.array(full_runs[controller].summary["max_abs_torque_Nm"])
     change = np.abs(np.array(fine.summary["max_abs_torque_Nm"]) - coarse) / coarse
     assert np.all(change < 0.01), change
@@ -77,7 +77,7 @@ def test_divergence_is_reported_with_its_time(robot, gains):
     wild = make_gains(**{**gains.to_dict(), "kp": [1e7] * 7})
     scenario = paper_scenario(robot, duration=0.5)
     with pytest.raises(experiment.SimulationDiverged, match=r"first non-finite value at t = ") as error:
-        experiment.run(robot, scenario, wild, "cartesian")
+        experiment.run(RunSpec(robot, scenario, "cartesian"), wild)
     assert 0.0 < error.value.time_s < 0.5
 
 
@@ -97,7 +97,7 @@ def test_vmap_over_scenarios_equals_loop(robot, gains):
     batched = jax.jit(jax.vmap(rollout, in_axes=(None, 0, None, None)), static_argnums=3)
     _, logs = batched(robot, batch, gains, "admittance")
     for i, scenario in enumerate(scenarios):
-        single = experiment.run(robot, scenario, gains, "admittance").log
+        single = experiment.run(RunSpec(robot, scenario, "admittance"), gains).log
         for name in ("u", "pose_ee", "contact_force", "momentum"):
             np.testing.assert_allclose(
                 getattr(logs, name)[i], getattr(single, name), rtol=1e-9, atol=1e-12, err_msg=name
@@ -165,7 +165,7 @@ def test_a_law_object_runs_the_loop_its_name_runs(robot, gains, short_scenario, 
             np.testing.assert_array_equal(getattr(by_object, name), value, err_msg=f"{controller}: {name}")
     if law.name == "cartesian":  # memoryless: no reference twist carried, zeros logged
         np.testing.assert_array_equal(by_object.V_ref, 0.0)
-        assert jax.tree.leaves(initial_state(short_scenario, law).controller.law) == []
+        assert jax.tree.leaves(initial_state(RunSpec(robot, short_scenario, law)).controller.law) == []
     else:
         assert np.max(np.abs(by_object.V_ref)) > 1e-3
 
@@ -174,10 +174,11 @@ def test_the_checkpointed_steps_of_rollout_change_nothing_in_a_forward_run(robot
     """``rollout`` always puts each step's parts under ``jax.checkpoint`` (for gradients); a
     forward run gives the log of the same loop run without it, bit for bit, so the
     paper's reproduction does not depend on it."""
-    from spacegrasp_jax.simulate import LOG_BLOCK, FullLog, closed_loop
+    from spacegrasp_jax.simulate import LOG_BLOCK, FullLog, RunSpec, closed_loop
 
     def plain_rollout(robot, scenario, gains):  # the arguments as rollout's: nothing folded in
-        return closed_loop(robot, scenario, gains, "admittance", FullLog(LOG_BLOCK), checkpoint=False)[1]
+        spec = RunSpec(robot, scenario, "admittance", observer=FullLog(LOG_BLOCK), checkpoint=False)
+        return closed_loop(spec, gains)[1]
 
     plain = jax.jit(plain_rollout)(robot, short_scenario, gains)
     checkpointed = jax.jit(rollout, static_argnames="controller")(robot, short_scenario, gains, "admittance")[1]

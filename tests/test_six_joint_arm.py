@@ -18,9 +18,10 @@ from central_differences import check_each_group
 import spacegrasp_jax as sg
 from spacegrasp_jax import cli, experiment
 from spacegrasp_jax.control import load_gains
-from spacegrasp_jax.montecarlo import evaluate_samples, sample_loops
+from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges
 from spacegrasp_jax.scenario import load_scenario
+from spacegrasp_jax.simulate import RunSpec
 from spacegrasp_jax.tuning.objective import Objective, Weights
 from spacegrasp_jax.tuning.parameters import GROUPS, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import (
@@ -69,7 +70,7 @@ def loss_and_gradient(ur5, short):
     gains = load_gains(GAINS, "admittance", n_joints=6)
     scenario = load_scenario(ur5, short)
     config = TuneConfig(batch=1, objective="weighted", method="gradient")
-    peaks = experiment.run(ur5, scenario, gains, "admittance").summary["max_abs_torque_Nm"]
+    peaks = experiment.run(RunSpec(ur5, scenario, "admittance"), gains).summary["max_abs_torque_Nm"]
     objective = Objective(
         weights=Weights(contact_force=0.1),
         torque_scale_Nm=tuple(peaks),
@@ -103,8 +104,8 @@ def test_a_monte_carlo_chunk_of_16_equals_single_rollouts(ur5, short):
     scenario = load_scenario(ur5, short)
     gains = load_gains(GAINS, "admittance", n_joints=6)
     ranges = PerturbationRanges()
-    chunk = jax.jit(functools.partial(evaluate_samples, controller="admittance", ranges=ranges))
-    _, batch, _ = chunk(ur5, scenario, gains, 11, jnp.arange(16))
+    chunk = jax.jit(functools.partial(evaluate_samples, ranges=ranges))
+    _, batch, _ = chunk(RunSpec(ur5, scenario, "admittance", observer=FoldedMetrics()), gains, 11, jnp.arange(16))
     assert batch["max_abs_torque_Nm"].shape == (16, 6)
     assert np.all(np.isfinite(batch["final_position_error_m"]))
     loops = sample_loops(ur5, scenario, 11, jnp.array([3, 12]), ranges)
@@ -113,7 +114,7 @@ def test_a_monte_carlo_chunk_of_16_equals_single_rollouts(ur5, short):
             lambda x: x[k], (loops.robots, loops.scenarios, loops.realisms, loops.keys)
         )
         alone = experiment.run(
-            plant, perturbed, gains, "admittance", realism=realism, key=key, model_robot=loops.model_robot
+            RunSpec(plant, perturbed, "admittance", realism=realism, model_robot=loops.model_robot), gains, key=key
         ).summary
         for name in ("final_position_error_m", "max_abs_torque_Nm", "max_contact_force_N"):
             np.testing.assert_allclose(batch[name][index], alone[name], rtol=1e-9, atol=1e-15, err_msg=name)

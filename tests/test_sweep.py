@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from spacegrasp_jax import experiment, sweep
+from spacegrasp_jax.simulate import RunSpec
 from spacegrasp_jax.sweep import SweepError
 
 
@@ -62,7 +63,7 @@ def test_a_sweep_equals_single_rollouts_of_each_gain_set(robot, short_scenario, 
     assert results["final_position_error_m"].shape == (3,) and results["max_abs_torque_Nm"].shape == (3, 7)
     for n in range(3):
         single = dataclasses.replace(gains, Kd=gains.Kd * scales["Kd"][n], kp=gains.kp * scales["kp"][n])
-        summary = experiment.run(robot, short_scenario, single, "admittance").summary
+        summary = experiment.run(RunSpec(robot, short_scenario, "admittance"), single).summary
         np.testing.assert_allclose(results["max_abs_torque_Nm"][n], summary["max_abs_torque_Nm"], rtol=1e-10)
         np.testing.assert_allclose(results["largest_peak_torque_Nm"][n], max(summary["max_abs_torque_Nm"]), rtol=1e-10)
         for name in (

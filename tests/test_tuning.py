@@ -14,7 +14,7 @@ import pytest
 from central_differences import check_each_group
 
 from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import rollout
+from spacegrasp_jax.simulate import RunSpec, rollout
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts, smooth_max
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import (
@@ -235,7 +235,7 @@ def test_shipped_tuned_gains_capture_with_less_torque_on_the_nominal_scenario(ro
     from spacegrasp_jax.control import tuned_gains
 
     paper = full_runs["admittance"].summary
-    tuned = experiment.run(robot, paper_scenario(robot), tuned_gains(), "admittance").summary
+    tuned = experiment.run(RunSpec(robot, paper_scenario(robot), "admittance"), tuned_gains()).summary
     assert tuned["final_position_error_m"] < 0.005 and tuned["final_orientation_error_rad"] < np.radians(1.0)
     assert tuned["largest_peak_torque_Nm"] < 0.8 * paper["largest_peak_torque_Nm"]
     limits = 0.25 * np.asarray(robot.joint_torque_limit)
@@ -256,7 +256,7 @@ def test_shipped_flight_tuned_gains_capture_closer_than_the_paper_under_flight(r
 
     scenario, key = paper_scenario(robot), jax.random.PRNGKey(0)
     paper, tuned = (
-        experiment.run(robot, scenario, gains, "admittance", realism=flight(), key=key).summary
+        experiment.run(RunSpec(robot, scenario, "admittance", realism=flight()), gains, key=key).summary
         for gains in (paper_gains(), tuned_gains("flight"))
     )
     assert tuned["final_position_error_m"] < 0.8 * paper["final_position_error_m"] < 0.005
@@ -283,7 +283,7 @@ def test_shipped_free_target_gains_capture_the_envelopes_nominal_target_without_
 
     scenario = load_scenario(robot, Path(__file__).resolve().parents[1] / "configs" / "free_target_envelope.toml")
     summary = experiment.run(
-        robot, scenario, tuned_gains("free_target"), "admittance", realism=flight(), key=jax.random.PRNGKey(0)
+        RunSpec(robot, scenario, "admittance", realism=flight()), tuned_gains("free_target"), key=jax.random.PRNGKey(0)
     ).summary
     assert summary["final_position_error_m"] < 0.005 and summary["final_orientation_error_rad"] < np.radians(1.0)
     assert summary["final_target_speed_mps"] < 0.005

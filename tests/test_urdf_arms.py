@@ -20,6 +20,7 @@ import pytest
 from random_states import make_random_states
 
 import spacegrasp_jax as sg
+from spacegrasp_jax.simulate import RunSpec
 from spacegrasp_jax.urdf import robot_from_urdf, robot_to_urdf
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -206,7 +207,7 @@ def test_the_shipped_scenario_and_gains_capture_with_each_arm(name):
     robot = sg.load_robot(CONFIGS / arm.mounting)
     scenario = load_scenario(robot, CONFIGS / f"{name}_scenario.toml")
     gains = load_gains(CONFIGS / f"{name}_gains.json", "admittance", n_joints=arm.joints)
-    summary = experiment.run(robot, scenario, gains, "admittance").summary
+    summary = experiment.run(RunSpec(robot, scenario, "admittance"), gains).summary
     assert summary["final_position_error_m"] <= 0.005
     assert np.degrees(summary["final_orientation_error_rad"]) <= 1.0
     assert summary["max_contact_force_N"] > 0.0  # it did touch the ring

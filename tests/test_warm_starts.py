@@ -143,3 +143,79 @@ def test_a_programs_settings_are_its_key_so_another_setting_is_another_program()
     assert len(listener.labels) == 2, listener.labels
     with pytest.raises(batching.BatchingError, match="not hashable"):
         batching.program_settings(functools.partial(_scaled_sum, scale=np.ones(2)))
+
+
+def test_a_runs_program_is_looked_up_by_its_spec_structure_and_shapes(robot, gains, short_scenario):
+    """``experiment.program_key`` is derived from the spec, never written by hand: numbers
+    (gains, a realism's noise, the scenario's, a servo delay's ticks, the noise key) leave it
+    as it is; every setting that shapes the program (the law's damping, the observer, the
+    checkpointing, a realism stage, the scenario's steps, a believed robot, a delay line's
+    length) makes another."""
+    from spacegrasp_jax.control import Admittance
+    from spacegrasp_jax.experiment import program_key
+    from spacegrasp_jax.montecarlo import FoldedMetrics
+    from spacegrasp_jax.realism import Stage, flight
+    from spacegrasp_jax.simulate import FullLog, RunSpec, ServoInputDelay
+
+    key = jax.random.PRNGKey(0)
+    base = RunSpec(robot, short_scenario, "admittance", realism=flight(), servo_input_delay=ServoInputDelay(4, 1))
+    reference = program_key(base, gains, key)
+    noisier = dataclasses.replace(base.realism, force_noise_std=3.0 * np.asarray(base.realism.force_noise_std))
+    same_program = [
+        (base, dataclasses.replace(gains, Kd=2.0 * gains.Kd), key),
+        (dataclasses.replace(base, realism=noisier), gains, key),
+        (
+            dataclasses.replace(
+                base,
+                scenario=dataclasses.replace(short_scenario, contact_stiffness=2.0 * short_scenario.contact_stiffness),
+            ),
+            gains,
+            key,
+        ),
+        (dataclasses.replace(base, servo_input_delay=ServoInputDelay(4, 3)), gains, key),
+        (base, gains, jax.random.PRNGKey(7)),
+        (
+            RunSpec(robot, short_scenario, Admittance(), realism=flight(), servo_input_delay=ServoInputDelay(4, 2)),
+            gains,
+            key,
+        ),
+    ]
+    for arguments in same_program:
+        assert program_key(*arguments) == reference
+    other_programs = [
+        dataclasses.replace(base, controller=Admittance(pinv_damping=0.01)),
+        dataclasses.replace(base, controller="cartesian"),
+        dataclasses.replace(base, observer=FoldedMetrics()),
+        dataclasses.replace(base, observer=FullLog(4)),
+        dataclasses.replace(base, checkpoint=True),
+        dataclasses.replace(base, realism=dataclasses.replace(base.realism, stages=base.realism.stages & ~Stage.MODEL)),
+        dataclasses.replace(base, scenario=paper_scenario(robot, duration=0.05)),
+        dataclasses.replace(base, model_robot=robot),
+        dataclasses.replace(base, servo_input_delay=ServoInputDelay(8, 1)),
+        dataclasses.replace(base, servo_input_delay=None),
+    ]
+    keys = [program_key(spec, gains, key) for spec in other_programs]
+    assert all(other != reference for other in keys)
+    assert len(set(keys)) == len(keys)
+
+
+@pytest.mark.slow
+def test_runs_that_differ_in_numbers_compile_one_program(robot, gains):
+    """Two ``experiment.run`` calls whose specs differ only in numbers (the realism's noise,
+    the gains, the noise key) compile once, and the second used its numbers."""
+    from spacegrasp_jax import experiment
+    from spacegrasp_jax.realism import flight
+    from spacegrasp_jax.simulate import RunSpec
+
+    scenario = paper_scenario(robot, duration=0.02, move_duration=2.0)
+    quiet = dataclasses.replace(flight(), force_noise_std=0.1 * np.asarray(flight().force_noise_std))
+    heard = _Compiles()
+    with compilation.listening(heard):
+        first = experiment.run(RunSpec(robot, scenario, "admittance", realism=flight()), gains)
+        compiled_for_the_first = len(heard.labels)  # 0 if another test of this process compiled it
+        other_gains = dataclasses.replace(gains, kp=2.0 * np.asarray(gains.kp))
+        second = experiment.run(
+            RunSpec(robot, scenario, "admittance", realism=quiet), other_gains, key=jax.random.PRNGKey(5)
+        )
+        assert len(heard.labels) == compiled_for_the_first
+    assert not np.allclose(first.log.fts_force_measured, second.log.fts_force_measured)

@@ -69,14 +69,17 @@ def gains_of(vector: np.ndarray, params: dict, base: Gains, mask: dict) -> Gains
 
 def _candidate_parts(model_robot, objective: Objective, items, *, controller: str, realism_loop: bool):
     """The objective's parts of each (gains, sample) item (vmapped)."""
-    from spacegrasp_jax.tuning.tune import scenario_parts
+    from spacegrasp_jax.tuning.tune import objective_spec, scenario_parts
 
     if realism_loop:
         gains, robot, scenario, realism, key = items
-        one = lambda g, r, s, re, k: scenario_parts(r, s, g, controller, objective, None, re, k, model_robot)
+        one = lambda g, r, s, re, k: scenario_parts(
+            objective_spec(r, s, controller, realism=re, model_robot=model_robot), g, objective, k
+        )
         return jax.vmap(one)(gains, robot, scenario, realism, key)
     gains, scenario = items
-    return jax.vmap(lambda g, s: scenario_parts(model_robot, s, g, controller, objective))(gains, scenario)
+    one = lambda g, s: scenario_parts(objective_spec(model_robot, s, controller), g, objective)
+    return jax.vmap(one)(gains, scenario)
 
 
 #: The most rollouts one call of the population's program runs (measured on 2 cores: a

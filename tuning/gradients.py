@@ -43,10 +43,10 @@ from spacegrasp_jax.montecarlo import sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges
 from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import rollout
+from spacegrasp_jax.simulate import closed_loop
 from spacegrasp_jax.tuning.objective import Objective, objective_parts
 from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
-from spacegrasp_jax.tuning.tune import checkpoint_segment
+from spacegrasp_jax.tuning.tune import checkpoint_segment, objective_spec
 
 #: Horizons, as fractions of the scenario's duration, at which the gradient is taken.
 HORIZONS = (0.125, 0.25, 0.5, 1.0)
@@ -103,16 +103,8 @@ def _horizon_losses(
     """(H,) the objective of one rollout at the log-gains ``params`` (over ``base``), its log
     cut at each of ``steps`` rows."""
     gains = gains_from_params(params, base, mask)
-    _, log = rollout(
-        robot,
-        scenario,
-        gains,
-        controller,
-        checkpoint_segment=segment,
-        realism=realism,
-        key=key,
-        model_robot=model_robot,
-    )
+    spec = objective_spec(robot, scenario, controller, segment, realism, model_robot)
+    _, log = closed_loop(spec, gains, key)
     return jnp.stack(
         [
             objective_parts(jax.tree.map(lambda x: x[:rows], log), objective, free_target=scenario.free_target)["loss"]

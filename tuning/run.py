@@ -37,6 +37,7 @@ from spacegrasp_jax.montecarlo import SampleLoops, success
 from spacegrasp_jax.perturbations import sample_scenarios
 from spacegrasp_jax.realism import make_realism
 from spacegrasp_jax.scenario import paper_scenario, scenario_from_mapping
+from spacegrasp_jax.simulate import RunSpec
 from spacegrasp_jax.tuning import cmaes
 from spacegrasp_jax.tuning.objective import Objective
 from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
@@ -47,6 +48,7 @@ from spacegrasp_jax.tuning.tune import (
     load_checkpoint,
     make_objective,
     make_optimizer,
+    objective_spec,
     optimise,
     progress_line,
     scenario_parts,
@@ -162,7 +164,9 @@ def new_record(config: TuneConfig, gains_file, scenario_file, robot_file, holdou
 
 def _scenarios_parts(robot, gains, objective: Objective, scenarios, *, controller: str):
     """[`scenario_parts()`][tuning.tune.scenario_parts] of each scenario of a batch (vmapped)."""
-    return jax.vmap(lambda scenario: scenario_parts(robot, scenario, gains, controller, objective))(scenarios)
+    return jax.vmap(lambda scenario: scenario_parts(objective_spec(robot, scenario, controller), gains, objective))(
+        scenarios
+    )
 
 
 def _samples_parts(model_robot, gains, objective: Objective, samples, *, controller: str):
@@ -170,7 +174,8 @@ def _samples_parts(model_robot, gains, objective: Objective, samples, *, control
     batch ``samples = (robots, scenarios, realisms, keys)`` (vmapped)."""
 
     def one(robot, scenario, realism, key):
-        return scenario_parts(robot, scenario, gains, controller, objective, None, realism, key, model_robot)
+        spec = objective_spec(robot, scenario, controller, realism=realism, model_robot=model_robot)
+        return scenario_parts(spec, gains, objective, key)
 
     return jax.vmap(one)(*samples)
 
@@ -437,8 +442,8 @@ def tune(
         flush=True,
     )
     realism = make_realism(config.realism) if config.realism is not None else None
-    flight_settings = dict(realism=realism, key=jax.random.PRNGKey(config.seed)) if realism is not None else {}
-    before = experiment.run(robot, exact, base, config.controller, **flight_settings)
+    key = jax.random.PRNGKey(config.seed) if realism is not None else None
+    before = experiment.run(RunSpec(robot, exact, config.controller, realism=realism), base, key=key)
     with runfiles.StopRequest() if stop is None else contextlib.nullcontext(stop) as stop:
         if config.method == "cmaes":
             objective, tuned, history, events, steps_done, status = _optimise_cmaes(
@@ -459,7 +464,7 @@ def tune(
         return TuneResult(status, history, before.log)
 
     print("evaluating the tuned gains with the exact contact law...", file=progress, flush=True)
-    after = experiment.run(robot, exact, tuned, config.controller, **flight_settings)
+    after = experiment.run(RunSpec(robot, exact, config.controller, realism=realism), tuned, key=key)
     summary = {
         "status": status,
         "controller": config.controller,

@@ -36,7 +36,7 @@ from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
 from spacegrasp_jax.realism import Realism, make_realism
 from spacegrasp_jax.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import largest_divisor, rollout
+from spacegrasp_jax.simulate import FullLog, RunSpec, closed_loop, largest_divisor
 from spacegrasp_jax.tuning import cmaes
 from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights, objective_parts
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
@@ -308,34 +308,36 @@ def training_scenarios(nominal: Scenario, config: TuneConfig) -> Scenario:
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), stacked, perturbed)
 
 
-def scenario_parts(
-    robot: Robot,
-    scenario: Scenario,
-    gains: Gains,
-    controller: str,
-    objective: Objective,
-    segment: int | None = None,
-    realism: Realism | None = None,
-    key: jax.Array | None = None,
-    model_robot: Robot | None = None,
-) -> dict:
-    """Every part of the objective on one scenario ([`objective_parts()`][tuning.objective.objective_parts]),
-    plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m). ``segment``: the
-    rollout's ``checkpoint_segment`` (for reverse-mode gradients). ``realism``, ``key``,
-    ``model_robot``: the flight-like loop ([`rollout()`][spacegrasp_jax.simulate.rollout])."""
-    _, log = rollout(
-        robot,
-        scenario,
-        gains,
-        controller,
-        checkpoint_segment=segment,
-        realism=realism,
-        key=key,
-        model_robot=model_robot,
-    )
-    parts = objective_parts(log, objective, free_target=scenario.free_target)
+def scenario_parts(spec: RunSpec, gains: Gains, objective: Objective, key: jax.Array | None = None) -> dict:
+    """Every part of the objective on the run ``spec`` ([`objective_parts()`][tuning.objective.objective_parts]),
+    plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m). ``spec`` keeps the
+    whole log ([`objective_spec()`][tuning.tune.objective_spec]); ``key``: the sensors' noise key of a
+    flight-like loop."""
+    _, log = closed_loop(spec, gains, key)
+    parts = objective_parts(log, objective, free_target=spec.scenario.free_target)
     parts["largest_peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
     return parts
+
+
+def objective_spec(
+    robot: Robot,
+    scenario: Scenario,
+    controller,
+    segment: int | None = None,
+    realism: Realism | None = None,
+    model_robot: Robot | None = None,
+) -> RunSpec:
+    """The run the objective reads: the whole log, each control period checkpointed for
+    reverse mode ([`rollout()`][spacegrasp_jax.simulate.rollout]'s loop); ``segment``: its ``checkpoint_segment``."""
+    return RunSpec(
+        robot,
+        scenario,
+        controller,
+        realism=realism,
+        model_robot=model_robot,
+        observer=FullLog(segment),
+        checkpoint=True,
+    )
 
 
 def batch_loss(params, values, *, controller: str, cvar_alpha: float | None, segment: int | None):
@@ -348,7 +350,7 @@ def batch_loss(params, values, *, controller: str, cvar_alpha: float | None, seg
     gains = gains_from_params(params, base, mask)
 
     def one(scenario):
-        return scenario_parts(robot, scenario, gains, controller, objective, segment)
+        return scenario_parts(objective_spec(robot, scenario, controller, segment), gains, objective)
 
     count = jax.tree.leaves(scenarios)[0].shape[0]
     if count == 1:  # one scenario: the unbatched program
@@ -505,7 +507,8 @@ def _per_sample_gradients(params, base, mask, model_robot, objective: Objective,
 
         def sample_loss(params):
             gains = gains_from_params(params, base, mask)
-            parts = scenario_parts(r, scenario, gains, controller, objective, 1, realism, key, model_robot)
+            spec = objective_spec(r, scenario, controller, 1, realism, model_robot)
+            parts = scenario_parts(spec, gains, objective, key)
             return parts["loss"], parts
 
         (loss, parts), gradient = jax.value_and_grad(sample_loss, has_aux=True)(params)

@@ -10,7 +10,6 @@ import sys
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jax.experimental import multihost_utils
 
@@ -33,10 +32,8 @@ from spacegrasp_jax.control import (
     paper_gains,
 )
 from spacegrasp_jax.model import n_joints
-from spacegrasp_jax.montecarlo import perturbed_loop
 from spacegrasp_jax.perturbations import (
     PerturbationRanges,
-    from_units,
     load_ranges,
 )
 from spacegrasp_jax.realism import Realism, RealismError, load_realism
@@ -93,19 +90,13 @@ def _realism(args, scenario) -> Realism | None:
     return realism
 
 
-def _perturbed(path: str, robot, scenario, realism):
-    """``--perturbation FILE``: the nominal robot, scenario and realism perturbed as the file
-    says, as a campaign runs a sample (``montecarlo.perturbed_loop()``), and its noise key:
-    ``(robot, scenario, realism, model_robot, key)``."""
+def _perturbed(path: str, spec):
+    """``--perturbation FILE``: the nominal run ``spec`` perturbed as the file says and its
+    noise key ([`worstcase.perturbed_spec()`][spacegrasp_jax.worstcase.perturbed_spec])."""
     try:
-        units, ranges, noise_key, identified = worstcase.load_perturbation(path)
+        return worstcase.perturbed_spec(spec, path)
     except worstcase.WorstCaseError as error:
         raise UsageError(f"--perturbation {error}") from None
-    perturbation = from_units(jax.tree.map(jnp.asarray, units), ranges)
-    plant, perturbed, loop_realism, model_robot = perturbed_loop(
-        robot, scenario, perturbation, ranges, realism, identified
-    )
-    return plant, perturbed, loop_realism, model_robot, jnp.asarray(noise_key, dtype=jnp.uint32)
 
 
 def _ranges(args: argparse.Namespace, default: PerturbationRanges) -> PerturbationRanges:

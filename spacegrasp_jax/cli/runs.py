@@ -4,6 +4,7 @@ table, verdicts, figures and files."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -48,6 +49,7 @@ from spacegrasp_jax.control import (
     CONTROLLERS,
     PAPER_CONTROLLERS,
 )
+from spacegrasp_jax.simulate import RunSpec
 
 
 def _run_controllers(args, controllers) -> int:
@@ -56,9 +58,10 @@ def _run_controllers(args, controllers) -> int:
     realism = _realism(args, scenario)
     _warn(plausibility.input_warnings(scenario))
     key = jax.random.PRNGKey(getattr(args, "seed", 0))
-    model_robot = None
+    nominal = RunSpec(robot, scenario, realism=realism)
     if getattr(args, "perturbation", None):
-        robot, scenario, realism, model_robot, key = _perturbed(args.perturbation, robot, scenario, realism)
+        nominal, key = _perturbed(args.perturbation, nominal)
+    robot, scenario, realism = nominal.robot, nominal.scenario, nominal.realism
     out = Path(args.out)
     _claim(args, out)  # before the first compile, not after the run
     results, diverged = {}, []
@@ -68,13 +71,7 @@ def _run_controllers(args, controllers) -> int:
         )
         try:
             results[controller] = experiment.run(
-                robot,
-                scenario,
-                gains,
-                laws[controller],
-                realism=realism,
-                key=key,
-                model_robot=model_robot,
+                dataclasses.replace(nominal, controller=laws[controller]), gains, key=key
             )
         except experiment.SimulationDiverged as error:  # keep what it has: written below
             results[controller] = error.result

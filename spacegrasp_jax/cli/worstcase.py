@@ -49,6 +49,7 @@ from spacegrasp_jax.perturbations import (
     PerturbationRanges,
     from_units,
 )
+from spacegrasp_jax.simulate import RunSpec
 
 
 def _worstcase(args: argparse.Namespace) -> int:
@@ -106,16 +107,8 @@ def _worstcase(args: argparse.Namespace) -> int:
         robot, scenario, from_units(units, ranges), ranges, realism, config.identified
     )
     say("the worst capture again, with its whole log...")
-    result = experiment.run(
-        plant,
-        perturbed,
-        gains,
-        _law(args.controller, args),
-        realism=loop_realism,
-        key=jnp.asarray(found.key, dtype=jnp.uint32),
-        model_robot=model_robot,
-        check=False,
-    )
+    spec = RunSpec(plant, perturbed, _law(args.controller, args), realism=loop_realism, model_robot=model_robot)
+    result = experiment.run(spec, gains, key=jnp.asarray(found.key, dtype=jnp.uint32), check=False)
     perturbation = jax.tree.map(lambda x: np.asarray(x).tolist(), vars(from_units(units, ranges)))
     replay_command = ["spacegrasp", "simulate", "--controller", args.controller]
     for option, value in (("--gains", args.gains), ("--scenario", args.scenario), ("--robot", args.robot)):
