@@ -120,7 +120,9 @@ def _build(name: str, duration: float):
         objective = Objective(weights=tune.TuneConfig().weights, torque_scale_Nm=(1.0,) * 7, kind="capture")
 
         def envelope():
-            return gradients.envelope_gradients(robot, scenario, gains, "admittance", objective, n=7, chunk=8)[0]
+            return gradients.envelope_gradients(RunSpec(robot, scenario, "admittance"), gains, objective, n=7, chunk=8)[
+                0
+            ]
 
         return envelope, forward
     raise ValueError(f"unknown program {name!r}; expected one of {', '.join(PROGRAMS)}")

@@ -27,6 +27,7 @@ from spacegrasp_jax.campaign import CampaignConfig
 from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.realism import load_realism
 from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.simulate import RunSpec
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -43,7 +44,7 @@ def main(argv: list[str] | None = None) -> dict:
     started = time.perf_counter()
     result = margins.find_margins(robot, scenario, paper_gains(), "admittance", config)
     time_domain_s = time.perf_counter() - started
-    linear = stability.linear_analysis(robot, scenario, paper_gains(), "admittance", config.realism)
+    linear = stability.linear_analysis(RunSpec(robot, scenario, "admittance", realism=config.realism), paper_gains())
     wall = time.perf_counter() - started
     report = {
         "machine": machine(),

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -18,7 +19,7 @@ from spacegrasp_jax import anatomy, compilation, metrics, paper, runfiles
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, ideal
-from spacegrasp_jax.scenario import Scenario, scenario_to_dict
+from spacegrasp_jax.scenario import Scenario, scenario_from_dict, scenario_to_dict
 from spacegrasp_jax.simulate import FullLog, Log, RunSpec, closed_loop, first_nonfinite_step, loop_realism
 
 
@@ -50,7 +51,20 @@ def program_key(spec: RunSpec, gains: Gains, key=None) -> tuple:
     else: the arguments' tree structure, which holds the spec's controller, observer and
     checkpointing and every static setting of its parts (a setting added to any of them is
     in it with nothing else to change), and their leaves' shapes, dtypes and placement
-    ([`argument_signature()`][spacegrasp_jax.compilation.argument_signature]). Hashable; equal for specs and gains that differ only in numbers."""
+    ([`argument_signature()`][spacegrasp_jax.compilation.argument_signature]). Hashable; equal for specs and gains that differ only in numbers.
+
+    Raises:
+        ValueError: the spec's controller or observer is not hashable (they are the
+            program's structure: make them frozen dataclasses).
+    """
+    for name in ("controller", "observer"):
+        try:
+            hash(getattr(spec, name))
+        except TypeError:
+            raise ValueError(
+                f"{name}: {getattr(spec, name)!r} is not hashable; it is part of the program's structure "
+                "(make it a frozen dataclass)"
+            ) from None
     return ("closed_loop", compilation.argument_signature((spec, gains, key)))
 
 
@@ -131,6 +145,36 @@ def read_log(path) -> Log:
         return Log(
             **{field.name: data[field.name] if field.name in data.files else None for field in dataclasses.fields(Log)}
         )
+
+
+class RunFolderError(ValueError):
+    """A run folder whose robot or campaign cannot be read; names the folder and the cause."""
+
+
+def robot_and_scenario_of_run(folder, config: dict) -> tuple[Robot, Scenario]:
+    """The robot and scenario a run folder's ``config.json`` (``config``, read) ran: its
+    robot file (or the paper's robot) and its scenario; for a replay of a campaign sample,
+    the sample's perturbed plant and scenario, from the campaign's folder
+    ([`campaign.replay_sample()`][spacegrasp_jax.campaign.replay_sample]).
+
+    Raises:
+        RunFolderError: the robot file or the campaign cannot be read.
+    """
+    from spacegrasp_jax import campaign
+    from spacegrasp_jax.model import RobotConfigError, load_robot, paper_robot
+
+    if "campaign_record" in config:
+        try:
+            robot, scenario, _, campaign_config = campaign.load_campaign(Path(config["campaign"]))
+        except campaign.CampaignError as error:
+            raise RunFolderError(f"{folder}: a replay of {config['campaign']}, which cannot be read: {error}") from None
+        return campaign.replay_sample(robot, scenario, campaign_config, int(config["sample"]))
+    source = config["robot"]
+    try:
+        robot = paper_robot() if source == "paper_robot()" else load_robot(source)
+    except RobotConfigError as error:
+        raise RunFolderError(f"{folder}: its robot {source}: {error}") from None
+    return robot, scenario_from_dict(config["scenario"])
 
 
 def run_summary(log: Log, robot: Robot, scenario: Scenario, realism: Realism | None = None) -> dict:

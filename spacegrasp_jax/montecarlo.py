@@ -115,10 +115,16 @@ def evaluate_samples(
         final errors and a finite ``first_nonfinite_s``; the others are unaffected.
 
     Raises:
-        ValueError: the spec's observer is not a ``FoldedMetrics``.
+        ValueError: the spec's observer is not a ``FoldedMetrics``, or it has a
+            ``model_robot`` (what each sample's controller believes is decided here).
     """
     if not isinstance(spec.observer, FoldedMetrics):
         raise ValueError(f"evaluate_samples: the spec's observer must be a FoldedMetrics, got {spec.observer!r}")
+    if spec.model_robot is not None:
+        raise ValueError(
+            "evaluate_samples: the samples' controllers believe the nominal spec.robot (or, identified, their own "
+            "plant); a spec's model_robot would be ignored, so it must be None"
+        )
     samples = sample_loops(spec.robot, spec.scenario, seed, indices, ranges, spec.realism, identified)
 
     def one(robot, scenario, realism, key):

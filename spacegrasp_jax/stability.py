@@ -64,7 +64,7 @@ from spacegrasp_jax.margins import LOOPS, MarginSettings, control_period, gain_m
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import LoopState, RunSpec, loop_body, observe, plant_kinematics, rollout
+from spacegrasp_jax.simulate import FullLog, LoopState, RunSpec, closed_loop, loop_body, observe, plant_kinematics
 
 
 def _key() -> jax.Array:
@@ -150,16 +150,25 @@ def small_signal(realism: Realism | None) -> Realism:
     return dataclasses.replace(realism, stages=realism.stages & ~Stage.ACTUATORS)
 
 
-def settled_state(
-    robot: Robot, scenario: Scenario, gains: Gains, controller, realism: Realism | None = None
-) -> tuple[LoopState, int]:
-    """``(state, periods)``: the loop's state after the scenario's ``periods`` control periods
-    (the nominal capture, noise off: [`quiet()`][spacegrasp_jax.stability.quiet])."""
-    if scenario.free_target:
-        raise StabilityError("target: the linear analysis covers the paper's stationary target only")
-    realism = quiet(realism)
-    final, _ = jax.jit(lambda g: rollout(robot, scenario, g, controller, realism=realism, key=_key()))(gains)
+def settled_state(spec: RunSpec, gains: Gains) -> tuple[LoopState, int]:
+    """``(state, periods)``: the state of the loop of ``spec`` after its scenario's
+    ``periods`` control periods (the nominal capture, noise off:
+    [`quiet()`][spacegrasp_jax.stability.quiet])."""
+    _check_spec(spec)
+    scenario, realism = spec.scenario, quiet(spec.realism)
+    spec = dataclasses.replace(spec, realism=realism, observer=FullLog())
+    final, _ = jax.jit(closed_loop)(spec, gains, _key())
     return final, scenario.n_steps // realism.steps_per_period(scenario.dt)
+
+
+def _check_spec(spec: RunSpec) -> None:
+    """Refuse what the linear analysis does not cover, rather than ignore it."""
+    if spec.scenario.free_target:
+        raise StabilityError("target: the linear analysis covers the paper's stationary target only")
+    if spec.model_robot is not None or spec.servo_input_delay is not None:
+        raise StabilityError(
+            "the linear analysis runs the nominal loop: the spec's model_robot and servo_input_delay must be None"
+        )
 
 
 def holding(robot: Robot, scenario: Scenario, state: LoopState) -> Scenario:
@@ -527,20 +536,18 @@ def _finite_or_none(x) -> float | None:
 
 
 def linear_analysis(
-    robot: Robot,
-    scenario: Scenario,
+    spec: RunSpec,
     gains: Gains,
-    controller,
-    realism: Realism | None = None,
     settings: MarginSettings = MarginSettings(),
     growth_limit_per_s: float = 1.0,
 ) -> dict:
     """The loop's modes where the nominal capture settles, and the linear gain margins: the
     factors on each loop's gain (``margins.gain_margin()``'s search, both directions) at
     which a mode of the loop there starts to grow faster than ``growth_limit_per_s`` (1/s).
-    The operating point is the end of the nominal capture, its pose held
-    ([`holding()`][spacegrasp_jax.stability.holding]). ``controller``: a law's name or a law
-    object with its settings (``control.Admittance(pinv_damping=0.01)``).
+    The operating point is the end of the nominal capture of ``spec`` (its robot, scenario,
+    controller and realism; the controller a law's name or a law object with its settings,
+    ``control.Admittance(pinv_damping=0.01)``), its pose held
+    ([`holding()`][spacegrasp_jax.stability.holding]).
 
     Returns:
         A JSON-ready dict: ``operating_point`` (``time_s``, ``residual``,
@@ -553,9 +560,10 @@ def linear_analysis(
     """
     if not (math.isfinite(growth_limit_per_s) and growth_limit_per_s >= 0.0):
         raise StabilityError(f"growth_limit_per_s: must be finite and at least 0, got {growth_limit_per_s!r}")
+    robot, scenario, controller, realism = spec.robot, spec.scenario, spec.controller, spec.realism
     require_joint_servo(controller)
     started = time.perf_counter()
-    point, periods = settled_state(robot, scenario, gains, controller, realism)
+    point, periods = settled_state(spec, gains)
     period_s = control_period(scenario, realism)
     linearizer = Linearizer(robot, holding(robot, scenario, point), controller, realism, point, periods)
     linearisation = linearizer(gains)

@@ -361,7 +361,7 @@ def test_a_command_keeps_its_programs_in_the_compile_cache_and_loads_them_for_ot
         return sorted(path.name for path in cache.iterdir()), result.stderr, summary
 
     first, printed, first_summary = simulate("a", "--scenario", str(first_scenario))
-    assert any(name.startswith("jit_rollout") for name in first)  # the closed loop, compiled once
+    assert any(name.startswith("jit_closed_loop") for name in first)  # the closed loop, compiled once
     assert "compiling the cartesian law's ideal rollout (first time on this machine)...\n" in printed
     second, printed, second_summary = simulate("b", "--scenario", str(second_scenario), "--gains", str(other_gains))
     assert second == first  # other gains and initial angles: the program is loaded, nothing new written

@@ -100,3 +100,26 @@ def test_a_log_is_written_and_read_back_field_for_field(tmp_path):
     np.savez(tmp_path / "older.npz", **older)
     assert read_log(tmp_path / "older.npz").target_position is None
     np.testing.assert_array_equal(read_log(tmp_path / "older.npz").u, log.u)
+
+
+def test_a_run_folders_robot_and_scenario_are_read_back_or_the_cause_is_named(tmp_path):
+    # What `spacegrasp animate` films: the robot and scenario config.json says the run ran.
+    import jax
+    import numpy as np
+
+    import spacegrasp_jax as sg
+    from spacegrasp_jax.experiment import RunFolderError, robot_and_scenario_of_run
+    from spacegrasp_jax.scenario import paper_scenario, scenario_to_dict
+
+    robot = sg.paper_robot()
+    scenario = paper_scenario(robot, duration=0.5, move_duration=0.5, contact_law="smooth")
+    config = {"robot": "paper_robot()", "scenario": scenario_to_dict(scenario)}
+    read_robot, read_scenario = robot_and_scenario_of_run(tmp_path, config)
+    for a, b in zip(jax.tree.leaves((robot, scenario)), jax.tree.leaves((read_robot, read_scenario)), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert (read_scenario.n_steps, read_scenario.contact_law) == (500, "smooth")
+    with pytest.raises(RunFolderError, match=rf"{tmp_path}: its robot {tmp_path}/gone.toml"):
+        robot_and_scenario_of_run(tmp_path, config | {"robot": str(tmp_path / "gone.toml")})
+    replay = config | {"campaign_record": "campaign.json", "campaign": str(tmp_path / "nowhere"), "sample": 3}
+    with pytest.raises(RunFolderError, match=rf"{tmp_path}: a replay of {tmp_path}/nowhere, which cannot be read"):
+        robot_and_scenario_of_run(tmp_path, replay)

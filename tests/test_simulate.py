@@ -3,6 +3,7 @@ convergence, divergence reporting, vmap and gradients."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -217,3 +218,23 @@ def test_a_diverging_run_writes_what_it_has(robot, gains, tmp_path, capsys):
     assert summary["before_divergence"]["max_abs_torque_Nm"] == pytest.approx(np.max(np.abs(log["u"][:-1]), axis=0))
     assert len(list(out.glob("fig*.png"))) == len(plots.FIGURES)
     assert (out / "config.json").exists() and (out / "table5.csv").exists()
+
+
+def test_a_run_spec_refuses_a_setting_that_cannot_be_part_of_a_programs_structure(robot, gains, short_scenario):
+    """The controller and the observer are the spec's structure (static): one that is not
+    hashable is refused when the host looks its program up, naming it, before any compile."""
+    from spacegrasp_jax.simulate import FullLog
+
+    @dataclasses.dataclass
+    class Unhashable:  # a dataclass that is not frozen has no hash
+        block_steps: int | None = None
+
+    with pytest.raises(ValueError, match=r"observer: .* is not hashable"):
+        experiment.compiled_loop(RunSpec(robot, short_scenario, "admittance", observer=Unhashable()), gains)
+    with pytest.raises(ValueError, match=r"controller: expected a name, a control law or a Controller"):
+        RunSpec(robot, short_scenario, 3)
+    spec = RunSpec(robot, short_scenario, "cartesian")
+    assert spec.controller.name == "cartesian" and spec.observer == FullLog() and not spec.checkpoint
+    leaves, structure = jax.tree.flatten(spec)
+    rebuilt = jax.tree.unflatten(structure, leaves)  # a pytree that rebuilds itself
+    assert jax.tree.structure(rebuilt) == structure and rebuilt.controller == spec.controller

@@ -23,6 +23,7 @@ from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.control.pid import PIDState, pid_torque
 from spacegrasp_jax.realism import flight
 from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.simulate import RunSpec
 
 
 def _linearisation(jacobian, sensitivity=None, period_s=1e-3):
@@ -122,7 +123,9 @@ def flight_loop_at_2s(robot, short_scenario):
     """The flight-like loop (F/T low-pass, a period's delay, its own model, servo ticks
     inside the period) linearised at the end of a 2 s capture."""
     realism = flight()
-    point, periods = stability.settled_state(robot, short_scenario, paper_gains(), "admittance", realism)
+    point, periods = stability.settled_state(
+        RunSpec(robot, short_scenario, "admittance", realism=realism), paper_gains()
+    )
     held = stability.holding(robot, short_scenario, point)
     return stability.Linearizer(robot, held, "admittance", realism, point, periods)
 
@@ -159,7 +162,7 @@ def test_the_period_maps_jacobian_and_its_gain_derivatives_match_central_differe
 def paper_capture_loop(robot):
     """The paper's loop at the end of its 17 s capture (admittance law, paper's gains)."""
     scenario, gains = paper_scenario(robot), paper_gains()
-    point, periods = stability.settled_state(robot, scenario, gains, "admittance")
+    point, periods = stability.settled_state(RunSpec(robot, scenario, "admittance"), gains)
     held = stability.holding(robot, scenario, point)
     linearizer = stability.Linearizer(robot, held, "admittance", None, point, periods)
     return robot, held, gains, point, periods, linearizer

@@ -37,13 +37,12 @@ from jax.flatten_util import ravel_pytree
 
 from spacegrasp_jax import batching
 from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.control.registry import as_controller, controller_name
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges
-from spacegrasp_jax.realism import Realism, ideal
+from spacegrasp_jax.realism import ideal
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import closed_loop
+from spacegrasp_jax.simulate import RunSpec, closed_loop
 from spacegrasp_jax.tuning.objective import Objective, objective_parts
 from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import checkpoint_segment, objective_spec
@@ -135,24 +134,27 @@ def _block(*arguments, controller, steps, segment):
 
 
 def envelope_gradients(
-    robot: Robot,
-    scenario: Scenario,
+    spec: RunSpec,
     gains: Gains,
-    controller,
     objective: Objective,
     *,
     n: int,
     seed: int = 0,
     ranges: PerturbationRanges | None = None,
-    realism: Realism | None = None,
     horizons=HORIZONS,
     chunk: int = 8,
     progress=None,
 ) -> tuple[EnvelopeGradients, callable]:
-    """The objective's gradient at ``gains`` on the nominal ``scenario`` and on the campaign
+    """The objective's gradient at ``gains`` on the nominal run ``spec`` and on the campaign
     samples 1..n of ``seed`` (``ranges``: the campaigns' default envelope), at each horizon.
-    The controller believes the nominal ``robot``, as in a campaign; ``controller`` is a
-    law's name or a law object with its settings (``control.Admittance(pinv_damping=0.01)``).
+    ``spec`` gives the robot, the scenario (its smooth contact law: gradients need it), the
+    controller (a law's name or a law object with its settings,
+    ``control.Admittance(pinv_damping=0.01)``) and the realism; the controller believes the
+    nominal robot, as in a campaign, and the loop keeps its whole log, checkpointed.
+
+    Raises:
+        ValueError: ``spec`` has a ``model_robot`` or a servo input delay (this analysis
+            decides the first, as a campaign, and has no place for the second).
 
     Returns:
         ``(gradients, evaluate)``: the [`EnvelopeGradients`][tuning.gradients.EnvelopeGradients], and ``evaluate(params,
@@ -160,8 +162,11 @@ def envelope_gradients(
         (group -> (len(rows), size)), returning ``(losses (len(rows), H), gradients)``
         (for central differences without another compile).
     """
+    if spec.model_robot is not None or spec.servo_input_delay is not None:
+        raise ValueError("envelope_gradients: the spec's model_robot and servo_input_delay must be None")
+    robot, scenario, law, realism = spec.robot, spec.scenario, spec.controller, spec.realism
     ranges = PerturbationRanges() if ranges is None else ranges
-    law, name = as_controller(controller), controller_name(controller)
+    name = law.name
     mask = make_mask(gains, name)
     params = initial_params(gains, name)
     items, model_robot, perturbations = _nominal_first(robot, scenario, seed, n, ranges, realism)

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from spacegrasp_jax import experiment
-from spacegrasp_jax.cli.common import _file_name, _films, _run_robot_and_scenario
+from spacegrasp_jax.cli.common import _file_name, _films
 from spacegrasp_jax.cli.options import UsageError, _add_command, _add_film_options, _add_overwrite_option
 
 
@@ -49,7 +49,10 @@ def _animate(args: argparse.Namespace) -> int:
             raise UsageError(
                 "--out: an MP4 needs imageio-ffmpeg (pip install spacegrasp-jax[video]); a .gif needs nothing more"
             ) from None
-    robot, scenario = _run_robot_and_scenario(folder, config)
+    try:
+        robot, scenario = experiment.robot_and_scenario_of_run(folder, config)
+    except experiment.RunFolderError as error:
+        raise UsageError(str(error)) from None
     logs = {key: experiment.read_log(folder / f"timeseries_{_file_name(key)}.npz") for key in keys}
     written = _films(args, folder, keys, robot, scenario, logs, Path(args.out) if args.out else None)
     print(f"wrote {', '.join(str(path) for path in written)}")

@@ -37,7 +37,7 @@ from spacegrasp_jax.perturbations import (
     load_ranges,
 )
 from spacegrasp_jax.realism import Realism, RealismError, load_realism
-from spacegrasp_jax.scenario import load_scenario, paper_scenario, scenario_from_dict
+from spacegrasp_jax.scenario import load_scenario, paper_scenario
 
 
 def _load_inputs(args):
@@ -320,20 +320,3 @@ def _films(
         runfiles.write_atomically(poster, lambda target: animation.write_poster(scene, target, title))
         written += [out, poster]
     return written
-
-
-def _run_robot_and_scenario(folder: Path, config: dict):
-    """The robot and scenario a run folder's ``config.json`` ran (a replay's: its campaign
-    sample's plant and scenario, from the campaign folder)."""
-    if "campaign_record" in config:
-        try:
-            robot, scenario, _, campaign_config = campaign.load_campaign(Path(config["campaign"]))
-        except campaign.CampaignError as error:
-            raise UsageError(f"{folder}: a replay of {config['campaign']}, which cannot be read: {error}") from None
-        return campaign.replay_sample(robot, scenario, campaign_config, int(config["sample"]))
-    source = config["robot"]
-    try:
-        robot = sg.paper_robot() if source == "paper_robot()" else sg.load_robot(source)
-    except sg.RobotConfigError as error:
-        raise UsageError(f"{folder}: its robot {source}: {error}") from None
-    return robot, scenario_from_dict(config["scenario"])

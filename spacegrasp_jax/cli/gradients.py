@@ -36,6 +36,7 @@ from spacegrasp_jax.model import n_joints
 from spacegrasp_jax.perturbations import (
     PerturbationRanges,
 )
+from spacegrasp_jax.simulate import RunSpec
 from spacegrasp_jax.tuning.gradients import HORIZONS as GRADIENT_HORIZONS
 from spacegrasp_jax.tuning.gradients import central_differences, envelope_gradients, finite_rows
 from spacegrasp_jax.tuning.gradients import report as gradient_report
@@ -74,15 +75,12 @@ def _gradients(args: argparse.Namespace) -> int:
         flush=True,
     )
     result, evaluate = envelope_gradients(
-        robot,
-        smooth,
+        RunSpec(robot, smooth, law, realism=realism),
         gains,
-        law,
         objective,
         n=args.n,
         seed=args.seed,
         ranges=ranges,
-        realism=realism,
         horizons=horizons,
         chunk=batching.chunk_size(args.chunk, args.n + 1),
         progress=sys.stderr,

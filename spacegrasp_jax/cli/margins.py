@@ -41,6 +41,7 @@ from spacegrasp_jax.perturbations import (
     PerturbationError,
     PerturbationRanges,
 )
+from spacegrasp_jax.simulate import RunSpec
 
 
 def _margins(args: argparse.Namespace) -> int:
@@ -95,11 +96,8 @@ def _margins(args: argparse.Namespace) -> int:
             flush=True,
         )
         result["linear"] = stability.linear_analysis(
-            robot,
-            scenario,
+            RunSpec(robot, scenario, _law(args.controller, args), realism=realism),
             gains,
-            _law(args.controller, args),
-            realism,
             settings,
             growth_limit_per_s=args.growth_limit,
         )
