@@ -155,3 +155,33 @@ def test_no_module_tests_the_target_for_none():
             none = any(isinstance(side, ast.Constant) and side.value is None for side in sides)
             named = [side for side in sides if isinstance(side, ast.Attribute) and side.attr in TARGET_FIELDS]
             assert not (none and named), f"{module}, line {node.lineno}: tests {named[0].attr} for None"
+
+
+def test_every_compiled_program_is_looked_up_by_a_key_derived_from_its_arguments():
+    """``compilation.compile_once`` finds a program by its key: each call in the package
+    builds that key in the same function from the arguments themselves
+    (``argument_signature``, which ``experiment.program_key`` and the batched jobs' keys
+    use), never from a tuple of settings written by hand, which a new setting could miss."""
+    calls = 0
+    for module, path in module_files():
+        if module == "spacegrasp_jax.compilation":
+            continue  # where it is defined
+        tree = ast.parse(path.read_text())
+        for function in ast.walk(tree):
+            if not isinstance(function, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            compiles = [
+                node
+                for node in ast.walk(function)
+                if isinstance(node, ast.Call)
+                and isinstance(node.func, (ast.Attribute, ast.Name))
+                and getattr(node.func, "attr", getattr(node.func, "id", None)) == "compile_once"
+            ]
+            if not compiles:
+                continue
+            calls += len(compiles)
+            source = ast.unparse(function)
+            assert "argument_signature(" in source or "program_key(" in source, (
+                f"{module}.{function.name} looks a compiled program up by a key not derived from its arguments"
+            )
+    assert calls >= 3  # the rollouts, the batched jobs, the tuning gradient
