@@ -207,6 +207,18 @@ def perturbed_loop(
     return plant, perturbed, sample_realism, robot if believes_nominal else None
 
 
+def perturbed_run(
+    spec: RunSpec, perturbation: Perturbation, ranges: PerturbationRanges, identified: bool = False
+) -> RunSpec:
+    """The nominal run ``spec`` with one perturbation, as a campaign runs that sample
+    ([`perturbed_loop()`][spacegrasp_jax.montecarlo.perturbed_loop]): its plant, scenario, realism and the robot its controller
+    believes; the rest of ``spec`` (controller, observer, checkpointing) as it is."""
+    plant, perturbed, realism, model_robot = perturbed_loop(
+        spec.robot, spec.scenario, perturbation, ranges, spec.realism, identified
+    )
+    return dataclasses.replace(spec, robot=plant, scenario=perturbed, realism=realism, model_robot=model_robot)
+
+
 def lost(sample_metrics: dict) -> np.ndarray:
     """(n,) bool: the sample ran away (``first_runaway_s``) or diverged
     (``first_nonfinite_s``) (NumPy)."""

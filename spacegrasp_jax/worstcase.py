@@ -46,7 +46,7 @@ from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import law_named
 from spacegrasp_jax.inputs import read_document, short
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.montecarlo import NOISE_STREAM, lost, perturbed_loop
+from spacegrasp_jax.montecarlo import NOISE_STREAM, lost, perturbed_run
 from spacegrasp_jax.perturbations import (
     Perturbation,
     PerturbationError,
@@ -57,7 +57,7 @@ from spacegrasp_jax.perturbations import (
     sample_keys,
 )
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import RunSpec, largest_divisor, rollout
+from spacegrasp_jax.simulate import FullLog, RunSpec, closed_loop, largest_divisor
 
 #: The measures a search can climb: name -> (unit, meaning).
 MEASURES = {
@@ -171,28 +171,28 @@ def _measure_of_log(log, measure: str, criteria: tuple) -> jax.Array:
     return jnp.max(jnp.stack(ratios))
 
 
-def _value_and_gradient(
-    robot, scenario, gains, ranges, realism, block, *, controller, measure, criteria, identified, segment
-):
-    """The measure and its gradient in ``U`` for a block ``(units, keys)`` of points, one
+def gradient_spec(robot: Robot, scenario: Scenario, controller, realism=None) -> RunSpec:
+    """The nominal run whose perturbations the search differentiates: the whole log kept in
+    inner scans of two steps, each control period checkpointed for reverse mode."""
+    return RunSpec(
+        robot,
+        scenario,
+        controller,
+        realism=realism,
+        observer=FullLog(largest_divisor(scenario.n_steps, 2)),
+        checkpoint=True,
+    )
+
+
+def _value_and_gradient(spec, gains, ranges, block, *, measure, criteria, identified):
+    """The measure and its gradient in ``U`` for a block ``(units, keys)`` of points of the
+    nominal run ``spec`` (its whole log kept, checkpointed: [`gradient_spec()`][spacegrasp_jax.worstcase.gradient_spec]), one
     point after another (``lax.map``): the program then holds the gradient of one rollout,
     not of a batch, and compiles sooner than a ``vmap`` (measured: documentation, Changelog)."""
 
     def value(units, key):
-        perturbation = from_units(units, ranges)
-        plant, perturbed, loop_realism, model_robot = perturbed_loop(
-            robot, scenario, perturbation, ranges, realism, identified
-        )
-        _, log = rollout(
-            plant,
-            perturbed,
-            gains,
-            controller,
-            checkpoint_segment=segment,
-            realism=loop_realism,
-            key=key,
-            model_robot=model_robot,
-        )
+        sample = perturbed_run(spec, from_units(units, ranges), ranges, identified)
+        _, log = closed_loop(sample, gains, key)
         return _measure_of_log(log, measure, criteria)
 
     return jax.lax.map(lambda point: jax.value_and_grad(value)(*point), block)
@@ -287,16 +287,14 @@ def search(
     batch = batching.chunk_size(starts, starts)
     pad = lambda x: np.concatenate([x, np.repeat(x[-1:], batch - starts, axis=0)])
 
-    law = law_named(controller, config.pinv_damping)
     function = functools.partial(
         _value_and_gradient,
-        controller=law,
         measure=settings.measure,
         criteria=(config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm),
         identified=config.identified,
-        segment=largest_divisor(scenario.n_steps, 2),
     )
-    replicated = (robot, scenario, gains, config.ranges, config.realism)
+    spec = gradient_spec(robot, scenario, law_named(controller, config.pinv_damping), config.realism)
+    replicated = (spec, gains, config.ranges)
     try:
         executable, gradient_compile_s = batching.compile_chunk(
             f"worst-case gradient, {controller}",
@@ -549,14 +547,11 @@ def perturbed_spec(spec: RunSpec, path) -> tuple[RunSpec, jax.Array]:
     """
     units, ranges, noise_key, identified = load_perturbation(path)
     perturbation = from_units(jax.tree.map(jnp.asarray, units), ranges)
-    plant, perturbed, realism, model_robot = perturbed_loop(
-        spec.robot, spec.scenario, perturbation, ranges, spec.realism, identified
-    )
-    spec = dataclasses.replace(spec, robot=plant, scenario=perturbed, realism=realism, model_robot=model_robot)
-    return spec, jnp.asarray(noise_key, dtype=jnp.uint32)
+    return perturbed_run(spec, perturbation, ranges, identified), jnp.asarray(noise_key, dtype=jnp.uint32)
 
 
 __all__ = [
+    "gradient_spec",
     "perturbed_spec",
     "GRADIENT_COST",
     "MEASURES",

@@ -438,3 +438,27 @@ def test_gain_sets_are_compared_pairwise_against_the_first_of_their_controller(c
     assert rate in printed and "%" in rate and "[" in rate
     assert f"McNemar p = {one['success']['p_value']:.2g}" in printed
     assert "admittance/tuned vs admittance/paper: success" in printed
+
+
+def test_a_perturbed_run_is_the_nominal_run_with_the_samples_plant_loop_and_belief(robot, short_scenario):
+    """``perturbed_run`` changes the plant, the scenario, the realism and what the controller
+    believes, as a campaign's sample, and keeps the rest of the spec (its controller, its
+    observer, its checkpointing): the satellite's mass by the drawn scale, the controller
+    believing the nominal robot, the target estimate error the drawn one."""
+    import jax
+
+    from spacegrasp_jax.montecarlo import FoldedMetrics, perturbed_run
+    from spacegrasp_jax.perturbations import draw
+
+    ranges = PerturbationRanges()
+    perturbation = draw(jax.random.PRNGKey(4), ranges, short_scenario.initial.q.dtype, 7)
+    spec = RunSpec(robot, short_scenario, "cartesian", observer=FoldedMetrics(10), checkpoint=True)
+    sample = perturbed_run(spec, perturbation, ranges)
+    assert (sample.controller, sample.observer, sample.checkpoint) == (spec.controller, spec.observer, True)
+    np.testing.assert_allclose(
+        sample.robot.satellite_mass, robot.satellite_mass * perturbation.satellite_mass_scale, rtol=1e-15
+    )
+    assert sample.model_robot is robot  # the controller believes the nominal satellite
+    np.testing.assert_array_equal(sample.realism.lar_position_error_m, perturbation.dp_lar_estimate)
+    identified = perturbed_run(spec, perturbation, ranges, identified=True)
+    assert identified.model_robot is None  # told the perturbed plant

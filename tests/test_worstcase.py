@@ -190,20 +190,17 @@ def test_the_ascents_gradient_matches_central_differences(robot):
     from spacegrasp_jax.campaign import CampaignConfig
     from spacegrasp_jax.control import law_named, paper_gains
     from spacegrasp_jax.scenario import paper_scenario
-    from spacegrasp_jax.simulate import largest_divisor
 
     scenario = paper_scenario(robot, duration=2.0, move_duration=2.0)
     config, controller = CampaignConfig(n=4), "admittance"
-    law = law_named(controller, config.pinv_damping)
     function = functools.partial(
         worstcase._value_and_gradient,
-        controller=law,
         measure="final_error",
         criteria=(config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm),
         identified=config.identified,
-        segment=largest_divisor(scenario.n_steps, 2),
     )
-    replicated = (robot, scenario, paper_gains(), config.ranges, config.realism)
+    spec = worstcase.gradient_spec(robot, scenario, law_named(controller, config.pinv_damping), config.realism)
+    replicated = (spec, paper_gains(), config.ranges)
     samples = [1, 2, 3, 4]
     units = worstcase.units_of_samples(config.seed, samples)
     keys = worstcase.noise_keys(config.seed, samples)
