@@ -96,41 +96,36 @@ def horizon_steps(n_steps: int, horizons=HORIZONS) -> tuple[int, ...]:
     return tuple(max(1, round(fraction * n_steps)) for fraction in horizons)
 
 
-def _horizon_losses(
-    params, base, mask, objective, model_robot, robot, scenario, realism, key, *, controller, steps, segment
-):
-    """(H,) the objective of one rollout at the log-gains ``params`` (over ``base``), its log
-    cut at each of ``steps`` rows."""
+def _horizon_losses(params, base, mask, objective, spec, key, *, steps):
+    """(H,) the objective of the run ``spec`` at the log-gains ``params`` (over ``base``),
+    its log cut at each of ``steps`` rows."""
     gains = gains_from_params(params, base, mask)
-    spec = objective_spec(robot, scenario, controller, segment, realism, model_robot)
     _, log = closed_loop(spec, gains, key)
     return jnp.stack(
         [
-            objective_parts(jax.tree.map(lambda x: x[:rows], log), objective, free_target=scenario.free_target)["loss"]
+            objective_parts(jax.tree.map(lambda x: x[:rows], log), objective, free_target=spec.scenario.free_target)[
+                "loss"
+            ]
             for rows in steps
         ]
     )
 
 
-def _item_gradients(base, mask, objective, model_robot, item, *, controller, steps, segment):
+def _item_gradients(spec, base, mask, objective, item, *, steps):
     """``(losses (H,), gradients group -> (H, size))`` of one item ``(params, robot, scenario,
-    realism, key)``: the horizon losses (``_horizon_losses()``)
-    and their gradients, one reverse pass per horizon."""
-    params, *loop = item
-    settings = dict(controller=controller, steps=steps, segment=segment)
-    losses, pullback = jax.vjp(
-        lambda p: _horizon_losses(p, base, mask, objective, model_robot, *loop, **settings), params
-    )
+    realism, key)``, the nominal run ``spec`` with the item's plant, scenario and realism:
+    the horizon losses (``_horizon_losses()``) and their gradients, one reverse pass per
+    horizon."""
+    params, robot, scenario, realism, key = item
+    sample = dataclasses.replace(spec, robot=robot, scenario=scenario, realism=realism)
+    losses, pullback = jax.vjp(lambda p: _horizon_losses(p, base, mask, objective, sample, key, steps=steps), params)
     (gradients,) = jax.vmap(pullback)(jnp.eye(len(steps), dtype=losses.dtype))
     return losses, gradients
 
 
-def _block(*arguments, controller, steps, segment):
+def _block(spec, base, mask, objective, batch, *, steps):
     """One device's share of items, one after another (the tape of one at a time)."""
-    base, mask, objective, *believed, batch = arguments
-    model_robot = believed[0] if believed else None
-    settings = dict(controller=controller, steps=steps, segment=segment)
-    return jax.lax.map(lambda one: _item_gradients(base, mask, objective, model_robot, one, **settings), batch)
+    return jax.lax.map(lambda one: _item_gradients(spec, base, mask, objective, one, steps=steps), batch)
 
 
 def envelope_gradients(
@@ -172,8 +167,9 @@ def envelope_gradients(
     items, model_robot, perturbations = _nominal_first(robot, scenario, seed, n, ranges, realism)
     steps = horizon_steps(scenario.n_steps, horizons)
     segment = 1 if items[2] is not None else checkpoint_segment(scenario.n_steps)
-    block = functools.partial(_block, controller=law, steps=steps, segment=segment)
-    replicated = (gains, mask, objective) if model_robot is None else (gains, mask, objective, model_robot)
+    block = functools.partial(_block, steps=steps)
+    nominal = objective_spec(robot, scenario, law, segment, realism, model_robot)
+    replicated = (nominal, gains, mask, objective)
 
     def evaluate(item_params, rows):
         batched = (item_params, *batching.take(items, np.asarray(rows)))
