@@ -462,3 +462,32 @@ def test_a_perturbed_run_is_the_nominal_run_with_the_samples_plant_loop_and_beli
     np.testing.assert_array_equal(sample.realism.lar_position_error_m, perturbation.dp_lar_estimate)
     identified = perturbed_run(spec, perturbation, ranges, identified=True)
     assert identified.model_robot is None  # told the perturbed plant
+
+
+def test_a_spec_holding_what_a_run_would_ignore_is_refused_before_compiling(robot, short_scenario, gains):
+    """Where a run decides a part of the spec itself (what each sample's controller believes,
+    the observer it needs), a spec that sets that part is refused, naming it, rather than
+    overridden in silence; each check comes before anything is traced or compiled."""
+    import jax.numpy as jnp
+
+    from spacegrasp_jax import stability
+    from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples
+    from spacegrasp_jax.simulate import ServoInputDelay
+    from spacegrasp_jax.tuning.gradients import envelope_gradients
+    from spacegrasp_jax.tuning.objective import Objective, Weights
+
+    ranges, indices = PerturbationRanges(), jnp.arange(2)
+    folded = RunSpec(robot, short_scenario, "admittance", observer=FoldedMetrics())
+    believing = RunSpec(robot, short_scenario, "admittance", model_robot=robot, observer=FoldedMetrics())
+    with pytest.raises(ValueError, match="evaluate_samples: .*model_robot would be ignored"):
+        evaluate_samples(believing, gains, 0, indices, ranges=ranges)
+    with pytest.raises(ValueError, match="evaluate_samples: the spec's observer must be a FoldedMetrics"):
+        evaluate_samples(RunSpec(robot, short_scenario, "admittance"), gains, 0, indices, ranges=ranges)
+    with pytest.raises(ValueError, match="run: the spec's observer must keep the whole log"):
+        experiment.run(folded, gains)
+    objective = Objective(Weights(), (1.0,) * 7)
+    with pytest.raises(ValueError, match="envelope_gradients: the spec's model_robot and servo_input_delay"):
+        envelope_gradients(RunSpec(robot, short_scenario, "admittance", model_robot=robot), gains, objective, n=1)
+    delayed = RunSpec(robot, short_scenario, "admittance", servo_input_delay=ServoInputDelay(4, jnp.int32(1)))
+    with pytest.raises(stability.StabilityError, match="model_robot and servo_input_delay must be None"):
+        stability.linear_analysis(delayed, gains)

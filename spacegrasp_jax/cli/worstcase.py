@@ -43,7 +43,7 @@ from spacegrasp_jax.cli.options import (
     _whole,
 )
 from spacegrasp_jax.model import n_joints
-from spacegrasp_jax.montecarlo import perturbed_loop
+from spacegrasp_jax.montecarlo import perturbed_run
 from spacegrasp_jax.perturbations import (
     PerturbationError,
     PerturbationRanges,
@@ -103,11 +103,9 @@ def _worstcase(args: argparse.Namespace) -> int:
         out / "campaign_worst_perturbation.json",
         worstcase.perturbation_document(campaign_units, ranges, campaign_key, config.identified),
     )
-    plant, perturbed, loop_realism, model_robot = perturbed_loop(
-        robot, scenario, from_units(units, ranges), ranges, realism, config.identified
-    )
     say("the worst capture again, with its whole log...")
-    spec = RunSpec(plant, perturbed, _law(args.controller, args), realism=loop_realism, model_robot=model_robot)
+    nominal = RunSpec(robot, scenario, _law(args.controller, args), realism=realism)
+    spec = perturbed_run(nominal, from_units(units, ranges), ranges, config.identified)
     result = experiment.run(spec, gains, key=jnp.asarray(found.key, dtype=jnp.uint32), check=False)
     perturbation = jax.tree.map(lambda x: np.asarray(x).tolist(), vars(from_units(units, ranges)))
     replay_command = ["spacegrasp", "simulate", "--controller", args.controller]
