@@ -265,7 +265,7 @@ def run_config(
     realism: Realism | None = None,
 ) -> dict:
     """What ``config.json`` records: enough to trace every number back to how it was made.
-    The gains are those the controllers use ([`to_dict()`][spacegrasp_jax.control.gains.Gains.to_dict])."""
+    The gains are those the controllers use ([`Gains.to_dict()`][spacegrasp_jax.control.gains.Gains.to_dict])."""
     controllers = list(controllers)
     return {
         "controllers": controllers,

@@ -25,41 +25,16 @@ import math
 import numpy as np
 
 from spacegrasp_jax.control.gains import GAINS_USED, Gains
+from spacegrasp_jax.control.registry import GAIN_GROUPS
 from spacegrasp_jax.realism import Realism
 
 #: The formats [`export_text()`][spacegrasp_jax.export.export_text] writes.
 FORMATS = ("json", "yaml", "c-header", "csv")
 
 
-@dataclasses.dataclass(frozen=True)
-class GroupDescription:
-    """What one gain group is: its unit, its meaning and where the paper uses it."""
-
-    unit: str
-    meaning: str
-    equation: str
-
-
-#: Each gain group's unit, meaning and equation (the paper's numbering).
-GROUPS = {
-    "Md": GroupDescription("kg (x, y, z), kg m^2 (roll, pitch, yaw)", "desired inertia M_d, diagonal", "eqs (9), (14)"),
-    "Bd": GroupDescription(
-        "N s/m (x, y, z), N m s/rad (roll, pitch, yaw)", "desired damping B_d, diagonal", "eqs (9), (14)"
-    ),
-    "Kd": GroupDescription(
-        "N/m (x, y, z), N m/rad (roll, pitch, yaw)", "desired stiffness K_d, diagonal", "eqs (9), (14)"
-    ),
-    "K_lin": GroupDescription("1/s", "Cartesian law's position gain K_lin, diagonal", "eqs (21), (22)"),
-    "K_eul": GroupDescription("1/s", "Cartesian law's Euler-angle gain K_eul, diagonal", "eqs (21), (22)"),
-    "kp": GroupDescription("N m s/rad", "joint PID proportional gain on the joint-rate error, one a joint", "Table 4"),
-    "ki": GroupDescription("N m/rad", "joint PID integral gain, one a joint", "Table 4"),
-    "kd": GroupDescription("N m s^2/rad", "joint PID derivative gain, one a joint", "Table 4"),
-    "pinv_damping": GroupDescription(
-        "as the Dynamic Jacobian's entries",
-        "damping d of the pseudoinverse J^T (J J^T + d^2 1)^-1 (0: the exact pseudoinverse)",
-        "eqs (17), (21)",
-    ),
-}
+#: Each gain group's unit, meaning and equation (the paper's numbering), as its law declares
+#: it ([`GainGroup`][spacegrasp_jax.control.groups.GainGroup]).
+GROUPS = GAIN_GROUPS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -279,7 +254,6 @@ __all__ = [
     "GROUPS",
     "PID_FORM",
     "SETTINGS",
-    "GroupDescription",
     "LoopSettings",
     "export_text",
     "loop_settings",

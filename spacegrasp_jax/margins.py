@@ -175,6 +175,7 @@ class OutputDelay:
     name = property(lambda self: self.law.name)
     title = property(lambda self: self.law.title)
     output = property(lambda self: self.law.output)
+    gains_type = property(lambda self: self.law.gains_type)
     gain_groups = property(lambda self: self.law.gain_groups)
     loop_gain = property(lambda self: self.law.loop_gain)
     style = property(lambda self: self.law.style)

@@ -551,7 +551,7 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
             inputs, reading = sensed_inputs(state, truth, t, noise)
         else:
             inputs, reading = observed.inputs, jnp.concatenate([observed.force_fts, observed.torque_fts])
-        computed, law_state = control.law.update(gains, inputs, state.controller.law, period)
+        computed, law_state = control.command(gains, inputs, state.controller.law, period)
         command, in_flight = stages.delay_line(realism, state.commands_in_flight, computed)
         held = control.logged(command, state.controller.law)
         if logs_readings:

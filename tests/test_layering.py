@@ -1,6 +1,7 @@
 """The package's layers, read from its source: the core imports no host module, nothing
 below the faces imports a face, the plots run nothing of the package, the laws are listed
-once and dispatched on nowhere else, and only the loop dispatches on the realism."""
+once and dispatched on nowhere else, each gain group is declared by its law alone, and only
+the loop dispatches on the realism."""
 
 from __future__ import annotations
 
@@ -99,6 +100,32 @@ def test_the_registry_is_the_only_list_of_laws():
                 continue
             listed = {item.value for item in items if isinstance(item, ast.Constant) and item.value in names}
             assert len(listed) < 2, f"{module}, line {node.lineno}: lists the laws {sorted(listed)}"
+
+
+def test_each_gain_group_is_declared_by_its_law_and_listed_nowhere_else():
+    """A ``GainGroup`` is made only in a law's (or the servo's) module under ``control``, and
+    no module writes two groups' names in one tuple, list, set or dict: the gain set, the
+    files, tuning and export read the groups from the registry's collection."""
+    from spacegrasp_jax.control.registry import GAIN_GROUPS
+
+    for module, path in module_files():
+        if module in INDEPENDENT_REFERENCES:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "GainGroup":
+                assert within(module, {"spacegrasp_jax.control"}), (
+                    f"{module}, line {node.lineno}: declares a gain group"
+                )
+            if within(module, {"spacegrasp_jax.control"}):
+                continue
+            if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+                items = node.elts
+            elif isinstance(node, ast.Dict):
+                items = [key for key in node.keys if key is not None]
+            else:
+                continue
+            listed = {item.value for item in items if isinstance(item, ast.Constant) and item.value in GAIN_GROUPS}
+            assert len(listed) < 2, f"{module}, line {node.lineno}: lists the gain groups {sorted(listed)}"
 
 
 def test_no_module_outside_the_laws_dispatches_on_a_laws_name():

@@ -8,11 +8,14 @@ once in [`registry.LAWS`][spacegrasp_jax.control.registry]:
 to the joint [`PID`][spacegrasp_jax.control.pid.PID];
 [`Impedance`][spacegrasp_jax.control.impedance.Impedance] commands joint torques.
 [`chain()`][spacegrasp_jax.control.law.chain] makes a law and its servo a
-[`Controller`][spacegrasp_jax.control.law.Controller].
+[`Controller`][spacegrasp_jax.control.law.Controller]. Each law and the servo declare their
+own gains (``AdmittanceGains``, ``CartesianGains``, ``ImpedanceGains``, ``PIDGains``: one
+[`group()`][spacegrasp_jax.control.groups.group] field a gain group), and
+[`Gains`][spacegrasp_jax.control.gains.Gains] holds them all in one set.
 """
 
-from spacegrasp_jax.control.admittance import Admittance, AdmittanceState
-from spacegrasp_jax.control.cartesian import Cartesian, CartesianState
+from spacegrasp_jax.control.admittance import Admittance, AdmittanceGains, AdmittanceState
+from spacegrasp_jax.control.cartesian import Cartesian, CartesianGains, CartesianState
 from spacegrasp_jax.control.gains import (
     GAINS_USED,
     Gains,
@@ -24,11 +27,13 @@ from spacegrasp_jax.control.gains import (
     require_joints,
     tuned_gains,
 )
-from spacegrasp_jax.control.impedance import Impedance, ImpedanceState
+from spacegrasp_jax.control.groups import GainGroup, group, view
+from spacegrasp_jax.control.impedance import Impedance, ImpedanceGains, ImpedanceState
 from spacegrasp_jax.control.law import ControlInputs, ControlLaw, Controller, ControllerState, Output, chain
-from spacegrasp_jax.control.pid import PID, PIDState
+from spacegrasp_jax.control.pid import PID, PIDGains, PIDState
 from spacegrasp_jax.control.registry import (
     CONTROLLERS,
+    GAIN_GROUPS,
     LAWS,
     PAPER_CONTROLLERS,
     as_controller,
@@ -37,24 +42,32 @@ from spacegrasp_jax.control.registry import (
 
 __all__ = [
     "CONTROLLERS",
+    "GAIN_GROUPS",
     "GAINS_USED",
     "LAWS",
     "PAPER_CONTROLLERS",
     "PID",
     "Admittance",
+    "AdmittanceGains",
     "AdmittanceState",
     "Cartesian",
+    "CartesianGains",
     "CartesianState",
     "ControlInputs",
     "ControlLaw",
     "Controller",
     "ControllerState",
+    "GainGroup",
     "Impedance",
+    "ImpedanceGains",
     "ImpedanceState",
     "Output",
+    "PIDGains",
     "PIDState",
     "as_controller",
     "chain",
+    "group",
+    "view",
     "law_named",
     "Gains",
     "GainsError",

@@ -9,17 +9,46 @@ and eq 17 maps it to desired joint rates through the pseudoinverse of ``J_dyn^(E
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import spatial
+from spacegrasp_jax.control.groups import GainGroup, group, groups_of
 from spacegrasp_jax.control.law import ControlInputs, Output
-from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
+from spacegrasp_jax.control.pseudoinverse import PINV_DAMPING, pseudoinverse_apply
 
-if TYPE_CHECKING:
-    from spacegrasp_jax.control.gains import Gains
+# Eq 9's diagonal gains; the first three rows act on the position in the LAR frame, the last
+# three on the ZYX Euler angles [roll, pitch, yaw]. Section 4 gives each the same value on
+# all six axes.
+DESIRED_INERTIA = GainGroup(
+    6, "kg (x, y, z), kg m^2 (roll, pitch, yaw)", "desired inertia M_d, diagonal", "eqs (9), (14)", default=800.0
+)
+DESIRED_DAMPING = GainGroup(
+    6, "N s/m (x, y, z), N m s/rad (roll, pitch, yaw)", "desired damping B_d, diagonal", "eqs (9), (14)", default=500.0
+)
+DESIRED_STIFFNESS = GainGroup(
+    6, "N/m (x, y, z), N m/rad (roll, pitch, yaw)", "desired stiffness K_d, diagonal", "eqs (9), (14)", default=600.0
+)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class AdmittanceGains:
+    """The admittance law's gains (diagonals; defaults: section 4's).
+
+    Attributes:
+        Md: (6,) kg, kg m^2, the desired inertia (800).
+        Bd: (6,) N s/m, N m s/rad, the desired damping (500).
+        Kd: (6,) N/m, N m/rad, the desired stiffness (600).
+        pinv_damping: (1,) the pseudoinverse's damping (0: exact, eq 17).
+    """
+
+    Md: jax.Array = group(DESIRED_INERTIA)
+    Bd: jax.Array = group(DESIRED_DAMPING)
+    Kd: jax.Array = group(DESIRED_STIFFNESS)
+    pinv_damping: jax.Array = group(PINV_DAMPING)
 
 
 def pose_error(pose_des: jax.Array, pose: jax.Array) -> jax.Array:
@@ -28,7 +57,9 @@ def pose_error(pose_des: jax.Array, pose: jax.Array) -> jax.Array:
     return jnp.concatenate([position, jnp.arctan2(jnp.sin(angles), jnp.cos(angles))])
 
 
-def reference_twist_rate(gains: Gains, pose, twist, pose_des, twist_des, twist_rate_des, wrench_lar) -> jax.Array:
+def reference_twist_rate(
+    gains: AdmittanceGains, pose, twist, pose_des, twist_des, twist_rate_des, wrench_lar
+) -> jax.Array:
     """Eq 14: the reference twist rate ``dV_ref/dt`` (6,) in the LAR frame.
 
     Args:
@@ -80,7 +111,8 @@ class Admittance:
     name: ClassVar[str] = "admittance"
     title: ClassVar[str] = "admittance control"
     output: ClassVar[Output] = Output.JOINT_RATES
-    gain_groups: ClassVar[tuple[str, ...]] = ("Md", "Bd", "Kd", "pinv_damping")
+    gains_type: ClassVar[type] = AdmittanceGains
+    gain_groups: ClassVar[tuple[str, ...]] = tuple(groups_of(AdmittanceGains))
     # A larger Md, Bd or Kd makes the EE follow the wrench and the error more slowly.
     loop_gain: ClassVar[dict[str, int]] = {"Md": -1, "Bd": -1, "Kd": -1}
     style: ClassVar[dict[str, str]] = dict(color="tab:blue", linestyle="--", label="admittance control")
@@ -91,7 +123,7 @@ class Admittance:
         return AdmittanceState(V_ref=jnp.zeros(6, dtype=dtype))
 
     def update(
-        self, gains: Gains, inputs: ControlInputs, state: AdmittanceState, dt
+        self, gains: AdmittanceGains, inputs: ControlInputs, state: AdmittanceState, dt
     ) -> tuple[jax.Array, AdmittanceState]:
         """``(qd_des (N,) rad/s, next state)``: the command from ``V_ref(k)`` (eqs 16-17), then
         eq 15 by forward Euler over the control period ``dt`` (s)."""

@@ -4,22 +4,40 @@ mapped to joint rates through the pseudoinverse of ``J_dyn^(EE)``."""
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import spatial
 from spacegrasp_jax.control.admittance import pose_error
+from spacegrasp_jax.control.groups import GainGroup, group, groups_of
 from spacegrasp_jax.control.law import ControlInputs, Output
-from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
+from spacegrasp_jax.control.pseudoinverse import PINV_DAMPING, pseudoinverse_apply
 
-if TYPE_CHECKING:
-    from spacegrasp_jax.control.gains import Gains
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class CartesianGains:
+    """The Cartesian law's gains (diagonals; defaults: section 4's).
+
+    Attributes:
+        K_lin: (3,) 1/s, the position gain (3).
+        K_eul: (3,) 1/s, the Euler-angle gain (3).
+        pinv_damping: (1,) the pseudoinverse's damping (0: exact, eq 21).
+    """
+
+    K_lin: jax.Array = group(
+        GainGroup(3, "1/s", "Cartesian law's position gain K_lin, diagonal", "eqs (21), (22)", default=3.0)
+    )
+    K_eul: jax.Array = group(
+        GainGroup(3, "1/s", "Cartesian law's Euler-angle gain K_eul, diagonal", "eqs (21), (22)", default=3.0)
+    )
+    pinv_damping: jax.Array = group(PINV_DAMPING)
 
 
 def desired_joint_rates(
-    gains: Gains, J_dyn_ee: jax.Array, R_lar_ee: jax.Array, pose, pose_des, frame_twist, damping=0.0
+    gains: CartesianGains, J_dyn_ee: jax.Array, R_lar_ee: jax.Array, pose, pose_des, frame_twist, damping=0.0
 ) -> jax.Array:
     """Eqs 21-22: ``qd_des`` (N,) rad/s.
 
@@ -63,7 +81,8 @@ class Cartesian:
     name: ClassVar[str] = "cartesian"
     title: ClassVar[str] = "Cartesian control"
     output: ClassVar[Output] = Output.JOINT_RATES
-    gain_groups: ClassVar[tuple[str, ...]] = ("K_lin", "K_eul", "pinv_damping")
+    gains_type: ClassVar[type] = CartesianGains
+    gain_groups: ClassVar[tuple[str, ...]] = tuple(groups_of(CartesianGains))
     loop_gain: ClassVar[dict[str, int]] = {"K_lin": 1, "K_eul": 1}
     style: ClassVar[dict[str, str]] = dict(color="tab:red", linestyle=":", label="Cartesian control")
     #: Table 5 (section 5), joints 1-7.
@@ -73,7 +92,7 @@ class Cartesian:
         return CartesianState()
 
     def update(
-        self, gains: Gains, inputs: ControlInputs, state: CartesianState, dt
+        self, gains: CartesianGains, inputs: ControlInputs, state: CartesianState, dt
     ) -> tuple[jax.Array, CartesianState]:
         """``(qd_des (N,) rad/s, state)`` from the pose error (``dt`` unused)."""
         qd_des = desired_joint_rates(

@@ -1,18 +1,24 @@
-"""All controller gains in one differentiable pytree, with the paper's values.
+"""The gain set: every law's and the joint servo's gain groups in one differentiable
+pytree, with the paper's values.
 
-Every gain matrix of the paper is diagonal, so each is held as its diagonal:
+Each law declares its own gains in its module (a dataclass of
+[`GainGroup`][spacegrasp_jax.control.groups.GainGroup] fields, the law's ``gains_type``) and
+reads only those; the registry collects them (``registry.GAIN_GROUPS``) and
+[`Gains`][spacegrasp_jax.control.gains.Gains] is made from that collection, so one set runs
+any law, a file or a tuning run names groups by the same names, and a new law's groups
+join the set with its registry entry. Every group is a diagonal held as a 1-D array:
 
-| field | shape | unit | paper |
-| --- | --- | --- | --- |
-| ``Md`` | (6,) | kg, kg m^2 | 800 (desired inertia, eq 9) |
-| ``Bd`` | (6,) | N s/m, N m s/rad | 500 (desired damping) |
-| ``Kd`` | (6,) | N/m, N m/rad | 600 (desired stiffness) |
-| ``K_lin`` | (3,) | 1/s | 3 (Cartesian law, eq 22) |
-| ``K_eul`` | (3,) | 1/s | 3 |
-| ``kp`` | (N,) | N m s/rad | Table 4 (joint PID on the rate error) |
-| ``ki`` | (N,) | N m/rad | Table 4 |
-| ``kd`` | (N,) | N m s^2/rad | Table 4 |
-| ``pinv_damping`` | (1,) | as ``J_dyn``'s entries | 0 (the exact pseudoinverse of eqs 17, 21) |
+| field | shape | unit | paper | law |
+| --- | --- | --- | --- | --- |
+| ``Md`` | (6,) | kg, kg m^2 | 800 (desired inertia, eq 9) | admittance |
+| ``Bd`` | (6,) | N s/m, N m s/rad | 500 (desired damping) | admittance, impedance |
+| ``Kd`` | (6,) | N/m, N m/rad | 600 (desired stiffness) | admittance, impedance |
+| ``pinv_damping`` | (1,) | as ``J_dyn``'s entries | 0 (the exact pseudoinverse of eqs 17, 21) | admittance, Cartesian |
+| ``K_lin`` | (3,) | 1/s | 3 (eq 22) | Cartesian |
+| ``K_eul`` | (3,) | 1/s | 3 | Cartesian |
+| ``kp`` | (N,) | N m s/rad | Table 4 (joint PID on the rate error) | joint servo |
+| ``ki`` | (N,) | N m/rad | Table 4 | joint servo |
+| ``kd`` | (N,) | N m s^2/rad | Table 4 | joint servo |
 
 ``pinv_damping`` is the damping a mission sets at design time to keep the law's
 pseudoinverse bounded near Dynamic-Jacobian singularities (``J^T (J J^T + damping^2 1)^-1``);
@@ -34,22 +40,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax.compilation import require_float64
-from spacegrasp_jax.control.registry import CONTROLLERS, gains_used
+from spacegrasp_jax.control.groups import PER_JOINT, fields_of_groups
+from spacegrasp_jax.control.registry import CONTROLLERS, GAIN_GROUPS, gains_used
 from spacegrasp_jax.inputs import numbers, read_document
 
 #: Each group's length; ``"N"``: the arm's number of joints.
-GAIN_SHAPES = {"Md": 6, "Bd": 6, "Kd": 6, "K_lin": 3, "K_eul": 3, "kp": "N", "ki": "N", "kd": "N", "pinv_damping": 1}
+GAIN_SHAPES = {name: declaration.length for name, declaration in GAIN_GROUPS.items()}
 #: The groups with one gain per joint.
-JOINT_GROUPS = ("kp", "ki", "kd")
+JOINT_GROUPS = tuple(name for name, length in GAIN_SHAPES.items() if length == PER_JOINT)
 #: The number of joints of the paper's arm, which Table 4's PID gains are for.
 PAPER_JOINTS = 7
 
 #: The gain groups each controller uses (its law's with the joint servo's; the registry's).
 GAINS_USED = {name: gains_used(name) for name in CONTROLLERS}
-#: Groups a description may leave out, and the value they then take.
-_OPTIONAL = {"pinv_damping": 0.0}
-# Gains that must be strictly positive (the rest may be zero, e.g. no integral action).
-_STRICTLY_POSITIVE = {"Md", "Bd", "Kd", "K_lin", "K_eul", "kp"}
 
 
 class GainsError(ValueError):
@@ -58,20 +61,16 @@ class GainsError(ValueError):
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class Gains:
-    """Diagonal gains of the admittance law (``Md``, ``Bd``, ``Kd``), the Cartesian law
-    (``K_lin``, ``K_eul``), the joint PID loops (``kp``, ``ki``, ``kd``) and the
-    pseudoinverse's damping (``pinv_damping``); see the module docstring for shapes and units."""
+class Gains(fields_of_groups(GAIN_GROUPS)):
+    """The gain set: one array per group of ``registry.GAIN_GROUPS``, in its order ``Md``,
+    ``Bd``, ``Kd``, ``pinv_damping``, ``K_lin``, ``K_eul``, ``kp``, ``ki``, ``kd`` (the
+    module docstring gives shapes, units and the paper's values).
 
-    Md: jax.Array
-    Bd: jax.Array
-    Kd: jax.Array
-    K_lin: jax.Array
-    K_eul: jax.Array
-    kp: jax.Array
-    ki: jax.Array
-    kd: jax.Array
-    pinv_damping: jax.Array
+    Its fields are made from the registry, so a new law's groups join it with the law.
+    Build one with [`make_gains()`][spacegrasp_jax.control.gains.make_gains] or
+    [`paper_gains()`][spacegrasp_jax.control.gains.paper_gains] and change one with
+    ``dataclasses.replace``. A law reads its own view of it (its ``gains_type``,
+    [`view()`][spacegrasp_jax.control.groups.view])."""
 
     def to_dict(self, controller: str | None = None) -> dict[str, list[float]]:
         """Plain lists, for JSON: the groups ``controller`` uses (``GAINS_USED``), or
@@ -94,22 +93,24 @@ def make_gains(*, n_joints: int = PAPER_JOINTS, **fields) -> Gains:
     unknown = sorted(set(fields) - set(GAIN_SHAPES))
     if unknown:
         raise GainsError(f"unknown gain(s): {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")
-    fields = _OPTIONAL | fields
+    optional = {name: declaration.default for name, declaration in GAIN_GROUPS.items() if declaration.optional}
+    fields = optional | fields
     missing = [name for name in GAIN_SHAPES if name not in fields]
     if missing:
         raise GainsError(f"missing gain(s): {', '.join(missing)}")
     arrays = {}
     for name, length in GAIN_SHAPES.items():
         value = numbers(fields[name], name, GainsError)
-        per_joint = length == "N"
+        per_joint = length == PER_JOINT
         length = n_joints if per_joint else length
         if value.ndim == 0:
             value = np.full(length, float(value))
         if value.shape != (length,):
             joints = f" (one a joint of this {n_joints}-joint arm)" if per_joint else ""
             raise GainsError(f"{name}: expected {length} values{joints}, got shape {value.shape}")
-        if np.any(value < 0.0) or (name in _STRICTLY_POSITIVE and np.any(value == 0.0)):
-            bound = "positive" if name in _STRICTLY_POSITIVE else "non-negative"
+        positive = GAIN_GROUPS[name].positive
+        if np.any(value < 0.0) or (positive and np.any(value == 0.0)):
+            bound = "positive" if positive else "non-negative"
             raise GainsError(f"{name}: gains must be {bound}, got {value.tolist()}")
         arrays[name] = jnp.asarray(value)
     return Gains(**arrays)
@@ -117,17 +118,8 @@ def make_gains(*, n_joints: int = PAPER_JOINTS, **fields) -> Gains:
 
 def paper_gains() -> Gains:
     """Section 4: Kd = 600, Bd = 500, Md = 800 (all six axes), K_lin = K_eul = 3, and the
-    joint PID gains of Table 4."""
-    return make_gains(
-        Md=800.0,
-        Bd=500.0,
-        Kd=600.0,
-        K_lin=3.0,
-        K_eul=3.0,
-        kp=[140.0, 210.0, 140.0, 105.0, 105.0, 21.0, 21.0],
-        ki=[10.0, 10.0, 10.0, 1.0, 1.0, 1.0, 1.0],
-        kd=[0.01] * 7,
-    )
+    joint PID gains of Table 4: every group's declared default."""
+    return make_gains(**{name: declaration.default for name, declaration in GAIN_GROUPS.items()})
 
 
 #: The loops the shipped tuned gains were tuned in -> their data file.

@@ -19,20 +19,33 @@ velocity, as eq 14 does (modelling notes).
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax import spatial
-from spacegrasp_jax.control.admittance import pose_error
+from spacegrasp_jax.control.admittance import DESIRED_DAMPING, DESIRED_STIFFNESS, pose_error
+from spacegrasp_jax.control.groups import group, groups_of
 from spacegrasp_jax.control.law import ControlInputs, Output
 
-if TYPE_CHECKING:
-    from spacegrasp_jax.control.gains import Gains
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ImpedanceGains:
+    """The impedance law's gains: the admittance law's desired damping and stiffness groups
+    (diagonals; the paper's values are for the admittance law, not this one).
+
+    Attributes:
+        Bd: (6,) N s/m, N m s/rad, the virtual damper.
+        Kd: (6,) N/m, N m/rad, the virtual spring.
+    """
+
+    Bd: jax.Array = group(DESIRED_DAMPING)
+    Kd: jax.Array = group(DESIRED_STIFFNESS)
 
 
-def virtual_wrench(gains: Gains, pose, twist, pose_des, twist_des) -> jax.Array:
+def virtual_wrench(gains: ImpedanceGains, pose, twist, pose_des, twist_des) -> jax.Array:
     """``F_cmd = Kd e + Bd (twist_des - twist)`` (6,) ``[f (N); n (N m)]``, LAR axes.
 
     Args:
@@ -66,7 +79,8 @@ class Impedance:
     name: ClassVar[str] = "impedance"
     title: ClassVar[str] = "impedance control"
     output: ClassVar[Output] = Output.JOINT_TORQUES
-    gain_groups: ClassVar[tuple[str, ...]] = ("Bd", "Kd")
+    gains_type: ClassVar[type] = ImpedanceGains
+    gain_groups: ClassVar[tuple[str, ...]] = tuple(groups_of(ImpedanceGains))
     loop_gain: ClassVar[dict[str, int]] = {"Bd": 1, "Kd": 1}
     style: ClassVar[dict[str, str]] = dict(color="tab:purple", linestyle="-.", label="impedance control")
     paper_max_abs_torque_Nm: ClassVar[None] = None
@@ -75,7 +89,7 @@ class Impedance:
         return ImpedanceState()
 
     def update(
-        self, gains: Gains, inputs: ControlInputs, state: ImpedanceState, dt
+        self, gains: ImpedanceGains, inputs: ControlInputs, state: ImpedanceState, dt
     ) -> tuple[jax.Array, ImpedanceState]:
         """``(u (N,) N m, state)`` from the pose and twist errors (``dt`` unused)."""
         wrench = virtual_wrench(gains, inputs.pose, inputs.twist, inputs.pose_des, inputs.twist_des)

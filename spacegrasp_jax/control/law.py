@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 import jax
 import jax.numpy as jnp
 
+from spacegrasp_jax.control.groups import view
 from spacegrasp_jax.control.pid import PID, PIDState, saturate
 
 if TYPE_CHECKING:
@@ -80,9 +81,13 @@ class ControlLaw(Protocol):
         name: the law's name on the command line, in files, tables and figures.
         title: how figures and tables name it (``"admittance control"``).
         output: what ``update`` commands ([`Output`][spacegrasp_jax.control.law.Output]).
-        gain_groups: the [`Gains`][spacegrasp_jax.control.gains.Gains] groups the law reads
-            (a joint servo's are added by the [`Controller`][spacegrasp_jax.control.law.Controller]);
-            ``spacegrasp tune`` tunes these.
+        gains_type: the law's own gains, a dataclass pytree of
+            [`group()`][spacegrasp_jax.control.groups.group] fields declaring each gain
+            group (length, unit, default, sign); ``update`` gets one.
+        gain_groups: its field names, the [`Gains`][spacegrasp_jax.control.gains.Gains]
+            groups the law reads (a joint servo's are added by the
+            [`Controller`][spacegrasp_jax.control.law.Controller]); ``spacegrasp tune``
+            tunes these.
         loop_gain: ``{group: +1 or -1}``, how the law's loop gain scales with each group
             (``+1``: with it, ``-1``: against it); the stability margins scale the loop by
             a factor this way.
@@ -94,6 +99,7 @@ class ControlLaw(Protocol):
     name: ClassVar[str]
     title: ClassVar[str]
     output: ClassVar[Output]
+    gains_type: ClassVar[type]
     gain_groups: ClassVar[tuple[str, ...]]
     loop_gain: ClassVar[dict[str, int]]
     style: ClassVar[dict[str, str]]
@@ -102,8 +108,9 @@ class ControlLaw(Protocol):
     def init(self, n_joints: int, dtype=jnp.float64) -> Any:
         """The law's state before its first update, for an arm of ``n_joints`` joints."""
 
-    def update(self, gains: Gains, inputs: ControlInputs, state: Any, dt) -> tuple[jax.Array, Any]:
-        """``(command (N,), next state)`` from ``inputs`` over the control period ``dt`` (s)."""
+    def update(self, gains: Any, inputs: ControlInputs, state: Any, dt) -> tuple[jax.Array, Any]:
+        """``(command (N,), next state)`` from the law's ``gains`` (a ``gains_type``) and
+        ``inputs`` over the control period ``dt`` (s)."""
 
     def log_fields(self, state: Any) -> dict[str, jax.Array]:
         """The [`Log`][spacegrasp_jax.simulate.Log] fields the law fills from the state its
@@ -166,14 +173,20 @@ class Controller:
         servo = () if self.servo is None else self.servo.init(n_joints, dtype)
         return ControllerState(law=self.law.init(n_joints, dtype), pid=servo)
 
+    def command(self, gains: Gains, inputs: ControlInputs, state: Any, dt) -> tuple[jax.Array, Any]:
+        """``(command (N,), the law's next state)``: the law's update with its own view of the
+        gain set ``gains`` over the control period ``dt`` (s)."""
+        return self.law.update(view(self.law.gains_type, gains), inputs, state, dt)
+
     def torque(
         self, gains: Gains, command: jax.Array, qd: jax.Array, state: PIDState | tuple, t, dt, limit=None
     ) -> tuple[jax.Array, PIDState | tuple]:
         """``(u (N,) N m, the servo's next state)`` for the law's ``command`` (N,), the joint
-        rates ``qd`` (N,) rad/s the servo reads at time ``t`` (s), the servo's period ``dt``
+        rates ``qd`` (N,) rad/s the servo reads at time ``t`` (s), its view of the gain set
+        ``gains``, the servo's period ``dt``
         (s) and the torque limits ``limit`` (N,) N m (``None``: the paper's unlimited motors)."""
         if self.servo is not None:
-            return self.servo.update(gains, command - qd, state, t, dt, limit)
+            return self.servo.update(view(self.servo.gains_type, gains), command - qd, state, t, dt, limit)
         return (command if limit is None else saturate(command, limit, self.saturation)), state
 
     def desired_rates(self, command: jax.Array) -> jax.Array:

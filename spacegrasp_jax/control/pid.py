@@ -3,13 +3,49 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 
-if TYPE_CHECKING:
-    from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.groups import PER_JOINT, GainGroup, group, groups_of
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PIDGains:
+    """The joint PID loops' gains, one a joint (N,); defaults: Table 4, for the paper's 7-joint arm.
+
+    Attributes:
+        kp: (N,) N m s/rad, on the joint-rate error.
+        ki: (N,) N m/rad, on its integral (0: no integral action).
+        kd: (N,) N m s^2/rad, on its derivative.
+    """
+
+    kp: jax.Array = group(
+        GainGroup(
+            PER_JOINT,
+            "N m s/rad",
+            "joint PID proportional gain on the joint-rate error, one a joint",
+            "Table 4",
+            default=(140.0, 210.0, 140.0, 105.0, 105.0, 21.0, 21.0),
+        )
+    )
+    ki: jax.Array = group(
+        GainGroup(
+            PER_JOINT,
+            "N m/rad",
+            "joint PID integral gain, one a joint",
+            "Table 4",
+            default=(10.0, 10.0, 10.0, 1.0, 1.0, 1.0, 1.0),
+            positive=False,
+        )
+    )
+    kd: jax.Array = group(
+        GainGroup(
+            PER_JOINT, "N m s^2/rad", "joint PID derivative gain, one a joint", "Table 4", default=0.01, positive=False
+        )
+    )
 
 
 @jax.tree_util.register_dataclass
@@ -36,12 +72,12 @@ def gain_ramp(t):
     return jnp.minimum(t, 1.0) ** 2
 
 
-def _command(gains: Gains, ramp, rate_error, integral, derivative) -> jax.Array:
+def _command(gains: PIDGains, ramp, rate_error, integral, derivative) -> jax.Array:
     """The PID law's torques (N,) N m before any limit: ramp (kp e + ki integral + kd derivative)."""
     return ramp * (gains.kp * rate_error + gains.ki * integral + gains.kd * derivative)
 
 
-def pid_torque(gains: Gains, state: PIDState, rate_error: jax.Array, t, dt) -> tuple[jax.Array, PIDState]:
+def pid_torque(gains: PIDGains, state: PIDState, rate_error: jax.Array, t, dt) -> tuple[jax.Array, PIDState]:
     """Joint torques (N,) N m from the rate error ``qd_des - qd`` (N,) rad/s at time ``t`` (s).
 
     Discrete at the control period ``dt`` (s): the integral accumulates ``error dt``
@@ -76,14 +112,15 @@ class PID:
 
     saturation: str = "hard"
     anti_windup: bool = True
+    gains_type: ClassVar[type] = PIDGains
     #: The gain groups the joint PID reads (Table 4), one gain a joint each.
-    gain_groups: ClassVar[tuple[str, ...]] = ("kp", "ki", "kd")
+    gain_groups: ClassVar[tuple[str, ...]] = tuple(groups_of(PIDGains))
 
     def init(self, n_joints: int, dtype=jnp.float64) -> PIDState:
         return pid_init(n_joints, dtype)
 
     def update(
-        self, gains: Gains, rate_error: jax.Array, state: PIDState, t, dt, limit=None
+        self, gains: PIDGains, rate_error: jax.Array, state: PIDState, t, dt, limit=None
     ) -> tuple[jax.Array, PIDState]:
         """``(torque (N,) N m, next state)`` from the rate error ``qd_des - qd`` (N,) rad/s at
         time ``t`` (s), control period ``dt`` (s) ([`pid_torque()`][spacegrasp_jax.control.pid.pid_torque]).

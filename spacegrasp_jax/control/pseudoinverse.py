@@ -5,8 +5,22 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from spacegrasp_jax.control.groups import GainGroup
 from spacegrasp_jax.linalg import solve_spd
 from spacegrasp_jax.spatial import matmul, matvec
+
+#: The gain group of a law with a pseudoinverse: the damping a mission sets at design time
+#: to keep the pseudoinverse bounded near Dynamic-Jacobian singularities. It adds to the
+#: law's own (static) ``pinv_damping``, so the paper's gains keep the exact law.
+PINV_DAMPING = GainGroup(
+    1,
+    "as the Dynamic Jacobian's entries",
+    "damping d of the pseudoinverse J^T (J J^T + d^2 1)^-1 (0: the exact pseudoinverse)",
+    "eqs (17), (21)",
+    default=0.0,
+    positive=False,
+    optional=True,
+)
 
 
 def pseudoinverse_apply(J: jax.Array, twist: jax.Array, damping=0.0) -> jax.Array:

@@ -3,14 +3,18 @@
 Everything that offers a choice of law reads it from here: the command line's
 ``--controller`` choices, the gain groups a controller uses and ``spacegrasp tune`` tunes,
 the campaigns' variants, the paper's reference torques (Table 5) and the figures' styles.
-A new law is one module with a class implementing
-[`ControlLaw`][spacegrasp_jax.control.law.ControlLaw] and one entry in ``LAWS``.
+The gain groups are collected here too: each law declares its own in its module (its
+``gains_type``), and ``GAIN_GROUPS`` is every law's and the joint servo's, from which the
+one gain set [`Gains`][spacegrasp_jax.control.gains.Gains] is made. A new law is one module
+with a class implementing [`ControlLaw`][spacegrasp_jax.control.law.ControlLaw] and its
+gains, and one entry in ``LAWS``.
 """
 
 from __future__ import annotations
 
 from spacegrasp_jax.control.admittance import Admittance
 from spacegrasp_jax.control.cartesian import Cartesian
+from spacegrasp_jax.control.groups import GainGroup, groups_of
 from spacegrasp_jax.control.impedance import Impedance
 from spacegrasp_jax.control.law import ControlLaw, Controller, Output, chain
 from spacegrasp_jax.control.pid import PID
@@ -20,6 +24,31 @@ LAWS: dict[str, type] = {law.name: law for law in (Admittance, Cartesian, Impeda
 
 #: The laws' names.
 CONTROLLERS: tuple[str, ...] = tuple(LAWS)
+
+
+def collect_gain_groups(laws, servo=PID) -> dict[str, GainGroup]:
+    """``{name: GainGroup}`` of every group the ``laws`` and the joint ``servo`` read (each
+    law's in the given order, then the servo's).
+
+    Raises:
+        ValueError: two of them declare the same group differently.
+    """
+    collected: dict[str, GainGroup] = {}
+    owners: dict[str, str] = {}
+    for owner in (*laws, servo):
+        name = getattr(owner, "name", "joint servo")
+        for group, declaration in groups_of(owner.gains_type).items():
+            if collected.setdefault(group, declaration) != declaration:
+                raise ValueError(
+                    f"gain group {group!r}: the {name} law declares it unlike the {owners[group]} law "
+                    f"({declaration} against {collected[group]})"
+                )
+            owners.setdefault(group, name)
+    return collected
+
+
+#: Every gain group a law or the joint servo reads, the fields of the one gain set ``Gains``.
+GAIN_GROUPS: dict[str, GainGroup] = collect_gain_groups(LAWS.values())
 
 #: The paper's two laws (those with Table 5's torques), in the paper's order.
 PAPER_CONTROLLERS: tuple[str, ...] = tuple(
@@ -66,16 +95,16 @@ def controller_name(controller: str | ControlLaw | Controller) -> str:
 def gains_used(name: str) -> tuple[str, ...]:
     """The gain groups the controller ``name`` reads: its law's, then the joint servo's."""
     law = _law_class(name)
-    servo = PID.gain_groups if law.output is Output.JOINT_RATES else ()
-    groups = tuple(g for g in law.gain_groups if g != "pinv_damping") + servo
-    return groups + (("pinv_damping",) if "pinv_damping" in law.gain_groups else ())
+    return law.gain_groups + (PID.gain_groups if law.output is Output.JOINT_RATES else ())
 
 
 __all__ = [
     "CONTROLLERS",
+    "GAIN_GROUPS",
     "LAWS",
     "PAPER_CONTROLLERS",
     "as_controller",
+    "collect_gain_groups",
     "controller_name",
     "gains_used",
     "law_named",
