@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -146,6 +147,95 @@ def rk4_step(
     coefficients = jnp.asarray(_LATER_STAGES, dtype=state.q.dtype).T
     (_, weighted_sum), _ = jax.lax.scan(later_stage, (k1, k1), tuple(coefficients))
     return advance(state, weighted_sum, dt / 6).projected()
+
+
+#: RK4's four stages: the first at the step's start (fraction 0 along a zero rate, weight 1),
+#: then ``_LATER_STAGES``.
+_ALL_STAGES = ((0.0, 1.0),) + _LATER_STAGES
+
+
+def _four_stages(stage, state: PlantState, dt, held, extra_xs=()):
+    """RK4's four stages as one ``lax.scan`` of ``stage((previous rate, weighted sum,
+    held), (fraction, weight, *extra_xs)) -> (carry, out)``; ``(next state, held, outs)``."""
+    fractions, weights = jnp.asarray(_ALL_STAGES, dtype=state.q.dtype).T
+    zero = jax.tree.map(jnp.zeros_like, state)
+    (_, weighted_sum, held), outs = jax.lax.scan(stage, (zero, zero, held), (fractions, weights, *extra_xs))
+    return _advance(state, weighted_sum, dt / 6).projected(), held, outs
+
+
+def _advance(base, rate, h):
+    return jax.tree.map(lambda x, dx: x + h * dx, base, rate)
+
+
+def rk4_step_sharing_kinematics(
+    kinematics: Callable[[PlantState], Any],
+    rate: Callable[[PlantState, Any, Any], PlantState],
+    state: PlantState,
+    dt,
+    u,
+) -> tuple[PlantState, Any]:
+    """One classical Runge-Kutta step of ``d state/dt = rate(state, kinematics(state), u)``
+    (``u``, the joint torques, held over the step), its four stages one ``lax.scan``, and
+    the kinematics at the step's start, for the caller's log.
+
+    The compiled step holds one copy of ``kinematics`` and of ``rate`` for the four stages,
+    where [`rk4_step()`][spacegrasp_jax.integrator.rk4_step] with ``rate_at_start`` holds
+    two (its caller's and its scan's): less code to compile for the same arithmetic in the
+    same order. A forward loop's step: reverse mode would keep every stage's kinematics, so
+    the checkpointed loop uses ``rk4_step``.
+
+    Returns:
+        ``(next state, kinematics(state))``.
+    """
+
+    def stage(carry, coefficients):
+        previous_rate, weighted_sum, held = carry
+        fraction, weight = coefficients
+        stage_state = _advance(state, previous_rate, fraction * dt)
+        stage_kinematics = kinematics(stage_state)
+        stage_rate = rate(stage_state, stage_kinematics, held)
+        return (stage_rate, _advance(weighted_sum, stage_rate, weight), held), stage_kinematics
+
+    next_state, _, stages = _four_stages(stage, state, dt, u)
+    return next_state, jax.tree.map(lambda x: x[0], stages)
+
+
+def rk4_step_with_start(
+    kinematics: Callable[[PlantState], Any],
+    rate: Callable[[PlantState, Any, Any], PlantState],
+    at_start: Callable[[Any], tuple[Any, Any]],
+    state: PlantState,
+    dt,
+) -> tuple[PlantState, Any, Any]:
+    """One classical Runge-Kutta step of ``d state/dt = rate(state, kinematics(state), held)``
+    whose ``held`` (the joint torques) is computed at the step's start from its kinematics:
+    the closed loop's controller.
+
+    As [`rk4_step_sharing_kinematics()`][spacegrasp_jax.integrator.rk4_step_sharing_kinematics],
+    four stages in one scan; at the first, ``at_start(kinematics) -> (held, out)`` runs on
+    that stage's kinematics (a ``lax.cond``: the controller and the log row once a step),
+    and ``held`` is held over the four stages. One copy of ``kinematics``, of ``rate`` and
+    of ``at_start`` in the compiled step.
+
+    Returns:
+        ``(next state, held, out)``.
+    """
+    held_and_out = jax.eval_shape(at_start, jax.eval_shape(kinematics, state))
+    nothing = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), held_and_out)
+
+    # (held, out) ride in the carry: the later stages pass them on, writing nothing.
+    def stage(carry, coefficients):
+        previous_rate, weighted_sum, started = carry
+        fraction, weight, first = coefficients
+        stage_state = _advance(state, previous_rate, fraction * dt)
+        stage_kinematics = kinematics(stage_state)
+        started = jax.lax.cond(first, at_start, lambda _: started, stage_kinematics)
+        stage_rate = rate(stage_state, stage_kinematics, started[0])
+        return (stage_rate, _advance(weighted_sum, stage_rate, weight), started), None
+
+    first = jnp.arange(len(_ALL_STAGES)) == 0
+    next_state, (held, out), _ = _four_stages(stage, state, dt, nothing, (first,))
+    return next_state, held, out
 
 
 def simulate_free_floating(

@@ -43,7 +43,13 @@ from spacegrasp_jax.dynamics import (
     mass_matrix_parts_from_frames,
     solve_base,
 )
-from spacegrasp_jax.integrator import PlantState, rk4_step, state_rate
+from spacegrasp_jax.integrator import (
+    PlantState,
+    rk4_step,
+    rk4_step_sharing_kinematics,
+    rk4_step_with_start,
+    state_rate,
+)
 from spacegrasp_jax.kinematics import Frames, point_jacobian_blocks
 from spacegrasp_jax.model import Robot, n_joints
 from spacegrasp_jax.realism import Realism, Stage, ideal
@@ -473,6 +479,16 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
     (static fields: they fix the program); with every stage off and a period of one plant
     step, this is the paper's loop (the modelling notes).
 
+    How a plant step is written depends on ``spec.checkpoint``. Without it (forward runs),
+    RK4's four stages are one ``lax.scan`` and what reads the step's start (the controller
+    and the log row of a one-step period, the log row of a longer period's step) runs at
+    the first stage on its kinematics
+    ([`rk4_step_with_start()`][spacegrasp_jax.integrator.rk4_step_with_start]): one copy
+    of the kinematics and the dynamics in the program, which then compiles in 55-70% of
+    the time. With it (reverse mode), the controller with RK4's first stage and each later
+    stage are checkpointed apart, which keeps the tape and the backward pass small. The two
+    are the same operations in the same order and agree to rounding.
+
     Args:
         spec: the run ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]: the plant, the
             controller, the realism, the controller's model, a servo input delay and
@@ -588,6 +604,33 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
     def advance(plant: PlantState, u, k1) -> PlantState:
         return rk4_step(lambda s: plant_derivative(robot, scenario, s, u), plant, scenario.dt, rate_at_start=k1)
 
+    def kinematics_of(plant: PlantState) -> PlantKinematics:
+        return plant_kinematics(robot, scenario, plant)
+
+    def rate_of(plant: PlantState, kinematics: PlantKinematics, u) -> PlantState:
+        return plant_rate(robot, scenario, plant, kinematics, u)
+
+    def control_at_start(state: LoopState, k, truth: PlantKinematics):
+        """A one-step period's controller, servo and log row at its start: ``(u, (the state
+        with the controller's memory moved on, the row))``."""
+        noise = period_noise(k)
+        observed = observe(robot, scenario, state.plant, truth, k * scenario.dt)
+        state, law_state, command, held = control_update(state, k, noise, truth, observed)
+        fields, pid_state, line = servo_update(
+            state.plant, state.controller.pid, state.rates_in_flight, k, command, held, noise
+        )
+        row = log_row(state.plant, truth, k * scenario.dt, observed, scenario.target, **fields)
+        state = dataclasses.replace(state, controller=ControllerState(law_state, pid_state), rates_in_flight=line)
+        return fields["u"], (state, row)
+
+    def period_of_one_step_forward(state: LoopState, k):
+        # The controller runs at RK4's first stage, on its kinematics: one copy of the
+        # kinematics and the rate in the program (integrator.rk4_step_with_start).
+        plant, _, (state, row) = rk4_step_with_start(
+            kinematics_of, rate_of, lambda truth: control_at_start(state, k, truth), state.plant, scenario.dt
+        )
+        return dataclasses.replace(state, plant=plant), jax.tree.map(lambda x: x[None], row)
+
     def period_of_one_step(state: LoopState, k):
         # The controller reads the state RK4's first stage starts from: share the kinematics.
         def control_and_first_rate(state: LoopState, k):
@@ -618,6 +661,13 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
         )
 
         def plant_step(plant, step, fields):
+            if not checkpoint:  # one copy of the kinematics and the rate (integrator)
+                t = step * scenario.dt
+                next_plant, kinematics = rk4_step_sharing_kinematics(
+                    kinematics_of, rate_of, plant, scenario.dt, fields["u"]
+                )
+                observed = observe(robot, scenario, plant, kinematics, t)
+                return next_plant, log_row(plant, kinematics, t, observed, scenario.target, **fields)
             row, k1 = row_and_rate(plant, step, fields)
             return advance(plant, fields["u"], k1), row
 
@@ -641,7 +691,7 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
         return dataclasses.replace(state, plant=plant, controller=controller_state, rates_in_flight=line), rows
 
     if per_period == 1:
-        one_period = period_of_one_step
+        one_period = period_of_one_step if checkpoint else period_of_one_step_forward
     else:
         one_period = jax.checkpoint(period_of_steps, prevent_cse=False) if checkpoint else period_of_steps
     start = initial_state(spec)
@@ -835,8 +885,8 @@ def rollout(
             ``n_steps``; ``None``: ``LOG_BLOCK`` or the largest divisor below it; a loop
             whose control period spans several steps runs whole periods). Each control
             period is always under ``jax.checkpoint`` ([`loop_body()`][spacegrasp_jax.simulate.loop_body]), which changes
-            nothing in a forward rollout (the same log, bit for bit) and makes a
-            reverse-mode gradient's tape hold, per step, the state and the rates RK4's
+            nothing in a forward rollout but rounding (the loop run without it has the same
+            operations, compiled as other code) and makes a reverse-mode gradient's tape hold, per step, the state and the rates RK4's
             stages start from instead of every intermediate (the measured cost:
             documentation, Performance). A stage's rate is at most 7 numbers a field, so
             the three of one step are (3, 7) and inner scans of 2 steps hold no array over

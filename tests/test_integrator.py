@@ -17,6 +17,8 @@ from spacegrasp_jax.integrator import (
     free_floating_derivative,
     plant_state,
     rk4_step,
+    rk4_step_sharing_kinematics,
+    rk4_step_with_start,
     simulate_free_floating,
 )
 
@@ -141,3 +143,66 @@ def test_the_projection_renormalises_a_free_targets_quaternion_only():
     np.testing.assert_array_equal(kept.target.quat, off)  # a fixed target is left as it is
     with pytest.raises(ValueError, match="free-floating target"):
         free_floating_derivative(sg.paper_robot(), dataclasses.replace(state, target=free), jnp.zeros(13))
+
+
+# ---- RK4 as one scan of four stages (the forward loops' step) -------------------------------
+
+LAMBDA, DT = -3.0, 0.05
+
+
+def _affine_rate(state, kinematics, u):
+    """``x' = LAMBDA x + u`` on the joint angles and rates, ``LAMBDA x`` on the base's position
+    and twist, the attitude and the target at rest: RK4's update has a closed form."""
+    scaled = lambda x: LAMBDA * x  # noqa: E731
+    return dataclasses.replace(
+        state,
+        p_base=scaled(state.p_base),
+        quat_base=jnp.zeros(4),
+        q=scaled(state.q) + u,
+        V_base=scaled(state.V_base),
+        qd=scaled(state.qd) + u,
+        target=state.target.at_rest(),
+    )
+
+
+def _rk4_affine(x, u):
+    """RK4's step of ``x' = LAMBDA x + u`` from its stability polynomials."""
+    z = LAMBDA * DT
+    return (1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24) * x + DT * (1 + z / 2 + z**2 / 6 + z**3 / 24) * u
+
+
+def _start_state():
+    rng = np.random.default_rng(8)
+    return plant_state(rng.normal(size=3), np.eye(3), rng.normal(size=7), rng.normal(size=6), rng.normal(size=7))
+
+
+def test_rk4_as_one_scan_of_four_stages_is_rk4():
+    """Against RK4's closed form on an affine system, and against ``rk4_step``; the kinematics
+    returned are those of the step's start."""
+    state, u = _start_state(), jnp.linspace(0.5, -0.5, 7)
+    kinematics = lambda s: jnp.concatenate([s.q, s.qd])  # noqa: E731
+    step = jax.jit(lambda s, u: rk4_step_sharing_kinematics(kinematics, _affine_rate, s, DT, u))
+    moved, at_start = step(state, u)
+    np.testing.assert_allclose(moved.q, _rk4_affine(state.q, u), rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(moved.qd, _rk4_affine(state.qd, u), rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(moved.V_base, _rk4_affine(state.V_base, 0.0), rtol=1e-14)
+    np.testing.assert_allclose(moved.quat_base, state.quat_base, atol=1e-15)
+    np.testing.assert_array_equal(at_start, kinematics(state))
+    reference = rk4_step(lambda s: _affine_rate(s, None, u), state, DT)
+    for name in ("p_base", "q", "V_base", "qd"):
+        np.testing.assert_allclose(getattr(moved, name), getattr(reference, name), rtol=1e-15, atol=1e-16)
+
+
+def test_what_reads_the_steps_start_runs_once_on_its_kinematics_and_is_held():
+    """``at_start`` gives the torque held over the four stages from the start's kinematics:
+    the step is RK4's of the affine system with that torque, which it would not be if the
+    torque were recomputed at a later stage; its output is the start's."""
+    state = _start_state()
+    kinematics = lambda s: s.q  # noqa: E731
+    at_start = lambda q: (0.3 * q, 2.0 * q)  # noqa: E731
+    moved, held, out = jax.jit(lambda s: rk4_step_with_start(kinematics, _affine_rate, at_start, s, DT))(state)
+    u = 0.3 * state.q
+    np.testing.assert_allclose(held, u, rtol=1e-15)
+    np.testing.assert_allclose(out, 2.0 * state.q, rtol=1e-15)
+    np.testing.assert_allclose(moved.q, _rk4_affine(state.q, u), rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(moved.qd, _rk4_affine(state.qd, u), rtol=1e-14, atol=1e-15)

@@ -172,9 +172,12 @@ def test_a_law_object_runs_the_loop_its_name_runs(robot, gains, short_scenario, 
 
 
 def test_the_checkpointed_steps_of_rollout_change_nothing_in_a_forward_run(robot, gains, short_scenario):
-    """``rollout`` always puts each step's parts under ``jax.checkpoint`` (for gradients); a
-    forward run gives the log of the same loop run without it, bit for bit, so the
-    paper's reproduction does not depend on it."""
+    """``rollout`` always checkpoints each step's parts (for gradients), with RK4's first
+    stage beside the controller; the loop run without checkpointing has the four stages in
+    one scan (``integrator.rk4_step_with_start``): the same operations in the same order,
+    compiled as other code, so the two logs agree to rounding (measured: 1.2e-13 of a
+    field's largest magnitude here, 3.3e-12 over the paper's 17 s), and the paper's
+    reproduction does not depend on checkpointing."""
     from spacegrasp_jax.simulate import LOG_BLOCK, FullLog, RunSpec, closed_loop
 
     def plain_rollout(robot, scenario, gains):  # the arguments as rollout's: nothing folded in
@@ -186,7 +189,8 @@ def test_the_checkpointed_steps_of_rollout_change_nothing_in_a_forward_run(robot
     for name, value in vars(checkpointed).items():
         if value is not None:
             expected = getattr(plain, name).reshape(value.shape)
-            np.testing.assert_array_equal(value, expected, err_msg=name)
+            scale = float(np.max(np.abs(expected)))
+            np.testing.assert_allclose(value, expected, rtol=0, atol=1e-11 * scale, err_msg=name)
 
 
 def test_a_diverging_run_writes_what_it_has(robot, gains, tmp_path, capsys):
