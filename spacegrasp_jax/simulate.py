@@ -886,8 +886,9 @@ def rollout(
             whose control period spans several steps runs whole periods). Each control
             period is always under ``jax.checkpoint`` ([`loop_body()`][spacegrasp_jax.simulate.loop_body]), which changes
             nothing in a forward rollout but rounding (the loop run without it has the same
-            operations, compiled as other code) and makes a reverse-mode gradient's tape hold, per step, the state and the rates RK4's
-            stages start from instead of every intermediate (the measured cost:
+            operations, compiled as other code) and makes a reverse-mode gradient's tape
+            hold, per step, the state and the rates RK4's stages start from instead of
+            every intermediate (the measured cost:
             documentation, Performance). A stage's rate is at most 7 numbers a field, so
             the three of one step are (3, 7) and inner scans of 2 steps hold no array over
             64 numbers, which matters where XLA runs loops kernel by kernel (with loops
