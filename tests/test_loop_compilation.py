@@ -60,12 +60,15 @@ def array_bytes(instruction: str) -> list[int]:
 
 
 def loops_within(name: str, bodies: dict[str, list[str]]) -> list[str]:
-    """Bodies of the while loops that run inside computation ``name``, at any depth (through
-    the calls that wrap loops compiled whole too)."""
+    """Bodies of the while loops, and branches of the conditionals, that run inside
+    computation ``name``, at any depth (through the calls that wrap loops compiled whole
+    too). A forward loop's controller runs in a conditional's branch inside RK4's stage loop
+    (``integrator.rk4_step_with_start``)."""
     text = "\n".join(bodies[name])
     inner = re.findall(r"body=(%[\w.\-]+)", text)
+    branches = [b.strip() for group in re.findall(r"branch_computations=\{([^}]*)\}", text) for b in group.split(",")]
     calls = re.findall(r" call\(.*?to_apply=(%[\w.\-]+)", text)
-    return [loop for body in inner for loop in [body, *loops_within(body, bodies)]] + [
+    return [loop for body in inner + branches for loop in [body, *loops_within(body, bodies)]] + [
         loop for called in calls for loop in loops_within(called, bodies)
     ]
 
