@@ -84,6 +84,17 @@ def law_names() -> set[str]:
     return set(LAWS)
 
 
+def listed_names(node: ast.AST, names: set[str]) -> set[str]:
+    """Which of ``names`` a tuple, list, set or dict literal (its keys) writes as strings."""
+    if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+        items = node.elts
+    elif isinstance(node, ast.Dict):
+        items = [key for key in node.keys if key is not None]
+    else:
+        return set()
+    return {item.value for item in items if isinstance(item, ast.Constant) and item.value in names}
+
+
 def test_the_registry_is_the_only_list_of_laws():
     """No module writes two laws' names in one tuple, list, set or dict: the laws are
     listed once, in ``control.registry`` (which lists their classes, not names)."""
@@ -92,20 +103,15 @@ def test_the_registry_is_the_only_list_of_laws():
         if module in INDEPENDENT_REFERENCES:
             continue
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
-                items = node.elts
-            elif isinstance(node, ast.Dict):
-                items = [key for key in node.keys if key is not None]
-            else:
-                continue
-            listed = {item.value for item in items if isinstance(item, ast.Constant) and item.value in names}
+            listed = listed_names(node, names)
             assert len(listed) < 2, f"{module}, line {node.lineno}: lists the laws {sorted(listed)}"
 
 
 def test_each_gain_group_is_declared_by_its_law_and_listed_nowhere_else():
     """A ``GainGroup`` is made only in a law's (or the servo's) module under ``control``, and
-    no module writes two groups' names in one tuple, list, set or dict: the gain set, the
-    files, tuning and export read the groups from the registry's collection."""
+    no module outside ``control`` writes two groups' names in one tuple, list, set or dict:
+    the gain set, the files, tuning and export read the groups from the registry's
+    collection (a law lists its own in its class: its loop gain's direction per group)."""
     from spacegrasp_jax.control.registry import GAIN_GROUPS
 
     for module, path in module_files():
@@ -118,13 +124,7 @@ def test_each_gain_group_is_declared_by_its_law_and_listed_nowhere_else():
                 )
             if within(module, {"spacegrasp_jax.control"}):
                 continue
-            if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
-                items = node.elts
-            elif isinstance(node, ast.Dict):
-                items = [key for key in node.keys if key is not None]
-            else:
-                continue
-            listed = {item.value for item in items if isinstance(item, ast.Constant) and item.value in GAIN_GROUPS}
+            listed = listed_names(node, set(GAIN_GROUPS))
             assert len(listed) < 2, f"{module}, line {node.lineno}: lists the gain groups {sorted(listed)}"
 
 
