@@ -161,3 +161,9 @@ def test_a_group_two_laws_declare_differently_is_refused():
     other = type("OtherKd", (JointSpring,), {"name": "other_kd", "gains_type": OtherKdGains, "gain_groups": ("Kd",)})
     with pytest.raises(ValueError, match="gain group 'Kd': the other_kd law declares it unlike the admittance law"):
         collect_gain_groups([*LAWS.values(), other])
+
+
+def test_a_law_without_its_gains_declaration_is_refused_naming_what_it_lacks():
+    without_gains = type("NoGains", (), {k: v for k, v in vars(JointSpring).items() if k != "gains_type"})
+    with pytest.raises(ValueError, match="is not a control law: it has no gains_type"):
+        chain(without_gains())

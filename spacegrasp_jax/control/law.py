@@ -118,6 +118,13 @@ class ControlLaw(Protocol):
         logged as zeros)."""
 
 
+#: What a law must have to be one: ``ControlLaw``'s attributes and methods.
+_LAW_MEMBERS = (
+    *ControlLaw.__annotations__,
+    *(name for name, member in vars(ControlLaw).items() if callable(member) and not name.startswith("_")),
+)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class ControllerState:
@@ -153,7 +160,8 @@ class Controller:
 
     def __post_init__(self):
         if not isinstance(self.law, ControlLaw):
-            raise ValueError(f"controller: expected a control law (init, update, log_fields), got {self.law!r}")
+            missing = [name for name in _LAW_MEMBERS if not hasattr(self.law, name)]
+            raise ValueError(f"controller: {self.law!r} is not a control law: it has no {', '.join(missing)}")
         rates = self.law.output is Output.JOINT_RATES
         if rates and self.servo is None:
             raise ValueError(f"the {self.law.name} law commands joint rates: chain it with a joint servo (PID())")
