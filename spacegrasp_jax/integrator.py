@@ -112,6 +112,11 @@ def state_rate(state: PlantState, xdd: jax.Array, target_rate: TargetState) -> P
 _LATER_STAGES = ((0.5, 2.0), (0.5, 2.0), (1.0, 1.0))
 
 
+def _advance(base, rate, h):
+    """``base + h rate``, leaf by leaf (a state moved along a rate for a time ``h``)."""
+    return jax.tree.map(lambda x, dx: x + h * dx, base, rate)
+
+
 def rk4_step(
     derivative: Callable[[PlantState], PlantState], state: PlantState, dt, rate_at_start: PlantState | None = None
 ) -> PlantState:
@@ -133,20 +138,17 @@ def rk4_step(
     inserts would keep XLA from fusing across them.
     """
 
-    def advance(base, rate, h):
-        return jax.tree.map(lambda x, dx: x + h * dx, base, rate)
-
     @functools.partial(jax.checkpoint, prevent_cse=False)
     def later_stage(carry, coefficients):
         previous_rate, weighted_sum = carry
         fraction, weight = coefficients
-        rate = derivative(advance(state, previous_rate, fraction * dt))
-        return (rate, advance(weighted_sum, rate, weight)), None
+        rate = derivative(_advance(state, previous_rate, fraction * dt))
+        return (rate, _advance(weighted_sum, rate, weight)), None
 
     k1 = derivative(state) if rate_at_start is None else rate_at_start
     coefficients = jnp.asarray(_LATER_STAGES, dtype=state.q.dtype).T
     (_, weighted_sum), _ = jax.lax.scan(later_stage, (k1, k1), tuple(coefficients))
-    return advance(state, weighted_sum, dt / 6).projected()
+    return _advance(state, weighted_sum, dt / 6).projected()
 
 
 #: RK4's four stages: the first at the step's start (fraction 0 along a zero rate, weight 1),
@@ -161,10 +163,6 @@ def _four_stages(stage, state: PlantState, dt, held, extra_xs=()):
     zero = jax.tree.map(jnp.zeros_like, state)
     (_, weighted_sum, held), outs = jax.lax.scan(stage, (zero, zero, held), (fractions, weights, *extra_xs))
     return _advance(state, weighted_sum, dt / 6).projected(), held, outs
-
-
-def _advance(base, rate, h):
-    return jax.tree.map(lambda x, dx: x + h * dx, base, rate)
 
 
 def rk4_step_sharing_kinematics(
