@@ -8,6 +8,7 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from spacegrasp_jax import metrics
 from spacegrasp_jax.simulate import Log
@@ -70,6 +71,20 @@ def test_folding_rows_one_by_one_gives_the_whole_log_metrics():
     one_by_one, whole = metrics.finish(running, free_target=False), metrics.log_metrics(log, free_target=False)
     for name in metrics.METRICS:
         np.testing.assert_allclose(one_by_one[name], whole[name], rtol=1e-15, err_msg=name)
+
+
+@pytest.mark.parametrize("free_target", [False, True])
+def test_the_summary_is_the_whole_log_metrics_in_the_declared_order(free_target):
+    # summary() runs log_metrics as one compiled program, whose outputs come back sorted by
+    # name: the values must be the operation-by-operation ones, the keys in METRICS' order
+    # (then TARGET_METRICS'), as summary.json lists them.
+    log = hand_log()
+    summary = metrics.summary(log, free_target=free_target)
+    declared = [*metrics.METRICS, *(metrics.TARGET_METRICS if free_target else ())]
+    assert list(summary) == declared
+    whole = metrics.log_metrics(log, free_target=free_target)
+    for name in declared:
+        np.testing.assert_array_equal(summary[name], np.asarray(whole[name]), err_msg=name)
 
 
 def test_missing_values_are_nan_in_both_paths_and_null_in_json(tmp_path):
