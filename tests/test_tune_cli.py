@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -19,14 +18,6 @@ import pytest
 
 from spacegrasp_jax.control import load_gains
 from spacegrasp_jax.realism import load_realism
-
-
-def tune_environment():
-    """The tune subprocesses keep every program they compile in the test run's compilation
-    cache (inherited, tests/conftest.py): the first run compiles, the interrupted and
-    resumed runs, and the CMA-ES runs' nominal rollouts and held-out evaluation, load it."""
-    return {**os.environ, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
-
 
 #: Optimiser steps of the tune runs below: the interrupted run gets SIGINT after step 2, and
 #: the steps left after it absorb the delay before the signal is handled on a loaded machine.
@@ -61,9 +52,9 @@ def tune_command(tmp_path, out, *extra):
     ]
 
 
-def run_until_step(command, history, step, env, timeout=600):
+def run_until_step(command, history, step, timeout=600):
     """Start ``command``, send SIGINT once ``history`` shows ``step`` completed steps."""
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + timeout
     while time.time() < deadline and process.poll() is None:
         if history.exists() and len(history.read_text().splitlines()) >= step + 2:  # header + step 0
@@ -78,9 +69,7 @@ def run_until_step(command, history, step, env, timeout=600):
 def uninterrupted(tmp_path_factory):
     tmp_path = tmp_path_factory.mktemp("tune")
     out = tmp_path / "full"
-    result = subprocess.run(
-        tune_command(tmp_path, out), capture_output=True, text=True, timeout=900, env=tune_environment()
-    )
+    result = subprocess.run(tune_command(tmp_path, out), capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr
     return tmp_path, out, result
 
@@ -146,13 +135,13 @@ def test_tuning_under_flight_converges(uninterrupted):
 def test_interrupted_run_resumes_to_the_same_result(uninterrupted):
     tmp_path, full, _ = uninterrupted
     out = tmp_path / "interrupted"
-    code, err = run_until_step(tune_command(tmp_path, out), out / "history.csv", step=2, env=tune_environment())
+    code, err = run_until_step(tune_command(tmp_path, out), out / "history.csv", step=2)
     assert code == 130, err
     assert "--resume" in err
     steps_done = len((out / "history.csv").read_text().splitlines()) - 2
     assert 2 <= steps_done < TUNE_STEPS
     resume = [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--resume"]
-    result = subprocess.run(resume, capture_output=True, text=True, timeout=900, env=tune_environment())
+    result = subprocess.run(resume, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr
     assert f"resuming after step {steps_done}/{TUNE_STEPS}" in result.stderr
     assert json.loads((out / "gains.json").read_text()) == json.loads((full / "gains.json").read_text())
@@ -233,9 +222,8 @@ def cmaes_command(tmp_path, out, steps):
 
 @pytest.mark.slow
 def test_the_default_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tmp_path):
-    env = tune_environment()
     full = tmp_path / "cmaes_full"
-    result = subprocess.run(cmaes_command(tmp_path, full, 4), capture_output=True, text=True, timeout=900, env=env)
+    result = subprocess.run(cmaes_command(tmp_path, full, 4), capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr
     assert "CMA-ES on the admittance capture objective over 2 scenario(s), 40 numbers" in result.stderr
     rows = list(csv.DictReader((full / "history.csv").open()))
@@ -245,25 +233,25 @@ def test_the_default_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tm
     assert summary["method"] == "cmaes" and summary["objective_kind"] == "capture"
     assert load_gains(full / "gains.json").pinv_damping.shape == (1,)
     out = tmp_path / "cmaes_interrupted"
-    code, err = run_until_step(cmaes_command(tmp_path, out, 4), out / "history.csv", step=1, env=env)
+    code, err = run_until_step(cmaes_command(tmp_path, out, 4), out / "history.csv", step=1)
     assert code == 130, err
     resume = [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--resume"]
-    result = subprocess.run(resume, capture_output=True, text=True, timeout=900, env=env)
+    result = subprocess.run(resume, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr
     assert "resuming after generation" in result.stderr
     assert json.loads((out / "gains.json").read_text()) == json.loads((full / "gains.json").read_text())
     assert [row["loss"] for row in csv.DictReader((out / "history.csv").open())] == [row["loss"] for row in rows]
     # More generations are the one option a CMA-ES resume may change: the finished run
     # continues to exactly a run of that many generations from the start.
-    result = subprocess.run([*resume, "--steps", "6"], capture_output=True, text=True, timeout=900, env=env)
+    result = subprocess.run([*resume, "--steps", "6"], capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr
     assert "resuming after generation 4/6" in result.stderr
     six = tmp_path / "cmaes_six"
-    result = subprocess.run(cmaes_command(tmp_path, six, 6), capture_output=True, text=True, timeout=900, env=env)
+    result = subprocess.run(cmaes_command(tmp_path, six, 6), capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr
     assert json.loads((out / "gains.json").read_text()) == json.loads((six / "gains.json").read_text())
     extended = [row["loss"] for row in csv.DictReader((out / "history.csv").open())]
     assert extended == [row["loss"] for row in csv.DictReader((six / "history.csv").open())] and len(extended) == 7
     assert json.loads((out / "run.json").read_text())["config"]["steps"] == 6
-    result = subprocess.run([*resume, "--population", "5"], capture_output=True, text=True, timeout=300, env=env)
+    result = subprocess.run([*resume, "--population", "5"], capture_output=True, text=True, timeout=300)
     assert result.returncode == 2 and "--population 5 (the run's: 3)" in result.stderr
