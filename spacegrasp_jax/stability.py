@@ -54,7 +54,6 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.linalg
 from jax.flatten_util import ravel_pytree
 
 from spacegrasp_jax import spatial
@@ -392,6 +391,8 @@ def modes(linearisation: Linearisation) -> Modes:
     residual = float(np.linalg.norm(WA - M @ W) / max(np.linalg.norm(WA), 1e-300))
     # The perturbations that keep the momentum and the centre of mass are then an
     # invariant subspace of A; its eigenvalues are A's less the 9 neutral ones.
+    import scipy.linalg  # imported on first use: a fifth of a second at every command's start
+
     basis = scipy.linalg.null_space(W) if linearisation.free else np.eye(A.shape[0])
     restricted = basis.T @ A @ basis
     eigenvalues, left, right = scipy.linalg.eig(restricted, left=True, right=True)

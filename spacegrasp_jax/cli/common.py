@@ -19,7 +19,6 @@ from spacegrasp_jax import (
     animation,
     campaign,
     paper,
-    plots,
     runfiles,
     worstcase,
 )
@@ -293,6 +292,8 @@ def _write_results(
         runfiles.write_timeseries(out / f"timeseries_{_file_name(c)}.npz", result.log)
         if csv:
             runfiles.write_timeseries_csv(out / f"timeseries_{_file_name(c)}.csv", result.log)
+    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+
     plots.save_figures(
         {c: result.log for c, result in results.items()},
         out,

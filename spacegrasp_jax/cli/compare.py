@@ -10,7 +10,6 @@ import numpy as np
 
 from spacegrasp_jax import (
     experiment,
-    plots,
     runfiles,
 )
 from spacegrasp_jax.cli.common import _claim, _file_name
@@ -96,6 +95,8 @@ def _compare(args: argparse.Namespace) -> int:
         verdict = {True: "yes", False: "no", None: "-"}[numbers["capture_success"]]
         print(f"{label[:40]:40} {' '.join(cells)}  {verdict}")
     caption = f"compared: {common}" if common else "compared"
+    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+
     plots.save_figures(logs, out, runfiles.write_atomically, caption=caption)
     runfiles.write_json(
         out / "compare.json",

@@ -14,7 +14,6 @@ from spacegrasp_jax import (
     batching,
     paper,
     plausibility,
-    plots,
     runfiles,
 )
 from spacegrasp_jax.cli.common import _check_envelope, _claim, _law, _load_inputs, _ranges, _realism, _warn
@@ -110,6 +109,8 @@ def _gradients(args: argparse.Namespace) -> int:
         | {f"gradient.{name}": value for name, value in result.gradients.items()},
     )
     title = f"{args.controller}, {args.n} samples" + (f", realism {args.realism}" if args.realism else "")
+    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+
     plots.save_gradient_figures(
         out,
         document["per_sample"]["norm_over_nominal"],

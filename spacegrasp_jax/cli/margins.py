@@ -13,7 +13,6 @@ from spacegrasp_jax import (
     campaign,
     margins,
     plausibility,
-    plots,
     runfiles,
     stability,
 )
@@ -113,6 +112,8 @@ def _margins(args: argparse.Namespace) -> int:
     title = f"{args.controller}, {args.gains or 'paper gains'}, {args.samples} samples" + (
         f", realism {args.realism}" if args.realism else ""
     )
+    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+
     plots.save_margin_figures(out, result, 1e3 * config.position_tolerance_m, title, runfiles.write_atomically)
     for line in margins.margin_lines(result) + (stability.linear_lines(result["linear"]) if result["linear"] else []):
         print(line)

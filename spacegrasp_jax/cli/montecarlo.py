@@ -15,7 +15,6 @@ from spacegrasp_jax import (
     batching,
     campaign,
     plausibility,
-    plots,
     runfiles,
     statistics,
 )
@@ -129,6 +128,8 @@ def _montecarlo(args: argparse.Namespace) -> int:
     _print_campaign(result)
     if jax.process_index() == 0:
         tolerance_mm = 1e3 * result.summary["tolerances"]["final_position_m"]
+        from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+
         plots.save_campaign_figures(
             out,
             result.metrics,

@@ -14,7 +14,6 @@ import spacegrasp_jax as sg
 from spacegrasp_jax import (
     batching,
     plausibility,
-    plots,
     runfiles,
     statistics,
 )
@@ -201,6 +200,8 @@ def _tune_finished(out: Path, result) -> int:
         if record["gains_source"] == "paper_gains()"
         else f"from {Path(record['gains_source']).name}"
     )
+    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+
     plots.save_tuning_figures(
         result.history,
         result.log_before,

@@ -17,7 +17,6 @@ from spacegrasp_jax import (
     campaign,
     experiment,
     plausibility,
-    plots,
     runfiles,
     worstcase,
 )
@@ -169,6 +168,8 @@ def _worstcase(args: argparse.Namespace) -> int:
     title = f"worst case, {args.controller}, {args.gains or 'paper gains'}" + (
         f", realism {args.realism}" if args.realism else ""
     )
+    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+
     plots.save(
         {
             "search.png": plots.figure_worst_case_search(
