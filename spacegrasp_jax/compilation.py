@@ -112,21 +112,38 @@ def default_compile_cache() -> Path:
     return Path(base) / "spacegrasp-jax" / "xla"
 
 
+#: The shortest compile, s, whose program the persistent cache keeps: every program. JAX's
+#: default, 1 s, leaves out the small ones a command compiles on its way (building the robot
+#: and the scenario, a log's summary: about a hundred, 3 s of a warm ``spacegrasp simulate``
+#: of 2 s), which a later process then compiles again; reading one back takes milliseconds.
+CACHE_MIN_COMPILE_TIME_S = 0.0
+
+#: JAX's own default of ``jax_persistent_cache_min_compile_time_secs``: a value other than
+#: this one was the user's choice and stands.
+_JAX_MIN_COMPILE_TIME_S = 1.0
+
+
 def use_compile_cache(folder: str | Path | None = None) -> Path | None:
     """Turn on JAX's persistent compilation cache in ``folder`` and return the folder.
 
     ``None``: the folder the process already uses (``JAX_COMPILATION_CACHE_DIR``), else
     [`default_compile_cache()`][spacegrasp_jax.compilation.default_compile_cache]; ``"none"``: leave the cache as it is and return ``None``.
-    Programs that took at least ``jax_persistent_cache_min_compile_time_secs`` (1 s by
-    default) to compile are written there; a later process with the same program, JAX
-    version and XLA flags loads it instead of compiling it. Takes effect for programs
-    compiled after the first compile of the process only if called before it."""
+    Every compiled program is written there (``CACHE_MIN_COMPILE_TIME_S``, unless
+    ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS`` or ``jax_persistent_cache_min_compile_time_secs``
+    says otherwise); a later process with the same program, JAX version and XLA flags loads
+    it instead of compiling it. Takes effect for programs compiled after the first compile of
+    the process only if called before it."""
     if folder == "none":
         return None
     if folder is None:
         folder = jax.config.jax_compilation_cache_dir or default_compile_cache()
     folder = Path(folder)
     jax.config.update("jax_compilation_cache_dir", str(folder))
+    users_choice = "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" in os.environ or (
+        jax.config.jax_persistent_cache_min_compile_time_secs != _JAX_MIN_COMPILE_TIME_S
+    )
+    if not users_choice:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_TIME_S)
     return folder
 
 

@@ -314,17 +314,20 @@ COMPILE_ONE = """
 import sys, jax
 from spacegrasp_jax import compilation
 folder = compilation.use_compile_cache(None if sys.argv[1] == "default" else sys.argv[1])
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # cache even this toy program
-jax.jit(lambda x: 2.0 * x + 1.0)(1.0)
+jax.jit(lambda x: 2.0 * x + 1.0)(1.0)  # a toy program: kept too
 print(folder)
+print(jax.config.jax_persistent_cache_min_compile_time_secs)
 """
+
+#: The environment variables of the cache's settings, dropped from a test's processes.
+CACHE_VARIABLES = ("JAX_COMPILATION_CACHE_DIR", "XDG_CACHE_HOME", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS")
 
 
 @pytest.mark.parametrize("case", ["explicit", "xdg_default", "jax_variable", "off"])
 def test_compile_cache_folder_and_precedence(tmp_path, case):
     """``--compile-cache``: a folder given wins; without one, JAX's own variable, else the
-    XDG cache folder; ``none`` writes nothing. The program must land in the folder chosen."""
-    env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "XDG_CACHE_HOME")}
+    XDG cache folder; ``none`` writes nothing. The program must land in the folder chosen, however small."""
+    env = {k: v for k, v in os.environ.items() if k not in CACHE_VARIABLES}
     env["XDG_CACHE_HOME"] = str(tmp_path / "xdg")
     env["MPLCONFIGDIR"] = str(tmp_path.parent / f"{tmp_path.name}-matplotlib")  # not a JAX cache
     argument, expected = {
@@ -339,12 +342,24 @@ def test_compile_cache_folder_and_precedence(tmp_path, case):
         [sys.executable, "-c", COMPILE_ONE, argument], capture_output=True, text=True, env=env, timeout=120
     )
     assert result.returncode == 0, result.stderr
-    assert result.stdout.strip() == str(expected)
+    assert result.stdout.split("\n")[0] == str(expected)
     written = [p for p in tmp_path.rglob("*") if p.is_file()]
     if expected is None:
         assert written == []
     else:
         assert written and all(expected in p.parents for p in written), written
+
+
+@pytest.mark.parametrize("variable", [None, "2.5"])
+def test_the_cache_keeps_every_program_unless_the_user_chose_a_threshold(tmp_path, variable):
+    env = {k: v for k, v in os.environ.items() if k not in CACHE_VARIABLES}
+    if variable is not None:
+        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = variable
+    command = [sys.executable, "-c", COMPILE_ONE, str(tmp_path / "cache")]
+    result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert float(result.stdout.split("\n")[1]) == (0.0 if variable is None else 2.5)
+    assert bool(list((tmp_path / "cache").glob("jit_*"))) == (variable is None)
 
 
 @pytest.mark.slow
