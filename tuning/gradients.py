@@ -114,8 +114,8 @@ def _horizon_losses(params, base, mask, objective, spec, key, *, steps):
 def _item_gradients(spec, base, mask, objective, item, *, steps):
     """``(losses (H,), gradients group -> (H, size))`` of one item ``(params, robot, scenario,
     realism, key)``, the nominal run ``spec`` with the item's plant, scenario and realism:
-    the horizon losses (``_horizon_losses()``) and their gradients, one reverse pass per
-    horizon."""
+    the horizon losses (``_horizon_losses()``) and their gradients: one forward pass, and
+    one reverse pass vmapped over the horizons (a cotangent each)."""
     params, robot, scenario, realism, key = item
     sample = dataclasses.replace(spec, robot=robot, scenario=scenario, realism=realism)
     losses, pullback = jax.vjp(lambda p: _horizon_losses(p, base, mask, objective, sample, key, steps=steps), params)
