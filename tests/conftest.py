@@ -6,7 +6,6 @@ import os
 import shutil
 import tempfile
 
-import jax
 import pytest
 from random_states import RandomState, make_random_states
 
@@ -36,14 +35,6 @@ _USERS_XLA_FLAGS = os.environ.get("XLA_FLAGS")
 if "xla_backend_optimization_level" not in (_USERS_XLA_FLAGS or ""):
     os.environ["XLA_FLAGS"] = f"{_USERS_XLA_FLAGS or ''} {SUITE_XLA_FLAG}".strip()
 
-#: The run's cache keeps every program, not only those that took a second to compile (JAX's
-#: default): at -O0 most compile faster than that, and the commands the tests run as
-#: subprocesses, each a fresh process, would compile them again.
-MIN_COMPILE_TIME_VARIABLE = "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"
-_USERS_MIN_COMPILE_TIME = os.environ.get(MIN_COMPILE_TIME_VARIABLE)
-os.environ[MIN_COMPILE_TIME_VARIABLE] = "0"
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # this process imported JAX already
-
 # As the command line does: float64, loops compiled whole (before anything compiles), and the
 # run's compilation cache.
 sg.configure(compile_cache=os.environ[RUN_CACHE_VARIABLE])
@@ -54,10 +45,9 @@ def pytest_unconfigure(config):
         shutil.rmtree(os.environ.pop(RUN_CACHE_VARIABLE), ignore_errors=True)
         if _USERS_CACHE is not None:
             os.environ[RUN_CACHE_VARIABLE] = _USERS_CACHE
-    for variable, users in (("XLA_FLAGS", _USERS_XLA_FLAGS), (MIN_COMPILE_TIME_VARIABLE, _USERS_MIN_COMPILE_TIME)):
-        os.environ.pop(variable, None)
-        if users is not None:
-            os.environ[variable] = users
+    os.environ.pop("XLA_FLAGS", None)
+    if _USERS_XLA_FLAGS is not None:
+        os.environ["XLA_FLAGS"] = _USERS_XLA_FLAGS
 
 
 N_RANDOM_STATES = 20
