@@ -34,6 +34,7 @@ import functools
 import hashlib
 import json
 import os
+import re
 import time
 import warnings
 from collections.abc import Callable
@@ -248,6 +249,10 @@ def listening(listener):
         _LISTENERS.remove(listener)
 
 
+#: The memory address in an object's default ``repr``: `` at 0x7f3676f0d760``.
+_ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
+
+
 class CompileAnnouncer:
     """A [`listening()`][spacegrasp_jax.compilation.listening] listener that writes one line before each compile, naming the
     program and, when the same program was compiled before on this machine, how long that
@@ -271,8 +276,11 @@ class CompileAnnouncer:
 
     @staticmethod
     def digest(key) -> str:
-        """A name for ``key`` that stays the same from one process to the next."""
-        return hashlib.sha256(repr(key).encode()).hexdigest()[:20]
+        """A name for ``key`` that stays the same from one process to the next: its
+        ``repr`` without the memory addresses that name a function or another object
+        (``<function f at 0x7f...>``), which change with every process."""
+        stable = _ADDRESS.sub("", repr(key))
+        return hashlib.sha256(stable.encode()).hexdigest()[:20]
 
     @staticmethod
     def program(key) -> str:

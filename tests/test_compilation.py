@@ -263,6 +263,31 @@ def test_compiles_are_announced_once_each_with_a_history_across_processes(tmp_pa
     assert silent.getvalue() == "compiling the square...\n"
 
 
+def test_a_program_keyed_by_a_function_is_known_again_in_a_later_process(tmp_path):
+    """A batch program's key holds the function it maps, whose ``repr`` carries its memory
+    address: another process's function of the same name has another. The history still
+    finds the program's last time; another function's program is another program."""
+
+    def part_factory():
+        def candidate_parts(x):
+            return x
+
+        return candidate_parts
+
+    def other_part(x):
+        return x
+
+    this_process, later_process = part_factory(), part_factory()
+    assert repr(this_process) != repr(later_process)  # what a later process's key looks like
+    history = tmp_path / "times.json"
+    compilation.CompileAnnouncer(io.StringIO(), history).after("the population", ("batch", "p", this_process), 6.2)
+    later, other = io.StringIO(), io.StringIO()
+    compilation.CompileAnnouncer(later, history).before("the population", ("batch", "p", later_process))
+    compilation.CompileAnnouncer(other, history).before("the population", ("batch", "p", other_part))
+    assert later.getvalue() == "compiling the population (last time 6.2 s on this machine)...\n"
+    assert other.getvalue() == "compiling the population (first time for these settings, about 6 s)...\n"
+
+
 def test_numpy_and_jax_arrays_on_the_default_device_share_one_program():
     """One program for arguments placed alike: NumPy arrays and numbers, and jax.Arrays on
     the default device (the same executable takes either); a sharded placeholder is another."""
