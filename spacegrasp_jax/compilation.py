@@ -45,6 +45,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from spacegrasp_jax import executable_store
+
 #: Compile options for the closed-loop programs on a CPU (see the module docstring).
 CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": ""}
 
@@ -325,16 +327,49 @@ def compile_once(key, lower: Callable[[], Any], label: str | None = None) -> tup
         lower: builds the program's ``jax.stages.Lowered`` (called on a miss only).
         label: the program's name for people ([`listening()`][spacegrasp_jax.compilation.listening]); default ``str(key[0])``.
 
+    A program compiled in an earlier process is loaded from the
+    [`executable_store`][spacegrasp_jax.executable_store] when the key and the code allow
+    it (no tracing, lowering or compiling, and no announcement), else compiled (and loaded
+    from JAX's persistent cache where that has it).
+
     Returns:
-        ``(executable, compile_s)``, the time that of the original compile (s).
+        ``(executable, seconds)``: the time of the original compile or load (s).
     """
-    if key not in _EXECUTABLES:
-        label = label if label is not None else str(key[0] if isinstance(key, tuple) else key)
-        for listener in _LISTENERS:
-            listener.before(label, key)
-        start = time.perf_counter()
-        executable = lower().compile()
+    if key in _EXECUTABLES:
+        return _EXECUTABLES[key]
+    stored = executable_store.path_for(key)
+    start = time.perf_counter()
+    executable = None if stored is None else executable_store.load(stored)
+    if executable is not None:
         _EXECUTABLES[key] = (executable, time.perf_counter() - start)
-        for listener in _LISTENERS:
-            listener.after(label, key, _EXECUTABLES[key][1])
+        return _EXECUTABLES[key]
+    label = label if label is not None else str(key[0] if isinstance(key, tuple) else key)
+    for listener in _LISTENERS:
+        listener.before(label, key)
+    start = time.perf_counter()
+    with _jax_cache_hits() as hits:
+        executable = lower().compile()
+    _EXECUTABLES[key] = (executable, time.perf_counter() - start)
+    for listener in _LISTENERS:
+        listener.after(label, key, _EXECUTABLES[key][1])
+    if stored is not None and not hits:
+        # An executable JAX read from its own cache serialises without its compiled
+        # functions: only a fresh compile is stored.
+        executable_store.save(stored, executable)
     return _EXECUTABLES[key]
+
+
+@contextlib.contextmanager
+def _jax_cache_hits():
+    """The programs JAX's persistent cache served within the block (a list of its events)."""
+    hits = []
+
+    def heard(event: str, **_):
+        if event == "/jax/compilation_cache/cache_hits":
+            hits.append(event)
+
+    jax.monitoring.register_event_listener(heard)
+    try:
+        yield hits
+    finally:
+        jax.monitoring.unregister_event_listener(heard)

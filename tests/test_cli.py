@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import subprocess
 import sys
 
@@ -78,7 +79,7 @@ from pathlib import Path  # noqa: E402
 
 from csv_files import assert_csv_holds  # noqa: E402
 
-from spacegrasp_jax import cli  # noqa: E402
+from spacegrasp_jax import cli, executable_store  # noqa: E402
 
 SUMMARY_KEYS = {
     "max_abs_torque_Nm",
@@ -390,14 +391,27 @@ def test_a_command_keeps_its_programs_in_the_compile_cache_and_loads_them_for_ot
     first, printed, first_summary = simulate("a", "--scenario", str(first_scenario))
     assert any(name.startswith("jit_closed_loop") for name in first)  # the closed loop, compiled once
     assert "compiling the cartesian law's ideal rollout (first time on this machine)...\n" in printed
+    stored = sorted((cache / executable_store.FOLDER).iterdir())
+    assert len(stored) == 1  # the closed loop, under the package's own key
     second, printed, second_summary = simulate("b", "--scenario", str(second_scenario), "--gains", str(other_gains))
     assert second == first  # other gains and initial angles: the program is loaded, nothing new written
+    assert sorted((cache / executable_store.FOLDER).iterdir()) == stored
     assert second_summary["max_abs_torque_Nm"] != first_summary["max_abs_torque_Nm"]  # the values were used
+    assert "compiling the cartesian law's ideal rollout" not in printed  # loaded before tracing
+    # Without the stored executable, the program is traced and found in JAX's own cache
+    # (under the same key: nothing new written), and the compile line says how long it took.
+    shutil.rmtree(cache / executable_store.FOLDER)
+    again, printed, again_summary = simulate("b2", "--scenario", str(second_scenario), "--gains", str(other_gains))
+    assert again == [name for name in first if name != executable_store.FOLDER]
+    timings = ("compile_time_s", "run_time_s")
+    assert {k: v for k, v in again_summary.items() if k not in timings} == {
+        k: v for k, v in second_summary.items() if k not in timings
+    }
     assert re.search(
         r"compiling the cartesian law's ideal rollout \(last time \d+\.\d s on this machine\)\.\.\.", printed
     )
     history = json.loads((cache / cli.COMPILE_TIMES).read_text())
-    assert len(history) == 2  # the program's time and its kind's, overwritten by the second run
+    assert len(history) == 2  # the program's time and its kind's, overwritten by the later run
     assert all(0.0 < seconds < 300.0 for seconds in history.values())
 
     third, printed, third_summary = simulate("c", "--scenario", str(first_scenario), "--realism", str(noisy))

@@ -1,0 +1,230 @@
+"""Compiled programs kept on disk under the package's own program keys, so that a later
+process skips tracing and lowering as well as compiling.
+
+JAX's persistent cache (``spacegrasp_jax.compilation.use_compile_cache``) is keyed by the
+lowered program: a later process finds a program there only after tracing and lowering it
+again, which for the flight-like loop's batched programs takes longer than loading (10-13 s
+of a warm ``spacegrasp tune --realism flight`` on 2 cores). Every program the package
+compiles is also named by a key ([`compile_once()`][spacegrasp_jax.compilation.compile_once]:
+its name, static settings and argument shapes). This store keeps the executable under that
+key, in a folder ``executables`` inside JAX's cache folder, so that a process asking for the
+same program loads it before tracing anything.
+
+A key names a program only together with the code that builds it, so a stored program is
+found only by a process with:
+
+* the same source files of ``spacegrasp_jax`` (its ``tuning`` and ``benchmarks`` included),
+  byte for byte;
+* the same JAX and jaxlib versions, JAX options (``jax.config.values``), ``XLA_FLAGS``,
+  devices and Python version.
+
+A key is stored only if every object in it is described by its value: numbers, strings,
+tuples, NumPy dtypes, JAX devices and shardings, the package's enums, frozen dataclasses and
+module-level functions, and pytree structures made of these. A function or class defined
+outside the package (a user's own law, say), a closure or anything else whose ``repr``
+holds a memory address makes the program one that is compiled (and found in JAX's cache)
+as before: its code is not in the fingerprint, so a stored copy could be stale. Nothing is
+stored in a multi-process run.
+
+The stored files are pickles holding executables, trusted as JAX's own cache is: load
+them only from a folder you control.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import hashlib
+import io
+import os
+import pickle
+import sys
+import types
+from pathlib import Path
+
+import jax
+import numpy as np
+
+#: The folder, inside JAX's compilation cache folder, of the stored programs.
+FOLDER = "executables"
+
+#: The modules whose code the fingerprint covers: their functions, classes and enums may be
+#: named in a stored key.
+_PACKAGE_ROOT = "spacegrasp_jax"
+
+#: Modules of the libraries whose objects in a key are described by their ``repr``.
+_LIBRARY_ROOTS = ("builtins", "numpy", "jax", "jaxlib")
+
+
+class _NotDescribable(Exception):
+    """An object of a key is not described by its value (its code is outside the package)."""
+
+
+def _in_package(module: str | None) -> bool:
+    return module is not None and (module == _PACKAGE_ROOT or module.startswith(_PACKAGE_ROOT + "."))
+
+
+def _describe_type(kind: type) -> str:
+    module = getattr(kind, "__module__", None)
+    if "<locals>" in kind.__qualname__:
+        raise _NotDescribable(kind)
+    if _in_package(module) or (module or "").split(".")[0] in _LIBRARY_ROOTS:
+        return f"{module}.{kind.__qualname__}"
+    raise _NotDescribable(kind)
+
+
+def _describe(value) -> str:
+    """A text that names ``value`` the same in every process running the same code.
+
+    Raises:
+        _NotDescribable: ``value`` holds something whose meaning is not in its value.
+    """
+    if value is None or isinstance(value, (bool, int, float, complex, str, bytes)):
+        return f"{type(value).__name__}:{value!r}"
+    if isinstance(value, (tuple, list)):
+        return f"{type(value).__name__}({','.join(_describe(item) for item in value)})"
+    if isinstance(value, (frozenset, set)):
+        return f"set({','.join(sorted(_describe(item) for item in value))})"
+    if isinstance(value, dict):
+        items = sorted(f"{_describe(k)}:{_describe(v)}" for k, v in value.items())
+        return f"dict({','.join(items)})"
+    if isinstance(value, np.dtype):
+        return f"dtype:{value}"
+    if isinstance(value, enum.Enum):
+        return f"{_describe_type(type(value))}.{value.name}"
+    if isinstance(value, type):
+        return _describe_type(value)
+    if isinstance(value, types.FunctionType):
+        if not _in_package(value.__module__) or "<locals>" in value.__qualname__:
+            raise _NotDescribable(value)
+        return f"function:{value.__module__}.{value.__qualname__}"
+    if isinstance(value, functools.partial):
+        return f"partial({_describe(value.func)},{_describe(value.args)},{_describe(value.keywords)})"
+    if isinstance(value, jax.tree_util.PyTreeDef):
+        return _describe_structure(value)
+    if dataclasses.is_dataclass(value):
+        fields = ",".join(f"{f.name}={_describe(getattr(value, f.name))}" for f in dataclasses.fields(value))
+        return f"{_describe_type(type(value))}({fields})"
+    text = repr(value)
+    if " at 0x" in text:
+        raise _NotDescribable(value)
+    return f"{_describe_type(type(value))}:{text}"
+
+
+def _describe_structure(structure: jax.tree_util.PyTreeDef) -> str:
+    """A pytree structure node by node: each node's type and static data, then its children."""
+    if structure.num_nodes == 1 and structure.num_leaves == 1:
+        return "*"
+    node = structure.node_data()
+    if node is None:  # None, or an empty container JAX does not name
+        return f"leafless:{structure!r}"
+    kind, static = node
+    children = ",".join(_describe_structure(child) for child in structure.children())
+    return f"{_describe_type(kind)}[{_describe(static)}]({children})"
+
+
+@functools.cache
+def _source_digest() -> str:
+    """SHA-256 of the package's source files (``tuning`` and ``benchmarks`` included)."""
+    import spacegrasp_jax
+
+    digest = hashlib.sha256()
+    roots = [Path(spacegrasp_jax.__file__).parent]
+    for name in ("tuning", "benchmarks"):
+        module = sys.modules.get(f"{_PACKAGE_ROOT}.{name}")
+        spec = None if module is not None else _find_spec(f"{_PACKAGE_ROOT}.{name}")
+        folder = (
+            Path(module.__file__).parent if module is not None else (None if spec is None else Path(spec.origin).parent)
+        )
+        if folder is not None and folder not in roots:
+            roots.append(folder)
+    for root in roots:
+        for path in sorted(root.rglob("*.py")):
+            digest.update(str(path.relative_to(root)).encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _find_spec(name: str):
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec(name)
+    except ImportError:
+        return None
+
+
+def _environment() -> str:
+    """What besides the key shapes a program: code, versions, options and devices."""
+    import jaxlib
+
+    options = sorted((name, repr(value)) for name, value in jax.config.values.items())
+    devices = [(d.platform, d.device_kind, d.id, d.process_index) for d in jax.devices()]
+    return repr(
+        (
+            _source_digest(),
+            jax.__version__,
+            jaxlib.__version__,
+            sys.version,
+            os.environ.get("XLA_FLAGS", ""),
+            options,
+            devices,
+        )
+    )
+
+
+def _cache_folder() -> str | None:
+    """JAX's compilation cache folder (``None`` where the cache is off)."""
+    return jax.config.jax_compilation_cache_dir
+
+
+def path_for(key) -> Path | None:
+    """Where the program of ``key`` is stored, or ``None`` where it is not stored: JAX's
+    compilation cache is off, the run spans processes, or the key holds something not
+    described by its value (module docstring)."""
+    folder = _cache_folder()
+    if not folder or jax.process_count() > 1:
+        return None
+    try:
+        described = _describe(key)
+    except _NotDescribable:
+        return None
+    name = hashlib.sha256((described + _environment()).encode()).hexdigest()[:32]
+    return Path(folder) / FOLDER / f"{name}.pickle"
+
+
+def load(path: Path):
+    """The ``jax.stages.Compiled`` stored at ``path``, or ``None`` (no such file, or one
+    this process cannot load: it is then compiled again and the file replaced)."""
+    from jax.experimental import serialize_executable
+
+    try:
+        payload, in_tree, out_tree, device_ids = pickle.loads(path.read_bytes())
+        by_id = {device.id: device for device in jax.devices()}
+        devices = [by_id[i] for i in device_ids]
+        return serialize_executable.deserialize_and_load(payload, in_tree, out_tree, execution_devices=devices)
+    except FileNotFoundError:
+        return None
+    except Exception:  # a partial, foreign or outdated file: compile instead
+        return None
+
+
+def save(path: Path, executable) -> bool:
+    """Store ``executable`` (a ``jax.stages.Compiled``) at ``path``, atomically; ``False``
+    where it cannot be serialised or written (it is then only in JAX's cache)."""
+    from jax.experimental import serialize_executable
+
+    try:
+        payload, in_tree, out_tree = serialize_executable.serialize(executable)
+        device_ids = [device.id for device in executable.runtime_executable().local_devices()]
+        with io.BytesIO() as buffer:
+            pickle.dump((payload, in_tree, out_tree, device_ids), buffer)
+            data = buffer.getvalue()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        temporary = path.with_name(f".{path.name}.{os.getpid()}")
+        temporary.write_bytes(data)
+        os.replace(temporary, path)
+    except Exception:  # not serialisable (constants in the program), or the disk refused
+        return False
+    return True

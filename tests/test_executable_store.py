@@ -1,0 +1,116 @@
+"""The store of compiled programs under the package's own keys: a later process loads a
+program without tracing it, and only keys whose every object is described by its value (and
+the package's code) are stored."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from spacegrasp_jax import compilation, executable_store
+from spacegrasp_jax.simulate import FullLog, closed_loop
+from spacegrasp_jax.stages import Stage
+
+
+@pytest.fixture
+def cache_folder(tmp_path, monkeypatch):
+    """The store in a fresh folder (where JAX's cache folder would put it)."""
+    monkeypatch.setattr(executable_store, "_cache_folder", lambda: str(tmp_path))
+    return tmp_path
+
+
+@dataclasses.dataclass(frozen=True)
+class UsersLaw:  # a class defined outside the package: its code is not in the fingerprint
+    gain: float = 1.0
+
+
+def users_function(x):
+    return x
+
+
+def test_keys_described_by_their_values_are_stored_and_others_are_not(cache_folder):
+    signature = compilation.argument_signature((np.zeros(3), {"a": np.zeros((2, 2))}))
+    package_key = ("batch", "job", (closed_loop, (), (("stage", Stage.ESTIMATE),)), 8, FullLog(4), signature)
+    path = executable_store.path_for(package_key)
+    assert path is not None and path.parent == cache_folder / executable_store.FOLDER
+    assert executable_store.path_for(package_key) == path  # the same name each time
+    assert executable_store.path_for(package_key[:-1] + (FullLog(8), signature)) != path
+
+    def local_function(x):
+        return x
+
+    not_described = [
+        ("job", users_function),  # a function outside the package
+        ("job", local_function),  # a closure: its captured values are not in its name
+        ("job", lambda x: x),
+        ("job", UsersLaw()),  # a user's class
+        ("job", functools.partial(closed_loop, observer=UsersLaw())),
+        ("job", object()),  # described by its address only
+    ]
+    for key in not_described:
+        assert executable_store.path_for(key) is None, key
+
+
+def test_another_version_of_the_code_or_of_the_flags_is_another_program(cache_folder, monkeypatch):
+    key = ("program", closed_loop, 3)
+    path = executable_store.path_for(key)
+    monkeypatch.setattr(executable_store, "_source_digest", lambda: "edited")
+    edited = executable_store.path_for(key)
+    monkeypatch.undo()
+    monkeypatch.setattr(executable_store, "_cache_folder", lambda: str(cache_folder))
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_fast_math=false")
+    other_flags = executable_store.path_for(key)
+    assert len({path, edited, other_flags}) == 3
+
+
+def test_no_folder_no_store(monkeypatch):
+    monkeypatch.setattr(executable_store, "_cache_folder", lambda: None)
+    assert executable_store.path_for(("program", 1)) is None
+
+
+RUN_A_SHORT_ROLLOUT = """
+import sys
+import numpy as np
+import spacegrasp_jax as sg
+from spacegrasp_jax import compilation, experiment
+from spacegrasp_jax.control import paper_gains
+from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.simulate import RunSpec
+
+sg.configure(compile_cache=sys.argv[1])
+if sys.argv[2] == "load":  # a later process: the program must come from the store, untraced
+    def compile_once_without_lowering(key, lower, label=None):
+        def refuse():
+            raise AssertionError(f"{label} was traced again")
+        return original(key, refuse, label)
+    original = compilation.compile_once
+    compilation.compile_once = compile_once_without_lowering
+robot = sg.paper_robot()
+log = experiment.run(RunSpec(robot, paper_scenario(robot, duration=0.05), "admittance"), paper_gains()).log
+np.savez(sys.argv[3], pose=log.pose_ee, torque=log.u)
+"""
+
+
+def test_a_later_process_loads_the_program_without_tracing_it_and_gets_the_same_log(tmp_path):
+    cache = tmp_path / "cache"
+    logs = []
+    for step in ("compile", "load"):
+        path = tmp_path / f"{step}.npz"
+        result = subprocess.run(
+            [sys.executable, "-c", RUN_A_SHORT_ROLLOUT, str(cache), step, str(path)],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert result.returncode == 0, result.stderr[-3000:]
+        logs.append(dict(np.load(path)))
+        if step == "compile":
+            assert len(list((cache / executable_store.FOLDER).iterdir())) == 1
+    for name in ("pose", "torque"):
+        np.testing.assert_array_equal(logs[0][name], logs[1][name])
