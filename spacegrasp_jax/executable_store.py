@@ -3,8 +3,8 @@ process skips tracing and lowering as well as compiling.
 
 JAX's persistent cache (``spacegrasp_jax.compilation.use_compile_cache``) is keyed by the
 lowered program: a later process finds a program there only after tracing and lowering it
-again, which for the flight-like loop's batched programs takes longer than loading (10-13 s
-of a warm ``spacegrasp tune --realism flight`` on 2 cores). Every program the package
+again, which for the flight-like loop's batched programs takes longer than loading (about
+6 s of a warm ``spacegrasp tune --realism flight`` of 15 s on 2 cores). Every program the package
 compiles is also named by a key ([`compile_once()`][spacegrasp_jax.compilation.compile_once]:
 its name, static settings and argument shapes). This store keeps the executable under that
 key, in a folder ``executables`` inside JAX's cache folder, so that a process asking for the
