@@ -180,7 +180,8 @@ def rk4_step_sharing_kinematics(
     where [`rk4_step()`][spacegrasp_jax.integrator.rk4_step] with ``rate_at_start`` holds
     two (its caller's and its scan's): less code to compile for the same arithmetic in the
     same order. A forward loop's step: reverse mode would keep every stage's kinematics, so
-    the checkpointed loop uses ``rk4_step``.
+    the checkpointed loop uses
+    [`rk4_step_from_start_kinematics()`][spacegrasp_jax.integrator.rk4_step_from_start_kinematics].
 
     Returns:
         ``(next state, kinematics(state))``.
@@ -196,6 +197,49 @@ def rk4_step_sharing_kinematics(
 
     next_state, _, stages = _four_stages(stage, state, dt, u)
     return next_state, jax.tree.map(lambda x: x[0], stages)
+
+
+def rk4_step_from_start_kinematics(
+    kinematics: Callable[[PlantState], Any],
+    rate: Callable[[PlantState, Any, Any], PlantState],
+    state: PlantState,
+    dt,
+    u,
+    start_kinematics=None,
+) -> PlantState:
+    """One classical Runge-Kutta step of ``d state/dt = rate(state, kinematics(state), u)``
+    (``u``, the joint torques, held over the step), the step of a loop that is
+    differentiated; ``start_kinematics``: ``kinematics(state)`` where the caller has
+    computed it already (for its controller and its log), else ``None``.
+
+    The four stages are one ``lax.scan`` whose body is under ``jax.checkpoint``
+    (``prevent_cse=False``, as in [`rk4_step()`][spacegrasp_jax.integrator.rk4_step]); the
+    first stage reads ``start_kinematics`` through a ``lax.cond`` where given, and every
+    other stage computes its own. The compiled step and its derivative hold one copy of
+    ``rate`` where ``rk4_step`` with ``rate_at_start`` holds two (its caller's first stage
+    and its scan's), so the program is smaller and compiles faster (documentation,
+    Performance); the tape keeps each stage's input (and ``start_kinematics``) and the
+    backward pass recomputes each stage once, as there.
+
+    Returns:
+        The state after the step (projected on its manifold).
+    """
+
+    @functools.partial(jax.checkpoint, prevent_cse=False)
+    def stage(carry, coefficients):
+        previous_rate, weighted_sum, held = carry
+        fraction, weight, first = coefficients
+        stage_state = _advance(state, previous_rate, fraction * dt)
+        if start_kinematics is None:
+            stage_kinematics = kinematics(stage_state)
+        else:
+            stage_kinematics = jax.lax.cond(first, lambda _: start_kinematics, kinematics, stage_state)
+        stage_rate = rate(stage_state, stage_kinematics, held)
+        return (stage_rate, _advance(weighted_sum, stage_rate, weight), held), None
+
+    first = jnp.arange(len(_ALL_STAGES)) == 0
+    next_state, _, _ = _four_stages(stage, state, dt, u, (first,))
+    return next_state
 
 
 def rk4_step_with_start(

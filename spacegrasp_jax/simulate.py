@@ -18,6 +18,7 @@ Everything is pure: jit, vmap (over scenarios, robots or gains) and grad apply.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -25,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from spacegrasp_jax import spatial, stages
+from spacegrasp_jax import compilation, spatial, stages
 from spacegrasp_jax.contact import (
     contact_force_exact,
     contact_force_smooth,
@@ -45,7 +46,7 @@ from spacegrasp_jax.dynamics import (
 )
 from spacegrasp_jax.integrator import (
     PlantState,
-    rk4_step,
+    rk4_step_from_start_kinematics,
     rk4_step_sharing_kinematics,
     rk4_step_with_start,
     state_rate,
@@ -485,9 +486,13 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
     the first stage on its kinematics
     ([`rk4_step_with_start()`][spacegrasp_jax.integrator.rk4_step_with_start]): one copy
     of the kinematics and the dynamics in the program, which then compiles in 55-70% of
-    the time. With it (reverse mode), the controller with RK4's first stage and each later
-    stage are checkpointed apart, which keeps the tape and the backward pass small. The two
-    are the same operations in the same order and agree to rounding.
+    the time. With it (reverse mode), the controller (with the kinematics at the step's
+    start) and each of RK4's four stages are checkpointed apart, which keeps the tape and
+    the backward pass small; the stages are one scan whose first reads the controller's
+    kinematics
+    ([`rk4_step_from_start_kinematics()`][spacegrasp_jax.integrator.rk4_step_from_start_kinematics]):
+    one copy of the dynamics. The two are the same operations in the same order and agree
+    to rounding.
 
     Args:
         spec: the run ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]: the plant, the
@@ -592,18 +597,6 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
         fields = dict(held, u=u, q_measured=q, qd_measured=qd) if logs_readings else dict(held, u=u)
         return fields, pid_state, line
 
-    def row_and_rate(plant: PlantState, step, fields, kinematics=None, observed=None):
-        """Plant step number ``step`` (a float)'s log row and the plant's rate at its start."""
-        t = step * scenario.dt
-        if kinematics is None:
-            kinematics = plant_kinematics(robot, scenario, plant)
-            observed = observe(robot, scenario, plant, kinematics, t)
-        row = log_row(plant, kinematics, t, observed, scenario.target, **fields)
-        return row, plant_rate(robot, scenario, plant, kinematics, fields["u"])
-
-    def advance(plant: PlantState, u, k1) -> PlantState:
-        return rk4_step(lambda s: plant_derivative(robot, scenario, s, u), plant, scenario.dt, rate_at_start=k1)
-
     def kinematics_of(plant: PlantState) -> PlantKinematics:
         return plant_kinematics(robot, scenario, plant)
 
@@ -632,26 +625,25 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
         return dataclasses.replace(state, plant=plant), jax.tree.map(lambda x: x[None], row)
 
     def period_of_one_step(state: LoopState, k):
-        # The controller reads the state RK4's first stage starts from: share the kinematics.
-        def control_and_first_rate(state: LoopState, k):
-            noise = period_noise(k)
+        # The controller reads the kinematics RK4's first stage starts from: they are shared.
+        # Inside a scan no CSE can undo the checkpoint; without the optimisation barriers of
+        # the default prevent_cse=True, XLA fuses more (integrator.rk4_step_from_start_kinematics).
+        @functools.partial(jax.checkpoint, prevent_cse=False)
+        def control(state: LoopState, k):
             truth = plant_kinematics(robot, scenario, state.plant)
-            observed = observe(robot, scenario, state.plant, truth, k * scenario.dt)
-            state, law_state, command, held = control_update(state, k, noise, truth, observed)
-            fields, pid_state, line = servo_update(
-                state.plant, state.controller.pid, state.rates_in_flight, k, command, held, noise
-            )
-            row, k1 = row_and_rate(state.plant, k, fields, truth, observed)
-            state = dataclasses.replace(state, controller=ControllerState(law_state, pid_state), rates_in_flight=line)
-            return state, fields["u"], row, k1
+            u, (state, row) = control_at_start(state, k, truth)
+            return state, u, row, truth
 
-        if checkpoint:
-            # Inside a scan no CSE can undo the checkpoint; without the optimisation barriers of
-            # the default prevent_cse=True, XLA fuses more (integrator.rk4_step).
-            control_and_first_rate = jax.checkpoint(control_and_first_rate, prevent_cse=False)
-        state, u, row, k1 = control_and_first_rate(state, k)
-        state = dataclasses.replace(state, plant=advance(state.plant, u, k1))
-        return state, jax.tree.map(lambda x: x[None], row)
+        state, u, row, truth = control(state, k)
+        # Reusing the controller's kinematics saves computing them again, but puts them on
+        # the tape, in the inner scans of two steps: over 64 numbers an array, which makes
+        # XLA run those loops as a task graph where it runs them kernel by kernel (35% slower
+        # a gradient, against 13% faster recomputing them). Compiled whole, the loops do
+        # not care, and reusing them is as fast as the step before it and compiles in 70%
+        # of its time (documentation, Performance).
+        reused = truth if compilation.loops_compile_whole() else None
+        plant = rk4_step_from_start_kinematics(kinematics_of, rate_of, state.plant, scenario.dt, u, reused)
+        return dataclasses.replace(state, plant=plant), jax.tree.map(lambda x: x[None], row)
 
     def period_of_steps(state: LoopState, k):
         noise = period_noise(k)
@@ -661,15 +653,14 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
         )
 
         def plant_step(plant, step, fields):
-            if not checkpoint:  # one copy of the kinematics and the rate (integrator)
-                t = step * scenario.dt
-                next_plant, kinematics = rk4_step_sharing_kinematics(
-                    kinematics_of, rate_of, plant, scenario.dt, fields["u"]
-                )
-                observed = observe(robot, scenario, plant, kinematics, t)
-                return next_plant, log_row(plant, kinematics, t, observed, scenario.target, **fields)
-            row, k1 = row_and_rate(plant, step, fields)
-            return advance(plant, fields["u"], k1), row
+            t, u = step * scenario.dt, fields["u"]
+            if checkpoint:
+                kinematics = kinematics_of(plant)
+                next_plant = rk4_step_from_start_kinematics(kinematics_of, rate_of, plant, scenario.dt, u, kinematics)
+            else:  # one copy of the kinematics and the rate (integrator)
+                next_plant, kinematics = rk4_step_sharing_kinematics(kinematics_of, rate_of, plant, scenario.dt, u)
+            observed = observe(robot, scenario, plant, kinematics, t)
+            return next_plant, log_row(plant, kinematics, t, observed, scenario.target, **fields)
 
         def servo_tick(carry, j):
             plant, pid_state, line = carry
@@ -797,11 +788,12 @@ class RunSpec:
         observer: static: what the loop keeps ([`Observer`][spacegrasp_jax.simulate.Observer]; default
             [`FullLog`][spacegrasp_jax.simulate.FullLog], the whole log).
         checkpoint: static: put each control period under ``jax.checkpoint`` for reverse
-            mode. A period of one plant step puts its controller update with RK4's first
-            rate there (RK4's later stages always are, one by one: ``integrator.rk4_step``):
-            the tape keeps, per step, the state and the rates RK4's stages start from. A
+            mode. A period of one plant step puts its controller update there (RK4's
+            stages always are, one by one:
+            ``integrator.rk4_step_from_start_kinematics``): the tape keeps, per step, the
+            state, the kinematics at its start and the rates RK4's stages start from. A
             longer period goes there whole: the tape keeps one state per period. A forward
-            run gives the same bits either way.
+            run agrees with the unchecked loop's to rounding.
     """
 
     robot: Robot

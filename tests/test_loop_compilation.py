@@ -108,13 +108,17 @@ def test_the_hlo_reader_finds_an_oversized_array():
 @pytest.fixture(scope="module")
 def compiled_hlo(robot, gains):
     """Optimised HLO text of a program, compiled once for this module's tests: ``"rollout"``
-    and ``"folded_metrics"`` (a campaign's loop) per controller, and the one-scenario tuning ``"gradient"``."""
+    and ``"folded_metrics"`` (a campaign's loop) per controller, and the one-scenario tuning
+    ``"gradient"``, as traced in this process (loops compiled whole) and as traced where
+    loops run kernel by kernel (``"gradient_kernel_by_kernel"``)."""
     texts = {}
 
     def get(program: str, controller: str = "admittance") -> str:
         if (program, controller) not in texts:
             if program == "gradient":
                 texts[program, controller] = _gradient_hlo(robot, gains)
+            elif program == "gradient_kernel_by_kernel":
+                texts[program, controller] = _gradient_hlo(robot, gains, loops_whole=False)
             else:
                 scenario = paper_scenario(robot, duration=0.1)
                 function = {"rollout": rollout, "folded_metrics": _folded_metrics}[program]
@@ -132,7 +136,9 @@ def _folded_metrics(robot, scenario, gains, controller):
     return closed_loop(RunSpec(robot, scenario, controller, observer=FoldedMetrics()), gains)[1]
 
 
-def _gradient_hlo(robot, gains) -> str:
+def _gradient_hlo(robot, gains, loops_whole: bool = True) -> str:
+    """The tuning gradient's program as traced in a process whose loops compile whole, or
+    (``loops_whole=False``) as traced where they run kernel by kernel."""
     from spacegrasp_jax.tuning.objective import Objective, Weights
     from spacegrasp_jax.tuning.parameters import initial_params, make_mask
     from spacegrasp_jax.tuning.tune import (
@@ -156,7 +162,13 @@ def _gradient_hlo(robot, gains) -> str:
         checkpoint_segment(scenario.n_steps),
     )
     params = initial_params(gains, "admittance")
-    return make_value_and_grad(loss, params, "reverse").lower(params).compile().as_text()
+    if loops_whole:
+        return make_value_and_grad(loss, params, "reverse").lower(params).compile().as_text()
+    # A jit of its own: the package's gradient program keeps its first trace for the process.
+    gradient = compilation.jit(jax.value_and_grad(loss.function, has_aux=True))
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(compilation, "loops_compile_whole", lambda: False)
+        return gradient.lower(params, loss.values).compile().as_text()
 
 
 def gradient_step_loops(hlo: str) -> set[str]:
@@ -215,10 +227,12 @@ def test_the_step_loop_holds_no_array_over_512_bytes(compiled_hlo, controller, p
 
 @pytest.mark.slow
 def test_the_gradient_step_loops_hold_no_array_over_512_bytes(compiled_hlo):
+    # Where loops run kernel by kernel, the rule that keeps them in XLA's sequential mode.
     # The outermost loops, over blocks of steps, hold the tape and are exempt. Without
     # jax.checkpoint on RK4's stage loop, the backward loops hold the stages' stacked
-    # residuals and this fails.
-    hlo = compiled_hlo("gradient")
+    # residuals and this fails; so it does with the controller's kinematics reused by RK4's
+    # first stage, which the program compiled whole does (two steps of 7x7 blocks on the tape).
+    hlo = compiled_hlo("gradient_kernel_by_kernel")
     bodies = computations(hlo)
     step_loops = gradient_step_loops(hlo)
     assert len(step_loops) >= 4
