@@ -637,10 +637,10 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
         state, u, row, truth = control(state, k)
         # Reusing the controller's kinematics saves computing them again, but puts them on
         # the tape, in the inner scans of two steps: over 64 numbers an array, which makes
-        # XLA run those loops as a task graph where it runs them kernel by kernel (35% slower
-        # a gradient, against 13% faster recomputing them). Compiled whole, the loops do
-        # not care, and reusing them is as fast as the step before it and compiles in 70%
-        # of its time (documentation, Performance).
+        # XLA run those loops as a task graph where it runs them kernel by kernel (a gradient
+        # 35% slower than with the two-copy step this replaced; recomputing them, 13%
+        # faster). Loops compiled whole do not care: reusing them runs as fast as that step
+        # and compiles in 56-71% of its time (documentation, Performance).
         reused = truth if compilation.loops_compile_whole() else None
         plant = rk4_step_from_start_kinematics(kinematics_of, rate_of, state.plant, scenario.dt, u, reused)
         return dataclasses.replace(state, plant=plant), jax.tree.map(lambda x: x[None], row)
