@@ -117,15 +117,12 @@ def _advance(base, rate, h):
     return jax.tree.map(lambda x, dx: x + h * dx, base, rate)
 
 
-def rk4_step(
-    derivative: Callable[[PlantState], PlantState], state: PlantState, dt, rate_at_start: PlantState | None = None
-) -> PlantState:
+def rk4_step(derivative: Callable[[PlantState], PlantState], state: PlantState, dt) -> PlantState:
     """One classical Runge-Kutta step of length ``dt`` (s) of ``d state/dt = derivative(state)``.
 
     ``derivative`` closes over anything held constant during the step (zero-order hold of
     the joint torques); forces that belong to the plant (contact) are evaluated inside it,
-    at every stage. ``rate_at_start``, when given, is ``derivative(state)`` computed by the
-    caller (the closed loop shares its kinematics with the controller).
+    at every stage.
 
     Stages 2-4 are one ``lax.scan`` over their coefficients, its body under
     ``jax.checkpoint``: the compiled step holds one copy of ``derivative`` for them instead
@@ -145,7 +142,7 @@ def rk4_step(
         rate = derivative(_advance(state, previous_rate, fraction * dt))
         return (rate, _advance(weighted_sum, rate, weight)), None
 
-    k1 = derivative(state) if rate_at_start is None else rate_at_start
+    k1 = derivative(state)
     coefficients = jnp.asarray(_LATER_STAGES, dtype=state.q.dtype).T
     (_, weighted_sum), _ = jax.lax.scan(later_stage, (k1, k1), tuple(coefficients))
     return _advance(state, weighted_sum, dt / 6).projected()
@@ -177,8 +174,8 @@ def rk4_step_sharing_kinematics(
     the kinematics at the step's start, for the caller's log.
 
     The compiled step holds one copy of ``kinematics`` and of ``rate`` for the four stages,
-    where [`rk4_step()`][spacegrasp_jax.integrator.rk4_step] with ``rate_at_start`` holds
-    two (its caller's and its scan's): less code to compile for the same arithmetic in the
+    where a first stage written beside the caller's own use of the start's kinematics and
+    the later stages in a scan hold two: less code to compile for the same arithmetic in the
     same order. A forward loop's step: reverse mode would keep every stage's kinematics, so
     the checkpointed loop uses
     [`rk4_step_from_start_kinematics()`][spacegrasp_jax.integrator.rk4_step_from_start_kinematics].
@@ -216,8 +213,8 @@ def rk4_step_from_start_kinematics(
     (``prevent_cse=False``, as in [`rk4_step()`][spacegrasp_jax.integrator.rk4_step]); the
     first stage reads ``start_kinematics`` through a ``lax.cond`` where given, and every
     other stage computes its own. The compiled step and its derivative hold one copy of
-    ``rate`` where ``rk4_step`` with ``rate_at_start`` holds two (its caller's first stage
-    and its scan's), so the program is smaller and compiles faster (documentation,
+    ``rate`` where a first stage written beside the controller and the later stages in a
+    scan hold two, so the program is smaller and compiles faster (documentation,
     Performance); the tape keeps each stage's input (and ``start_kinematics``) and the
     backward pass recomputes each stage once, as there.
 
