@@ -183,8 +183,9 @@ def path_for(key) -> Path | None:
 
 
 def load(path: Path):
-    """The ``jax.stages.Compiled`` stored at ``path``, or ``None`` (no such file, or one
-    this process cannot load: it is then compiled again and the file replaced)."""
+    """The ``jax.stages.Compiled`` stored at ``path``, or ``None``: no such file, or one
+    this process cannot load, which is removed (the program is then compiled, or loaded
+    from JAX's cache, and stored again after a fresh compile)."""
     from jax.experimental import serialize_executable
 
     try:
@@ -195,6 +196,7 @@ def load(path: Path):
     except FileNotFoundError:
         return None
     except Exception:  # a partial, foreign or outdated file: compile instead
+        path.unlink(missing_ok=True)
         return None
 
 

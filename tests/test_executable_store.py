@@ -114,3 +114,11 @@ def test_a_later_process_loads_the_program_without_tracing_it_and_gets_the_same_
             assert len(list((cache / executable_store.FOLDER).iterdir())) == 1
     for name in ("pose", "torque"):
         np.testing.assert_array_equal(logs[0][name], logs[1][name])
+
+
+def test_an_unreadable_file_is_removed_and_not_loaded(tmp_path):
+    broken = tmp_path / "broken.pickle"
+    broken.write_bytes(b"not a stored program")
+    assert executable_store.load(broken) is None
+    assert not broken.exists()
+    assert executable_store.load(tmp_path / "absent.pickle") is None
