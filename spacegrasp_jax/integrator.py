@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from spacegrasp_jax import spatial
 from spacegrasp_jax.dynamics import forward_dynamics
 from spacegrasp_jax.model import Robot
+from spacegrasp_jax.tangents import with_derivative_of
 from spacegrasp_jax.target import TargetState, fixed_target_state
 
 
@@ -153,11 +154,15 @@ def rk4_step(derivative: Callable[[PlantState], PlantState], state: PlantState, 
 _ALL_STAGES = ((0.0, 1.0),) + _LATER_STAGES
 
 
-def _four_stages(stage, state: PlantState, dt, held, extra_xs=()):
+def _four_stages(stage, state: PlantState, dt, held, extra_xs=(), differentiated=False):
     """RK4's four stages as one ``lax.scan`` of ``stage((previous rate, weighted sum,
-    held), (fraction, weight, *extra_xs)) -> (carry, out)``; ``(next state, held, outs)``."""
+    held), (fraction, weight, *extra_xs)) -> (carry, out)``; ``(next state, held, outs)``.
+    ``differentiated``: the zero rate and sum the scan starts from carry a derivative
+    wherever ``state`` does (``tangents``), so reverse mode linearises ``stage`` once."""
     fractions, weights = jnp.asarray(_ALL_STAGES, dtype=state.q.dtype).T
     zero = jax.tree.map(jnp.zeros_like, state)
+    if differentiated:
+        zero = jax.tree.map(with_derivative_of, zero, state)
     (_, weighted_sum, held), outs = jax.lax.scan(stage, (zero, zero, held), (fractions, weights, *extra_xs))
     return _advance(state, weighted_sum, dt / 6).projected(), held, outs
 
@@ -235,7 +240,7 @@ def rk4_step_from_start_kinematics(
         return (stage_rate, _advance(weighted_sum, stage_rate, weight), held), None
 
     first = jnp.arange(len(_ALL_STAGES)) == 0
-    next_state, _, _ = _four_stages(stage, state, dt, u, (first,))
+    next_state, _, _ = _four_stages(stage, state, dt, u, (first,), differentiated=True)
     return next_state
 
 

@@ -55,6 +55,7 @@ from spacegrasp_jax.kinematics import Frames, point_jacobian_blocks
 from spacegrasp_jax.model import Robot, n_joints
 from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.tangents import with_derivative_of
 from spacegrasp_jax.target import lar_frame, lar_velocity, target_momentum, target_rate
 from spacegrasp_jax.trajectory import desired_state
 
@@ -837,7 +838,14 @@ def closed_loop(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> tu
         memory, output = observer.fold(memory, rows)
         return (state, memory, k + 1), output
 
-    carry = (body.start, observer.init(robot, scenario), jnp.zeros((), dtype))
+    start = body.start
+    if spec.checkpoint:
+        # The gains drive every part of the loop's state but a fixed target's: those parts
+        # carry their derivative from the start, so reverse mode linearises the period once.
+        start = with_derivative_of(start, gains)
+        if not scenario.free_target:
+            start = dataclasses.replace(start, plant=dataclasses.replace(start.plant, target=body.start.plant.target))
+    carry = (start, observer.init(robot, scenario), jnp.zeros((), dtype))
     if block == 1:
         (final, memory, _), kept = jax.lax.scan(period_and_fold, carry, None, length=body.periods)
     else:

@@ -1,0 +1,130 @@
+"""The closed loop tells reverse mode up front which parts of its carry carry a derivative
+(``spacegrasp_jax.tangents``): the derivative is the one JAX finds by itself, and each loop
+body is linearised once where JAX would linearise it until the set stopped growing.
+
+The counts read JAX's own functions for linearising and differentiating a loop body
+(``jax._src.interpreters.ad``); where a JAX release renames them, the counting tests stop
+with an error naming them rather than passing without counting.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from spacegrasp_jax import integrator, simulate
+from spacegrasp_jax.realism import flight
+from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.simulate import FullLog, RunSpec, closed_loop
+from spacegrasp_jax.tangents import with_derivative_of
+
+
+def test_the_value_is_unchanged_and_its_derivative_is_zero():
+    value = {"a": jnp.arange(3.0), "b": jnp.ones((2, 2))}
+    same = with_derivative_of(value, 2.0)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(same), jax.tree.leaves(value)))
+    out, tangent = jax.jvp(lambda g: with_derivative_of(value, g), (2.0,), (1.0,))
+    np.testing.assert_array_equal(out["a"], value["a"])
+    assert all(np.all(np.asarray(leaf) == 0.0) for leaf in jax.tree.leaves(tangent))
+
+
+def test_a_scan_started_with_a_derivative_has_the_analytic_gradient():
+    # c_{k+1} = c_k / 2 + g from c_0 = 0: c_n = 2 g (1 - 2^-n), so dc_n/dg = 2 (1 - 2^-n).
+    def final(g):
+        start = with_derivative_of(jnp.zeros(3), g)
+        end, _ = jax.lax.scan(lambda c, _: (0.5 * c + g, None), start, None, length=10)
+        return end.sum()
+
+    assert jax.grad(final)(1.5) == pytest.approx(3 * 2 * (1 - 2.0**-10), rel=1e-15)
+
+
+@contextlib.contextmanager
+def counting_linearisations():
+    """Counts, per ``lax.scan`` body (a jaxpr object), how often JAX linearises or
+    differentiates it (its rules for ``scan`` call these once per round of their search for
+    the carry's derivatives)."""
+    from jax._src.interpreters import ad
+    from jax._src.lax.control_flow import loops
+
+    names = ("linearize_jaxpr", "jvp_jaxpr")
+    missing = [name for name in names if not hasattr(ad, name)] + [n for n in ("scan_p",) if not hasattr(loops, n)]
+    if missing:
+        raise AssertionError(f"this JAX has no {', '.join(missing)} where the count reads them: update the count")
+    bodies, counts = set(), collections.Counter()
+    tables = (ad.primitive_linearizations, ad.primitive_jvps)
+    rules = [table[loops.scan_p] for table in tables]
+    functions = {name: getattr(ad, name) for name in names}
+
+    def noting_the_body(rule):
+        def wrapper(*args, jaxpr, **params):
+            bodies.add(id(jaxpr))
+            return rule(*args, jaxpr=jaxpr, **params)
+
+        return wrapper
+
+    def counted(function):
+        def wrapper(jaxpr, *args, **kwargs):
+            if id(jaxpr) in bodies:
+                counts[id(jaxpr)] += 1
+            return function(jaxpr, *args, **kwargs)
+
+        return wrapper
+
+    try:
+        for table, rule in zip(tables, rules):
+            table[loops.scan_p] = noting_the_body(rule)
+        for name, function in functions.items():
+            setattr(ad, name, counted(function))
+        yield counts
+    finally:
+        for table, rule in zip(tables, rules):
+            table[loops.scan_p] = rule
+        for name, function in functions.items():
+            setattr(ad, name, function)
+
+
+def without_hints(monkeypatch):
+    """The loops as JAX would differentiate them without being told (the reference)."""
+    for module in (simulate, integrator):
+        monkeypatch.setattr(module, "with_derivative_of", lambda value, anchor: value)
+
+
+SPECS = {
+    "ideal": lambda robot: RunSpec(
+        robot, paper_scenario(robot, contact_law="smooth", duration=0.004), observer=FullLog(2), checkpoint=True
+    ),
+    "flight": lambda robot: RunSpec(
+        robot,
+        paper_scenario(robot, contact_law="smooth", duration=0.02),
+        realism=flight(),
+        observer=FullLog(),
+        checkpoint=True,
+    ),
+}
+
+
+def most_linearisations_of_a_body(spec, gains) -> int:
+    def loss(gains):
+        _, log = closed_loop(spec, gains, jax.random.key(0))
+        return jnp.sum(log.u**2) + jnp.sum(log.pose_ee**2)
+
+    with counting_linearisations() as counts:
+        jax.jit(jax.grad(loss)).trace(gains)
+    return max(counts.values())
+
+
+@pytest.mark.parametrize("loop", ["ideal", "flight"])
+def test_each_loop_body_is_linearised_once(robot, gains, loop):
+    # What the derivative is, is checked against finite differences where the tuning's
+    # gradient is (tests/test_tuning.py).
+    assert most_linearisations_of_a_body(SPECS[loop](robot), gains) == 1
+
+
+def test_without_being_told_jax_linearises_a_body_again(robot, gains, monkeypatch):
+    without_hints(monkeypatch)  # shows that the count above can fail
+    assert most_linearisations_of_a_body(SPECS["ideal"](robot), gains) >= 2
