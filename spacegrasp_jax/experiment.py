@@ -177,12 +177,17 @@ def robot_and_scenario_of_run(folder, config: dict) -> tuple[Robot, Scenario]:
     return robot, scenario_from_dict(config["scenario"])
 
 
+# One small program rather than some six single operations, each compiled apart; at LLVM's
+# -O0 nothing fuses a multiply with an add, so its numbers are theirs, bit for bit.
+_error_parts = jax.jit(anatomy.error_parts, compiler_options={"xla_backend_optimization_level": 0})
+
+
 def run_summary(log: Log, robot: Robot, scenario: Scenario, realism: Realism | None = None) -> dict:
     """The metrics of a whole log ([`spacegrasp_jax.metrics.summary()`][spacegrasp_jax.metrics.summary], runaways by
     ``robot``'s limits) and the parts of its final error ([`spacegrasp_jax.anatomy.error_parts()`][spacegrasp_jax.anatomy.error_parts]),
     as plain floats and lists."""
     summary = metrics.summary(log, robot, free_target=scenario.free_target)
-    parts = anatomy.error_parts(
+    parts = _error_parts(
         {"final_contact_force_N": np.asarray(summary["final_contact_force_N"])}, scenario, realism
     )
     return summary | {name: np.asarray(value).tolist() for name, value in parts.items()}

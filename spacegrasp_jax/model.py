@@ -204,9 +204,11 @@ def make_robot(**fields) -> Robot:
     return Robot(**_validated(fields, label=lambda field: field))
 
 
+@jax.jit
 def _rotation_about_x(angle: np.ndarray) -> jax.Array:
     """``Rx(angle)`` (..., 3, 3) with exact zeros and ones, computed as the closed loop computes
-    its own cosines (so that a DH robot's frames come out as the DH formula's, bit for bit)."""
+    its own cosines (so that a DH robot's frames come out as the DH formula's, bit for bit).
+    One compiled program rather than eight single operations, each compiled apart."""
     angle = jnp.asarray(angle)
     c, s = jnp.cos(angle), jnp.sin(angle)
     zero, one = jnp.zeros_like(c), jnp.ones_like(c)
