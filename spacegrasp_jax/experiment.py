@@ -187,9 +187,7 @@ def run_summary(log: Log, robot: Robot, scenario: Scenario, realism: Realism | N
     ``robot``'s limits) and the parts of its final error ([`spacegrasp_jax.anatomy.error_parts()`][spacegrasp_jax.anatomy.error_parts]),
     as plain floats and lists."""
     summary = metrics.summary(log, robot, free_target=scenario.free_target)
-    parts = _error_parts(
-        {"final_contact_force_N": np.asarray(summary["final_contact_force_N"])}, scenario, realism
-    )
+    parts = _error_parts({"final_contact_force_N": np.asarray(summary["final_contact_force_N"])}, scenario, realism)
     return summary | {name: np.asarray(value).tolist() for name, value in parts.items()}
 
 
