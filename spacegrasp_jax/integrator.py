@@ -18,7 +18,6 @@ import jax.numpy as jnp
 from spacegrasp_jax import spatial
 from spacegrasp_jax.dynamics import forward_dynamics
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.tangents import with_derivative_of
 from spacegrasp_jax.target import TargetState, fixed_target_state
 
 
@@ -157,12 +156,11 @@ _ALL_STAGES = ((0.0, 1.0),) + _LATER_STAGES
 def _four_stages(stage, state: PlantState, dt, held, extra_xs=(), differentiated=False):
     """RK4's four stages as one ``lax.scan`` of ``stage((previous rate, weighted sum,
     held), (fraction, weight, *extra_xs)) -> (carry, out)``; ``(next state, held, outs)``.
-    ``differentiated``: the zero rate and sum the scan starts from carry a derivative
-    wherever ``state`` does (``tangents``), so reverse mode linearises ``stage`` once."""
+    ``differentiated``: the zero rate and sum the scan starts from are ``0 * state``, which
+    carries a derivative wherever ``state`` does, so reverse mode linearises ``stage`` once
+    (``spacegrasp_jax.tangents``); for a finite state they are the same zeros."""
     fractions, weights = jnp.asarray(_ALL_STAGES, dtype=state.q.dtype).T
-    zero = jax.tree.map(jnp.zeros_like, state)
-    if differentiated:
-        zero = jax.tree.map(with_derivative_of, zero, state)
+    zero = jax.tree.map(lambda x: 0.0 * x if differentiated else jnp.zeros_like(x), state)
     (_, weighted_sum, held), outs = jax.lax.scan(stage, (zero, zero, held), (fractions, weights, *extra_xs))
     return _advance(state, weighted_sum, dt / 6).projected(), held, outs
 

@@ -6,11 +6,12 @@ have a derivative. A part that starts without one (the loop's initial state, fix
 scenario; RK4's sums, starting at zero) but gets one after an iteration makes JAX linearise
 the body again with the larger set, until the set stops growing. The closed loop's step is
 most of a gradient's program, so the 17 s tuning gradient traced the step's derivative four
-times (twice per closed-loop iteration, twice per RK4 iteration inside each): 3 of its 7 s
-of tracing. [`with_derivative_of()`][spacegrasp_jax.tangents.with_derivative_of] gives a part
-the derivative it will have from its start, and JAX linearises each body once. The values are
-the same, and so is the compiled program but for a few multiplications by zero of its
-tangents (documentation, Performance).
+times (twice per closed-loop iteration, twice per RK4 iteration inside each): about 3 of its
+7 s of tracing. [`with_derivative_of()`][spacegrasp_jax.tangents.with_derivative_of] gives
+the closed loop's initial state the derivative the gains will give it, and RK4's sums start
+from ``0 * state`` (``integrator``), so JAX linearises each body once. The values and the
+derivatives are the same; the compiled program gains a few multiplications by zero
+(documentation, Performance).
 """
 
 from __future__ import annotations
@@ -21,12 +22,13 @@ import jax.numpy as jnp
 
 @jax.custom_jvp
 def with_derivative_of(value, anchor):
-    """``value`` itself; under differentiation, a derivative of zeros wherever ``anchor``
-    (any pytree) has a derivative, and none where it has none.
+    """``value`` itself; under differentiation, ``value``'s own derivative, which JAX then
+    holds to be present wherever ``anchor`` (any pytree) has a derivative (zeros where
+    ``value`` has none).
 
     Args:
         value: a pytree of floating arrays (any shapes).
-        anchor: a pytree whose derivative decides ``value``'s.
+        anchor: a pytree whose derivative makes ``value``'s present.
 
     Returns:
         ``value``, unchanged (no operation in a program that is not differentiated).
@@ -37,11 +39,11 @@ def with_derivative_of(value, anchor):
 @with_derivative_of.defjvp
 def _with_derivative_of_jvp(primals, tangents):
     value, _ = primals
-    _, anchor_dot = tangents
+    value_dot, anchor_dot = tangents
     # A zero that depends on the anchor's derivative: a zeros array alone is folded into
     # "no derivative" by JAX.
     floating = [
         leaf for leaf in map(jnp.asarray, jax.tree.leaves(anchor_dot)) if jnp.issubdtype(leaf.dtype, jnp.inexact)
     ]
     zero = 0.0 * sum(jnp.sum(leaf) for leaf in floating)
-    return value, jax.tree.map(lambda leaf: jnp.zeros_like(leaf) + zero.astype(leaf.dtype), value)
+    return value, jax.tree.map(lambda leaf: leaf + zero.astype(leaf.dtype), value_dot)
