@@ -153,14 +153,11 @@ def rk4_step(derivative: Callable[[PlantState], PlantState], state: PlantState, 
 _ALL_STAGES = ((0.0, 1.0),) + _LATER_STAGES
 
 
-def _four_stages(stage, state: PlantState, dt, held, extra_xs=(), differentiated=False):
+def _four_stages(stage, state: PlantState, dt, held, extra_xs=()):
     """RK4's four stages as one ``lax.scan`` of ``stage((previous rate, weighted sum,
-    held), (fraction, weight, *extra_xs)) -> (carry, out)``; ``(next state, held, outs)``.
-    ``differentiated``: the zero rate and sum the scan starts from are ``0 * state``, which
-    carries a derivative wherever ``state`` does, so reverse mode linearises ``stage`` once
-    (``spacegrasp_jax.tangents``); for a finite state they are the same zeros."""
+    held), (fraction, weight, *extra_xs)) -> (carry, out)``; ``(next state, held, outs)``."""
     fractions, weights = jnp.asarray(_ALL_STAGES, dtype=state.q.dtype).T
-    zero = jax.tree.map(lambda x: 0.0 * x if differentiated else jnp.zeros_like(x), state)
+    zero = jax.tree.map(jnp.zeros_like, state)
     (_, weighted_sum, held), outs = jax.lax.scan(stage, (zero, zero, held), (fractions, weights, *extra_xs))
     return _advance(state, weighted_sum, dt / 6).projected(), held, outs
 
@@ -238,7 +235,7 @@ def rk4_step_from_start_kinematics(
         return (stage_rate, _advance(weighted_sum, stage_rate, weight), held), None
 
     first = jnp.arange(len(_ALL_STAGES)) == 0
-    next_state, _, _ = _four_stages(stage, state, dt, u, (first,), differentiated=True)
+    next_state, _, _ = _four_stages(stage, state, dt, u, (first,))
     return next_state
 
 
