@@ -1,6 +1,7 @@
 """The closed loop tells reverse mode up front which parts of its carry carry a derivative
-(``spacegrasp_jax.tangents``): the derivative is the one JAX finds by itself, and each loop
-body is linearised once where JAX would linearise it until the set stopped growing.
+(``spacegrasp_jax.tangents``): the derivative is the one JAX finds by itself, and each of the
+closed loop's scan bodies (RK4's stages apart) is linearised once where JAX would linearise
+it until the set stopped growing.
 
 The counts read JAX's own functions for linearising and differentiating a loop body
 (``jax._src.interpreters.ad``); where a JAX release renames them, the counting tests stop
