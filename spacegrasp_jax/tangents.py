@@ -46,5 +46,5 @@ def _with_derivative_of_jvp(primals, tangents):
     floating = [
         leaf for leaf in map(jnp.asarray, jax.tree.leaves(anchor_dot)) if jnp.issubdtype(leaf.dtype, jnp.inexact)
     ]
-    zero = 0.0 * sum(jnp.sum(leaf) for leaf in floating)
+    zero = jnp.asarray(0.0 * sum(jnp.sum(leaf) for leaf in floating))  # 0.0 for an integer anchor
     return value, jax.tree.map(lambda leaf: leaf + zero.astype(leaf.dtype), value_dot)

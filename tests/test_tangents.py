@@ -55,6 +55,11 @@ def test_the_values_own_derivative_is_kept():
     assert jax.grad(final, (0, 1))(1.5, 0.3)[1] == pytest.approx(3 * 2.0**-10, rel=1e-15)
 
 
+def test_an_anchor_without_a_floating_derivative_leaves_the_value_alone():
+    # An integer anchor has no derivative to lend: the value keeps its own, d(3 x)/dx = 3.
+    assert jax.grad(lambda x: with_derivative_of(x * jnp.ones(3), 7).sum())(0.3) == 3.0
+
+
 @contextlib.contextmanager
 def counting_linearisations():
     """Counts, per ``lax.scan`` body (a jaxpr object) and its length, how often JAX linearises or
