@@ -20,8 +20,11 @@ the same code the commands use (``PROGRAMS``):
 Trace, lower and compile are JAX's own records of the build (``jax.monitoring`` events: the
 jaxpr's tracing, its lowering to StableHLO, XLA's compile); ``hlo_instructions`` counts the
 compiled (optimised) HLO's instructions, every computation's (a loop body counts once).
-``run_s`` is the median of ``--repeats`` calls after the first. The gradients' ``run_s`` is
-compared with ``forward_s``, one forward rollout of the same scenario in the same process.
+``run_s`` is the median of ``--repeats`` calls after the first and ``WARMUP`` untimed ones.
+The gradients' ``run_s`` is compared with ``forward_s``, one forward rollout of the same
+scenario in the same process, timed in turn with it (``over_forward``: the ratio of the
+medians; ``over_forward_spread``: the smallest and largest ratio of a gradient and the
+rollout timed after it).
 Writes ``compile.json``.
 """
 
@@ -31,6 +34,7 @@ import argparse
 import collections
 import json
 import re
+import statistics
 import subprocess
 import sys
 import time
@@ -46,6 +50,10 @@ PROGRAMS = (
     "montecarlo_chunk_flight",
     "gradients_command",
 )
+
+#: Untimed rounds of calls after the build, before timing: the forward rollout's first call
+#: compiles it, and a program's first runs touch memory that later ones find ready.
+WARMUP = 2
 
 #: JAX's events for the three phases of a build.
 EVENTS = {
@@ -128,12 +136,11 @@ def _build(name: str, duration: float):
     raise ValueError(f"unknown program {name!r}; expected one of {', '.join(PROGRAMS)}")
 
 
-def measure(name: str, duration: float, repeats: int) -> dict:
-    """Build and run ``name`` once, cold, then ``repeats`` more times (module docstring)."""
+def measure(name: str, duration: float, repeats: int, warmup: int = WARMUP) -> dict:
+    """Build and run ``name`` once, cold, then time it (module docstring)."""
     import jax
 
     from spacegrasp_jax import compilation
-    from spacegrasp_jax.benchmarks.dynamics import timed
 
     totals = collections.Counter()
     counts = collections.Counter()
@@ -161,14 +168,36 @@ def measure(name: str, duration: float, repeats: int) -> dict:
         "xla_compiles": compiles,
         "hlo_instructions": sum(hlo_instructions(executable) for executable in new) if new else None,
     }
-    timing = timed(lambda: jax.block_until_ready(run()), repeats)
-    report["run_s"] = timing["median_s"]
-    report["run_spread_s"] = [timing["min_s"], timing["max_s"]]
+    calls = {"run": lambda: jax.block_until_ready(run())}
     if forward is not None:
-        jax.block_until_ready(forward())
-        report["forward_s"] = timed(lambda: jax.block_until_ready(forward()), repeats)["median_s"]
+        calls["forward"] = lambda: jax.block_until_ready(forward())
+    times = timed_after_warmup(calls, warmup, repeats)
+    report["run_s"] = statistics.median(times["run"])
+    report["run_spread_s"] = [min(times["run"]), max(times["run"])]
+    report["run_times_s"] = times["run"]
+    if forward is not None:
+        report["forward_s"] = statistics.median(times["forward"])
+        report["forward_times_s"] = times["forward"]
         report["over_forward"] = report["run_s"] / report["forward_s"]
+        pairs = [a / b for a, b in zip(times["run"], times["forward"], strict=True)]
+        report["over_forward_spread"] = [min(pairs), max(pairs)]
     return report
+
+
+def timed_after_warmup(calls: dict, warmup: int, repeats: int) -> dict[str, list[float]]:
+    """Wall times (s) of ``repeats`` rounds of ``calls`` (name -> function), after ``warmup``
+    untimed rounds. Each round calls every function once, in turn, so that a machine slowing
+    down or speeding up during the measurement weighs on all of them alike."""
+    for _ in range(warmup):
+        for call in calls.values():
+            call()
+    times = {name: [] for name in calls}
+    for _ in range(repeats):
+        for name, call in calls.items():
+            start = time.perf_counter()
+            call()
+            times[name].append(time.perf_counter() - start)
+    return times
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -85,3 +85,16 @@ def test_kinematics_by_component_equals_the_package_kinematics():
     for name in vars(expected):
         np.testing.assert_allclose(getattr(batched, name), getattr(expected, name), atol=1e-14, err_msg=name)
         np.testing.assert_allclose(getattr(single, name), getattr(expected, name)[0], atol=1e-14, err_msg=name)
+
+
+def test_compile_benchmark_times_its_calls_in_turn_after_the_warm_up():
+    """``benchmarks.compile`` times a gradient and its forward rollout in alternation, after
+    untimed rounds: each call is timed once per round, the warm-up's calls are not timed."""
+    from spacegrasp_jax.benchmarks.compile import timed_after_warmup
+
+    order = []
+    calls = {"run": lambda: order.append("run"), "forward": lambda: order.append("forward")}
+    times = timed_after_warmup(calls, warmup=2, repeats=3)
+    assert order == ["run", "forward"] * 5
+    assert {name: len(t) for name, t in times.items()} == {"run": 3, "forward": 3}
+    assert all(t >= 0 for t in times["run"] + times["forward"])
