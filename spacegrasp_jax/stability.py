@@ -56,14 +56,15 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from spacegrasp_jax import spatial
+from spacegrasp_jax import compilation, experiment, spatial
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.control.registry import as_controller
 from spacegrasp_jax.dynamics import system_com, system_momentum
 from spacegrasp_jax.margins import LOOPS, MarginSettings, control_period, gain_margin, loop_groups, require_joint_servo
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, Stage, ideal
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import FullLog, LoopState, RunSpec, closed_loop, loop_body, observe, plant_kinematics
+from spacegrasp_jax.simulate import FullLog, LoopState, RunSpec, loop_body, observe, plant_kinematics
 
 
 def _key() -> jax.Array:
@@ -156,7 +157,8 @@ def settled_state(spec: RunSpec, gains: Gains) -> tuple[LoopState, int]:
     _check_spec(spec)
     scenario, realism = spec.scenario, quiet(spec.realism)
     spec = dataclasses.replace(spec, realism=realism, observer=FullLog())
-    final, _ = jax.jit(closed_loop)(spec, gains, _key())
+    loop, _ = experiment.compiled_loop(spec, gains, _key())
+    final, _ = loop(spec, gains, _key())
     return final, scenario.n_steps // realism.steps_per_period(scenario.dt)
 
 
@@ -174,11 +176,32 @@ def holding(robot: Robot, scenario: Scenario, state: LoopState) -> Scenario:
     """``scenario`` with its desired EE pose held, from the start, at the EE's pose (LAR) in
     ``state``: the reference of the loop at rest where the capture settled, so that no
     gain of the law changes what the law commands there."""
-    kinematics = plant_kinematics(robot, scenario, state.plant)
-    pose = observe(robot, scenario, state.plant, kinematics, 0.0).pose
+    pose = _observed_pose(robot, scenario, state.plant)
     return dataclasses.replace(
         scenario, trajectory=dataclasses.replace(scenario.trajectory, start_pose=pose, end_pose=pose)
     )
+
+
+# One program each instead of dozens of single operations (seconds of compiles on a first
+# run); their numbers are the operations' to the last unit in the last place.
+@jax.jit
+def _observed_pose(robot: Robot, scenario: Scenario, plant):
+    """The EE's pose in the LAR frame as the law observes it in ``plant``."""
+    return observe(robot, scenario, plant, plant_kinematics(robot, scenario, plant), 0.0).pose
+
+
+@jax.jit
+def _contact_at(robot: Robot, scenario: Scenario, plant) -> dict:
+    """The contact force's magnitude (N), the EE point's clearance outside the sphere (m) and
+    the largest joint rate (rad/s) in ``plant``."""
+    kinematics = plant_kinematics(robot, scenario, plant)
+    p_ee = plant.p_base + kinematics.frames.p_ee
+    from_centre = spatial.matvec(kinematics.R_lar.T, p_ee - kinematics.p_lar) - scenario.sphere_centre
+    return {
+        "contact_force_N": jnp.linalg.norm(kinematics.contact_force_lar),
+        "clearance_m": jnp.linalg.norm(from_centre) - scenario.sphere_radius,
+        "largest_rate_radps": jnp.max(jnp.abs(plant.qd)),
+    }
 
 
 def invariants(robot: Robot, coordinates: Coordinates) -> Callable[[jax.Array], jax.Array]:
@@ -277,38 +300,26 @@ class Linearizer:
         self.period_s = control_period(scenario, realism)
         self.time_s = period_index * self.period_s
         self._boundary = 5.0 / float(scenario.contact_sharpness) if scenario.contact_law == "smooth" else 0.0
-        n, k = len(self.names), jnp.asarray(float(period_index))
-        zero = jnp.zeros(n)
-
-        def one_period(gains):
-            return loop_body(RunSpec(robot, scenario, controller, realism=realism), gains, _key()).period
-
-        def advance(delta, scaled):
-            return coordinates.to_local(one_period(scaled)(coordinates.from_local(delta), k)[0])
-
-        self.advance = advance
-
-        def program(gains):
-            def jacobian_at(log_factors):
-                return jax.jacfwd(advance)(zero, scaled_gains(gains, controller, log_factors))
-
-            origin = jnp.zeros(len(LOOPS))
-            # One forward pass per loop gives the Jacobian (the primal) and its derivative.
-            jacobians, sensitivity = jax.vmap(lambda d: jax.jvp(jacobian_at, (origin,), (d,)))(jnp.eye(len(LOOPS)))
-            return {"jacobian": jacobians[0], "sensitivity": sensitivity, "moved": advance(zero, gains)}
-
-        self._program = jax.jit(program)
+        k = jnp.asarray(float(period_index))
+        zero = jnp.zeros(len(self.names))
+        self.advance = _period_map(robot, scenario, controller, realism, coordinates, k)
+        self._controller = controller
+        self._arguments = (robot, scenario, realism, point, k)
+        self._label = f"the linearisation of the {as_controller(controller).name} law's loop"
         # What depends on the point alone, once.
         self._invariant_rows = np.asarray(jax.jit(jax.jacfwd(invariants(robot, coordinates)))(zero))
-        kinematics = plant_kinematics(robot, scenario, point.plant)
-        p_ee = point.plant.p_base + kinematics.frames.p_ee
-        from_centre = spatial.matvec(kinematics.R_lar.T, p_ee - kinematics.p_lar) - scenario.sphere_centre
-        self._contact_force = float(jnp.linalg.norm(kinematics.contact_force_lar))
-        self._clearance = float(jnp.linalg.norm(from_centre) - scenario.sphere_radius)
-        self._largest_rate = float(jnp.max(jnp.abs(point.plant.qd)))
+        contact = {name: float(value) for name, value in _contact_at(robot, scenario, point.plant).items()}
+        self._contact_force = contact["contact_force_N"]
+        self._clearance = contact["clearance_m"]
+        self._largest_rate = contact["largest_rate_radps"]
 
     def __call__(self, gains: Gains) -> Linearisation:
-        out = {name: np.asarray(value) for name, value in self._program(gains).items()}
+        arguments = (gains, *self._arguments)
+        key = ("linearisation", self._controller, compilation.argument_signature(arguments))
+        program, _ = compilation.compile_once(
+            key, lambda: _LINEARISATION.lower(self._controller, *arguments), label=self._label
+        )
+        out = {name: np.asarray(value) for name, value in program(*arguments).items()}
         return Linearisation(
             jacobian=out["jacobian"],
             sensitivity=out["sensitivity"],
@@ -321,6 +332,38 @@ class Linearizer:
             free=self._clearance > self._boundary,
             largest_rate_radps=self._largest_rate,
         )
+
+
+def _period_map(robot, scenario, controller, realism, coordinates: Coordinates, k) -> Callable:
+    """``advance(delta, gains) -> delta'``: the loop's control period ``k`` in the local
+    ``coordinates``, (n,) -> (n,) (traceable)."""
+
+    def advance(delta, gains):
+        period = loop_body(RunSpec(robot, scenario, controller, realism=realism), gains, _key()).period
+        return coordinates.to_local(period(coordinates.from_local(delta), k)[0])
+
+    return advance
+
+
+def _linearisation(controller, gains, robot, scenario, realism, point, k) -> dict:
+    """The Jacobian of the period map of [`Linearizer`][spacegrasp_jax.stability.Linearizer]'s loop at ``point``, its
+    derivative with respect to each loop's log gain factor, and where the map moves the
+    point (``Linearisation``'s fields), as one program of values only: every point, scenario
+    and gains of the same shapes and settings share it."""
+    coordinates = Coordinates.about(point)
+    zero = jnp.zeros(coordinates.size)
+    advance = _period_map(robot, scenario, controller, realism, coordinates, k)
+
+    def jacobian_at(log_factors):
+        return jax.jacfwd(advance)(zero, scaled_gains(gains, controller, log_factors))
+
+    origin = jnp.zeros(len(LOOPS))
+    # One forward pass per loop gives the Jacobian (the primal) and its derivative.
+    jacobians, sensitivity = jax.vmap(lambda d: jax.jvp(jacobian_at, (origin,), (d,)))(jnp.eye(len(LOOPS)))
+    return {"jacobian": jacobians[0], "sensitivity": sensitivity, "moved": advance(zero, gains)}
+
+
+_LINEARISATION = jax.jit(_linearisation, static_argnums=0)
 
 
 @dataclasses.dataclass(frozen=True)

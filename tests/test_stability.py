@@ -9,6 +9,7 @@ linear gain margin against the same loop run in the time domain.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import types
 
@@ -18,7 +19,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from spacegrasp_jax import margins, stability
+from spacegrasp_jax import compilation, margins, stability
 from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.control.pid import PIDState, pid_torque
 from spacegrasp_jax.realism import flight
@@ -166,6 +167,47 @@ def paper_capture_loop(robot):
     held = stability.holding(robot, scenario, point)
     linearizer = stability.Linearizer(robot, held, "admittance", None, point, periods)
     return robot, held, gains, point, periods, linearizer
+
+
+class _Compiles:
+    """A ``compilation.listening`` listener that keeps the labels of the compiles it hears."""
+
+    def __init__(self):
+        self.labels = []
+
+    def before(self, label, key):
+        self.labels.append(label)
+
+    def after(self, label, key, seconds):
+        pass
+
+
+@pytest.mark.slow
+def test_another_operating_point_of_the_same_loop_reuses_the_linearisations_program(paper_capture_loop):
+    """The point, the scenario's numbers, the period and the gains are the program's
+    arguments: linearising the loop elsewhere compiles nothing, and gives the other point's
+    Jacobian (one period of the map from the moved point, against central differences)."""
+    robot, held, gains, point, periods, linearizer = paper_capture_loop
+    heard = _Compiles()
+    with compilation.listening(heard):
+        linearizer(gains)
+        compiled_for_the_first = len(heard.labels)  # 0 if another test of this process compiled it
+        plant = point.plant
+        moved = dataclasses.replace(point, plant=dataclasses.replace(plant, q=plant.q + 0.05, qd=plant.qd + 0.01))
+        elsewhere = stability.Linearizer(
+            robot, stability.holding(robot, held, moved), "admittance", None, moved, periods - 100
+        )
+        other_gains = dataclasses.replace(gains, Kd=1.5 * gains.Kd)
+        found = elsewhere(other_gains)
+        assert len(heard.labels) == compiled_for_the_first
+    assert heard.labels.count("the linearisation of the admittance law's loop") <= 1
+    advance = jax.jit(elsewhere.advance)
+    h, n = 1e-6, len(found.names)
+    for name in ("plant.p_base[0]", "plant.attitude[1]", "plant.q[3]", "plant.qd[5]"):
+        step = jnp.zeros(n).at[found.names.index(name)].set(h)
+        column = (advance(step, other_gains) - advance(-step, other_gains)) / (2 * h)
+        scale = np.max(np.abs(column))
+        np.testing.assert_allclose(found.jacobian[:, found.names.index(name)], column, atol=1e-6 * scale, err_msg=name)
 
 
 @pytest.mark.slow
