@@ -275,8 +275,10 @@ class Linearisation:
 
 class Linearizer:
     """Linearises the small-signal loop ([`small_signal()`][spacegrasp_jax.stability.small_signal]) of ``scenario`` over control
-    period ``period_index`` at ``point`` under any gains, with one compiled program (gains
-    that differ in values only reuse it).
+    period ``period_index`` at ``point`` under any gains, with one compiled program: its
+    arguments are the gains, the point, the period and the scenario's numbers, so every
+    point of the same loop (law, realism settings, state shapes) reuses it, and a later
+    process loads it ([`compile_once()`][spacegrasp_jax.compilation.compile_once]).
 
     Attributes:
         names: the coordinates' names. period_s: the control period (s).
