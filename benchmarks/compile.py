@@ -51,8 +51,8 @@ PROGRAMS = (
     "gradients_command",
 )
 
-#: Untimed rounds of calls after the build, before timing: the forward rollout's first call
-#: compiles it, and a program's first runs touch memory that later ones find ready.
+#: Untimed rounds of calls after the build, before timing (the forward rollout's first call
+#: compiles it).
 WARMUP = 2
 
 #: JAX's events for the three phases of a build.
