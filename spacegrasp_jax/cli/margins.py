@@ -90,7 +90,7 @@ def _margins(args: argparse.Namespace) -> int:
         print(f"linear analysis skipped: {result['linear_skipped']}", file=sys.stderr)
     else:
         print(
-            "linearising the loop at the end of the nominal capture (the nominal capture, then one Jacobian a factor)...",
+            "linearising the loop at the end of the nominal capture (the capture run once, then one Jacobian a factor)...",
             file=sys.stderr,
             flush=True,
         )
