@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
+from compile_labels import CompileLabels
 
 from spacegrasp_jax import compilation, margins, stability
 from spacegrasp_jax.control import paper_gains
@@ -169,26 +170,13 @@ def paper_capture_loop(robot):
     return robot, held, gains, point, periods, linearizer
 
 
-class _Compiles:
-    """A ``compilation.listening`` listener that keeps the labels of the compiles it hears."""
-
-    def __init__(self):
-        self.labels = []
-
-    def before(self, label, key):
-        self.labels.append(label)
-
-    def after(self, label, key, seconds):
-        pass
-
-
 @pytest.mark.slow
 def test_another_operating_point_of_the_same_loop_reuses_the_linearisations_program(paper_capture_loop):
     """The point, the scenario's numbers, the period and the gains are the program's
     arguments: linearising the loop elsewhere compiles nothing, and gives the other point's
     Jacobian (one period of the map from the moved point, against central differences)."""
     robot, held, gains, point, periods, linearizer = paper_capture_loop
-    heard = _Compiles()
+    heard = CompileLabels()
     with compilation.listening(heard):
         linearizer(gains)
         compiled_for_the_first = len(heard.labels)  # 0 if another test of this process compiled it

@@ -11,6 +11,7 @@ import dataclasses
 import jax
 import numpy as np
 import pytest
+from compile_labels import CompileLabels
 
 from spacegrasp_jax import campaign, compilation
 from spacegrasp_jax.perturbations import PerturbationRanges
@@ -21,19 +22,6 @@ from spacegrasp_jax.tuning.parameters import initial_params, make_mask
 from spacegrasp_jax.tuning.tune import TuneConfig, make_loss, make_value_and_grad, training_scenarios
 
 
-class _Compiles:
-    """A ``compilation.listening`` listener that keeps the labels of the compiles it hears."""
-
-    def __init__(self):
-        self.labels = []
-
-    def before(self, label, key):
-        self.labels.append(label)
-
-    def after(self, label, key, seconds):
-        pass
-
-
 @pytest.mark.slow
 def test_a_campaign_of_another_seed_ranges_and_gains_reuses_its_program(robot, gains):
     scenario = paper_scenario(robot, duration=0.03)
@@ -41,7 +29,7 @@ def test_a_campaign_of_another_seed_ranges_and_gains_reuses_its_program(robot, g
     other_ranges = dataclasses.replace(first.ranges, q_init_rad=0.05, lar_position_m=0.01, stiffness_factor=3.0)
     second = dataclasses.replace(first, seed=2, ranges=other_ranges)
     other_gains = dataclasses.replace(gains, Kd=2.0 * gains.Kd)
-    heard = _Compiles()
+    heard = CompileLabels()
     with compilation.listening(heard):
         a = campaign.evaluate_indices(robot, scenario, campaign.Variant("admittance", gains), first, [0, 1])
         compiled_for_the_first = len(heard.labels)  # 0 if another test of this process compiled it
@@ -65,7 +53,7 @@ def test_an_objective_with_other_weights_and_tolerances_reuses_the_evaluation(ro
     second = Objective(
         Weights(peak_torque=2.0, final_position=3.0), (2.0,) * 7, kind="weighted", position_tolerance_m=0.01
     )
-    heard = _Compiles()
+    heard = CompileLabels()
     with compilation.listening(heard):
         a = tuning_run.evaluate(robot, scenarios, gains, "admittance", first, chunk=2)
         compiled_for_the_first = len(heard.labels)
@@ -126,7 +114,7 @@ def test_a_programs_settings_are_its_key_so_another_setting_is_another_program()
     from spacegrasp_jax import batching
 
     block = np.arange(4.0)
-    listener = _Compiles()
+    listener = CompileLabels()
     with compilation.listening(listener):
         twice = batching.map_in_chunks(
             "settings test", functools.partial(_scaled_sum, scale=2.0), (1.0,), block, chunk=4, progress=None
@@ -209,7 +197,7 @@ def test_runs_that_differ_in_numbers_compile_one_program(robot, gains):
 
     scenario = paper_scenario(robot, duration=0.02, move_duration=2.0)
     quiet = dataclasses.replace(flight(), force_noise_std=0.1 * np.asarray(flight().force_noise_std))
-    heard = _Compiles()
+    heard = CompileLabels()
     with compilation.listening(heard):
         first = experiment.run(RunSpec(robot, scenario, "admittance", realism=flight()), gains)
         compiled_for_the_first = len(heard.labels)  # 0 if another test of this process compiled it
