@@ -186,7 +186,20 @@ def test_another_operating_point_of_the_same_loop_reuses_the_linearisations_prog
             robot, stability.holding(robot, held, moved), "admittance", None, moved, periods - 100
         )
         other_gains = dataclasses.replace(gains, Kd=1.5 * gains.Kd)
-        found = elsewhere(other_gains)
+        # JAX's own records, independent of the package's announcements: nothing is traced
+        # or compiled for the second point (a program closing over its point would be).
+        built = []
+
+        def heard_build(event, duration_s, **_):
+            if event in ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/backend_compile_duration"):
+                built.append(event)
+
+        jax.monitoring.register_event_duration_secs_listener(heard_build)
+        try:
+            found = elsewhere(other_gains)
+        finally:
+            jax.monitoring.unregister_event_duration_listener(heard_build)
+        assert built == []
         assert len(heard.labels) == compiled_for_the_first
     assert heard.labels.count("the linearisation of the admittance law's loop") <= 1
     advance = jax.jit(elsewhere.advance)
