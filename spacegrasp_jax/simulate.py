@@ -648,10 +648,16 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
 
     def period_of_steps(state: LoopState, k):
         noise = period_noise(k)
-        truth = plant_kinematics(robot, scenario, state.plant)
-        state, law_state, command, held = control_update(
-            state, k, noise, truth, None if senses else (observe(robot, scenario, state.plant, truth, k * period))
-        )
+
+        def control(state, k, noise):
+            truth = plant_kinematics(robot, scenario, state.plant)
+            return control_update(
+                state, k, noise, truth, None if senses else (observe(robot, scenario, state.plant, truth, k * period))
+            )
+
+        if checkpoint:
+            control = jax.checkpoint(control, prevent_cse=False)
+        state, law_state, command, held = control(state, k, noise)
 
         def plant_step(plant, step, fields):
             t, u = step * scenario.dt, fields["u"]
@@ -685,7 +691,7 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
     if per_period == 1:
         one_period = period_of_one_step if checkpoint else period_of_one_step_forward
     else:
-        one_period = jax.checkpoint(period_of_steps, prevent_cse=False) if checkpoint else period_of_steps
+        one_period = period_of_steps
     start = initial_state(spec)
     return LoopBody(start=start, period=one_period, periods=periods, steps_per_period=per_period)
 
@@ -788,13 +794,14 @@ class RunSpec:
             reading. ``None``: none.
         observer: static: what the loop keeps ([`Observer`][spacegrasp_jax.simulate.Observer]; default
             [`FullLog`][spacegrasp_jax.simulate.FullLog], the whole log).
-        checkpoint: static: put each control period under ``jax.checkpoint`` for reverse
-            mode. A period of one plant step puts its controller update there (RK4's
-            stages always are, one by one:
-            ``integrator.rk4_step_from_start_kinematics``): the tape keeps, per step, the
-            state, the kinematics at its start and the rates RK4's stages start from. A
-            longer period goes there whole: the tape keeps one state per period. A forward
-            run agrees with the unchecked loop's to rounding.
+        checkpoint: static: put the parts of each control period under
+            ``jax.checkpoint`` for reverse mode: the controller update, with the
+            kinematics at the period's start, and each of RK4's stages, one by one
+            (``integrator.rk4_step_from_start_kinematics``). The tape keeps, per plant
+            step, the state, the kinematics at its start and the rates RK4's stages start
+            from, and per period the controller's inputs (the sensors' noise is drawn
+            outside the checkpoint, once). A forward run agrees with the unchecked loop's
+            to rounding.
     """
 
     robot: Robot
@@ -883,8 +890,8 @@ def rollout(
             least squares; a name: the paper's exact pseudoinverse).
         checkpoint_segment: the number of steps per inner scan (static; must divide
             ``n_steps``; ``None``: ``LOG_BLOCK`` or the largest divisor below it; a loop
-            whose control period spans several steps runs whole periods). Each control
-            period is always under ``jax.checkpoint`` ([`loop_body()`][spacegrasp_jax.simulate.loop_body]), which changes
+            whose control period spans several steps runs whole periods). The parts of
+            each control period are always under ``jax.checkpoint`` ([`loop_body()`][spacegrasp_jax.simulate.loop_body]), which changes
             nothing in a forward rollout but rounding (the loop run without it has the same
             operations, compiled as other code) and makes a reverse-mode gradient's tape
             hold, per step, the state and the rates RK4's stages start from instead of
