@@ -659,15 +659,26 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
             control = jax.checkpoint(control, prevent_cse=False)
         state, law_state, command, held = control(state, k, noise)
 
+        def row_at(plant, kinematics, t, fields):
+            observed = observe(robot, scenario, plant, kinematics, t)
+            return log_row(plant, kinematics, t, observed, scenario.target, **fields)
+
+        # The step's start (its kinematics and log row) is checkpointed like the controller:
+        # the tape keeps its inputs and the kinematics, not every intermediate.
+        @functools.partial(jax.checkpoint, prevent_cse=False)
+        def start_of_step(plant, t, fields):
+            kinematics = kinematics_of(plant)
+            return kinematics, row_at(plant, kinematics, t, fields)
+
         def plant_step(plant, step, fields):
             t, u = step * scenario.dt, fields["u"]
             if checkpoint:
-                kinematics = kinematics_of(plant)
+                kinematics, row = start_of_step(plant, t, fields)
                 next_plant = rk4_step_from_start_kinematics(kinematics_of, rate_of, plant, scenario.dt, u, kinematics)
-            else:  # one copy of the kinematics and the rate (integrator)
-                next_plant, kinematics = rk4_step_sharing_kinematics(kinematics_of, rate_of, plant, scenario.dt, u)
-            observed = observe(robot, scenario, plant, kinematics, t)
-            return next_plant, log_row(plant, kinematics, t, observed, scenario.target, **fields)
+                return next_plant, row
+            # one copy of the kinematics and the rate (integrator)
+            next_plant, kinematics = rk4_step_sharing_kinematics(kinematics_of, rate_of, plant, scenario.dt, u)
+            return next_plant, row_at(plant, kinematics, t, fields)
 
         def servo_tick(carry, j):
             plant, pid_state, line = carry
