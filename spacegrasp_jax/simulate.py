@@ -807,8 +807,9 @@ class RunSpec:
             [`FullLog`][spacegrasp_jax.simulate.FullLog], the whole log).
         checkpoint: static: put the parts of each control period under
             ``jax.checkpoint`` for reverse mode: the controller update, with the
-            kinematics at the period's start, and each of RK4's stages, one by one
-            (``integrator.rk4_step_from_start_kinematics``). The tape keeps, per plant
+            kinematics at the period's start; in a period of several plant steps, each
+            step's start (its kinematics and log row); and each of RK4's stages, one by
+            one (``integrator.rk4_step_from_start_kinematics``). The tape keeps, per plant
             step, the state, the kinematics at its start and the rates RK4's stages start
             from, and per period the controller's inputs (the sensors' noise is drawn
             outside the checkpoint, once). A forward run agrees with the unchecked loop's
