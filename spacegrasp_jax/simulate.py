@@ -649,15 +649,15 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
     def period_of_steps(state: LoopState, k):
         noise = period_noise(k)
 
-        def control(state, k, noise):
+        def start_of_period(state, k, noise):
             truth = plant_kinematics(robot, scenario, state.plant)
             return control_update(
                 state, k, noise, truth, None if senses else (observe(robot, scenario, state.plant, truth, k * period))
             )
 
-        if checkpoint:
-            control = jax.checkpoint(control, prevent_cse=False)
-        state, law_state, command, held = control(state, k, noise)
+        if checkpoint:  # the noise is drawn outside: once, not again in the backward pass
+            start_of_period = jax.checkpoint(start_of_period, prevent_cse=False)
+        state, law_state, command, held = start_of_period(state, k, noise)
 
         def row_at(plant, kinematics, t, fields):
             observed = observe(robot, scenario, plant, kinematics, t)
