@@ -487,10 +487,11 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
     the first stage on its kinematics
     ([`rk4_step_with_start()`][spacegrasp_jax.integrator.rk4_step_with_start]): one copy
     of the kinematics and the dynamics in the program, which then compiles in 55-70% of
-    the time. With it (reverse mode), the controller (with the kinematics at the step's
-    start) and each of RK4's four stages are checkpointed apart, which keeps the tape and
-    the backward pass small; the stages are one scan whose first reads the controller's
-    kinematics
+    the time. With it (reverse mode), the controller (with the kinematics at the period's
+    start), in a period of several steps each step's start (its kinematics and log row),
+    and each of RK4's four stages are checkpointed apart, which keeps the tape and the
+    backward pass small; no checkpoint spans a whole period. The stages are one scan whose
+    first reads the kinematics of the step's start
     ([`rk4_step_from_start_kinematics()`][spacegrasp_jax.integrator.rk4_step_from_start_kinematics]):
     one copy of the dynamics. The two are the same operations in the same order and agree
     to rounding.
