@@ -141,7 +141,7 @@ def compile_chunk(
         if sub_batch is None:
             return function(*fixed, block)
         blocks = jax.tree.map(lambda x: x.reshape((-1, sub_batch, *x.shape[1:])), block)
-        outputs = jax.lax.map(lambda b: function(*fixed, b), blocks)
+        outputs = compilation.map_one_at_a_time(lambda b: function(*fixed, b), blocks)
         return jax.tree.map(lambda x: x.reshape((-1, *x.shape[2:])), outputs)
 
     def lower():

@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from spacegrasp_jax import anatomy, batching, metrics
+from spacegrasp_jax import anatomy, batching, compilation, metrics
 from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, compiled_chunk, evaluate_indices
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import law_named
@@ -195,7 +195,7 @@ def _value_and_gradient(spec, gains, ranges, block, *, measure, criteria, identi
         _, log = closed_loop(sample, gains, key)
         return _measure_of_log(log, measure, criteria)
 
-    return jax.lax.map(lambda point: jax.value_and_grad(value)(*point), block)
+    return compilation.map_one_at_a_time(lambda point: jax.value_and_grad(value)(*point), block)
 
 
 # ---- the search -------------------------------------------------------------------------------

@@ -198,6 +198,50 @@ def test_importing_the_package_makes_xla_compile_small_loops_whole():
     assert compilation.loops_compile_whole()
 
 
+def _runs_of(items):
+    # A loop over "runs": each item runs an inner loop of 50 steps.
+    return jax.lax.fori_loop(0, 50, lambda i, y: y * 0.5 + jax.numpy.sin(y), items)
+
+
+def test_a_map_over_runs_is_not_compiled_whole_but_its_runs_are():
+    # jax.lax.map over short runs is compiled whole, inner loop inside (the premise); the
+    # package's map over runs leaves the outer loop kernel by kernel and the inner one whole.
+    items = jax.numpy.linspace(-1.0, 1.0, 12).reshape(4, 3)
+    plain = jax.jit(lambda x: jax.lax.map(_runs_of, x)).lower(items).compile().as_text()
+    ours = jax.jit(lambda x: compilation.map_one_at_a_time(_runs_of, x)).lower(items).compile().as_text()
+    assert len(loops_compiled_whole(plain)) == 2
+    outer_and_inner = set(re.findall(r"body=(%[\w.\-]+)", ours))
+    assert len(outer_and_inner) == 2
+    assert len(loops_compiled_whole(ours)) == 1
+    inner = loops_within(
+        max(outer_and_inner, key=lambda body: len(loops_within(body, computations(ours)))), computations(ours)
+    )
+    assert set(inner) == loops_compiled_whole(ours)
+
+
+def test_the_map_over_runs_returns_what_lax_map_returns_and_the_same_gradient():
+    items = {"x": jax.numpy.linspace(-2.0, 2.0, 15).reshape(5, 3), "n": jax.numpy.arange(5)}
+
+    def run(item):
+        return {"y": _runs_of(item["x"]) * item["n"], "n": item["n"] + 1, "negative_zero": -0.0 * item["x"]}
+
+    expected = jax.jit(lambda i: jax.lax.map(run, i))(items)
+    got = jax.jit(lambda i: compilation.map_one_at_a_time(run, i))(items)
+    for key in expected:  # bit for bit, the sign of a zero too
+        assert got[key].dtype == expected[key].dtype
+        assert jax.numpy.array_equal(jax.numpy.signbit(got[key]), jax.numpy.signbit(expected[key]))
+        assert jax.numpy.array_equal(got[key], expected[key])
+
+    def loss(x, mapper):
+        return jax.numpy.sum(mapper(lambda row: _runs_of(row) ** 2, x))
+
+    x = items["x"]
+    expected_gradient = jax.jit(jax.grad(lambda x: loss(x, jax.lax.map)))(x)
+    assert jax.numpy.array_equal(
+        jax.jit(jax.grad(lambda x: loss(x, compilation.map_one_at_a_time)))(x), expected_gradient
+    )
+
+
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])
 @pytest.mark.parametrize("program", ["rollout", pytest.param("folded_metrics", marks=pytest.mark.slow)])
 def test_the_step_loop_is_compiled_whole(compiled_hlo, controller, program):

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from spacegrasp_jax import batching
+from spacegrasp_jax import batching, compilation
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import sample_loops
@@ -125,7 +125,9 @@ def _item_gradients(spec, base, mask, objective, item, *, steps):
 
 def _block(spec, base, mask, objective, batch, *, steps):
     """One device's share of items, one after another (the tape of one at a time)."""
-    return jax.lax.map(lambda one: _item_gradients(spec, base, mask, objective, one, steps=steps), batch)
+    return compilation.map_one_at_a_time(
+        lambda one: _item_gradients(spec, base, mask, objective, one, steps=steps), batch
+    )
 
 
 def envelope_gradients(

@@ -356,7 +356,7 @@ def batch_loss(params, values, *, controller: str, cvar_alpha: float | None, seg
     if count == 1:  # one scenario: the unbatched program
         parts = jax.tree.map(lambda x: x[None], one(jax.tree.map(lambda x: x[0], scenarios)))
     elif batch_in_sequence(count):
-        parts = jax.lax.map(one, scenarios)
+        parts = compilation.map_one_at_a_time(one, scenarios)
     else:
         parts = jax.vmap(one)(scenarios)
     losses = parts["loss"]
@@ -514,7 +514,7 @@ def _per_sample_gradients(params, base, mask, model_robot, objective: Objective,
         (loss, parts), gradient = jax.value_and_grad(sample_loss, has_aux=True)(params)
         return loss, parts, gradient
 
-    return jax.lax.map(one, samples)
+    return compilation.map_one_at_a_time(one, samples)
 
 
 def make_flight_value_and_grad(
