@@ -14,6 +14,10 @@ of the single-rollout programs and of the one-scenario tuning gradient.
    which cost about half of a rollout's time. No array produced in the step loops may
    exceed 512 bytes: the tests fail when a change brings back a large array (a 13x13 mass
    matrix, a stacked (8, 3, 3) rotation, a scanned-over time vector).
+3. **Loops over runs are not compiled whole.** A ``lax.map`` over short runs falls under the
+   threshold and is compiled whole, its inner loops inside one function that takes LLVM up
+   to three times as long; ``compilation.map_one_at_a_time`` keeps the outer loop kernel by
+   kernel and its outputs ``lax.map``'s, bit for bit.
 """
 
 from __future__ import annotations
