@@ -119,8 +119,9 @@ def compile_chunk(
         chunk_example: a chunk (pytree, leading axis ``chunk``, a multiple of the device
             count); only its shapes matter.
         device_batch: items each device computes at once (``None``: its whole share). A
-            share larger than this is run as a ``lax.map`` over sub-batches of it, if it
-            divides the share; on a CPU, 128 keeps a sub-batch's states in cache.
+            share larger than this is run in sub-batches of it, one after another
+            (``compilation.map_one_at_a_time``), if it divides the share; on a CPU, 128 keeps
+            a sub-batch's states in cache.
 
     Returns:
         ``(executable, compile_s)``.

@@ -72,7 +72,7 @@ class CampaignConfig:
         timeseries_every: keep every k-th log row of every sample (``None``: metrics only).
         pinv_damping: damping of the pseudoinverse (0: exact, the paper).
         device_batch: samples each device simulates at once (``None``: its whole share of the
-            chunk). A device's share is run as a ``lax.map`` over sub-batches of this size; on a
+            chunk). A device's share is run in sub-batches of this size, one after another; on a
             CPU, 128 keeps a sub-batch's states in cache. Must divide the share to take effect.
         realism: the loop's realism ([`spacegrasp_jax.realism`][spacegrasp_jax.realism]; ``None``: the paper's).
         identified: tell the controller each sample's perturbed satellite (a perfectly

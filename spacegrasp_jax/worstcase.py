@@ -187,7 +187,7 @@ def gradient_spec(robot: Robot, scenario: Scenario, controller, realism=None) ->
 def _value_and_gradient(spec, gains, ranges, block, *, measure, criteria, identified):
     """The measure and its gradient in ``U`` for a block ``(units, keys)`` of points of the
     nominal run ``spec`` (its whole log kept, checkpointed: [`gradient_spec()`][spacegrasp_jax.worstcase.gradient_spec]), one
-    point after another (``lax.map``): the program then holds the gradient of one rollout,
+    point after another (``compilation.map_one_at_a_time``): the program then holds the gradient of one rollout,
     not of a batch, and compiles sooner than a ``vmap`` (measured: documentation, Changelog)."""
 
     def value(units, key):

@@ -500,7 +500,7 @@ def aggregate_gradients(losses, gradients, config: TuneConfig):
 def _per_sample_gradients(params, base, mask, model_robot, objective: Objective, samples, *, controller: str):
     """``(losses, parts, gradients)``, each with the samples' leading axis: each sample's
     objective and its reverse-mode gradient (one control period a checkpoint), one sample
-    after another (``lax.map``: the tape of one rollout at a time)."""
+    after another (``compilation.map_one_at_a_time``: the tape of one rollout at a time)."""
 
     def one(sample):
         r, scenario, realism, key = sample
