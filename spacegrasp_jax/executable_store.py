@@ -26,6 +26,10 @@ holds a memory address makes the program one that is compiled (and found in JAX'
 as before: its code is not in the fingerprint, so a stored copy could be stale. Nothing is
 stored in a multi-process run.
 
+A program that calls LAPACK (a custom call ``lapack_*``: a solve, a factorisation) is not
+stored: JAX sets up its LAPACK kernels while it lowers a program that calls them, so a
+process that loaded such a program untraced would crash at its first call.
+
 The stored files are compressed pickles holding executables (0.2-1.2 MB each for the
 package's programs), trusted as JAX's own cache is: load them only from a folder you
 control. Storing a program takes 0.1-0.3 s after its compile; loading one, 0.2-0.9 s.
@@ -54,6 +58,10 @@ FOLDER = "executables"
 #: The modules whose code the fingerprint covers: their functions, classes and enums may be
 #: named in a stored key.
 _PACKAGE_ROOT = "spacegrasp_jax"
+
+#: The custom calls that a stored program may not hold: kernels that JAX sets up only while
+#: it lowers a program calling them (module docstring).
+_SET_UP_WHILE_LOWERING = 'custom_call_target="lapack_'
 
 #: Modules of the libraries whose objects in a key are described by their ``repr``.
 _LIBRARY_ROOTS = ("builtins", "numpy", "jax", "jaxlib")
@@ -202,10 +210,13 @@ def load(path: Path):
 
 def save(path: Path, executable) -> bool:
     """Store ``executable`` (a ``jax.stages.Compiled``) at ``path``, atomically; ``False``
-    where it cannot be serialised or written (it is then only in JAX's cache)."""
+    where it cannot be serialised or written, or calls LAPACK (it is then only in JAX's
+    cache)."""
     from jax.experimental import serialize_executable
 
     try:
+        if _SET_UP_WHILE_LOWERING in (executable.as_text() or ""):
+            return False
         payload, in_tree, out_tree = serialize_executable.serialize(executable)
         device_ids = [device.id for device in executable.runtime_executable().local_devices()]
         # zlib's fastest level: a fifth of the size for some 20 ms a program.

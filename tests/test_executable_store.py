@@ -127,6 +127,40 @@ def test_a_later_process_loads_the_program_without_tracing_it_and_gets_the_same_
         np.testing.assert_array_equal(logs[0][name], logs[1][name])
 
 
+SOLVE_BY_LAPACK = """
+import sys
+import jax
+import jax.numpy as jnp
+import numpy as np
+import spacegrasp_jax as sg
+from spacegrasp_jax import compilation
+
+sg.configure(compile_cache=sys.argv[1])
+matrix = np.array([[4.0, 1.0], [1.0, 3.0]])
+factor = lambda a: jnp.linalg.cholesky(a)  # a LAPACK call (potrf) on a CPU
+executable, _ = compilation.compile_once(("lapack-probe", 2), lambda: jax.jit(factor).lower(matrix))
+np.save(sys.argv[2], np.asarray(executable(matrix)))
+"""
+
+
+def test_a_program_that_calls_lapack_is_not_stored_and_a_later_process_gets_it_right(tmp_path):
+    # JAX sets up its LAPACK kernels while lowering: stored and loaded untraced, such a
+    # program crashed the process at its first call.
+    cache = tmp_path / "cache"
+    factors = []
+    for step in ("first", "later"):
+        path = tmp_path / f"{step}.npy"
+        result = subprocess.run(
+            [sys.executable, "-c", SOLVE_BY_LAPACK, str(cache), str(path)], capture_output=True, text=True, timeout=600
+        )
+        assert result.returncode == 0, result.stderr[-3000:]
+        stored = cache / executable_store.FOLDER
+        assert not stored.exists() or not any(stored.iterdir())
+        factors.append(np.load(path))
+    np.testing.assert_allclose(factors[1], np.linalg.cholesky([[4.0, 1.0], [1.0, 3.0]]), rtol=1e-15)
+    np.testing.assert_array_equal(factors[0], factors[1])
+
+
 def test_an_unreadable_file_is_removed_and_not_loaded(tmp_path):
     broken = tmp_path / "broken.pickle"
     broken.write_bytes(b"not a stored program")
