@@ -1,7 +1,7 @@
 """The package's layers, read from its source: the core imports no host module, nothing
 below the faces imports a face, the plots run nothing of the package, the laws are listed
-once and dispatched on nowhere else, each gain group is declared by its law alone, and only
-the loop dispatches on the realism."""
+once and dispatched on nowhere else, each gain group is declared by its law alone, only
+the loop dispatches on the realism, and loops over whole runs go through one helper."""
 
 from __future__ import annotations
 
@@ -212,3 +212,17 @@ def test_every_compiled_program_is_looked_up_by_a_key_derived_from_its_arguments
                 f"{module}.{function.name} looks a compiled program up by a key not derived from its arguments"
             )
     assert calls >= 3  # the rollouts, the batched jobs, the tuning gradient
+
+
+def test_every_loop_over_runs_goes_through_map_one_at_a_time():
+    """A ``jax.lax.map`` over short runs is compiled whole on a CPU, which can triple its
+    program's compile (``compilation.map_one_at_a_time``): the package maps only through
+    that helper."""
+    for module, path in module_files():
+        if module == "spacegrasp_jax.compilation":
+            continue  # where it is defined
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Attribute) and node.attr == "map":
+                owner = node.value
+                name = owner.attr if isinstance(owner, ast.Attribute) else getattr(owner, "id", None)
+                assert name != "lax", f"{module}, line {node.lineno}: lax.map (use compilation.map_one_at_a_time)"

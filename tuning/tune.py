@@ -278,7 +278,7 @@ CHECKPOINT_SEGMENT = 2
 
 
 #: The largest batch whose scenarios a gradient on a CPU runs one after another
-#: (``lax.map``) instead of vmapping them: up to this size the two run about as fast and the
+#: (``compilation.map_one_at_a_time``) instead of vmapping them: up to this size the two run about as fast and the
 #: sequential program compiles faster (documentation, changelog).
 SEQUENTIAL_BATCH = 8
 
