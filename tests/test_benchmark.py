@@ -65,6 +65,26 @@ def test_batch_efficiency_reports_each_part(tmp_path):
     assert refused.returncode == 2 and "unknown ['rnea']" in refused.stderr
 
 
+def test_gradient_parts_reports_each_part(tmp_path):
+    """``benchmarks.gradient_parts`` on two states: a row per part with finite positive
+    forward and reverse times; bad options are refused before anything compiles."""
+    from spacegrasp_jax.benchmarks.gradient_parts import PARTS
+
+    base = [sys.executable, "-m", "spacegrasp_jax.benchmarks.gradient_parts", "--out", str(tmp_path)]
+    result = subprocess.run(base + ["--states", "2", "--repeats", "1"], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    report = json.loads((tmp_path / "gradient_parts.json").read_text())
+    assert [row["part"] for row in report["results"]] == list(PARTS)
+    for row in report["results"]:
+        numbers = [row["forward_us"], row["reverse_us"], row["reverse_over_forward"]]
+        assert all(math.isfinite(x) and x > 0 for x in numbers), row
+        assert math.isclose(row["reverse_over_forward"], row["reverse_us"] / row["forward_us"])
+
+    for option, message in ((["--parts", "stage,rnea"], "unknown ['rnea']"), (["--states", "5000"], "--states must be")):
+        refused = subprocess.run(base + option, capture_output=True, text=True, timeout=60)
+        assert refused.returncode == 2 and message in refused.stderr, refused.stderr
+
+
 def test_kinematics_by_component_equals_the_package_kinematics():
     """The probe of ``benchmarks.batch_efficiency`` computes the same frames as
     ``kinematics.forward_kinematics``, for one sample and under ``vmap``."""
