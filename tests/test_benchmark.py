@@ -80,7 +80,10 @@ def test_gradient_parts_reports_each_part(tmp_path):
         assert all(math.isfinite(x) and x > 0 for x in numbers), row
         assert math.isclose(row["reverse_over_forward"], row["reverse_us"] / row["forward_us"])
 
-    for option, message in ((["--parts", "stage,rnea"], "unknown ['rnea']"), (["--states", "5000"], "--states must be")):
+    for option, message in (
+        (["--parts", "stage,rnea"], "unknown ['rnea']"),
+        (["--states", "5000"], "--states must be"),
+    ):
         refused = subprocess.run(base + option, capture_output=True, text=True, timeout=60)
         assert refused.returncode == 2 and message in refused.stderr, refused.stderr
 
