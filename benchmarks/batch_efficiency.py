@@ -34,10 +34,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import sys
 from pathlib import Path
 
+from spacegrasp_jax.benchmarks.dynamics import chosen_parts, machine, pin_to_one_core
 from spacegrasp_jax.compilation import configure
 
 PARTS = ("kinematics", "kinematics_by_component", "mass_matrix", "plant_kinematics", "plant_rate", "controller", "step")
@@ -203,19 +203,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated, from {', '.join(PARTS)}")
     args = parser.parse_args(argv)
-    parts = [part for part in args.parts.split(",") if part]
-    unknown = sorted(set(parts) - set(PARTS))
-    if unknown:
-        parser.error(f"--parts: unknown {unknown}; expected some of {list(PARTS)}")
+    parts = chosen_parts(parser, args.parts, PARTS)
     if args.batch < 1 or args.iterations < 1 or args.repeats < 1:
         parser.error("--batch, --iterations and --repeats must be positive")
-    if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core, before XLA starts its threads
+    pin_to_one_core()
 
     print(f"{'part':>23} {'single':>10} {'batch':>10} {'gain':>10}   (us per sample, one core, batch {args.batch})")
     results = measure(parts, args.batch, args.iterations, args.repeats)
-    from spacegrasp_jax.benchmarks.dynamics import machine
-
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     report = {"machine": machine(), "batch": args.batch, "iterations": args.iterations, "results": results}

@@ -49,6 +49,23 @@ def machine() -> dict:
     }
 
 
+def chosen_parts(parser: argparse.ArgumentParser, text: str, known: tuple[str, ...]) -> list[str]:
+    """The parts named in ``text`` (comma-separated) of a benchmark measuring ``known`` ones;
+    an unknown one ends the command with the parser's error (exit 2)."""
+    parts = [part for part in text.split(",") if part]
+    unknown = sorted(set(parts) - set(known))
+    if unknown:
+        parser.error(f"--parts: unknown {unknown}; expected some of {list(known)}")
+    return parts
+
+
+def pin_to_one_core() -> None:
+    """Run this process on one core (where the OS allows it): call it before XLA starts its
+    threads."""
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+
 def timed(function, repeats: int) -> dict:
     """Median, min and max wall time (s) of ``function()`` over ``repeats`` calls."""
     samples = []

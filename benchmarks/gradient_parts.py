@@ -28,7 +28,8 @@ Parts, each including what it reads:
   and the joint PID, with respect to the state and the gains;
 * ``period``: one control period of the checkpointed loop (the controller, the log row and
   RK4's four stages under their checkpoints), with respect to the loop state and the gains:
-  the gradient's whole step.
+  the gradient's whole step. Its parts being checkpointed, its reverse runs them forward
+  twice, as the gradient does: once keeping their inputs, once again before their adjoints.
 
 Writes ``gradient_parts.json``.
 """
@@ -37,10 +38,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
+from spacegrasp_jax.benchmarks.dynamics import chosen_parts, machine, pin_to_one_core
 from spacegrasp_jax.compilation import configure
 
 PARTS = ("plant_kinematics", "plant_rate", "stage", "controller", "period")
@@ -197,24 +198,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5, help="timed calls of each scan (the fastest is kept)")
     parser.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated, from {', '.join(PARTS)}")
     args = parser.parse_args(argv)
-    parts = [part for part in args.parts.split(",") if part]
-    unknown = sorted(set(parts) - set(PARTS))
-    if unknown:
-        parser.error(f"--parts: unknown {unknown}; expected some of {list(PARTS)}")
+    parts = chosen_parts(parser, args.parts, PARTS)
     if not 1 <= args.states <= 17_000 // STRIDE:
         parser.error(f"--states must be between 1 and {17_000 // STRIDE} (one every {STRIDE} steps of 17 s)")
     if args.repeats < 1:
         parser.error("--repeats must be positive")
     configure(compile_cache=False)  # this process is the benchmark's: float64, loops compiled whole, no cache
-    if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core, before XLA starts its threads
+    pin_to_one_core()
 
     print(
         f"{'part':>17} {'forward':>10} {'reverse':>10} {'ratio':>10}   (us per call, one core, fastest of {args.repeats})"
     )
     results = measure(parts, args.states, args.repeats)
-    from spacegrasp_jax.benchmarks.dynamics import machine
-
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     report = {"machine": machine(), "states": args.states, "stride_steps": STRIDE, "results": results}
