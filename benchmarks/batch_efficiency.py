@@ -158,8 +158,8 @@ def measure(parts: list[str], batch: int, iterations: int, repeats: int) -> list
     import jax
 
     import spacegrasp_jax as sg
-    from spacegrasp_jax import compilation, simulate
-    from spacegrasp_jax.benchmarks.dynamics import timed
+    from spacegrasp_jax import simulate
+    from spacegrasp_jax.benchmarks.dynamics import timed_program
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.perturbations import PerturbationRanges, sample
     from spacegrasp_jax.scenario import paper_scenario
@@ -179,9 +179,7 @@ def measure(parts: list[str], batch: int, iterations: int, repeats: int) -> list
             ("single", looped, single, 1),
             ("batch", jax.vmap(looped), batched, batch),
         ):
-            compiled = compilation.jit(function).lower(*arguments).compile()
-            jax.block_until_ready(compiled(*arguments))
-            timing = timed(lambda: jax.block_until_ready(compiled(*arguments)), repeats)
+            timing = timed_program(function, arguments, repeats)
             row[f"{label}_us_per_sample"] = timing["median_s"] / iterations / samples * 1e6
         row["batch_gain"] = row["single_us_per_sample"] / row["batch_us_per_sample"]
         results.append(row)

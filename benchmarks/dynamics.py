@@ -76,6 +76,14 @@ def timed(function, repeats: int) -> dict:
     return {"median_s": statistics.median(samples), "min_s": min(samples), "max_s": max(samples)}
 
 
+def timed_program(function, arguments: tuple, repeats: int) -> dict:
+    """[`timed()`][spacegrasp_jax.benchmarks.dynamics.timed] of ``function(*arguments)``
+    compiled with the package's options (``compilation.jit``), after one untimed call."""
+    compiled = compilation.jit(function).lower(*arguments).compile()
+    jax.block_until_ready(compiled(*arguments))
+    return timed(lambda: jax.block_until_ready(compiled(*arguments)), repeats)
+
+
 def random_inputs(count: int, seed: int = 0) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     quat = rng.normal(size=(count, 4))

@@ -143,15 +143,14 @@ def measure(parts: list[str], count: int, repeats: int) -> list[dict]:
     import jax
 
     import spacegrasp_jax as sg
-    from spacegrasp_jax import compilation
-    from spacegrasp_jax.benchmarks.dynamics import timed
+    from spacegrasp_jax.benchmarks.dynamics import timed_program
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.scenario import paper_scenario
 
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, contact_law="smooth", duration=17.0)
     if count * STRIDE > scenario.n_steps:
-        raise ValueError(f"--states: at most {scenario.n_steps // STRIDE} in a 17 s capture (one every {STRIDE} steps)")
+        raise ValueError(f"count: at most {scenario.n_steps // STRIDE} in a 17 s capture (one every {STRIDE} steps)")
     states, kinematics, steps = sampled_states(robot, scenario, gains, count)
     functions = _part_functions(robot, scenario)
     results = []
@@ -177,10 +176,7 @@ def measure(parts: list[str], count: int, repeats: int) -> list[dict]:
 
         row = {"part": name}
         for label, scan in (("forward", forward_scan), ("reverse", reverse_scan)):
-            arguments = (states, kinematics, steps, gains)
-            compiled = compilation.jit(scan).lower(*arguments).compile()
-            jax.block_until_ready(compiled(*arguments))
-            timing = timed(lambda compiled=compiled: jax.block_until_ready(compiled(*arguments)), repeats)
+            timing = timed_program(scan, (states, kinematics, steps, gains), repeats)
             row[f"{label}_us"] = timing["min_s"] / count * 1e6
         row["reverse_over_forward"] = row["reverse_us"] / row["forward_us"]
         results.append(row)

@@ -278,8 +278,8 @@ CHECKPOINT_SEGMENT = 2
 
 
 #: The largest batch whose scenarios a gradient on a CPU runs one after another
-#: (``compilation.map_one_at_a_time``) instead of vmapping them: up to this size the two run about as fast and the
-#: sequential program compiles faster (documentation, changelog).
+#: (``compilation.map_one_at_a_time``) instead of vmapping them: up to this size the two run
+#: about as fast and the sequential program compiles faster (documentation, changelog).
 SEQUENTIAL_BATCH = 8
 
 
