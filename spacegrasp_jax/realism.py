@@ -58,6 +58,7 @@ import numpy as np
 
 from spacegrasp_jax.compilation import require_float64
 from spacegrasp_jax.inputs import is_real, read_document, short
+from spacegrasp_jax.scenario import DT_LIMITS_S
 
 
 class RealismError(ValueError):
@@ -341,15 +342,19 @@ def make_realism(document: dict | None = None, *, source: str = "realism") -> Re
             f"{where('target_estimate', 'angle_error_rad')}: an estimate error above 0.5 rad is not an estimate"
         )
 
+    # A period is a whole number of plant steps, so none is shorter than the shortest step a
+    # scenario may have; that bound also keeps control_period / servo_period finite.
+    shortest = DT_LIMITS_S[0]
     period = get("timing", "control_period")
-    if period is not None and not (is_real(period) and 0 < period <= 1.0):
+    if period is not None and not (is_real(period) and shortest <= period <= 1.0):
         raise RealismError(
-            f"{where('timing', 'control_period')}: must be a number of seconds in (0, 1], got {short(period)}"
+            f"{where('timing', 'control_period')}: must be a number of seconds in [{shortest:g}, 1], got {short(period)}"
         )
     servo = get("timing", "servo_period")
-    if servo is not None and not (is_real(servo) and 0 < servo <= (1.0 if period is None else period)):
+    if servo is not None and not (is_real(servo) and shortest <= servo <= (1.0 if period is None else period)):
         raise RealismError(
-            f"{where('timing', 'servo_period')}: must be a number of seconds in (0, control_period], got {short(servo)}"
+            f"{where('timing', 'servo_period')}: must be a number of seconds in [{shortest:g}, control_period], "
+            f"got {short(servo)}"
         )
     if servo is not None and period is not None and abs(period / servo - round(period / servo)) > 1e-9 * period / servo:
         raise RealismError(
@@ -451,6 +456,8 @@ def load_realism(name_or_path: str | Path) -> Realism:
     them under ``"realism"`` (``null`` torque limits meaning none)."""
     if str(name_or_path) in PRESETS:
         return PRESETS[str(name_or_path)]()
+    if str(name_or_path) == "":
+        raise RealismError("expected ideal, flight or a TOML file, got an empty name")
     path = Path(name_or_path)
     try:
         document = read_document(path, RealismError)

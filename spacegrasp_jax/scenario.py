@@ -316,6 +316,11 @@ def scenario_from_mapping(robot: Robot, document: dict) -> Scenario:
     kwargs = {}
     for key, value in document.items():
         if key == "target":
+            if value is None:  # JSON's null: a mistake, not the paper's fixed target (no key at all)
+                raise ScenarioError(
+                    f"target: expected a table of {', '.join(TARGET_KEYS)}, got null "
+                    "(leave the key out for the paper's fixed target)"
+                )
             kwargs["target"] = value
         elif isinstance(value, dict):
             for sub_key, sub_value in value.items():

@@ -79,6 +79,8 @@ def files(folder):
         "period_huge_int.toml": b"[timing]\ncontrol_period = " + b"9" * 400,
         "range_huge_int.toml": b"q_init_rad = " + b"9" * 400,
         "servo_below_dt.toml": b"[timing]\ncontrol_period = 0.01\nservo_period = 0.0005",
+        "servo_denormal.toml": b"[timing]\ncontrol_period = 0.01\nservo_period = 5e-324",  # the ratio overflows
+        "target_null.json": b'{"target": null}',
     }
     paper_robot = (Path(__file__).resolve().parents[1] / "configs" / "paper_robot.toml").read_text()
     assert "mass = 500.0" in paper_robot
@@ -129,7 +131,7 @@ def cases(paths, out):
         "info robot folder": (["info", "--robot", p["a_folder"]], "a_folder: is a folder"),
         "info urdf exists": (["info", "--urdf", p["binary.toml"]], "binary.toml exists; name a new file"),
         "info urdf under a file": (["info", "--urdf", f"{p['binary.toml']}/arm.urdf"], "binary.toml is not a folder"),
-        "info urdf empty name": (["info", "--urdf", ""], "--urdf: . exists; name a new file"),
+        "info urdf empty name": (["info", "--urdf", ""], "argument --urdf: empty; expected FILE"),
         "simulate gains folder": ([*SIMULATE, "--gains", p["a_folder"], "--out", out], "a_folder: is a folder"),
         "montecarlo gains folder": ([*MONTECARLO, "--gains", p["a_folder"], "--out", out], "a_folder: is a folder"),
         "tune scenario folder": ([*TUNE, "--scenario", p["a_folder"], "--out", out], "a_folder: is a folder"),
@@ -365,7 +367,72 @@ def cases(paths, out):
         ),
         "simulate perturbation missing": ([*SIMULATE, "--perturbation", p["missing"], "--out", out], "missing"),
         "margins tolerance 0": ([*MARGINS, "--tolerance-mm", "0", "--out", out], "argument --tolerance-mm:"),
+        # a servo period so small that control_period / servo_period overflows a float
+        "gradients servo period denormal": (
+            ["gradients", "--n", "2", "--realism", p["servo_denormal.toml"], "--out", out],
+            "servo_denormal.toml: timing.servo_period: must be a number of seconds in [1e-06, control_period]",
+        ),
+        "simulate servo period denormal": (
+            [*SIMULATE, "--realism", p["servo_denormal.toml"], "--out", out],
+            "timing.servo_period: must be a number of seconds in [1e-06",
+        ),
+        # null where a table belongs is not "no target"
+        "gradients target null": (
+            ["gradients", "--n", "2", "--scenario", p["target_null.json"], "--out", out],
+            "target_null.json: target: expected a table of mass, inertia",
+        ),
+        "simulate target null": ([*SIMULATE, "--scenario", p["target_null.json"], "--out", out], ": target: expected"),
+        "tune target null": ([*TUNE, "--scenario", p["target_null.json"], "--out", out], ": target: expected a table"),
+        # gradients and tune agree: a target's speed is weighed only where a target floats
+        "gradients target speed weight without a target": (
+            ["gradients", "--n", "2", "--weights", "target_speed=1", "--out", out],
+            "--weights target_speed: needs a scenario with a free-floating [target]",
+        ),
+        "tune target speed weight without a target": (
+            [*TUNE, "--objective", "weighted", "--weights", "target_speed=1", "--out", out],
+            "--weights target_speed: needs a scenario with a free-floating [target]",
+        ),
+        # an empty value is never the option's absence nor the current folder
+        "simulate realism empty": (
+            [*SIMULATE, "--realism", "", "--out", out],
+            "--realism: empty; expected ideal|flight|FILE",
+        ),
+        "tune ranges= empty": (
+            [*TUNE, "--ranges=", "--out", out],
+            "argument --ranges: empty; expected montecarlo|tuning",
+        ),
+        "gradients ranges= empty": (
+            ["gradients", "--n", "2", "--ranges=", "--out", out],
+            "argument --ranges: empty; expected montecarlo|tuning",
+        ),
+        **empty_value_cases(out),
     }
+
+
+def empty_value_cases(out: str) -> dict:
+    """Case name -> (argv, error text): an empty string for every option or argument of every
+    command that takes a name, a file or a list of them (those without a numeric type, whose
+    own type refuses an empty string), as ``--option ''`` and as ``--option=``."""
+    from spacegrasp_jax.cli import build_parser
+
+    table = {}
+    for command, parser in build_parser().commands.items():
+        # where the command writes a folder or file, a named one: nothing lands in the working folder
+        out_option = ["--out", out] if any("--out" in action.option_strings for action in parser._actions) else []
+        for action in parser._actions:
+            if action.nargs == 0 or action.type is not None or action.dest == "help":
+                continue
+            if not action.option_strings:  # a positional: the empty string stands where it belongs
+                table[f"{command} {action.metavar or action.dest} empty"] = (
+                    [command, ""],
+                    f"argument {action.metavar or action.dest}: empty; expected",
+                )
+                continue
+            option = action.option_strings[-1]
+            rest = [] if option == "--out" else out_option
+            table[f"{command} {option} empty"] = ([command, option, "", *rest], f"argument {option}: empty")
+            table[f"{command} {option}= empty"] = ([command, f"{option}=", *rest], f"argument {option}: empty")
+    return table
 
 
 @pytest.fixture(scope="module")
@@ -389,7 +456,7 @@ _FILE_NAMES = (
     "binary.json binary.toml deep.json deep.toml list.json number.json null.json kp_string.json kp_true.json "
     "Md_nested_string.json duration_string.toml duration_true.toml dt_string.json target_mass_true.toml "
     "duration_huge.toml dt_tiny.toml ragged.json lar_not_table.toml noise_huge_int.toml period_huge_int.toml "
-    "range_huge_int.toml servo_below_dt.toml satellite_mass_string.toml a_folder missing "
+    "range_huge_int.toml servo_below_dt.toml servo_denormal.toml target_null.json satellite_mass_string.toml a_folder missing "
     "under_a_file occupied foreign simulated"
 ).split()
 

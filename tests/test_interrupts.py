@@ -1,14 +1,17 @@
 """Signals on the command line: a second SIGINT (or the first, for a command without safe
 points) ends the process at once, even in the middle of a compile, with exit code 130, one
-line and no traceback or crash."""
+line and no traceback or crash; a campaign killed outright (SIGKILL) resumes to the same
+samples."""
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 SHORT_SCENARIO = "duration = 0.2\n[trajectory]\nduration = 0.2\n"
@@ -87,3 +90,40 @@ def test_in_a_library_call_the_second_signal_raises_keyboard_interrupt():
     with StopRequest("run", patience=0, hard_exit=True) as outer, StopRequest("chunk") as inner:
         assert outer.hard_exit and inner.hard_exit  # the command line's choice holds inside
     assert signal.getsignal(signal.SIGINT) is before
+
+
+@pytest.mark.slow
+def test_a_campaign_killed_between_chunks_resumes_to_the_same_samples(tmp_path):
+    """SIGKILL leaves no chance to clean up: the chunks finished before it stay on disk (each
+    written whole), ``--resume`` computes only the others, and the campaign ends with the
+    same samples, bit for bit, as one that ran without a stop."""
+    command = [sys.executable, "-m", "spacegrasp_jax.cli", "montecarlo", "--n", "16", "--chunk", "2"]
+    command += ["--controller", "admittance", "--compile-cache", str(tmp_path / "cache")]  # the 17 s capture
+    whole = subprocess.run([*command, "--out", str(tmp_path / "whole")], capture_output=True, text=True, timeout=600)
+    assert whole.returncode == 0, whole.stderr  # it also fills the compile cache the others load from
+    killed = subprocess.Popen(
+        [*command, "--out", str(tmp_path / "killed")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    chunks = tmp_path / "killed" / "chunks" / "admittance" / "paper"
+    finished = lambda: [path for path in chunks.glob("*.npz") if not path.name.startswith(".")]
+    deadline = time.monotonic() + 300
+    while len(finished()) < 2:  # a chunk of 2 takes about 0.2 s on two cores
+        assert killed.poll() is None, "the campaign ended before it could be killed"
+        assert time.monotonic() < deadline, "no chunk finished in 300 s"
+        time.sleep(0.002)
+    killed.send_signal(signal.SIGKILL)
+    killed.wait(timeout=60)
+    assert killed.returncode == -signal.SIGKILL
+    kept = len(finished())
+    assert 2 <= kept < 8 and not (tmp_path / "killed" / "samples.npz").exists(), kept
+
+    resumed = subprocess.run(
+        [*command, "--resume", "--out", str(tmp_path / "killed")], capture_output=True, text=True, timeout=600
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    throughput = json.loads((tmp_path / "killed" / "summary.json").read_text())["throughput"]
+    assert throughput["rollouts_computed_this_run"] == 16 - 2 * kept  # the finished chunks were not run again
+    with np.load(tmp_path / "whole" / "samples.npz") as expected, np.load(tmp_path / "killed" / "samples.npz") as got:
+        assert sorted(got.files) == sorted(expected.files)
+        for name in expected.files:
+            np.testing.assert_array_equal(got[name], expected[name], err_msg=name)

@@ -289,7 +289,9 @@ def test_settings_files_are_validated_and_read_back(tmp_path):
         "[controller_model]\nsatellite_mass_factor = 0.0\n": "satellite_mass_factor: must be between",
         "[force_torque_sensor]\nforce_noise_std = nan\n": "NaN",
         "[timing]\ncontrol_period = 0.01\nservo_period = 0.003\n": "does not divide timing.control_period",
-        "[timing]\ncontrol_period = 0.01\nservo_period = 0.02\n": r"timing.servo_period: must be .* \(0, control_period\]",
+        "[timing]\ncontrol_period = 0.01\nservo_period = 0.02\n": r"timing.servo_period: must be .* \[1e-06, control_period\]",
+        "[timing]\ncontrol_period = 0.01\nservo_period = 5e-324\n": r"timing.servo_period: must be .* \[1e-06, control_period\]",
+        "[timing]\ncontrol_period = 1e-7\n": r"timing.control_period: must be .* \[1e-06, 1\]",
     }
     for text, message in bad.items():
         path.write_text(text)
@@ -301,6 +303,8 @@ def test_settings_files_are_validated_and_read_back(tmp_path):
         make_realism({"timing": {"control_period": 0.01, "servo_period": 0.0025}}).steps_per_servo(1e-3)
     with pytest.raises(RealismError, match="missing.toml: no such file"):
         load_realism(tmp_path / "missing.toml")
+    with pytest.raises(RealismError, match="expected ideal, flight or a TOML file, got an empty name"):
+        load_realism("")  # not the current folder
 
 
 def test_torque_limits_are_one_a_joint_of_the_arm_they_run_with(robot, short_scenario):

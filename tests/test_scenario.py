@@ -56,6 +56,9 @@ def test_scenario_file(robot, tmp_path):
     path.write_text("dt = -1.0\n")
     with pytest.raises(ScenarioError, match=r"scenario.toml: dt: must be positive"):
         load_scenario(robot, path)
+    (tmp_path / "null_target.json").write_text('{"target": null}')  # null is a mistake, not "no target"
+    with pytest.raises(ScenarioError, match=r"null_target.json: target: expected a table of mass, .* got null"):
+        load_scenario(robot, tmp_path / "null_target.json")
 
 
 BITS_OF_THE_BUILD = """

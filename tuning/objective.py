@@ -97,6 +97,12 @@ class Weights:
             values[name] = value
         return cls(**values)
 
+    def check_target(self, free_target: bool) -> None:
+        """Raise ``ValueError`` if a weight needs a free-floating target and the scenario
+        (``free_target``: whether its target floats) has none."""
+        if self.target_speed > 0.0 and not free_target:
+            raise ValueError("--weights target_speed: needs a scenario with a free-floating [target]")
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)

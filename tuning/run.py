@@ -426,8 +426,10 @@ def tune(
             raise TuneSetupError(f"--holdout: must be >= 0, got {holdout}")
         record = new_record(config or TuneConfig(), gains_file, scenario_file, robot_file, holdout)
         config = TuneConfig.from_dict(record["config"])
-        if config.weights.target_speed > 0.0 and not record_scenario(record_robot(record), record).free_target:
-            raise TuneSetupError("--weights target_speed: needs a scenario with a free-floating [target]")
+        try:
+            config.weights.check_target(record_scenario(record_robot(record), record).free_target)
+        except ValueError as error:
+            raise TuneSetupError(str(error)) from None
         out.mkdir(parents=True, exist_ok=True)
         runfiles.write_json(record_path, record)
 

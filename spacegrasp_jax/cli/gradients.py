@@ -47,11 +47,15 @@ def _gradients(args: argparse.Namespace) -> int:
     batching.use_all_cpu_cores()  # before anything touches a device
     try:
         ranges = _ranges(args, PerturbationRanges())
-        weights = Weights.parse(args.weights)
+        weights = Weights.parse(args.weights or "")
         horizons = _horizons(args.horizons)
     except ValueError as error:
         raise UsageError(str(error)) from None
     robot, scenario, gains = _load_inputs(args)
+    try:
+        weights.check_target(scenario.free_target)
+    except ValueError as error:
+        raise UsageError(str(error)) from None
     law = _law(args.controller, args)
     realism = _realism(args, scenario)
     _warn(plausibility.input_warnings(scenario))
@@ -179,9 +183,7 @@ def add_parsers(commands) -> None:
     _add_realism_option(gradient_health)
     add_ranges_arguments(gradient_health, "montecarlo")
     gradient_health.add_argument("--seed", type=_SEED, default=0, help="seed of the samples (default 0)")
-    gradient_health.add_argument(
-        "--weights", default="", help="objective weights, as for tune (default: tune's defaults)"
-    )
+    gradient_health.add_argument("--weights", help="objective weights, as for tune (default: tune's defaults)")
     gradient_health.add_argument(
         "--horizons",
         default=",".join(f"{h:g}" for h in GRADIENT_HORIZONS),

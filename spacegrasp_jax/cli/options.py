@@ -25,6 +25,27 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
+    def _get_value(self, action: argparse.Action, arg_string: str):
+        # Every value typed on the command line is converted here (argparse's one conversion
+        # point). An empty string names no file, law or setting: it is refused rather than
+        # read as the option's absence (``--ranges=``) or as the current folder
+        # (``--realism ''``). A typed option's own type refuses it with its own words.
+        if arg_string == "" and action.type is None and action.nargs not in (argparse.PARSER, argparse.REMAINDER):
+            raise argparse.ArgumentError(action, f"empty; expected {_expected(action)}")
+        return super()._get_value(action, arg_string)
+
+
+def _expected(action: argparse.Action) -> str:
+    """What an option takes, in words for an error: its choices, its metavar (such as
+    ``ideal|flight|FILE``), or its help's first clause."""
+    if action.choices:
+        return "one of " + ", ".join(map(str, action.choices))
+    if action.metavar and action.option_strings:  # a positional's metavar is its name, said already
+        return action.metavar
+    if action.help:
+        return action.help.split(" (")[0].split(";")[0]
+    return "a value"
+
 
 def _whole(low: int, high: int):
     """An option's type: a whole number in ``[low, high]``."""

@@ -61,6 +61,10 @@ def _tune(args: argparse.Namespace) -> int:
     # Every file read and checked now: tune() reads them again after writing run.json.
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
+    try:
+        config.weights.check_target(scenario.free_target)
+    except ValueError as error:
+        raise UsageError(str(error)) from None
     _realism(args, scenario)
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
@@ -229,11 +233,11 @@ def _tune_fields(args: argparse.Namespace) -> dict:
         steps=args.steps,
         learning_rate=args.lr,
         optimizer=args.optimizer,
-        weights=Weights.parse(args.weights),
+        weights=Weights.parse(args.weights or ""),
         batch=args.batch,
         cvar_alpha=args.cvar,
         seed=args.seed,
-        frozen=tuple(filter(None, args.freeze.split(","))),
+        frozen=tuple(filter(None, (args.freeze or "").split(","))),
         gradient=args.gradient,
         torque_guard_Nm=args.torque_guard,
         realism=load_realism(args.realism).to_dict() if args.realism else None,
@@ -304,7 +308,6 @@ def add_parsers(commands) -> None:
     )
     tune.add_argument(
         "--weights",
-        default="",
         help="the weighted objective's weights, e.g. final_position=1,peak_torque=4 (documentation: Tuning the gains)",
     )
     tune.add_argument(
@@ -318,7 +321,7 @@ def add_parsers(commands) -> None:
     )
     tune.add_argument("--seed", type=_SEED, default=0, help="seed of the perturbed scenarios")
     tune.add_argument("--optimizer", default="adam", help="any optax optimiser taking a learning rate (default adam)")
-    tune.add_argument("--freeze", default="", help="gain groups to keep fixed, e.g. kd,ki")
+    tune.add_argument("--freeze", help="gain groups to keep fixed, e.g. kd,ki (default: none)")
     tune.add_argument("--gradient", choices=("reverse", "forward"), default="reverse")
     tune.add_argument(
         "--torque-guard",
