@@ -385,12 +385,21 @@ def cases(paths, out):
         "tune target null": ([*TUNE, "--scenario", p["target_null.json"], "--out", out], ": target: expected a table"),
         # gradients and tune agree: a target's speed is weighed only where a target floats
         "gradients target speed weight without a target": (
-            ["gradients", "--n", "2", "--weights", "target_speed=1", "--out", out],
+            ["gradients", "--n", "2", "--objective", "weighted", "--weights", "target_speed=1", "--out", out],
             "--weights target_speed: needs a scenario with a free-floating [target]",
         ),
         "tune target speed weight without a target": (
             [*TUNE, "--objective", "weighted", "--weights", "target_speed=1", "--out", out],
             "--weights target_speed: needs a scenario with a free-floating [target]",
+        ),
+        # gradients builds the objective as tune does, with its checks
+        "gradients weights with the capture objective": (
+            ["gradients", "--n", "2", "--weights", "peak_torque=2", "--out", out],
+            "--weights: they weigh the weighted objective's parts; choose it (--objective weighted)",
+        ),
+        "gradients torque-cap with weighted": (
+            ["gradients", "--n", "2", "--objective", "weighted", "--torque-cap", "4", "--out", out],
+            "--torque-cap: the capture objective's torque constraint",
         ),
         # an empty value is never the option's absence nor the current folder
         "simulate realism empty": (

@@ -151,6 +151,32 @@ def test_interrupted_run_resumes_to_the_same_result(uninterrupted):
 
 
 @pytest.mark.slow
+def test_fresh_batches_draw_each_steps_samples_and_an_interrupted_run_resumes_to_the_same_gains(uninterrupted):
+    """``--fresh-batches``: step 0 runs on the run's batch (its loss is the one-batch run's),
+    every later step on a batch of its own; a run stopped after step 2 resumes to exactly the
+    uninterrupted run's gains and losses (each step's batch follows from its number)."""
+    tmp_path, one_batch, _ = uninterrupted
+    extra = ("--fresh-batches", "--aggregate", "median_of_means")
+    full = tmp_path / "fresh"
+    result = subprocess.run(tune_command(tmp_path, full, *extra), capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr
+    fresh = list(csv.DictReader((full / "history.csv").open()))
+    fixed = list(csv.DictReader((one_batch / "history.csv").open()))
+    assert fresh[0]["loss"] == fixed[0]["loss"]
+    assert len({row["loss"] for row in fresh}) == len(fresh)
+    assert json.loads((full / "run.json").read_text())["config"]["fresh_batches"] is True
+
+    out = tmp_path / "fresh_interrupted"
+    code, err = run_until_step(tune_command(tmp_path, out, *extra), out / "history.csv", step=2)
+    assert code == 130, err
+    resume = [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--resume"]
+    result = subprocess.run(resume, capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr
+    assert json.loads((out / "gains.json").read_text()) == json.loads((full / "gains.json").read_text())
+    assert [row["loss"] for row in csv.DictReader((out / "history.csv").open())] == [row["loss"] for row in fresh]
+
+
+@pytest.mark.slow
 def test_tune_refuses_to_overwrite_and_rejects_bad_options(uninterrupted, tmp_path):
     _, full, _ = uninterrupted
     result = subprocess.run(tune_command(tmp_path, full), capture_output=True, text=True, timeout=300)

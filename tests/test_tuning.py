@@ -81,6 +81,9 @@ def test_config_validation():
         (dict(realism={}, aggregate="clip"), "aggregate: a setting of the gradient method"),
         (dict(method="gradient", aggregate="clip"), "aggregate: clip combines the samples' separate gradients"),
         (dict(method="gradient", realism={}, gradient="forward"), "gradient: tuning under a realism"),
+        (dict(method="gradient", fresh_batches=True), "fresh_batches: draws each step's samples"),
+        (dict(realism={}, fresh_batches=True), "fresh_batches: a setting of the gradient method"),
+        (dict(method="gradient", aggregate="trimmed"), "aggregate: trimmed combines the samples' separate"),
     ]:
         with pytest.raises(ValueError, match=message):
             TuneConfig(**change)
@@ -310,6 +313,34 @@ def test_a_chaotic_samples_gradient_is_clipped_to_a_multiple_of_the_median():
     np.testing.assert_allclose(worst["kp"], [(0.6 + CLIP_FACTOR) / 2, 0.8 / 2])
     with pytest.raises(ValueError, match="aggregate"):
         TuneConfig(aggregate="median")
+
+
+def test_robust_estimators_of_the_batch_gradient_keep_the_gradients_structure():
+    """``trimmed`` and ``median_of_means`` on a batch of two gain groups: per gain, SciPy's
+    trimmed mean and NumPy's median of the group means, over the samples' flattened
+    gradients, back in the groups' shapes."""
+    from scipy import stats
+
+    from spacegrasp_jax.tuning.tune import aggregate_gradients
+
+    rng = np.random.default_rng(0)
+    gradients = {"kp": jnp.asarray(rng.standard_normal((20, 3))), "Md": jnp.asarray(rng.standard_normal((20, 2, 2)))}
+    gradients["kp"] = gradients["kp"].at[4].mul(1e3)  # a chaotic sample
+    losses = jnp.asarray(rng.random(20))
+    flat = np.concatenate([np.asarray(gradients["kp"]), np.asarray(gradients["Md"]).reshape(20, 4)], axis=1)
+    base = TuneConfig(method="gradient", realism={})
+    total, trimmed, clipped = aggregate_gradients(losses, gradients, dataclasses.replace(base, aggregate="trimmed"))
+    expected = stats.trim_mean(flat, 0.1, axis=0)
+    assert float(total) == pytest.approx(float(jnp.mean(losses))) and int(clipped) == 0
+    np.testing.assert_allclose(trimmed["kp"], expected[:3], rtol=1e-14)
+    np.testing.assert_allclose(trimmed["Md"], expected[3:].reshape(2, 2), rtol=1e-14)
+    _, median, _ = aggregate_gradients(losses, gradients, dataclasses.replace(base, aggregate="median_of_means"))
+    groups = np.median(np.stack([part.mean(axis=0) for part in np.array_split(flat, 4)]), axis=0)
+    np.testing.assert_allclose(median["kp"], groups[:3], rtol=1e-14)
+    np.testing.assert_allclose(median["Md"], groups[3:].reshape(2, 2), rtol=1e-14)
+    assert abs(float(median["kp"][0])) < 5.0 and abs(float(trimmed["kp"][0])) < 5.0  # the chaotic sample ignored
+    with pytest.raises(ValueError, match="aggregate: trimmed estimates the batch mean's gradient; CVaR"):
+        dataclasses.replace(base, aggregate="trimmed", cvar_alpha=0.5)
 
 
 def test_a_candidate_whose_loss_runs_away_is_rejected_even_within_the_torque_guard():

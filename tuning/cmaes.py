@@ -98,13 +98,13 @@ def population_chunk(batch: int) -> int:
     return divisor if 2 * divisor >= MAX_CHUNK else MAX_CHUNK
 
 
-def make_population_evaluator(
+def make_item_evaluator(
     robot: Robot, samples, base: Gains, mask: dict, params: dict, controller: str, objective: Objective, chunk: int
-) -> Callable[[np.ndarray], dict]:
-    """``evaluate(vectors (P, n)) -> parts`` with every part of the objective shaped
-    (P, batch), for P parameter vectors on the batch ``samples``: a ``SampleLoops`` of the
-    flight-like loop (robots, scenarios, realisms, keys) or stacked scenarios of the
-    paper's loop."""
+) -> Callable[[np.ndarray, np.ndarray], dict]:
+    """``evaluate(vectors (M, n), rows (M,)) -> parts``, every part of the objective shaped
+    (M,): parameter vector ``k`` on sample ``rows[k]`` of ``samples``, a ``SampleLoops`` of the
+    flight-like loop (robots, scenarios, realisms, keys) or stacked scenarios of the paper's
+    loop; forward rollouts in one sharded, chunked program."""
     realism_loop = isinstance(samples, SampleLoops)
     if realism_loop:
         per_sample = (samples.robots, samples.scenarios, samples.realisms, samples.keys)
@@ -112,15 +112,14 @@ def make_population_evaluator(
     else:
         per_sample = (samples,)
         model_robot = robot
-    batch = batching.batch_size(per_sample)
     function = functools.partial(_candidate_parts, controller=controller, realism_loop=realism_loop)
 
-    def evaluate(vectors: np.ndarray) -> dict:
-        count = len(vectors)
-        gains = [gains_of(v, params, base, mask) for v in vectors]
-        stacked = jax.tree.map(lambda *g: np.repeat(np.stack([np.asarray(x) for x in g]), batch, axis=0), *gains)
-        items = (stacked, *jax.tree.map(lambda x: np.concatenate([np.asarray(x)] * count), per_sample))
-        parts = batching.map_in_chunks(
+    def evaluate(vectors: np.ndarray, rows: np.ndarray) -> dict:
+        unique, inverse = np.unique(np.asarray(vectors, dtype=float), axis=0, return_inverse=True)
+        gains = [gains_of(v, params, base, mask) for v in unique]
+        stacked = jax.tree.map(lambda *g: np.stack([np.asarray(x) for x in g])[inverse.ravel()], *gains)
+        items = (stacked, *batching.take(per_sample, np.asarray(rows)))
+        return batching.map_in_chunks(
             "tuning.cmaes",
             function,
             (model_robot, objective),
@@ -128,6 +127,23 @@ def make_population_evaluator(
             chunk=chunk,
             progress=None,
         )
+
+    return evaluate
+
+
+def make_population_evaluator(
+    robot: Robot, samples, base: Gains, mask: dict, params: dict, controller: str, objective: Objective, chunk: int
+) -> Callable[[np.ndarray], dict]:
+    """``evaluate(vectors (P, n)) -> parts`` with every part of the objective shaped
+    (P, batch), for P parameter vectors on every sample of the batch ``samples``
+    ([`make_item_evaluator()`][tuning.cmaes.make_item_evaluator])."""
+    per_sample = (samples.robots,) if isinstance(samples, SampleLoops) else (samples,)
+    batch = batching.batch_size(per_sample)
+    items = make_item_evaluator(robot, samples, base, mask, params, controller, objective, chunk)
+
+    def evaluate(vectors: np.ndarray) -> dict:
+        count = len(vectors)
+        parts = items(np.repeat(np.asarray(vectors), batch, axis=0), np.tile(np.arange(batch), count))
         return {name: value.reshape(count, batch) for name, value in parts.items()}
 
     return evaluate

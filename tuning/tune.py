@@ -37,7 +37,7 @@ from spacegrasp_jax.realism import Realism, make_realism
 from spacegrasp_jax.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import FullLog, RunSpec, closed_loop, largest_divisor
-from spacegrasp_jax.tuning import cmaes
+from spacegrasp_jax.tuning import cmaes, estimators
 from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights, objective_parts
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 
@@ -111,9 +111,17 @@ class TuneConfig:
             which a fraction of unequal limits does not (at 40% of the paper's arm's limits
             the wrist's constraint is 0.8 N m, about the paper's own median wrist peak).
         aggregate: how the batch's gradients combine: ``"mean"`` (the gradient of the mean
-            or CVaR) or ``"clip"``: each sample's gradient clipped to ``CLIP_FACTOR``
+            or CVaR); ``"clip"``: each sample's gradient clipped to ``CLIP_FACTOR``
             times the batch's median gradient norm before the mean (one chaotic sample
-            cannot steer the step).
+            cannot steer the step); ``"trimmed"`` or ``"median_of_means"``
+            ([`estimators.aggregate()`][tuning.estimators.aggregate]: per gain, the mean
+            without the extreme tenths, or the median of four group means, of fewer in a
+            batch of fewer than four).
+        fresh_batches: the gradient method under a realism draws a new batch of the
+            envelope for every step (step k's seed ``seed + FRESH_SEED_STRIDE * k``; step 0
+            and the held-out evaluation as without): stochastic gradient descent on the
+            envelope rather than on one batch of it. Each step's loss is then on its own
+            batch.
     """
 
     controller: str = "admittance"
@@ -139,6 +147,7 @@ class TuneConfig:
     step_size: float = cmaes.SIGMA
     torque_fraction: float = 1.0
     torque_cap_Nm: float | None = None
+    fresh_batches: bool = False
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
@@ -182,8 +191,12 @@ class TuneConfig:
             raise ValueError("step_size: CMA-ES's initial step; the gradient method's is the learning rate (--lr)")
         if self.population is not None and not (isinstance(self.population, int) and 2 <= self.population <= 10_000):
             raise ValueError(f"population: must be a whole number from 2 to 10000, got {self.population!r}")
-        if self.aggregate not in ("mean", "clip"):
-            raise ValueError(f"aggregate: expected mean or clip, got {self.aggregate!r}")
+        if self.aggregate not in estimators.AGGREGATES:
+            raise ValueError(f"aggregate: expected one of {', '.join(estimators.AGGREGATES)}, got {self.aggregate!r}")
+        if self.aggregate in ("trimmed", "median_of_means") and self.cvar_alpha is not None:
+            raise ValueError(
+                f"aggregate: {self.aggregate} estimates the batch mean's gradient; CVaR weighs the worst samples"
+            )
         if self.realism is not None:
             make_realism(self.realism, source="realism")  # checked now, before anything compiles
         unknown = sorted(set(self.frozen) - set(GROUPS[self.controller]))
@@ -204,10 +217,14 @@ class TuneConfig:
                     raise ValueError(
                         f"{name}: a setting of the gradient method; CMA-ES does not use it (choose --method gradient)"
                     )
-        elif self.realism is None and self.aggregate == "clip":
+        elif self.realism is None and self.aggregate != "mean":
             raise ValueError(
-                "aggregate: clip combines the samples' separate gradients of a run under a realism; "
+                f"aggregate: {self.aggregate} combines the samples' separate gradients of a run under a realism; "
                 "the ideal loop's batch has one gradient of the mean (choose --realism, or mean)"
+            )
+        if self.fresh_batches and self.realism is None:
+            raise ValueError(
+                "fresh_batches: draws each step's samples of a gradient run under a realism (choose --realism)"
             )
         if self.realism is not None and self.gradient != "reverse":
             raise ValueError(
@@ -239,6 +256,7 @@ GRADIENT_METHOD_FIELDS = (
     "torque_guard_Nm",
     "loss_guard",
     "aggregate",
+    "fresh_batches",
 )
 
 _DEFAULTS = {field.name: field.default for field in dataclasses.fields(TuneConfig)}
@@ -464,7 +482,7 @@ def make_value_and_grad(loss: BoundLoss, params, mode: str) -> BoundProgram:
 
 #: Under ``aggregate="clip"``, a sample's gradient is clipped to this many times the batch's
 #: median gradient norm.
-CLIP_FACTOR = 3.0
+CLIP_FACTOR = estimators.CLIP_FACTOR
 
 
 def flight_batch(robot: Robot, nominal: Scenario, config: TuneConfig, seed: int, count: int) -> SampleLoops:
@@ -478,9 +496,20 @@ def flight_batch(robot: Robot, nominal: Scenario, config: TuneConfig, seed: int,
 
 def aggregate_gradients(losses, gradients, config: TuneConfig):
     """``(total, gradient, clipped)``: the batch's objective (mean, or CVaR), its gradient
-    from the per-sample ``gradients`` (a pytree with a leading batch axis), clipped per
-    sample under ``config.aggregate == "clip"``, and how many samples were clipped."""
+    from the per-sample ``gradients`` (a pytree with a leading batch axis) as
+    ``config.aggregate`` combines them (clipped per sample under ``"clip"``), and how many
+    samples were clipped."""
     count = losses.shape[0]
+    if config.aggregate in ("trimmed", "median_of_means"):  # the batch mean's gradient, estimated robustly
+        leaves, structure = jax.tree.flatten(gradients)
+        flat = np.concatenate([np.asarray(leaf).reshape(count, -1) for leaf in leaves], axis=1)
+        combined = estimators.aggregate(flat, config.aggregate, groups=min(estimators.GROUPS, count))
+        estimate = np.split(combined, np.cumsum([leaf[0].size for leaf in leaves])[:-1])
+        gradient = jax.tree.unflatten(
+            structure,
+            [jnp.asarray(piece.reshape(leaf.shape[1:])) for piece, leaf in zip(estimate, leaves, strict=True)],
+        )
+        return jnp.mean(losses), gradient, jnp.asarray(0)
     norms = jnp.sqrt(sum(jnp.sum(g.reshape(count, -1) ** 2, axis=1) for g in jax.tree.leaves(gradients)))
     if config.aggregate == "clip":
         ceiling = CLIP_FACTOR * jnp.median(norms)
@@ -518,23 +547,30 @@ def _per_sample_gradients(params, base, mask, model_robot, objective: Objective,
 
 
 def make_flight_value_and_grad(
-    robot: Robot, batch: SampleLoops, base: Gains, mask, config: TuneConfig, objective: Objective
+    robot: Robot,
+    batch: SampleLoops,
+    base: Gains,
+    mask,
+    config: TuneConfig,
+    objective: Objective,
+    fresh: Callable[[int], SampleLoops] | None = None,
 ):
-    """``params -> ((loss, aux), gradient)`` under ``config.realism``: the samples'
+    """``(params, step=0) -> ((loss, aux), gradient)`` under ``config.realism``: the samples'
     gradients (``_per_sample_gradients()``) as one program sharded over every device
     ([`spacegrasp_jax.batching.map_in_chunks()`][spacegrasp_jax.batching.map_in_chunks]: a share of the batch per core or GPU),
     then [`aggregate_gradients()`][tuning.tune.aggregate_gradients] on the host. ``aux`` has the batch-mean parts, the worst
-    hard peak torque and ``clipped_samples``."""
+    hard peak torque and ``clipped_samples``. The samples are ``batch``, or at a step above
+    0 ``fresh(step)`` where given (``config.fresh_batches``: the same program, other samples)."""
     function = functools.partial(_per_sample_gradients, controller=config.controller)
-    samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
     count = int(batch.keys.shape[0])
 
-    def value_and_grad(params):
+    def value_and_grad(params, step: int = 0):
+        drawn = fresh(step) if fresh is not None and step > 0 else batch
         losses, parts, gradients = batching.map_in_chunks(
             "tuning.flight_gradient",
             function,
-            (params, base, mask, batch.model_robot, objective),
-            samples,
+            (params, base, mask, drawn.model_robot, objective),
+            (drawn.robots, drawn.scenarios, drawn.realisms, drawn.keys),
             chunk=count,
             progress=None,
         )
@@ -546,6 +582,11 @@ def make_flight_value_and_grad(
         return (total, aux), gradient
 
     return value_and_grad
+
+
+#: Under ``fresh_batches``, step k's batch is drawn with seed ``seed + FRESH_SEED_STRIDE * k``:
+#: apart from every other seed a run uses (its batch's, the held-out's ``seed + 1,000,003``).
+FRESH_SEED_STRIDE = 7_919
 
 
 @dataclasses.dataclass
@@ -666,7 +707,10 @@ def optimise(
         rejected = 0
         while True:
             candidate = jax.tree.map(lambda p, u: p + state.scale * u, state.params, updates)
-            (loss, aux), gradient = value_and_grad(candidate)
+            # fresh batches: the candidate's loss and gradient on step k's batch
+            (loss, aux), gradient = (
+                value_and_grad(candidate, state.step + 1) if config.fresh_batches else value_and_grad(candidate)
+            )
             # With saturating motors an unstable candidate need not raise the torque: the EE
             # drifts away instead, which the loss sees.
             if _is_acceptable(
@@ -741,7 +785,12 @@ def setup(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torq
     params = initial_params(base, config.controller)
     if config.realism is not None:
         batch = training_batch(robot, nominal, config)
-        return objective, mask, params, make_flight_value_and_grad(robot, batch, base, mask, config, objective)
+        fresh = None
+        if config.fresh_batches:
+            fresh = lambda step: flight_batch(
+                robot, nominal, config, config.seed + FRESH_SEED_STRIDE * step, config.batch
+            )
+        return objective, mask, params, make_flight_value_and_grad(robot, batch, base, mask, config, objective, fresh)
     scenarios = training_batch(robot, nominal, config)
     segment = checkpoint_segment(nominal.n_steps, config.batch) if config.gradient == "reverse" else None
     loss = make_loss(robot, scenarios, base, mask, config, objective, segment)

@@ -26,7 +26,9 @@ from spacegrasp_jax.cli.options import (
     _add_run_options,
     _real,
     _whole,
+    add_objective_arguments,
     add_ranges_arguments,
+    tune_setting_error,
 )
 from spacegrasp_jax.control import (
     CONTROLLERS,
@@ -39,21 +41,30 @@ from spacegrasp_jax.simulate import RunSpec
 from spacegrasp_jax.tuning.gradients import HORIZONS as GRADIENT_HORIZONS
 from spacegrasp_jax.tuning.gradients import central_differences, envelope_gradients, finite_rows
 from spacegrasp_jax.tuning.gradients import report as gradient_report
-from spacegrasp_jax.tuning.objective import Objective, Weights
-from spacegrasp_jax.tuning.tune import TuneConfig
+from spacegrasp_jax.tuning.objective import Weights
+from spacegrasp_jax.tuning.tune import TuneConfig, make_objective
 
 
 def _gradients(args: argparse.Namespace) -> int:
     batching.use_all_cpu_cores()  # before anything touches a device
     try:
         ranges = _ranges(args, PerturbationRanges())
-        weights = Weights.parse(args.weights or "")
         horizons = _horizons(args.horizons)
     except ValueError as error:
         raise UsageError(str(error)) from None
+    try:  # the objective as tune builds it: the same checks, the same messages
+        config = TuneConfig(
+            controller=args.controller,
+            objective=args.objective,
+            weights=Weights.parse(args.weights or ""),
+            torque_fraction=args.torque_fraction,
+            torque_cap_Nm=args.torque_cap,
+        )
+    except ValueError as error:
+        raise tune_setting_error(error) from None
     robot, scenario, gains = _load_inputs(args)
     try:
-        weights.check_target(scenario.free_target)
+        config.weights.check_target(scenario.free_target)
     except ValueError as error:
         raise UsageError(str(error)) from None
     law = _law(args.controller, args)
@@ -65,11 +76,7 @@ def _gradients(args: argparse.Namespace) -> int:
     # A fixed torque scale, so that reports at different gains compare: Table 5's row for the
     # paper's laws, 1 N m a joint for others.
     torque_scale = paper.MAX_ABS_TORQUE_NM.get(args.controller, (1.0,) * n_joints(robot))
-    objective = Objective(
-        weights=weights,
-        torque_scale_Nm=tuple(float(x) for x in torque_scale),
-        temperature=TuneConfig().temperature,
-    )
+    objective = make_objective(robot, config, torque_scale)
     smooth = dataclasses.replace(scenario, contact_law="smooth")  # as tuning: gradients need the smooth law
     print(
         f"gradients on the nominal scenario and {args.n} perturbed ones, horizons {', '.join(f'{h:g}' for h in horizons)} "
@@ -99,8 +106,10 @@ def _gradients(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "ranges": ranges.to_dict(),
         "realism": realism.to_dict() if realism is not None else None,
-        "weights": dataclasses.asdict(weights),
+        "objective": config.objective,
+        "weights": dataclasses.asdict(config.weights),
         "torque_scale_Nm": objective.torque_scale_Nm,
+        "torque_constraint_Nm": objective.torque_limit_Nm if config.objective == "capture" else None,
         "scenario_duration_s": scenario.duration,
         "pinv_damping": args.pinv_damping,
         "contact_law": "smooth",
@@ -183,7 +192,7 @@ def add_parsers(commands) -> None:
     _add_realism_option(gradient_health)
     add_ranges_arguments(gradient_health, "montecarlo")
     gradient_health.add_argument("--seed", type=_SEED, default=0, help="seed of the samples (default 0)")
-    gradient_health.add_argument("--weights", help="objective weights, as for tune (default: tune's defaults)")
+    add_objective_arguments(gradient_health)
     gradient_health.add_argument(
         "--horizons",
         default=",".join(f"{h:g}" for h in GRADIENT_HORIZONS),

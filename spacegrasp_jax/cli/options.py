@@ -12,7 +12,8 @@ from spacegrasp_jax.perturbations import (
     FREE_TARGET_RANGES,
     PerturbationRanges,
 )
-from spacegrasp_jax.tuning.tune import TUNING_RANGES
+from spacegrasp_jax.tuning.objective import OBJECTIVES
+from spacegrasp_jax.tuning.tune import TUNING_RANGES, TuneConfig
 
 
 class UsageError(ValueError):
@@ -223,4 +224,62 @@ def _add_compile_cache_option(parser: argparse.ArgumentParser) -> None:
         "--verbose",
         action="store_true",
         help="show XLA's and JAX's own log (XLA's slow-compile banner among it; hidden by default)",
+    )
+
+
+#: TuneConfig's fields -> the options that set them (for messages).
+TUNE_OPTIONS = {
+    "frozen": "--freeze",
+    "optimizer": "--optimizer",
+    "cvar_alpha": "--cvar",
+    "learning_rate": "--lr",
+    "torque_guard_Nm": "--torque-guard",
+    "aggregate": "--aggregate",
+    "torque_fraction": "--torque-fraction",
+    "torque_cap_Nm": "--torque-cap",
+    "population": "--population",
+    "step_size": "--step-size",
+    "method": "--method",
+    "gradient": "--gradient",
+    "objective": "--objective",
+    "weights": "--weights",
+    "fresh_batches": "--fresh-batches",
+}
+
+
+def tune_setting_error(error: ValueError) -> UsageError:
+    """A ``TuneConfig`` (or ``Weights``) refusal as a usage error naming the option: its
+    message's leading field name (``torque_cap_Nm: ...``) becomes the option (``--torque-cap: ...``)."""
+    field, separator, rest = str(error).partition(": ")
+    option = TUNE_OPTIONS.get(field)
+    return UsageError(f"{option}: {rest}" if separator and option else str(error))
+
+
+def add_objective_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--objective``, its torque constraint (``--torque-fraction``, ``--torque-cap``) and
+    ``--weights``: the objective ``tune`` minimises, and ``gradients`` differentiates."""
+    parser.add_argument(
+        "--objective",
+        choices=OBJECTIVES,
+        default=TuneConfig.objective,
+        help=f"capture: the margins to the success criteria, torque a constraint at the motors' limits; weighted: "
+        f"errors against torque relative to the starting gains (default {TuneConfig.objective})",
+    )
+    parser.add_argument(
+        "--torque-fraction",
+        type=_real(0.0, 10.0, above=True),
+        default=1.0,
+        help="the capture objective's torque constraint as a fraction of the motors' limits (default 1)",
+    )
+    parser.add_argument(
+        "--torque-cap",
+        type=_real(0.0, 1000.0, above=True),
+        default=None,
+        metavar="NM",
+        help="the capture objective's torque budget in N m for every joint, where below its fraction of the "
+        "limit (default: none)",
+    )
+    parser.add_argument(
+        "--weights",
+        help="the weighted objective's weights, e.g. final_position=1,peak_torque=4 (documentation: Tuning the gains)",
     )

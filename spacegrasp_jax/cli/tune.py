@@ -21,6 +21,7 @@ from spacegrasp_jax.cli.common import _check_envelope, _claim, _paper_gains_for,
 from spacegrasp_jax.cli.options import (
     _SEED,
     ROBOT_HELP,
+    TUNE_OPTIONS,
     UsageError,
     _add_command,
     _add_compile_cache_option,
@@ -28,7 +29,9 @@ from spacegrasp_jax.cli.options import (
     _add_realism_option,
     _real,
     _whole,
+    add_objective_arguments,
     add_ranges_arguments,
+    tune_setting_error,
 )
 from spacegrasp_jax.control import (
     CONTROLLERS,
@@ -37,7 +40,8 @@ from spacegrasp_jax.control import (
 from spacegrasp_jax.model import n_joints
 from spacegrasp_jax.realism import ideal, load_realism
 from spacegrasp_jax.scenario import load_scenario, paper_scenario
-from spacegrasp_jax.tuning.objective import OBJECTIVES, Weights
+from spacegrasp_jax.tuning.estimators import AGGREGATES
+from spacegrasp_jax.tuning.objective import Weights
 from spacegrasp_jax.tuning.run import ResumeMismatchError, TuneSetupError, record_robot, record_scenario, tune
 from spacegrasp_jax.tuning.tune import METHODS, TUNING_RANGES, TuneConfig
 
@@ -55,9 +59,7 @@ def _tune(args: argparse.Namespace) -> int:
             f"(more --steps may continue a CMA-ES run, --holdout may change), or start a new run in another --out"
         ) from None
     except (TuneSetupError, ValueError) as error:
-        field, separator, rest = str(error).partition(": ")
-        option = _TUNE_OPTIONS.get(field)
-        raise UsageError(f"{option}: {rest}" if separator and option else str(error)) from None
+        raise tune_setting_error(error) from None
     # Every file read and checked now: tune() reads them again after writing run.json.
     robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
@@ -112,31 +114,13 @@ def _resume_tune(args: argparse.Namespace):
     )
 
 
-#: TuneConfig's fields -> the options of ``spacegrasp tune`` that set them (for messages).
-_TUNE_OPTIONS = {
-    "frozen": "--freeze",
-    "optimizer": "--optimizer",
-    "cvar_alpha": "--cvar",
-    "learning_rate": "--lr",
-    "torque_guard_Nm": "--torque-guard",
-    "aggregate": "--aggregate",
-    "torque_fraction": "--torque-fraction",
-    "torque_cap_Nm": "--torque-cap",
-    "population": "--population",
-    "step_size": "--step-size",
-    "method": "--method",
-    "gradient": "--gradient",
-    "objective": "--objective",
-    "weights": "--weights",
-}
-
 #: The options of ``spacegrasp tune`` (their destinations) -> the TuneConfig fields they set.
-_TUNE_FIELDS = {option[2:].replace("-", "_"): field for field, option in _TUNE_OPTIONS.items()} | {"range": "ranges"}
+_TUNE_FIELDS = {option[2:].replace("-", "_"): field for field, option in TUNE_OPTIONS.items()} | {"range": "ranges"}
 
 
 def _tune_option(name: str) -> str:
     """The option of ``spacegrasp tune`` that sets a TuneConfig field (or a file) ``name``."""
-    return _TUNE_OPTIONS.get(name, "--" + name.replace("_", "-"))
+    return TUNE_OPTIONS.get(name, "--" + name.replace("_", "-"))
 
 
 #: The objective's parts ``tune`` prints before and after (history.csv's names -> label, scale, unit).
@@ -249,6 +233,7 @@ def _tune_fields(args: argparse.Namespace) -> dict:
         step_size=args.step_size,
         torque_fraction=args.torque_fraction,
         torque_cap_Nm=args.torque_cap,
+        fresh_batches=args.fresh_batches,
     )
 
 
@@ -285,31 +270,7 @@ def add_parsers(commands) -> None:
         default=TuneConfig.step_size,
         help=f"CMA-ES's initial step in log-gain units (default {TuneConfig.step_size}: about +-30%% on every gain)",
     )
-    tune.add_argument(
-        "--objective",
-        choices=OBJECTIVES,
-        default=TuneConfig.objective,
-        help=f"capture: the margins to the success criteria, torque a constraint at the motors' limits; weighted: "
-        f"errors against torque relative to the starting gains (default {TuneConfig.objective})",
-    )
-    tune.add_argument(
-        "--torque-fraction",
-        type=_real(0.0, 10.0, above=True),
-        default=1.0,
-        help="the capture objective's torque constraint as a fraction of the motors' limits (default 1)",
-    )
-    tune.add_argument(
-        "--torque-cap",
-        type=_real(0.0, 1000.0, above=True),
-        default=None,
-        metavar="NM",
-        help="the capture objective's torque budget in N m for every joint, where below its fraction of the "
-        "limit (default: none)",
-    )
-    tune.add_argument(
-        "--weights",
-        help="the weighted objective's weights, e.g. final_position=1,peak_torque=4 (documentation: Tuning the gains)",
-    )
+    add_objective_arguments(tune)
     tune.add_argument(
         "--batch", type=_whole(1, 65_536), default=4, help="scenarios per step: nominal + batch-1 perturbed (default 4)"
     )
@@ -343,9 +304,15 @@ def add_parsers(commands) -> None:
     _add_realism_option(tune)
     tune.add_argument(
         "--aggregate",
-        choices=("mean", "clip"),
-        help="the gradient method under --realism: combine the samples' gradients as their mean, or clip each to 3x "
-        "the median norm first (default: clip there, else mean)",
+        choices=AGGREGATES,
+        help="the gradient method under --realism: combine the samples' gradients as their mean; clip each to 3x "
+        "the median norm first; their trimmed mean (10%% at each end, per gain); or the median of 4 group means "
+        "(default: clip there, else mean)",
+    )
+    tune.add_argument(
+        "--fresh-batches",
+        action="store_true",
+        help="the gradient method under --realism: a new batch of the envelope for every step (default: one batch)",
     )
     _add_compile_cache_option(tune)
     tune.set_defaults(run=_tune)

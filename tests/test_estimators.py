@@ -1,0 +1,130 @@
+"""The gradient estimators against independent definitions: SciPy's trimmed mean, NumPy's
+median and mean, and the exact gradients of quadratic and linear functions, for which the
+antithetic differences are exact and only the sampling noise is left."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from spacegrasp_jax.tuning import estimators
+
+
+@pytest.fixture
+def heavy_tailed():
+    """(64, 5) samples around (1, -2, 0.5, 0, 3), one of them 100 times a typical norm."""
+    rng = np.random.default_rng(7)
+    samples = np.array([1.0, -2.0, 0.5, 0.0, 3.0]) + 0.3 * rng.standard_normal((64, 5))
+    samples[11] *= 100.0
+    return samples
+
+
+def test_batch_estimators_match_their_definitions(heavy_tailed):
+    samples = heavy_tailed
+    np.testing.assert_allclose(estimators.aggregate(samples, "mean"), samples.mean(axis=0), rtol=1e-15)
+    np.testing.assert_allclose(
+        estimators.aggregate(samples, "trimmed", trim=0.1), stats.trim_mean(samples, 0.1, axis=0), rtol=1e-14
+    )
+    # median of means: one group is the mean, a group per sample the coordinate-wise median
+    np.testing.assert_allclose(estimators.aggregate(samples, "median_of_means", groups=1), samples.mean(axis=0))
+    np.testing.assert_allclose(
+        estimators.aggregate(samples, "median_of_means", groups=64), np.median(samples, axis=0), rtol=1e-15
+    )
+    # clip: the outlier counts as a sample of 3 median norms along its own direction
+    norms = np.linalg.norm(samples, axis=1)
+    ceiling = 3.0 * np.median(norms)
+    expected = samples.copy()
+    expected[norms > ceiling] *= (ceiling / norms[norms > ceiling])[:, None]
+    np.testing.assert_allclose(estimators.aggregate(samples, "clip"), expected.mean(axis=0), rtol=1e-14)
+    assert np.sum(norms > ceiling) == 1
+    # the robust ones stay near the centre; the mean does not
+    centre = np.array([1.0, -2.0, 0.5, 0.0, 3.0])
+    for method in ("clip", "trimmed", "median_of_means"):
+        assert np.linalg.norm(estimators.aggregate(samples, method) - centre) < 0.3, method
+    assert np.linalg.norm(estimators.aggregate(samples, "mean") - centre) > 3.0
+
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (lambda s: estimators.aggregate(s, "mode"), "aggregate: expected one of"),
+        (lambda s: estimators.aggregate(s[:0], "mean"), r"shape \(S, P\) with S >= 1"),
+        (lambda s: estimators.aggregate(s, "trimmed", trim=0.5), r"trim: must be in \[0, 0.5\)"),
+        (lambda s: estimators.aggregate(s, "median_of_means", groups=65), "groups: must be from 1 to the 64"),
+    ],
+)
+def test_bad_settings_are_refused(heavy_tailed, call, message):
+    with pytest.raises(ValueError, match=message):
+        call(heavy_tailed)
+
+
+def test_zeroth_order_samples_estimate_a_quadratics_gradient():
+    """For ``L = theta^T A theta / 2 + b^T theta`` the antithetic difference is exactly
+    ``eps^T (A theta + b)``, so the mean over M pairs is off the gradient by sampling noise
+    alone: each coordinate's standard error is ``|grad| / sqrt(M)`` up to a factor near 1."""
+    rng = np.random.default_rng(3)
+    size, count, sigma = 6, 40_000, 0.07
+    root = rng.standard_normal((size, size))
+    A, b, theta = root @ root.T, rng.standard_normal(size), rng.standard_normal(size)
+    loss = lambda x: 0.5 * np.einsum("...i,ij,...j->...", x, A, x) + x @ b
+    directions = rng.standard_normal((count, size))
+    samples = estimators.zeroth_order_samples(
+        loss(theta + sigma * directions), loss(theta - sigma * directions), directions, sigma
+    )
+    gradient = A @ theta + b
+    np.testing.assert_allclose(samples, directions * (directions @ gradient)[:, None], rtol=1e-9, atol=1e-9)
+    error = samples.mean(axis=0) - gradient
+    standard_error = samples.std(axis=0, ddof=1) / math.sqrt(count)
+    assert np.all(np.abs(error) < 5.0 * standard_error), (error, standard_error)
+    assert estimators.variance_of_mean(samples) == pytest.approx(np.sum(standard_error**2), rel=1e-12)
+
+
+def test_alpha_mix_weighs_by_variance_and_distrusts_a_biased_first_order_estimate():
+    rng = np.random.default_rng(11)
+    gradient = np.array([2.0, -1.0, 0.5, 1.5])
+    first = gradient + 0.1 * rng.standard_normal((32, 4))  # precise
+    zeroth = gradient + 3.0 * rng.standard_normal((32, 4))  # noisy
+    mix = estimators.alpha_mix(first, zeroth, first="mean")
+    var_first = np.sum(first.var(axis=0, ddof=1)) / 32
+    var_zeroth = np.sum(zeroth.var(axis=0, ddof=1)) / 32
+    assert mix.alpha == pytest.approx(var_zeroth / (var_first + var_zeroth), rel=1e-12)
+    assert mix.alpha > 0.99
+    np.testing.assert_allclose(
+        mix.gradient, mix.alpha * first.mean(axis=0) + (1 - mix.alpha) * zeroth.mean(axis=0), rtol=1e-14
+    )
+    # a first-order estimate off by far more than the noise explains is trusted only as far
+    # as the noise covers the bias it could bring
+    biased = first + np.array([30.0, 30.0, -30.0, 30.0])
+    mix = estimators.alpha_mix(biased, zeroth, first="mean")
+    assert mix.disagreement > mix.noise
+    assert mix.alpha * mix.disagreement == pytest.approx(mix.noise, rel=1e-12)
+    assert mix.alpha < 0.1
+    assert np.linalg.norm(mix.gradient - gradient) < np.linalg.norm(biased.mean(axis=0) - gradient) / 5
+
+
+def test_guided_directions_have_the_guided_es_covariance_and_find_the_gradient():
+    rng = np.random.default_rng(5)
+    size, share = 8, 0.25
+    guides = rng.standard_normal((2, size))
+    directions = estimators.guided_directions(rng, guides, 200_000, share=share)
+    basis, _ = np.linalg.qr(guides.T)
+    covariance = share / size * np.eye(size) + (1 - share) / 2 * basis @ basis.T
+    assert np.trace(covariance) == pytest.approx(1.0)
+    np.testing.assert_allclose(np.cov(directions.T), covariance, atol=0.01 * np.abs(covariance).max())
+    # a linear loss g^T theta: the estimate is P C g in expectation; with the guide along g,
+    # nearly g's direction
+    g = rng.standard_normal(size)
+    directions = estimators.guided_directions(rng, g[None], 4_000, share=0.1)
+    sigma, theta = 0.05, rng.standard_normal(size)
+    estimate = estimators.guided_estimate(
+        (theta + sigma * directions) @ g, (theta - sigma * directions) @ g, directions, sigma
+    )
+    assert estimators.cosine(estimate, g) > 0.99
+    basis = g[:, None] / np.linalg.norm(g)
+    expected = size * (0.1 / size * np.eye(size) + 0.9 * basis @ basis.T) @ g
+    assert np.linalg.norm(estimate - expected) < 0.03 * np.linalg.norm(expected)
+    with pytest.raises(ValueError, match="share: must be in"):
+        estimators.guided_directions(rng, guides, 4, share=0.0)
