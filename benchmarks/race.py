@@ -1,0 +1,233 @@
+"""The tuning race: methods that use the gradient against CMA-ES, at equal wall time, held
+out on fresh captures.
+
+    python -m spacegrasp_jax.benchmarks.race [--methods cmaes,gradient_fresh] [--minutes 15] [--marks 5,10,15]
+        [--seed 0] [--heldout 1000] [--heldout-seed 20261202] [--out notebooks/data/race]
+
+Every method tunes the 39 constant admittance and PID gains from the paper's on the same
+problem: the flight-like loop (``--realism flight``), the Monte-Carlo campaigns' envelope,
+the capture objective with a torque budget of 4 N m, a training batch of 32 drawn with
+``--seed``. Each runs as a user runs it, ``spacegrasp tune`` in its own process with no
+compilation cache (compiling counts), for ``--minutes`` of wall time. The driver copies the
+run's checkpoint at each of ``--marks`` (minutes since the process started), then stops the
+run. The gains of each copy (the gradient method's parameters, CMA-ES's mean) and the paper's
+and the shipped flight gains are then held out together in one campaign of ``--heldout``
+fresh flight-like captures of ``--heldout-seed`` (exact contact law, the campaigns' success
+criteria), so every comparison is paired: McNemar against CMA-ES at the same mark and
+against the shipped gains.
+
+Methods (``METHODS``): ``cmaes`` (population 8, the shipped recipe's first call);
+``gradient`` (adam on the batch's clipped gradients, one batch: the documentation's earlier
+comparison); ``gradient_fresh`` (adam on the median of four group means of a fresh batch's gradients
+a step, ``--fresh-batches --aggregate median_of_means``); ``gradient_fresh_trimmed`` and
+``gradient_fresh_clip`` (the same with the trimmed or the clipped mean; the trimmed mean
+agreed best with itself in ``benchmarks.estimators``).
+
+Resumable: ``race.json`` records each finished method's snapshots; a method cut short by an
+interruption runs again from its start (its wall time must be one run's), and the held-out
+campaign resumes chunk by chunk. Writes ``race.json`` and ``heldout/`` (the campaign).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+#: Method -> the options of ``spacegrasp tune`` beyond the common ones.
+METHODS = {
+    "cmaes": ["--method", "cmaes", "--population", "8", "--steps", "100000"],
+    "gradient": ["--method", "gradient", "--aggregate", "clip", "--steps", "{steps}"],
+    "gradient_fresh": ["--method", "gradient", "--fresh-batches", "--aggregate", "median_of_means"]
+    + ["--steps", "{steps}"],
+    "gradient_fresh_trimmed": [
+        "--method",
+        "gradient",
+        "--fresh-batches",
+        "--aggregate",
+        "trimmed",
+        "--steps",
+        "{steps}",
+    ],
+    "gradient_fresh_clip": ["--method", "gradient", "--fresh-batches", "--aggregate", "clip", "--steps", "{steps}"],
+}
+
+#: The gradient methods' steps a minute of wall time on 2 cores (a batch of 32 flight-like
+#: gradients takes about 11 s): their cosine schedule ends when the time does.
+GRADIENT_STEPS_PER_MINUTE = 5
+
+
+def common_options(seed: int) -> list[str]:
+    return ["--realism", "flight", "--ranges", "montecarlo", "--objective", "capture", "--torque-cap", "4"] + [
+        "--batch",
+        "32",
+        "--seed",
+        str(seed),
+        "--holdout",
+        "0",
+        "--compile-cache",
+        "none",
+    ]
+
+
+def run_method(method: str, folder: Path, *, minutes: float, marks: list[float], seed: int) -> dict:
+    """One method's run: ``{mark: snapshot path}`` and the run's facts."""
+    out = folder / method
+    if out.exists():
+        shutil.rmtree(out)
+    snapshots = folder / f"{method}_snapshots"
+    snapshots.mkdir(parents=True, exist_ok=True)
+    steps = str(max(1, round(GRADIENT_STEPS_PER_MINUTE * minutes)))
+    options = [option.replace("{steps}", steps) for option in METHODS[method]]
+    command = [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), *common_options(seed), *options]
+    start = time.monotonic()
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    taken = {}
+    for mark in marks:
+        while time.monotonic() - start < 60.0 * mark and process.poll() is None:
+            time.sleep(0.5)
+        checkpoint = out / "checkpoint.npz"
+        if checkpoint.exists():  # written atomically after every step
+            target = snapshots / f"{mark:g}min.npz"
+            shutil.copyfile(checkpoint, target)
+            taken[f"{mark:g}"] = {"path": str(target.relative_to(folder)), "at_s": time.monotonic() - start}
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)  # stops after the step under way; a second one at once
+        try:
+            process.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            process.send_signal(signal.SIGINT)
+            process.wait(timeout=60)
+    stderr = process.stderr.read() if process.stderr else ""
+    return {
+        "command": " ".join(["spacegrasp", *command[3:]]),
+        "snapshots": taken,
+        "exit": process.returncode,
+        "log_tail": stderr[-2000:],
+    }
+
+
+def snapshot_gains(method: str, path: Path, run_folder: Path) -> dict:
+    """The gains (a gains.json document) a checkpoint copy stands for."""
+    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.tuning import cmaes
+    from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
+    from spacegrasp_jax.tuning.tune import TuneConfig, load_checkpoint, make_optimizer
+
+    base = paper_gains()
+    mask = make_mask(base, "admittance")
+    params = initial_params(base, "admittance")
+    if method == "cmaes":
+        asked, told, _ = cmaes.load_checkpoint(path)
+        record = json.loads((run_folder / "run.json").read_text())
+        config = TuneConfig.from_dict(record["config"])
+        strategy = cmaes.new_strategy(cmaes.flatten(params, mask), config.population, config.seed, config.step_size)
+        cmaes.replay(strategy, asked, told)
+        gains = cmaes.gains_of(np.asarray(strategy.mean), {k: np.asarray(v) for k, v in params.items()}, base, mask)
+    else:
+        config = TuneConfig.from_dict(json.loads((run_folder / "run.json").read_text())["config"])
+        state, _ = load_checkpoint(path, params, make_optimizer(config)[0].init(params))
+        gains = gains_from_params(state.params, base, mask)
+    return gains.to_dict("admittance")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m spacegrasp_jax.benchmarks.race", description=__doc__.split("\n\n")[0], allow_abbrev=False
+    )
+    parser.add_argument("--methods", default="cmaes,gradient_fresh", help=f"comma-separated, of {', '.join(METHODS)}")
+    parser.add_argument("--minutes", type=float, default=15.0, help="wall time of each run (default 15)")
+    parser.add_argument("--marks", default="5,10,15", help="minutes at which the gains are taken (default 5,10,15)")
+    parser.add_argument("--seed", type=int, default=0, help="the training batch's seed (default 0)")
+    parser.add_argument("--heldout", type=int, default=1000, help="held-out captures (default 1000)")
+    parser.add_argument("--heldout-seed", type=int, default=20261202, help="their campaign seed (default 20261202)")
+    parser.add_argument("--out", default="results/race", help="folder (default results/race)")
+    args = parser.parse_args(argv)
+    methods = [name for name in args.methods.split(",") if name]
+    unknown = sorted(set(methods) - set(METHODS))
+    if unknown or not methods:
+        parser.error(f"--methods: unknown {', '.join(unknown) or 'empty'}; expected some of {', '.join(METHODS)}")
+    try:
+        marks = sorted(float(mark) for mark in args.marks.split(","))
+    except ValueError:
+        parser.error(f"--marks: expected comma-separated minutes, got {args.marks!r}")
+    if not marks or marks[0] <= 0 or marks[-1] > args.minutes:
+        parser.error("--marks: minutes in (0, --minutes]")
+    if args.heldout < 1 or args.seed < 0 or args.heldout_seed < 0:
+        parser.error("--heldout must be positive, the seeds non-negative")
+
+    from spacegrasp_jax.compilation import configure
+
+    configure()  # float64, for the gains this process reads back from the checkpoints
+    folder = Path(args.out)
+    folder.mkdir(parents=True, exist_ok=True)
+    record_path = folder / "race.json"
+    record = json.loads(record_path.read_text()) if record_path.exists() else {"settings": {}, "methods": {}}
+    settings = {"minutes": args.minutes, "marks": marks, "seed": args.seed, "heldout": args.heldout}
+    settings["heldout_seed"] = args.heldout_seed
+    if record["settings"] and record["settings"] != settings:
+        parser.error(f"{record_path} holds a race of other settings {record['settings']}; choose another --out")
+    record["settings"] = settings
+    for method in methods:
+        if method in record["methods"]:
+            print(f"{method}: done before", file=sys.stderr)
+            continue
+        print(f"{method}: {args.minutes:g} min of tuning...", file=sys.stderr, flush=True)
+        record["methods"][method] = run_method(method, folder, minutes=args.minutes, marks=marks, seed=args.seed)
+        record_path.write_text(json.dumps(record, indent=1) + "\n")
+
+    gain_files = []
+    for method in methods:
+        for mark, snapshot in record["methods"][method]["snapshots"].items():
+            path = folder / f"{method}_{mark}min.json"
+            if not path.exists():
+                document = snapshot_gains(method, folder / snapshot["path"], folder / method)
+                path.write_text(json.dumps(document, indent=1) + "\n")
+            gain_files.append(path)
+    import spacegrasp_jax
+    from spacegrasp_jax.control.gains import TUNED_GAINS_FILES
+
+    shipped = folder / "shipped_flight.json"
+    shutil.copyfile(Path(spacegrasp_jax.__file__).resolve().parent / "data" / TUNED_GAINS_FILES["flight"], shipped)
+    campaign = [sys.executable, "-m", "spacegrasp_jax.cli", "montecarlo", "--n", str(args.heldout)]
+    campaign += ["--seed", str(args.heldout_seed), "--realism", "flight", "--controller", "admittance"]
+    campaign += [option for path in [shipped, *gain_files] for option in ("--gains", str(path))]
+    campaign += ["--out", str(folder / "heldout")]
+    if (folder / "heldout" / "campaign.json").exists():
+        campaign.append("--resume")
+    print(f"held out: {len(gain_files) + 2} gain sets on {args.heldout} captures...", file=sys.stderr, flush=True)
+    subprocess.run(campaign, check=True)
+    record["heldout"] = summarise(folder / "heldout" / "samples.npz", methods, record, marks)
+    record_path.write_text(json.dumps(record, indent=1) + "\n")
+    print(json.dumps(record["heldout"], indent=1))
+    return 0
+
+
+def summarise(samples: Path, methods: list[str], record: dict, marks: list[float]) -> dict:
+    """Held-out success with its interval per gain set, and McNemar against CMA-ES at the
+    same mark and against the shipped gains."""
+    from spacegrasp_jax import statistics
+    from spacegrasp_jax.campaign import load_samples
+
+    _, by_variant = load_samples(samples)
+    success = {key.split("/", 1)[1]: np.asarray(value["success"], dtype=bool) for key, value in by_variant.items()}
+    table = {}
+    for label, hits in success.items():
+        row = {"success": statistics.success_interval(int(hits.sum()), int(hits.size))}
+        row["vs_shipped"] = statistics.compare_success(success["shipped_flight"], hits)
+        method, _, mark = label.rpartition("_")
+        if method in methods and method != "cmaes" and f"cmaes_{mark}" in success:
+            row["vs_cmaes_same_mark"] = statistics.compare_success(success[f"cmaes_{mark}"], hits)
+        table[label] = row
+    return table
+
+
+if __name__ == "__main__":
+    sys.exit(main())
