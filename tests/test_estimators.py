@@ -128,3 +128,55 @@ def test_guided_directions_have_the_guided_es_covariance_and_find_the_gradient()
     assert np.linalg.norm(estimate - expected) < 0.03 * np.linalg.norm(expected)
     with pytest.raises(ValueError, match="share: must be in"):
         estimators.guided_directions(rng, guides, 4, share=0.0)
+
+
+def test_the_benchmark_compares_estimators_without_comparing_one_with_itself():
+    """``benchmarks.estimators.compare_estimators`` on synthetic pools of a known gradient:
+    first-order samples with heavy-tailed outliers, zeroth-order pairs of a linear loss. The
+    robust aggregates agree with the references and with themselves; the plain mean's
+    outliers pull it away; the zeroth-order estimates are unbiased but noisy."""
+    from spacegrasp_jax.benchmarks.estimators import compare_estimators
+
+    rng = np.random.default_rng(2)
+    size, gradient = 8, np.linspace(1.0, -1.0, 8)
+    first = gradient + 0.3 * rng.standard_normal((256, size))
+    first[rng.choice(256, 12, replace=False)] *= rng.choice([-300.0, 300.0], size=(12, 1))  # chaotic captures
+    directions = rng.standard_normal((1024, size))
+    sigma = 0.05
+    zeroth = estimators.zeroth_order_samples(
+        (sigma * directions) @ gradient, -(sigma * directions) @ gradient, directions, sigma
+    )
+    guides = estimators.guided_directions(rng, gradient[None], 256)
+    guided = ((sigma * guides) @ gradient, -(sigma * guides) @ gradient, guides)
+    report = compare_estimators(first, zeroth, guided, batch=32, draws=50, seed=0, sigma=sigma)
+    rows = report["estimators"]
+    assert rows["first_order_trimmed"]["split_half_cosine"]["median"] > 0.95
+    assert rows["first_order_trimmed"]["cosine_with_zeroth_order"]["median"] > 0.9
+    trimmed_agreement = rows["first_order_trimmed"]["split_half_cosine"]["median"]
+    assert rows["first_order_mean"]["split_half_cosine"]["median"] < trimmed_agreement - 0.2  # steered by outliers
+    assert 0.5 < rows["zeroth_order_equal_cost"]["cosine_with_zeroth_order"]["median"] < 0.99
+    assert rows["zeroth_order"]["cost_rollouts"] == 64 and rows["first_order_trimmed"]["cost_rollouts"] == 112
+    assert rows["guided_es"]["cosine_with_zeroth_order"] > 0.9
+    assert report["references"]["first_order_largest_norm_over_median"] > 100
+
+
+def test_the_race_pairs_each_method_with_cmaes_at_the_same_mark_and_refuses_bad_settings(tmp_path):
+    from spacegrasp_jax.benchmarks import race
+
+    flags = {
+        "paper": [1, 0, 0, 0, 1, 0],
+        "shipped_flight": [1, 1, 1, 0, 1, 0],
+        "cmaes_5min": [1, 1, 0, 0, 0, 0],
+        "gradient_fresh_5min": [1, 1, 1, 1, 1, 0],
+    }
+    np.savez(tmp_path / "samples.npz", **{f"admittance/{key}/success": np.array(v, bool) for key, v in flags.items()})
+    table = race.summarise(tmp_path / "samples.npz", ["cmaes", "gradient_fresh"], {}, [5.0])
+    assert table["gradient_fresh_5min"]["success"]["successes"] == 5
+    versus = table["gradient_fresh_5min"]["vs_cmaes_same_mark"]
+    assert (versus["only_candidate"], versus["only_reference"], versus["both"]) == (3, 0, 2)
+    assert table["cmaes_5min"]["vs_shipped"]["only_reference"] == 2 and "vs_cmaes_same_mark" not in table["cmaes_5min"]
+    for argv in (["--methods", "nope"], ["--minutes", "15", "--marks", "20"], ["--marks", "x"], ["--heldout", "0"]):
+        with pytest.raises(SystemExit) as refused:
+            race.main([*argv, "--out", str(tmp_path / "race")])
+        assert refused.value.code == 2, argv
+    assert not (tmp_path / "race").exists()
