@@ -246,6 +246,8 @@ def main(argv=None) -> int:
         parser.error("--guided and --seed: must be non-negative")
     if 2 * args.batch > args.first // 2 or 2 * args.batch > args.pairs // 2:
         parser.error("--batch: two disjoint batches must fit in each pool's estimation half (--first/4, --pairs/4)")
+    if args.gains not in ("paper", "flight") and not Path(args.gains).is_file():
+        parser.error(f"--gains: {args.gains}: no such file; expected paper, flight or a gains file")
     if not (math.isfinite(args.sigma) and 0.0 < args.sigma <= 1.0):
         parser.error(f"--sigma: must be in (0, 1], got {args.sigma}")
     from spacegrasp_jax import batching

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import signal
 import subprocess
@@ -150,6 +151,8 @@ def main(argv=None) -> int:
     parser.add_argument("--heldout-seed", type=int, default=20261202, help="their campaign seed (default 20261202)")
     parser.add_argument("--out", default="results/race", help="folder (default results/race)")
     args = parser.parse_args(argv)
+    if not (math.isfinite(args.minutes) and args.minutes > 0):
+        parser.error(f"--minutes: must be a positive number, got {args.minutes}")
     methods = [name for name in args.methods.split(",") if name]
     unknown = sorted(set(methods) - set(METHODS))
     if unknown or not methods:
