@@ -207,13 +207,13 @@ def main(argv=None) -> int:
         campaign.append("--resume")
     print(f"held out: {len(gain_files) + 2} gain sets on {args.heldout} captures...", file=sys.stderr, flush=True)
     subprocess.run(campaign, check=True)
-    record["heldout"] = summarise(folder / "heldout" / "samples.npz", methods, record, marks)
+    record["heldout"] = summarise(folder / "heldout" / "samples.npz", methods)
     record_path.write_text(json.dumps(record, indent=1) + "\n")
     print(json.dumps(record["heldout"], indent=1))
     return 0
 
 
-def summarise(samples: Path, methods: list[str], record: dict, marks: list[float]) -> dict:
+def summarise(samples: Path, methods: list[str]) -> dict:
     """Held-out success with its interval per gain set, and McNemar against CMA-ES at the
     same mark and against the shipped gains."""
     from spacegrasp_jax import statistics

@@ -54,6 +54,7 @@ def test_batch_estimators_match_their_definitions(heavy_tailed):
         (lambda s: estimators.aggregate(s[:0], "mean"), r"shape \(S, P\) with S >= 1"),
         (lambda s: estimators.aggregate(s, "trimmed", trim=0.5), r"trim: must be in \[0, 0.5\)"),
         (lambda s: estimators.aggregate(s, "median_of_means", groups=65), "groups: must be from 1 to the 64"),
+        (lambda s: estimators.alpha_mix(s, s[:1]), "alpha_mix: needs at least 2 samples of each kind"),
     ],
 )
 def test_bad_settings_are_refused(heavy_tailed, call, message):
@@ -170,7 +171,7 @@ def test_the_race_pairs_each_method_with_cmaes_at_the_same_mark_and_refuses_bad_
         "gradient_fresh_5min": [1, 1, 1, 1, 1, 0],
     }
     np.savez(tmp_path / "samples.npz", **{f"admittance/{key}/success": np.array(v, bool) for key, v in flags.items()})
-    table = race.summarise(tmp_path / "samples.npz", ["cmaes", "gradient_fresh"], {}, [5.0])
+    table = race.summarise(tmp_path / "samples.npz", ["cmaes", "gradient_fresh"])
     assert table["gradient_fresh_5min"]["success"]["successes"] == 5
     versus = table["gradient_fresh_5min"]["vs_cmaes_same_mark"]
     assert (versus["only_candidate"], versus["only_reference"], versus["both"]) == (3, 0, 2)

@@ -147,16 +147,16 @@ def alpha_mix(first_order, zeroth_order, *, first: str = "clip", z: float = 2.0)
     can bring, ``alpha |first - zeroth|``, is within that noise (Suh et al., ICML 2022)."""
     first_order = np.asarray(first_order, dtype=float)
     zeroth_order = np.asarray(zeroth_order, dtype=float)
+    if len(first_order) < 2 or len(zeroth_order) < 2:
+        raise ValueError("alpha_mix: needs at least 2 samples of each kind, to measure their variances")
     weighed = first_order * clip_scales(first_order)[:, None] if first == "clip" else first_order
     first_estimate = aggregate(first_order, first)
     zeroth_estimate = zeroth_order.mean(axis=0)
     var_first, var_zeroth = variance_of_mean(weighed), variance_of_mean(zeroth_order)
     total = var_first + var_zeroth
-    alpha = 0.5 if not math.isfinite(total) or total == 0.0 else var_zeroth / total
-    if math.isinf(var_first) and math.isfinite(var_zeroth):
-        alpha = 0.0
+    alpha = var_zeroth / total if total > 0.0 else 0.5
     disagreement = float(np.linalg.norm(first_estimate - zeroth_estimate))
-    noise = z * math.sqrt(total) if math.isfinite(total) else math.inf
+    noise = z * math.sqrt(total)
     if alpha * disagreement > noise:
         alpha = noise / disagreement
     return Mix(
