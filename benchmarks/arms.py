@@ -102,7 +102,7 @@ def bench_film(robot, scenario, gains) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="results/benchmarks")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--paper-only", action="store_true")

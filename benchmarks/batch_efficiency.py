@@ -192,7 +192,7 @@ def measure(parts: list[str], batch: int, iterations: int, repeats: int) -> list
 
 def main(argv: list[str] | None = None) -> int:
     configure(compile_cache=False)  # this process is the benchmark's: float64, loops compiled whole, no cache
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks")
     parser.add_argument(
         "--batch", type=int, default=128, help="samples in the vmapped batch (the campaign's sub-batch per CPU device)"

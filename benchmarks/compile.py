@@ -201,7 +201,7 @@ def timed_after_warmup(calls: dict, warmup: int, repeats: int) -> dict[str, list
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks")
     parser.add_argument("--duration", type=float, default=17.0, help="scenario duration (s)")
     parser.add_argument("--repeats", type=int, default=3)

@@ -88,7 +88,7 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     configure(compile_cache=False)  # this process is the benchmark's: float64, loops compiled whole, no cache
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks")
     parser.add_argument("--duration", type=float, default=17.0)
     parser.add_argument("--repeats", type=int, default=3)

@@ -188,7 +188,7 @@ def measure(parts: list[str], count: int, repeats: int) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks")
     parser.add_argument("--states", type=int, default=2000, help=f"loop states, one every {STRIDE} steps of 17 s")
     parser.add_argument("--repeats", type=int, default=5, help="timed calls of each scan (the fastest is kept)")

@@ -31,7 +31,7 @@ from spacegrasp_jax.simulate import RunSpec
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="results/benchmarks")
     parser.add_argument("--realism", default="ideal", help="ideal, flight or a TOML file (default ideal)")
     args = parser.parse_args(argv)

@@ -103,7 +103,7 @@ def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     configure(compile_cache=False)  # this process is the benchmark's: float64, loops compiled whole, no cache
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks")
     parser.add_argument("--batches", default="1,64,256,1024", help="comma-separated batch sizes")
     parser.add_argument("--sequential", type=int, default=8, help="single rollouts in the sequential baseline")

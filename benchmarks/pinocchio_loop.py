@@ -235,7 +235,7 @@ class PinocchioClosedLoop:
 
 def main(argv=None) -> int:
     configure(compile_cache=False)  # this process is the benchmark's: float64, loops compiled whole, no cache
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=17.0)
     parser.add_argument("--controller", choices=PAPER_CONTROLLERS, default="admittance")
     args = parser.parse_args(argv)

@@ -59,7 +59,7 @@ def bench_controller(robot, scenario, gains, controller: str, repeats: int, real
 
 def main(argv: list[str] | None = None) -> int:
     configure(compile_cache=False)  # this process is the benchmark's: float64, loops compiled whole, no cache
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks", help="folder for rollout.json")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--duration", type=float, default=17.0, help="simulated seconds (17 in the paper)")

@@ -170,6 +170,9 @@ def cases(paths, out):
         "holdout 1e30": ([*TUNE, "--holdout", "1e30", "--out", out], "argument --holdout:"),
         "seed 2^64": ([*SIMULATE, "--seed", str(2**64), "--out", out], "argument --seed:"),
         "montecarlo seed negative": ([*MONTECARLO, "--seed", "-1", "--out", out], "argument --seed:"),
+        # an option is named whole: an abbreviation is not read as the option it starts
+        "abbreviated --controller": ([*SIMULATE, "--contr", "cartesian", "--out", out], "unrecognized arguments: --contr"),
+        "abbreviated --realism": ([*TUNE, "--real", "flight", "--out", out], "unrecognized arguments: --real flight"),
         # options that used to be checked late or not at all
         "freeze unknown group": ([*TUNE, "--freeze", "kd,zz", "--out", out], "--freeze: zz"),
         "freeze a group the law lacks": ([*TUNE, "--freeze", "K_lin", "--out", out], "--freeze: K_lin"),

@@ -267,6 +267,10 @@ def test_simulate_never_overwrites_a_run_without_overwrite(tmp_path, capsys):
     assert cli.main([*args, "--overwrite"]) == 0
     assert not (out / "stale.npz").exists() and (out / "notes.txt").read_text() == "mine\n"
     assert (out / "summary.json").exists() and (out / "fig4_ee_pose.png").exists()
+    # the 0.2 s run stops far from the target: a result (0) unless --strict asks for its own code
+    assert cli.main([*args, "--overwrite", "--strict"]) == 4
+    assert "spacegrasp: capture failed (cartesian): exit 4 (--strict)" in capsys.readouterr().err
+    assert (out / "summary.json").exists()
 
 
 def test_simulate_rejects_bad_files_before_running(tmp_path, gains, capsys):

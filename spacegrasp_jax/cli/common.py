@@ -172,17 +172,21 @@ def _warn(lines: list[str], prefix: str = "") -> None:
         print(f"spacegrasp: warning: {prefix}{line}", file=sys.stderr, flush=True)
 
 
-def _print_capture_verdicts(results: dict, criteria: campaign.CampaignConfig | None = None) -> None:
+def _print_capture_verdicts(results: dict, criteria: campaign.CampaignConfig | None = None) -> list[str]:
     """Each run's capture verdict by ``criteria`` (default: the campaigns' defaults): one line that says why
-    a failed capture failed (a result, not an error: exit 0), or the margins of a success;
-    with a free-floating target, one more line for the target's motion."""
+    a failed capture failed (a result, not an error: exit 0 unless ``--strict``), or the margins of a
+    success; with a free-floating target, one more line for the target's motion. Returns the keys
+    of ``results`` whose capture failed (a diverged run is not among them: it has its own exit code)."""
     tolerances = campaign.capture_criteria(criteria)
+    failed = []
     for controller, result in results.items():
         summary = result.summary
         if summary.get("diverged"):
             continue
         line = anatomy.verdict_line(summary, campaign.run_failure_classes(summary, criteria), tolerances)
-        if line is None:
+        if line is not None:
+            failed.append(controller)
+        else:
             line = (
                 f"capture succeeded: final position error {1e3 * summary['final_position_error_m']:.2f} mm <= "
                 f"{1e3 * tolerances['final_position_m']:g}, orientation {np.degrees(summary['final_orientation_error_rad']):.3f} deg <= "
@@ -196,6 +200,7 @@ def _print_capture_verdicts(results: dict, criteria: campaign.CampaignConfig | N
                 f"(limit {1e3 * tolerances['target_speed_mps']:g}), rate {np.degrees(summary['final_target_rate_radps']):.3f} deg/s, "
                 f"drifted {1e3 * summary['target_displacement_m']:.1f} mm, contact impulse {summary['target_impulse_Ns']:.3g} N s"
             )
+    return failed
 
 
 def _run_caption(loop: str, gains: str, scenario) -> str:

@@ -21,7 +21,13 @@ class UsageError(ValueError):
 
 
 class _Parser(argparse.ArgumentParser):
-    """An argument parser whose every rejection is one line (exit 2), naming the option."""
+    """An argument parser whose every rejection is one line (exit 2), naming the option, and
+    which takes options only by their whole names (``--contr`` is refused, not read as
+    ``--controller``: an abbreviation that matches today can match another option tomorrow)."""
+
+    def __init__(self, *args, **keywords):
+        keywords.setdefault("allow_abbrev", False)
+        super().__init__(*args, **keywords)
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -96,6 +102,19 @@ def _add_overwrite_option(parser: argparse.ArgumentParser) -> None:
         "--overwrite",
         action="store_true",
         help="replace the run that --out holds (default: refuse a folder that holds anything)",
+    )
+
+
+#: The exit code of a run whose capture failed by its criteria, under ``--strict``.
+CAPTURE_FAILED = 4
+
+
+def _add_strict_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--strict",
+        action="store_true",
+        help=f"exit {CAPTURE_FAILED} when a capture fails its success criteria (default: a failed capture is a "
+        "result, exit 0)",
     )
 
 

@@ -35,6 +35,7 @@ from spacegrasp_jax.cli.common import (
 )
 from spacegrasp_jax.cli.options import (
     _SEED,
+    CAPTURE_FAILED,
     UsageError,
     _add_animate_option,
     _add_command,
@@ -42,6 +43,7 @@ from spacegrasp_jax.cli.options import (
     _add_csv_option,
     _add_overwrite_option,
     _add_realism_option,
+    _add_strict_option,
     _add_run_options,
     _whole,
 )
@@ -77,7 +79,7 @@ def _run_controllers(args, controllers) -> int:
             results[controller] = error.result
             diverged.append(error)
     _print_table(results, beside_paper=_is_papers_run(args))
-    _print_capture_verdicts(results)
+    failed_captures = _print_capture_verdicts(results)
     for controller, result in results.items():
         _warn(plausibility.result_warnings(result.summary), f"{controller}: ")
     config = experiment.run_config(
@@ -104,15 +106,23 @@ def _run_controllers(args, controllers) -> int:
         f"wrote {out}/: table5.csv, summary.json, figures, timeseries_*.npz{', .csv' if args.csv else ''}, config.json"
     )
     if getattr(args, "animate", False):
-        failed = {error.controller for error in diverged}
-        logs = {controller: result.log for controller, result in results.items() if controller not in failed}
+        ran_away = {error.controller for error in diverged}
+        logs = {controller: result.log for controller, result in results.items() if controller not in ran_away}
         _films(args, out, list(logs), robot, scenario, logs)
     for error in diverged:
         print(
             f"spacegrasp: error: {error}; its log up to that step and the state there are in {out}/",
             file=sys.stderr,
         )
-    return 3 if diverged else 0
+    return 3 if diverged else _strict_code(args, failed_captures)
+
+
+def _strict_code(args: argparse.Namespace, failed: list[str]) -> int:
+    """0, or under ``--strict`` ``CAPTURE_FAILED`` with one line naming the failed captures."""
+    if args.strict and failed:
+        print(f"spacegrasp: capture failed ({', '.join(failed)}): exit {CAPTURE_FAILED} (--strict)", file=sys.stderr)
+        return CAPTURE_FAILED
+    return 0
 
 
 def _reproduce(args: argparse.Namespace) -> int:
@@ -151,7 +161,7 @@ def _replay(args: argparse.Namespace) -> int:
         print(f"replaying sample {args.sample} of {folder} with {variant.key}...", flush=True)
         results[variant.key] = campaign.replay(robot, scenario, variant, config, args.sample)
     _print_table(results, beside_paper=False)
-    _print_capture_verdicts(results, config)
+    failed = _print_capture_verdicts(results, config)
     for key, result in results.items():
         _warn(plausibility.result_warnings(result.summary), f"{key}: ")
     loop = "ideal loop" if config.realism is None else "flight-like loop"
@@ -175,7 +185,7 @@ def _replay(args: argparse.Namespace) -> int:
     print(
         f"wrote {out}/: table5.csv, summary.json, figures, timeseries_*.npz{', .csv' if args.csv else ''}, config.json"
     )
-    return 0
+    return _strict_code(args, failed)
 
 
 def add_parsers(commands) -> None:
@@ -186,6 +196,7 @@ def add_parsers(commands) -> None:
     _add_run_options(reproduce, "results/reproduce")
     _add_animate_option(reproduce)
     _add_csv_option(reproduce, "the time series")
+    _add_strict_option(reproduce)
     _add_compile_cache_option(reproduce)
     reproduce.set_defaults(run=_reproduce)
     simulate = _add_command(commands, "simulate", help="run one controller with any gains and scenario")
@@ -203,6 +214,7 @@ def add_parsers(commands) -> None:
     _add_run_options(simulate, "results/simulate")
     _add_animate_option(simulate)
     _add_csv_option(simulate, "the time series")
+    _add_strict_option(simulate)
     _add_compile_cache_option(simulate)
     simulate.set_defaults(run=_simulate)
     replay = _add_command(commands, "replay", help="run one sample of a campaign again with its full log and figures")
@@ -214,5 +226,6 @@ def add_parsers(commands) -> None:
     replay.add_argument("--out", required=True, help="output folder")
     _add_overwrite_option(replay)
     _add_csv_option(replay, "the time series")
+    _add_strict_option(replay)
     _add_compile_cache_option(replay)
     replay.set_defaults(run=_replay)
