@@ -30,13 +30,13 @@ STYLES = {name: dict(law.style) for name, law in LAWS.items()} | {
 }
 
 
-#: Line styles of runs that are not one of :data:`STYLES`' names (``spacegrasp compare``'s
+#: Line styles of runs that are not one of ``STYLES``' names (``spacegrasp compare``'s
 #: runs, labelled by what differs between them), in order.
 _RUN_LINESTYLES = ("-", "--", ":", "-.")
 
 
 def style_of(name: str, index: int = 0) -> dict:
-    """The line style of the run ``name``: :data:`STYLES`' for its names, else the
+    """The line style of the run ``name``: ``STYLES``' for its names, else the
     ``index``-th colour and line style of a cycle, labelled ``name``."""
     if name in STYLES:
         return STYLES[name]
@@ -44,7 +44,7 @@ def style_of(name: str, index: int = 0) -> dict:
 
 
 def plot_series(ax, t: np.ndarray, values: np.ndarray, style: str, linewidth: float = 1.4, index: int = 0):
-    """One time series on ``ax`` in the style of the run ``style`` (:func:`style_of`);
+    """One time series on ``ax`` in the style of the run ``style`` ([`style_of`][spacegrasp_jax.plots.style_of]);
     returns the line."""
     (line,) = ax.plot(t, values, linewidth=linewidth, **style_of(style, index))
     return line
@@ -224,7 +224,7 @@ def save(figures: dict, out_dir, write_atomically) -> list[str]:
 def save_figures(logs, out_dir, write_atomically, caption: str | None = None, torque_limit_Nm=None) -> list[str]:
     """Write Figures 4-9 into ``out_dir``, each with ``caption`` under its title and Fig. 8
     with the motor limits ``torque_limit_Nm`` (N,) N m; with a free-floating target in any
-    log that moves, ``target_motion.png`` too (:func:`figure_target_motion`). Returns the file names."""
+    log that moves, ``target_motion.png`` too ([`figure_target_motion`][spacegrasp_jax.plots.figure_target_motion]). Returns the file names."""
     figures = {
         name: build(logs, caption=caption, torque_limit_Nm=torque_limit_Nm)
         if build is figure_joint_torques

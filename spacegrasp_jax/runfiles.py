@@ -208,7 +208,7 @@ def csv_columns(arrays: dict) -> dict[str, np.ndarray]:
 
 
 def write_csv(path: Path, arrays: dict) -> None:
-    """A CSV file of ``arrays`` (:func:`csv_columns`), one row per index of the leading
+    """A CSV file of ``arrays`` ([`csv_columns`][spacegrasp_jax.runfiles.csv_columns]), one row per index of the leading
     axis: floats with 17 significant digits (read back bit for bit), missing values empty."""
     columns = csv_columns(arrays)
     names = list(columns)
@@ -229,7 +229,7 @@ def write_csv(path: Path, arrays: dict) -> None:
 
 
 def write_timeseries_csv(path: Path, log) -> None:
-    """A log as a CSV file, one row per log row (:func:`write_csv`; fields a loop does not
+    """A log as a CSV file, one row per log row ([`write_csv`][spacegrasp_jax.runfiles.write_csv]; fields a loop does not
     fill are left out)."""
     write_csv(path, {name: value for name, value in vars(log).items() if value is not None})
 

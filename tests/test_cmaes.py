@@ -16,7 +16,7 @@ OPTIMUM = np.array([0.7, -1.3, 0.2, 2.0, -0.4])
 
 def quadratic_batch(vectors: np.ndarray) -> dict:
     """A batch of 4 'scenarios' per candidate, each a shifted quadratic whose batch mean
-    is least at :data:`OPTIMUM`: the shape of the tuning evaluator's output."""
+    is least at ``OPTIMUM``: the shape of the tuning evaluator's output."""
     shifts = np.array([-0.1, 0.1, -0.05, 0.05])[None, :, None]
     losses = np.sum((vectors[:, None, :] - OPTIMUM - shifts) ** 2, axis=-1)
     peak = np.abs(vectors).max(axis=1, keepdims=True) * np.ones((1, 4))
