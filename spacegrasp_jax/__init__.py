@@ -10,6 +10,7 @@ anything (``spacegrasp_jax.compilation`` says what each setting does)::
 """
 
 from spacegrasp_jax.compilation import (
+    CacheFolderError,
     Float64Required,
     compile_loops_whole,
     configure,
@@ -43,6 +44,7 @@ from spacegrasp_jax.model import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "CacheFolderError",
     "Float64Required",
     "PAPER_Q_INIT",
     "Robot",

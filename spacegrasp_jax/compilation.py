@@ -126,6 +126,25 @@ CACHE_MIN_COMPILE_TIME_S = 0.0
 _JAX_MIN_COMPILE_TIME_S = 1.0
 
 
+class CacheFolderError(ValueError):
+    """A compilation cache folder that other users can write: loading programs from it would
+    run their code ([`unsafe_folder_reason()`][spacegrasp_jax.executable_store.unsafe_folder_reason])."""
+
+
+def _make_private_folder(folder: Path) -> None:
+    """``folder`` and the folders above it that do not exist yet, each readable and writable by
+    the user alone (whatever the umask), so that a new cache is safe by construction."""
+    missing = [path for path in [folder, *folder.parents] if not path.exists()]
+    for path in reversed(missing):
+        try:
+            path.mkdir(mode=0o700)
+            path.chmod(0o700)  # mkdir's mode passes through the umask
+        except FileExistsError:
+            pass
+        except OSError:
+            return  # not creatable: JAX reports it when it writes
+
+
 def use_compile_cache(folder: str | Path | None = None) -> Path | None:
     """Turn on JAX's persistent compilation cache in ``folder`` and return the folder.
 
@@ -135,12 +154,21 @@ def use_compile_cache(folder: str | Path | None = None) -> Path | None:
     ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS`` or ``jax_persistent_cache_min_compile_time_secs``
     says otherwise); a later process with the same program, JAX version and XLA flags loads
     it instead of compiling it. Takes effect for programs compiled after the first compile of
-    the process only if called before it."""
+    the process only if called before it.
+
+    A folder that does not exist is created readable and writable by the user alone. One that
+    other users can write (or that lies under such a folder) is refused with
+    [`CacheFolderError`][spacegrasp_jax.compilation.CacheFolderError] before anything is loaded
+    from it: its programs could be theirs."""
     if folder == "none":
         return None
     if folder is None:
         folder = jax.config.jax_compilation_cache_dir or default_compile_cache()
     folder = Path(folder)
+    reason = executable_store.unsafe_folder_reason(folder)
+    if reason is not None:
+        raise CacheFolderError(f"compilation cache {folder}: {reason}")
+    _make_private_folder(folder)
     jax.config.update("jax_compilation_cache_dir", str(folder))
     users_choice = "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" in os.environ or (
         jax.config.jax_persistent_cache_min_compile_time_secs != _JAX_MIN_COMPILE_TIME_S

@@ -31,8 +31,11 @@ stored: JAX sets up its LAPACK kernels while it lowers a program that calls them
 process that loaded such a program untraced would crash at its first call.
 
 The stored files are compressed pickles holding executables (0.2-1.2 MB each for the
-package's programs), trusted as JAX's own cache is: load them only from a folder you
-control. Storing a program takes 0.1-0.3 s after its compile; loading one, 0.2-0.9 s.
+package's programs): loading one runs its code. So a cache folder is used only if no other
+user can have written it ([`unsafe_folder_reason()`][spacegrasp_jax.executable_store.unsafe_folder_reason],
+the rule ssh applies to its keys): the folder is the user's own and writable by no one else,
+and so is every folder above it (or it is the administrator's, or sticky like ``/tmp``).
+Storing a program takes 0.1-0.3 s after its compile; loading one, 0.2-0.9 s.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ import hashlib
 import importlib.util
 import os
 import pickle
+import stat
 import sys
 import types
 import zlib
@@ -175,12 +179,42 @@ def _cache_folder() -> str | None:
     return jax.config.jax_compilation_cache_dir
 
 
+def unsafe_folder_reason(folder: str | Path) -> str | None:
+    """Why programs must not be loaded from, or stored in, ``folder``, or ``None`` where it
+    is safe: the folder (if it exists) is owned by this process's user and writable by no one
+    else, and every folder above it is owned by the user or the administrator (root) and
+    writable by no one else, unless sticky (``/tmp``: others may add entries there, but not
+    rename or remove this user's). A folder that does not exist yet is judged by those above
+    it. The reason is one clause naming the folder and how to fix it."""
+    user = os.getuid()
+    folder = Path(os.path.abspath(folder))
+    for level, path in enumerate([folder, *folder.parents]):
+        try:
+            status = path.stat()
+        except FileNotFoundError:
+            continue
+        except OSError as error:
+            return f"{path} cannot be inspected ({error.strerror})"
+        owners = (user,) if level == 0 else (user, 0)
+        if status.st_uid not in owners:
+            whose = "" if level == 0 else "and it holds the cache: "
+            return f"{path} is owned by another user (uid {status.st_uid}); {whose}use a folder of your own"
+        writable_by_others = status.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
+        if writable_by_others and not (level > 0 and status.st_mode & stat.S_ISVTX):
+            return (
+                f"{path} is writable by others (mode {stat.S_IMODE(status.st_mode):04o}), who could put programs "
+                f"there that this process would run: make it yours alone (chmod go-w {path})"
+            )
+    return None
+
+
 def path_for(key) -> Path | None:
     """Where the program of ``key`` is stored, or ``None`` where it is not stored: JAX's
-    compilation cache is off, the run spans processes, or the key holds something not
-    described by its value (module docstring)."""
+    compilation cache is off, the run spans processes, the folder is writable by others
+    ([`unsafe_folder_reason()`][spacegrasp_jax.executable_store.unsafe_folder_reason]), or the key
+    holds something not described by its value (module docstring)."""
     folder = _cache_folder()
-    if not folder or jax.process_count() > 1:
+    if not folder or jax.process_count() > 1 or unsafe_folder_reason(folder) is not None:
         return None
     try:
         described = _describe(key)

@@ -104,6 +104,9 @@ def files(folder):
     )
     (occupied / "summary.json").write_text("{}\n")
     paths["occupied"] = str(occupied)
+    (folder / "shared_cache").mkdir()  # a compilation cache anyone can write
+    (folder / "shared_cache").chmod(0o777)
+    paths["shared_cache"] = str(folder / "shared_cache")
     (folder / "foreign").mkdir()  # files this tool did not write
     (folder / "foreign" / "notes.txt").write_text("mine\n")
     paths["foreign"] = str(folder / "foreign")
@@ -170,8 +173,18 @@ def cases(paths, out):
         "holdout 1e30": ([*TUNE, "--holdout", "1e30", "--out", out], "argument --holdout:"),
         "seed 2^64": ([*SIMULATE, "--seed", str(2**64), "--out", out], "argument --seed:"),
         "montecarlo seed negative": ([*MONTECARLO, "--seed", "-1", "--out", out], "argument --seed:"),
+        # a cache is code: a folder others can write is not loaded from
+        "compile cache writable by others": (
+            [*SIMULATE, "--compile-cache", p["shared_cache"], "--out", out],
+            f"--compile-cache: compilation cache {p['shared_cache']}: {p['shared_cache']} is writable by others "
+            f"(mode 0777), who could put programs there that this process would run: make it yours alone "
+            f"(chmod go-w {p['shared_cache']}), or pass --compile-cache none",
+        ),
         # an option is named whole: an abbreviation is not read as the option it starts
-        "abbreviated --controller": ([*SIMULATE, "--contr", "cartesian", "--out", out], "unrecognized arguments: --contr"),
+        "abbreviated --controller": (
+            [*SIMULATE, "--contr", "cartesian", "--out", out],
+            "unrecognized arguments: --contr",
+        ),
         "abbreviated --realism": ([*TUNE, "--real", "flight", "--out", out], "unrecognized arguments: --real flight"),
         # options that used to be checked late or not at all
         "freeze unknown group": ([*TUNE, "--freeze", "kd,zz", "--out", out], "--freeze: zz"),
@@ -469,7 +482,7 @@ _FILE_NAMES = (
     "Md_nested_string.json duration_string.toml duration_true.toml dt_string.json target_mass_true.toml "
     "duration_huge.toml dt_tiny.toml ragged.json lar_not_table.toml noise_huge_int.toml period_huge_int.toml "
     "range_huge_int.toml servo_below_dt.toml servo_denormal.toml target_null.json satellite_mass_string.toml a_folder missing "
-    "under_a_file occupied foreign simulated"
+    "under_a_file occupied foreign simulated shared_cache"
 ).split()
 
 

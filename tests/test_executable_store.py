@@ -167,3 +167,55 @@ def test_an_unreadable_file_is_removed_and_not_loaded(tmp_path):
     assert executable_store.load(broken) is None
     assert not broken.exists()
     assert executable_store.load(tmp_path / "absent.pickle") is None
+
+
+def test_a_cache_folder_that_others_can_write_is_refused_before_anything_is_loaded(tmp_path, monkeypatch):
+    """A cache is code (its pickles hold executables): a folder another user can write, or one
+    under such a folder, is neither loaded from nor written to, and ``use_compile_cache``
+    refuses it naming the folder and the fix; a sticky folder above (``/tmp``) is no threat."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    (shared / executable_store.FOLDER).mkdir()
+    planted = shared / executable_store.FOLDER / "planted.pickle"
+    planted.write_bytes(b"not ours")
+    reason = executable_store.unsafe_folder_reason(shared)
+    assert reason == (
+        f"{shared} is writable by others (mode 0777), who could put programs there that this process "
+        f"would run: make it yours alone (chmod go-w {shared})"
+    )
+    monkeypatch.setattr(executable_store, "_cache_folder", lambda: str(shared))
+    assert executable_store.path_for(("program", closed_loop, 3)) is None  # nothing loaded, nothing stored
+    before = compilation.jax.config.jax_compilation_cache_dir
+    with pytest.raises(compilation.CacheFolderError, match=r"writable by others \(mode 0777\)"):
+        compilation.use_compile_cache(shared)
+    assert compilation.jax.config.jax_compilation_cache_dir == before  # the process's cache is as it was
+    assert planted.read_bytes() == b"not ours"
+
+    mine_under_shared = shared / "mine"
+    mine_under_shared.mkdir(mode=0o700)
+    assert str(shared) in executable_store.unsafe_folder_reason(mine_under_shared)  # its parent can swap it
+    group_writable = tmp_path / "group"
+    group_writable.mkdir()
+    group_writable.chmod(0o770)
+    assert "mode 0770" in executable_store.unsafe_folder_reason(group_writable)
+
+    sticky = tmp_path / "sticky"
+    sticky.mkdir()
+    sticky.chmod(0o1777)
+    assert executable_store.unsafe_folder_reason(sticky / "mine") is None  # not there yet: judged by those above
+    assert "mode 1777" in executable_store.unsafe_folder_reason(sticky)  # but not as the cache itself
+
+
+def test_a_new_cache_folder_is_made_private_whatever_the_umask(tmp_path):
+    folder = tmp_path / "cache" / "spacegrasp-jax" / "xla"
+    before = compilation.jax.config.jax_compilation_cache_dir
+    umask = os.umask(0o002)  # a group-writable default, as on shared workstations
+    try:
+        assert compilation.use_compile_cache(folder) == folder
+    finally:
+        os.umask(umask)
+        compilation.jax.config.update("jax_compilation_cache_dir", before)
+    for path in (tmp_path / "cache", tmp_path / "cache" / "spacegrasp-jax", folder):
+        assert path.stat().st_mode & 0o777 == 0o700, path
+    assert executable_store.unsafe_folder_reason(folder) is None

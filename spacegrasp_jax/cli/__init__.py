@@ -100,7 +100,11 @@ def main(argv: list[str] | None = None) -> int:
     if "compile_cache" in args:
         if not args.verbose:  # XLA's C++ log, its "Very slow compile?" banner among it, and JAX's
             jax.config.update("jax_logging_level", "CRITICAL")
-        cache = compilation.use_compile_cache(args.compile_cache)
+        try:
+            cache = compilation.use_compile_cache(args.compile_cache)
+        except compilation.CacheFolderError as error:
+            print(f"spacegrasp: error: --compile-cache: {error}, or pass --compile-cache none", file=sys.stderr)
+            return 2
         print(f"compilation cache: {cache if cache else 'off'}", file=sys.stderr)
         announcer = compilation.CompileAnnouncer(sys.stderr, cache / COMPILE_TIMES if cache else None)
     try:
