@@ -43,8 +43,8 @@ from spacegrasp_jax.cli.options import (
     _add_csv_option,
     _add_overwrite_option,
     _add_realism_option,
-    _add_strict_option,
     _add_run_options,
+    _add_strict_option,
     _whole,
 )
 from spacegrasp_jax.control import (
