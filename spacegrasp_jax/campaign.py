@@ -249,11 +249,12 @@ def _record(config: CampaignConfig, variants, robot_source: str, scenario: Scena
             {"controller": v.controller, "gains_label": v.label, "gains": v.gains.to_dict()} for v in variants
         ],
         "robot": robot_source,
+        "robot_file": None if robot_source == "paper_robot()" else runfiles.ROBOT_FILE,
         "scenario": scenario_to_dict(scenario),
     }
 
 
-def _check_resume(out: Path, record: dict, resume: bool) -> None:
+def _check_resume(out: Path, record: dict, resume: bool, robot: Robot) -> None:
     path = out / "campaign.json"
     if not path.exists():
         return
@@ -262,7 +263,18 @@ def _check_resume(out: Path, record: dict, resume: bool) -> None:
             f"{out} already holds a campaign: pass --resume (resume=True) to continue it, or choose another output folder"
         )
     previous = json.loads(path.read_text())
-    for key in ("config", "variants", "robot", "scenario"):
+    # The robot by what it is, not by the path it was read from (a resume from elsewhere
+    # names the same file another way); a campaign of an older version, by its path.
+    from spacegrasp_jax.model import load_robot, robot_to_toml
+
+    if previous.get("robot_file"):
+        kept = load_robot(out / previous["robot_file"])
+        if robot_to_toml(robot) != robot_to_toml(kept):
+            raise CampaignError(f"{out}: cannot resume, the robot differs from the interrupted campaign's")
+        keys = ("config", "variants", "scenario")
+    else:
+        keys = ("config", "variants", "robot", "scenario")
+    for key in keys:
         if json.dumps(previous.get(key), sort_keys=True) != json.dumps(record[key], sort_keys=True):
             detail = ""
             if key == "config":
@@ -500,10 +512,12 @@ def run_campaign(
     writer = out is not None and jax.process_index() == 0
     record = _record(config, variants, robot_source, scenario)
     if out is not None:
-        _check_resume(out, record, resume)
+        _check_resume(out, record, resume, robot)
         if jax.process_count() > 1:  # every process checks the folder before process 0 writes in it
             multihost_utils.sync_global_devices("spacegrasp campaign: folder checked")
         if writer:
+            if record["robot_file"]:
+                runfiles.write_robot(out, robot, robot_source)
             runfiles.write_json(out / "campaign.json", record)
 
     starts = list(range(0, config.n, config.chunk))
@@ -682,6 +696,8 @@ def load_campaign(out: Path) -> tuple[Robot, Scenario, list[Variant], CampaignCo
     except (OSError, ValueError) as error:
         raise CampaignError(f"{out}: holds no readable campaign ({path.name}: {error})") from None
     source = record["robot"]
+    if record.get("robot_file"):  # the robot as it ran, kept in the folder
+        source = str(Path(out) / record["robot_file"])
     try:
         robot = paper_robot() if source == "paper_robot()" else load_robot(source)
     except (OSError, ValueError) as error:

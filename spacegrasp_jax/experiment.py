@@ -152,8 +152,9 @@ class RunFolderError(ValueError):
 
 
 def robot_and_scenario_of_run(folder, config: dict) -> tuple[Robot, Scenario]:
-    """The robot and scenario a run folder's ``config.json`` (``config``, read) ran: its
-    robot file (or the paper's robot) and its scenario; for a replay of a campaign sample,
+    """The robot and scenario a run folder's ``config.json`` (``config``, read) ran: the robot
+    kept in the folder (``robot_file``; a run of an older version: its robot file as named,
+    or the paper's robot) and its scenario; for a replay of a campaign sample,
     the sample's perturbed plant and scenario, from the campaign's folder
     ([`campaign.replay_sample()`][spacegrasp_jax.campaign.replay_sample]).
 
@@ -170,6 +171,8 @@ def robot_and_scenario_of_run(folder, config: dict) -> tuple[Robot, Scenario]:
             raise RunFolderError(f"{folder}: a replay of {config['campaign']}, which cannot be read: {error}") from None
         return campaign.replay_sample(robot, scenario, campaign_config, int(config["sample"]))
     source = config["robot"]
+    if config.get("robot_file"):  # the robot as it ran, kept in the folder
+        source = str(Path(folder) / config["robot_file"])
     try:
         robot = paper_robot() if source == "paper_robot()" else load_robot(source)
     except RobotConfigError as error:

@@ -369,7 +369,37 @@ def inertia_from_table(row) -> np.ndarray:
     return np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]], dtype=np.float64)
 
 
-def load_robot(path: str | Path) -> Robot:
+def robot_to_toml(robot: Robot, comment: str = "") -> str:
+    """``robot`` as a robot TOML of its frames (``arm.frame_rotation``, ``arm.frame_position``)
+    that [`load_robot()`][spacegrasp_jax.model.load_robot] reads back bit for bit: every field,
+    each float written with the 17 digits that name it (``inf`` for an open joint range).
+    ``comment``: lines put at the top, each after ``#``. A run folder keeps its robot so."""
+
+    def value(array) -> str:
+        array = np.asarray(array, dtype=np.float64)
+        if array.ndim == 0:
+            number = float(array)
+            return repr(number) if np.isfinite(number) else ("inf" if number > 0 else "-inf")
+        return "[" + ", ".join(value(item) for item in array) + "]"
+
+    tables: dict[str, list[str]] = {}
+    for field, (_, _, key) in _FIELDS.items():
+        section, name = key.split(".")
+        tables.setdefault(section, []).append(f"{name} = {value(getattr(robot, field))}")
+    lines = [f"# {line}" if line else "#" for line in comment.splitlines()]
+    for section, entries in tables.items():
+        lines += ["", f"[{section}]", *entries]
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+#: How a URDF arm is mounted (``load_robot(..., mount=)``, ``--mount``): on the paper's
+#: satellite, or as the URDF has it (its base link is the satellite body); else a file.
+MOUNTS = ("paper", "urdf")
+
+
+def load_robot(
+    path: str | Path, *, mount: str | Path | None = None, base_link: str | None = None, tip_link: str | None = None
+) -> Robot:
     """Read a robot from a TOML or URDF file.
 
     * A TOML robot (schema in the documentation's File formats and
@@ -382,26 +412,49 @@ def load_robot(path: str | Path) -> Robot:
       frames (``arm.frame_rotation``, ``arm.frame_position``).
     * A TOML with a ``[urdf]`` table mounts a URDF arm on a satellite
       ([`spacegrasp_jax.urdf.robot_from_mounting()`][spacegrasp_jax.urdf.robot_from_mounting]).
-    * A ``.urdf`` file is the whole system: its base link is the satellite body
-      ([`spacegrasp_jax.urdf.robot_from_urdf()`][spacegrasp_jax.urdf.robot_from_urdf]).
+    * A ``.urdf`` file is an arm, the chain from ``base_link`` to ``tip_link`` (each ``None``:
+      the URDF's one root link, its one leaf link). ``mount``: ``"paper"`` (the default) bolts
+      its base link to the paper's 500 kg satellite at the paper's mount point; ``"urdf"``
+      takes the URDF as the whole servicer, its base link the satellite body (the URDF that
+      [`robot_to_urdf()`][spacegrasp_jax.urdf.robot_to_urdf] writes); a mounting file (a TOML
+      with ``[satellite]`` and optional ``[limits]``, as a mounting TOML's) gives the satellite
+      ([`spacegrasp_jax.urdf.load_urdf_arm()`][spacegrasp_jax.urdf.load_urdf_arm]).
 
     Raises:
         RobotConfigError: the file is not valid TOML or URDF, or a key or element is
-            missing, unknown or invalid; the message names the file and the key
-            (``arm.link_mass``) or the element.
+            missing, unknown or invalid, or ``mount``, ``base_link`` or ``tip_link`` is given
+            for a robot TOML; the message names the file and the key (``arm.link_mass``) or
+            the element.
     """
     path = Path(path)
-    return robot_from_text(read_text(path, RobotConfigError), source=str(path))
+    return robot_from_text(
+        read_text(path, RobotConfigError), source=str(path), mount=mount, base_link=base_link, tip_link=tip_link
+    )
 
 
-def robot_from_text(text: str, source: str) -> Robot:
+def robot_from_text(
+    text: str,
+    source: str,
+    *,
+    mount: str | Path | None = None,
+    base_link: str | None = None,
+    tip_link: str | None = None,
+) -> Robot:
     """[`load_robot()`][spacegrasp_jax.model.load_robot] on the text of the file ``source``
     (URDF if its name ends in ``.urdf``, else TOML)."""
     # The URDF reader builds its robots with this module: imported here, not at the top.
     from spacegrasp_jax import urdf
 
     if Path(source).suffix.lower() == ".urdf":
-        return urdf.robot_from_urdf(text, source=source)
+        return urdf.urdf_arm(
+            text, source, mount="paper" if mount is None else mount, base_link=base_link, tip_link=tip_link
+        )
+    given = [name for name, value in (("mount", mount), ("base_link", base_link), ("tip_link", tip_link)) if value]
+    if given:
+        raise RobotConfigError(
+            f"{source}: {', '.join(given)}: for a URDF arm only (a robot TOML is the whole servicer; a mounting "
+            f"TOML names its links in its [urdf] table and its satellite in [satellite])"
+        )
     return robot_from_toml(text, source=source)
 
 

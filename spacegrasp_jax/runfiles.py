@@ -179,6 +179,25 @@ def write_text(path: Path, text: str) -> None:
     write_atomically(path, lambda target: target.write_text(text))
 
 
+#: The file, in a run, campaign or tuning folder, of the robot it ran (written when the robot
+#: came from a file): the folder then needs nothing outside it, wherever it is moved.
+ROBOT_FILE = "robot.toml"
+
+
+def write_robot(folder: Path, robot, source: str, links: dict | None = None) -> str:
+    """Write ``robot`` to ``folder / ROBOT_FILE`` as a robot TOML that reads back bit for bit
+    ([`robot_to_toml()`][spacegrasp_jax.model.robot_to_toml]), its first lines naming the file it
+    came from (``source``) and, for a URDF arm, its mount and links (``links``); returns the
+    file's name, which the folder's record keeps."""
+    from spacegrasp_jax.model import robot_to_toml
+
+    said = ", ".join(f"{name} {value}" for name, value in (links or {}).items())
+    comment = f"The robot of this run, read from {source}" + (f" ({said})" if said else "") + "."
+    comment += "\nEvery field as the run used it; spacegrasp reads it with --robot."
+    write_text(folder / ROBOT_FILE, robot_to_toml(robot, comment))
+    return ROBOT_FILE
+
+
 def write_arrays(path: Path, arrays: dict, *, compressed: bool = True) -> None:
     """A ``.npz`` file of ``arrays`` (name -> array)."""
     save = np.savez_compressed if compressed else np.savez

@@ -39,7 +39,7 @@ from xml.etree import ElementTree
 import jax.numpy as jnp
 import numpy as np
 
-from spacegrasp_jax.inputs import numbers, read_text
+from spacegrasp_jax.inputs import numbers, parse_document, read_text
 from spacegrasp_jax.kinematics import joint_transforms
 from spacegrasp_jax.model import MIN_JOINTS, Robot, RobotConfigError, check_inertia, make_robot, n_joints
 
@@ -408,7 +408,10 @@ def robot_from_urdf(text: str, mounting: Mounting = Mounting(), source: str = "<
         if not roots:
             reader.fail("every link is a joint's child: a closed loop, which a serial chain cannot have")
         if len(roots) != 1:
-            reader.fail(f"several root links ({', '.join(roots)}): name the base link (base_link)")
+            reader.fail(
+                f"several root links ({', '.join(roots)}): name the base link (--base-link on the command line, "
+                f"base_link in a mounting TOML)"
+            )
         base = roots[0]
     elif base not in links:
         reader.fail(f"base link {base!r} is not a link of this URDF")
@@ -419,7 +422,10 @@ def robot_from_urdf(text: str, mounting: Mounting = Mounting(), source: str = "<
         below = _subtree(base, children)
         leaves = sorted(name for name in below if name not in children)
         if len(leaves) != 1:
-            reader.fail(f"several leaf links below {base!r} ({', '.join(leaves)}): name the tip link (tip_link)")
+            reader.fail(
+                f"several leaf links below {base!r} ({', '.join(leaves)}): name the tip link (--tip-link on the "
+                f"command line, tip_link in a mounting TOML)"
+            )
         tip = leaves[0]
     elif tip not in links:
         reader.fail(f"tip link {tip!r} is not a link of this URDF")
@@ -518,6 +524,59 @@ _MOUNTING_KEYS = {
 }
 
 
+def paper_mounting(base_link: str | None = None, tip_link: str | None = None) -> Mounting:
+    """The paper's satellite for a URDF arm (``--mount paper``): Section 4's 500 kg body,
+    its inertia, and the arm's base link at the paper's mount point, its axes the satellite's."""
+    from spacegrasp_jax.model import paper_robot
+
+    robot = paper_robot()
+    return Mounting(
+        base_link=base_link,
+        tip_link=tip_link,
+        satellite_mass=float(robot.satellite_mass),
+        satellite_inertia=np.asarray(robot.satellite_inertia),
+        mount_position=tuple(np.asarray(robot.mount_position).tolist()),
+    )
+
+
+def urdf_arm(
+    text: str,
+    source: str,
+    *,
+    mount: str | Path = "paper",
+    base_link: str | None = None,
+    tip_link: str | None = None,
+) -> Robot:
+    """The robot of the URDF arm ``text`` (read from the file ``source``), from ``base_link``
+    to ``tip_link``, mounted by ``mount``: ``"paper"``
+    ([`paper_mounting()`][spacegrasp_jax.urdf.paper_mounting]), ``"urdf"`` (the URDF is the whole
+    servicer: its base link and what is fixed to it are the satellite body), or the path of a
+    mounting file: a TOML with the ``[satellite]`` and optional ``[limits]`` tables of a
+    mounting TOML ([`robot_from_mounting()`][spacegrasp_jax.urdf.robot_from_mounting]) and no
+    ``[urdf]`` table (the arm is ``text``).
+
+    Raises:
+        URDFError: in one line naming the file (``source``, or the mounting file) and the
+            element or key.
+    """
+    if mount == "paper":
+        return robot_from_urdf(text, paper_mounting(base_link, tip_link), source=source)
+    if mount == "urdf":
+        return robot_from_urdf(text, Mounting(base_link=base_link, tip_link=tip_link), source=source)
+    mount_path = Path(mount)
+    document = parse_document(read_text(mount_path, URDFError), "toml", str(mount_path), URDFError)
+    if "urdf" in document:
+        raise URDFError(
+            f"{mount_path}: [urdf]: a mounting file given with the arm holds the satellite only ([satellite], "
+            f"[limits]); a file that names its URDF in [urdf] is a robot of its own (--robot {mount_path})"
+        )
+    if "satellite" not in document:
+        raise URDFError(f"{mount_path}: [satellite]: missing (the satellite the arm is mounted on: mass, inertia, ...)")
+    mounting = _mounting(document, str(mount_path), base_link, tip_link)
+    robot = robot_from_urdf(text, mounting, source=source)
+    return _with_limits(robot, document, str(mount_path))
+
+
 def robot_from_mounting(document: dict, source: str) -> Robot:
     """The robot a mounting TOML describes (``document`` parsed from the file ``source``): a
     URDF arm (``[urdf]``: ``file``, relative to ``source``'s folder, and optional
@@ -535,18 +594,36 @@ def robot_from_mounting(document: dict, source: str) -> Robot:
     def fail(message: str):
         raise URDFError(f"{source}: {message}")
 
+    arm = document["urdf"]
+    if not isinstance(arm, dict):
+        fail("urdf: expected a table ([urdf], with file, base_link and tip_link)")
+    for key in ("file", "base_link", "tip_link"):
+        if key in arm and (not isinstance(arm[key], str) or not arm[key]):
+            fail(f"urdf.{key}: expected a name, got {arm[key]!r}")
+    if "file" not in arm:
+        fail("urdf.file: missing (the URDF file, relative to this one)")
+    mounting = _mounting(document, source, arm.get("base_link"), arm.get("tip_link"))
+    urdf_path = Path(source).parent / arm["file"]
+    try:
+        text = read_text(urdf_path, URDFError)
+    except URDFError as error:  # name the key that held the path, and the file that held the key
+        raise URDFError(f"{source}: urdf.file = {arm['file']!r}: {error}") from None
+    robot = robot_from_urdf(text, mounting, source=str(urdf_path))
+    return _with_limits(robot, document, source)
+
+
+def _mounting(document: dict, source: str, base_link: str | None, tip_link: str | None) -> Mounting:
+    """The ``Mounting`` of a mounting file's ``document`` (its tables checked)."""
+
+    def fail(message: str):
+        raise URDFError(f"{source}: {message}")
+
     for section, table in document.items():
         if section not in _MOUNTING_KEYS or not isinstance(table, dict):
             fail(f"unknown key {section!r} (a mounting file has {', '.join(f'[{name}]' for name in _MOUNTING_KEYS)})")
         for key in table:
             if key not in _MOUNTING_KEYS[section]:
                 fail(f"unknown key {section}.{key}")
-    arm = document["urdf"]
-    for key in ("file", "base_link", "tip_link"):
-        if key in arm and (not isinstance(arm[key], str) or not arm[key]):
-            fail(f"urdf.{key}: expected a name, got {arm[key]!r}")
-    if "file" not in arm:
-        fail("urdf.file: missing (the URDF file, relative to this one)")
     satellite = document.get("satellite", {})
     if ("mass" in satellite) != ("inertia" in satellite):
         fail("satellite.mass and satellite.inertia: give both (the satellite body) or neither (the base link is)")
@@ -558,8 +635,8 @@ def robot_from_mounting(document: dict, source: str) -> Robot:
                 fail(f"satellite.{key}: expected shape {shape}, got {value.shape}")
             numbers_of[key] = value
     mounting = Mounting(
-        base_link=arm.get("base_link"),
-        tip_link=arm.get("tip_link"),
+        base_link=base_link,
+        tip_link=tip_link,
         satellite_mass=float(numbers_of["mass"]) if "mass" in numbers_of else None,
         satellite_inertia=numbers_of.get("inertia"),
         mount_position=tuple(numbers_of.get("mount_position", np.zeros(3))),
@@ -572,8 +649,15 @@ def robot_from_mounting(document: dict, source: str) -> Robot:
             fail(str(error))
         if mounting.satellite_mass <= 0.0:
             fail(f"satellite.mass: must be positive, got {mounting.satellite_mass!r}")
-    urdf_path = Path(source).parent / arm["file"]
-    robot = robot_from_urdf(read_text(urdf_path, URDFError), mounting, source=str(urdf_path))
+    return mounting
+
+
+def _with_limits(robot: Robot, document: dict, source: str) -> Robot:
+    """``robot`` with the motor limits of a mounting file's ``[limits]`` table."""
+
+    def fail(message: str):
+        raise URDFError(f"{source}: {message}")
+
     limits = document.get("limits", {})
     replaced = {}
     for key, field in (("joint_rate", "joint_rate_limit"), ("joint_torque", "joint_torque_limit")):

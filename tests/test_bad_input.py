@@ -47,6 +47,11 @@ DRIVER = textwrap.dedent(
 )
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+#: The paper's gains as an admittance law's file holds them (Section 4 and Table 4).
+PAPER_ADMITTANCE = {"Md": 800.0, "Bd": 500.0, "Kd": 600.0, "kp": [140, 210, 140, 105, 105, 21, 21]} | {
+    "ki": [10, 10, 10, 1, 1, 1, 1],
+    "kd": [0.01] * 7,
+}
 SIMULATE = ["simulate", "--controller", "admittance"]
 TUNE = ["tune", "--steps", "1", "--holdout", "0"]
 MONTECARLO = ["montecarlo", "--n", "2", "--chunk", "2"]
@@ -66,6 +71,7 @@ def files(folder):
         "null.json": b"null",
         "kp_string.json": b'{"kp": "140"}',
         "kp_true.json": b'{"kp": true}',
+        "no_Kd.json": json.dumps({k: v for k, v in PAPER_ADMITTANCE.items() if k != "Kd"}).encode(),
         "Md_nested_string.json": b'{"Md": [800, 800, "800", 800, 800, 800]}',
         "duration_string.toml": b'duration = "17"',
         "duration_true.toml": b"duration = true",
@@ -145,9 +151,18 @@ def cases(paths, out):
         "gains list": ([*MONTECARLO, "--gains", p["list.json"], "--out", out], "list.json: expected a JSON object"),
         "realism null": ([*SIMULATE, "--realism", p["null.json"], "--out", out], "null.json: expected a JSON object"),
         # wrong types are refused, not coerced
-        "gains kp string": ([*SIMULATE, "--gains", p["kp_string.json"], "--out", out], "kp_string.json: kp: expected"),
-        "gains kp true": ([*SIMULATE, "--gains", p["kp_true.json"], "--out", out], "kp_true.json: kp: expected"),
-        "gains nested string": ([*TUNE, "--gains", p["Md_nested_string.json"], "--out", out], ": Md: expected"),
+        "gains kp string": (
+            [*SIMULATE, "--gains", p["kp_string.json"], "--fill-from", "paper", "--out", out],
+            "kp_string.json: kp: expected",
+        ),
+        "gains kp true": (
+            [*SIMULATE, "--gains", p["kp_true.json"], "--fill-from", "paper", "--out", out],
+            "kp_true.json: kp: expected",
+        ),
+        "gains nested string": (
+            [*TUNE, "--gains", p["Md_nested_string.json"], "--fill-from", "paper", "--out", out],
+            ": Md: expected",
+        ),
         "scenario duration string": (
             [*SIMULATE, "--scenario", p["duration_string.toml"], "--out", out],
             "duration_string.toml: duration: expected numbers",
@@ -173,6 +188,36 @@ def cases(paths, out):
         "holdout 1e30": ([*TUNE, "--holdout", "1e30", "--out", out], "argument --holdout:"),
         "seed 2^64": ([*SIMULATE, "--seed", str(2**64), "--out", out], "argument --seed:"),
         "montecarlo seed negative": ([*MONTECARLO, "--seed", "-1", "--out", out], "argument --seed:"),
+        # explicit gains: what a file leaves out is refused unless --fill-from says where it comes from
+        "gains without Kd": (
+            [*SIMULATE, "--gains", p["no_Kd.json"], "--out", out],
+            "no_Kd.json: Kd: missing; give every group the law uses, or say where the rest comes from "
+            "(--fill-from paper|FILE",
+        ),
+        "tune gains without Kd": ([*TUNE, "--gains", p["no_Kd.json"], "--out", out], "no_Kd.json: Kd: missing;"),
+        "montecarlo gains without Kd": (  # both laws: the Cartesian law's groups too
+            [*MONTECARLO, "--gains", p["no_Kd.json"], "--out", out],
+            "no_Kd.json: Kd, K_lin, K_eul: missing",
+        ),
+        "fill from a missing file": (
+            [*SIMULATE, "--gains", p["no_Kd.json"], "--fill-from", p["missing"], "--out", out],
+            "missing.toml: no such file",
+        ),
+        "fill from a file without it": (
+            [*SIMULATE, "--gains", p["no_Kd.json"], "--fill-from", p["kp_true.json"], "--out", out],
+            "kp_true.json: Kd: missing, and",
+        ),
+        "a shipped set on another arm": (
+            [
+                *SIMULATE,
+                "--robot",
+                str(CONFIGS / "ur5_on_satellite.toml"),
+                "--scenario",
+                str(CONFIGS / "ur5_scenario.toml"),
+            ]
+            + ["--gains", "flight", "--out", out],
+            "--gains flight: the shipped tuned sets are for the paper's 7-joint arm, not this 6-joint one",
+        ),
         # a cache is code: a folder others can write is not loaded from
         "compile cache writable by others": (
             [*SIMULATE, "--compile-cache", p["shared_cache"], "--out", out],
@@ -259,7 +304,10 @@ def cases(paths, out):
             ["export", "--format", "json", "--out", p["list.json"]],
             "list.json: exists; pass --overwrite to replace it",
         ),
-        "export gains kp string": (["export", "--format", "yaml", "--gains", p["kp_string.json"]], ": kp: expected"),
+        "export gains kp string": (
+            ["export", "--format", "yaml", "--gains", p["kp_string.json"], "--fill-from", "paper"],
+            ": kp: expected",
+        ),
         # output folders that cannot be created
         "simulate out under a file": ([*SIMULATE, "--out", p["under_a_file"]], "a_file/results: cannot write"),
         "reproduce out under a file": (["reproduce", "--out", p["under_a_file"]], "a_file/results: cannot write"),
@@ -364,7 +412,10 @@ def cases(paths, out):
             [*TUNE, "--controller", "impedance", "--out", out],
             "--gains: required for the impedance law",
         ),
-        "margins gains kp string": ([*MARGINS, "--gains", p["kp_string.json"], "--out", out], ": kp: expected"),
+        "margins gains kp string": (
+            [*MARGINS, "--gains", p["kp_string.json"], "--fill-from=paper", "--out", out],
+            ": kp: expected",
+        ),
         "margins servo below dt": (
             [*MARGINS, "--realism", p["servo_below_dt.toml"], "--out", out],
             "timing.servo_period: 0.0005 s is not a whole multiple",
@@ -376,7 +427,10 @@ def cases(paths, out):
         ),
         "worstcase measure": ([*WORSTCASE, "--measure", "energy", "--out", out], "argument --measure:"),
         "worstcase starts 0": ([*WORSTCASE, "--starts", "0", "--out", out], "argument --starts:"),
-        "worstcase gains kp string": ([*WORSTCASE, "--gains", p["kp_string.json"], "--out", out], ": kp: expected"),
+        "worstcase gains kp string": (
+            [*WORSTCASE, "--gains", p["kp_string.json"], "--fill-from=paper", "--out", out],
+            ": kp: expected",
+        ),
         "simulate perturbation list": (
             [*SIMULATE, "--perturbation", p["list.json"], "--out", out],
             "list.json: expected a JSON object of settings at the top level",
@@ -478,7 +532,7 @@ def rejected(tmp_path_factory):
 
 
 _FILE_NAMES = (
-    "binary.json binary.toml deep.json deep.toml list.json number.json null.json kp_string.json kp_true.json "
+    "binary.json binary.toml deep.json deep.toml list.json number.json null.json kp_string.json kp_true.json no_Kd.json "
     "Md_nested_string.json duration_string.toml duration_true.toml dt_string.json target_mass_true.toml "
     "duration_huge.toml dt_tiny.toml ragged.json lar_not_table.toml noise_huge_int.toml period_huge_int.toml "
     "range_huge_int.toml servo_below_dt.toml servo_denormal.toml target_null.json satellite_mass_string.toml a_folder missing "

@@ -80,6 +80,7 @@ from pathlib import Path  # noqa: E402
 from csv_files import assert_csv_holds  # noqa: E402
 
 from spacegrasp_jax import cli, executable_store  # noqa: E402
+from spacegrasp_jax.control import tuned_gains  # noqa: E402
 
 SUMMARY_KEYS = {
     "max_abs_torque_Nm",
@@ -182,7 +183,56 @@ def test_simulate_one_controller_with_gains_and_scenario_files(tmp_path, gains):
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary) == {"admittance"} and set(summary["admittance"]) >= SUMMARY_KEYS
     assert (out / "timeseries_admittance.npz").exists() and all((out / name).exists() for name in FIGURES)
-    assert json.loads((out / "config.json").read_text())["gains"]["Kd"] == [300.0] * 6
+    config = json.loads((out / "config.json").read_text())
+    assert config["gains"]["Kd"] == [300.0] * 6 and config["gains_filled"] is None
+
+
+def test_a_gains_file_runs_with_what_fill_from_gives_and_says_so(tmp_path, capsys):
+    """A file without Kd runs only with --fill-from: the run's gains are the file's with the
+    paper's Kd, a notice says so, and config.json records the groups filled and from where."""
+    gains_file = tmp_path / "no_Kd.json"
+    gains_file.write_text(json.dumps({"Md": 900.0, "Bd": 500.0, "kp": 140.0, "ki": 10.0, "kd": 0.01}))
+    scenario_file = tmp_path / "scenario.toml"
+    scenario_file.write_text("duration = 0.05\n[trajectory]\nduration = 0.05\n")
+    args = ["simulate", "--compile-cache", "none", "--controller", "admittance", "--gains", str(gains_file)]
+    args += ["--scenario", str(scenario_file), "--out", str(tmp_path / "sim")]
+    assert cli.main(args) == 2
+    assert "no_Kd.json: Kd: missing" in capsys.readouterr().err
+    assert cli.main([*args, "--fill-from", "paper"]) == 0
+    assert f"spacegrasp: notice: {gains_file}: Kd from paper (--fill-from)" in capsys.readouterr().err
+    config = json.loads((tmp_path / "sim" / "config.json").read_text())
+    assert config["gains_filled"] == {"groups": ["Kd"], "from": "paper"}
+    assert config["gains"]["Kd"] == [600.0] * 6 and config["gains"]["Md"] == [900.0] * 6
+    # a shipped set by name
+    args = ["simulate", "--compile-cache", "none", "--controller", "admittance", "--gains", "flight"]
+    assert cli.main([*args, "--scenario", str(scenario_file), "--out", str(tmp_path / "flight")]) == 0
+    config = json.loads((tmp_path / "flight" / "config.json").read_text())
+    assert config["gains_source"] == "flight" and config["gains"] == tuned_gains("flight").to_dict("admittance")
+
+
+@pytest.mark.slow
+def test_compare_names_the_robots_of_runs_of_different_arms(tmp_path, capsys):
+    """A UR5 and a Panda, each on the paper's satellite with its own gains: ``compare``
+    labels the runs by their robot (and gains), not by gains file names alone."""
+    configs = Path(__file__).resolve().parents[1] / "configs"
+    folders = []
+    for arm in ("ur5", "panda"):
+        scenario = tmp_path / f"{arm}_short.toml"
+        scenario.write_text(
+            (configs / f"{arm}_scenario.toml").read_text() + "\nduration = 0.05\n[trajectory]\nduration = 0.05\n"
+        )
+        folders.append(str(tmp_path / arm))
+        args = ["simulate", "--compile-cache", "none", "--controller", "admittance"]
+        args += ["--robot", str(configs / f"{arm}_on_satellite.toml"), "--gains", str(configs / f"{arm}_gains.json")]
+        assert cli.main([*args, "--scenario", str(scenario), "--out", folders[-1]]) == 0
+    assert cli.main(["compare", *folders, "--out", str(tmp_path / "both")]) == 0
+    record = json.loads((tmp_path / "both" / "compare.json").read_text())
+    assert record["differing"] == ["robot", "gains"]
+    assert [run["label"] for run in record["runs"]] == [
+        "robot ur5_on_satellite, gains ur5_gains",
+        "robot panda_on_satellite, gains panda_gains",
+    ]
+    assert "robot ur5_on_satellite, gains ur5_gains" in capsys.readouterr().out
 
 
 @pytest.mark.slow
@@ -203,7 +253,7 @@ def test_compare_overlays_runs_of_different_realisms(tmp_path, capsys):
     printed = capsys.readouterr().out
     record = json.loads((tmp_path / "both" / "compare.json").read_text())
     assert record["differing"] == ["loop"] and [run["label"] for run in record["runs"]] == ["loop ideal", "loop flight"]
-    assert record["common"] == "law admittance, gains paper, target fixed"
+    assert record["common"] == "law admittance, robot paper, gains paper, target fixed"
     assert all((tmp_path / "both" / name).stat().st_size > 0 for name in FIGURES)
     for run in record["runs"]:
         summary = json.loads((Path(run["folder"]) / "summary.json").read_text())["admittance"]

@@ -21,8 +21,12 @@ from spacegrasp_jax.control import (
     cartesian,
     load_gains,
     make_gains,
+    missing_groups,
+    named_gains,
     paper_gains,
+    required_groups,
 )
+from spacegrasp_jax.control.gains import tuned_gains_file
 from spacegrasp_jax.control.pid import pid_init, pid_torque
 from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
 
@@ -62,7 +66,7 @@ def test_gains_json_round_trip_and_errors(tmp_path):
     assert load_gains(path).to_dict() == paper_gains().to_dict()
     path.write_text(json.dumps({"kd": -1.0}))
     with pytest.raises(GainsError, match=r"gains.json: kd: gains must be non-negative"):
-        load_gains(path)
+        load_gains(path, fill_from="paper")
     path.write_text(json.dumps({"kq": 1.0}))
     with pytest.raises(GainsError, match=r"gains.json: unknown gain\(s\): kq"):
         load_gains(path)
@@ -83,10 +87,50 @@ def test_a_gains_file_holds_what_its_controller_uses(tmp_path):
         read = load_gains(path, "admittance")
     assert read.to_dict("admittance") == tuned.to_dict("admittance")
     assert read.K_lin.tolist() == [3.0] * 3  # the groups the file leaves out are the paper's
-    # The other law's groups are accepted, and named.
+    # The other law's groups are accepted, and named; the law's own must come from somewhere.
     with pytest.warns(UnusedGainsWarning, match=r"admittance.json: Md, Bd, Kd not used by the cartesian controller"):
-        read = load_gains(path, "cartesian")
-    assert read.Kd.tolist() == [300.0] * 6
+        read = load_gains(path, "cartesian", fill_from="paper")
+    assert read.Kd.tolist() == [300.0] * 6 and read.K_lin.tolist() == [3.0] * 3
+
+
+def test_a_gains_file_that_leaves_out_a_group_is_refused_unless_told_where_it_comes_from(tmp_path):
+    """Explicit gains: a file missing a group its law uses is refused naming the group; with
+    ``fill_from`` the group comes from the paper, another file or a gain set, and
+    ``missing_groups`` names what was filled. ``pinv_damping`` is optional (the exact law)."""
+    assert required_groups("admittance") == ("Md", "Bd", "Kd", "kp", "ki", "kd")
+    assert required_groups(["admittance", "cartesian"]) == ("Md", "Bd", "Kd", "K_lin", "K_eul", "kp", "ki", "kd")
+    no_Kd = {name: value for name, value in paper_gains().to_dict("admittance").items() if name != "Kd"}
+    no_Kd["Md"] = [900.0] * 6
+    path = tmp_path / "no_Kd.json"
+    path.write_text(json.dumps(no_Kd))
+    with pytest.raises(GainsError, match=r"no_Kd.json: Kd: missing; give every group the law uses, or say where"):
+        load_gains(path, "admittance")
+    assert missing_groups(path, "admittance") == ["Kd"]
+    from_paper = load_gains(path, "admittance", fill_from="paper")
+    assert from_paper.Kd.tolist() == [600.0] * 6 and from_paper.Md.tolist() == [900.0] * 6
+    other = tmp_path / "stiff.json"
+    other.write_text(json.dumps({"Kd": 1200.0}))
+    assert load_gains(path, "admittance", fill_from=other).Kd.tolist() == [1200.0] * 6
+    given = dataclasses.replace(paper_gains(), Kd=paper_gains().Kd * 0.5)
+    assert load_gains(path, "admittance", fill_from=given).Kd.tolist() == [300.0] * 6
+    with pytest.raises(
+        GainsError, match=r"stiff.json: Md, Bd, kp, ki, kd: missing, and .*empty.json leaves them to this file"
+    ):
+        empty = tmp_path / "empty.json"
+        empty.write_text("{}")
+        load_gains(empty, "admittance", fill_from=other)
+    # The paper's joint gains are for its 7 joints: a 6-joint arm's file must give its own.
+    six = tmp_path / "six.json"
+    six.write_text(json.dumps({"Md": 800.0, "Bd": 500.0, "Kd": 600.0}))
+    with pytest.raises(GainsError, match=r"six.json: kp, ki, kd: missing, and the paper's Table 4 is for its 7"):
+        load_gains(six, "admittance", n_joints=6, fill_from="paper")
+    # Named sets: the paper's and the shipped tuned ones, the tuned sets' other groups the paper's.
+    assert named_gains("paper").to_dict() == paper_gains().to_dict()
+    flight = named_gains("flight")
+    assert flight.to_dict("admittance") == load_gains(tuned_gains_file("flight"), "admittance").to_dict("admittance")
+    assert flight.K_lin.tolist() == [3.0] * 3
+    with pytest.raises(ValueError, match="named_gains: name must be one of paper, ideal, flight, free_target"):
+        named_gains("fast")
 
 
 def test_pid_hand_computed():

@@ -35,7 +35,7 @@ def reports(tmp_path_factory):
     folder = tmp_path_factory.mktemp("gradients")
     (folder / "wild.json").write_text(json.dumps({"kp": [1e7] * 7}))
     healthy = _run(folder, "paper")
-    diverging = _run(folder, "wild", "--gains", str(folder / "wild.json"))
+    diverging = _run(folder, "wild", "--gains", str(folder / "wild.json"), "--fill-from", "paper")
     return healthy, diverging
 
 

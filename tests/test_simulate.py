@@ -202,7 +202,7 @@ def test_a_diverging_run_writes_what_it_has(robot, gains, tmp_path, capsys):
     (tmp_path / "wild.json").write_text(json.dumps({"kp": [1e7] * 7}))
     (tmp_path / "short.toml").write_text("duration = 0.5\n")
     out = tmp_path / "out"
-    argv = ["simulate", "--controller", "cartesian", "--gains", str(tmp_path / "wild.json")]
+    argv = ["simulate", "--controller", "cartesian", "--gains", str(tmp_path / "wild.json"), "--fill-from", "paper"]
     code = cli.main([*argv, "--scenario", str(tmp_path / "short.toml"), "--out", str(out), "--compile-cache", "none"])
     error = capsys.readouterr().err
     assert code == 3

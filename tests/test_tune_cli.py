@@ -89,7 +89,7 @@ def test_tune_writes_every_file(uninterrupted):
         "ee_pose.png",
     ):
         assert (out / name).stat().st_size > 0, name
-    gains = load_gains(out / "gains.json")  # loadable as simulate --gains takes it
+    gains = load_gains(out / "gains.json", "admittance")  # loadable as simulate --gains takes it
     assert gains.kp.shape == (7,)
     rows = list(csv.DictReader((out / "history.csv").open()))
     assert [int(row["step"]) for row in rows] == list(range(TUNE_STEPS + 1))
@@ -257,7 +257,7 @@ def test_the_default_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tm
     assert {"loss", "capture_loss", "position_margin", "torque_margin", "best_candidate_loss", "sigma"} <= set(rows[0])
     summary = json.loads((full / "summary.json").read_text())
     assert summary["method"] == "cmaes" and summary["objective_kind"] == "capture"
-    assert load_gains(full / "gains.json").pinv_damping.shape == (1,)
+    assert load_gains(full / "gains.json", "admittance").pinv_damping.shape == (1,)
     out = tmp_path / "cmaes_interrupted"
     code, err = run_until_step(cmaes_command(tmp_path, out, 4), out / "history.csv", step=1)
     assert code == 130, err

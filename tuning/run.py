@@ -31,8 +31,17 @@ import numpy as np
 
 import spacegrasp_jax as sg
 from spacegrasp_jax import batching, campaign, experiment, runfiles, statistics
-from spacegrasp_jax.control import GainsError, load_gains, make_gains, paper_gains, require_joints
-from spacegrasp_jax.model import load_robot, n_joints, robot_from_text
+from spacegrasp_jax.control import (
+    NAMED_GAINS,
+    GainsError,
+    load_gains,
+    make_gains,
+    missing_groups,
+    named_gains,
+    paper_gains,
+    require_joints,
+)
+from spacegrasp_jax.model import load_robot, n_joints, robot_from_text, robot_from_toml, robot_to_toml
 from spacegrasp_jax.montecarlo import SampleLoops, success
 from spacegrasp_jax.perturbations import sample_scenarios
 from spacegrasp_jax.realism import make_realism
@@ -90,7 +99,12 @@ def _same(a, b) -> bool:
 
 
 def resume_differences(
-    record: dict, config: TuneConfig | None, gains_file: str | None, scenario_file: str | None, robot_file: str | None
+    record: dict,
+    config: TuneConfig | None,
+    gains_file: str | None,
+    scenario_file: str | None,
+    robot_file: str | None,
+    robot_links: dict | None = None,
 ) -> list[tuple[str, object, object]]:
     """What a resume asks for that differs from the recorded run: every field of ``config``
     (None: nothing asked) and the contents of the files given. More ``steps`` for CMA-ES is
@@ -107,13 +121,18 @@ def resume_differences(
             differences.append((field, asked, recorded.get(field)))
     if gains_file is not None:
         n = n_joints(record_robot(record))
-        asked = load_gains(gains_file, record["config"]["controller"], n).to_dict()
+        asked = start_gains(gains_file, record["config"]["controller"], n, record.get("gains_fill_from")).to_dict()
         if not _same(asked, record["base_gains"]):
             differences.append(("gains", gains_file, record["gains_source"]))
     if scenario_file is not None and _read_optional(scenario_file) != record["scenario_text"]:
         differences.append(("scenario", scenario_file, record["scenario_source"]))
-    if robot_file is not None and _read_optional(robot_file) != record["robot_toml"]:
-        differences.append(("robot", robot_file, record["robot_source"]))
+    if robot_file is not None:
+        if record.get("robot_frames") is not None:  # the robot by what it is, wherever its file now lies
+            different = robot_to_toml(load_robot(robot_file, **(robot_links or {}))) != record["robot_frames"]
+        else:
+            different = _read_optional(robot_file) != record["robot_toml"]
+        if different:
+            differences.append(("robot", robot_file, record["robot_source"]))
     return differences
 
 
@@ -122,10 +141,13 @@ def _read_optional(path: str | None) -> str | None:
 
 
 def record_robot(record: dict):
-    """The robot of a tuning run's record (``run.json``): the paper's, or its file's text as
-    recorded (a TOML or URDF; a mounting TOML's URDF is read from beside its file again)."""
+    """The robot of a tuning run's record (``run.json``): the paper's, or the robot as recorded
+    (``robot_frames``; a run of an older version: its file's text, a mounting TOML's URDF read
+    from beside its file again)."""
     if record["robot_toml"] is None:
         return sg.paper_robot()
+    if record.get("robot_frames") is not None:
+        return robot_from_toml(record["robot_frames"], source=f"{record['robot_source']} (as recorded)")
     return robot_from_text(record["robot_toml"], source=record["robot_source"])
 
 
@@ -138,11 +160,34 @@ def record_scenario(robot, record: dict):
     return scenario_from_mapping(robot, document)
 
 
-def new_record(config: TuneConfig, gains_file, scenario_file, robot_file, holdout: int) -> dict:
-    """The run's definition, with the sources' contents so the run can be redone anywhere."""
-    robot = load_robot(robot_file) if robot_file else sg.paper_robot()
+def start_gains(gains_file: str, controller: str, n: int, fill_from: str | None = None):
+    """The starting gains ``gains_file`` names: a shipped set by name (``NAMED_GAINS``) or a
+    gains file for ``controller`` on an arm of ``n`` joints, its missing groups from ``fill_from``."""
+    if gains_file in NAMED_GAINS:
+        if n != len(paper_gains().kp):
+            raise TuneSetupError(
+                f"--gains {gains_file}: the shipped sets are for the paper's 7-joint arm, not {n} joints"
+            )
+        return named_gains(gains_file)
+    return load_gains(gains_file, controller, n, fill_from=fill_from)
+
+
+def new_record(
+    config: TuneConfig,
+    gains_file,
+    scenario_file,
+    robot_file,
+    holdout: int,
+    fill_from: str | None = None,
+    robot_links: dict | None = None,
+) -> dict:
+    """The run's definition, with the sources' contents so the run can be redone anywhere
+    (the robot as it runs, ``robot_frames``, besides its file's text)."""
+    robot = load_robot(robot_file, **(robot_links or {})) if robot_file else sg.paper_robot()
+    filled = []
     if gains_file:
-        base = load_gains(gains_file, config.controller, n_joints(robot))
+        base = start_gains(gains_file, config.controller, n_joints(robot), fill_from)
+        filled = [] if gains_file in NAMED_GAINS else missing_groups(gains_file, config.controller)
     else:
         try:
             require_joints(paper_gains(), n_joints(robot), "the paper's gains")
@@ -153,11 +198,15 @@ def new_record(config: TuneConfig, gains_file, scenario_file, robot_file, holdou
         "config": config.to_dict(),
         "base_gains": base.to_dict(),
         "gains_source": gains_file or "paper_gains()",
+        "gains_fill_from": fill_from if filled else None,
+        "gains_filled": filled,
         "scenario_source": scenario_file or "paper_scenario()",
         "scenario_text": _read_optional(scenario_file),
         "scenario_is_json": bool(scenario_file and scenario_file.endswith(".json")),
         "robot_source": robot_file or "paper_robot()",
         "robot_toml": _read_optional(robot_file),
+        "robot_links": robot_links or None,
+        "robot_frames": robot_to_toml(robot) if robot_file else None,
         "holdout": holdout,
     }
 
@@ -384,12 +433,17 @@ def tune(
     scenario_file: str | None = None,
     robot_file: str | None = None,
     holdout: int | None = None,
+    fill_from: str | None = None,
+    robot_links: dict | None = None,
     resume: bool = False,
     progress=sys.stderr,
     stop: runfiles.StopRequest | None = None,
 ) -> TuneResult:
     """Run the job (or, with ``resume``, continue it) and write its files in ``out``.
 
+    ``gains_file``: the starting gains, a gains file (its missing groups from ``fill_from``:
+    ``"paper"`` or another file) or a shipped set by name (``NAMED_GAINS``); default the paper's.
+    ``robot_links``: ``load_robot``'s ``mount``, ``base_link`` and ``tip_link`` for a URDF arm.
     ``holdout``: held-out scenarios of the final evaluation (default 100). With
     ``resume``, ``config`` and the files, where given, must be the recorded run's
     ([`resume_differences()`][tuning.run.resume_differences], else [`ResumeMismatchError`][tuning.run.ResumeMismatchError]); what may change is
@@ -403,7 +457,7 @@ def tune(
         if not record_path.exists():
             raise TuneSetupError(f"--resume: {out} holds no tuning run (no run.json)")
         record = json.loads(record_path.read_text())
-        differences = resume_differences(record, config, gains_file, scenario_file, robot_file)
+        differences = resume_differences(record, config, gains_file, scenario_file, robot_file, robot_links)
         if differences:
             raise ResumeMismatchError(out, differences)
         if holdout is not None and holdout < 0:
@@ -424,7 +478,9 @@ def tune(
             )
         if holdout < 0:
             raise TuneSetupError(f"--holdout: must be >= 0, got {holdout}")
-        record = new_record(config or TuneConfig(), gains_file, scenario_file, robot_file, holdout)
+        record = new_record(
+            config or TuneConfig(), gains_file, scenario_file, robot_file, holdout, fill_from, robot_links
+        )
         config = TuneConfig.from_dict(record["config"])
         try:
             config.weights.check_target(record_scenario(record_robot(record), record).free_target)

@@ -21,6 +21,7 @@ from spacegrasp_jax.cli import (  # noqa: E402  (the commands, in the order --he
     benchmark,
     compare,
     export,
+    gains,
     gradients,
     info,
     margins,
@@ -50,6 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     animate.add_parsers(commands)
     compare.add_parsers(commands)
     export.add_parsers(commands)
+    gains.add_parsers(commands)
     tune.add_parsers(commands)
     montecarlo.add_parsers(commands)
     gradients.add_parsers(commands)

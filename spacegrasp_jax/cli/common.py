@@ -25,9 +25,12 @@ from spacegrasp_jax import (
 from spacegrasp_jax.cli.options import NAMED_RANGES, UsageError
 from spacegrasp_jax.control import (
     GAINS_USED,
+    NAMED_GAINS,
     PAPER_CONTROLLERS,
     law_named,
     load_gains,
+    missing_groups,
+    named_gains,
     paper_gains,
 )
 from spacegrasp_jax.model import n_joints
@@ -39,17 +42,71 @@ from spacegrasp_jax.realism import Realism, RealismError, load_realism
 from spacegrasp_jax.scenario import load_scenario, paper_scenario
 
 
+def _robot_links(args) -> dict:
+    """``--mount``, ``--base-link`` and ``--tip-link`` as ``load_robot``'s keywords (those given)."""
+    given = {"mount": getattr(args, "mount", None), "base_link": getattr(args, "base_link", None)}
+    given["tip_link"] = getattr(args, "tip_link", None)
+    return {name: value for name, value in given.items() if value is not None}
+
+
+def _load_robot(args):
+    """The robot of ``--robot`` (the paper's by default), a URDF arm mounted and cut by
+    ``--mount``, ``--base-link`` and ``--tip-link``; a one-line note when a URDF arm is
+    mounted on the paper's satellite because no ``--mount`` was given."""
+    links = _robot_links(args)
+    if not args.robot:
+        if links:
+            option = "--" + next(iter(links)).replace("_", "-")
+            raise UsageError(f"{option}: for a URDF arm given with --robot (the paper's robot is whole)")
+        return sg.paper_robot()
+    robot = sg.load_robot(args.robot, **links)
+    if Path(args.robot).suffix.lower() == ".urdf" and "mount" not in links:
+        print(
+            f"spacegrasp: note: {args.robot}: the arm is mounted on the paper's 500 kg satellite at its mount point "
+            f"(--mount urdf: the URDF is the whole servicer; --mount FILE: your satellite)",
+            file=sys.stderr,
+        )
+    return robot
+
+
 def _load_inputs(args):
     """Robot, scenario and gains from the command line, validated before any compile."""
-    robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
+    robot = _load_robot(args)
     scenario = load_scenario(robot, args.scenario) if getattr(args, "scenario", None) else paper_scenario(robot)
     controller = getattr(args, "controller", None)
-    gains = (
-        load_gains(args.gains, controller, n_joints(robot))
-        if getattr(args, "gains", None)
-        else _paper_gains_for(robot, controller)
-    )
-    return robot, scenario, gains
+    return robot, scenario, _gains_option(getattr(args, "gains", None), args, robot, controller)
+
+
+def _gains_option(value: str | None, args, robot, controller) -> sg.control.Gains:
+    """The gains ``--gains value`` names for ``controller`` (a law, several, or ``None``):
+    the paper's by default, a shipped set by name, or a file whose missing groups come from
+    ``--fill-from``."""
+    if value is None or value == "paper":
+        return _paper_gains_for(robot, controller if isinstance(controller, str) else None)
+    if value in NAMED_GAINS:
+        if n_joints(robot) != len(paper_gains().kp):
+            raise UsageError(
+                f"--gains {value}: the shipped tuned sets are for the paper's {len(paper_gains().kp)}-joint arm, "
+                f"not this {n_joints(robot)}-joint one; give a gains file (spacegrasp gains --start writes a start)"
+            )
+        return named_gains(value)
+    fill_from = getattr(args, "fill_from", None)
+    gains = load_gains(value, controller, n_joints(robot), fill_from=fill_from)
+    filled = missing_groups(value, controller) if fill_from else []
+    if filled:
+        print(f"spacegrasp: notice: {value}: {', '.join(filled)} from {fill_from} (--fill-from)", file=sys.stderr)
+    return gains
+
+
+def _gains_record(value: str | None, args, controller) -> dict:
+    """What a run's record says of its gains: where they came from and, for a file that left
+    groups out, which ones ``--fill-from`` gave and from where."""
+    fill_from = getattr(args, "fill_from", None)
+    filled = [] if value is None or value in NAMED_GAINS else missing_groups(value, controller)
+    return {
+        "gains_source": value,
+        "gains_filled": {"groups": filled, "from": fill_from} if filled else None,
+    }
 
 
 def _paper_gains_for(robot, controller: str | None = None) -> sg.control.Gains:
@@ -326,3 +383,18 @@ def _films(
         runfiles.write_atomically(poster, lambda target: animation.write_poster(scene, target, title))
         written += [out, poster]
     return written
+
+
+def _write_out_file(args, text: str) -> Path:
+    """Write ``text`` to the file ``--out`` names, atomically; an existing file only with
+    ``--overwrite``. Returns the path."""
+    out = Path(args.out)
+    if out.is_dir():
+        raise UsageError(f"--out {out}: is a folder; give a file name")
+    if out.exists() and not args.overwrite:
+        raise UsageError(f"--out {out}: exists; pass --overwrite to replace it")
+    try:
+        runfiles.write_atomically(out, lambda target: target.write_text(text))
+    except OSError as error:
+        raise UsageError(f"--out {out}: cannot write ({error.strerror or error})") from None
+    return out

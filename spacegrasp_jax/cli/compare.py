@@ -19,11 +19,12 @@ from spacegrasp_jax.realism import ideal
 
 def _run_descriptors(folder: Path, key: str, config: dict) -> dict:
     """What one run of a run folder (``key``: a law, or a campaign variant ``law/gains``)
-    was: its law, loop, gains, target and folder, for ``compare`` to label runs by what
-    differs between them."""
+    was: its law, robot, loop, gains, target and folder, for ``compare`` to label runs by
+    what differs between them."""
     if "campaign_record" in config:  # a replay: the campaign's settings
         record = config["campaign_record"]
         realism, scenario = record["config"]["realism"], record["scenario"]
+        robot_source = record.get("robot")
         loop = "ideal" if realism == ideal().to_dict() else "flight-like"
         gains = key.split("/", 1)[1]
         loop += f" (sample {config['sample']})"
@@ -32,8 +33,17 @@ def _run_descriptors(folder: Path, key: str, config: dict) -> dict:
         source = config.get("realism_source")
         loop = source if source else ("ideal" if config["realism"] == ideal().to_dict() else "custom")
         gains = Path(config["gains_source"]).stem if config.get("gains_source") else "paper"
+        robot_source = config.get("robot")
     target = "fixed" if scenario.get("target") is None else f"free {scenario['target']['mass']:g} kg"
-    return {"law": key.split("/", 1)[0], "loop": loop, "gains": gains, "target": target, "run": folder.name}
+    robot = "paper" if robot_source in (None, "paper_robot()") else Path(robot_source).stem
+    return {
+        "law": key.split("/", 1)[0],
+        "robot": robot,
+        "loop": loop,
+        "gains": gains,
+        "target": target,
+        "run": folder.name,
+    }
 
 
 def _compare(args: argparse.Namespace) -> int:

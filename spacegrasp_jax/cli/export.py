@@ -4,16 +4,20 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from spacegrasp_jax import (
     export,
-    runfiles,
 )
-from spacegrasp_jax.cli.common import _load_inputs, _realism
-from spacegrasp_jax.cli.options import ROBOT_HELP, UsageError, _add_command, _add_realism_option
+from spacegrasp_jax.cli.common import _load_inputs, _realism, _write_out_file
+from spacegrasp_jax.cli.options import (
+    _add_command,
+    _add_realism_option,
+    add_gains_arguments,
+    add_robot_arguments,
+)
 from spacegrasp_jax.control import (
     CONTROLLERS,
+    NAMED_GAINS,
 )
 from spacegrasp_jax.model import n_joints
 
@@ -25,6 +29,13 @@ def _c_identifier(text: str) -> str:
     return text
 
 
+def _source_words(gains: str | None) -> str:
+    """Where the exported gains came from, as the file's first line says it."""
+    if gains is None or gains == "paper":
+        return "paper_gains()"
+    return f"the shipped {gains} gains (tuned_gains({gains!r}))" if gains in NAMED_GAINS else gains
+
+
 def _export(args: argparse.Namespace) -> int:
     """``spacegrasp export``: a gain set with its units, equations and the loop's settings, as
     one file of ``--format`` (printed without ``--out``)."""
@@ -32,20 +43,12 @@ def _export(args: argparse.Namespace) -> int:
     realism = _realism(args, scenario)
     settings = export.loop_settings(realism, scenario.dt, n_joints(robot))
     text = export.export_text(
-        gains, args.controller, settings, args.format, source=args.gains or "paper_gains()", prefix=args.prefix
+        gains, args.controller, settings, args.format, source=_source_words(args.gains), prefix=args.prefix
     )
     if args.out is None:
         sys.stdout.write(text)
         return 0
-    out = Path(args.out)
-    if out.is_dir():
-        raise UsageError(f"--out {out}: is a folder; give a file name")
-    if out.exists() and not args.overwrite:
-        raise UsageError(f"--out {out}: exists; pass --overwrite to replace it")
-    try:
-        runfiles.write_atomically(out, lambda target: target.write_text(text))
-    except OSError as error:
-        raise UsageError(f"--out {out}: cannot write ({error.strerror or error})") from None
+    out = _write_out_file(args, text)
     print(f"wrote {out}: the {args.controller} gains, their units and equations, and the loop's settings")
     return 0
 
@@ -55,12 +58,12 @@ def add_parsers(commands) -> None:
     export_gains = _add_command(
         commands, "export", help="write gains for flight software: JSON, YAML, a C header or CSV, with units"
     )
-    export_gains.add_argument("--gains", help="gains JSON file (default: the paper's)")
+    add_gains_arguments(export_gains)
     export_gains.add_argument("--controller", choices=CONTROLLERS, default="admittance")
     export_gains.add_argument("--format", choices=export.FORMATS, required=True)
     _add_realism_option(export_gains)
     export_gains.add_argument("--scenario", help="scenario TOML or JSON file, for its step (default: the paper's)")
-    export_gains.add_argument("--robot", help=ROBOT_HELP)
+    add_robot_arguments(export_gains)
     export_gains.add_argument(
         "--prefix", type=_c_identifier, default="SG", help="the C header's names: PREFIX_kp, ... (default SG)"
     )

@@ -26,6 +26,7 @@ from spacegrasp_jax.cli.options import (
     _add_run_options,
     _real,
     _whole,
+    add_gains_arguments,
     add_objective_arguments,
     add_ranges_arguments,
     tune_setting_error,
@@ -187,7 +188,7 @@ def add_parsers(commands) -> None:
     )
     gradient_health.add_argument("--n", type=_whole(1, 1_000_000), required=True, help="perturbed scenarios")
     gradient_health.add_argument("--controller", choices=CONTROLLERS, default="admittance")
-    gradient_health.add_argument("--gains", help="gains JSON file (default: the paper's)")
+    add_gains_arguments(gradient_health)
     gradient_health.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
     _add_realism_option(gradient_health)
     add_ranges_arguments(gradient_health, "montecarlo")

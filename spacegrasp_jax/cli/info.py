@@ -14,7 +14,8 @@ from spacegrasp_jax import (
     spatial,
     urdf,
 )
-from spacegrasp_jax.cli.options import ROBOT_HELP, UsageError, _add_command
+from spacegrasp_jax.cli.common import _load_robot
+from spacegrasp_jax.cli.options import UsageError, _add_command, add_robot_arguments
 from spacegrasp_jax.model import body_inertials, n_joints
 from spacegrasp_jax.scenario import load_scenario
 
@@ -27,7 +28,7 @@ def _info(args: argparse.Namespace) -> int:
         folder = next(parent for parent in urdf_file.absolute().parents if parent.exists())
         if not folder.is_dir():
             raise UsageError(f"--urdf: {folder} is not a folder, so {urdf_file} cannot be written")
-    robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
+    robot = _load_robot(args)
     n = n_joints(robot)
     if args.scenario:
         q_init, where = load_scenario(robot, args.scenario).initial.q, f"the scenario's q_init ({args.scenario})"
@@ -83,7 +84,7 @@ def _info(args: argparse.Namespace) -> int:
 def add_parsers(commands) -> None:
     """The command's parser, added to ``commands``."""
     info = _add_command(commands, "info", help="print the robot's mass, CoM, EE pose at q_init and cond(M)")
-    info.add_argument("--robot", help=ROBOT_HELP)
+    add_robot_arguments(info)
     info.add_argument("--scenario", help="scenario TOML/JSON whose q_init to show the robot at")
     info.add_argument(
         "--urdf", metavar="FILE", help="also write the robot as URDF to FILE, a new file (for Pinocchio, Drake, ROS)"

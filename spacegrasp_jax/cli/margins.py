@@ -20,6 +20,7 @@ from spacegrasp_jax.cli.common import (
     _check_envelope,
     _claim,
     _criteria,
+    _gains_record,
     _law,
     _load_inputs,
     _ranges,
@@ -102,7 +103,7 @@ def _margins(args: argparse.Namespace) -> int:
         )
     result["settings"] |= {
         "gains": gains.to_dict(args.controller),
-        "gains_source": args.gains or "paper_gains()",
+        **_gains_record(args.gains, args, args.controller),
         "criteria": campaign.capture_criteria(config),
         "campaign": config.to_dict(),
         "scenario_duration_s": scenario.duration,

@@ -10,7 +10,6 @@ from pathlib import Path
 import jax
 import numpy as np
 
-import spacegrasp_jax as sg
 from spacegrasp_jax import (
     batching,
     campaign,
@@ -18,10 +17,19 @@ from spacegrasp_jax import (
     runfiles,
     statistics,
 )
-from spacegrasp_jax.cli.common import _check_envelope, _claim, _criteria, _paper_gains_for, _ranges, _realism, _warn
+from spacegrasp_jax.cli.common import (
+    _check_envelope,
+    _claim,
+    _criteria,
+    _gains_option,
+    _load_robot,
+    _paper_gains_for,
+    _ranges,
+    _realism,
+    _warn,
+)
 from spacegrasp_jax.cli.options import (
     _SEED,
-    ROBOT_HELP,
     UsageError,
     _add_command,
     _add_compile_cache_option,
@@ -31,12 +39,14 @@ from spacegrasp_jax.cli.options import (
     _add_realism_option,
     _real,
     _whole,
+    add_gains_arguments,
     add_ranges_arguments,
+    add_robot_arguments,
 )
 from spacegrasp_jax.control import (
     CONTROLLERS,
+    NAMED_GAINS,
     PAPER_CONTROLLERS,
-    load_gains,
     paper_gains,
 )
 from spacegrasp_jax.model import n_joints
@@ -58,10 +68,10 @@ def _montecarlo_variants(args: argparse.Namespace, robot) -> list[campaign.Varia
         _paper_gains_for(robot, None if papers else args.controller)
     gain_sets = [("paper", paper_gains())] if n == len(paper_gains().kp) and papers else []
     for path in args.gains:
-        label = Path(path).stem
+        label = path if path in NAMED_GAINS else Path(path).stem
         if label in {existing for existing, _ in gain_sets}:
             raise UsageError(f"--gains {path}: two gain sets would both be called {label!r}; rename one file")
-        gain_sets.append((label, load_gains(path, None if args.controller == "both" else args.controller, n)))
+        gain_sets.append((label, _gains_option(path, args, robot, controllers)))
     return [campaign.Variant(controller, gains, label) for controller in controllers for label, gains in gain_sets]
 
 
@@ -72,7 +82,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     if args.distributed:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     batching.use_all_cpu_cores()
-    robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
+    robot = _load_robot(args)
     try:
         ranges = _ranges(args, PerturbationRanges())
         variants = _montecarlo_variants(args, robot)
@@ -190,13 +200,7 @@ def add_parsers(commands) -> None:
     montecarlo.add_argument(
         "--controller", choices=(*CONTROLLERS, "both"), default="both", help="a law, or both of the paper's (default)"
     )
-    montecarlo.add_argument(
-        "--gains",
-        action="append",
-        default=[],
-        metavar="FILE",
-        help="gains JSON to compare with the paper's (repeatable; labelled by file name)",
-    )
+    add_gains_arguments(montecarlo, repeatable=True)
     montecarlo.add_argument("--seed", type=_SEED, default=0, help="campaign seed (default 0)")
     montecarlo.add_argument(
         "--chunk",
@@ -224,7 +228,7 @@ def add_parsers(commands) -> None:
         help="also keep every K-th log row of every sample",
     )
     montecarlo.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
-    montecarlo.add_argument("--robot", help=ROBOT_HELP)
+    add_robot_arguments(montecarlo)
     montecarlo.add_argument(
         "--pinv-damping", type=_real(0.0, 1e3), default=0.0, help="damping of the pseudoinverse (0: exact, the paper)"
     )

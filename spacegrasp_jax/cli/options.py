@@ -7,6 +7,7 @@ import math
 
 from spacegrasp_jax.control import (
     CONTROLLERS,
+    NAMED_GAINS,
 )
 from spacegrasp_jax.perturbations import (
     FREE_TARGET_RANGES,
@@ -92,9 +93,29 @@ _SEED = _whole(0, 2**32 - 1)
 
 #: The help of every command's ``--robot``.
 ROBOT_HELP = (
-    "robot file (default: the paper's robot): a robot TOML, a URDF (its base link is the satellite), "
+    "robot file (default: the paper's robot): a robot TOML, a URDF arm (see --mount), "
     "or a TOML whose [urdf] table mounts a URDF arm on a satellite"
 )
+
+
+def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--robot`` and, for a URDF arm, ``--mount``, ``--base-link`` and ``--tip-link``."""
+    parser.add_argument("--robot", help=ROBOT_HELP)
+    parser.add_argument(
+        "--mount",
+        metavar="paper|urdf|FILE",
+        help="a URDF arm's satellite: paper (default: the paper's 500 kg satellite at its mount point), urdf "
+        "(the URDF is the whole servicer, its base link the satellite body) or a TOML with [satellite] and [limits]",
+    )
+    parser.add_argument(
+        "--base-link", metavar="LINK", help="a URDF arm's link bolted to the satellite (default: its one root link)"
+    )
+    parser.add_argument(
+        "--tip-link",
+        metavar="LINK",
+        help="a URDF arm's link whose frame is the end-effector's (default: its one leaf link; name it when the "
+        "URDF has fingers or tool frames)",
+    )
 
 
 def _add_overwrite_option(parser: argparse.ArgumentParser) -> None:
@@ -141,7 +162,7 @@ def _add_csv_option(parser: argparse.ArgumentParser, what: str) -> None:
 def _add_run_options(parser: argparse.ArgumentParser, default_out: str) -> None:
     parser.add_argument("--out", default=default_out, help=f"output folder (default {default_out})")
     _add_overwrite_option(parser)
-    parser.add_argument("--robot", help=ROBOT_HELP)
+    add_robot_arguments(parser)
     parser.add_argument(
         "--pinv-damping",
         type=_real(0.0, 1e3),
@@ -185,11 +206,39 @@ def add_ranges_arguments(parser: argparse.ArgumentParser, default: str) -> None:
     )
 
 
+def add_gains_arguments(parser: argparse.ArgumentParser, repeatable: bool = False) -> None:
+    """``--gains`` (a named set or a file; ``repeatable``: several, to compare) and
+    ``--fill-from`` (where the groups a file leaves out come from) on ``parser``."""
+    names = "|".join(NAMED_GAINS)
+    if repeatable:
+        parser.add_argument(
+            "--gains",
+            action="append",
+            default=[],
+            metavar=f"{names}|FILE",
+            help="a gain set to compare with the paper's: a shipped set by name or a gains JSON file "
+            "(repeatable; labelled by name or file name)",
+        )
+    else:
+        parser.add_argument(
+            "--gains",
+            metavar=f"{names}|FILE",
+            help="the gains: a shipped set by name (paper, the default; the tuned ideal, flight and free_target "
+            "sets) or a gains JSON file holding every group the law uses",
+        )
+    parser.add_argument(
+        "--fill-from",
+        metavar="paper|FILE",
+        help="where the groups a gains file leaves out come from (default: none; such a file is refused); "
+        "recorded in the run's files",
+    )
+
+
 def _add_envelope_options(parser: argparse.ArgumentParser, seed_help: str) -> None:
     """The gain set, its law and loop, and the envelope and seed its captures are drawn from
     (``margins`` and ``worstcase``)."""
     parser.add_argument("--controller", choices=CONTROLLERS, default="admittance")
-    parser.add_argument("--gains", help="gains JSON file (default: the paper's)")
+    add_gains_arguments(parser)
     parser.add_argument("--scenario", help="nominal scenario TOML/JSON (default: the paper's)")
     _add_realism_option(parser)
     add_ranges_arguments(parser, "montecarlo")

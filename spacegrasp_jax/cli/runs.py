@@ -21,6 +21,7 @@ from spacegrasp_jax import (
 from spacegrasp_jax.cli.common import (
     _claim,
     _films,
+    _gains_record,
     _is_papers_run,
     _law,
     _load_inputs,
@@ -29,6 +30,7 @@ from spacegrasp_jax.cli.common import (
     _print_capture_verdicts,
     _print_table,
     _realism,
+    _robot_links,
     _run_caption,
     _warn,
     _write_results,
@@ -46,6 +48,7 @@ from spacegrasp_jax.cli.options import (
     _add_run_options,
     _add_strict_option,
     _whole,
+    add_gains_arguments,
 )
 from spacegrasp_jax.control import (
     CONTROLLERS,
@@ -85,10 +88,17 @@ def _run_controllers(args, controllers) -> int:
     config = experiment.run_config(
         args.robot or "paper_robot()", scenario, gains, controllers, args.pinv_damping, realism
     ) | {
-        "gains_source": args.gains if "gains" in args else None,
+        **_gains_record(getattr(args, "gains", None), args, list(controllers)),
         "realism_source": args.realism if "realism" in args else None,
         "perturbation_source": getattr(args, "perturbation", None),
+        "robot_links": _robot_links(args) or None,
+        "robot_file": None,
     }
+    if args.robot or getattr(args, "perturbation", None):  # the robot as it ran, kept in the folder
+        source = args.robot or "paper_robot()"
+        if getattr(args, "perturbation", None):
+            source += f", perturbed as {args.perturbation} says"
+        config["robot_file"] = runfiles.write_robot(out, robot, source, _robot_links(args))
     _write_results(
         out,
         results,
@@ -201,7 +211,7 @@ def add_parsers(commands) -> None:
     reproduce.set_defaults(run=_reproduce)
     simulate = _add_command(commands, "simulate", help="run one controller with any gains and scenario")
     simulate.add_argument("--controller", choices=CONTROLLERS, required=True)
-    simulate.add_argument("--gains", help="gains JSON file (default: the paper's)")
+    add_gains_arguments(simulate)
     simulate.add_argument("--scenario", help="scenario TOML or JSON file (default: the paper's)")
     _add_realism_option(simulate)
     simulate.add_argument("--seed", type=_SEED, default=0, help="seed of the sensors' noise key (default 0)")

@@ -10,17 +10,25 @@ from pathlib import Path
 
 import numpy as np
 
-import spacegrasp_jax as sg
 from spacegrasp_jax import (
     batching,
     plausibility,
     runfiles,
     statistics,
 )
-from spacegrasp_jax.cli.common import _check_envelope, _claim, _paper_gains_for, _ranges, _realism, _run_caption, _warn
+from spacegrasp_jax.cli.common import (
+    _check_envelope,
+    _claim,
+    _load_robot,
+    _paper_gains_for,
+    _ranges,
+    _realism,
+    _robot_links,
+    _run_caption,
+    _warn,
+)
 from spacegrasp_jax.cli.options import (
     _SEED,
-    ROBOT_HELP,
     TUNE_OPTIONS,
     UsageError,
     _add_command,
@@ -29,20 +37,28 @@ from spacegrasp_jax.cli.options import (
     _add_realism_option,
     _real,
     _whole,
+    add_gains_arguments,
     add_objective_arguments,
     add_ranges_arguments,
+    add_robot_arguments,
     tune_setting_error,
 )
 from spacegrasp_jax.control import (
     CONTROLLERS,
-    load_gains,
 )
 from spacegrasp_jax.model import n_joints
 from spacegrasp_jax.realism import ideal, load_realism
 from spacegrasp_jax.scenario import load_scenario, paper_scenario
 from spacegrasp_jax.tuning.estimators import AGGREGATES
 from spacegrasp_jax.tuning.objective import Weights
-from spacegrasp_jax.tuning.run import ResumeMismatchError, TuneSetupError, record_robot, record_scenario, tune
+from spacegrasp_jax.tuning.run import (
+    ResumeMismatchError,
+    TuneSetupError,
+    record_robot,
+    record_scenario,
+    start_gains,
+    tune,
+)
 from spacegrasp_jax.tuning.tune import METHODS, TUNING_RANGES, TuneConfig
 
 
@@ -61,7 +77,7 @@ def _tune(args: argparse.Namespace) -> int:
     except (TuneSetupError, ValueError) as error:
         raise tune_setting_error(error) from None
     # Every file read and checked now: tune() reads them again after writing run.json.
-    robot = sg.load_robot(args.robot) if args.robot else sg.paper_robot()
+    robot = _load_robot(args)
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
     try:
         config.weights.check_target(scenario.free_target)
@@ -70,9 +86,11 @@ def _tune(args: argparse.Namespace) -> int:
     _realism(args, scenario)
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
-    if args.gains:
-        load_gains(args.gains, args.controller, n_joints(robot))
-    else:
+    try:
+        start_gains(args.gains, args.controller, n_joints(robot), args.fill_from) if args.gains else None
+    except TuneSetupError as error:
+        raise UsageError(str(error)) from None
+    if not args.gains:
         _paper_gains_for(robot, args.controller)
     _claim(args, Path(args.out))
     try:
@@ -83,6 +101,8 @@ def _tune(args: argparse.Namespace) -> int:
             scenario_file=args.scenario,
             robot_file=args.robot,
             holdout=args.holdout,
+            fill_from=args.fill_from,
+            robot_links=_robot_links(args),
             stop=args.stop,
         )
     except TuneSetupError as error:
@@ -94,7 +114,20 @@ def _resume_tune(args: argparse.Namespace):
     """``tune --resume``: the options given on the command line (not their defaults) must
     be the recorded run's, but for the ones a resume may change."""
     record = json.loads((Path(args.out) / "run.json").read_text()) if (Path(args.out) / "run.json").exists() else None
-    given = args.given - {"out", "resume", "compile_cache", "overwrite", "holdout", "gains", "scenario", "robot"}
+    given = args.given - {
+        "out",
+        "resume",
+        "compile_cache",
+        "overwrite",
+        "holdout",
+        "gains",
+        "fill_from",
+        "scenario",
+        "robot",
+        "mount",
+        "base_link",
+        "tip_link",
+    }
     config = None
     if record is not None and given:
         # The options given replace the record's (checked together, as the run would be):
@@ -109,6 +142,7 @@ def _resume_tune(args: argparse.Namespace):
         gains_file=args.gains,
         scenario_file=args.scenario,
         robot_file=args.robot,
+        robot_links=_robot_links(args),
         holdout=args.holdout if "holdout" in args.given else None,
         stop=args.stop,
     )
@@ -296,9 +330,9 @@ def add_parsers(commands) -> None:
         default=100,
         help="held-out perturbed scenarios for the final evaluation",
     )
-    tune.add_argument("--gains", help="starting gains JSON (default: the paper's)")
+    add_gains_arguments(tune)
     tune.add_argument("--scenario", help="scenario TOML/JSON (default: the paper's)")
-    tune.add_argument("--robot", help=ROBOT_HELP)
+    add_robot_arguments(tune)
     tune.add_argument("--resume", action="store_true", help="continue the run in --out from its last completed step")
     add_ranges_arguments(tune, "tuning")
     _add_realism_option(tune)

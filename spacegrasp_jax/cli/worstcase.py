@@ -24,6 +24,7 @@ from spacegrasp_jax.cli.common import (
     _check_envelope,
     _claim,
     _criteria,
+    _gains_record,
     _law,
     _load_inputs,
     _ranges,
@@ -108,7 +109,12 @@ def _worstcase(args: argparse.Namespace) -> int:
     result = experiment.run(spec, gains, key=jnp.asarray(found.key, dtype=jnp.uint32), check=False)
     perturbation = jax.tree.map(lambda x: np.asarray(x).tolist(), vars(from_units(units, ranges)))
     replay_command = ["spacegrasp", "simulate", "--controller", args.controller]
-    for option, value in (("--gains", args.gains), ("--scenario", args.scenario), ("--robot", args.robot)):
+    for option, value in (
+        ("--gains", args.gains),
+        ("--fill-from", args.fill_from),
+        ("--scenario", args.scenario),
+        ("--robot", args.robot),
+    ):
         if value:
             replay_command += [option, value]
     if args.realism:
@@ -146,7 +152,7 @@ def _worstcase(args: argparse.Namespace) -> int:
         | {
             "controller": args.controller,
             "gains": gains.to_dict(args.controller),
-            "gains_source": args.gains or "paper_gains()",
+            **_gains_record(args.gains, args, args.controller),
             "criteria": campaign.capture_criteria(config),
             "campaign": config.to_dict(),
             "scenario_duration_s": scenario.duration,

@@ -18,13 +18,17 @@ from spacegrasp_jax.control.admittance import Admittance, AdmittanceGains, Admit
 from spacegrasp_jax.control.cartesian import Cartesian, CartesianGains, CartesianState
 from spacegrasp_jax.control.gains import (
     GAINS_USED,
+    NAMED_GAINS,
     Gains,
     GainsError,
     UnusedGainsWarning,
     load_gains,
     make_gains,
+    missing_groups,
+    named_gains,
     paper_gains,
     require_joints,
+    required_groups,
     tuned_gains,
 )
 from spacegrasp_jax.control.groups import GainGroup, group, view
@@ -45,6 +49,7 @@ __all__ = [
     "GAIN_GROUPS",
     "GAINS_USED",
     "LAWS",
+    "NAMED_GAINS",
     "PAPER_CONTROLLERS",
     "PID",
     "Admittance",
@@ -74,7 +79,10 @@ __all__ = [
     "UnusedGainsWarning",
     "load_gains",
     "make_gains",
+    "missing_groups",
+    "named_gains",
     "require_joints",
+    "required_groups",
     "paper_gains",
     "tuned_gains",
 ]

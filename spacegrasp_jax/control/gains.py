@@ -152,7 +152,74 @@ def tuned_gains(loop: str = "ideal") -> Gains:
     gains)."""
     if loop not in TUNED_GAINS_FILES:
         raise ValueError(f"tuned_gains: loop must be one of {', '.join(TUNED_GAINS_FILES)}, got {loop!r}")
-    return load_gains(Path(__file__).resolve().parents[1] / "data" / TUNED_GAINS_FILES[loop])
+    return load_gains(tuned_gains_file(loop), fill_from="paper")
+
+
+#: The gain sets known by name (``--gains NAME``): the paper's, and the shipped tuned ones.
+NAMED_GAINS = ("paper", *TUNED_GAINS_FILES)
+
+
+def named_gains(name: str) -> Gains:
+    """The gain set ``name`` of ``NAMED_GAINS``: ``"paper"``
+    ([`paper_gains()`][spacegrasp_jax.control.gains.paper_gains]) or a shipped tuned set
+    ([`tuned_gains(name)`][spacegrasp_jax.control.gains.tuned_gains]); all for the paper's arm."""
+    if name not in NAMED_GAINS:
+        raise ValueError(f"named_gains: name must be one of {', '.join(NAMED_GAINS)}, got {name!r}")
+    return paper_gains() if name == "paper" else tuned_gains(name)
+
+
+def tuned_gains_file(loop: str) -> Path:
+    """The shipped file of [`tuned_gains(loop)`][spacegrasp_jax.control.gains.tuned_gains]
+    (it holds the admittance law's groups)."""
+    return Path(__file__).resolve().parents[1] / "data" / TUNED_GAINS_FILES[loop]
+
+
+#: The starting rule's joint bandwidth, 1/s: ``kp_i`` = this times joint i's effective inertia.
+START_RATE_PER_S = 20.0
+#: The starting rule's ``ki / kp`` and ``kd / kp``: the ratios of the paper's Table 4 (its
+#: first three joints: 10 / 140 rounded to 0.05, 0.01 / 140 = 7e-5 s).
+START_KI_PER_KP, START_KD_PER_KP = 0.05, 7e-5
+
+
+def effective_joint_inertia(mass_matrix: np.ndarray) -> np.ndarray:
+    """Each joint's effective inertia in a free-floating system, (N,) kg m^2: the diagonal of
+    the joint block of the (6 + N, 6 + N) generalised mass matrix less the satellite's share,
+    ``M_qq - M_qb M_bb^-1 M_bq`` (the Schur complement: the inertia a joint's motor meets when
+    the satellite is free to recoil, as it is in orbit)."""
+    M = np.asarray(mass_matrix, dtype=np.float64)
+    base, joints = M[:6, :6], M[6:, 6:]
+    coupling = M[:6, 6:]
+    return np.diag(joints - coupling.T @ np.linalg.solve(base, coupling)).copy()
+
+
+def starting_gains(robot, q_init=None, R_base=None) -> Gains:
+    """Gains to start tuning from for any arm: the paper's law gains (``Md``, ``Bd``, ``Kd``,
+    ``K_lin``, ``K_eul``) and joint PID gains scaled to the arm, ``kp_i`` =
+    ``START_RATE_PER_S`` (20/s) times joint i's effective inertia at ``q_init``
+    ([`effective_joint_inertia()`][spacegrasp_jax.control.gains.effective_joint_inertia]; the
+    paper's Table 4 gains are 5 to 50 times its arm's), ``ki = 0.05 kp`` and ``kd = 7e-5 kp``
+    (Table 4's ratios). A start, not a tuned set: ``spacegrasp tune`` takes it from there.
+
+    Args:
+        robot: the arm on its satellite ([`Robot`][spacegrasp_jax.model.Robot], N joints).
+        q_init: (N,) rad, the capture's initial joint angles (default: the paper's, for a
+            7-joint arm; required for another).
+        R_base: (3, 3) satellite attitude (default: the identity; the effective inertia does
+            not depend on it).
+    """
+    from spacegrasp_jax.dynamics import mass_matrix
+    from spacegrasp_jax.model import PAPER_Q_INIT, n_joints
+
+    n = n_joints(robot)
+    if q_init is None:
+        if n != PAPER_JOINTS:
+            raise GainsError(f"starting_gains: q_init: required for an arm of {n} joints (the paper's is for 7)")
+        q_init = PAPER_Q_INIT
+    R_base = np.eye(3) if R_base is None else R_base
+    inertia = effective_joint_inertia(mass_matrix(robot, jnp.asarray(R_base), jnp.asarray(q_init, dtype=jnp.float64)))
+    kp = START_RATE_PER_S * inertia
+    laws = {name: value for name, value in paper_gains().to_dict().items() if name not in JOINT_GROUPS}
+    return make_gains(n_joints=n, **laws, kp=kp, ki=START_KI_PER_KP * kp, kd=START_KD_PER_KP * kp)
 
 
 def require_joints(gains: Gains, n_joints: int, source: str = "the gains") -> None:
@@ -170,43 +237,70 @@ class UnusedGainsWarning(UserWarning):
     """A gains file holds groups the chosen controller does not use (they are ignored)."""
 
 
-def load_gains(path: str | Path, controller: str | None = None, n_joints: int = PAPER_JOINTS) -> Gains:
+def required_groups(controller: str | tuple[str, ...] | list[str] | None = None) -> tuple[str, ...]:
+    """The groups a gains file must hold to run ``controller``: the groups the law uses
+    (``GAINS_USED``; for several laws, those any of them uses; ``None``: every law's), less
+    the optional ones (``pinv_damping``: 0, the exact pseudoinverse, when left out)."""
+    used = {name for law in _laws(controller) for name in GAINS_USED[law]}
+    return tuple(name for name in GAIN_SHAPES if name in used and not GAIN_GROUPS[name].optional)
+
+
+def _laws(controller) -> tuple[str, ...]:
+    """A law's name, several or ``None`` (every law) as a tuple of names."""
+    if controller is None:
+        return CONTROLLERS
+    return (controller,) if isinstance(controller, str) else tuple(controller)
+
+
+def missing_groups(path: str | Path, controller: str | tuple[str, ...] | list[str] | None = None) -> list[str]:
+    """The groups ``controller`` needs that the gains file at ``path`` leaves out (those
+    [`load_gains()`][spacegrasp_jax.control.gains.load_gains] takes from ``fill_from``)."""
+    document = read_document(Path(path), GainsError, "json")
+    return [name for name in required_groups(controller) if name not in document]
+
+
+def load_gains(
+    path: str | Path,
+    controller: str | tuple[str, ...] | list[str] | None = None,
+    n_joints: int = PAPER_JOINTS,
+    fill_from: str | Path | Gains | None = None,
+) -> Gains:
     """Read gains for an arm of ``n_joints`` joints from a JSON file ``{"Md": [...], "kp": [...],
     ...}`` (scalars allowed).
 
-    A file may hold any subset of the groups: the others take the paper's values
-    ([`paper_gains()`][spacegrasp_jax.control.gains.paper_gains]), but for an arm of other
-    than the paper's 7 joints the joint groups (``kp``, ``ki``, ``kd``) are required. A file
-    written for one controller holds the groups that controller uses (``GAINS_USED``); given
-    ``controller``, groups it does not use are accepted and named in an
+    A file holds every group the law uses ([`required_groups(controller)`][spacegrasp_jax.control.gains.required_groups];
+    several laws: any of them; ``None``: every law), so that what runs is what the file says.
+    A file that leaves some out is refused, naming them, unless ``fill_from`` says where they
+    come from: ``"paper"`` ([`paper_gains()`][spacegrasp_jax.control.gains.paper_gains]; its
+    joint groups are for the paper's 7 joints only), another gains file (which must hold
+    every group itself), or a [`Gains`][spacegrasp_jax.control.gains.Gains].
+    [`missing_groups()`][spacegrasp_jax.control.gains.missing_groups] names the groups filled.
+    Groups the law does not use take the paper's values; given a single ``controller``,
+    groups in the file that it does not use are accepted and named in an
     [`UnusedGainsWarning`][spacegrasp_jax.control.gains.UnusedGainsWarning].
 
     Raises:
-        GainsError: unreadable file, not a JSON object, or invalid gains (a value that is
-            not a number, ``"140"`` or ``true`` included, or a joint group of the wrong
-            length); the message names the file.
+        GainsError: unreadable file, not a JSON object, a group missing without
+            ``fill_from``, or invalid gains (a value that is not a number, ``"140"`` or
+            ``true`` included, or a joint group of the wrong length); the message names the
+            file.
     """
     path = Path(path)
     document = read_document(path, GainsError, "json")
     unknown = sorted(set(document) - set(GAIN_SHAPES))
     if unknown:
         raise GainsError(f"{path}: unknown gain(s): {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")
-    defaults = paper_gains().to_dict()
-    if n_joints != PAPER_JOINTS:
-        missing = [name for name in JOINT_GROUPS if name not in document]
-        if missing:
-            raise GainsError(
-                f"{path}: {', '.join(missing)}: required for an arm of {n_joints} joints "
-                f"(the paper's Table 4 is for its {PAPER_JOINTS})"
-            )
+    missing = [name for name in required_groups(controller) if name not in document]
+    fill = _fill_values(path, missing, fill_from, n_joints, controller)
+    defaults = paper_gains().to_dict()  # for the groups no law of the run uses (every law uses the joint groups)
     try:
-        gains = make_gains(n_joints=n_joints, **(defaults | document))
+        gains = make_gains(n_joints=n_joints, **(defaults | fill | document))
     except GainsError as error:
         raise GainsError(f"{path}: {error}") from None
     unused = [
         name
         for name in GAIN_SHAPES
-        if name in document and controller is not None and name not in GAINS_USED[controller]
+        if name in document and isinstance(controller, str) and name not in GAINS_USED[controller]
     ]
     if unused:
         warnings.warn(
@@ -215,3 +309,36 @@ def load_gains(path: str | Path, controller: str | None = None, n_joints: int = 
             stacklevel=2,
         )
     return gains
+
+
+def _fill_values(path: Path, missing: list[str], fill_from, n_joints: int, controller) -> dict:
+    """The values of the ``missing`` groups of the file at ``path``, from ``fill_from``."""
+    if not missing:
+        return {}
+    if fill_from is None:
+        laws = _laws(controller)
+        whose = ""
+        if len(laws) > 1:  # which law of the run needs them
+            needing = [law for law in laws if set(missing) & set(GAINS_USED[law])]
+            whose = f" (used by the {' and '.join(needing)} law{'s' if len(needing) > 1 else ''})"
+        raise GainsError(
+            f"{path}: {', '.join(missing)}: missing{whose}; give every group the law uses, or say where the rest "
+            f"comes from (--fill-from paper|FILE; fill_from= in Python)"
+        )
+    if isinstance(fill_from, Gains):
+        source = fill_from
+    elif str(fill_from) == "paper":
+        joints = [name for name in missing if name in JOINT_GROUPS]
+        if joints and n_joints != PAPER_JOINTS:
+            raise GainsError(
+                f"{path}: {', '.join(joints)}: missing, and the paper's Table 4 is for its {PAPER_JOINTS} joints, "
+                f"not this arm's {n_joints}: give them in the file (spacegrasp gains --start writes a start)"
+            )
+        source = paper_gains()
+    else:
+        document = read_document(Path(fill_from), GainsError, "json")
+        lacking = [name for name in missing if name not in document]
+        if lacking:
+            raise GainsError(f"{fill_from}: {', '.join(lacking)}: missing, and {path} leaves them to this file")
+        return {name: document[name] for name in missing}
+    return {name: np.asarray(getattr(source, name)).tolist() for name in missing}

@@ -1,0 +1,177 @@
+"""A new user's own arm from the command line and Python: stock URDFs with several leaves
+(example-robot-data 6.0.0's Franka Panda, UR10, Kinova Jaco and xArm7, unchanged; the last
+three in tests/data/arms, BSD-2-Clause), mounted on the paper's satellite unless told
+otherwise, and run folders that keep their robot, so they work from anywhere once moved."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import spacegrasp_jax as sg
+from spacegrasp_jax import cli
+from spacegrasp_jax.control import load_gains, paper_gains
+from spacegrasp_jax.control.gains import effective_joint_inertia, starting_gains
+from spacegrasp_jax.model import load_robot, n_joints, robot_from_toml, robot_to_toml
+from spacegrasp_jax.scenario import load_scenario
+from spacegrasp_jax.urdf import URDFError
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs"
+ARMS = Path(__file__).resolve().parent / "data" / "arms"
+PANDA = CONFIGS / "arms" / "panda.urdf"
+UR10 = ARMS / "ur10_robot.urdf"
+
+
+def robots_equal(a, b) -> bool:
+    return all(np.array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name))) for name in vars(a))
+
+
+@pytest.mark.parametrize(
+    "source",
+    ["paper", "ur5_on_satellite.toml", "panda_on_satellite.toml"],
+)
+def test_a_robot_written_as_toml_reads_back_bit_for_bit(source):
+    robot = sg.paper_robot() if source == "paper" else load_robot(CONFIGS / source)
+    text = robot_to_toml(robot, "first line\nsecond line")
+    assert text.startswith("# first line\n# second line\n")
+    assert robots_equal(robot_from_toml(text), robot)
+
+
+def test_a_urdf_arm_is_mounted_on_the_papers_satellite_unless_told_otherwise(tmp_path):
+    """``--mount paper`` (the default for a URDF): the 500 kg satellite with the paper's inertia,
+    the arm's base link and what is fixed to it added; ``urdf``: the URDF is the whole servicer
+    (the Panda's 0.63 kg link 0 its "satellite"); a mounting file: its satellite. The mounted
+    robot is the one a mounting TOML with the paper's satellite describes."""
+    paper = sg.paper_robot()
+    mounted = load_robot(PANDA, tip_link="panda_hand_tcp")
+    assert 500.0 < float(mounted.satellite_mass) < 501.0
+    alone = load_robot(PANDA, mount="urdf", tip_link="panda_hand_tcp")
+    assert float(alone.satellite_mass) < 1.0
+    by_file = tmp_path / "mount.toml"
+    by_file.write_text(
+        "[satellite]\nmass = 500.0\ninertia = [[79.0, 0.0, 0.0], [0.0, 79.0, 0.0], [0.0, 0.0, 117.0]]\n"
+        "mount_position = [0.2, 0.2, 0.2]\n"
+    )
+    assert robots_equal(load_robot(PANDA, mount=by_file, tip_link="panda_hand_tcp"), mounted)
+    assert np.asarray(paper.satellite_mass) == 500.0
+    toml = tmp_path / "panda_mount.toml"
+    toml.write_text(f'[urdf]\nfile = "{PANDA}"\ntip_link = "panda_hand_tcp"\n' + by_file.read_text())
+    assert robots_equal(load_robot(toml), mounted)
+    with pytest.raises(URDFError, match=r"mount.toml: \[urdf\]: a mounting file given with the arm holds"):
+        load_robot(PANDA, mount=toml, tip_link="panda_hand_tcp")
+    with pytest.raises(sg.RobotConfigError, match=r"paper_robot.toml: tip_link: for a URDF arm only"):
+        load_robot(CONFIGS / "paper_robot.toml", tip_link="tool0")
+
+
+def test_a_bad_path_inside_a_mounting_file_names_the_file_and_the_key(tmp_path):
+    mount = tmp_path / "mount.toml"
+    mount.write_text('[urdf]\nfile = "arms/nowhere.urdf"\n')
+    with pytest.raises(URDFError) as error:
+        load_robot(mount)
+    assert str(error.value).startswith(f"{mount}: urdf.file = 'arms/nowhere.urdf': ")
+    assert "nowhere.urdf: no such file" in str(error.value)
+
+
+def test_info_names_the_tip_link_flag_and_takes_it(capsys):
+    assert cli.main(["info", "--robot", str(PANDA)]) == 2
+    err = capsys.readouterr().err
+    assert "several leaf links below 'panda_link0' (panda_hand_tcp, panda_leftfinger, panda_rightfinger)" in err
+    assert "name the tip link (--tip-link on the command line, tip_link in a mounting TOML)" in err
+    assert cli.main(["info", "--robot", str(PANDA), "--tip-link", "panda_hand_tcp"]) == 0
+    printed = capsys.readouterr()
+    assert "robot: " in printed.out and "7 joints" in printed.out
+    assert "the arm is mounted on the paper's 500 kg satellite at its mount point" in printed.err
+    assert cli.main(["info", "--tip-link", "tool0"]) == 2  # the paper's robot has no links to choose
+    assert "--tip-link: for a URDF arm given with --robot" in capsys.readouterr().err
+    for arm, tip, joints in ((ARMS / "kinova.urdf", "j2s6s200_end_effector", 6), (ARMS / "xarm7.urdf", "link7", 7)):
+        assert cli.main(["info", "--robot", str(arm), "--tip-link", tip]) == 0, capsys.readouterr().err
+        assert f"{joints} joints" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_ur10_runs_from_its_stock_urdf_and_its_run_folder_moves(tmp_path, capsys, monkeypatch):
+    """``simulate --robot ur10_robot.urdf --tip-link tool0``: the stock UR10, its ``world``
+    root bolted to the paper's satellite; the run folder keeps the robot it ran
+    (``robot.toml``), so ``animate`` works on it from another folder after it is moved and the
+    robot's own file is gone."""
+    work = tmp_path / "work"
+    work.mkdir()
+    shutil.copy(UR10, work / "ur10_robot.urdf")
+    (work / "short.toml").write_text(
+        (CONFIGS / "ur5_scenario.toml").read_text() + "\nduration = 0.05\n[trajectory]\nduration = 0.05\n"
+    )
+    monkeypatch.chdir(work)
+    args = ["simulate", "--compile-cache", "none", "--controller", "admittance", "--robot", "ur10_robot.urdf"]
+    args += ["--tip-link", "tool0", "--scenario", "short.toml", "--gains", str(CONFIGS / "ur5_gains.json")]
+    assert cli.main([*args, "--out", "runs/ur10"]) == 0, capsys.readouterr().err
+    config = json.loads((work / "runs" / "ur10" / "config.json").read_text())
+    assert config["robot"] == "ur10_robot.urdf" and config["robot_links"] == {"tip_link": "tool0"}
+    assert config["robot_file"] == "robot.toml"
+    ran = load_robot(work / "ur10_robot.urdf", tip_link="tool0")
+    assert n_joints(ran) == 6 and robots_equal(load_robot(work / "runs" / "ur10" / "robot.toml"), ran)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    shutil.move(work / "runs" / "ur10", elsewhere / "ur10_moved")
+    (work / "ur10_robot.urdf").unlink()
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    assert cli.main(["animate", os.path.join("elsewhere", "ur10_moved"), "--fps", "5"]) == 0, capsys.readouterr().err
+    assert any(path.suffix == ".gif" for path in (elsewhere / "ur10_moved").iterdir())
+
+
+def test_the_effective_joint_inertia_of_a_hand_worked_two_joint_system():
+    """The Schur complement's diagonal, worked by hand: a satellite block diag(10, 10, 10, 2,
+    2, 2), joint 1 coupled to the x translation (1) and the z rotation (0.5), joint 2 to the x
+    rotation (1). Joint 1: 3 - 1^2/10 - 0.5^2/2 = 2.775; joint 2: 1 - 1^2/2 = 0.5."""
+    M = np.zeros((8, 8))
+    M[:6, :6] = np.diag([10.0, 10.0, 10.0, 2.0, 2.0, 2.0])
+    M[6:, 6:] = [[3.0, 0.2], [0.2, 1.0]]
+    for row, joint, value in ((0, 6, 1.0), (5, 6, 0.5), (3, 7, 1.0)):
+        M[row, joint] = M[joint, row] = value
+    np.testing.assert_allclose(effective_joint_inertia(M), [2.775, 0.5], rtol=1e-15)
+
+
+@pytest.mark.parametrize("arm", ["ur5", "panda"])
+def test_starting_gains_are_the_rule_the_shipped_arms_gains_started_from(arm):
+    """``starting_gains`` against the starting gains the shipped arms' tuning runs record,
+    worked out by hand at the time and written to two significant digits."""
+    robot = load_robot(CONFIGS / f"{arm}_on_satellite.toml")
+    scenario = load_scenario(robot, CONFIGS / f"{arm}_scenario.toml")
+    start = starting_gains(robot, scenario.initial.q, scenario.initial.R_base)
+    recorded = json.loads((CONFIGS / f"{arm}_gains.settings.json").read_text())["starting_gains"]
+    kp = np.asarray(start.kp)
+    assert [float(f"{value:.2g}") for value in kp] == recorded["kp"]
+    np.testing.assert_allclose(start.ki, 0.05 * kp, rtol=1e-15)
+    np.testing.assert_allclose(start.kd, 7e-5 * kp, rtol=1e-15)
+    assert {name: np.asarray(getattr(start, name)).tolist() for name in ("Md", "Bd", "Kd", "K_lin", "K_eul")} == {
+        name: np.asarray(getattr(paper_gains(), name)).tolist() for name in ("Md", "Bd", "Kd", "K_lin", "K_eul")
+    }
+
+
+def test_gains_start_writes_a_whole_gains_file_for_any_arm(tmp_path, capsys):
+    base = ["gains", "--start", "--robot", str(UR10), "--tip-link", "tool0"]
+    assert cli.main(base) == 2
+    assert "--scenario: required for an arm of 6 joints" in capsys.readouterr().err
+    out = tmp_path / "ur10_start.json"
+    robot = load_robot(UR10, tip_link="tool0")
+    scenario = load_scenario(robot, CONFIGS / "ur5_scenario.toml")
+    start = starting_gains(robot, scenario.initial.q)
+    for law in ("admittance", "cartesian"):  # the law's groups, each: no --fill-from needed, no notice
+        written = tmp_path / f"{law}.json"
+        argv = [*base, "--controller", law, "--scenario", str(CONFIGS / "ur5_scenario.toml"), "--out", str(written)]
+        assert cli.main(argv) == 0
+        assert "kp = 20/s x effective joint inertia" in capsys.readouterr().err
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            gains = load_gains(written, law, n_joints=6)
+        assert gains.to_dict(law) == start.to_dict(law)
+    out = tmp_path / "admittance.json"
+    assert cli.main([*base, "--scenario", str(CONFIGS / "ur5_scenario.toml"), "--out", str(out)]) == 2
+    assert "exists; pass --overwrite" in capsys.readouterr().err
