@@ -281,3 +281,34 @@ def test_the_default_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tm
     assert json.loads((out / "run.json").read_text())["config"]["steps"] == 6
     result = subprocess.run([*resume, "--population", "5"], capture_output=True, text=True, timeout=300)
     assert result.returncode == 2 and "--population 5 (the run's: 3)" in result.stderr
+
+
+def test_a_run_that_ends_worse_than_it_started_hands_back_the_start_and_says_so(tmp_path, capsys):
+    """A tuning run whose result is worse than its start on the held-out captures (one CMA-ES
+    generation of a wide step on one capture, the final mean kept): ``gains.json`` holds the
+    starting gains, the tuned ones lie beside it in ``gains_tuned.json``, one line says so, and
+    the summary records it. With ``--keep best`` (the default) the run hands back the least
+    training objective it saw."""
+    from spacegrasp_jax import cli
+    from spacegrasp_jax.control import paper_gains
+
+    scenario = tmp_path / "short.toml"
+    scenario.write_text("duration = 1.0\n[trajectory]\nduration = 1.0\n")
+    base = ["tune", "--compile-cache", "none", "--scenario", str(scenario), "--objective", "weighted"]
+    base += ["--steps", "1", "--step-size", "1.5", "--population", "4", "--batch", "1", "--holdout", "8"]
+    out = tmp_path / "last"
+    assert cli.main([*base, "--keep", "last", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    holdout = summary["holdout"]
+    assert holdout["mean_objective_tuned"] > holdout["mean_objective_start"]  # the case: a worse result
+    assert summary["gains_file"] == "start" and summary["kept"]["what"] == "the final mean"
+    assert json.loads((out / "gains.json").read_text()) == paper_gains().to_dict("admittance")
+    assert json.loads((out / "gains_tuned.json").read_text()) != paper_gains().to_dict("admittance")
+    err = capsys.readouterr().err
+    assert "the tuned gains are not better than the starting gains on the 8 held-out captures" in err
+    assert "gains.json holds the starting gains, the tuned ones are in gains_tuned.json" in err
+    out = tmp_path / "best"
+    assert cli.main([*base, "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    told = [float(row["best_candidate_loss"]) for row in csv.DictReader((out / "history.csv").open())][1:]
+    assert summary["kept"]["training_objective"] == min([*told, summary["kept"]["training_objective"]])

@@ -408,3 +408,58 @@ def test_a_resume_checks_the_options_given_against_the_recorded_run(tmp_path, ca
     assert cli.main(["tune", "--out", str(tmp_path / "cmaes"), "--resume", "--lr", "0.5"]) == 2
     line = capsys.readouterr().err.strip().splitlines()[-1]
     assert "--lr: a setting of the gradient method" in line, line
+
+
+def test_the_gradient_method_keeps_its_best_step_and_a_checkpoint_keeps_it_too(tmp_path):
+    """Plain SGD on loss = (p - 1)^2 plus a penalty of 5 for 0.9 < p < 1.1 (its gradient left
+    out), learning rates 0.8, 0.62, 0.26 (the cosine schedule over 3 steps, down to a tenth:
+    0.08 + 0.72 (1 + cos(pi k / 3)) / 2): p goes 0, 1.6, 0.856, 0.93088, the losses 1, 0.36,
+    0.020736, 5.0047775744. The last step is worse than step 2: step 2's parameters are kept, and
+    a checkpoint keeps them too."""
+    from spacegrasp_jax.tuning.tune import load_checkpoint, make_optimizer
+
+    def value_and_grad(params):
+        p = params["kp"][0]
+        loss = (p - 1.0) ** 2 + jnp.where((p > 0.9) & (p < 1.1), 5.0, 0.0)
+        return (loss, {"largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": jnp.atleast_1d(2.0 * (p - 1.0))}
+
+    config = TuneConfig(
+        steps=3,
+        learning_rate=0.8,
+        optimizer="sgd",
+        clip_norm=100.0,
+        loss_guard=100.0,
+        objective="weighted",
+        method="gradient",
+    )
+    path = tmp_path / "checkpoint.npz"
+    state, status = optimise(
+        value_and_grad, {"kp": jnp.zeros(1)}, config, checkpoint_path=path, write_atomically=_write
+    )
+    np.testing.assert_allclose([row["loss"] for row in state.history], [1.0, 0.36, 0.020736, 5.0047775744], rtol=1e-12)
+    assert status == "done" and state.step == 3 and state.best_step == 2
+    assert float(state.best_params["kp"][0]) == pytest.approx(0.856, rel=1e-12)
+    assert float(state.params["kp"][0]) == pytest.approx(0.93088, rel=1e-12)
+    template = {"kp": jnp.zeros(1)}
+    restored, _ = load_checkpoint(path, template, make_optimizer(config)[0].init(template))
+    assert restored.best_step == 2 and float(restored.best_params["kp"][0]) == float(state.best_params["kp"][0])
+
+
+def _write(path, write):
+    write(path)
+
+
+def test_cmaes_best_ever_is_the_least_objective_it_told_or_the_final_mean():
+    from spacegrasp_jax.tuning.cmaes import CmaState, best_ever
+
+    class Strategy:
+        mean = np.array([9.0, 9.0])
+
+    asked = [np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([[2.0, 2.0], [3.0, 3.0]])]
+    told = [np.array([5.0, 4.0]), np.array([3.0, 6.0])]
+    state = CmaState(2, Strategy(), asked, told, [{"loss": 7.0}, {"loss": 6.5}, {"loss": 3.5}])
+    x, value, generation = best_ever(state)
+    assert x.tolist() == [2.0, 2.0] and value == 3.0 and generation == 2
+    state.history[-1]["loss"] = 3.0  # the final mean as good: it is kept
+    x, value, generation = best_ever(state)
+    assert x.tolist() == [9.0, 9.0] and value == 3.0 and generation is None

@@ -284,6 +284,19 @@ def optimise(
     return state, status
 
 
+def best_ever(state: CmaState) -> tuple[np.ndarray, float, int | None]:
+    """The best point the run evaluated on its training batch: the candidate with the least
+    objective ever told, or the final mean where it is no worse (its objective is the last
+    history row's). Returns ``(x, objective, generation)``, ``generation`` the candidate's
+    (1-based, as the history counts them), ``None`` for the final mean."""
+    x, objective, generation = np.asarray(state.strategy.mean), float(state.history[-1]["loss"]), None
+    for index, (candidates, objectives) in enumerate(zip(state.asked, state.told)):
+        best = int(np.argmin(objectives))
+        if float(objectives[best]) < objective:
+            x, objective, generation = np.asarray(candidates[best]), float(objectives[best]), index + 1
+    return x, objective, generation
+
+
 def _row(generation, parts, which, objective, best, sigma, wall) -> dict:
     """A history row: the objective of candidate ``which`` (the mean) and the batch means of
     its parts, the best candidate's objective, CMA-ES's step size, the wall time (s)."""

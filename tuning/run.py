@@ -358,8 +358,11 @@ def _optimise_gradient(robot, smooth, base, config, before, out, resume, progres
         on_step=on_step,
         stop=stop,
     )
-    tuned = gains_from_params(state.params, base, mask)
-    return objective, tuned, state.history, state.events, state.step, status
+    best = config.keep == "best" and state.best_params is not None
+    tuned = gains_from_params(state.best_params if best else state.params, base, mask)
+    kept = {"rule": config.keep, "step": state.best_step if best else state.step}
+    kept["training_objective"] = state.history[kept["step"]]["loss"]
+    return objective, tuned, state.history, state.events, state.step, status, kept
 
 
 def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, stop):
@@ -421,8 +424,14 @@ def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, 
         on_generation=on_generation,
         stop=stop,
     )
-    tuned = cmaes.gains_of(state.strategy.mean, params, base, mask)
-    return objective, tuned, state.history, [], state.generation, status
+    if config.keep == "best":
+        x, value, generation = cmaes.best_ever(state)
+    else:
+        x, value, generation = state.strategy.mean, state.history[-1]["loss"], None
+    tuned = cmaes.gains_of(x, params, base, mask)
+    kept = {"rule": config.keep, "generation": generation, "training_objective": float(value)}
+    kept["what"] = "the final mean" if generation is None else f"the best candidate of generation {generation}"
+    return objective, tuned, state.history, [], state.generation, status, kept
 
 
 def tune(
@@ -504,11 +513,11 @@ def tune(
     before = experiment.run(RunSpec(robot, exact, config.controller, realism=realism), base, key=key)
     with runfiles.StopRequest() if stop is None else contextlib.nullcontext(stop) as stop:
         if config.method == "cmaes":
-            objective, tuned, history, events, steps_done, status = _optimise_cmaes(
+            objective, tuned, history, events, steps_done, status, kept = _optimise_cmaes(
                 robot, smooth, base, config, before, out, resume, progress, stop
             )
         else:
-            objective, tuned, history, events, steps_done, status = _optimise_gradient(
+            objective, tuned, history, events, steps_done, status, kept = _optimise_gradient(
                 robot, smooth, base, config, before, out, resume, progress, stop
             )
     print(file=progress)
@@ -535,6 +544,8 @@ def tune(
         "tuned_gains": _comparison(after),
         "rejected_steps": events,
         "objective": dataclasses.asdict(objective),
+        "kept": kept,
+        "gains_file": "tuned",
     }
     start_key = next(key for key in summary if key in ("paper_gains", "starting_gains"))
     summary["largest_peak_torque_change"] = (
@@ -582,5 +593,35 @@ def tune(
         samples = {f"start_{name}": value for name, value in before_parts.items()}
         samples.update({f"tuned_{name}": value for name, value in after_parts.items()})
         runfiles.write_arrays(out / "holdout.npz", samples)
+        summary["gains_file"] = _keep_the_better(out, summary["holdout"], base, tuned, config.controller, progress)
     runfiles.write_json(out / "summary.json", summary)
     return TuneResult(status, history, before.log, after.log)
+
+
+#: Beside ``gains.json``, the gain set of the two it does not hold.
+OTHER_GAINS_FILES = {"tuned": "gains_start.json", "start": "gains_tuned.json"}
+
+
+def _keep_the_better(out: Path, holdout: dict, start, tuned, controller: str, progress) -> str:
+    """``gains.json``: the tuned gains where their held-out objective is below the starting
+    gains', else the starting gains with one line that says so; the other set beside it
+    (``OTHER_GAINS_FILES``). Returns which set ``gains.json`` holds, ``"tuned"`` or ``"start"``."""
+    better = holdout["mean_objective_tuned"] < holdout["mean_objective_start"]
+    chosen = "tuned" if better else "start"
+    gains, other = (tuned, start) if better else (start, tuned)
+    runfiles.write_json(out / "gains.json", gains.to_dict(controller))
+    runfiles.write_json(out / OTHER_GAINS_FILES[chosen], other.to_dict(controller))
+    if not better:
+        rates = ""
+        if "success_start" in holdout:
+            tuned_rate, start_rate = holdout["success_tuned"]["rate"], holdout["success_start"]["rate"]
+            rates = f", captures {100 * tuned_rate:.1f}% against {100 * start_rate:.1f}%"
+        print(
+            f"spacegrasp: the tuned gains are not better than the starting gains on the {holdout['scenarios']} "
+            f"held-out captures (objective {holdout['mean_objective_tuned']:.4g} against "
+            f"{holdout['mean_objective_start']:.4g}{rates}): gains.json holds the starting gains, the tuned ones "
+            f"are in {OTHER_GAINS_FILES[chosen]}",
+            file=progress,
+            flush=True,
+        )
+    return chosen

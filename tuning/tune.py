@@ -122,6 +122,13 @@ class TuneConfig:
             and the held-out evaluation as without): stochastic gradient descent on the
             envelope rather than on one batch of it. Each step's loss is then on its own
             batch.
+        keep: which gains the run hands back: ``"best"``, those with the least training
+            objective it evaluated (CMA-ES: the best candidate ever told, or the final mean
+            where no worse; gradient descent: its best step, the start included; with fresh
+            batches each step's objective is on its own batch), or ``"last"`` (the final
+            mean, the final step). Either way the held-out evaluation then compares them
+            with the starting gains, and ``gains.json`` holds the better
+            ([`tune()`][tuning.run.tune]).
     """
 
     controller: str = "admittance"
@@ -148,6 +155,7 @@ class TuneConfig:
     torque_fraction: float = 1.0
     torque_cap_Nm: float | None = None
     fresh_batches: bool = False
+    keep: str = "best"
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
@@ -222,6 +230,8 @@ class TuneConfig:
                 f"aggregate: {self.aggregate} combines the samples' separate gradients of a run under a realism; "
                 "the ideal loop's batch has one gradient of the mean (choose --realism, or mean)"
             )
+        if self.keep not in KEEPS:
+            raise ValueError(f"keep: expected one of {', '.join(KEEPS)}, got {self.keep!r}")
         if self.fresh_batches and self.realism is None:
             raise ValueError(
                 "fresh_batches: draws each step's samples of a gradient run under a realism (choose --realism)"
@@ -246,6 +256,9 @@ class TuneConfig:
         document["frozen"] = tuple(document["frozen"])
         return cls(**document)
 
+
+#: The gains a tuning run can hand back (``TuneConfig.keep``).
+KEEPS = ("best", "last")
 
 #: TuneConfig's fields that only the gradient method reads: under CMA-ES they must keep their defaults.
 GRADIENT_METHOD_FIELDS = (
@@ -602,6 +615,8 @@ class RunState:
     gradient: dict
     history: list
     events: list
+    best_step: int = 0  #: the accepted step with the least training objective (0: the start)
+    best_params: dict | None = None  #: its parameters (``None``: those of ``step``)
 
 
 def _is_acceptable(loss, aux, gradient, guard_Nm: float, loss_ceiling: float = math.inf) -> bool:
@@ -614,10 +629,12 @@ def save_checkpoint(path: Path, state: RunState, config: TuneConfig, write_atomi
         "params": jax.tree.leaves(state.params),
         "opt_state": jax.tree.leaves(state.opt_state),
         "gradient": jax.tree.leaves(state.gradient),
+        "best_params": jax.tree.leaves(state.params if state.best_params is None else state.best_params),
     }
     meta = {
         "config": config.to_dict(),
         "step": state.step,
+        "best_step": state.best_step,
         "scale": state.scale,
         "loss": state.loss,
         "aux": {k: float(v) for k, v in state.aux.items()},
@@ -648,6 +665,9 @@ def load_checkpoint(path: Path, params_template, opt_state_template) -> tuple[Ru
             gradient=restore("gradient", params_template),
             history=meta["history"],
             events=meta["events"],
+            # a checkpoint of an older version kept no best step: the last one stands for it
+            best_step=meta.get("best_step", meta["step"]),
+            best_params=restore("best_params", params_template) if "best_params_0" in data.files else params,
         )
     return state, TuneConfig.from_dict(meta["config"])
 
@@ -695,7 +715,7 @@ def optimise(
         (loss, aux), gradient = value_and_grad(params)
         if not _is_acceptable(loss, aux, gradient, config.torque_guard_Nm):
             raise RuntimeError(f"the initial gains already diverge or exceed the torque guard (loss {float(loss)})")
-        state = RunState(0, 1.0, params, optimizer.init(params), float(loss), aux, gradient, [], [])
+        state = RunState(0, 1.0, params, optimizer.init(params), float(loss), aux, gradient, [], [], 0, params)
         state.history.append(history_row(0, loss, aux, gradient, 0.0, 0, time.perf_counter() - start))
     else:
         state = resume_state
@@ -743,6 +763,8 @@ def optimise(
         state.history.append(
             history_row(state.step, loss, aux, gradient, step_size, rejected, time.perf_counter() - start)
         )
+        if float(loss) < state.history[state.best_step]["loss"]:
+            state = dataclasses.replace(state, best_step=state.step, best_params=candidate)
         if checkpoint_path is not None:
             save_checkpoint(checkpoint_path, state, config, write_atomically)
         if on_step is not None:

@@ -312,6 +312,7 @@ TUNE_OPTIONS = {
     "objective": "--objective",
     "weights": "--weights",
     "fresh_batches": "--fresh-batches",
+    "keep": "--keep",
 }
 
 

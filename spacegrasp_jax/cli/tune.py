@@ -52,6 +52,7 @@ from spacegrasp_jax.scenario import load_scenario, paper_scenario
 from spacegrasp_jax.tuning.estimators import AGGREGATES
 from spacegrasp_jax.tuning.objective import Weights
 from spacegrasp_jax.tuning.run import (
+    OTHER_GAINS_FILES,
     ResumeMismatchError,
     TuneSetupError,
     record_robot,
@@ -59,7 +60,7 @@ from spacegrasp_jax.tuning.run import (
     start_gains,
     tune,
 )
-from spacegrasp_jax.tuning.tune import METHODS, TUNING_RANGES, TuneConfig
+from spacegrasp_jax.tuning.tune import KEEPS, METHODS, TUNING_RANGES, TuneConfig
 
 
 def _tune(args: argparse.Namespace) -> int:
@@ -233,8 +234,13 @@ def _tune_finished(out: Path, result) -> int:
         caption=_run_caption(loop, start, record_scenario(robot, record)),
         torque_limit_Nm=np.asarray(robot.joint_torque_limit),
     )
+    holds = json.loads((out / "summary.json").read_text()).get("gains_file", "tuned")
+    other = OTHER_GAINS_FILES[holds] if (out / OTHER_GAINS_FILES[holds]).exists() else None
+    words = "starting" if holds == "start" else "tuned"
+    gains_files = f"gains.json (the {words} gains" + (f"; the other set in {other})" if other else ")")
     print(
-        f"wrote {out}/: gains.json, history.csv, summary.json, loss.png, peak_torques.png, ee_pose.png", file=sys.stderr
+        f"wrote {out}/: {gains_files}, history.csv, summary.json, loss.png, peak_torques.png, ee_pose.png",
+        file=sys.stderr,
     )
     return 0
 
@@ -268,6 +274,7 @@ def _tune_fields(args: argparse.Namespace) -> dict:
         torque_fraction=args.torque_fraction,
         torque_cap_Nm=args.torque_cap,
         fresh_batches=args.fresh_batches,
+        keep=args.keep,
     )
 
 
@@ -347,6 +354,14 @@ def add_parsers(commands) -> None:
         "--fresh-batches",
         action="store_true",
         help="the gradient method under --realism: a new batch of the envelope for every step (default: one batch)",
+    )
+    tune.add_argument(
+        "--keep",
+        choices=KEEPS,
+        default=TuneConfig.keep,
+        help="the gains the run hands back: best, the least training objective it evaluated (CMA-ES's best "
+        "candidate ever, the gradient method's best step), or last; either way gains.json holds the better of "
+        "them and the starting gains on the held-out captures (default best)",
     )
     _add_compile_cache_option(tune)
     tune.set_defaults(run=_tune)
