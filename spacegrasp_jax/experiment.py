@@ -15,7 +15,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from spacegrasp_jax import anatomy, compilation, metrics, paper, runfiles
+from spacegrasp_jax import anatomy, compilation, joint_limits, metrics, paper, runfiles
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, ideal
@@ -128,6 +128,7 @@ def run(spec: RunSpec, gains: Gains, *, key=None, check: bool = True) -> RunResu
     summary = divergence_summary(log, bad_step, robot, free_target=scenario.free_target) | dict(
         compile_time_s=compile_time, run_time_s=run_time
     )
+    summary["joint_limits"] = joint_limits.first_crossings(log.t[:bad_step], log.q[:bad_step], log.qd[:bad_step], robot)
     if check:
         kept = jax.tree.map(lambda series: series[: bad_step + 1], log)
         raise SimulationDiverged(
@@ -187,11 +188,13 @@ _error_parts = jax.jit(anatomy.error_parts, compiler_options={"xla_backend_optim
 
 def run_summary(log: Log, robot: Robot, scenario: Scenario, realism: Realism | None = None) -> dict:
     """The metrics of a whole log ([`spacegrasp_jax.metrics.summary()`][spacegrasp_jax.metrics.summary], runaways by
-    ``robot``'s limits) and the parts of its final error ([`spacegrasp_jax.anatomy.error_parts()`][spacegrasp_jax.anatomy.error_parts]),
-    as plain floats and lists."""
+    ``robot``'s limits), the parts of its final error ([`spacegrasp_jax.anatomy.error_parts()`][spacegrasp_jax.anatomy.error_parts]),
+    as plain floats and lists, and when it first crossed ``robot``'s joint ranges and rate limits
+    (``joint_limits``, [`first_crossings()`][spacegrasp_jax.joint_limits.first_crossings])."""
     summary = metrics.summary(log, robot, free_target=scenario.free_target)
     parts = _error_parts({"final_contact_force_N": np.asarray(summary["final_contact_force_N"])}, scenario, realism)
-    return summary | {name: np.asarray(value).tolist() for name, value in parts.items()}
+    crossings = joint_limits.first_crossings(log.t, log.q, log.qd, robot)
+    return summary | {name: np.asarray(value).tolist() for name, value in parts.items()} | {"joint_limits": crossings}
 
 
 def divergence_summary(log: Log, step: int, robot: Robot | None = None, *, free_target: bool) -> dict:

@@ -79,7 +79,8 @@ class Robot:
         ee_inertia: (3, 3) kg m^2 about the EE body CoM, frame N axes.
         joint_position_limit: (N, 2) rad, the lowest and highest angle of each joint
             (``-inf, inf`` by default: the paper gives none). Not a constraint of the
-            dynamics, and not yet checked by a run: ``info`` prints it, URDF carries it.
+            dynamics: a capture that starts outside it is refused, and a run says when it
+            first left it ([`spacegrasp_jax.joint_limits`][spacegrasp_jax.joint_limits]).
         joint_rate_limit: (N,) rad/s, the fastest each joint can turn (the paper gives none:
             ``PAPER_JOINT_RATE_LIMIT`` by default). Not a constraint of the dynamics: a
             run whose rates go far beyond it is a runaway ([`spacegrasp_jax.anatomy`][spacegrasp_jax.anatomy]).
@@ -418,7 +419,7 @@ def load_robot(
       takes the URDF as the whole servicer, its base link the satellite body (the URDF that
       [`robot_to_urdf()`][spacegrasp_jax.urdf.robot_to_urdf] writes); a mounting file (a TOML
       with ``[satellite]`` and optional ``[limits]``, as a mounting TOML's) gives the satellite
-      ([`spacegrasp_jax.urdf.load_urdf_arm()`][spacegrasp_jax.urdf.load_urdf_arm]).
+      ([`spacegrasp_jax.urdf.urdf_arm()`][spacegrasp_jax.urdf.urdf_arm]).
 
     Raises:
         RobotConfigError: the file is not valid TOML or URDF, or a key or element is

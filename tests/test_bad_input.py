@@ -47,6 +47,7 @@ DRIVER = textwrap.dedent(
 )
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+ARMS = Path(__file__).resolve().parent / "data" / "arms"
 #: The paper's gains as an admittance law's file holds them (Section 4 and Table 4).
 PAPER_ADMITTANCE = {"Md": 800.0, "Bd": 500.0, "Kd": 600.0, "kp": [140, 210, 140, 105, 105, 21, 21]} | {
     "ki": [10, 10, 10, 1, 1, 1, 1],
@@ -218,6 +219,20 @@ def cases(paths, out):
             + ["--gains", "flight", "--out", out],
             "--gains flight: the shipped tuned sets are for the paper's 7-joint arm, not this 6-joint one",
         ),
+        # a stock URDF arm: a chain with several leaves, a start outside its ranges
+        "urdf with several leaves": (
+            ["info", "--robot", str(CONFIGS / "arms" / "panda.urdf")],
+            "name the tip link (--tip-link on the command line, tip_link in a mounting TOML)",
+        ),
+        "q_init outside the joint ranges": (
+            [*SIMULATE, "--robot", str(ARMS / "xarm7.urdf"), "--tip-link", "link7", "--mount", "paper", "--out", out],
+            "q_init: the scenario's initial joint angles lie outside the robot's joint ranges: joint 2 at -2.386",
+        ),
+        "tune q_init outside the joint ranges": (
+            [*TUNE, "--robot", str(ARMS / "xarm7.urdf"), "--tip-link", "link7", "--mount", "paper", "--out", out],
+            "(choose angles inside them, or pass --allow-outside-limits)",
+        ),
+        "mount without a urdf": ([*SIMULATE, "--mount", "urdf", "--out", out], "--mount: for a URDF arm given"),
         # a cache is code: a folder others can write is not loaded from
         "compile cache writable by others": (
             [*SIMULATE, "--compile-cache", p["shared_cache"], "--out", out],

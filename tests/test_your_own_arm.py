@@ -5,12 +5,14 @@ otherwise, and run folders that keep their robot, so they work from anywhere onc
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
 import warnings
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -18,6 +20,7 @@ import spacegrasp_jax as sg
 from spacegrasp_jax import cli
 from spacegrasp_jax.control import load_gains, paper_gains
 from spacegrasp_jax.control.gains import effective_joint_inertia, starting_gains
+from spacegrasp_jax.joint_limits import first_crossings, outside_ranges
 from spacegrasp_jax.model import load_robot, n_joints, robot_from_toml, robot_to_toml
 from spacegrasp_jax.scenario import load_scenario
 from spacegrasp_jax.urdf import URDFError
@@ -175,3 +178,70 @@ def test_gains_start_writes_a_whole_gains_file_for_any_arm(tmp_path, capsys):
     out = tmp_path / "admittance.json"
     assert cli.main([*base, "--scenario", str(CONFIGS / "ur5_scenario.toml"), "--out", str(out)]) == 2
     assert "exists; pass --overwrite" in capsys.readouterr().err
+
+
+def test_first_crossings_finds_when_and_where_each_limit_was_first_crossed():
+    """A made-up 4-step log of a 7-joint arm with joint 3 given the range [-1, 1] rad: joint 3
+    leaves it at step 2 (t = 0.2 s, 1.2 rad), joint 5 exceeds the paper's 1 rad/s at step 1
+    and joint 1 at step 3; non-finite steps do not count."""
+    robot = sg.paper_robot()
+    limits = np.tile([-np.inf, np.inf], (7, 1))
+    limits[2] = [-1.0, 1.0]
+    robot = dataclasses.replace(robot, joint_position_limit=jnp.asarray(limits))
+    t = np.array([0.0, 0.1, 0.2, 0.3])
+    q = np.zeros((4, 7))
+    q[2:, 2] = [1.2, 0.5]
+    qd = np.zeros((4, 7))
+    qd[1:, 4] = [-1.5, 0.0, 0.0]
+    qd[3, 0] = 3.0
+    qd[3, 6] = np.nan
+    crossings = first_crossings(t, q, qd, robot)
+    assert crossings["position"] == {
+        "t_s": 0.2,
+        "joint": 3,
+        "value": 1.2,
+        "limit": [-1.0, 1.0],
+        "joints": [3],
+        "worst": pytest.approx(0.2),
+    }
+    assert crossings["rate"] == {"t_s": 0.1, "joint": 5, "value": -1.5, "limit": 1.0, "joints": [1, 5], "worst": 2.0}
+    assert first_crossings(t, np.zeros((4, 7)), np.zeros((4, 7)), robot) == {"position": None, "rate": None}
+    assert outside_ranges(robot, q[2]) == [{"joint": 3, "angle_rad": 1.2, "range_rad": [-1.0, 1.0]}]
+    assert outside_ranges(sg.paper_robot(), sg.PAPER_Q_INIT) == []  # the paper's arm has no ranges
+
+
+def test_initial_angles_outside_the_joint_ranges_are_refused_unless_allowed(capsys):
+    """The xArm7 with the paper's q_init: joint 2 at -2.386 rad, its range [-2.059, 2.094]."""
+    args = ["export", "--format", "json", "--robot", str(ARMS / "xarm7.urdf"), "--tip-link", "link7"]
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err
+    assert (
+        "q_init: the scenario's initial joint angles lie outside the robot's joint ranges: joint 2 at -2.386 rad, "
+        in err
+    )
+    assert "its range [-2.059, 2.094] (choose angles inside them, or pass --allow-outside-limits)" in err
+    assert cli.main([*args, "--allow-outside-limits"]) == 0
+    assert "spacegrasp: warning: q_init: the scenario's initial joint angles lie outside" in capsys.readouterr().err
+    assert cli.main(["info", "--robot", str(ARMS / "xarm7.urdf"), "--tip-link", "link7"]) == 0  # info shows it
+    assert "the paper's q_init: joint 2 at -2.386 rad is outside its range [-2.059, 2.094]" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_kinova_capture_that_runs_away_reports_its_joint_limit_crossing_first(tmp_path, capsys):
+    """The Kinova Jaco (6 joints, rate limits 0.63-0.84 rad/s) from its stock URDF with the
+    starting gains: the capture runs away; the first joint-limit crossing is reported, in the
+    summary and on the line before the verdict, and came before the runaway."""
+    scenario = tmp_path / "jaco.toml"
+    scenario.write_text("q_init = [4.71, 2.62, 1.57, 4.71, 1.57, 0.0]\nduration = 3.0\n[trajectory]\nduration = 3.0\n")
+    arm = ["--robot", str(ARMS / "kinova.urdf"), "--tip-link", "j2s6s200_end_effector", "--scenario", str(scenario)]
+    assert cli.main(["gains", "--start", *arm, "--out", str(tmp_path / "start.json")]) == 0
+    args = ["simulate", "--compile-cache", "none", "--controller", "admittance", *arm]
+    assert cli.main([*args, "--gains", str(tmp_path / "start.json"), "--out", str(tmp_path / "run")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    verdict = next(i for i, line in enumerate(lines) if "capture failed (runaway)" in line)
+    assert "joint limits: joint " in lines[verdict - 1] and "exceeded its rate limit" in lines[verdict - 1]
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())["admittance"]
+    rate = summary["joint_limits"]["rate"]
+    limits = np.asarray(load_robot(ARMS / "kinova.urdf", tip_link="j2s6s200_end_effector").joint_rate_limit)
+    assert rate["limit"] == limits[rate["joint"] - 1] and abs(rate["value"]) > rate["limit"]
+    assert rate["t_s"] < summary["first_runaway_s"]

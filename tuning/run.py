@@ -445,7 +445,7 @@ def tune(
     fill_from: str | None = None,
     robot_links: dict | None = None,
     resume: bool = False,
-    progress=sys.stderr,
+    progress=None,
     stop: runfiles.StopRequest | None = None,
 ) -> TuneResult:
     """Run the job (or, with ``resume``, continue it) and write its files in ``out``.
@@ -458,9 +458,11 @@ def tune(
     ([`resume_differences()`][tuning.run.resume_differences], else [`ResumeMismatchError`][tuning.run.ResumeMismatchError]); what may change is
     ``holdout`` and, for CMA-ES, more ``config.steps``: the run then continues.
 
+    ``progress``: where progress lines go (default: ``sys.stderr`` at the call).
     ``stop``: the signal guard of the caller (the command line's); by default the job
     installs its own for the optimisation (SIGINT/SIGTERM stop it after the current step)."""
     out = Path(out)
+    progress = sys.stderr if progress is None else progress  # the stream of the moment, not of the import
     record_path = out / "run.json"
     if resume:
         if not record_path.exists():

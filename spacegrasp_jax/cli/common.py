@@ -18,6 +18,7 @@ from spacegrasp_jax import (
     anatomy,
     animation,
     campaign,
+    joint_limits,
     paper,
     runfiles,
     worstcase,
@@ -69,10 +70,29 @@ def _load_robot(args):
     return robot
 
 
+def _check_joint_ranges(args, robot, scenario) -> None:
+    """Refuse a scenario whose initial joint angles lie outside ``robot``'s joint ranges, one
+    line naming each such joint, unless ``--allow-outside-limits`` (then a warning says it)."""
+    outside = joint_limits.outside_ranges(robot, scenario.initial.q)
+    if not outside:
+        return
+    where = "the scenario's" if getattr(args, "scenario", None) is None else f"{args.scenario}'s"
+    joints = "; ".join(
+        f"joint {item['joint']} at {item['angle_rad']:.4g} rad, its range [{item['range_rad'][0]:.4g}, "
+        f"{item['range_rad'][1]:.4g}]"
+        for item in outside
+    )
+    message = f"q_init: {where} initial joint angles lie outside the robot's joint ranges: {joints}"
+    if not getattr(args, "allow_outside_limits", False):
+        raise UsageError(f"{message} (choose angles inside them, or pass --allow-outside-limits)")
+    _warn([f"{message} (--allow-outside-limits)"])
+
+
 def _load_inputs(args):
     """Robot, scenario and gains from the command line, validated before any compile."""
     robot = _load_robot(args)
     scenario = load_scenario(robot, args.scenario) if getattr(args, "scenario", None) else paper_scenario(robot)
+    _check_joint_ranges(args, robot, scenario)
     controller = getattr(args, "controller", None)
     return robot, scenario, _gains_option(getattr(args, "gains", None), args, robot, controller)
 
@@ -238,6 +258,10 @@ def _print_capture_verdicts(results: dict, criteria: campaign.CampaignConfig | N
     failed = []
     for controller, result in results.items():
         summary = result.summary
+        for words in joint_limits.crossing_words(
+            summary.get("joint_limits") or {}
+        ):  # before the verdict: it came first
+            print(f"{controller:>10}: joint limits: {words}")
         if summary.get("diverged"):
             continue
         line = anatomy.verdict_line(summary, campaign.run_failure_classes(summary, criteria), tolerances)

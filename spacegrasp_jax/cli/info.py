@@ -11,10 +11,11 @@ import numpy as np
 
 import spacegrasp_jax as sg
 from spacegrasp_jax import (
+    joint_limits,
     spatial,
     urdf,
 )
-from spacegrasp_jax.cli.common import _load_robot
+from spacegrasp_jax.cli.common import _load_robot, _warn
 from spacegrasp_jax.cli.options import UsageError, _add_command, add_robot_arguments
 from spacegrasp_jax.model import body_inertials, n_joints
 from spacegrasp_jax.scenario import load_scenario
@@ -37,6 +38,13 @@ def _info(args: argparse.Namespace) -> int:
     else:
         q_init, where = np.zeros(n), "q = 0 (give --scenario for its q_init)"
     q = jnp.asarray(q_init, dtype=jnp.float64)
+    for item in joint_limits.outside_ranges(robot, q):  # info shows the robot: a warning, not a refusal
+        low, high = item["range_rad"]
+        _warn(
+            [
+                f"{where}: joint {item['joint']} at {item['angle_rad']:.4g} rad is outside its range [{low:.4g}, {high:.4g}]"
+            ]
+        )
     p_base, R_base = jnp.zeros(3), jnp.eye(3)
     total_mass = float(robot.satellite_mass + jnp.sum(robot.link_mass) + robot.ee_mass)
     com = np.asarray(jax.jit(sg.system_com)(robot, p_base, R_base, q))

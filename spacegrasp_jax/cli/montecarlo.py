@@ -19,6 +19,7 @@ from spacegrasp_jax import (
 )
 from spacegrasp_jax.cli.common import (
     _check_envelope,
+    _check_joint_ranges,
     _claim,
     _criteria,
     _gains_option,
@@ -103,6 +104,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     except (PerturbationError, campaign.CampaignError) as error:
         raise UsageError(str(error)) from None
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
+    _check_joint_ranges(args, robot, scenario)
     _realism(args, scenario)  # the control period against the scenario, before compiling
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)

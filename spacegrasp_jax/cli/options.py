@@ -111,6 +111,12 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
         "--base-link", metavar="LINK", help="a URDF arm's link bolted to the satellite (default: its one root link)"
     )
     parser.add_argument(
+        "--allow-outside-limits",
+        action="store_true",
+        help="run a capture whose initial joint angles lie outside the robot's joint ranges, with a warning "
+        "(default: refused)",
+    )
+    parser.add_argument(
         "--tip-link",
         metavar="LINK",
         help="a URDF arm's link whose frame is the end-effector's (default: its one leaf link; name it when the "

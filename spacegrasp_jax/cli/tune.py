@@ -18,6 +18,7 @@ from spacegrasp_jax import (
 )
 from spacegrasp_jax.cli.common import (
     _check_envelope,
+    _check_joint_ranges,
     _claim,
     _load_robot,
     _paper_gains_for,
@@ -80,6 +81,7 @@ def _tune(args: argparse.Namespace) -> int:
     # Every file read and checked now: tune() reads them again after writing run.json.
     robot = _load_robot(args)
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
+    _check_joint_ranges(args, robot, scenario)
     try:
         config.weights.check_target(scenario.free_target)
     except ValueError as error:
