@@ -27,7 +27,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from spacegrasp_jax import compilation
-from spacegrasp_jax.runfiles import progress_bar
+from spacegrasp_jax.runfiles import end_progress, progress_bar, show_progress
 
 
 class BatchingError(ValueError):
@@ -208,13 +208,12 @@ def map_in_chunks(
         pieces.append(jax.tree.map(lambda x: x[: min(chunk, n - first)], outputs))
         if progress is not None:
             done = min(first + chunk, n)
-            end = "\n" if done == n else ""
-            print(
+            show_progress(
+                progress,
                 progress_bar(done, n, f"{label} {done}/{n} ({time.perf_counter() - start:.1f} s for the last chunk)"),
-                end=end,
-                file=progress,
-                flush=True,
             )
+            if done == n:
+                end_progress(progress)
     return jax.tree.map(lambda *parts: np.concatenate(parts), *pieces)
 
 

@@ -552,7 +552,8 @@ def run_campaign(
                 on_chunk(variant, first)
             if progress is not None:
                 rate = computed_samples / run_s if run_s > 0 else None
-                print(
+                runfiles.show_progress(
+                    progress,
                     _progress_line(
                         done_chunks,
                         total_chunks,
@@ -562,9 +563,6 @@ def run_campaign(
                         rate,
                         diverged,
                     ),
-                    end="",
-                    file=progress,
-                    flush=True,
                 )
             if _stop_everywhere(stop):
                 status = "interrupted"
@@ -572,7 +570,7 @@ def run_campaign(
         if status == "interrupted":
             break
     if progress is not None:
-        print(file=progress, flush=True)
+        runfiles.end_progress(progress)
 
     throughput = {
         "devices": devices,

@@ -379,6 +379,33 @@ def progress_bar(done: int, total: int, text: str, width: int = 24) -> str:
     return f"\r[{'#' * filled}{'.' * (width - filled)}] {text}"
 
 
+def _on_terminal(stream) -> bool:
+    isatty = getattr(stream, "isatty", None)
+    try:
+        return bool(isatty and isatty())
+    except (OSError, ValueError):  # a closed or detached stream
+        return False
+
+
+def show_progress(stream, line: str) -> None:
+    """Show one progress ``line`` (a [`progress_bar()`][spacegrasp_jax.runfiles.progress_bar])
+    on ``stream``: on a terminal it rewrites the line before it; into a pipe or a log file,
+    where a carriage return would run the lines together, it is a line of its own."""
+    text = line.lstrip("\r")
+    if _on_terminal(stream):
+        stream.write("\r" + text)
+    else:
+        stream.write(text + "\n")
+    stream.flush()
+
+
+def end_progress(stream) -> None:
+    """End a rewritten progress line on a terminal (a pipe's lines are ended already)."""
+    if _on_terminal(stream):
+        stream.write("\n")
+        stream.flush()
+
+
 __all__ = [
     "OutputFolderError",
     "RUN_MARKER",
@@ -390,6 +417,8 @@ __all__ = [
     "plain",
     "progress_bar",
     "provenance",
+    "show_progress",
+    "end_progress",
     "read_run_marker",
     "write_arrays",
     "write_atomically",

@@ -4,6 +4,7 @@ run's files and nothing else; ``--resume`` continues a run of the same command."
 
 from __future__ import annotations
 
+import io
 import json
 
 import pytest
@@ -123,3 +124,27 @@ def test_a_run_folders_robot_and_scenario_are_read_back_or_the_cause_is_named(tm
     replay = config | {"campaign_record": "campaign.json", "campaign": str(tmp_path / "nowhere"), "sample": 3}
     with pytest.raises(RunFolderError, match=rf"{tmp_path}: a replay of {tmp_path}/nowhere, which cannot be read"):
         robot_and_scenario_of_run(tmp_path, replay)
+
+
+class _Stream(io.StringIO):
+    def __init__(self, terminal: bool):
+        super().__init__()
+        self.terminal = terminal
+
+    def isatty(self) -> bool:
+        return self.terminal
+
+
+def test_progress_rewrites_its_line_on_a_terminal_and_writes_whole_lines_into_a_pipe():
+    """On a terminal each update rewrites the line (a carriage return before it, one newline at
+    the end); into a pipe or a log file, where carriage returns run the updates together,
+    each is a line of its own."""
+    updates = [runfiles.progress_bar(done, 3, f"step {done}/3") for done in (1, 2, 3)]
+    terminal, pipe = _Stream(True), _Stream(False)
+    for stream in (terminal, pipe):
+        for line in updates:
+            runfiles.show_progress(stream, line)
+        runfiles.end_progress(stream)
+    assert terminal.getvalue() == "".join(updates) + "\n" and terminal.getvalue().count("\n") == 1
+    assert pipe.getvalue().splitlines() == [line.lstrip("\r") for line in updates] and "\r" not in pipe.getvalue()
+    assert pipe.getvalue().splitlines()[0] == "[########................] step 1/3"

@@ -339,7 +339,7 @@ def _optimise_gradient(robot, smooth, base, config, before, out, resume, progres
         print(f"resuming after step {resume_state.step}/{config.steps}", file=progress, flush=True)
 
     def on_step(state):
-        print(progress_line(state, config.steps), end="", file=progress, flush=True)
+        runfiles.show_progress(progress, progress_line(state, config.steps))
         _write_history(out / "history.csv", state.history)
 
     print(
@@ -389,7 +389,8 @@ def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, 
 
     def on_generation(state):
         row = state.history[-1]
-        print(
+        runfiles.show_progress(
+            progress,
             runfiles.progress_bar(
                 state.generation,
                 config.steps,
@@ -397,9 +398,6 @@ def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, 
                 f"the mean before it {row['loss']:.4f}, final pos {1e3 * row['final_position_m']:.3f} mm | "
                 f"step size {state.strategy.sigma:.3f}",
             ),
-            end="",
-            file=progress,
-            flush=True,
         )
         _write_history(out / "history.csv", state.history)
 
@@ -522,7 +520,7 @@ def tune(
             objective, tuned, history, events, steps_done, status, kept = _optimise_gradient(
                 robot, smooth, base, config, before, out, resume, progress, stop
             )
-    print(file=progress)
+    runfiles.end_progress(progress)
     _write_history(out / "history.csv", history)
     runfiles.write_json(out / "gains.json", tuned.to_dict(config.controller))
     if status == "interrupted":
