@@ -326,16 +326,28 @@ class CompileAnnouncer:
     program and, when the same program was compiled before on this machine, how long that
     took (XLA's own slow-compile banner says nothing of what is compiling).
 
+    The estimate follows the machine as it is now: each program keeps its last
+    ``HISTORY_LENGTH`` compile times, and once a compile of this process has taken longer or
+    shorter than its history said (a loaded machine, another one), the next estimates are
+    scaled by how far this process's compiles are from their histories (the median ratio).
+
     Args:
         stream: where the lines go (the command line: stderr).
-        history: a JSON file of each program's last compile time (s), read and updated
+        history: a JSON file of each program's recent compile times (s), read and updated
             (the command line keeps it beside the compile cache); ``None``: no history.
     """
+
+    #: How many compile times a program's history keeps.
+    HISTORY_LENGTH = 5
+    #: How far this process's pace must be from 1 before an estimate is scaled by it.
+    PACE_TOLERANCE = 0.25
 
     def __init__(self, stream, history: Path | None = None):
         self.stream = stream
         self.history_path = None if history is None else Path(history)
         self.history = {}
+        self.ratios: list[float] = []  # this process's compile times over their histories'
+        self._expected: dict[str, float] = {}
         if self.history_path is not None:
             try:
                 self.history = dict(json.loads(self.history_path.read_text()))
@@ -357,20 +369,48 @@ class CompileAnnouncer:
         parts = key if isinstance(key, tuple) else (key,)
         return f"program:{parts[1] if parts[0] == 'batch' and len(parts) > 1 else parts[0]}"
 
+    def times(self, name: str) -> list[float]:
+        """The recorded compile times (s) of ``name`` (a digest or a program), oldest first (a
+        history of an older version holds one number)."""
+        value = self.history.get(name)
+        values = value if isinstance(value, list) else [value]
+        return [float(item) for item in values if isinstance(item, (int, float)) and not isinstance(item, bool)]
+
+    def pace(self) -> float | None:
+        """How long this process's compiles take against their histories (the median ratio),
+        or ``None`` before any compile with a history."""
+        return float(np.median(self.ratios)) if self.ratios else None
+
     def before(self, label: str, key) -> None:
-        last = self.history.get(self.digest(key))
-        similar = self.history.get(self.program(key))
-        if isinstance(last, (int, float)):
-            expected = f" (last time {last:.1f} s on this machine)"
-        elif isinstance(similar, (int, float)):
-            expected = f" (first time for these settings, about {similar:.0f} s)"
+        times, similar = self.times(self.digest(key)), self.times(self.program(key))
+        pace = self.pace()
+        scaled = pace is not None and abs(pace - 1.0) > self.PACE_TOLERANCE
+        if times:
+            typical = float(np.median(times))
+            self._expected[self.digest(key)] = typical
+            if scaled:
+                expected = (
+                    f" (about {typical * pace:.1f} s: {typical:.1f} s before on this machine, and this run's "
+                    f"compiles take {pace:.1f}x their usual time)"
+                )
+            elif len(times) > 1 and max(times) > (1.0 + self.PACE_TOLERANCE) * min(times):
+                expected = f" ({min(times):.1f} to {max(times):.1f} s the last {len(times)} times on this machine)"
+            else:
+                expected = f" (last time {times[-1]:.1f} s on this machine)"
+        elif similar:
+            typical = float(np.median(similar)) * (pace if scaled else 1.0)
+            expected = f" (first time for these settings, about {typical:.0f} s)"
         else:
             expected = " (first time on this machine)" if self.history_path is not None else ""
         print(f"compiling {label}{expected}...", file=self.stream, flush=True)
 
     def after(self, label: str, key, seconds: float) -> None:
-        self.history[self.digest(key)] = round(seconds, 2)
-        self.history[self.program(key)] = round(seconds, 2)
+        digest = self.digest(key)
+        typical = self._expected.pop(digest, None)
+        if typical:
+            self.ratios.append(seconds / typical)
+        for name in (digest, self.program(key)):
+            self.history[name] = [*self.times(name), round(seconds, 2)][-self.HISTORY_LENGTH :]
         if self.history_path is None:
             return
         try:

@@ -383,3 +383,32 @@ def test_the_suites_compiler_level_gives_the_users_results(tmp_path):
         np.testing.assert_allclose(ours, users[name], rtol=0, atol=1e-9 * scale, err_msg=name)
     differing = [name for name in suite if not np.array_equal(suite[name], users[name])]
     assert differing, "the two levels gave identical bits: is the suite's flag still in effect?"
+
+
+def test_compile_estimates_follow_the_machines_pace(tmp_path):
+    """Each program keeps its last compile times; once a compile of this process has taken 4x
+    its history (a loaded machine), the next estimate is scaled by that pace; a spread of
+    times is given as a range. A history of one number, as older versions wrote, still reads."""
+    history = tmp_path / "times.json"
+    square, cube = ("test.square", 3), ("test.cube", 3)
+    old = {compilation.CompileAnnouncer.digest(square): 3.0}  # an older version's single number
+    old[compilation.CompileAnnouncer.digest(cube)] = [2.0, 2.0]
+    history.write_text(json.dumps(old))
+    stream = io.StringIO()
+    announcer = compilation.CompileAnnouncer(stream, history)
+    announcer.before("the square", square)
+    announcer.after("the square", square, 12.0)  # 4x its history
+    announcer.before("the cube", cube)
+    lines = stream.getvalue().splitlines()
+    assert lines[0] == "compiling the square (last time 3.0 s on this machine)..."
+    assert lines[1] == (
+        "compiling the cube (about 8.0 s: 2.0 s before on this machine, and this run's compiles take 4.0x their "
+        "usual time)..."
+    )
+    assert json.loads(history.read_text())[compilation.CompileAnnouncer.digest(square)] == [3.0, 12.0]
+    later = io.StringIO()  # a later process, no pace yet: the range of the square's times
+    compilation.CompileAnnouncer(later, history).before("the square", square)
+    assert later.getvalue() == "compiling the square (3.0 to 12.0 s the last 2 times on this machine)...\n"
+    for seconds in range(10):  # the history keeps the last five
+        announcer.after("the cube", cube, float(seconds))
+    assert json.loads(history.read_text())[compilation.CompileAnnouncer.digest(cube)] == [5.0, 6.0, 7.0, 8.0, 9.0]
