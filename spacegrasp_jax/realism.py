@@ -155,13 +155,14 @@ class Realism:
 
     def check_joints(self, n_joints: int) -> None:
         """Raise ``RealismError`` if the actuators saturate and ``torque_limit_Nm`` has not one
-        limit a joint of an arm of ``n_joints`` joints (the ``flight`` preset's are the paper's
+        limit a joint of an arm of ``n_joints`` joints (``flight()`` without a robot: the paper's
         arm's seven motors)."""
         limits = np.shape(self.torque_limit_Nm)[-1]
         if Stage.ACTUATORS in self.stages and limits != n_joints:
             raise RealismError(
                 f"actuators.torque_limit_Nm: {limits} limits for an arm of {n_joints} joints; write a "
-                "realism file with one limit a joint (the flight preset's are the paper's arm's motors)"
+                "realism file with one limit a joint (flight() without a robot has the paper's arm's motors; "
+                "flight(robot), the robot's)"
             )
 
     def is_ideal(self, dt: float) -> bool:
@@ -442,18 +443,28 @@ FLIGHT = {
 }
 
 
-def flight() -> Realism:
-    """Typical values for a 7-joint space arm with a 6-axis F/T sensor (``FLIGHT``)."""
-    return make_realism(FLIGHT, source="flight")
+def flight(robot=None) -> Realism:
+    """Typical values for a 7-joint space arm with a 6-axis F/T sensor (``FLIGHT``); with a
+    ``robot``, its actuators saturate at the robot's own motor limits
+    (``Robot.joint_torque_limit``, one a joint: the preset for an arm of any number of
+    joints). The paper's arm's limits are the preset's own."""
+    if robot is None:
+        return make_realism(FLIGHT, source="flight")
+    limits = np.asarray(robot.joint_torque_limit, dtype=np.float64).tolist()
+    actuators = FLIGHT["actuators"] | {"torque_limit_Nm": limits}
+    return make_realism(FLIGHT | {"actuators": actuators}, source="flight")
 
 
 PRESETS = {"ideal": ideal, "flight": flight}
 
 
-def load_realism(name_or_path: str | Path) -> Realism:
-    """A preset (``"ideal"``, ``"flight"``) or a TOML file of the module docstring's tables.
+def load_realism(name_or_path: str | Path, robot=None) -> Realism:
+    """A preset (``"ideal"``, ``"flight"``: with a ``robot``, [`flight(robot)`][spacegrasp_jax.realism.flight],
+    its actuators the robot's motors) or a TOML file of the module docstring's tables.
     A JSON file with the same tables is read too, and so is a ``config.json`` that holds
     them under ``"realism"`` (``null`` torque limits meaning none)."""
+    if str(name_or_path) == "flight":
+        return flight(robot)
     if str(name_or_path) in PRESETS:
         return PRESETS[str(name_or_path)]()
     if str(name_or_path) == "":

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +16,7 @@ import pytest
 from spacegrasp_jax import metrics
 from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.integrator import rk4_step
+from spacegrasp_jax.model import load_robot
 from spacegrasp_jax.realism import FLIGHT, RealismError, Stage, flight, ideal, load_realism, make_realism
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import RunSpec, loop_body, plant_derivative, rollout
@@ -309,14 +311,19 @@ def test_settings_files_are_validated_and_read_back(tmp_path):
 
 def test_torque_limits_are_one_a_joint_of_the_arm_they_run_with(robot, short_scenario):
     """A realism file's list has any length; the flight loop refuses one that is not the arm's
-    number of joints before compiling, and the flight preset's seven motors fit the paper's
-    arm only."""
+    number of joints before compiling. The flight preset without a robot has the paper's arm's
+    seven motors; with one, the robot's own, which for the paper's arm are the same."""
     two = make_realism({"actuators": {"torque_limit_Nm": [1.0, 2.0]}})
     with pytest.raises(RealismError, match=r"2 limits for an arm of 7 joints"):
         two.check_joints(7)
     with pytest.raises(RealismError, match=r"2 limits for an arm of 7 joints"):
         loop_body(RunSpec(robot, short_scenario, "admittance", realism=two), paper_gains(), jax.random.PRNGKey(0))
     flight().check_joints(7)
-    with pytest.raises(RealismError, match=r"7 limits for an arm of 6 joints.*flight preset's are the paper's arm's"):
+    with pytest.raises(RealismError, match=r"7 limits for an arm of 6 joints.*flight\(\) without a robot has"):
         flight().check_joints(6)
     ideal().check_joints(6)  # no actuator stage: its limits are not used
+    assert flight(robot).to_dict() == flight().to_dict()  # the paper's arm: the preset's own table
+    ur5 = load_robot(Path(__file__).resolve().parents[1] / "configs" / "ur5_on_satellite.toml")
+    flight(ur5).check_joints(6)
+    assert np.asarray(flight(ur5).torque_limit_Nm).tolist() == np.asarray(ur5.joint_torque_limit).tolist()
+    assert load_realism("flight", ur5).to_dict() == flight(ur5).to_dict()

@@ -121,12 +121,16 @@ def test_a_monte_carlo_chunk_of_16_equals_single_rollouts(ur5, short):
 
 
 def test_a_flight_like_run_takes_a_realism_with_one_torque_limit_a_joint(short, tmp_path, capsys):
-    """The flight preset's seven motors are refused for the UR5 before compiling; a realism
-    file with six limits runs, and its saturation holds every torque within them."""
+    """The flight preset takes the UR5's own six motors (its URDF's efforts); a realism file
+    with six limits runs too, and its saturation holds every torque within them."""
     common = ["simulate", "--controller", "admittance", "--robot", str(ROBOT), "--scenario", str(short)]
     common += ["--gains", str(GAINS)]
-    assert cli.main([*common, "--realism", "flight", "--out", str(tmp_path / "preset")]) == 2
-    assert "7 limits for an arm of 6 joints" in capsys.readouterr().err
+    assert cli.main([*common, "--realism", "flight", "--out", str(tmp_path / "preset")]) == 0
+    config = json.loads((tmp_path / "preset" / "config.json").read_text())
+    assert (
+        config["realism"]["actuators"]["torque_limit_Nm"]
+        == np.asarray(sg.load_robot(ROBOT).joint_torque_limit).tolist()
+    )
     realism = tmp_path / "ur5_flight.toml"
     realism.write_text(
         "[timing]\ncontrol_period = 0.01\nservo_period = 0.001\n"

@@ -215,7 +215,7 @@ def test_tune_draws_from_the_envelope_it_is_given(tmp_path):
     from spacegrasp_jax.tuning.tune import TUNING_RANGES
 
     def config(*options):
-        return _tune_config(build_parser().parse_args(["tune", "--out", str(tmp_path / "x"), *options]))
+        return _tune_config(build_parser().parse_args(["tune", "--out", str(tmp_path / "x"), *options]), None)
 
     assert config().ranges == TUNING_RANGES
     assert config("--ranges", "montecarlo").ranges == PerturbationRanges()  # the campaigns' defaults

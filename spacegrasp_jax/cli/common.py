@@ -153,11 +153,12 @@ def _law(controller: str, args: argparse.Namespace):
         raise UsageError(f"--pinv-damping: {error}") from None
 
 
-def _realism(args, scenario) -> Realism | None:
-    """``--realism`` (a preset or a file), checked against the scenario before compiling."""
+def _realism(args, scenario, robot=None) -> Realism | None:
+    """``--realism`` (a preset or a file; ``flight``'s actuators ``robot``'s motors), checked
+    against the scenario before compiling."""
     if getattr(args, "realism", None) is None:
         return None
-    realism = load_realism(args.realism)
+    realism = load_realism(args.realism, robot)
     try:
         realism.check_timing(scenario.dt, scenario.n_steps)
         realism.check_joints(scenario.initial.q.shape[-1])

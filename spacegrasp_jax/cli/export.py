@@ -40,7 +40,7 @@ def _export(args: argparse.Namespace) -> int:
     """``spacegrasp export``: a gain set with its units, equations and the loop's settings, as
     one file of ``--format`` (printed without ``--out``)."""
     robot, scenario, gains = _load_inputs(args)
-    realism = _realism(args, scenario)
+    realism = _realism(args, scenario, robot)
     settings = export.loop_settings(realism, scenario.dt, n_joints(robot))
     text = export.export_text(
         gains, args.controller, settings, args.format, source=_source_words(args.gains), prefix=args.prefix

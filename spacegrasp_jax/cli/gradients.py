@@ -69,7 +69,7 @@ def _gradients(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise UsageError(str(error)) from None
     law = _law(args.controller, args)
-    realism = _realism(args, scenario)
+    realism = _realism(args, scenario, robot)
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
     out = Path(args.out)

@@ -99,13 +99,13 @@ def _montecarlo(args: argparse.Namespace) -> int:
             device_batch=args.device_batch
             if args.device_batch is not None
             else (128 if jax.default_backend() == "cpu" else None),
-            realism=load_realism(args.realism) if args.realism else None,
+            realism=load_realism(args.realism, robot) if args.realism else None,
         )
     except (PerturbationError, campaign.CampaignError) as error:
         raise UsageError(str(error)) from None
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
     _check_joint_ranges(args, robot, scenario)
-    _realism(args, scenario)  # the control period against the scenario, before compiling
+    _realism(args, scenario, robot)  # the control period against the scenario, before compiling
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
     out = Path(args.out)

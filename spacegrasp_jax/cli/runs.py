@@ -60,7 +60,7 @@ from spacegrasp_jax.simulate import RunSpec
 def _run_controllers(args, controllers) -> int:
     robot, scenario, gains = _load_inputs(args)
     laws = {controller: _law(controller, args) for controller in controllers}
-    realism = _realism(args, scenario)
+    realism = _realism(args, scenario, robot)
     _warn(plausibility.input_warnings(scenario))
     key = jax.random.PRNGKey(getattr(args, "seed", 0))
     nominal = RunSpec(robot, scenario, realism=realism)

@@ -70,7 +70,8 @@ def _tune(args: argparse.Namespace) -> int:
         if args.resume:
             _claim(args, Path(args.out))
             return _tune_finished(Path(args.out), _resume_tune(args))
-        config = _tune_config(args)
+        robot = _load_robot(args)
+        config = _tune_config(args, robot)
     except ResumeMismatchError as error:
         raise UsageError(
             f"--resume: {args.out} holds another run: {error.listed(_tune_option)}. Resume with the run's options "
@@ -79,14 +80,13 @@ def _tune(args: argparse.Namespace) -> int:
     except (TuneSetupError, ValueError) as error:
         raise tune_setting_error(error) from None
     # Every file read and checked now: tune() reads them again after writing run.json.
-    robot = _load_robot(args)
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
     _check_joint_ranges(args, robot, scenario)
     try:
         config.weights.check_target(scenario.free_target)
     except ValueError as error:
         raise UsageError(str(error)) from None
-    _realism(args, scenario)
+    _realism(args, scenario, robot)
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
     try:
@@ -135,7 +135,7 @@ def _resume_tune(args: argparse.Namespace):
     if record is not None and given:
         # The options given replace the record's (checked together, as the run would be):
         # the command line's defaults of the others (CMA-ES's, say) are not the run's.
-        fresh = _tune_fields(args)
+        fresh = _tune_fields(args, record_robot(record))
         asked = {_TUNE_FIELDS.get(dest, dest) for dest in given} & set(fresh)
         config = TuneConfig.from_dict(record["config"] | {field: runfiles.plain(fresh[field]) for field in asked})
     return tune(
@@ -247,13 +247,14 @@ def _tune_finished(out: Path, result) -> int:
     return 0
 
 
-def _tune_config(args: argparse.Namespace) -> TuneConfig:
+def _tune_config(args: argparse.Namespace, robot) -> TuneConfig:
     """The tuning options of the command line (validated by TuneConfig and Weights)."""
-    return TuneConfig(**_tune_fields(args))
+    return TuneConfig(**_tune_fields(args, robot))
 
 
-def _tune_fields(args: argparse.Namespace) -> dict:
-    """TuneConfig's fields as the command line gives them, not yet checked together."""
+def _tune_fields(args: argparse.Namespace, robot) -> dict:
+    """TuneConfig's fields as the command line gives them, not yet checked together
+    (``--realism flight``'s actuators ``robot``'s motors)."""
     return dict(
         controller=args.controller,
         steps=args.steps,
@@ -266,7 +267,7 @@ def _tune_fields(args: argparse.Namespace) -> dict:
         frozen=tuple(filter(None, (args.freeze or "").split(","))),
         gradient=args.gradient,
         torque_guard_Nm=args.torque_guard,
-        realism=load_realism(args.realism).to_dict() if args.realism else None,
+        realism=load_realism(args.realism, robot).to_dict() if args.realism else None,
         aggregate=args.aggregate or ("clip" if args.realism and args.method == "gradient" else "mean"),
         ranges=_ranges(args, TUNING_RANGES),
         objective=args.objective,
