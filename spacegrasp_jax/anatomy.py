@@ -23,6 +23,8 @@ classification of failures ([`failure_classes()`][spacegrasp_jax.anatomy.failure
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -62,7 +64,8 @@ def error_parts(final_metrics: dict, scenario, realism=None) -> dict[str, jax.Ar
 # ---- on the host ------------------------------------------------------------------------
 
 #: The failure classes, in the order a failed sample is assigned to the first that applies.
-FAILURE_CLASSES = ("diverged", "runaway", "torque_limit", "position", "orientation", "target_speed")
+#: ``joint_range``: a joint left its range (a robot without ranges, the paper's, never does).
+FAILURE_CLASSES = ("diverged", "runaway", "joint_range", "torque_limit", "position", "orientation", "target_speed")
 
 
 def failure_classes(
@@ -80,7 +83,8 @@ def failure_classes(
         the margins, each a value over its tolerance (above 1: missed):
         ``position_margin``, ``orientation_margin``, ``torque_margin`` (largest peak over
         ``torque_limit_Nm``; NaN without one), ``target_speed_margin`` (NaN without a
-        free-floating target).
+        free-floating target); and ``range_excess_rad``, the furthest any joint went beyond
+        its range (rad; above 0: missed; NaN for a robot without ranges).
     """
     position = np.asarray(sample_metrics["final_position_error_m"], dtype=float)
     n = position.size
@@ -99,10 +103,15 @@ def failure_classes(
     }
     diverged = np.isfinite(np.asarray(sample_metrics["first_nonfinite_s"], dtype=float))
     runaway = np.isfinite(np.asarray(sample_metrics.get("first_runaway_s", nan), dtype=float))
+    excess = np.asarray(sample_metrics.get("max_range_excess_rad", nan), dtype=float).reshape(n, -1)
+    with warnings.catch_warnings():  # a robot without ranges: every joint's excess is NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        range_excess = np.nanmax(excess, axis=1) if excess.size else nan
     with np.errstate(invalid="ignore"):
         failed = {
             "diverged": diverged,
             "runaway": runaway & ~diverged,
+            "joint_range": range_excess > 0.0,
             "torque_limit": margins["torque_margin"] > 1.0,
             # A NaN error (diverged) is no position failure of its own.
             "position": margins["position_margin"] > 1.0,
@@ -112,6 +121,7 @@ def failure_classes(
     failure = np.full(n, "success", dtype=object)
     for name in reversed(FAILURE_CLASSES):
         failure[failed[name]] = name
+    margins["range_excess_rad"] = range_excess
     return {f"failed_{name}": failed[name] for name in FAILURE_CLASSES} | {"failure": failure.astype(str)} | margins
 
 
@@ -180,6 +190,17 @@ def verdict_line(summary: dict, classes: dict[str, np.ndarray], tolerances: dict
         numbers.append(
             f"at t = {when:.2f} s, peak joint rate {max(summary['max_joint_rate_radps']):.3g} rad/s, "
             f"peak torque {summary['largest_peak_torque_Nm']:.3g} N m"
+        )
+    if "joint_range" in missed:
+        excess = np.asarray(summary["max_range_excess_rad"], dtype=float)
+        joint = int(np.nanargmax(excess))
+        numbers.append(
+            f"joint {joint + 1} went {excess[joint]:.3g} rad beyond its range"
+            + (
+                f" (first left at t = {summary['first_range_exit_s']:.2f} s)"
+                if summary.get("first_range_exit_s")
+                else ""
+            )
         )
     if "torque_limit" in missed and "runaway" not in missed:
         numbers.append(f"peak torque {summary['largest_peak_torque_Nm']:.3g} N m > {tolerances['torque_limit_Nm']:g}")

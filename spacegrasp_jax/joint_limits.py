@@ -12,9 +12,44 @@ where it first crossed them, and a capture that started outside them is refused.
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax.model import Robot
+
+#: The scale of a joint range's margin, rad: a joint at its limit has margin 1, one this far
+#: beyond it ``e``, one this far inside ``1 / e`` (about 3 degrees).
+RANGE_MARGIN_SCALE_RAD = 0.05
+#: The largest log margin a range reports: a joint 2.5 rad beyond its range (a runaway) weighs
+#: like one 2.5 rad beyond, not like a number that overflows.
+_MAX_LOG_MARGIN = 50.0
+
+
+def finite_ranges(robot: Robot) -> tuple[tuple[int, float, float], ...]:
+    """``(joint index, low, high)`` rad of each joint of ``robot`` with a range (a finite
+    bound), as static numbers for a compiled program (empty for the paper's arm)."""
+    limits = np.asarray(robot.joint_position_limit, dtype=np.float64)
+    return tuple(
+        (int(i), float(low), float(high)) for i, (low, high) in enumerate(limits) if np.isfinite([low, high]).any()
+    )
+
+
+def range_margin(q, ranges: tuple[tuple[int, float, float], ...], temperature: float):
+    """() The joint ranges' margin of a run, like the other success criteria's (above 1: a
+    joint left its range): ``exp(smoothmax_{t, i} excess_i(t) / RANGE_MARGIN_SCALE_RAD)``
+    with ``excess_i = max(low_i - q_i, q_i - high_i)`` (rad, negative inside), the smooth
+    maximum of temperature ``temperature`` over the log's rows and the ranged joints.
+
+    Args:
+        q: (T, N) rad, the log's joint angles. ranges: [`finite_ranges()`][spacegrasp_jax.joint_limits.finite_ranges].
+    """
+    index = np.asarray([joint for joint, _, _ in ranges])
+    low = jnp.asarray([low for _, low, _ in ranges])
+    high = jnp.asarray([high for _, _, high in ranges])
+    angles = jnp.asarray(q)[:, index]
+    excess = jnp.maximum(low - angles, angles - high) / RANGE_MARGIN_SCALE_RAD
+    smooth = temperature * jnp.log(jnp.sum(jnp.exp((excess - jnp.max(excess)) / temperature))) + jnp.max(excess)
+    return jnp.exp(jnp.minimum(smooth, _MAX_LOG_MARGIN))
 
 
 def outside_ranges(robot: Robot, q) -> list[dict]:

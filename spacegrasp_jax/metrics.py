@@ -48,6 +48,13 @@ METRICS = {
     ),
     "final_position_error_lar_m": ((3,), "m", "EE minus desired position at the last step, LAR axes (z: approach)"),
     "final_contact_force_N": ((3,), "N", "contact force on the EE at the last step, LAR axes"),
+    "max_range_excess_rad": (
+        ("N",),
+        "rad",
+        "how far beyond its range each joint went (negative: its closest approach to a limit); NaN for a joint "
+        "without a range",
+    ),
+    "first_range_exit_s": ((), "s", "first time a joint left its range; NaN if never"),
 }
 
 #: A run whose joint rate or torque exceeds this many times the robot's limit
@@ -178,6 +185,9 @@ class RunningMetrics:
         last_contact_force: (3,) N, the latest row's contact force, LAR axes.
         runaway_rate, runaway_torque: (N,) rad/s, N m, the thresholds of a runaway
             (``inf``: none).
+        max_range_excess: (N,) rad, the furthest each joint went beyond its range
+            (``-inf``: a joint without one). first_range_exit_s: () s, ``inf`` until it happens.
+        range_low, range_high: (N,) rad, the joints' ranges (``-inf``, ``inf``: none).
         target: the target's ([`RunningTargetMetrics`][spacegrasp_jax.metrics.RunningTargetMetrics]).
     """
 
@@ -198,21 +208,28 @@ class RunningMetrics:
     last_contact_force: jax.Array
     runaway_rate: jax.Array
     runaway_torque: jax.Array
+    max_range_excess: jax.Array
+    first_range_exit_s: jax.Array
+    range_low: jax.Array
+    range_high: jax.Array
     target: RunningTargetMetrics
 
 
 def start(dtype=jnp.float64, robot=None, n_joints: int = 7) -> RunningMetrics:
     """Nothing folded yet; ``robot``: the [`Robot`][spacegrasp_jax.model.Robot] whose
-    limits define a runaway (``None``: no runaway is detected, for an arm of ``n_joints``
-    joints)."""
+    limits define a runaway and whose joint ranges are watched (``None``: neither, for an arm
+    of ``n_joints`` joints)."""
     zero, never = jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)
     if robot is not None:
         n_joints = robot.link_mass.shape[-1]
     if robot is None:
         runaway_rate = runaway_torque = jnp.full(n_joints, jnp.inf, dtype)
+        range_low, range_high = jnp.full(n_joints, -jnp.inf, dtype), jnp.full(n_joints, jnp.inf, dtype)
     else:
         runaway_rate = RUNAWAY_FACTOR * jnp.asarray(robot.joint_rate_limit, dtype)
         runaway_torque = RUNAWAY_FACTOR * jnp.asarray(robot.joint_torque_limit, dtype)
+        limits = jnp.asarray(robot.joint_position_limit, dtype)
+        range_low, range_high = limits[..., 0], limits[..., 1]
     nothing = jnp.full(3, jnp.nan, dtype)
     target = RunningTargetMetrics(nothing, nothing, zero, zero, zero, zero, jnp.zeros(3, dtype), never, never)
     return RunningMetrics(
@@ -233,6 +250,10 @@ def start(dtype=jnp.float64, robot=None, n_joints: int = 7) -> RunningMetrics:
         jnp.zeros(3, dtype),
         runaway_rate,
         runaway_torque,
+        jnp.full(n_joints, -jnp.inf, dtype),
+        never,
+        range_low,
+        range_high,
         target,
     )
 
@@ -256,6 +277,7 @@ def accumulate(running: RunningMetrics, rows) -> RunningMetrics:
     force = contact_force_norm(rows)
     r = running
     runaway = jnp.any(jnp.abs(rows.qd) > r.runaway_rate, axis=1) | jnp.any(jnp.abs(rows.u) > r.runaway_torque, axis=1)
+    range_excess = jnp.maximum(r.range_low - rows.q, rows.q - r.range_high)  # (rows, N) rad, -inf: no range
     return RunningMetrics(
         rows=r.rows + rows.t.shape[0],
         sum_squared_position_error=r.sum_squared_position_error + jnp.sum(position_error(rows) ** 2),
@@ -274,6 +296,10 @@ def accumulate(running: RunningMetrics, rows) -> RunningMetrics:
         last_contact_force=rows.contact_force[-1],
         runaway_rate=r.runaway_rate,
         runaway_torque=r.runaway_torque,
+        max_range_excess=_peak(r.max_range_excess, range_excess),
+        first_range_exit_s=_first(r.first_range_exit_s, jnp.any(range_excess > 0.0, axis=1), rows.t),
+        range_low=r.range_low,
+        range_high=r.range_high,
         target=_accumulate_target(r.target, rows),
     )
 
@@ -333,6 +359,8 @@ def finish(running: RunningMetrics, nonfinite_after_s=None, *, free_target: bool
         "first_runaway_s": never(running.first_runaway_s),
         "final_position_error_lar_m": running.last_pose_ee[:3] - running.last_pose_des[:3],
         "final_contact_force_N": running.last_contact_force,
+        "max_range_excess_rad": jnp.where(jnp.isneginf(running.max_range_excess), jnp.nan, running.max_range_excess),
+        "first_range_exit_s": never(running.first_range_exit_s),
     } | (target if free_target else {})
 
 

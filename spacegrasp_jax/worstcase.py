@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from spacegrasp_jax import anatomy, batching, compilation, metrics
+from spacegrasp_jax import anatomy, batching, compilation, joint_limits, metrics
 from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, compiled_chunk, evaluate_indices
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import law_named
@@ -65,8 +65,9 @@ MEASURES = {
     "peak_torque": ("N m", "the largest peak |u_i| over the joints"),
     "criteria": (
         "",
-        "the largest of final position error / tolerance, final orientation error / tolerance and "
-        "largest peak torque / torque limit: above 1, the capture fails",
+        "the largest of final position error / tolerance, final orientation error / tolerance, "
+        "largest peak torque / torque limit and, for a robot with joint ranges, their margin "
+        "(exp(furthest excess beyond a range / 0.05 rad)): above 1, the capture fails",
     ),
 }
 
@@ -151,12 +152,16 @@ def measure_of_metrics(sample_metrics: dict, measure: str, config: CampaignConfi
         parts = [margins["position_margin"], margins["orientation_margin"]]
         if config.torque_limit_Nm is not None:
             parts.append(margins["torque_margin"])
+        excess = margins["range_excess_rad"]
+        if np.isfinite(excess).any():  # a robot with joint ranges
+            with np.errstate(over="ignore"):
+                parts.append(np.exp(excess / joint_limits.RANGE_MARGIN_SCALE_RAD))
         values = np.max(np.stack(parts), axis=0)
     return np.where(lost(sample_metrics) | ~np.isfinite(values), np.inf, values)
 
 
 def _measure_of_log(log, measure: str, criteria: tuple) -> jax.Array:
-    position_tolerance, orientation_tolerance, torque_limit = criteria
+    position_tolerance, orientation_tolerance, torque_limit, ranges = criteria
     if measure == "final_error":
         return metrics.final_position_error(log)
     peak = jnp.max(jnp.abs(log.u))
@@ -168,6 +173,11 @@ def _measure_of_log(log, measure: str, criteria: tuple) -> jax.Array:
     ]
     if torque_limit is not None:
         ratios.append(peak / torque_limit)
+    if ranges:  # the hard excess, as the campaign's criterion: exp(excess / scale), 1 at a limit
+        index = np.asarray([joint for joint, _, _ in ranges])
+        low, high = (jnp.asarray([limits[k] for limits in ranges]) for k in (1, 2))
+        excess = jnp.max(jnp.maximum(low - log.q[:, index], log.q[:, index] - high))
+        ratios.append(jnp.exp(jnp.minimum(excess / joint_limits.RANGE_MARGIN_SCALE_RAD, 50.0)))
     return jnp.max(jnp.stack(ratios))
 
 
@@ -290,7 +300,12 @@ def search(
     function = functools.partial(
         _value_and_gradient,
         measure=settings.measure,
-        criteria=(config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm),
+        criteria=(
+            config.position_tolerance_m,
+            config.orientation_tolerance_rad,
+            config.torque_limit_Nm,
+            joint_limits.finite_ranges(robot),
+        ),
         identified=config.identified,
     )
     spec = gradient_spec(robot, scenario, law_named(controller, config.pinv_damping), config.realism)

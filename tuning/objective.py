@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from spacegrasp_jax import metrics
+from spacegrasp_jax import joint_limits, metrics
 
 #: The objectives by name (``--objective``).
 OBJECTIVES = ("capture", "weighted")
@@ -127,6 +127,10 @@ class Objective:
             ``1 - d`` of it).
         hinge_width: ``tau``, the softplus hinge's width in log-margin units.
         margin_temperature: ``S``, the smooth maximum's temperature over the log margins.
+        joint_ranges: the robot's joint ranges, static
+            ([`finite_ranges()`][spacegrasp_jax.joint_limits.finite_ranges]): each is a margin of
+            the ``capture`` objective ([`range_margin()`][spacegrasp_jax.joint_limits.range_margin]);
+            empty (the paper's arm): none.
     """
 
     weights: Weights
@@ -145,6 +149,7 @@ class Objective:
     safety: float = 0.2
     hinge_width: float = 0.1
     margin_temperature: float = 0.05
+    joint_ranges: tuple = dataclasses.field(default=(), metadata=dict(static=True))
 
     def __post_init__(self):
         if self.kind not in OBJECTIVES:
@@ -183,8 +188,9 @@ def capture_margins(
 ) -> dict[str, jax.Array]:
     """The ``capture`` objective's margins (value over tolerance; above 1 the capture
     fails) from the ``weighted`` parts and the log: ``position_margin``,
-    ``orientation_margin``, ``torque_margin`` (smooth) and, with ``free_target`` (static:
-    the scenario's target floats free), ``target_speed_margin``."""
+    ``orientation_margin``, ``torque_margin`` (smooth), with ``free_target`` (static:
+    the scenario's target floats free) ``target_speed_margin``, and for a robot with joint
+    ranges (``objective.joint_ranges``) ``joint_range_margin``."""
     torque_ratio = jnp.abs(log.u) / jnp.asarray(objective.torque_limit_Nm)
     margins = {
         "position_margin": (parts["final_position_m"] + _LOG_FLOOR) / objective.position_tolerance_m,
@@ -194,6 +200,8 @@ def capture_margins(
     if free_target:
         speed = metrics.safe_norm(log.target_velocity[-1])
         margins["target_speed_margin"] = (speed + _LOG_FLOOR) / objective.target_speed_limit_mps
+    if objective.joint_ranges:
+        margins["joint_range_margin"] = joint_limits.range_margin(log.q, objective.joint_ranges, objective.temperature)
     return margins
 
 

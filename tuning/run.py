@@ -276,6 +276,8 @@ def captured(parts: dict) -> np.ndarray:
     }
     if "final_target_speed_mps" in parts:
         sample_metrics["final_target_speed_mps"] = parts["final_target_speed_mps"]
+    if "range_excess_rad" in parts:
+        sample_metrics["max_range_excess_rad"] = np.asarray(parts["range_excess_rad"])[:, None]
     return np.asarray(
         success(
             sample_metrics,

@@ -27,7 +27,7 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
-from spacegrasp_jax import batching, compilation
+from spacegrasp_jax import batching, compilation, joint_limits
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import CONTROLLERS
 from spacegrasp_jax.model import Robot
@@ -341,12 +341,17 @@ def training_scenarios(nominal: Scenario, config: TuneConfig) -> Scenario:
 
 def scenario_parts(spec: RunSpec, gains: Gains, objective: Objective, key: jax.Array | None = None) -> dict:
     """Every part of the objective on the run ``spec`` ([`objective_parts()`][tuning.objective.objective_parts]),
-    plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m). ``spec`` keeps the
+    plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m), and for a robot with
+    joint ranges ``range_excess_rad``, the furthest a joint went beyond one. ``spec`` keeps the
     whole log ([`objective_spec()`][tuning.tune.objective_spec]); ``key``: the sensors' noise key of a
     flight-like loop."""
     _, log = closed_loop(spec, gains, key)
     parts = objective_parts(log, objective, free_target=spec.scenario.free_target)
     parts["largest_peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
+    if objective.joint_ranges:  # the hard excess beyond the ranges (rad), for the held-out verdict
+        index = np.asarray([joint for joint, _, _ in objective.joint_ranges])
+        low, high = (jnp.asarray([limits[k] for limits in objective.joint_ranges]) for k in (1, 2))
+        parts["range_excess_rad"] = jnp.max(jnp.maximum(low - log.q[:, index], log.q[:, index] - high))
     return parts
 
 
@@ -774,13 +779,14 @@ def optimise(
 
 def make_objective(robot: Robot, config: TuneConfig, torque_scale_Nm) -> Objective:
     """The run's objective: ``config.objective`` with the ``weighted`` one's torque scale
-    and the robot's motor limits."""
+    and the robot's motor limits and joint ranges."""
     return Objective(
         weights=config.weights,
         torque_scale_Nm=tuple(float(x) for x in torque_scale_Nm),
         temperature=config.temperature,
         kind=config.objective,
         torque_limit_Nm=torque_constraint_Nm(robot, config),
+        joint_ranges=joint_limits.finite_ranges(robot),
     )
 
 
