@@ -245,3 +245,53 @@ def test_a_kinova_capture_that_runs_away_reports_its_joint_limit_crossing_first(
     limits = np.asarray(load_robot(ARMS / "kinova.urdf", tip_link="j2s6s200_end_effector").joint_rate_limit)
     assert rate["limit"] == limits[rate["joint"] - 1] and abs(rate["value"]) > rate["limit"]
     assert rate["t_s"] < summary["first_runaway_s"]
+
+
+@pytest.mark.slow
+def test_a_campaign_and_a_tuning_run_of_an_arm_move_and_go_on(tmp_path, capsys, monkeypatch):
+    """A UR5 campaign and a UR5 tuning run, each moved to another folder and used from a third,
+    the arm's files gone: the campaign replays a sample and resumes from the robot it keeps
+    (the same robot given by another path counts as the same); the tuning run resumes from the
+    robot in its record."""
+    work = tmp_path / "work"
+    (work / "arms").mkdir(parents=True)
+    shutil.copy(CONFIGS / "arms" / "ur5_robot.urdf", work / "arms" / "ur5_robot.urdf")
+    shutil.copy(CONFIGS / "ur5_on_satellite.toml", work / "ur5.toml")
+    (work / "short.toml").write_text(
+        (CONFIGS / "ur5_scenario.toml").read_text() + "\nduration = 0.05\n[trajectory]\nduration = 0.05\n"
+    )
+    gains = str(CONFIGS / "ur5_gains.json")
+    monkeypatch.chdir(work)
+    campaign_args = ["montecarlo", "--compile-cache", "none", "--n", "4", "--chunk", "2", "--controller", "admittance"]
+    campaign_args += ["--robot", "ur5.toml", "--scenario", "short.toml", "--gains", gains]
+    assert cli.main([*campaign_args, "--out", "campaign"]) == 0, capsys.readouterr().err
+    tune_args = ["tune", "--compile-cache", "none", "--robot", "ur5.toml", "--scenario", "short.toml"]
+    tune_args += ["--gains", gains, "--steps", "1", "--batch", "1", "--population", "4", "--holdout", "0"]
+    assert cli.main([*tune_args, "--out", "tune"]) == 0, capsys.readouterr().err
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    for name in ("campaign", "tune"):
+        shutil.move(work / name, elsewhere / name)
+    kept_robot = tmp_path / "kept" / "ur5.toml"  # the same robot by another path, for the resume
+    kept_robot.parent.mkdir()
+    shutil.copytree(work / "arms", kept_robot.parent / "arms")
+    shutil.copy(work / "ur5.toml", kept_robot)
+    shutil.rmtree(work / "arms")
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    replay = ["replay", str(elsewhere / "campaign"), "--sample", "1", "--compile-cache", "none", "--out", "replayed"]
+    assert cli.main(replay) == 0, capsys.readouterr().err
+    with np.load(elsewhere / "campaign" / "samples.npz") as samples:
+        summary = json.loads((tmp_path / "replayed" / "summary.json").read_text())
+        key = next(iter(summary))
+        assert summary[key]["final_position_error_m"] == pytest.approx(
+            float(samples[f"{key}/final_position_error_m"][1]), rel=1e-9
+        )
+    resumed = [*campaign_args[:-6], "--robot", str(kept_robot), "--scenario", str(work / "short.toml")]
+    resumed += ["--gains", gains, "--out", str(elsewhere / "campaign"), "--resume"]
+    assert cli.main(resumed) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    assert cli.main(["tune", "--out", str(elsewhere / "tune"), "--resume", "--steps", "2"]) == 0, (
+        capsys.readouterr().err
+    )
+    assert "resuming after generation 1/2" in capsys.readouterr().err
