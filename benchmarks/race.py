@@ -126,7 +126,7 @@ def snapshot_gains(method: str, path: Path, run_folder: Path) -> dict:
     mask = make_mask(base, "admittance")
     params = initial_params(base, "admittance")
     if method == "cmaes":
-        asked, told, _ = cmaes.load_checkpoint(path)
+        asked, told, *_ = cmaes.load_checkpoint(path)
         record = json.loads((run_folder / "run.json").read_text())
         config = TuneConfig.from_dict(record["config"])
         strategy = cmaes.new_strategy(cmaes.flatten(params, mask), config.population, config.seed, config.step_size)

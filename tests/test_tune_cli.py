@@ -312,3 +312,28 @@ def test_a_run_that_ends_worse_than_it_started_hands_back_the_start_and_says_so(
     summary = json.loads((out / "summary.json").read_text())
     told = [float(row["best_candidate_loss"]) for row in csv.DictReader((out / "history.csv").open())][1:]
     assert summary["kept"]["training_objective"] == min([*told, summary["kept"]["training_objective"]])
+
+
+def test_early_stopping_from_the_command_line(tmp_path, capsys):
+    """``--patience``: the run evaluates each mean on its validation captures, stops once they
+    stall, hands back the mean with the best validation objective and records it; a setting
+    of early stopping without it is refused."""
+    from spacegrasp_jax import cli
+
+    scenario = tmp_path / "short.toml"
+    scenario.write_text("duration = 1.0\n[trajectory]\nduration = 1.0\n")
+    base = ["tune", "--compile-cache", "none", "--scenario", str(scenario), "--population", "4", "--batch", "1"]
+    base += ["--holdout", "0", "--step-size", "0.5"]
+    out = tmp_path / "early"
+    assert cli.main([*base, "--steps", "8", "--patience", "1", "--validation-size", "2", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    kept = summary["kept"]
+    assert kept["rule"] == "best by validation" and kept["what"] == f"the mean after generation {kept['generation']}"
+    record = np.load(out / "checkpoint.npz")
+    validation = json.loads(str(record["meta"]))["validation"]
+    assert kept["validation_objective"] == min(item["objective"] for item in validation)
+    # this run's validation objective stalls after generation 4 of 8 (seed 0)
+    assert summary["status"] == "stopped_early" and len(validation) - 1 == kept["generation"] + 1 < 8
+    assert "stopped early: the validation objective has not improved for 1 generations" in capsys.readouterr().err
+    assert cli.main([*base, "--validation-size", "4", "--out", str(tmp_path / "refused")]) == 2
+    assert "--validation-size: the validation set of early stopping (choose --patience)" in capsys.readouterr().err

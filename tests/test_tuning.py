@@ -463,3 +463,67 @@ def test_cmaes_best_ever_is_the_least_objective_it_told_or_the_final_mean():
     state.history[-1]["loss"] = 3.0  # the final mean as good: it is kept
     x, value, generation = best_ever(state)
     assert x.tolist() == [9.0, 9.0] and value == 3.0 and generation is None
+
+
+def test_early_stopping_ends_a_gradient_run_when_the_validation_objective_stalls():
+    """The training loss keeps falling (SGD on (p - 1)^2: p goes 0, 0.6, 0.83, 0.93, ...) while
+    a made-up validation objective, (p - 0.5)^2, is least at step 1 (0.01, then 0.11, 0.18):
+    with a patience of 2 the run stops at step 3, and its best step is the validation's, not
+    the training loss's."""
+
+    def value_and_grad(params):
+        p = params["kp"][0]
+        return ((p - 1.0) ** 2, {"largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": jnp.atleast_1d(2.0 * (p - 1.0))}
+
+    config = TuneConfig(
+        steps=10,
+        learning_rate=0.3,
+        optimizer="sgd",
+        clip_norm=100.0,
+        objective="weighted",
+        method="gradient",
+        patience=2,
+    )
+    validated = []
+
+    def validate(params):
+        validated.append(float(params["kp"][0]))
+        return (float(params["kp"][0]) - 0.5) ** 2
+
+    state, status = optimise(value_and_grad, {"kp": jnp.zeros(1)}, config, validate=validate)
+    losses = [row["validation_loss"] for row in state.history]
+    assert status == "stopped_early" and state.best_step == 1 and state.step == 3
+    assert state.best_step == int(np.argmin(losses)) and float(state.best_params["kp"][0]) == validated[state.best_step]
+    assert [row["loss"] for row in state.history] == sorted([row["loss"] for row in state.history], reverse=True)
+    with pytest.raises(ValueError, match="patience: must be at least 1"):
+        dataclasses.replace(config, patience=0)
+    with pytest.raises(ValueError, match="validation_size: the validation set of early stopping"):
+        TuneConfig(validation_size=8)
+
+
+def test_early_stopping_ends_a_cmaes_run_and_its_checkpoint_keeps_the_validations(tmp_path):
+    from spacegrasp_jax.tuning import cmaes
+
+    def evaluate(vectors):
+        losses = np.sum((vectors - 1.0) ** 2, axis=1, keepdims=True)
+        return {"loss": losses, "final_position_m": losses, "largest_peak_torque_Nm": losses}
+
+    calls = []
+
+    def validate(mean):  # least at the start: every later mean is worse, so the run stops at once
+        calls.append(np.asarray(mean))
+        return float(np.sum(np.asarray(mean) ** 2))
+
+    path = tmp_path / "cmaes.npz"
+    common = dict(generations=30, population=6, seed=1, cvar_alpha=None, validate=validate, patience=3)
+    state, status = cmaes.optimise(
+        evaluate, np.zeros(3), checkpoint_path=path, write_atomically=lambda p, w: w(p), **common
+    )
+    assert status == "stopped_early" and state.generation == 3 and len(state.validation) == 4
+    x, value, generation = cmaes.best_validated(state)
+    assert generation == 0 and value == 0.0 and x.tolist() == [0.0, 0.0, 0.0]
+    resumed = cmaes.load_checkpoint(path)
+    assert resumed[3] == state.validation
+    calls.clear()
+    again, status = cmaes.optimise(evaluate, np.zeros(3), resume=resumed, **common)
+    assert status == "stopped_early" and calls == [] and again.validation == state.validation

@@ -172,6 +172,9 @@ class CmaState:
     asked: list
     told: list
     history: list
+    #: early stopping's evaluations: ``{"generation", "objective", "mean"}`` of the mean after
+    #: each generation (generation 0: ``x0``) on the validation set
+    validation: list = dataclasses.field(default_factory=list)
 
 
 def new_strategy(
@@ -200,14 +203,15 @@ def replay(strategy: cma.CMAEvolutionStrategy, asked: list, told: list) -> None:
 def save_checkpoint(path: Path, state: CmaState, config_dict: dict, write_atomically) -> None:
     arrays = {f"asked_{k}": np.asarray(a) for k, a in enumerate(state.asked)}
     arrays |= {f"told_{k}": np.asarray(t) for k, t in enumerate(state.told)}
-    arrays["meta"] = np.array(
-        json.dumps({"config": config_dict, "generation": state.generation, "history": state.history})
-    )
+    meta = {"config": config_dict, "generation": state.generation, "history": state.history}
+    meta["validation"] = state.validation
+    arrays["meta"] = np.array(json.dumps(meta))
     write_atomically(path, lambda target: np.savez(target, **arrays))
 
 
-def load_checkpoint(path: Path) -> tuple[list, list, list]:
-    """``(asked, told, history)`` of a CMA-ES checkpoint."""
+def load_checkpoint(path: Path) -> tuple[list, list, list, list]:
+    """``(asked, told, history, validation)`` of a CMA-ES checkpoint (``validation``: early
+    stopping's evaluations, ``CmaState.validation``; empty without, or from an older version)."""
     with np.load(path, allow_pickle=False) as data:
         meta = json.loads(str(data["meta"]))
         count = meta["generation"]
@@ -215,6 +219,7 @@ def load_checkpoint(path: Path) -> tuple[list, list, list]:
             [data[f"asked_{k}"] for k in range(count)],
             [data[f"told_{k}"] for k in range(count)],
             meta["history"],
+            meta.get("validation", []),
         )
 
 
@@ -233,19 +238,41 @@ def optimise(
     resume: tuple | None = None,
     on_generation: Callable[[CmaState], None] | None = None,
     stop: StopRequest | None = None,
+    validate: Callable[[np.ndarray], float] | None = None,
+    patience: int | None = None,
 ) -> tuple[CmaState, str]:
-    """Run (or, from ``resume = (asked, told, history)``, continue) CMA-ES for
+    """Run (or, from ``resume = (asked, told, history[, validation])``, continue) CMA-ES for
     ``generations``. History row k is the distribution's mean after k generations (row 0:
     ``x0``): its objective and parts (batch means), the best candidate of generation k, the
     step size and generation k's wall time. The mean after generation k is evaluated with
     generation k + 1's candidates, in the same program call; the last mean on its own.
-    Returns the state and ``"done"`` or ``"interrupted"``."""
+
+    ``validate`` and ``patience``: early stopping. The mean after each generation (and ``x0``)
+    is evaluated by ``validate`` (``CmaState.validation``); the run stops once the best of
+    those has not improved for ``patience`` generations.
+    Returns the state and ``"done"``, ``"stopped_early"`` or ``"interrupted"``."""
     strategy = new_strategy(x0, population, seed, step_size)
     asked, told, history = ([], [], []) if resume is None else (list(resume[0]), list(resume[1]), list(resume[2]))
+    validation = list(resume[3]) if resume is not None and len(resume) > 3 else []
     if len(asked) < generations:  # a finished run given more generations: its last row comes again
         history = history[: len(asked)]
     replay(strategy, asked, told)
-    state = CmaState(len(asked), strategy, asked, told, history)
+    state = CmaState(len(asked), strategy, asked, told, history, validation)
+
+    def validated() -> None:  # the current mean on the validation set, once per generation
+        if validate is not None and len(state.validation) == state.generation:
+            mean = np.asarray(strategy.mean)
+            state.validation.append(
+                {"generation": state.generation, "objective": float(validate(mean)), "mean": mean.tolist()}
+            )
+
+    def stalled() -> bool:
+        if validate is None or not state.validation:
+            return False
+        best = min(state.validation, key=lambda item: item["objective"])
+        return state.generation - best["generation"] >= patience
+
+    validated()
     wall = math.nan  # the wall time of the generation whose mean has no row yet
 
     def mean_row(parts, which):
@@ -265,6 +292,9 @@ def optimise(
         if stop is not None and stop.requested:
             status = "interrupted"
             break
+        if stalled():
+            status = "stopped_early"
+            break
         start = time.perf_counter()
         candidates = np.asarray(strategy.ask())
         parts = evaluate(np.concatenate([candidates, strategy.mean[None]]))
@@ -275,6 +305,7 @@ def optimise(
         told.append(objectives)
         state.generation += 1
         wall = time.perf_counter() - start
+        validated()
         if checkpoint_path is not None:
             save_checkpoint(checkpoint_path, state, config_dict or {}, write_atomically)
         if on_generation is not None:
@@ -282,6 +313,13 @@ def optimise(
     if len(history) == state.generation:  # the last mean, on its own
         history.append(mean_row(evaluate(strategy.mean[None]), 0))
     return state, status
+
+
+def best_validated(state: CmaState) -> tuple[np.ndarray, float, int]:
+    """Early stopping's choice: the mean with the least validation objective,
+    ``(x, objective, generation)`` (generation 0: ``x0``)."""
+    best = min(state.validation, key=lambda item: item["objective"])
+    return np.asarray(best["mean"]), best["objective"], best["generation"]
 
 
 def best_ever(state: CmaState) -> tuple[np.ndarray, float, int | None]:

@@ -52,6 +52,7 @@ from spacegrasp_jax.tuning.objective import Objective
 from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import (
     CHECKPOINT,
+    VALIDATION_SEED_OFFSET,
     TuneConfig,
     flight_batch,
     load_checkpoint,
@@ -330,6 +331,38 @@ class TuneResult:
     log_after: object | None = None
 
 
+def _validator(robot, smooth, config: TuneConfig, objective: Objective, to_gains):
+    """Early stopping's validation objective of a point (gradient parameters or a CMA-ES
+    vector; ``to_gains`` makes it gains): the batch objective over ``config.validation_size``
+    captures of their own seed, with the exact contact law as the held-out set; ``None``
+    without ``config.patience``."""
+    if config.patience is None:
+        return None
+    exact = dataclasses.replace(smooth, contact_law="exact")
+    seed = config.seed + VALIDATION_SEED_OFFSET
+    if config.realism is None:
+        scenarios = sample_scenarios(exact, seed, range(config.validation_size), config.ranges)
+        parts = lambda gains: evaluate(robot, scenarios, gains, config.controller, objective)
+    else:
+        samples = flight_batch(robot, exact, config, seed, config.validation_size)
+        parts = lambda gains: evaluate_flight(robot, samples, gains, config.controller, objective)
+
+    def validate(point) -> float:
+        losses = np.asarray(parts(to_gains(point))["loss"])
+        return float(cmaes.batch_objective(losses[None], config.cvar_alpha)[0])
+
+    return validate
+
+
+def _say_stopped_early(progress, config: TuneConfig, best: int, unit: str) -> None:
+    print(
+        f"stopped early: the validation objective has not improved for {config.patience} {unit}s "
+        f"(its best after {unit} {best})",
+        file=progress,
+        flush=True,
+    )
+
+
 def _optimise_gradient(robot, smooth, base, config, before, out, resume, progress, stop):
     """The optax loop ([`optimise()`][tuning.tune.optimise]): ``(objective, tuned
     gains, history, events, steps done, status)``."""
@@ -359,11 +392,17 @@ def _optimise_gradient(robot, smooth, base, config, before, out, resume, progres
         write_atomically=runfiles.write_atomically,
         on_step=on_step,
         stop=stop,
+        validate=_validator(robot, smooth, config, objective, lambda point: gains_from_params(point, base, mask)),
     )
+    if status == "stopped_early":
+        _say_stopped_early(progress, config, state.best_step, "step")
     best = config.keep == "best" and state.best_params is not None
     tuned = gains_from_params(state.best_params if best else state.params, base, mask)
     kept = {"rule": config.keep, "step": state.best_step if best else state.step}
     kept["training_objective"] = state.history[kept["step"]]["loss"]
+    if config.patience is not None:
+        kept["rule"] += " by validation" if best else ""
+        kept["validation_objective"] = state.history[kept["step"]]["validation_loss"]
     return objective, tuned, state.history, state.events, state.step, status, kept
 
 
@@ -423,14 +462,24 @@ def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, 
         resume=previous,
         on_generation=on_generation,
         stop=stop,
+        validate=_validator(robot, smooth, config, objective, lambda x: cmaes.gains_of(x, params, base, mask)),
+        patience=config.patience,
     )
-    if config.keep == "best":
-        x, value, generation = cmaes.best_ever(state)
+    if status == "stopped_early":
+        _say_stopped_early(progress, config, cmaes.best_validated(state)[2], "generation")
+    if config.keep == "best" and config.patience is not None:
+        x, value, generation = cmaes.best_validated(state)
+        kept = {"rule": "best by validation", "generation": generation, "validation_objective": value}
+        kept["training_objective"] = state.history[generation]["loss"]
+        kept["what"] = f"the mean after generation {generation}"
     else:
-        x, value, generation = state.strategy.mean, state.history[-1]["loss"], None
+        if config.keep == "best":
+            x, value, generation = cmaes.best_ever(state)
+        else:
+            x, value, generation = state.strategy.mean, state.history[-1]["loss"], None
+        kept = {"rule": config.keep, "generation": generation, "training_objective": float(value)}
+        kept["what"] = "the final mean" if generation is None else f"the best candidate of generation {generation}"
     tuned = cmaes.gains_of(x, params, base, mask)
-    kept = {"rule": config.keep, "generation": generation, "training_objective": float(value)}
-    kept["what"] = "the final mean" if generation is None else f"the best candidate of generation {generation}"
     return objective, tuned, state.history, [], state.generation, status, kept
 
 

@@ -129,6 +129,13 @@ class TuneConfig:
             mean, the final step). Either way the held-out evaluation then compares them
             with the starting gains, and ``gains.json`` holds the better
             ([`tune()`][tuning.run.tune]).
+        patience: early stopping (``None``: off). After every step (generation) the current
+            gains (CMA-ES: the mean) are evaluated on a validation set of
+            ``validation_size`` captures of their own (seed ``seed + VALIDATION_SEED_OFFSET``,
+            exact contact law, as the held-out set), and the run stops once that objective
+            has not improved for ``patience`` steps; ``keep="best"`` then hands back the
+            gains of the best validation objective instead of the best training one.
+        validation_size: the validation set's captures (with ``patience`` only).
     """
 
     controller: str = "admittance"
@@ -156,6 +163,8 @@ class TuneConfig:
     torque_cap_Nm: float | None = None
     fresh_batches: bool = False
     keep: str = "best"
+    patience: int | None = None
+    validation_size: int = 32
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
@@ -230,6 +239,12 @@ class TuneConfig:
                 f"aggregate: {self.aggregate} combines the samples' separate gradients of a run under a realism; "
                 "the ideal loop's batch has one gradient of the mean (choose --realism, or mean)"
             )
+        if self.patience is not None and self.patience < 1:
+            raise ValueError(f"patience: must be at least 1 step, got {self.patience}")
+        if self.validation_size < 1:
+            raise ValueError(f"validation_size: must be at least 1 capture, got {self.validation_size}")
+        if self.patience is None and self.validation_size != 32:
+            raise ValueError("validation_size: the validation set of early stopping (choose --patience)")
         if self.keep not in KEEPS:
             raise ValueError(f"keep: expected one of {', '.join(KEEPS)}, got {self.keep!r}")
         if self.fresh_batches and self.realism is None:
@@ -256,6 +271,11 @@ class TuneConfig:
         document["frozen"] = tuple(document["frozen"])
         return cls(**document)
 
+
+#: Validation captures (early stopping, ``TuneConfig.patience``) are drawn with seed ``seed +``
+#: this: never the training batch's (``seed``, or ``seed + FRESH_SEED_STRIDE * k``), never the
+#: held-out set's (``seed + HOLDOUT_SEED_OFFSET``).
+VALIDATION_SEED_OFFSET = 2_000_003
 
 #: The gains a tuning run can hand back (``TuneConfig.keep``).
 KEEPS = ("best", "last")
@@ -711,9 +731,15 @@ def optimise(
     write_atomically=None,
     on_step: Callable[[RunState], None] | None = None,
     stop: StopRequest | None = None,
+    validate: Callable[[dict], float] | None = None,
 ) -> tuple[RunState, str]:
     """Run (or continue) the optimisation loop. Returns the final state and its status,
-    ``"done"`` or ``"interrupted"``; raises RuntimeError if no step can be taken."""
+    ``"done"``, ``"stopped_early"`` or ``"interrupted"``; raises RuntimeError if no step can
+    be taken.
+
+    ``validate``: early stopping (``config.patience``): the validation objective of
+    parameters, recorded in each history row (``validation_loss``); the best step is then the
+    best by it, and the loop ends once it has not improved for ``config.patience`` steps."""
     optimizer, schedule = make_optimizer(config)
     if resume_state is None:
         start = time.perf_counter()
@@ -722,9 +748,14 @@ def optimise(
             raise RuntimeError(f"the initial gains already diverge or exceed the torque guard (loss {float(loss)})")
         state = RunState(0, 1.0, params, optimizer.init(params), float(loss), aux, gradient, [], [], 0, params)
         state.history.append(history_row(0, loss, aux, gradient, 0.0, 0, time.perf_counter() - start))
+        if validate is not None:
+            state.history[0]["validation_loss"] = validate(params)
     else:
         state = resume_state
+    criterion = "loss" if validate is None else "validation_loss"
     while state.step < config.steps:
+        if validate is not None and state.step - state.best_step >= config.patience:
+            return state, "stopped_early"
         if stop is not None and stop.requested:
             return state, "interrupted"
         start = time.perf_counter()
@@ -768,7 +799,9 @@ def optimise(
         state.history.append(
             history_row(state.step, loss, aux, gradient, step_size, rejected, time.perf_counter() - start)
         )
-        if float(loss) < state.history[state.best_step]["loss"]:
+        if validate is not None:
+            state.history[-1]["validation_loss"] = validate(candidate)
+        if state.history[-1][criterion] < state.history[state.best_step][criterion]:
             state = dataclasses.replace(state, best_step=state.step, best_params=candidate)
         if checkpoint_path is not None:
             save_checkpoint(checkpoint_path, state, config, write_atomically)

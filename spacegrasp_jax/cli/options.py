@@ -319,6 +319,8 @@ TUNE_OPTIONS = {
     "weights": "--weights",
     "fresh_batches": "--fresh-batches",
     "keep": "--keep",
+    "patience": "--patience",
+    "validation_size": "--validation-size",
 }
 
 

@@ -278,6 +278,8 @@ def _tune_fields(args: argparse.Namespace, robot) -> dict:
         torque_cap_Nm=args.torque_cap,
         fresh_batches=args.fresh_batches,
         keep=args.keep,
+        patience=args.patience,
+        validation_size=args.validation_size,
     )
 
 
@@ -357,6 +359,21 @@ def add_parsers(commands) -> None:
         "--fresh-batches",
         action="store_true",
         help="the gradient method under --realism: a new batch of the envelope for every step (default: one batch)",
+    )
+    tune.add_argument(
+        "--patience",
+        type=_whole(1, 1_000_000),
+        default=None,
+        metavar="STEPS",
+        help="stop early once the objective on a validation set of captures of their own (exact contact law) "
+        "has not improved for STEPS steps or generations, and keep the best by it (default: off)",
+    )
+    tune.add_argument(
+        "--validation-size",
+        type=_whole(1, 100_000),
+        default=TuneConfig.validation_size,
+        metavar="N",
+        help=f"the validation set's captures, with --patience (default {TuneConfig.validation_size})",
     )
     tune.add_argument(
         "--keep",
