@@ -477,6 +477,7 @@ def run_campaign(
     *,
     resume: bool = False,
     robot_source: str = "paper_robot()",
+    robot_links: dict | None = None,
     progress=sys.stderr,
     stop: runfiles.StopRequest | None = None,
     on_chunk: Callable[[Variant, int], None] | None = None,
@@ -489,6 +490,9 @@ def run_campaign(
         config: sizes, seed, ranges and tolerances.
         out: output folder (``None``: nothing written and no resume).
         resume: continue the campaign already in ``out`` (its configuration must match).
+        robot_source, robot_links: where ``robot`` was read from and, for a URDF arm, its
+            mount and links (``load_robot``'s keywords), as the record says them; the robot
+            itself is kept in ``out`` (``runfiles.ROBOT_FILE``) when it came from a file.
         progress: stream for the progress bar (``None``: silent).
         stop: checked after each chunk; when set, the run stops with status "interrupted".
         on_chunk: called after each finished chunk with the variant and its first index.
@@ -510,14 +514,14 @@ def run_campaign(
     if config.timeseries_every is not None and scenario.n_steps % config.timeseries_every:
         raise CampaignError(f"timeseries_every: {config.timeseries_every} does not divide the {scenario.n_steps} steps")
     writer = out is not None and jax.process_index() == 0
-    record = _record(config, variants, robot_source, scenario)
+    record = _record(config, variants, robot_source, scenario) | {"robot_links": robot_links or None}
     if out is not None:
         _check_resume(out, record, resume, robot)
         if jax.process_count() > 1:  # every process checks the folder before process 0 writes in it
             multihost_utils.sync_global_devices("spacegrasp campaign: folder checked")
         if writer:
             if record["robot_file"]:
-                runfiles.write_robot(out, robot, robot_source)
+                runfiles.write_robot(out, robot, robot_source, robot_links)
             runfiles.write_json(out / "campaign.json", record)
 
     starts = list(range(0, config.n, config.chunk))

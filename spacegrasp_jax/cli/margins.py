@@ -25,6 +25,7 @@ from spacegrasp_jax.cli.common import (
     _load_inputs,
     _ranges,
     _realism,
+    _robot_links,
     _warn,
 )
 from spacegrasp_jax.cli.options import (
@@ -104,6 +105,8 @@ def _margins(args: argparse.Namespace) -> int:
     result["settings"] |= {
         "gains": gains.to_dict(args.controller),
         **_gains_record(args.gains, args, args.controller),
+        "robot": args.robot or "paper_robot()",
+        "robot_links": _robot_links(args) or None,
         "criteria": campaign.capture_criteria(config),
         "campaign": config.to_dict(),
         "scenario_duration_s": scenario.duration,

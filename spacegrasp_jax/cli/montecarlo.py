@@ -27,6 +27,7 @@ from spacegrasp_jax.cli.common import (
     _paper_gains_for,
     _ranges,
     _realism,
+    _robot_links,
     _warn,
 )
 from spacegrasp_jax.cli.options import (
@@ -126,6 +127,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
             out,
             resume=args.resume,
             robot_source=args.robot or "paper_robot()",
+            robot_links=_robot_links(args) or None,
             stop=args.stop,
         )
     except campaign.CampaignError as error:

@@ -29,6 +29,7 @@ from spacegrasp_jax.cli.common import (
     _load_inputs,
     _ranges,
     _realism,
+    _robot_links,
     _run_caption,
     _warn,
     _write_results,
@@ -114,9 +115,14 @@ def _worstcase(args: argparse.Namespace) -> int:
         ("--fill-from", args.fill_from),
         ("--scenario", args.scenario),
         ("--robot", args.robot),
+        ("--mount", args.mount),
+        ("--base-link", args.base_link),
+        ("--tip-link", args.tip_link),
     ):
         if value:
             replay_command += [option, value]
+    if args.allow_outside_limits:
+        replay_command.append("--allow-outside-limits")
     if args.realism:
         replay_command += ["--realism", args.realism]
     if args.pinv_damping:
@@ -153,6 +159,8 @@ def _worstcase(args: argparse.Namespace) -> int:
             "controller": args.controller,
             "gains": gains.to_dict(args.controller),
             **_gains_record(args.gains, args, args.controller),
+            "robot": args.robot or "paper_robot()",
+            "robot_links": _robot_links(args) or None,
             "criteria": campaign.capture_criteria(config),
             "campaign": config.to_dict(),
             "scenario_duration_s": scenario.duration,
