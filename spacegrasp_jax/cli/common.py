@@ -311,7 +311,7 @@ def _is_papers_run(args: argparse.Namespace) -> bool:
     return (
         not getattr(args, "robot", None)
         and not getattr(args, "scenario", None)
-        and not getattr(args, "gains", None)
+        and getattr(args, "gains", None) in (None, "paper")
         and realism in (None, "ideal")
         and getattr(args, "pinv_damping", 0.0) == 0.0
     )
