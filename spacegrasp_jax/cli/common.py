@@ -410,9 +410,12 @@ def _films(
     return written
 
 
-def _write_out_file(args, text: str) -> Path:
-    """Write ``text`` to the file ``--out`` names, atomically; an existing file only with
-    ``--overwrite``. Returns the path."""
+def _write_out_file(args, text: str, what: str) -> None:
+    """Write ``text`` to the file ``--out`` names, atomically (an existing file only with
+    ``--overwrite``), and say ``wrote FILE: what``; without ``--out``, print ``text``."""
+    if args.out is None:
+        sys.stdout.write(text)
+        return
     out = Path(args.out)
     if out.is_dir():
         raise UsageError(f"--out {out}: is a folder; give a file name")
@@ -422,4 +425,4 @@ def _write_out_file(args, text: str) -> Path:
         runfiles.write_atomically(out, lambda target: target.write_text(text))
     except OSError as error:
         raise UsageError(f"--out {out}: cannot write ({error.strerror or error})") from None
-    return out
+    print(f"wrote {out}: {what}")

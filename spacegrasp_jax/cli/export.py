@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 from spacegrasp_jax import (
     export,
@@ -45,11 +44,7 @@ def _export(args: argparse.Namespace) -> int:
     text = export.export_text(
         gains, args.controller, settings, args.format, source=_source_words(args.gains), prefix=args.prefix
     )
-    if args.out is None:
-        sys.stdout.write(text)
-        return 0
-    out = _write_out_file(args, text)
-    print(f"wrote {out}: the {args.controller} gains, their units and equations, and the loop's settings")
+    _write_out_file(args, text, f"the {args.controller} gains, their units and equations, and the loop's settings")
     return 0
 
 

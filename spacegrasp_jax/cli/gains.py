@@ -36,11 +36,7 @@ def _gains(args: argparse.Namespace) -> int:
         f"ki = 0.05 kp, kd = 7e-5 kp; the laws' gains the paper's",
         file=sys.stderr,
     )
-    if args.out is None:
-        sys.stdout.write(text)
-        return 0
-    out = _write_out_file(args, text)
-    print(f"wrote {out}: the {args.controller} law's gains (spacegrasp tune --gains {out} takes it from there)")
+    _write_out_file(args, text, f"the {args.controller} law's gains (spacegrasp tune --gains FILE takes it from there)")
     return 0
 
 
