@@ -20,6 +20,7 @@ from spacegrasp_jax import cli, experiment
 from spacegrasp_jax.control import load_gains
 from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges
+from spacegrasp_jax.realism import load_realism
 from spacegrasp_jax.scenario import load_scenario
 from spacegrasp_jax.simulate import RunSpec
 from spacegrasp_jax.tuning.objective import Objective, Weights
@@ -138,6 +139,8 @@ def test_a_flight_like_run_takes_a_realism_with_one_torque_limit_a_joint(short, 
         "[actuators]\ntorque_limit_Nm = [1.0, 1.0, 1.0, 0.5, 0.5, 0.5]\n"
     )
     assert cli.main([*common, "--realism", str(realism), "--out", str(tmp_path / "run")]) == 0
+    kept = load_realism(tmp_path / "run" / "realism.json")  # the run keeps the realism it ran
+    assert kept.to_dict() == load_realism(realism).to_dict()
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())["admittance"]
     assert np.all(np.asarray(summary["max_abs_torque_Nm"]) <= np.array([1.0, 1.0, 1.0, 0.5, 0.5, 0.5]) + 1e-12)
     assert summary["max_contact_force_N"] > 0.0

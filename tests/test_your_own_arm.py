@@ -127,6 +127,21 @@ def test_a_ur10_runs_from_its_stock_urdf_and_its_run_folder_moves(tmp_path, caps
     capsys.readouterr()
     assert cli.main(["animate", os.path.join("elsewhere", "ur10_moved"), "--fps", "5"]) == 0, capsys.readouterr().err
     assert any(path.suffix == ".gif" for path in (elsewhere / "ur10_moved").iterdir())
+    # the folder's own files run the same capture again, bit for bit
+    moved = elsewhere / "ur10_moved"
+    config = json.loads((moved / "config.json").read_text())
+    assert (config["scenario_file"], config["gains_file"], config["realism_file"]) == (
+        "scenario.toml",
+        "gains.json",
+        None,
+    )
+    again = ["simulate", "--compile-cache", "none", "--controller", "admittance", "--robot", str(moved / "robot.toml")]
+    again += ["--scenario", str(moved / "scenario.toml"), "--gains", str(moved / "gains.json"), "--out", "again"]
+    assert cli.main(again) == 0, capsys.readouterr().err
+    first = json.loads((moved / "summary.json").read_text())["admittance"]
+    second = json.loads((tmp_path / "again" / "summary.json").read_text())["admittance"]
+    assert second["final_position_error_m"] == first["final_position_error_m"]
+    assert second["max_abs_torque_Nm"] == first["max_abs_torque_Nm"]
 
 
 def test_the_effective_joint_inertia_of_a_hand_worked_two_joint_system():

@@ -70,6 +70,28 @@ def _load_robot(args):
     return robot
 
 
+def _keep_inputs(args, out: Path, gains, realism, controllers) -> dict:
+    """The run's inputs given as files, kept in its folder ``out`` so that it needs nothing
+    outside it: the scenario file as written (``scenario.toml`` or ``.json``), the gains as
+    they ran (``gains.json``, with any ``--fill-from`` groups) and the realism as it ran
+    (``realism.json``), each only where ``--scenario``, ``--gains`` or a ``--realism`` file
+    gave it. Returns the record's ``scenario_file``, ``gains_file`` and ``realism_file`` (names
+    in the folder, ``None`` where not kept); the original paths stay in the record as sources."""
+    kept = {"scenario_file": None, "gains_file": None, "realism_file": None}
+    if getattr(args, "scenario", None):
+        suffix = ".json" if Path(args.scenario).suffix.lower() == ".json" else ".toml"
+        kept["scenario_file"] = "scenario" + suffix
+        runfiles.write_text(out / kept["scenario_file"], Path(args.scenario).read_text())
+    if getattr(args, "gains", None) and args.gains not in NAMED_GAINS:
+        kept["gains_file"] = "gains.json"
+        law = controllers[0] if len(controllers) == 1 else None
+        runfiles.write_json(out / kept["gains_file"], gains.to_dict(law))
+    if realism is not None and getattr(args, "realism", None) not in (None, "ideal", "flight"):
+        kept["realism_file"] = "realism.json"
+        runfiles.write_json(out / kept["realism_file"], realism.to_dict())
+    return kept
+
+
 def _check_joint_ranges(args, robot, scenario) -> None:
     """Refuse a scenario whose initial joint angles lie outside ``robot``'s joint ranges, one
     line naming each such joint, unless ``--allow-outside-limits`` (then a warning says it)."""

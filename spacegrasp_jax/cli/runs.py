@@ -23,6 +23,7 @@ from spacegrasp_jax.cli.common import (
     _films,
     _gains_record,
     _is_papers_run,
+    _keep_inputs,
     _law,
     _load_inputs,
     _loop_words,
@@ -99,6 +100,7 @@ def _run_controllers(args, controllers) -> int:
         if getattr(args, "perturbation", None):
             source += f", perturbed as {args.perturbation} says"
         config["robot_file"] = runfiles.write_robot(out, robot, source, _robot_links(args))
+    config |= _keep_inputs(args, out, gains, realism, controllers)
     _write_results(
         out,
         results,
