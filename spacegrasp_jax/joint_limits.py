@@ -34,6 +34,16 @@ def finite_ranges(robot: Robot) -> tuple[tuple[int, float, float], ...]:
     )
 
 
+def range_excess(q, ranges: tuple[tuple[int, float, float], ...]):
+    """(T, k) rad, how far each ranged joint of ``ranges`` is beyond its range at each row of
+    ``q`` (T, N) rad: ``max(low - q, q - high)``, negative inside (jnp; differentiable)."""
+    index = np.asarray([joint for joint, _, _ in ranges])
+    low = jnp.asarray([low for _, low, _ in ranges])
+    high = jnp.asarray([high for _, _, high in ranges])
+    angles = jnp.asarray(q)[:, index]
+    return jnp.maximum(low - angles, angles - high)
+
+
 def range_margin(q, ranges: tuple[tuple[int, float, float], ...], temperature: float):
     """() The joint ranges' margin of a run, like the other success criteria's (above 1: a
     joint left its range): ``exp(smoothmax_{t, i} excess_i(t) / RANGE_MARGIN_SCALE_RAD)``
@@ -43,11 +53,7 @@ def range_margin(q, ranges: tuple[tuple[int, float, float], ...], temperature: f
     Args:
         q: (T, N) rad, the log's joint angles. ranges: [`finite_ranges()`][spacegrasp_jax.joint_limits.finite_ranges].
     """
-    index = np.asarray([joint for joint, _, _ in ranges])
-    low = jnp.asarray([low for _, low, _ in ranges])
-    high = jnp.asarray([high for _, _, high in ranges])
-    angles = jnp.asarray(q)[:, index]
-    excess = jnp.maximum(low - angles, angles - high) / RANGE_MARGIN_SCALE_RAD
+    excess = range_excess(q, ranges) / RANGE_MARGIN_SCALE_RAD
     smooth = temperature * jnp.log(jnp.sum(jnp.exp((excess - jnp.max(excess)) / temperature))) + jnp.max(excess)
     return jnp.exp(jnp.minimum(smooth, _MAX_LOG_MARGIN))
 

@@ -174,9 +174,7 @@ def _measure_of_log(log, measure: str, criteria: tuple) -> jax.Array:
     if torque_limit is not None:
         ratios.append(peak / torque_limit)
     if ranges:  # the hard excess, as the campaign's criterion: exp(excess / scale), 1 at a limit
-        index = np.asarray([joint for joint, _, _ in ranges])
-        low, high = (jnp.asarray([limits[k] for limits in ranges]) for k in (1, 2))
-        excess = jnp.max(jnp.maximum(low - log.q[:, index], log.q[:, index] - high))
+        excess = jnp.max(joint_limits.range_excess(log.q, ranges))
         ratios.append(jnp.exp(jnp.minimum(excess / joint_limits.RANGE_MARGIN_SCALE_RAD, 50.0)))
     return jnp.max(jnp.stack(ratios))
 

@@ -369,9 +369,7 @@ def scenario_parts(spec: RunSpec, gains: Gains, objective: Objective, key: jax.A
     parts = objective_parts(log, objective, free_target=spec.scenario.free_target)
     parts["largest_peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
     if objective.joint_ranges:  # the hard excess beyond the ranges (rad), for the held-out verdict
-        index = np.asarray([joint for joint, _, _ in objective.joint_ranges])
-        low, high = (jnp.asarray([limits[k] for limits in objective.joint_ranges]) for k in (1, 2))
-        parts["range_excess_rad"] = jnp.max(jnp.maximum(low - log.q[:, index], log.q[:, index] - high))
+        parts["range_excess_rad"] = jnp.max(joint_limits.range_excess(log.q, objective.joint_ranges))
     return parts
 
 
