@@ -200,6 +200,16 @@ def cases(paths, out):
             [*MONTECARLO, "--gains", p["no_Kd.json"], "--out", out],
             "no_Kd.json: Kd, K_lin, K_eul: missing",
         ),
+        "fill from without a file": (
+            [*SIMULATE, "--fill-from", "paper", "--out", out],
+            "--fill-from: completes a gains",
+        ),
+        "fill from with a shipped set": (
+            [*SIMULATE, "--gains", "flight", "--fill-from", "paper", "--out", out],
+            "--fill-from: completes a gains file given with --gains; flight's gains are whole",
+        ),
+        "montecarlo fill from without a file": ([*MONTECARLO, "--fill-from", "paper", "--out", out], "--fill-from:"),
+        "tune fill from without a file": ([*TUNE, "--fill-from", "paper", "--out", out], "--fill-from: completes a"),
         "fill from a missing file": (
             [*SIMULATE, "--gains", p["no_Kd.json"], "--fill-from", p["missing"], "--out", out],
             "missing.toml: no such file",

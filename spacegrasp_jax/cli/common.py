@@ -123,6 +123,10 @@ def _gains_option(value: str | None, args, robot, controller) -> sg.control.Gain
     """The gains ``--gains value`` names for ``controller`` (a law, several, or ``None``):
     the paper's by default, a shipped set by name, or a file whose missing groups come from
     ``--fill-from``."""
+    if getattr(args, "fill_from", None) is not None and (value is None or value in NAMED_GAINS):
+        raise UsageError(
+            f"--fill-from: completes a gains file given with --gains; {value or 'the paper'}'s gains are whole"
+        )
     if value is None or value == "paper":
         return _paper_gains_for(robot, controller if isinstance(controller, str) else None)
     if value in NAMED_GAINS:

@@ -66,6 +66,8 @@ def _montecarlo_variants(args: argparse.Namespace, robot) -> list[campaign.Varia
     controllers = PAPER_CONTROLLERS if args.controller == "both" else (args.controller,)
     n = n_joints(robot)
     papers = all(controller in PAPER_CONTROLLERS for controller in controllers)
+    if args.fill_from is not None and all(path in NAMED_GAINS for path in args.gains):
+        raise UsageError("--fill-from: completes a gains file given with --gains; the campaign's gain sets are whole")
     if not args.gains:
         _paper_gains_for(robot, None if papers else args.controller)
     gain_sets = [("paper", paper_gains())] if n == len(paper_gains().kp) and papers else []

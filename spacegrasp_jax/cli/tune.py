@@ -46,6 +46,7 @@ from spacegrasp_jax.cli.options import (
 )
 from spacegrasp_jax.control import (
     CONTROLLERS,
+    NAMED_GAINS,
 )
 from spacegrasp_jax.model import n_joints
 from spacegrasp_jax.realism import ideal, load_realism
@@ -89,6 +90,10 @@ def _tune(args: argparse.Namespace) -> int:
     _realism(args, scenario, robot)
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
+    if args.fill_from is not None and (args.gains is None or args.gains in NAMED_GAINS):
+        raise UsageError(
+            f"--fill-from: completes a gains file given with --gains; {args.gains or 'the paper'}'s gains are whole"
+        )
     try:
         start_gains(args.gains, args.controller, n_joints(robot), args.fill_from) if args.gains else None
     except TuneSetupError as error:
