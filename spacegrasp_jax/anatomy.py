@@ -64,8 +64,19 @@ def error_parts(final_metrics: dict, scenario, realism=None) -> dict[str, jax.Ar
 # ---- on the host ------------------------------------------------------------------------
 
 #: The failure classes, in the order a failed sample is assigned to the first that applies.
-#: ``joint_range``: a joint left its range (a robot without ranges, the paper's, never does).
-FAILURE_CLASSES = ("diverged", "runaway", "joint_range", "torque_limit", "position", "orientation", "target_speed")
+#: ``joint_range``: a joint left its range (a robot without ranges, the paper's, never does);
+#: ``joint_rate``: a joint turned faster than its rate limit, where the rate limits are criteria
+#: (a robot file's own; the paper's arm's assumed limits only detect runaways).
+FAILURE_CLASSES = (
+    "diverged",
+    "runaway",
+    "joint_range",
+    "joint_rate",
+    "torque_limit",
+    "position",
+    "orientation",
+    "target_speed",
+)
 
 
 def failure_classes(
@@ -74,8 +85,12 @@ def failure_classes(
     orientation_tolerance_rad: float,
     torque_limit_Nm: float | None = None,
     target_speed_limit_mps: float | None = None,
+    joint_rate_limits_radps: tuple[float, ...] | None = None,
 ) -> dict[str, np.ndarray]:
     """Which criteria each sample missed and by how much (NumPy).
+
+    ``joint_rate_limits_radps``: (N,) rad/s, each joint's rate limit as a criterion (the
+    samples' ``max_joint_rate_radps``, (n, N), against it); ``None``: rates are no criterion.
 
     Returns:
         ``failed_<class>`` (n,) bool for each of ``FAILURE_CLASSES`` (a sample can miss
@@ -84,7 +99,9 @@ def failure_classes(
         ``position_margin``, ``orientation_margin``, ``torque_margin`` (largest peak over
         ``torque_limit_Nm``; NaN without one), ``target_speed_margin`` (NaN without a
         free-floating target); and ``range_excess_rad``, the furthest any joint went beyond
-        its range (rad; above 0: missed; NaN for a robot without ranges).
+        its range (rad; above 0: missed; NaN for a robot without ranges); and
+        ``joint_rate_margin``, the largest peak joint rate over its limit (NaN without rate
+        limits).
     """
     position = np.asarray(sample_metrics["final_position_error_m"], dtype=float)
     n = position.size
@@ -107,11 +124,16 @@ def failure_classes(
     with warnings.catch_warnings():  # a robot without ranges: every joint's excess is NaN
         warnings.simplefilter("ignore", RuntimeWarning)
         range_excess = np.nanmax(excess, axis=1) if excess.size else nan
+    rate_margin = nan
+    if joint_rate_limits_radps is not None:
+        rates = np.asarray(sample_metrics["max_joint_rate_radps"], dtype=float).reshape(n, -1)
+        rate_margin = np.max(rates / np.asarray(joint_rate_limits_radps, dtype=float), axis=1)
     with np.errstate(invalid="ignore"):
         failed = {
             "diverged": diverged,
             "runaway": runaway & ~diverged,
             "joint_range": range_excess > 0.0,
+            "joint_rate": rate_margin > 1.0,
             "torque_limit": margins["torque_margin"] > 1.0,
             # A NaN error (diverged) is no position failure of its own.
             "position": margins["position_margin"] > 1.0,
@@ -122,6 +144,7 @@ def failure_classes(
     for name in reversed(FAILURE_CLASSES):
         failure[failed[name]] = name
     margins["range_excess_rad"] = range_excess
+    margins["joint_rate_margin"] = rate_margin
     return {f"failed_{name}": failed[name] for name in FAILURE_CLASSES} | {"failure": failure.astype(str)} | margins
 
 
@@ -179,7 +202,7 @@ def verdict_line(summary: dict, classes: dict[str, np.ndarray], tolerances: dict
     class, the numbers that decided it and the error's parts. ``summary``: the run's
     summary.json (metrics as floats and lists); ``classes``: [`failure_classes()`][spacegrasp_jax.anatomy.failure_classes] of it
     as a one-sample batch; ``tolerances``: ``final_position_m``, ``final_orientation_rad``,
-    ``torque_limit_Nm``, ``target_speed_mps``."""
+    ``torque_limit_Nm``, ``target_speed_mps``, ``joint_rate_radps``."""
     failure = str(classes["failure"][0])
     if failure == "success":
         return None
@@ -202,6 +225,11 @@ def verdict_line(summary: dict, classes: dict[str, np.ndarray], tolerances: dict
                 else ""
             )
         )
+    if "joint_rate" in missed and "runaway" not in missed:
+        rates = np.asarray(summary["max_joint_rate_radps"], dtype=float)
+        limits = np.asarray(tolerances["joint_rate_radps"], dtype=float)
+        joint = int(np.argmax(rates / limits))
+        numbers.append(f"joint {joint + 1} turned at {rates[joint]:.3g} rad/s > its limit {limits[joint]:g}")
     if "torque_limit" in missed and "runaway" not in missed:
         numbers.append(f"peak torque {summary['largest_peak_torque_Nm']:.3g} N m > {tolerances['torque_limit_Nm']:g}")
     if "position" in missed:

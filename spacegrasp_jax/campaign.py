@@ -77,6 +77,11 @@ class CampaignConfig:
         realism: the loop's realism ([`spacegrasp_jax.realism`][spacegrasp_jax.realism]; ``None``: the paper's).
         identified: tell the controller each sample's perturbed satellite (a perfectly
             identified plant); by default it believes the nominal robot.
+        joint_rate_limits_radps: (N,) rad/s, each joint's rate limit as a success criterion:
+            a sample whose peak |qd_i| exceeds it fails (``joint_rate``). ``None`` (the
+            default): rates are no criterion, only a runaway (ten times the robot's
+            ``joint_rate_limit``) fails. The commands set it to the robot's limits when a
+            robot file states them ([`rate_limits_stated()`][spacegrasp_jax.model.rate_limits_stated]).
     """
 
     n: int
@@ -92,6 +97,7 @@ class CampaignConfig:
     device_batch: int | None = None
     realism: Realism | None = None
     identified: bool = False
+    joint_rate_limits_radps: tuple[float, ...] | None = None
 
     def __post_init__(self):
         for name in ("n", "seed", "chunk"):
@@ -122,6 +128,20 @@ class CampaignConfig:
             raise CampaignError(f"device_batch: must be a positive integer or None, got {self.device_batch!r}")
         if not (math.isfinite(self.pinv_damping) and self.pinv_damping >= 0.0):
             raise CampaignError(f"pinv_damping: must be non-negative, got {self.pinv_damping}")
+        if self.joint_rate_limits_radps is not None:
+            limits = self.joint_rate_limits_radps
+            if not (
+                isinstance(limits, (tuple, list))
+                and limits
+                and all(
+                    isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0.0
+                    for x in limits
+                )
+            ):
+                raise CampaignError(
+                    f"joint_rate_limits_radps: must be positive finite numbers (rad/s, one a joint) or None, got {limits!r}"
+                )
+            object.__setattr__(self, "joint_rate_limits_radps", tuple(float(x) for x in limits))
 
     def to_dict(self) -> dict:
         fields = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}
@@ -254,6 +274,11 @@ def _record(config: CampaignConfig, variants, robot_source: str, scenario: Scena
     }
 
 
+#: CampaignConfig's fields added after campaigns were first recorded, and the values a
+#: record without them ran with.
+_ADDED_SETTINGS = {"joint_rate_limits_radps": None}
+
+
 def _check_resume(out: Path, record: dict, resume: bool, robot: Robot) -> None:
     path = out / "campaign.json"
     if not path.exists():
@@ -263,6 +288,8 @@ def _check_resume(out: Path, record: dict, resume: bool, robot: Robot) -> None:
             f"{out} already holds a campaign: pass --resume (resume=True) to continue it, or choose another output folder"
         )
     previous = json.loads(path.read_text())
+    # A campaign of an older version lacks the settings added since: it ran with their defaults.
+    previous["config"] = _ADDED_SETTINGS | previous.get("config", {})
     # The robot by what it is, not by the path it was read from (a resume from elsewhere
     # names the same file another way); a campaign of an older version, by its path.
     from spacegrasp_jax.model import load_robot, robot_to_toml
@@ -318,19 +345,23 @@ def classify(sample_metrics: dict[str, np.ndarray], config: CampaignConfig) -> d
         config.orientation_tolerance_rad,
         config.torque_limit_Nm,
         config.target_speed_limit_mps,
+        config.joint_rate_limits_radps,
     )
 
 
 def capture_criteria(config: CampaignConfig | None = None) -> dict:
     """A campaign's success criteria (``None``: the campaigns' defaults) as a run's
     ``summary.json`` names them: ``final_position_m``, ``final_orientation_rad``,
-    ``torque_limit_Nm``, ``target_speed_mps``."""
+    ``torque_limit_Nm``, ``target_speed_mps``, ``joint_rate_radps`` (a list, ``None``: rates
+    are no criterion)."""
     config = CampaignConfig(n=1) if config is None else config
+    rates = config.joint_rate_limits_radps
     return {
         "final_position_m": config.position_tolerance_m,
         "final_orientation_rad": config.orientation_tolerance_rad,
         "torque_limit_Nm": config.torque_limit_Nm,
         "target_speed_mps": config.target_speed_limit_mps,
+        "joint_rate_radps": None if rates is None else list(rates),
     }
 
 
@@ -367,7 +398,13 @@ def with_capture_verdict(summary: dict, config: CampaignConfig | None = None) ->
         "capture_missed": [name for name in anatomy.FAILURE_CLASSES if classes[f"failed_{name}"][0]],
         "capture_margins": {
             name: (None if not np.isfinite(classes[name][0]) else float(classes[name][0]))
-            for name in ("position_margin", "orientation_margin", "torque_margin", "target_speed_margin")
+            for name in (
+                "position_margin",
+                "orientation_margin",
+                "torque_margin",
+                "target_speed_margin",
+                "joint_rate_margin",
+            )
         },
         "final_error_parts_m": {
             name.removeprefix("final_error_").removesuffix("_m"): float(v[0]) for name, v in parts.items()
@@ -521,7 +558,13 @@ def run_campaign(
             multihost_utils.sync_global_devices("spacegrasp campaign: folder checked")
         if writer:
             if record["robot_file"]:
-                runfiles.write_robot(out, robot, robot_source, robot_links)
+                runfiles.write_robot(
+                    out,
+                    robot,
+                    robot_source,
+                    robot_links,
+                    rate_limits_stated=config.joint_rate_limits_radps is not None,
+                )
             runfiles.write_json(out / "campaign.json", record)
 
     starts = list(range(0, config.n, config.chunk))
@@ -629,6 +672,11 @@ def run_campaign(
             "final_orientation_rad": config.orientation_tolerance_rad,
             "torque_limit_Nm": config.torque_limit_Nm,
             **({"target_speed_mps": config.target_speed_limit_mps} if scenario.free_target else {}),
+            **(
+                {"joint_rate_radps": list(config.joint_rate_limits_radps)}
+                if config.joint_rate_limits_radps is not None
+                else {}
+            ),
         },
         "ranges": config.ranges.to_dict(),
         "realism": (config.realism or ideal()).to_dict(),

@@ -312,6 +312,7 @@ class Prober:
             config.orientation_tolerance_rad,
             config.torque_limit_Nm,
             config.target_speed_limit_mps,
+            config.joint_rate_limits_radps,
         )
         bounded = ~lost(sample_metrics)
         return sample_metrics | {"success": captured, "bounded": bounded}

@@ -370,11 +370,23 @@ def inertia_from_table(row) -> np.ndarray:
     return np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]], dtype=np.float64)
 
 
-def robot_to_toml(robot: Robot, comment: str = "") -> str:
+def robot_to_toml(robot: Robot, comment: str = "", *, rate_limits_stated: bool = True) -> str:
     """``robot`` as a robot TOML of its frames (``arm.frame_rotation``, ``arm.frame_position``)
     that [`load_robot()`][spacegrasp_jax.model.load_robot] reads back bit for bit: every field,
     each float written with the 17 digits that name it (``inf`` for an open joint range).
-    ``comment``: lines put at the top, each after ``#``. A run folder keeps its robot so."""
+    ``comment``: lines put at the top, each after ``#``. A run folder keeps its robot so.
+    ``rate_limits_stated=False`` leaves ``limits.joint_rate`` out (a comment line says it)
+    where they are the paper's assumed limits, which the file then takes by default: like the
+    file it came from, it does not make them success criteria
+    ([`rate_limits_stated()`][spacegrasp_jax.model.rate_limits_stated]). Other limits are
+    always written.
+    """
+    default = _DEFAULTS["joint_rate_limit"](n_joints(robot))
+    omit_rates = (
+        not rate_limits_stated
+        and default is not None
+        and np.array_equal(np.asarray(robot.joint_rate_limit), np.asarray(default))
+    )
 
     def value(array) -> str:
         array = np.asarray(array, dtype=np.float64)
@@ -386,7 +398,10 @@ def robot_to_toml(robot: Robot, comment: str = "") -> str:
     tables: dict[str, list[str]] = {}
     for field, (_, _, key) in _FIELDS.items():
         section, name = key.split(".")
-        tables.setdefault(section, []).append(f"{name} = {value(getattr(robot, field))}")
+        entry = f"{name} = {value(getattr(robot, field))}"
+        if field == "joint_rate_limit" and omit_rates:
+            entry = f"# {entry}: assumed (the default), not a success criterion"
+        tables.setdefault(section, []).append(entry)
     lines = [f"# {line}" if line else "#" for line in comment.splitlines()]
     for section, entries in tables.items():
         lines += ["", f"[{section}]", *entries]
@@ -431,6 +446,25 @@ def load_robot(
     return robot_from_text(
         read_text(path, RobotConfigError), source=str(path), mount=mount, base_link=base_link, tip_link=tip_link
     )
+
+
+def rate_limits_stated(path: str | Path) -> bool:
+    """Whether the robot file ``path`` (one [`load_robot()`][spacegrasp_jax.model.load_robot]
+    reads) states its joints' rate limits: a URDF does (``<limit velocity>`` is required), and
+    so does a mounting TOML (its URDF's, or its own ``[limits]``); a robot TOML does when it
+    gives ``limits.joint_rate``. Stated limits are the arm's own and success criteria; a
+    7-joint TOML without them takes the paper's arm's assumed ``PAPER_JOINT_RATE_LIMIT``,
+    which only detects runaways (the paper gives no rate limits).
+
+    Raises:
+        RobotConfigError: the file cannot be read or is not valid TOML.
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".urdf":
+        return True
+    document = parse_document(read_text(path, RobotConfigError), "toml", str(path), RobotConfigError)
+    limits = document.get("limits")
+    return "urdf" in document or (isinstance(limits, dict) and "joint_rate" in limits)
 
 
 def robot_from_text(

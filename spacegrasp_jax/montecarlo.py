@@ -233,14 +233,22 @@ def success(
     orientation_tolerance_rad: float,
     torque_limit_Nm: float | None = None,
     target_speed_limit_mps: float | None = None,
+    joint_rate_limits_radps: tuple[float, ...] | None = None,
 ):
     """(n,) bool: the sample did not diverge nor run away (``first_runaway_s``), its peak
     |u_i| stayed at or below ``torque_limit_Nm`` (N m; ``None``: no limit), it ended within
     both tolerances (relative to the LAR frame, moving or not) and, with a free-floating
     target (``sample_metrics`` holds ``final_target_speed_mps``), the target's final speed
-    is at most ``target_speed_limit_mps`` (m/s; ``None``: any) (NumPy). Which criterion a
-    failed sample missed: [`spacegrasp_jax.anatomy.failure_classes()`][spacegrasp_jax.anatomy.failure_classes]."""
+    is at most ``target_speed_limit_mps`` (m/s; ``None``: any), no joint left its range and,
+    with ``joint_rate_limits_radps`` ((N,) rad/s; ``None``: no criterion), no joint's peak
+    rate exceeded its limit (NumPy). Which criterion a failed sample missed:
+    [`spacegrasp_jax.anatomy.failure_classes()`][spacegrasp_jax.anatomy.failure_classes]."""
     classes = anatomy.failure_classes(
-        sample_metrics, position_tolerance_m, orientation_tolerance_rad, torque_limit_Nm, target_speed_limit_mps
+        sample_metrics,
+        position_tolerance_m,
+        orientation_tolerance_rad,
+        torque_limit_Nm,
+        target_speed_limit_mps,
+        joint_rate_limits_radps,
     )
     return classes["failure"] == "success"

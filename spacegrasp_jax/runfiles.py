@@ -184,17 +184,18 @@ def write_text(path: Path, text: str) -> None:
 ROBOT_FILE = "robot.toml"
 
 
-def write_robot(folder: Path, robot, source: str, links: dict | None = None) -> str:
+def write_robot(folder: Path, robot, source: str, links: dict | None = None, *, rate_limits_stated: bool = True) -> str:
     """Write ``robot`` to ``folder / ROBOT_FILE`` as a robot TOML that reads back bit for bit
     ([`robot_to_toml()`][spacegrasp_jax.model.robot_to_toml]), its first lines naming the file it
-    came from (``source``) and, for a URDF arm, its mount and links (``links``); returns the
+    came from (``source``) and, for a URDF arm, its mount and links (``links``); its rate
+    limits stated only where the run judged by them (``rate_limits_stated``). Returns the
     file's name, which the folder's record keeps."""
     from spacegrasp_jax.model import robot_to_toml
 
     said = ", ".join(f"{name} {value}" for name, value in (links or {}).items())
     comment = f"The robot of this run, read from {source}" + (f" ({said})" if said else "") + "."
     comment += "\nEvery field as the run used it; spacegrasp reads it with --robot."
-    write_text(folder / ROBOT_FILE, robot_to_toml(robot, comment))
+    write_text(folder / ROBOT_FILE, robot_to_toml(robot, comment, rate_limits_stated=rate_limits_stated))
     return ROBOT_FILE
 
 

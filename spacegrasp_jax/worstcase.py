@@ -66,8 +66,9 @@ MEASURES = {
     "criteria": (
         "",
         "the largest of final position error / tolerance, final orientation error / tolerance, "
-        "largest peak torque / torque limit and, for a robot with joint ranges, their margin "
-        "(exp(furthest excess beyond a range / 0.05 rad)): above 1, the capture fails",
+        "largest peak torque / torque limit, for a robot with joint ranges their margin "
+        "(exp(furthest excess beyond a range / 0.05 rad)) and, where rate limits are criteria, "
+        "the largest peak joint rate / its limit: above 1, the capture fails",
     ),
 }
 
@@ -147,7 +148,11 @@ def measure_of_metrics(sample_metrics: dict, measure: str, config: CampaignConfi
         values = np.asarray(sample_metrics["largest_peak_torque_Nm"], dtype=float)
     else:
         margins = anatomy.failure_classes(
-            sample_metrics, config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm
+            sample_metrics,
+            config.position_tolerance_m,
+            config.orientation_tolerance_rad,
+            config.torque_limit_Nm,
+            joint_rate_limits_radps=config.joint_rate_limits_radps,
         )
         parts = [margins["position_margin"], margins["orientation_margin"]]
         if config.torque_limit_Nm is not None:
@@ -156,12 +161,14 @@ def measure_of_metrics(sample_metrics: dict, measure: str, config: CampaignConfi
         if np.isfinite(excess).any():  # a robot with joint ranges
             with np.errstate(over="ignore"):
                 parts.append(np.exp(excess / joint_limits.RANGE_MARGIN_SCALE_RAD))
+        if config.joint_rate_limits_radps is not None:
+            parts.append(margins["joint_rate_margin"])
         values = np.max(np.stack(parts), axis=0)
     return np.where(lost(sample_metrics) | ~np.isfinite(values), np.inf, values)
 
 
 def _measure_of_log(log, measure: str, criteria: tuple) -> jax.Array:
-    position_tolerance, orientation_tolerance, torque_limit, ranges = criteria
+    position_tolerance, orientation_tolerance, torque_limit, ranges, rate_limits = criteria
     if measure == "final_error":
         return metrics.final_position_error(log)
     peak = jnp.max(jnp.abs(log.u))
@@ -176,6 +183,8 @@ def _measure_of_log(log, measure: str, criteria: tuple) -> jax.Array:
     if ranges:  # the hard excess, as the campaign's criterion: exp(excess / scale), 1 at a limit
         excess = jnp.max(joint_limits.range_excess(log.q, ranges))
         ratios.append(jnp.exp(jnp.minimum(excess / joint_limits.RANGE_MARGIN_SCALE_RAD, 50.0)))
+    if rate_limits is not None:
+        ratios.append(jnp.max(jnp.abs(log.qd) / jnp.asarray(rate_limits)))
     return jnp.max(jnp.stack(ratios))
 
 
@@ -303,6 +312,7 @@ def search(
             config.orientation_tolerance_rad,
             config.torque_limit_Nm,
             joint_limits.finite_ranges(robot),
+            config.joint_rate_limits_radps,
         ),
         identified=config.identified,
     )

@@ -1,6 +1,7 @@
-"""Joint ranges as success criteria, on hand-made logs: the campaigns' metric and failure class,
-the capture objective's margin and the worst-case measure, each against the excess worked out
-by hand; and the paper's arm, which has no ranges, judged exactly as before."""
+"""Joint ranges and stated rate limits as success criteria, on hand-made logs: the campaigns'
+metric and failure class, the capture objective's margin and the worst-case measure, each
+against the excess or ratio worked out by hand; and the paper's arm, which has no ranges and
+whose assumed rate limits are no criterion, judged exactly as before."""
 
 from __future__ import annotations
 
@@ -108,7 +109,111 @@ def test_the_worst_case_criteria_measure_counts_a_joint_range():
     sample["max_range_excess_rad"] = np.array([[np.nan, np.nan, 0.1, np.nan, np.nan, np.nan, np.nan]])
     assert worstcase.measure_of_metrics(sample, "criteria", config)[0] == pytest.approx(math.exp(0.1 / 0.05))
     ranges = joint_limits.finite_ranges(ranged_robot())
-    criteria = (config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm, ranges)
+    criteria = (config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm, ranges, None)
     log = swinging_log(1.1)
     measured = float(worstcase._measure_of_log(log, "criteria", criteria))
     assert measured == pytest.approx(math.exp((np.max(np.asarray(log.q)[:, 2]) - 1.0) / 0.05), rel=1e-12)
+
+
+# ---- rate limits ----------------------------------------------------------------------------
+
+RATES = (0.5,) * 7
+
+
+def turning_log(peak_radps: float, n: int = 41):
+    """Joint 5 turns at up to ``peak_radps`` (a sine arch of rate), the others still; EE on target."""
+    t = np.arange(n) * 0.01
+    qd = np.zeros((n, 7))
+    qd[:, 4] = peak_radps * np.sin(np.pi * t / t[-1])
+    return log_of(t, qd=qd)
+
+
+def rate_sample(peaks) -> dict:
+    """One sample's campaign metrics: a clean capture with the joints' peak rates ``peaks``."""
+    return {
+        "final_position_error_m": np.array([0.001]),
+        "final_orientation_error_rad": np.array([0.001]),
+        "largest_peak_torque_Nm": np.array([1.0]),
+        "first_nonfinite_s": np.array([np.nan]),
+        "first_runaway_s": np.array([np.nan]),
+        "max_joint_rate_radps": np.asarray([peaks], dtype=float),
+    }
+
+
+def test_a_joint_faster_than_a_stated_rate_limit_fails_the_capture_and_the_verdict_says_which():
+    peaks = [0.1, 0.2, 0.3, 0.4, 0.9, 0.3, 0.2]  # joint 5 at 0.9 rad/s against 0.5
+    config = campaign.CampaignConfig(n=1, joint_rate_limits_radps=RATES)
+    classes = campaign.classify(rate_sample(peaks), config)
+    assert classes["failure"][0] == "joint_rate" and classes["joint_rate_margin"][0] == pytest.approx(0.9 / 0.5)
+    summary = {
+        "final_position_error_m": 0.001,
+        "final_orientation_error_rad": 0.001,
+        "largest_peak_torque_Nm": 1.0,
+        "first_nonfinite_s": None,
+        "max_joint_rate_radps": peaks,
+    }
+    line = anatomy.verdict_line(summary, classes, campaign.capture_criteria(config))
+    assert line == "capture failed (joint_rate): joint 5 turned at 0.9 rad/s > its limit 0.5"
+    # Without stated limits (the paper's arm), the same sample is a capture, as before.
+    plain = campaign.classify(rate_sample(peaks), campaign.CampaignConfig(n=1))
+    assert plain["failure"][0] == "success" and np.isnan(plain["joint_rate_margin"][0])
+    assert campaign.capture_criteria()["joint_rate_radps"] is None
+    # Within the limits, a capture; a runaway (ten times the robot's limit) stays a runaway.
+    assert campaign.classify(rate_sample([0.49] * 7), config)["failure"][0] == "success"
+    runaway = rate_sample([9.0] * 7) | {"first_runaway_s": np.array([1.0])}
+    assert campaign.classify(runaway, config)["failure"][0] == "runaway"
+
+
+@pytest.mark.parametrize("limits", [(), (0.5, -1.0), (0.5, math.inf), ("fast",), (True,)])
+def test_rate_limits_as_criteria_must_be_positive_finite_numbers(limits):
+    with pytest.raises(campaign.CampaignError, match="joint_rate_limits_radps"):
+        campaign.CampaignConfig(n=1, joint_rate_limits_radps=limits)
+
+
+def test_the_capture_objective_counts_a_stated_rate_limit_as_a_margin():
+    """The margin is a smooth upper bound of the hard largest |qd_i| / limit_i (within the
+    smooth maximum's T log(entries)); without rate limits the objective is as before."""
+    objective = Objective(Weights(), (1.0,) * 7, kind="capture", torque_limit_Nm=LIMITS, joint_rate_limits=RATES)
+    plain = dataclasses.replace(objective, joint_rate_limits=())
+    fast, slow = turning_log(0.9), turning_log(0.01)  # slow: 2% of the limit, far below the other margins
+    parts_fast = objective_parts(fast, objective, free_target=False)
+    hard = np.max(np.abs(np.asarray(fast.qd)) / np.asarray(RATES))
+    assert hard == pytest.approx(1.8, rel=1e-12)
+    assert hard <= float(parts_fast["joint_rate_margin"]) <= hard + 0.02 * math.log(41 * 7) + 1e-12
+    assert float(parts_fast["capture_loss"]) > float(objective_parts(fast, plain, free_target=False)["capture_loss"])
+    assert "joint_rate_margin" not in objective_parts(fast, plain, free_target=False)
+    parts_slow = objective_parts(slow, objective, free_target=False)  # well inside: the loss stays ~0
+    assert float(parts_slow["joint_rate_margin"]) < 0.2 and float(parts_slow["capture_loss"]) < 1e-9
+    with pytest.raises(ValueError, match="joint_rate_limits"):
+        Objective(Weights(), (1.0,) * 7, kind="capture", torque_limit_Nm=LIMITS, joint_rate_limits=(0.5,) * 6)
+
+
+def test_a_tuning_run_judges_its_held_out_captures_by_the_stated_rate_limits():
+    from spacegrasp_jax.tuning.run import captured
+    from spacegrasp_jax.tuning.tune import TuneConfig, make_objective
+
+    parts = {
+        "final_position_m": np.array([0.001, 0.001]),
+        "final_orientation_rad": np.array([0.001, 0.001]),
+        "largest_peak_torque_Nm": np.array([1.0, 1.0]),
+        "loss": np.array([0.0, 0.0]),
+    }
+    assert captured(parts).tolist() == [True, True]
+    assert captured(parts | {"joint_rate_ratio": np.array([0.9, 1.2])}).tolist() == [True, False]
+    config = TuneConfig(joint_rate_limits_radps=[0.5] * 7)
+    assert config.joint_rate_limits_radps == RATES
+    assert make_objective(sg.paper_robot(), config, (1.0,) * 7).joint_rate_limits == RATES
+    assert make_objective(sg.paper_robot(), TuneConfig(), (1.0,) * 7).joint_rate_limits == ()
+    with pytest.raises(ValueError, match="joint_rate_limits_radps"):
+        TuneConfig(joint_rate_limits_radps=(0.5, 0.0))
+
+
+def test_the_worst_case_criteria_measure_counts_a_stated_rate_limit():
+    sample = rate_sample([0.1, 0.2, 0.3, 0.4, 0.9, 0.3, 0.2])
+    plain = campaign.CampaignConfig(n=1)
+    assert worstcase.measure_of_metrics(sample, "criteria", plain)[0] == pytest.approx(0.2)  # 1 mm of 5
+    config = campaign.CampaignConfig(n=1, joint_rate_limits_radps=RATES)
+    assert worstcase.measure_of_metrics(sample, "criteria", config)[0] == pytest.approx(1.8)
+    criteria = (config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm, (), RATES)
+    log = turning_log(0.9)
+    assert float(worstcase._measure_of_log(log, "criteria", criteria)) == pytest.approx(1.8, rel=1e-12)

@@ -310,3 +310,55 @@ def test_a_campaign_and_a_tuning_run_of_an_arm_move_and_go_on(tmp_path, capsys, 
         capsys.readouterr().err
     )
     assert "resuming after generation 1/2" in capsys.readouterr().err
+
+
+def test_rate_limits_are_criteria_where_a_robot_file_states_them(tmp_path):
+    """A URDF and a mounting TOML state rate limits (a URDF's <limit velocity> is required), a
+    robot TOML when it gives limits.joint_rate; the paper's robot TOML gives none, and reads
+    back as the paper's robot with its assumed limits. A run folder keeps a robot without
+    stated limits without them, bit for bit."""
+    from spacegrasp_jax.model import rate_limits_stated
+
+    assert rate_limits_stated(ARMS / "xarm7.urdf") and rate_limits_stated(CONFIGS / "ur5_on_satellite.toml")
+    assert not rate_limits_stated(CONFIGS / "paper_robot.toml")
+    stated = tmp_path / "stated.toml"
+    stated.write_text((CONFIGS / "paper_robot.toml").read_text() + "joint_rate = [0.2, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2]\n")
+    assert rate_limits_stated(stated)
+    assert np.asarray(load_robot(stated).joint_rate_limit).tolist() == [0.2] * 7
+    paper = sg.paper_robot()
+    text = robot_to_toml(paper, rate_limits_stated=False)
+    assert "\njoint_rate =" not in text and robot_to_toml(robot_from_toml(text)) == robot_to_toml(paper)
+    kept = tmp_path / "kept.toml"
+    kept.write_text(text)
+    assert not rate_limits_stated(kept)
+    # Rate limits other than the assumed ones are always written: the file must read back the same.
+    assert "\njoint_rate =" in robot_to_toml(load_robot(stated), rate_limits_stated=False)
+
+
+def test_a_simulate_run_fails_a_joint_faster_than_its_files_rate_limit(tmp_path, capsys, monkeypatch):
+    """The paper's arm with rate limits of 0.2 rad/s stated in its robot TOML, 1 s of the
+    Cartesian law: the verdict is joint_rate, naming the joint whose peak rate (read from the
+    log) is the largest over its limit; the same arm from the paper's robot TOML (no stated
+    rates) is judged as before, by its final errors."""
+    monkeypatch.chdir(tmp_path)
+    Path("short.toml").write_text("duration = 1.0\n[trajectory]\nduration = 1.0\n")
+    Path("tight.toml").write_text(
+        (CONFIGS / "paper_robot.toml").read_text() + "joint_rate = [0.2, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2]\n"
+    )
+    run = ["simulate", "--compile-cache", "none", "--controller", "cartesian", "--scenario", "short.toml"]
+    assert cli.main([*run, "--robot", "tight.toml", "--out", "tight"]) == 0
+    out = capsys.readouterr().out
+    with np.load("tight/timeseries_cartesian.npz") as log:
+        peaks = np.max(np.abs(log["qd"]), axis=0)
+    joint = int(np.argmax(peaks)) + 1
+    assert f"capture failed (joint_rate): joint {joint} turned at {peaks[joint - 1]:.3g} rad/s > its limit 0.2" in out
+    summary = json.loads(Path("tight/summary.json").read_text())["cartesian"]
+    assert summary["capture_failure"] == "joint_rate"
+    assert summary["capture_criteria"]["joint_rate_radps"] == [0.2] * 7
+    assert summary["capture_margins"]["joint_rate_margin"] == pytest.approx(np.max(peaks) / 0.2, rel=1e-12)
+    assert "\njoint_rate = " in Path("tight/robot.toml").read_text()  # the folder's robot judges the same
+    assert cli.main([*run, "--robot", str(CONFIGS / "paper_robot.toml"), "--out", "paper"]) == 0
+    summary = json.loads(Path("paper/summary.json").read_text())["cartesian"]
+    assert summary["capture_failure"] == "position" and "joint_rate" not in summary["capture_missed"]
+    assert summary["capture_criteria"]["joint_rate_radps"] is None
+    assert summary["capture_margins"]["joint_rate_margin"] is None

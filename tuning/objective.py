@@ -4,8 +4,10 @@
 margin, the value over its tolerance (above 1: the capture fails; the campaigns' criteria,
 [`spacegrasp_jax.anatomy`][spacegrasp_jax.anatomy]): ``m_p = e_p / 5 mm``, ``m_o = e_o / 1 deg``, the torque
 ``m_u = smoothmax_{t, i} |u_i(t)| / limit_i`` against the motors' limits (the robot's
-``joint_torque_limit``: torque is a constraint, not a cost) and, with a free-floating
-target, ``m_v = |v_target(T)| / 5 mm/s``. With the worst margin in log units
+``joint_torque_limit``: torque is a constraint, not a cost), with a free-floating
+target ``m_v = |v_target(T)| / 5 mm/s``, for a robot with joint ranges their margin, and
+where rate limits are criteria ``m_r = smoothmax_{t, i} |qd_i(t)| / rate_limit_i``. With
+the worst margin in log units
 
     w = S log sum_c exp(log(m_c) / S)          (a smooth maximum, S = 0.05)
 
@@ -131,6 +133,9 @@ class Objective:
             ([`finite_ranges()`][spacegrasp_jax.joint_limits.finite_ranges]): each is a margin of
             the ``capture`` objective ([`range_margin()`][spacegrasp_jax.joint_limits.range_margin]);
             empty (the paper's arm): none.
+        joint_rate_limits: (N,) rad/s, each joint's rate limit as a criterion, static: the
+            ``capture`` objective's ``joint_rate_margin``, the smooth largest |qd_i| over its
+            limit (as the torque margin); empty (the default, and the paper's arm): none.
     """
 
     weights: Weights
@@ -150,6 +155,7 @@ class Objective:
     hinge_width: float = 0.1
     margin_temperature: float = 0.05
     joint_ranges: tuple = dataclasses.field(default=(), metadata=dict(static=True))
+    joint_rate_limits: tuple = dataclasses.field(default=(), metadata=dict(static=True))
 
     def __post_init__(self):
         if self.kind not in OBJECTIVES:
@@ -162,6 +168,10 @@ class Objective:
             raise ValueError(f"torque_scale_Nm: need one positive number a joint, got {self.torque_scale_Nm}")
         if len(self.torque_limit_Nm) != n or min(self.torque_limit_Nm) <= 0.0:
             raise ValueError(f"torque_limit_Nm: need {n} positive numbers (one a joint), got {self.torque_limit_Nm}")
+        if self.joint_rate_limits and (len(self.joint_rate_limits) != n or min(self.joint_rate_limits) <= 0.0):
+            raise ValueError(
+                f"joint_rate_limits: need {n} positive numbers (one a joint) or none, got {self.joint_rate_limits}"
+            )
         if not self.temperature > 0.0:
             raise ValueError(f"temperature: must be positive, got {self.temperature}")
         if not 0.0 <= self.safety < 1.0:
@@ -189,8 +199,9 @@ def capture_margins(
     """The ``capture`` objective's margins (value over tolerance; above 1 the capture
     fails) from the ``weighted`` parts and the log: ``position_margin``,
     ``orientation_margin``, ``torque_margin`` (smooth), with ``free_target`` (static:
-    the scenario's target floats free) ``target_speed_margin``, and for a robot with joint
-    ranges (``objective.joint_ranges``) ``joint_range_margin``."""
+    the scenario's target floats free) ``target_speed_margin``, for a robot with joint
+    ranges (``objective.joint_ranges``) ``joint_range_margin``, and where rate limits are
+    criteria (``objective.joint_rate_limits``) ``joint_rate_margin``."""
     torque_ratio = jnp.abs(log.u) / jnp.asarray(objective.torque_limit_Nm)
     margins = {
         "position_margin": (parts["final_position_m"] + _LOG_FLOOR) / objective.position_tolerance_m,
@@ -202,6 +213,9 @@ def capture_margins(
         margins["target_speed_margin"] = (speed + _LOG_FLOOR) / objective.target_speed_limit_mps
     if objective.joint_ranges:
         margins["joint_range_margin"] = joint_limits.range_margin(log.q, objective.joint_ranges, objective.temperature)
+    if objective.joint_rate_limits:
+        rate_ratio = jnp.abs(log.qd) / jnp.asarray(objective.joint_rate_limits)
+        margins["joint_rate_margin"] = smooth_max(rate_ratio, objective.temperature)
     return margins
 
 

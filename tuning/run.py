@@ -266,8 +266,9 @@ def _write_history(path: Path, history: list) -> None:
 def captured(parts: dict) -> np.ndarray:
     """(n,) bool: each held-out sample's capture by the campaigns' default criteria
     ([`success()`][spacegrasp_jax.montecarlo.success] with
-    [`CampaignConfig`][spacegrasp_jax.campaign.CampaignConfig]'s tolerances), from the
-    objective's parts; a sample whose objective is not finite diverged."""
+    [`CampaignConfig`][spacegrasp_jax.campaign.CampaignConfig]'s tolerances, and the rate
+    limits where the objective has them), from the objective's parts; a sample whose
+    objective is not finite diverged."""
     criteria = campaign.CampaignConfig(n=1)
     sample_metrics = {
         "final_position_error_m": parts["final_position_m"],
@@ -279,6 +280,10 @@ def captured(parts: dict) -> np.ndarray:
         sample_metrics["final_target_speed_mps"] = parts["final_target_speed_mps"]
     if "range_excess_rad" in parts:
         sample_metrics["max_range_excess_rad"] = np.asarray(parts["range_excess_rad"])[:, None]
+    rate_limits = None
+    if "joint_rate_ratio" in parts:  # the peak rate over its limit: judged against a limit of 1
+        sample_metrics["max_joint_rate_radps"] = np.asarray(parts["joint_rate_ratio"])[:, None]
+        rate_limits = (1.0,)
     return np.asarray(
         success(
             sample_metrics,
@@ -286,6 +291,7 @@ def captured(parts: dict) -> np.ndarray:
             criteria.orientation_tolerance_rad,
             criteria.torque_limit_Nm,
             criteria.target_speed_limit_mps,
+            rate_limits,
         ),
         dtype=bool,
     )

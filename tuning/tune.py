@@ -136,6 +136,10 @@ class TuneConfig:
             has not improved for ``patience`` steps; ``keep="best"`` then hands back the
             gains of the best validation objective instead of the best training one.
         validation_size: the validation set's captures (with ``patience`` only).
+        joint_rate_limits_radps: (N,) rad/s, each joint's rate limit as a success criterion:
+            a margin of the capture objective and a criterion of the held-out verdict
+            (``None``, the default: none, as for the paper's arm, whose limits are assumed;
+            ``spacegrasp tune`` sets it to a robot file's own limits).
     """
 
     controller: str = "admittance"
@@ -165,6 +169,7 @@ class TuneConfig:
     keep: str = "best"
     patience: int | None = None
     validation_size: int = 32
+    joint_rate_limits_radps: tuple[float, ...] | None = None
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
@@ -245,6 +250,13 @@ class TuneConfig:
             raise ValueError(f"validation_size: must be at least 1 capture, got {self.validation_size}")
         if self.patience is None and self.validation_size != 32:
             raise ValueError("validation_size: the validation set of early stopping (choose --patience)")
+        if self.joint_rate_limits_radps is not None:
+            limits = tuple(self.joint_rate_limits_radps)
+            if not (limits and all(math.isfinite(x) and x > 0.0 for x in limits)):
+                raise ValueError(
+                    f"joint_rate_limits_radps: must be positive finite numbers (rad/s, one a joint) or None, got {limits}"
+                )
+            object.__setattr__(self, "joint_rate_limits_radps", tuple(float(x) for x in limits))
         if self.keep not in KEEPS:
             raise ValueError(f"keep: expected one of {', '.join(KEEPS)}, got {self.keep!r}")
         if self.fresh_batches and self.realism is None:
@@ -361,8 +373,9 @@ def training_scenarios(nominal: Scenario, config: TuneConfig) -> Scenario:
 
 def scenario_parts(spec: RunSpec, gains: Gains, objective: Objective, key: jax.Array | None = None) -> dict:
     """Every part of the objective on the run ``spec`` ([`objective_parts()`][tuning.objective.objective_parts]),
-    plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m), and for a robot with
-    joint ranges ``range_excess_rad``, the furthest a joint went beyond one. ``spec`` keeps the
+    plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m), for a robot with
+    joint ranges ``range_excess_rad``, the furthest a joint went beyond one, and where rate
+    limits are criteria ``joint_rate_ratio``, the largest peak |qd_i| over its limit. ``spec`` keeps the
     whole log ([`objective_spec()`][tuning.tune.objective_spec]); ``key``: the sensors' noise key of a
     flight-like loop."""
     _, log = closed_loop(spec, gains, key)
@@ -370,6 +383,8 @@ def scenario_parts(spec: RunSpec, gains: Gains, objective: Objective, key: jax.A
     parts["largest_peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
     if objective.joint_ranges:  # the hard excess beyond the ranges (rad), for the held-out verdict
         parts["range_excess_rad"] = jnp.max(joint_limits.range_excess(log.q, objective.joint_ranges))
+    if objective.joint_rate_limits:  # the hard peak rate over its limit, for the held-out verdict
+        parts["joint_rate_ratio"] = jnp.max(jnp.abs(log.qd) / jnp.asarray(objective.joint_rate_limits))
     return parts
 
 
@@ -809,8 +824,8 @@ def optimise(
 
 
 def make_objective(robot: Robot, config: TuneConfig, torque_scale_Nm) -> Objective:
-    """The run's objective: ``config.objective`` with the ``weighted`` one's torque scale
-    and the robot's motor limits and joint ranges."""
+    """The run's objective: ``config.objective`` with the ``weighted`` one's torque scale,
+    the robot's motor limits and joint ranges, and the rate limits of ``config``."""
     return Objective(
         weights=config.weights,
         torque_scale_Nm=tuple(float(x) for x in torque_scale_Nm),
@@ -818,6 +833,7 @@ def make_objective(robot: Robot, config: TuneConfig, torque_scale_Nm) -> Objecti
         kind=config.objective,
         torque_limit_Nm=torque_constraint_Nm(robot, config),
         joint_ranges=joint_limits.finite_ranges(robot),
+        joint_rate_limits=config.joint_rate_limits_radps or (),
     )
 
 

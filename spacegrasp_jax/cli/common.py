@@ -34,7 +34,7 @@ from spacegrasp_jax.control import (
     named_gains,
     paper_gains,
 )
-from spacegrasp_jax.model import n_joints
+from spacegrasp_jax.model import n_joints, rate_limits_stated
 from spacegrasp_jax.perturbations import (
     PerturbationRanges,
     load_ranges,
@@ -229,9 +229,23 @@ def _check_envelope(args: argparse.Namespace, scenario) -> None:
         )
 
 
-def _criteria(args: argparse.Namespace, **fields) -> campaign.CampaignConfig:
-    """The campaign's settings with the capture criteria of ``_add_criteria_options()``; the
-    law's damping checked (``--pinv-damping``) before anything compiles."""
+def _rate_criterion(args: argparse.Namespace, robot) -> tuple[float, ...] | None:
+    """``robot``'s joint rate limits (rad/s) as a success criterion where ``--robot``'s file
+    states them (``model.rate_limits_stated()``); ``None`` for the paper's arm, whose rate
+    limits are assumed and only detect runaways."""
+    if not args.robot:
+        return None
+    try:
+        stated = rate_limits_stated(args.robot)
+    except sg.RobotConfigError as error:
+        raise UsageError(str(error)) from None
+    return tuple(float(x) for x in robot.joint_rate_limit) if stated else None
+
+
+def _criteria(args: argparse.Namespace, robot, **fields) -> campaign.CampaignConfig:
+    """The campaign's settings with the capture criteria of ``_add_criteria_options()`` and
+    ``robot``'s stated rate limits (``_rate_criterion()``); the law's damping checked
+    (``--pinv-damping``) before anything compiles."""
     if args.controller != "both":
         _law(args.controller, args)
     try:
@@ -242,6 +256,7 @@ def _criteria(args: argparse.Namespace, **fields) -> campaign.CampaignConfig:
             target_speed_limit_mps=args.target_speed_limit,
             pinv_damping=args.pinv_damping,
             identified=args.identified,
+            joint_rate_limits_radps=_rate_criterion(args, robot),
             **fields,
         )
     except campaign.CampaignError as error:

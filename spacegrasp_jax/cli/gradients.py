@@ -16,7 +16,16 @@ from spacegrasp_jax import (
     plausibility,
     runfiles,
 )
-from spacegrasp_jax.cli.common import _check_envelope, _claim, _law, _load_inputs, _ranges, _realism, _warn
+from spacegrasp_jax.cli.common import (
+    _check_envelope,
+    _claim,
+    _law,
+    _load_inputs,
+    _ranges,
+    _rate_criterion,
+    _realism,
+    _warn,
+)
 from spacegrasp_jax.cli.options import (
     _SEED,
     UsageError,
@@ -64,6 +73,7 @@ def _gradients(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise tune_setting_error(error) from None
     robot, scenario, gains = _load_inputs(args)
+    config = dataclasses.replace(config, joint_rate_limits_radps=_rate_criterion(args, robot))
     try:
         config.weights.check_target(scenario.free_target)
     except ValueError as error:

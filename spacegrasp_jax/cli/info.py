@@ -15,7 +15,7 @@ from spacegrasp_jax import (
     spatial,
     urdf,
 )
-from spacegrasp_jax.cli.common import _load_robot, _warn
+from spacegrasp_jax.cli.common import _load_robot, _rate_criterion, _warn
 from spacegrasp_jax.cli.options import UsageError, _add_command, add_robot_arguments
 from spacegrasp_jax.model import body_inertials, n_joints
 from spacegrasp_jax.scenario import load_scenario
@@ -71,6 +71,10 @@ def _info(args: argparse.Namespace) -> int:
             f"{float(robot.joint_torque_limit[i]):>18.4g}"
         )
     print(f"(link {n}'s mass includes the end-effector's and everything fixed to it)")
+    if _rate_criterion(args, robot) is None:
+        print("rate limits: assumed (no robot file states them): only ten times them fails a capture, as a runaway")
+    else:
+        print("rate limits: the file's own: a capture in which a joint turns faster fails (joint_rate)")
     print(
         f"configuration: {where} = {np.round(np.asarray(q), 6).tolist()} rad, satellite CoM at the origin, identity attitude"
     )

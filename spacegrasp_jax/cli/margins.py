@@ -63,7 +63,7 @@ def _margins(args: argparse.Namespace) -> int:
         raise UsageError(str(error)) from None
     robot, scenario, gains = _load_inputs(args)
     realism = _realism(args, scenario, robot)
-    config = _criteria(args, n=args.samples, seed=args.seed, ranges=ranges, realism=realism)
+    config = _criteria(args, robot, n=args.samples, seed=args.seed, ranges=ranges, realism=realism)
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
     out = Path(args.out)

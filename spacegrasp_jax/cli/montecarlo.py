@@ -94,6 +94,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
         chunk = batching.chunk_size(args.chunk, args.n)
         config = _criteria(
             args,
+            robot,
             n=args.n,
             seed=args.seed,
             chunk=chunk,

@@ -30,6 +30,7 @@ from spacegrasp_jax.cli.common import (
     _perturbed,
     _print_capture_verdicts,
     _print_table,
+    _rate_criterion,
     _realism,
     _robot_links,
     _run_caption,
@@ -60,6 +61,8 @@ from spacegrasp_jax.simulate import RunSpec
 
 def _run_controllers(args, controllers) -> int:
     robot, scenario, gains = _load_inputs(args)
+    rate_limits = _rate_criterion(args, robot)
+    criteria = None if rate_limits is None else campaign.CampaignConfig(n=1, joint_rate_limits_radps=rate_limits)
     laws = {controller: _law(controller, args) for controller in controllers}
     realism = _realism(args, scenario, robot)
     _warn(plausibility.input_warnings(scenario))
@@ -83,7 +86,7 @@ def _run_controllers(args, controllers) -> int:
             results[controller] = error.result
             diverged.append(error)
     _print_table(results, beside_paper=_is_papers_run(args))
-    failed_captures = _print_capture_verdicts(results)
+    failed_captures = _print_capture_verdicts(results, criteria)
     for controller, result in results.items():
         _warn(plausibility.result_warnings(result.summary), f"{controller}: ")
     config = experiment.run_config(
@@ -99,7 +102,9 @@ def _run_controllers(args, controllers) -> int:
         source = args.robot or "paper_robot()"
         if getattr(args, "perturbation", None):
             source += f", perturbed as {args.perturbation} says"
-        config["robot_file"] = runfiles.write_robot(out, robot, source, _robot_links(args))
+        config["robot_file"] = runfiles.write_robot(
+            out, robot, source, _robot_links(args), rate_limits_stated=rate_limits is not None
+        )
     config |= _keep_inputs(args, out, gains, realism, controllers)
     _write_results(
         out,
@@ -113,6 +118,7 @@ def _run_controllers(args, controllers) -> int:
         ),
         torque_limit_Nm=np.asarray(robot.joint_torque_limit),
         csv=args.csv,
+        criteria=criteria,
     )
     print(
         f"wrote {out}/: table5.csv, summary.json, figures, timeseries_*.npz{', .csv' if args.csv else ''}, config.json"

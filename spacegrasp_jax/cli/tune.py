@@ -23,6 +23,7 @@ from spacegrasp_jax.cli.common import (
     _load_robot,
     _paper_gains_for,
     _ranges,
+    _rate_criterion,
     _realism,
     _robot_links,
     _run_caption,
@@ -285,6 +286,7 @@ def _tune_fields(args: argparse.Namespace, robot) -> dict:
         keep=args.keep,
         patience=args.patience,
         validation_size=args.validation_size,
+        joint_rate_limits_radps=_rate_criterion(args, robot),
     )
 
 

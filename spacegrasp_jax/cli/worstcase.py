@@ -64,7 +64,7 @@ def _worstcase(args: argparse.Namespace) -> int:
         raise UsageError(str(error)) from None
     robot, scenario, gains = _load_inputs(args)
     realism = _realism(args, scenario, robot)
-    config = _criteria(args, n=1, seed=args.seed, ranges=ranges, realism=realism)
+    config = _criteria(args, robot, n=1, seed=args.seed, ranges=ranges, realism=realism)
     if args.measure == "criteria" and config.torque_limit_Nm is None:
         _warn(["--measure criteria with --torque-limit 0: the peak torque is not among the criteria"])
     _warn(plausibility.input_warnings(scenario))
