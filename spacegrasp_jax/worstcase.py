@@ -41,7 +41,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax import anatomy, batching, compilation, joint_limits, metrics
-from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, compiled_chunk, evaluate_indices
+from spacegrasp_jax.campaign import (
+    CampaignConfig,
+    CampaignError,
+    Variant,
+    compiled_chunk,
+    evaluate_indices,
+    variant_spec,
+)
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import law_named
 from spacegrasp_jax.inputs import read_document, short
@@ -75,9 +82,17 @@ MEASURES = {
 #: Rollouts one point of the ascent is counted as: its value and reverse-mode gradient.
 GRADIENT_COST = 4
 
+#: The fewest samples of a generation of the cross-entropy search.
+CEM_MIN_GENERATION = 8
+
 
 class WorstCaseError(ValueError):
     """An invalid worst-case setting; names the cause."""
+
+
+#: How a search spends its budget after the screening (module docstring): ``"cem"``, the
+#: cross-entropy search, forward rollouts only; ``"ascent"``, the gradient ascent.
+METHODS = ("cem", "ascent")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,45 +100,78 @@ class SearchSettings:
     """How the worst case is searched (module docstring).
 
     Attributes:
-        budget: rollouts in all (screening samples count 1, ascent points ``GRADIENT_COST``).
+        budget: rollouts in all (screening samples and the cross-entropy search's samples
+            count 1, ascent points ``GRADIENT_COST``).
         measure: one of ``MEASURES``.
-        starts: ascents run side by side (the screening's ``starts - 1`` worst and a corner).
-        first_step: the first step in ``U``, the box being [-1, 1].
+        method: one of ``METHODS``.
+        starts: the ascent's starts, run side by side (the screening's ``starts - 1`` worst
+            and a corner).
+        first_step: the ascent's first step in ``U``, the box being [-1, 1].
         min_step: below this the ascent's step gives way to random steps.
-        random_step: the size of a random step.
+        random_step: the size of the ascent's random step.
+        elites: the cross-entropy search's parents: the worst points found so far.
+        spread: the standard deviation in ``U`` of its first generation's draws around them.
+        shrink: the spread's factor from one generation to the next.
     """
 
     budget: int = 512
     measure: str = "final_error"
+    method: str = "cem"
     starts: int = 4
     first_step: float = 0.25
     min_step: float = 1.0 / 64.0
     random_step: float = 0.1
+    elites: int = 4
+    spread: float = 0.3
+    shrink: float = 0.8
 
     def __post_init__(self):
         if self.measure not in MEASURES:
             raise WorstCaseError(f"measure: expected one of {', '.join(MEASURES)}, got {self.measure!r}")
-        if isinstance(self.starts, bool) or not isinstance(self.starts, int) or self.starts < 1:
-            raise WorstCaseError(f"starts: must be a positive integer, got {self.starts!r}")
+        if self.method not in METHODS:
+            raise WorstCaseError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
+        for name in ("starts", "elites"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise WorstCaseError(f"{name}: must be a positive integer, got {value!r}")
         if isinstance(self.budget, bool) or not isinstance(self.budget, int) or self.budget < self.minimum_budget:
-            raise WorstCaseError(
-                f"budget: must be an integer of at least {self.minimum_budget} rollouts (screening {self.starts} "
-                f"samples and one ascent step of {self.starts} starts at {GRADIENT_COST} rollouts each), "
-                f"got {self.budget!r}"
+            spent = (
+                f"screening {self.starts} samples and one ascent step of {self.starts} starts at {GRADIENT_COST} "
+                "rollouts each"
+                if self.method == "ascent"
+                else f"screening {self.elites} samples and one generation of {CEM_MIN_GENERATION}"
             )
-        for name in ("first_step", "min_step", "random_step"):
+            raise WorstCaseError(
+                f"budget: must be an integer of at least {self.minimum_budget} rollouts ({spent}), got {self.budget!r}"
+            )
+        for name in ("first_step", "min_step", "random_step", "spread"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and 0.0 < value <= 2.0):
                 raise WorstCaseError(f"{name}: must be in (0, 2], got {value!r}")
+        if not (isinstance(self.shrink, (int, float)) and 0.0 < self.shrink <= 1.0):
+            raise WorstCaseError(f"shrink: must be in (0, 1], got {self.shrink!r}")
 
     @property
     def minimum_budget(self) -> int:
+        if self.method == "cem":
+            return self.elites + CEM_MIN_GENERATION
         return self.starts + GRADIENT_COST * self.starts
 
     @property
     def screening(self) -> int:
-        """Samples run forward before the ascent."""
-        return max(self.starts, self.budget // 4)
+        """Samples run forward before the ascent or the cross-entropy search."""
+        return max(self.elites if self.method == "cem" else self.starts, self.budget // 4)
+
+    @property
+    def generation(self) -> int:
+        """The cross-entropy search's samples per generation: an eighth of the budget, at
+        least ``CEM_MIN_GENERATION``."""
+        return max(CEM_MIN_GENERATION, self.budget // 8)
+
+    @property
+    def generations(self) -> int:
+        """The cross-entropy search's generations (the last may be smaller)."""
+        return math.ceil((self.budget - self.screening) / self.generation)
 
     @property
     def campaign_chunk(self) -> int:
@@ -251,7 +299,9 @@ class SearchResult:
             start's best measure so far and mode (``"gradient"`` or ``"random"``).
         rollouts: rollouts spent. compile_s: the programs' compile time (s). search_s:
             the screening's and the ascent's run time (s).
-        start_samples: the campaign sample each start began at (``None``: the corner).
+        start_samples: the campaign sample each start began at (``None``: the corner);
+            the cross-entropy search has one start, the sample its worst descends from.
+        found_by: how the worst was found, in words.
     """
 
     value: float
@@ -264,6 +314,7 @@ class SearchResult:
     compile_s: float
     search_s: float
     start_samples: list
+    found_by: str = ""
 
 
 def search(
@@ -293,7 +344,14 @@ def search(
         robot, scenario, gains, controller, config, settings.measure, 0, screening, chunk
     )
     say(f"screening: {screening} samples, worst {settings.measure} {np.max(values):.6g}")
+    if settings.method == "cem":
+        return _cross_entropy(robot, scenario, gains, controller, config, settings, values, compile_s, started, say)
+    return _ascent(robot, scenario, gains, controller, config, settings, values, compile_s, started, say)
 
+
+def _ascent(robot, scenario, gains, controller, config, settings, values, compile_s, started, say) -> SearchResult:
+    """The gradient ascent of the module docstring after the screening ``values``."""
+    screening = len(values)
     worst_samples = [int(i) for i in np.argsort(-values, kind="stable")[: settings.starts - 1]]
     joints = scenario.initial.q.shape[-1]
     units = units_of_samples(config.seed, worst_samples, n_joints=joints)
@@ -361,7 +419,89 @@ def search(
         compile_s=compile_s,
         search_s=time.perf_counter() - started - compile_s,
         start_samples=worst_samples + [None],
+        found_by="a screened sample" if start < 0 else f"the ascent from start {start}",
     )
+
+
+def _cross_entropy(robot, scenario, gains, controller, config, settings, values, compile_s, started, say):
+    """The cross-entropy search of the module docstring after the screening ``values``."""
+    screened = len(values)
+    joints = scenario.initial.q.shape[-1]
+    points = units_of_samples(config.seed, range(screened), n_joints=joints)
+    keys = noise_keys(config.seed, range(screened))
+    origins = np.arange(screened)  # the screened sample each point descends from
+    born = np.zeros(screened, dtype=int)  # the generation that drew it (0: the screening)
+    values = np.where(np.isfinite(values), values, np.inf)
+    size = batching.chunk_size(settings.generation, settings.generation)
+    variant = Variant(controller, gains)
+    spec = variant_spec(robot, scenario, variant, dataclasses.replace(config, timeseries_every=None))
+    replicated = (spec, gains, config.ranges)
+    function = functools.partial(_metrics_at, identified=config.identified)
+    example = jax.tree.map(lambda x: np.repeat(np.asarray(x)[:1], size, axis=0), (points, keys))
+    try:
+        executable, samples_compile_s = batching.compile_chunk(
+            f"worst-case samples, {controller}", function, replicated, example, device_batch=config.device_batch
+        )
+    except batching.BatchingError as error:
+        raise CampaignError(str(error)) from None
+    compile_s += samples_compile_s
+    rng = np.random.default_rng([config.seed, 2])
+    spread, rollouts = settings.spread, screened
+    history = [{"rollouts": rollouts, "best": [float(np.max(values))], "modes": ["screening"]}]
+    for generation in range(1, settings.generations + 1):
+        if np.isinf(np.max(values)):  # a capture ran away or diverged: none is worse
+            break
+        count = min(settings.generation, settings.budget - rollouts)
+        if count < 1:  # the screening, a whole number of chunks, took more than its share
+            break
+        parents = rng.choice(np.argsort(-values, kind="stable")[: settings.elites], size=count)
+        drawn = jax.tree.map(lambda x: x[parents] + spread * rng.standard_normal(x[parents].shape), points)
+        children = jax.tree.map(np.asarray, jax.vmap(project_units)(drawn))
+        block = jax.tree.map(
+            lambda x: np.concatenate([x, np.repeat(x[-1:], size - count, axis=0)]), (children, keys[parents])
+        )
+        sample_metrics = {
+            name: value[:count] for name, value in batching.run_chunk(executable, replicated, block).items()
+        }
+        measured = measure_of_metrics(sample_metrics, settings.measure, config)
+        points = jax.tree.map(lambda a, b: np.concatenate([a, b]), points, children)
+        keys, origins = np.concatenate([keys, keys[parents]]), np.concatenate([origins, origins[parents]])
+        values, born = np.concatenate([values, measured]), np.concatenate([born, np.full(count, generation)])
+        rollouts += count
+        spread *= settings.shrink
+        history.append({"rollouts": rollouts, "best": [float(np.max(values))], "modes": ["sample"]})
+        say(f"generation {generation}/{settings.generations}: worst {settings.measure} {np.max(values):.6g}")
+    worst = int(np.argmax(values))
+    found_by = (
+        f"screened sample {worst}"
+        if born[worst] == 0
+        else f"generation {born[worst]} of the cross-entropy search, descended from sample {origins[worst]}"
+    )
+    return SearchResult(
+        value=float(values[worst]),
+        units=jax.tree.map(lambda x: np.asarray(x[worst]), points),
+        key=np.asarray(keys[worst]),
+        start=-1 if born[worst] == 0 else 0,
+        screening=np.asarray(values[:screened]),
+        history=history,
+        rollouts=rollouts,
+        compile_s=compile_s,
+        search_s=time.perf_counter() - started - compile_s,
+        start_samples=[int(origins[worst])],
+        found_by=found_by,
+    )
+
+
+def _metrics_at(spec, gains, ranges, block, *, identified):
+    """The campaign metrics (``spec``'s observer, a ``FoldedMetrics``) of a block ``(units,
+    keys)`` of points of the nominal run ``spec``, each run as a campaign runs the sample of
+    those units and noise key."""
+
+    def one(units, key):
+        sample = perturbed_run(spec, from_units(units, ranges), ranges, identified)
+        return closed_loop(sample, gains, key)[1][0]
+
+    return jax.vmap(one)(*block)
 
 
 def ascend(evaluate, units: Perturbation, settings: SearchSettings, rng, rollouts_before: int = 0, say=None):
