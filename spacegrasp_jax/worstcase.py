@@ -1,30 +1,39 @@
-"""The worst capture in the perturbation envelope, searched by gradient.
+"""The worst capture in the perturbation envelope, searched for.
 
 A Monte-Carlo campaign samples the envelope (``spacegrasp_jax.perturbations``) and can miss
-its corners. This search climbs to them: it ascends a *measure* of the capture (the final
+its corners. This search looks for them: it raises a *measure* of the capture (the final
 position error, the largest peak torque, or the largest ratio of a result to its success
-criterion) in the perturbation's uniform numbers ``U`` (``perturbations.draw_units()``:
-every perturbation in [-1, 1], the box of the envelope), with the exact gradient of the
-closed loop.
+criterion) over the perturbation's uniform numbers ``U`` (``perturbations.draw_units()``:
+every perturbation in [-1, 1], the box of the envelope).
 
 1. **Screening.** The first ``budget / 4`` samples of the campaign ``seed`` are run
    forward, as ``spacegrasp montecarlo`` runs them.
-2. **Starts.** The ``starts - 1`` worst of them, and one random corner of the box (every
-   ``U`` at -1 or +1, drawn from the seed).
-3. **Ascent.** Each start takes steps of the box's steepest ascent, ``U + step sign(dm/dU)``,
-   projected on the box. A step that raises the measure is kept and the next step grows
-   by 1.5; one that does not is undone and the step halves. Where the gradient is not
-   finite, or halving has brought the step below ``min_step`` (the measure is rough at the
-   scale the gradient sees: a chaotic capture), the start goes on without gradients: a
-   random sign step of size ``random_step``, kept only if it raises the measure. Every
-   start keeps the noise key of the sample it started from, so its measure is a function
-   of ``U`` alone.
+2. **The search** (``SearchSettings.method``), one of:
 
-The budget counts rollouts: a screening sample costs 1, a point of the ascent
+   * ``"cem"``, a cross-entropy search (the default): generations of ``budget / 8``
+     samples (at least ``CEM_MIN_GENERATION``), each drawn around one of the ``elites``
+     worst points found so far, ``U`` plus a normal draw of standard deviation ``spread``
+     (shrunk by ``shrink`` each generation), projected on the box. A sample keeps the noise
+     key of the point it was drawn around, so a lineage is a function of ``U`` alone.
+     Forward rollouts only.
+   * ``"ascent"``, a gradient ascent with the exact gradient of the closed loop from
+     ``starts`` points: the ``starts - 1`` worst screened samples and one random corner of
+     the box (every ``U`` at -1 or +1, drawn from the seed). Each takes steps of the box's
+     steepest ascent, ``U + step sign(dm/dU)``, projected on the box. A step that raises
+     the measure is kept and the next step grows by 1.5; one that does not is undone and
+     the step halves. Where the gradient is not finite, or halving has brought the step
+     below ``min_step`` (the measure is rough at the scale the gradient sees: a chaotic
+     capture), the start goes on without gradients: a random sign step of size
+     ``random_step``, kept only if it raises the measure. Every start keeps the noise key
+     of the sample it started from.
+
+The budget counts rollouts: a forward sample costs 1, a point of the ascent
 ``GRADIENT_COST`` (its reverse-mode gradient costs 3.5-3.8 forward rollouts on a CPU;
 documentation, Performance). The worst capture is compared with the worst of a campaign of
-the same number of rollouts and seed (``compare_with_campaign()``). A capture that runs
-away or diverges has the measure ``inf``: no capture is worse.
+the same number of rollouts and seed (``compare_with_campaign()``). Which method finds worse
+captures than that campaign is measured (``benchmarks/worstcase.py``; documentation,
+Margins and worst cases). A capture that runs away or diverges has the measure ``inf``: no
+capture is worse, and the cross-entropy search stops there.
 """
 
 from __future__ import annotations

@@ -448,7 +448,11 @@ def cases(paths, out):
         "margins range huge int": ([*MARGINS, "--ranges", p["range_huge_int.toml"], "--out", out], "range_huge_int"),
         "worstcase budget below one step": (
             ["worstcase", "--budget", "10", "--out", out],
-            "budget: must be an integer of at least 20 rollouts",
+            "budget: must be an integer of at least 12 rollouts",
+        ),
+        "worstcase starts of a search without": (
+            [*WORSTCASE, "--starts", "2", "--out", out],
+            "--starts: the gradient ascent's starts; --method cem has none",
         ),
         "worstcase measure": ([*WORSTCASE, "--measure", "energy", "--out", out], "argument --measure:"),
         "worstcase starts 0": ([*WORSTCASE, "--starts", "0", "--out", out], "argument --starts:"),

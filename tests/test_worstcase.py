@@ -30,7 +30,7 @@ def _settings(steps: int, starts: int) -> worstcase.SearchSettings:
     while True:  # the screening is a quarter of the budget, at least one sample a start
         budget = screening + worstcase.GRADIENT_COST * starts * steps
         if max(starts, budget // 4) == screening:
-            return worstcase.SearchSettings(budget=budget, starts=starts)
+            return worstcase.SearchSettings(budget=budget, starts=starts, method="ascent")
         screening = max(starts, budget // 4)
 
 
@@ -127,9 +127,17 @@ def test_a_malformed_perturbation_file_is_refused_naming_what_is_wrong(tmp_path)
 def test_bad_settings_are_refused():
     for fields, message in (
         (dict(measure="energy"), "measure: expected one of"),
+        (dict(method="anneal"), "method: expected one of cem, ascent"),
         (dict(starts=0), "starts"),
-        (dict(budget=10), "budget: must be an integer of at least 20"),
+        (dict(elites=0), "elites"),
+        (
+            dict(budget=10),
+            r"budget: must be an integer of at least 12 rollouts \(screening 4 samples and one generation of 8\)",
+        ),
+        (dict(budget=10, method="ascent"), "budget: must be an integer of at least 20"),
         (dict(first_step=0.0), "first_step"),
+        (dict(spread=0.0), "spread"),
+        (dict(shrink=1.5), "shrink"),
     ):
         with pytest.raises(worstcase.WorstCaseError, match=message):
             worstcase.SearchSettings(**fields)
@@ -140,8 +148,9 @@ def test_bad_settings_are_refused():
 
 @pytest.mark.slow
 def test_the_search_and_its_campaign_write_files_that_replay_their_captures(tmp_path, capsys):
-    """The paper's gains on the campaigns' envelope, a 2 s approach, 96 rollouts. The value
-    the ascent climbed to is the final error of the whole capture rerun with its log, and
+    """The paper's gains on the campaigns' envelope, a 2 s approach, 96 rollouts of the
+    cross-entropy search. The worst value it found is the final error of the whole capture
+    rerun with its log, and
     ``spacegrasp simulate --perturbation`` (which knows nothing of the search) runs the same
     capture from the search's file and the campaign's worst sample from the campaign's.
     Whether the search beats the campaign is a measurement (documentation), not asserted:

@@ -59,7 +59,16 @@ def _worstcase(args: argparse.Namespace) -> int:
     batching.use_all_cpu_cores()  # before anything touches a device
     try:
         ranges = _ranges(args, PerturbationRanges())
-        settings = worstcase.SearchSettings(budget=args.budget, measure=args.measure, starts=args.starts)
+        if args.starts is not None and args.method != "ascent":
+            raise UsageError(
+                f"--starts: the gradient ascent's starts; --method {args.method} has none (--method ascent)"
+            )
+        settings = worstcase.SearchSettings(
+            budget=args.budget,
+            measure=args.measure,
+            method=args.method,
+            starts=worstcase.SearchSettings.starts if args.starts is None else args.starts,
+        )
     except (worstcase.WorstCaseError, PerturbationError) as error:
         raise UsageError(str(error)) from None
     robot, scenario, gains = _load_inputs(args)
@@ -72,10 +81,14 @@ def _worstcase(args: argparse.Namespace) -> int:
     out = Path(args.out)
     _claim(args, out)
     unit, meaning = worstcase.MEASURES[args.measure]
+    steps = (
+        f"{settings.ascent_steps} ascent steps of {settings.starts} starts"
+        if settings.method == "ascent"
+        else f"{settings.generations} generations of a cross-entropy search, up to {settings.generation} samples each"
+    )
     print(
         f"worst case of the {args.controller} law: {meaning}, {args.budget} rollouts "
-        f"({settings.screening} screened, {settings.ascent_steps} ascent steps of {settings.starts} starts), "
-        f"{scenario.duration:g} s each, over {jax.device_count()} device(s)...",
+        f"({settings.screening} screened, {steps}), {scenario.duration:g} s each, over {jax.device_count()} device(s)...",
         file=sys.stderr,
         flush=True,
     )
@@ -136,6 +149,7 @@ def _worstcase(args: argparse.Namespace) -> int:
             "value": found.value,
             "start": found.start,
             "start_sample": None if found.start < 0 else found.start_samples[found.start],
+            "found_by": found.found_by,
             "units": worstcase.units_to_dict(found.units),
             "perturbation": perturbation,
             "noise_key": [int(x) for x in found.key],
@@ -193,9 +207,8 @@ def _worstcase(args: argparse.Namespace) -> int:
         out,
         runfiles.write_atomically,
     )
-    where = "a screened sample" if found.start < 0 else f"the ascent from start {found.start}"
     print(
-        f"worst {args.measure} found: {found.value:.6g} {unit} ({where}); worst of a campaign of {args.budget}: "
+        f"worst {args.measure} found: {found.value:.6g} {unit} ({found.found_by}); worst of a campaign of {args.budget}: "
         f"{baseline['value']:.6g} {unit} (sample {baseline['sample']})"
     )
     print(f"{found.rollouts} rollouts in {found.search_s:.1f} s, after {found.compile_s:.1f} s compiling")
@@ -215,7 +228,7 @@ def _worstcase(args: argparse.Namespace) -> int:
 def add_parsers(commands) -> None:
     """The command's parser, added to ``commands``."""
     worst = _add_command(
-        commands, "worstcase", help="the worst capture of the envelope by gradient ascent, against a campaign"
+        commands, "worstcase", help="the worst capture of the envelope by search, against a campaign of its rollouts"
     )
     _add_envelope_options(worst, seed_help="campaign seed of the screening (default 0)")
     worst.add_argument(
@@ -232,10 +245,17 @@ def add_parsers(commands) -> None:
         "ratio to the success criteria (default %(default)s)",
     )
     worst.add_argument(
+        "--method",
+        choices=worstcase.METHODS,
+        default=worstcase.SearchSettings.method,
+        help="how the rollouts after the screening are spent: cem, a cross-entropy search of forward rollouts, or "
+        "ascent, a gradient ascent (default %(default)s: the measured winner, documentation)",
+    )
+    worst.add_argument(
         "--starts",
         type=_whole(1, 1_000),
-        default=worstcase.SearchSettings.starts,
-        help=f"ascents side by side: the screening's worst and a random corner (default {worstcase.SearchSettings.starts})",
+        help="the gradient ascent's starts side by side: the screening's worst and a random corner "
+        f"(--method ascent; default {worstcase.SearchSettings.starts})",
     )
     _add_criteria_options(worst)
     _add_run_options(worst, "results/worstcase")
