@@ -436,17 +436,19 @@ def _cross_entropy(robot, scenario, gains, controller, config, settings, values,
     """The cross-entropy search of the module docstring after the screening ``values``."""
     screened = len(values)
     joints = scenario.initial.q.shape[-1]
-    points = units_of_samples(config.seed, range(screened), n_joints=joints)
-    keys = noise_keys(config.seed, range(screened))
-    origins = np.arange(screened)  # the screened sample each point descends from
-    born = np.zeros(screened, dtype=int)  # the generation that drew it (0: the screening)
-    values = np.where(np.isfinite(values), values, np.inf)
+    population = Population(
+        points=units_of_samples(config.seed, range(screened), n_joints=joints),
+        values=np.where(np.isfinite(values), values, np.inf),
+        keys=noise_keys(config.seed, range(screened)),
+        origins=np.arange(screened),
+        born=np.zeros(screened, dtype=int),
+    )
     size = batching.chunk_size(settings.generation, settings.generation)
     variant = Variant(controller, gains)
     spec = variant_spec(robot, scenario, variant, dataclasses.replace(config, timeseries_every=None))
     replicated = (spec, gains, config.ranges)
     function = functools.partial(_metrics_at, identified=config.identified)
-    example = jax.tree.map(lambda x: np.repeat(np.asarray(x)[:1], size, axis=0), (points, keys))
+    example = jax.tree.map(lambda x: np.repeat(np.asarray(x)[:1], size, axis=0), (population.points, population.keys))
     try:
         executable, samples_compile_s = batching.compile_chunk(
             f"worst-case samples, {controller}", function, replicated, example, device_batch=config.device_batch
@@ -454,51 +456,98 @@ def _cross_entropy(robot, scenario, gains, controller, config, settings, values,
     except batching.BatchingError as error:
         raise CampaignError(str(error)) from None
     compile_s += samples_compile_s
-    rng = np.random.default_rng([config.seed, 2])
-    spread, rollouts = settings.spread, screened
-    history = [{"rollouts": rollouts, "best": [float(np.max(values))], "modes": ["screening"]}]
+
+    def evaluate(points, keys):
+        count = len(keys)
+        block = jax.tree.map(lambda x: np.concatenate([x, np.repeat(x[-1:], size - count, axis=0)]), (points, keys))
+        outputs = batching.run_chunk(executable, replicated, block)
+        return measure_of_metrics({name: value[:count] for name, value in outputs.items()}, settings.measure, config)
+
+    population, history = cross_entropy(evaluate, population, settings, np.random.default_rng([config.seed, 2]), say)
+    worst = int(np.argmax(population.values))
+    born, origin = int(population.born[worst]), int(population.origins[worst])
+    return SearchResult(
+        value=float(population.values[worst]),
+        units=jax.tree.map(lambda x: np.asarray(x[worst]), population.points),
+        key=np.asarray(population.keys[worst]),
+        start=-1 if born == 0 else 0,
+        screening=np.asarray(population.values[:screened]),
+        history=history,
+        rollouts=history[-1]["rollouts"],
+        compile_s=compile_s,
+        search_s=time.perf_counter() - started - compile_s,
+        start_samples=[origin],
+        found_by=(
+            f"screened sample {worst}"
+            if born == 0
+            else f"generation {born} of the cross-entropy search, descended from sample {origin}"
+        ),
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class Population:
+    """The points a cross-entropy search has measured, in the order it measured them.
+
+    Attributes:
+        points: a ``Perturbation`` of units, leading axis n.
+        values: (n,) their measures (``inf``: a capture that ran away or diverged).
+        keys: (n, 2) their noise keys.
+        origins: (n,) the screened point each descends from (its index).
+        born: (n,) the generation that drew it (0: the screening).
+    """
+
+    points: Perturbation
+    values: np.ndarray
+    keys: np.ndarray
+    origins: np.ndarray
+    born: np.ndarray
+
+
+def cross_entropy(evaluate, population: Population, settings: SearchSettings, rng, say=None):
+    """The cross-entropy search of the module docstring from the screened ``population``,
+    until ``settings.budget`` rollouts are spent (the screening counted) or a measure is
+    ``inf``.
+
+    Args:
+        evaluate: ``(points, keys) -> values (n,)``, the measure at a batch of points (a
+            ``Perturbation`` of units with leading axis n, and their noise keys).
+        population: the screened points (``born`` 0).
+        settings: the budget, ``elites``, ``spread``, ``shrink`` and the generation's size.
+        rng: a NumPy generator, for the parents and the draws.
+        say: called with one line per generation (``None``: silent).
+
+    Returns:
+        ``(population, history)``: every point measured, the screening's first; and per
+        generation (the screening first) the rollouts spent so far and the worst measure.
+    """
+    spread, rollouts = settings.spread, len(population.values)
+    history = [{"rollouts": rollouts, "best": [float(np.max(population.values))], "modes": ["screening"]}]
     for generation in range(1, settings.generations + 1):
-        if np.isinf(np.max(values)):  # a capture ran away or diverged: none is worse
+        if np.isinf(np.max(population.values)):  # a capture ran away or diverged: none is worse
             break
         count = min(settings.generation, settings.budget - rollouts)
         if count < 1:  # the screening, a whole number of chunks, took more than its share
             break
-        parents = rng.choice(np.argsort(-values, kind="stable")[: settings.elites], size=count)
-        drawn = jax.tree.map(lambda x: x[parents] + spread * rng.standard_normal(x[parents].shape), points)
+        parents = rng.choice(np.argsort(-population.values, kind="stable")[: settings.elites], size=count)
+        drawn = jax.tree.map(lambda x: x[parents] + spread * rng.standard_normal(x[parents].shape), population.points)
         children = jax.tree.map(np.asarray, jax.vmap(project_units)(drawn))
-        block = jax.tree.map(
-            lambda x: np.concatenate([x, np.repeat(x[-1:], size - count, axis=0)]), (children, keys[parents])
+        measured = np.asarray(evaluate(children, population.keys[parents]), dtype=float)
+        population = Population(
+            points=jax.tree.map(lambda a, b: np.concatenate([a, b]), population.points, children),
+            values=np.concatenate([population.values, np.where(np.isnan(measured), np.inf, measured)]),
+            keys=np.concatenate([population.keys, population.keys[parents]]),
+            origins=np.concatenate([population.origins, population.origins[parents]]),
+            born=np.concatenate([population.born, np.full(count, generation)]),
         )
-        sample_metrics = {
-            name: value[:count] for name, value in batching.run_chunk(executable, replicated, block).items()
-        }
-        measured = measure_of_metrics(sample_metrics, settings.measure, config)
-        points = jax.tree.map(lambda a, b: np.concatenate([a, b]), points, children)
-        keys, origins = np.concatenate([keys, keys[parents]]), np.concatenate([origins, origins[parents]])
-        values, born = np.concatenate([values, measured]), np.concatenate([born, np.full(count, generation)])
         rollouts += count
         spread *= settings.shrink
-        history.append({"rollouts": rollouts, "best": [float(np.max(values))], "modes": ["sample"]})
-        say(f"generation {generation}/{settings.generations}: worst {settings.measure} {np.max(values):.6g}")
-    worst = int(np.argmax(values))
-    found_by = (
-        f"screened sample {worst}"
-        if born[worst] == 0
-        else f"generation {born[worst]} of the cross-entropy search, descended from sample {origins[worst]}"
-    )
-    return SearchResult(
-        value=float(values[worst]),
-        units=jax.tree.map(lambda x: np.asarray(x[worst]), points),
-        key=np.asarray(keys[worst]),
-        start=-1 if born[worst] == 0 else 0,
-        screening=np.asarray(values[:screened]),
-        history=history,
-        rollouts=rollouts,
-        compile_s=compile_s,
-        search_s=time.perf_counter() - started - compile_s,
-        start_samples=[int(origins[worst])],
-        found_by=found_by,
-    )
+        history.append({"rollouts": rollouts, "best": [float(np.max(population.values))], "modes": ["sample"]})
+        if say is not None:
+            say(
+                f"generation {generation}/{settings.generations}: worst {settings.measure} {np.max(population.values):.6g}"
+            )
+    return population, history
 
 
 def _metrics_at(spec, gains, ranges, block, *, identified):

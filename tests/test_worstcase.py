@@ -8,6 +8,7 @@ loop is checked against a campaign of the same rollouts, and its replay file aga
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -85,6 +86,71 @@ def test_without_a_usable_gradient_the_ascent_goes_on_by_random_steps():
     best = np.array([row["best"] for row in history])
     assert np.all(np.diff(best, axis=0) >= 0.0)  # a step that lowers the measure is never kept
     assert np.all(values > 5.0)  # from 0 at the centre of the box; the corner's is 52 (the weights' sum)
+
+
+def _screened(n: int, seed: int = 0) -> worstcase.Population:
+    """n points drawn as a campaign draws its samples, unmeasured, each with a key of its own."""
+    points = worstcase.units_of_samples(seed, range(n))
+    keys = np.stack([np.array([i, 1000 + i], np.uint32) for i in range(n)])
+    return worstcase.Population(points, np.zeros(n), keys, np.arange(n), np.zeros(n, dtype=int))
+
+
+def _distance_to(target):
+    """``m(U) = -|U - target|^2``, largest (0) at ``target``, and its calls' keys."""
+    calls = []
+
+    def evaluate(points, keys):
+        calls.append((points, np.asarray(keys)))
+        return -sum(
+            np.sum((np.asarray(leaf) - t) ** 2, axis=tuple(range(1, np.ndim(leaf))))
+            for leaf, t in zip(jax.tree.leaves(points), jax.tree.leaves(target))
+        )
+
+    return evaluate, calls
+
+
+def test_the_cross_entropy_search_closes_in_on_the_maximum_within_its_budget():
+    """``m(U) = -|U - t|^2`` with ``t`` a point of the box drawn as a sample: from 16
+    screened points the search spends exactly its budget in generations of 8, never leaves
+    the box, keeps each lineage's noise key and ends closer to ``t`` than the best screened
+    point and than the best of as many random samples (a campaign of its rollouts)."""
+    target = jax.tree.map(lambda x: np.asarray(x[0]), worstcase.units_of_samples(99, [0]))
+    evaluate, calls = _distance_to(target)
+    settings = worstcase.SearchSettings(budget=64)
+    assert (settings.screening, settings.generation, settings.generations) == (16, 8, 6)
+    screened = _screened(16)
+    screened = dataclasses.replace(screened, values=evaluate(screened.points, screened.keys))
+    population, history = worstcase.cross_entropy(evaluate, screened, settings, np.random.default_rng(0))
+    assert [row["rollouts"] for row in history] == [16, 24, 32, 40, 48, 56, 64]
+    assert len(population.values) == 64 and np.all(np.diff([row["best"][0] for row in history]) >= 0.0)
+    for leaf in jax.tree.leaves(population.points):
+        assert np.all(np.abs(leaf) <= 1.0)
+    assert np.all(np.linalg.norm(population.points.target_com_offset, axis=-1) <= 1.0 + 1e-12)
+    np.testing.assert_array_equal(population.keys, screened.keys[population.origins])
+    campaign = _screened(64, seed=1)
+    best_random = np.max(evaluate(campaign.points, campaign.keys))
+    best = np.max(population.values)
+    assert best > best_random > np.max(screened.values)
+    generations = calls[1:7]  # after the screening's call, before the campaign's
+    np.testing.assert_array_equal(population.values[16:], np.concatenate([evaluate(*call) for call in generations]))
+
+
+def test_the_cross_entropy_search_stops_at_a_capture_that_runs_away():
+    target = jax.tree.map(lambda x: np.asarray(x[0]), worstcase.units_of_samples(99, [0]))
+    distance, _ = _distance_to(target)
+
+    def evaluate(points, keys):  # every capture drawn in the second generation runs away
+        return np.full(len(keys), np.inf) if len(calls) == 2 else distance(points, keys)
+
+    calls = []
+    counting = lambda points, keys: (calls.append(1), evaluate(points, keys))[1]
+    screened = _screened(16)
+    screened = dataclasses.replace(screened, values=distance(screened.points, screened.keys))
+    population, history = worstcase.cross_entropy(
+        counting, screened, worstcase.SearchSettings(budget=64), np.random.default_rng(0)
+    )
+    assert len(calls) == 2 and history[-1]["rollouts"] == 32 and np.isinf(history[-1]["best"][0])
+    assert np.isinf(np.max(population.values))
 
 
 def test_units_scale_to_the_drawn_perturbation_and_read_back():
