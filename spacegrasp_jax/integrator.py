@@ -29,10 +29,10 @@ class PlantState:
     Attributes:
         p_base: (3,) m, satellite CoM in the inertial frame.
         quat_base: (4,) unit quaternion ``[w, x, y, z]``, satellite to inertial.
-        q: (7,) rad, joint angles.
+        q: (N,) rad, joint angles.
         V_base: (6,) ``[v_s (m/s), w_s (rad/s)]``, satellite CoM velocity and angular
             velocity in the inertial frame.
-        qd: (7,) rad/s, joint rates.
+        qd: (N,) rad/s, joint rates.
         target: the target's state ([`TargetState`][spacegrasp_jax.target.TargetState]):
             the paper's fixed target or a free-floating one.
     """

@@ -167,7 +167,7 @@ class PlantKinematics:
         M_coupling, M_joints: (6, N), (N, N) blocks of the mass matrix.
         base_per_joint: (6, N) ``M_base^-1 M_coupling``: minus the satellite velocity per
             unit joint rate at zero momentum (eq 6).
-        J_joints: (6, 7) joint block ``J_m`` of the EE point Jacobian, inertial frame. Its
+        J_joints: (6, N) joint block ``J_m`` of the EE point Jacobian, inertial frame. Its
             satellite block ``J_s = [[1, -r x], [0, 1]]`` needs only ``r = frames.p_ee``,
             the EE point from the satellite CoM, and is applied as cross products.
         contact_force_lar: (3,) N, force of the contact sphere on the EE, LAR axes.
@@ -213,7 +213,7 @@ def plant_kinematics(robot: Robot, scenario: Scenario, state: PlantState, with_c
 def plant_rate(
     robot: Robot, scenario: Scenario, state: PlantState, kinematics: PlantKinematics, u: jax.Array
 ) -> PlantState:
-    """State rate under joint torques ``u`` (7,) N m and the contact force, given
+    """State rate under joint torques ``u`` (N,) N m and the contact force, given
     ``kinematics = plant_kinematics(robot, scenario, state)``."""
     k = kinematics
     force = spatial.matvec(k.R_lar, k.contact_force_lar)
@@ -230,7 +230,7 @@ def plant_rate(
 
 
 def plant_derivative(robot: Robot, scenario: Scenario, state: PlantState, u: jax.Array) -> PlantState:
-    """State rate under joint torques ``u`` (7,) N m and the contact force at this state."""
+    """State rate under joint torques ``u`` (N,) N m and the contact force at this state."""
     return plant_rate(robot, scenario, state, plant_kinematics(robot, scenario, state), u)
 
 
@@ -318,9 +318,9 @@ def log_row(plant: PlantState, kinematics: PlantKinematics, t, observed: Observa
 
 
 def sensor_reading(robot: Robot, scenario: Scenario, kinematics: PlantKinematics) -> tuple[jax.Array, jax.Array]:
-    """The ideal F/T sensor between link 7 and the EE: the contact's force (3,) N and its
-    torque about the sensor point (3,) N m, in sensor (frame 7) axes (eqs 18-19)."""
-    R_fts = kinematics.frames.R_ee  # frame 7's rotation
+    """The ideal F/T sensor between the last link (N) and the EE: the contact's force (3,) N
+    and its torque about the sensor point (3,) N m, in sensor (frame N) axes (eqs 18-19)."""
+    R_fts = kinematics.frames.R_ee  # frame N's rotation
     force = spatial.matvec(R_fts.T, spatial.matvec(kinematics.R_lar, kinematics.contact_force_lar))
     return sensor_wrench(force, robot.ee_offset)
 
@@ -418,7 +418,7 @@ class ServoInputDelay:
         return jnp.zeros((self.capacity, n_joints), dtype), jnp.zeros((), jnp.int32)
 
     def push(self, line: tuple, reading: jax.Array) -> tuple[jax.Array, tuple]:
-        """``(the reading the PID gets (7,), the line after)`` when ``reading`` (7,) is measured."""
+        """``(the reading the PID gets (N,), the line after)`` when ``reading`` (N,) is measured."""
         readings, head = line
         readings = readings.at[head].set(reading)
         return readings[(head - self.ticks) % self.capacity], (readings, (head + 1) % self.capacity)

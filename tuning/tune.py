@@ -332,7 +332,7 @@ def make_optimizer(config: TuneConfig):
 
 
 #: Steps per inner scan of a one-scenario reverse-mode gradient (``simulate.rollout``'s
-#: ``checkpoint_segment``). The tape holds each step's state and RK4's stage rates, (3, 7)
+#: ``checkpoint_segment``). The tape holds each step's state and RK4's stage rates, (3, N)
 #: numbers a field per step. With loops compiled whole (``spacegrasp_jax.compilation``) the
 #: length does not matter; where XLA runs loops kernel by kernel, 2 steps keep the inner
 #: loops within 64 numbers an array, in XLA's faster sequential mode (documentation,

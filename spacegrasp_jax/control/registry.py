@@ -87,11 +87,6 @@ def as_controller(controller: str | ControlLaw | Controller) -> Controller:
     return chain(controller, PID() if controller.output is Output.JOINT_RATES else None)
 
 
-def controller_name(controller: str | ControlLaw | Controller) -> str:
-    """The law's name of ``controller`` (a name, a law or a controller)."""
-    return controller if isinstance(controller, str) else as_controller(controller).name
-
-
 def gains_used(name: str) -> tuple[str, ...]:
     """The gain groups the controller ``name`` reads: its law's, then the joint servo's."""
     law = _law_class(name)
@@ -105,7 +100,6 @@ __all__ = [
     "PAPER_CONTROLLERS",
     "as_controller",
     "collect_gain_groups",
-    "controller_name",
     "gains_used",
     "law_named",
 ]
