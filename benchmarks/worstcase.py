@@ -100,23 +100,61 @@ def run_one(robot, duration_s: float, realism: str, budget: int, seed: int, meth
     }
 
 
+def _beats(value: float, other: float) -> bool:
+    """``value`` is worse (larger) than ``other`` by more than rounding: the same capture
+    measured by two programs (the campaign's and the ascent's) differs in its last digits."""
+    if np.isinf(value) or np.isinf(other):
+        return bool(value > other)
+    return bool(value > other * (1.0 + 1e-9))
+
+
+def sign_test(wins: int, losses: int) -> float:
+    """The two-sided exact sign test's p-value of ``wins`` against ``losses`` (ties left out;
+    1 without a decided pair)."""
+    from scipy import stats
+
+    return float(stats.binomtest(wins, wins + losses, 0.5).pvalue) if wins + losses else 1.0
+
+
 def summarise(rows: list[dict]) -> dict:
-    """Per configuration and method: seeds, wins, clear wins, the median and the range of the ratio."""
-    groups: dict[str, list[dict]] = {}
+    """Per configuration and method: seeds, wins, clear wins, the median and the range of the
+    ratio, and the sign test of the search against the campaign over the seeds; per
+    configuration, the sign test of the methods against each other on the same seeds."""
+    groups: dict[tuple, list[dict]] = {}
     for row in rows:
-        key = f"{row['duration_s']:g} s, {row['realism']}, budget {row['budget']}, {row['method']}"
-        groups.setdefault(key, []).append(row)
-    return {
-        key: {
+        groups.setdefault((row["duration_s"], row["realism"], row["budget"], row["method"]), []).append(row)
+    summary = {}
+    for (duration, realism, budget, method), group in sorted(groups.items()):
+        wins = sum(_beats(row["search_worst"], row["campaign_worst"]) for row in group)
+        losses = sum(_beats(row["campaign_worst"], row["search_worst"]) for row in group)
+        summary[f"{duration:g} s, {realism}, budget {budget}, {method}"] = {
             "seeds": len(group),
             "at_least_as_bad": sum(row["at_least_as_bad"] for row in group),
             "clearly_worse": sum(row["clearly_worse"] for row in group),
             "median_ratio": float(np.median([row["ratio"] for row in group])),
             "min_ratio": float(np.min([row["ratio"] for row in group])),
             "max_ratio": float(np.max([row["ratio"] for row in group])),
+            "worse_than_campaign": wins,
+            "milder_than_campaign": losses,
+            "sign_test_p": sign_test(wins, losses),
         }
-        for key, group in sorted(groups.items())
-    }
+    configurations = {key[:3] for key in groups}
+    for duration, realism, budget in sorted(configurations):
+        by_seed = {
+            method: {row["seed"]: row["search_worst"] for row in groups.get((duration, realism, budget, method), [])}
+            for method in worstcase.METHODS
+        }
+        seeds = sorted(set(by_seed["cem"]) & set(by_seed["ascent"]))
+        if seeds:
+            wins = sum(_beats(by_seed["cem"][seed], by_seed["ascent"][seed]) for seed in seeds)
+            losses = sum(_beats(by_seed["ascent"][seed], by_seed["cem"][seed]) for seed in seeds)
+            summary[f"{duration:g} s, {realism}, budget {budget}, cem against ascent"] = {
+                "seeds": len(seeds),
+                "cem_worse": wins,
+                "ascent_worse": losses,
+                "sign_test_p": sign_test(wins, losses),
+            }
+    return summary
 
 
 def main(argv: list[str] | None = None) -> dict:
