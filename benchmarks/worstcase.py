@@ -182,7 +182,11 @@ def main(argv: list[str] | None = None) -> dict:
         if not 0.0 < duration <= 17.0:
             parser.error(f"--durations: {duration:g} s is outside (0, 17]")
     for budget in budgets:
-        worstcase.SearchSettings(budget=budget, method="ascent")  # refused here, not after hours
+        for method in methods:
+            try:  # refused here, not after hours
+                worstcase.SearchSettings(budget=budget, method=method)
+            except worstcase.WorstCaseError as error:
+                parser.error(f"--budgets: {method}: {error}")
     batching.use_all_cpu_cores()
     sg.configure()
     robot = sg.paper_robot()

@@ -121,3 +121,30 @@ def test_compile_benchmark_times_its_calls_in_turn_after_the_warm_up():
     assert order == ["run", "forward"] * 5
     assert {name: len(t) for name, t in times.items()} == {"run": 3, "forward": 3}
     assert all(t >= 0 for t in times["run"] + times["forward"])
+
+
+def test_worstcase_benchmark_writes_its_rows_resumes_and_refuses_bad_options(tmp_path):
+    """``benchmarks.worstcase`` on one seed of a 0.1 s approach and a budget of 12: one row
+    whose ratio and verdicts follow from its two worst values, a summary of it; run again,
+    it runs nothing (the row is there); bad options are refused before anything compiles."""
+    base = [sys.executable, "-m", "spacegrasp_jax.benchmarks.worstcase", "--out", str(tmp_path)]
+    toy = ["--seeds", "0", "--budgets", "12", "--realisms", "ideal", "--durations", "0.1", "--methods", "cem"]
+    result = subprocess.run(base + toy, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = [json.loads(line) for line in (tmp_path / "rows.jsonl").read_text().splitlines()]
+    assert len(rows) == 1 and rows[0]["rollouts"] == 12
+    row = rows[0]
+    assert math.isclose(row["ratio"], row["search_worst"] / row["campaign_worst"])
+    assert row["at_least_as_bad"] == (row["search_worst"] >= row["campaign_worst"])
+    summary = json.loads((tmp_path / "summary.json").read_text())["summary"]
+    assert summary["0.1 s, ideal, budget 12, cem"]["seeds"] == 1
+    again = subprocess.run(base + toy, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0 and "seed 0" not in again.stdout
+    assert len((tmp_path / "rows.jsonl").read_text().splitlines()) == 1
+    for option, message in (
+        (["--methods", "anneal"], "--methods: 'anneal' is not one of cem, ascent"),
+        (["--durations", "20"], "--durations: 20 s is outside (0, 17]"),
+        (["--budgets", "12", "--methods", "ascent"], "--budgets: ascent: budget: must be an integer of at least 20"),
+    ):
+        refused = subprocess.run(base + option, capture_output=True, text=True, timeout=60)
+        assert refused.returncode == 2 and message in refused.stderr, refused.stderr
