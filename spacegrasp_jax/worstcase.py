@@ -342,8 +342,9 @@ def search(
         config: the envelope and campaign seed, the realism, the criteria (for the
             ``criteria`` measure) and whether the controller is told each plant
             (``identified``); its ``n`` and ``chunk`` are not used.
-        settings: the budget, the measure and the ascent's steps.
-        progress: called with one line per ascent step (``None``: silent).
+        settings: the budget, the measure, the method and its steps.
+        progress: called with one line after the screening and one per generation or
+            ascent step (``None``: silent).
     """
     started = time.perf_counter()
     say = progress or (lambda line: None)

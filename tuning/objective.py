@@ -6,7 +6,7 @@ margin, the value over its tolerance (above 1: the capture fails; the campaigns'
 ``m_u = smoothmax_{t, i} |u_i(t)| / limit_i`` against the motors' limits (the robot's
 ``joint_torque_limit``: torque is a constraint, not a cost), with a free-floating
 target ``m_v = |v_target(T)| / 5 mm/s``, for a robot with joint ranges their margin, and
-where rate limits are criteria ``m_r = smoothmax_{t, i} |qd_i(t)| / rate_limit_i``. With
+where rate limits are criteria ``m_q = smoothmax_{t, i} |qd_i(t)| / rate_limit_i``. With
 the worst margin in log units
 
     w = S log sum_c exp(log(m_c) / S)          (a smooth maximum, S = 0.05)
