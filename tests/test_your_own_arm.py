@@ -283,6 +283,9 @@ def test_a_campaign_and_a_tuning_run_of_an_arm_move_and_go_on(tmp_path, capsys, 
     tune_args = ["tune", "--compile-cache", "none", "--robot", "ur5.toml", "--scenario", "short.toml"]
     tune_args += ["--gains", gains, "--steps", "1", "--batch", "1", "--population", "4", "--holdout", "0"]
     assert cli.main([*tune_args, "--out", "tune"]) == 0, capsys.readouterr().err
+    limits = np.asarray(load_robot(work / "ur5.toml").joint_rate_limit).tolist()  # a mounting file states them
+    assert json.loads((work / "campaign" / "campaign.json").read_text())["config"]["joint_rate_limits_radps"] == limits
+    assert json.loads((work / "tune" / "run.json").read_text())["config"]["joint_rate_limits_radps"] == limits
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     for name in ("campaign", "tune"):
