@@ -34,7 +34,7 @@ import jax
 import numpy as np
 from jax.experimental import multihost_utils
 
-from spacegrasp_jax import anatomy, batching, runfiles, statistics
+from spacegrasp_jax import anatomy, batching, joint_limits, runfiles, statistics
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import CONTROLLERS, law_named
 from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
@@ -128,20 +128,12 @@ class CampaignConfig:
             raise CampaignError(f"device_batch: must be a positive integer or None, got {self.device_batch!r}")
         if not (math.isfinite(self.pinv_damping) and self.pinv_damping >= 0.0):
             raise CampaignError(f"pinv_damping: must be non-negative, got {self.pinv_damping}")
-        if self.joint_rate_limits_radps is not None:
-            limits = self.joint_rate_limits_radps
-            if not (
-                isinstance(limits, (tuple, list))
-                and limits
-                and all(
-                    isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0.0
-                    for x in limits
-                )
-            ):
-                raise CampaignError(
-                    f"joint_rate_limits_radps: must be positive finite numbers (rad/s, one a joint) or None, got {limits!r}"
-                )
-            object.__setattr__(self, "joint_rate_limits_radps", tuple(float(x) for x in limits))
+        try:
+            object.__setattr__(
+                self, "joint_rate_limits_radps", joint_limits.rate_criterion(self.joint_rate_limits_radps)
+            )
+        except ValueError as error:
+            raise CampaignError(f"joint_rate_limits_radps: {error}") from None
 
     def to_dict(self) -> dict:
         fields = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}

@@ -7,10 +7,15 @@ its robot TOML (``[limits]``); the paper's arm has no ranges (``-inf, inf``) and
 of 1 rad/s, which none of its runs reaches. They are not constraints of the dynamics: a joint
 driven past its range keeps turning, as the simulated motor is told to, and what a real arm's
 end stop or its drive's safety would do there is outside the model. So a run says when and
-where it first crossed them, and a capture that started outside them is refused.
+where it first crossed them, a capture that started outside them is refused, a joint out of
+its range fails the capture, and so does a joint faster than a rate limit the robot's file
+states ([`rate_criterion()`][spacegrasp_jax.joint_limits.rate_criterion]; the paper's arm's
+are assumed and only detect runaways).
 """
 
 from __future__ import annotations
+
+import math
 
 import jax.numpy as jnp
 import numpy as np
@@ -23,6 +28,26 @@ RANGE_MARGIN_SCALE_RAD = 0.05
 #: The largest log margin a range reports: a joint 2.5 rad beyond its range (a runaway) weighs
 #: like one 2.5 rad beyond, not like a number that overflows.
 _MAX_LOG_MARGIN = 50.0
+
+
+def rate_criterion(limits) -> tuple[float, ...] | None:
+    """Rate limits as a success criterion, checked: ``None`` (no criterion) or (N,) positive
+    finite numbers, rad/s, returned as a tuple of floats (a setting's static, hashable form).
+
+    Raises:
+        ValueError: anything else, with the value.
+    """
+    if limits is None:
+        return None
+    if not (
+        isinstance(limits, (tuple, list))
+        and limits
+        and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0.0 for x in limits
+        )
+    ):
+        raise ValueError(f"must be positive finite numbers (rad/s, one a joint) or None, got {limits!r}")
+    return tuple(float(x) for x in limits)
 
 
 def finite_ranges(robot: Robot) -> tuple[tuple[int, float, float], ...]:

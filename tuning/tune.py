@@ -250,13 +250,12 @@ class TuneConfig:
             raise ValueError(f"validation_size: must be at least 1 capture, got {self.validation_size}")
         if self.patience is None and self.validation_size != 32:
             raise ValueError("validation_size: the validation set of early stopping (choose --patience)")
-        if self.joint_rate_limits_radps is not None:
-            limits = tuple(self.joint_rate_limits_radps)
-            if not (limits and all(math.isfinite(x) and x > 0.0 for x in limits)):
-                raise ValueError(
-                    f"joint_rate_limits_radps: must be positive finite numbers (rad/s, one a joint) or None, got {limits}"
-                )
-            object.__setattr__(self, "joint_rate_limits_radps", tuple(float(x) for x in limits))
+        try:
+            object.__setattr__(
+                self, "joint_rate_limits_radps", joint_limits.rate_criterion(self.joint_rate_limits_radps)
+            )
+        except ValueError as error:
+            raise ValueError(f"joint_rate_limits_radps: {error}") from None
         if self.keep not in KEEPS:
             raise ValueError(f"keep: expected one of {', '.join(KEEPS)}, got {self.keep!r}")
         if self.fresh_batches and self.realism is None:
