@@ -3,7 +3,7 @@ pass against its reverse pass.
 
     python -m spacegrasp_jax.benchmarks.gradient_parts [--out results/benchmarks] [--states 2000] [--parts ...]
 
-A checkpointed reverse-mode gradient (``RunSpec(checkpoint=True)``, the tuning gradient's
+A checkpointed reverse-mode gradient (``RunSpec(options=LoopOptions(checkpoint=True))``, the tuning gradient's
 loop) runs the closed loop forward once, keeping each step's inputs, then goes back through
 the steps; for each step it runs the checkpointed parts forward again and then their
 adjoints. So a part's cost in the backward pass is its *reverse* time here: ``jax.vjp`` of
@@ -56,10 +56,10 @@ def _part_functions(robot, scenario):
     reverse mode differentiates, and those inputs; ``function(*inputs)`` is its forward pass."""
     import jax.numpy as jnp
 
-    from spacegrasp_jax import simulate
+    from spacegrasp_jax import experiment, simulate
     from spacegrasp_jax.control import as_controller
 
-    spec = simulate.RunSpec(robot, scenario, "admittance", checkpoint=True)
+    spec = simulate.RunSpec(robot, scenario, "admittance", options=experiment.loop_options(checkpoint=True))
     control = as_controller("admittance")
 
     def plant_kinematics(plant):

@@ -20,7 +20,15 @@ from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, ideal
 from spacegrasp_jax.scenario import Scenario, scenario_from_dict, scenario_to_dict
-from spacegrasp_jax.simulate import FullLog, Log, RunSpec, closed_loop, first_nonfinite_step, loop_realism
+from spacegrasp_jax.simulate import (
+    FullLog,
+    Log,
+    LoopOptions,
+    RunSpec,
+    closed_loop,
+    first_nonfinite_step,
+    loop_realism,
+)
 
 
 class SimulationDiverged(RuntimeError):
@@ -66,6 +74,14 @@ def program_key(spec: RunSpec, gains: Gains, key=None) -> tuple:
                 "(make it a frozen dataclass)"
             ) from None
     return ("closed_loop", compilation.argument_signature((spec, gains, key)))
+
+
+def loop_options(checkpoint: bool = False) -> LoopOptions:
+    """The [`LoopOptions`][spacegrasp_jax.simulate.LoopOptions] this process compiles best,
+    asked once on the host: with ``checkpoint``, a one-step period's RK4 reuses the
+    controller's kinematics where XLA compiles loops whole
+    ([`compilation.loops_compile_whole()`][spacegrasp_jax.compilation.loops_compile_whole])."""
+    return LoopOptions(checkpoint=checkpoint, reuse_start_kinematics=checkpoint and compilation.loops_compile_whole())
 
 
 def compiled_loop(spec: RunSpec, gains: Gains, key=None):

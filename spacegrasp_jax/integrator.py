@@ -8,7 +8,6 @@ a projection that keeps RK4's 4th order.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -107,9 +106,10 @@ def state_rate(state: PlantState, xdd: jax.Array, target_rate: TargetState) -> P
     )
 
 
-#: RK4's stages 2-4: the fraction of ``dt`` at which each is evaluated along the previous
-#: stage's rate, and its weight (over 6) in the step's average rate.
-_LATER_STAGES = ((0.5, 2.0), (0.5, 2.0), (1.0, 1.0))
+#: RK4's four stages: the fraction of ``dt`` at which each is evaluated along the previous
+#: stage's rate (the first at the step's start), and its weight (over 6) in the step's
+#: average rate.
+_STAGES = ((0.0, 1.0), (0.5, 2.0), (0.5, 2.0), (1.0, 1.0))
 
 
 def _advance(base, rate, h):
@@ -117,164 +117,84 @@ def _advance(base, rate, h):
     return jax.tree.map(lambda x, dx: x + h * dx, base, rate)
 
 
-def rk4_step(derivative: Callable[[PlantState], PlantState], state: PlantState, dt) -> PlantState:
-    """One classical Runge-Kutta step of length ``dt`` (s) of ``d state/dt = derivative(state)``.
-
-    ``derivative`` closes over anything held constant during the step (zero-order hold of
-    the joint torques); forces that belong to the plant (contact) are evaluated inside it,
-    at every stage.
-
-    Stages 2-4 are one ``lax.scan`` over their coefficients, its body under
-    ``jax.checkpoint``: the compiled step holds one copy of ``derivative`` for them instead
-    of three, and its derivative one copy of the stage's adjoint. XLA's CPU runtime pays
-    for every distinct kernel of a loop body, so one copy makes a faster gradient
-    (documentation, Performance). The checkpoint limits what the loop
-    saves to the stage's input state, so the backward loop's arrays stay within 64
-    numbers, like the forward step's. ``prevent_cse=False``: inside a loop there is nothing
-    for XLA to merge the recomputation with, and the optimisation barriers that the default
-    inserts would keep XLA from fusing across them.
-    """
-
-    @functools.partial(jax.checkpoint, prevent_cse=False)
-    def later_stage(carry, coefficients):
-        previous_rate, weighted_sum = carry
-        fraction, weight = coefficients
-        rate = derivative(_advance(state, previous_rate, fraction * dt))
-        return (rate, _advance(weighted_sum, rate, weight)), None
-
-    k1 = derivative(state)
-    coefficients = jnp.asarray(_LATER_STAGES, dtype=state.q.dtype).T
-    (_, weighted_sum), _ = jax.lax.scan(later_stage, (k1, k1), tuple(coefficients))
-    return _advance(state, weighted_sum, dt / 6).projected()
-
-
-#: RK4's four stages: the first at the step's start (fraction 0 along a zero rate, weight 1),
-#: then ``_LATER_STAGES``.
-_ALL_STAGES = ((0.0, 1.0),) + _LATER_STAGES
-
-
-def _four_stages(stage, state: PlantState, dt, held, extra_xs=()):
-    """RK4's four stages as one ``lax.scan`` of ``stage((previous rate, weighted sum,
-    held), (fraction, weight, *extra_xs)) -> (carry, out)``; ``(next state, held, outs)``."""
-    fractions, weights = jnp.asarray(_ALL_STAGES, dtype=state.q.dtype).T
-    zero = jax.tree.map(jnp.zeros_like, state)
-    (_, weighted_sum, held), outs = jax.lax.scan(stage, (zero, zero, held), (fractions, weights, *extra_xs))
-    return _advance(state, weighted_sum, dt / 6).projected(), held, outs
-
-
-def rk4_step_sharing_kinematics(
+def rk4_step(
     kinematics: Callable[[PlantState], Any],
     rate: Callable[[PlantState, Any, Any], PlantState],
     state: PlantState,
     dt,
-    u,
-) -> tuple[PlantState, Any]:
-    """One classical Runge-Kutta step of ``d state/dt = rate(state, kinematics(state), u)``
-    (``u``, the joint torques, held over the step), its four stages one ``lax.scan``, and
-    the kinematics at the step's start, for the caller's log.
-
-    The compiled step holds one copy of ``kinematics`` and of ``rate`` for the four stages,
-    where a first stage written beside the caller's own use of the start's kinematics and
-    the later stages in a scan hold two: less code to compile for the same arithmetic in the
-    same order. A forward loop's step: reverse mode would keep every stage's kinematics, so
-    the checkpointed loop uses
-    [`rk4_step_from_start_kinematics()`][spacegrasp_jax.integrator.rk4_step_from_start_kinematics].
-
-    Returns:
-        ``(next state, kinematics(state))``.
-    """
-
-    def stage(carry, coefficients):
-        previous_rate, weighted_sum, held = carry
-        fraction, weight = coefficients
-        stage_state = _advance(state, previous_rate, fraction * dt)
-        stage_kinematics = kinematics(stage_state)
-        stage_rate = rate(stage_state, stage_kinematics, held)
-        return (stage_rate, _advance(weighted_sum, stage_rate, weight), held), stage_kinematics
-
-    next_state, _, stages = _four_stages(stage, state, dt, u)
-    return next_state, jax.tree.map(lambda x: x[0], stages)
-
-
-def rk4_step_from_start_kinematics(
-    kinematics: Callable[[PlantState], Any],
-    rate: Callable[[PlantState, Any, Any], PlantState],
-    state: PlantState,
-    dt,
-    u,
+    held=None,
+    *,
+    at_start: Callable[[Any], tuple[Any, Any]] | None = None,
     start_kinematics=None,
-) -> PlantState:
-    """One classical Runge-Kutta step of ``d state/dt = rate(state, kinematics(state), u)``
-    (``u``, the joint torques, held over the step), the step of a loop that is
-    differentiated; ``start_kinematics``: ``kinematics(state)`` where the caller has
-    computed it already (for its controller and its log), else ``None``.
+    checkpoint: bool = False,
+) -> tuple[PlantState, Any, Any]:
+    """One classical Runge-Kutta step of length ``dt`` (s) of ``d state/dt = rate(state,
+    kinematics(state), held)``, ``held`` (the joint torques) held over the step (zero-order
+    hold); forces that belong to the plant (contact) are evaluated inside ``rate``, at every
+    stage.
 
-    The four stages are one ``lax.scan`` whose body is under ``jax.checkpoint``
-    (``prevent_cse=False``, as in [`rk4_step()`][spacegrasp_jax.integrator.rk4_step]); the
-    first stage reads ``start_kinematics`` through a ``lax.cond`` where given, and every
-    other stage computes its own. The compiled step and its derivative hold one copy of
-    ``rate`` where a first stage written beside the controller and the later stages in a
-    scan hold two, so the program is smaller and compiles faster (documentation,
-    Performance); the tape keeps each stage's input (and ``start_kinematics``) and the
-    backward pass recomputes each stage once, as there.
+    The four stages are one ``lax.scan``: the compiled step holds one copy of ``kinematics``
+    and of ``rate``, and its derivative one copy of their adjoints, where a first stage
+    written beside the later ones would hold two. XLA's CPU runtime pays for every distinct
+    kernel of a loop body, so one copy compiles faster and makes a faster gradient
+    (documentation, Performance). The closed loop's three ways to run a step are options:
+
+    - ``at_start(kinematics) -> (held, out)``: ``held`` is computed at the first stage from
+      its kinematics (a ``lax.cond``: the controller and the log row of a one-step control
+      period, run once a step) and held over the four stages; ``held`` is not passed.
+    - ``checkpoint``: the stage's body is under ``jax.checkpoint`` for reverse mode: the
+      tape keeps each stage's input (and ``start_kinematics``) and the backward pass
+      recomputes each stage once. ``prevent_cse=False``: inside a loop there is nothing for
+      XLA to merge the recomputation with, and the optimisation barriers that the default
+      inserts would keep XLA from fusing across them.
+    - ``start_kinematics``: ``kinematics(state)`` where the caller has computed it already
+      (for its controller or its log): the first stage reads it through a ``lax.cond``.
+
+    The options change the program, never the arithmetic or its order.
+
+    Args:
+        kinematics: ``state -> what rate reads of it`` (anything; ``lambda s: ()`` for a
+            plain ODE).
+        rate: ``(state, kinematics, held) -> d state/dt``.
+        state, dt: the state at the step's start and the step (s).
+        held: held over the step (``None`` with ``at_start``).
 
     Returns:
-        The state after the step (projected on its manifold).
+        ``(next state (projected on its manifold), held, out)``: ``out`` is ``at_start``'s,
+        or without it the kinematics at the step's start (``None`` with ``checkpoint``,
+        whose tape would keep every stage's).
     """
+    if at_start is not None:
+        held_and_out = jax.eval_shape(at_start, jax.eval_shape(kinematics, state))
+        held = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), held_and_out)
+    keeps_kinematics = at_start is None and not checkpoint
 
-    @functools.partial(jax.checkpoint, prevent_cse=False)
+    # With at_start, (held, out) ride in the carry: the later stages pass them on.
     def stage(carry, coefficients):
-        previous_rate, weighted_sum, held = carry
+        previous_rate, weighted_sum, carried = carry
         fraction, weight, first = coefficients
         stage_state = _advance(state, previous_rate, fraction * dt)
         if start_kinematics is None:
             stage_kinematics = kinematics(stage_state)
         else:
             stage_kinematics = jax.lax.cond(first, lambda _: start_kinematics, kinematics, stage_state)
-        stage_rate = rate(stage_state, stage_kinematics, held)
-        return (stage_rate, _advance(weighted_sum, stage_rate, weight), held), None
+        if at_start is not None:
+            carried = jax.lax.cond(first, at_start, lambda _: carried, stage_kinematics)
+        stage_rate = rate(stage_state, stage_kinematics, carried if at_start is None else carried[0])
+        carry = (stage_rate, _advance(weighted_sum, stage_rate, weight), carried)
+        return carry, (stage_kinematics if keeps_kinematics else None)
 
-    first = jnp.arange(len(_ALL_STAGES)) == 0
-    next_state, _, _ = _four_stages(stage, state, dt, u, (first,))
-    return next_state
-
-
-def rk4_step_with_start(
-    kinematics: Callable[[PlantState], Any],
-    rate: Callable[[PlantState, Any, Any], PlantState],
-    at_start: Callable[[Any], tuple[Any, Any]],
-    state: PlantState,
-    dt,
-) -> tuple[PlantState, Any, Any]:
-    """One classical Runge-Kutta step of ``d state/dt = rate(state, kinematics(state), held)``
-    whose ``held`` (the joint torques) is computed at the step's start from its kinematics:
-    the closed loop's controller.
-
-    As [`rk4_step_sharing_kinematics()`][spacegrasp_jax.integrator.rk4_step_sharing_kinematics],
-    four stages in one scan; at the first, ``at_start(kinematics) -> (held, out)`` runs on
-    that stage's kinematics (a ``lax.cond``: the controller and the log row once a step),
-    and ``held`` is held over the four stages. One copy of ``kinematics``, of ``rate`` and
-    of ``at_start`` in the compiled step.
-
-    Returns:
-        ``(next state, held, out)``.
-    """
-    held_and_out = jax.eval_shape(at_start, jax.eval_shape(kinematics, state))
-    nothing = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), held_and_out)
-
-    # (held, out) ride in the carry: the later stages pass them on, writing nothing.
-    def stage(carry, coefficients):
-        previous_rate, weighted_sum, started = carry
-        fraction, weight, first = coefficients
-        stage_state = _advance(state, previous_rate, fraction * dt)
-        stage_kinematics = kinematics(stage_state)
-        started = jax.lax.cond(first, at_start, lambda _: started, stage_kinematics)
-        stage_rate = rate(stage_state, stage_kinematics, started[0])
-        return (stage_rate, _advance(weighted_sum, stage_rate, weight), started), None
-
-    first = jnp.arange(len(_ALL_STAGES)) == 0
-    next_state, (held, out), _ = _four_stages(stage, state, dt, nothing, (first,))
-    return next_state, held, out
+    if checkpoint:
+        stage = jax.checkpoint(stage, prevent_cse=False)
+    fractions, weights = jnp.asarray(_STAGES, dtype=state.q.dtype).T
+    first = jnp.arange(len(_STAGES)) == 0
+    zero = jax.tree.map(jnp.zeros_like, state)
+    (_, weighted_sum, carried), stage_kinematics = jax.lax.scan(stage, (zero, zero, held), (fractions, weights, first))
+    next_state = _advance(state, weighted_sum, dt / 6).projected()
+    if at_start is not None:
+        return next_state, carried[0], carried[1]
+    out = jax.tree.map(lambda x: x[0], stage_kinematics) if keeps_kinematics else None
+    return next_state, carried, out
 
 
 def simulate_free_floating(
@@ -290,7 +210,7 @@ def simulate_free_floating(
 
     def step(current, u):
         Q = jnp.concatenate([jnp.zeros(6, dtype=u.dtype), u])
-        new = rk4_step(lambda s: free_floating_derivative(robot, s, Q), current, dt)
+        new, _, _ = rk4_step(lambda s: (), lambda s, _, Q: free_floating_derivative(robot, s, Q), current, dt, Q)
         return new, new
 
     final, path = jax.lax.scan(step, state, joint_torques)

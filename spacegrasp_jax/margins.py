@@ -20,8 +20,8 @@ The changes probed:
   program. The line starts full of zero commands, as the realism's does.
 * **Extra delay at the servo's input** of ``d`` whole servo ticks, between the joint
   sensors and the joint PID, where the realism runs the servos faster than the controller
-  (``servo_period`` below ``control_period``): the PID reads the joint rates measured ``d``
-  ticks before (``simulate.ServoInputDelay``, ``max_servo_delay_ticks + 1`` entries, one
+  (``servo_period`` below ``control_period``): the PID reads the joint sensors' reading of ``d``
+  ticks before (``stages.DelayLine``, ``max_servo_delay_ticks + 1`` entries, one
   program for every ``d``; the line starts full of zero readings).
 
 A probe *fails* when a sample that captures at the nominal gains no longer captures (the
@@ -45,8 +45,6 @@ import math
 import time
 from collections.abc import Callable
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax import batching
@@ -55,10 +53,11 @@ from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.law import Output
 from spacegrasp_jax.control.pid import PID
 from spacegrasp_jax.control.registry import LAWS, as_controller, law_named
-from spacegrasp_jax.model import Robot, n_joints
+from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, lost, success
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import RunSpec, ServoInputDelay, loop_realism
+from spacegrasp_jax.simulate import RunSpec, loop_realism
+from spacegrasp_jax.stages import DelayLine
 
 #: The loops whose gain is probed: the joint PID's and the law's.
 LOOPS = ("pid", "law")
@@ -134,68 +133,6 @@ class MarginSettings:
             raise MarginError(f"max_servo_delay_ticks: must be a positive integer, got {self.max_servo_delay_ticks!r}")
 
 
-# ---- the delay at the controller's output ----------------------------------------------
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class OutputDelayState:
-    """The delayed law's memory.
-
-    Attributes:
-        law: the wrapped law's state.
-        commands: (capacity, N) rad/s, the law's last ``capacity`` desired joint rates, a
-            ring written at ``head``.
-        head: () int, where the next command is written.
-    """
-
-    law: object
-    commands: jax.Array
-    head: jax.Array
-
-
-@dataclasses.dataclass(frozen=True)
-class OutputDelay:
-    """A law whose desired joint rates reach the joint PID ``periods`` control periods late.
-
-    Attributes:
-        law: the law delayed (a [`ControlLaw`][spacegrasp_jax.control.law.ControlLaw]).
-        capacity: the delay line's length (static); ``periods`` must be below it.
-        periods: () int, the delay in control periods (a value: any delay below
-            ``capacity`` runs the same program).
-        n_joints: the arm's number of joints N (static).
-    """
-
-    law: object
-    capacity: int
-    periods: jax.Array
-    n_joints: int
-
-    # What the delayed law is, it is with the delay.
-    name = property(lambda self: self.law.name)
-    title = property(lambda self: self.law.title)
-    output = property(lambda self: self.law.output)
-    gains_type = property(lambda self: self.law.gains_type)
-    gain_groups = property(lambda self: self.law.gain_groups)
-    loop_gain = property(lambda self: self.law.loop_gain)
-    style = property(lambda self: self.law.style)
-    paper_max_abs_torque_Nm = property(lambda self: self.law.paper_max_abs_torque_Nm)
-
-    def init(self, n_joints: int, dtype=jnp.float64) -> OutputDelayState:
-        return OutputDelayState(
-            self.law.init(n_joints, dtype), jnp.zeros((self.capacity, self.n_joints), dtype), jnp.zeros((), jnp.int32)
-        )
-
-    def update(self, gains: Gains, inputs, state: OutputDelayState, dt):
-        computed, law_state = self.law.update(gains, inputs, state.law, dt)
-        commands = state.commands.at[state.head].set(computed)
-        applied = commands[(state.head - self.periods) % self.capacity]
-        return applied, OutputDelayState(law_state, commands, (state.head + 1) % self.capacity)
-
-    def log_fields(self, state: OutputDelayState) -> dict[str, jax.Array]:
-        return self.law.log_fields(state.law)
-
-
 # ---- probes ---------------------------------------------------------------------------
 
 
@@ -208,15 +145,20 @@ def scaled_loop(gains: Gains, controller: str, loop: str, factor: float) -> Gain
     )
 
 
+def delayed_spec(spec: RunSpec, capacity: int, delay_periods, servo_capacity: int | None, servo_delay_ticks) -> RunSpec:
+    """``spec`` with the probes' two delay lines added to its stages: ``delay_periods`` control
+    periods at the law's output (a line of ``capacity``) and, with a ``servo_capacity``,
+    ``servo_delay_ticks`` servo ticks at the servo's input (``stages.DelayLine``)."""
+    added = (DelayLine(capacity, delay_periods, "command"),)
+    if servo_capacity is not None:
+        added += (DelayLine(servo_capacity, servo_delay_ticks, "servo_joints"),)
+    return dataclasses.replace(spec, stages=tuple(spec.stages) + added)
+
+
 def _probe(
     spec, gains, seed, ranges, delay_periods, servo_delay_ticks, indices, *, capacity, servo_capacity, identified
 ):
-    controller = spec.controller
-    delayed = OutputDelay(controller.law, capacity, delay_periods, n_joints(spec.robot))
-    servo_delay = None if servo_capacity is None else ServoInputDelay(servo_capacity, servo_delay_ticks)
-    spec = dataclasses.replace(
-        spec, controller=dataclasses.replace(controller, law=delayed), servo_input_delay=servo_delay
-    )
+    spec = delayed_spec(spec, capacity, delay_periods, servo_capacity, servo_delay_ticks)
     _, sample_metrics, _ = evaluate_samples(spec, gains, seed, indices, ranges=ranges, identified=identified)
     return sample_metrics
 
@@ -556,10 +498,9 @@ __all__ = [
     "PID_LOOP_GROUPS",
     "MarginError",
     "MarginSettings",
-    "OutputDelay",
-    "OutputDelayState",
     "Prober",
     "control_period",
+    "delayed_spec",
     "loop_groups",
     "require_joint_servo",
     "delay_margin",

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from spacegrasp_jax import compilation, spatial, stages
+from spacegrasp_jax import spatial, stages
 from spacegrasp_jax.contact import (
     contact_force_exact,
     contact_force_smooth,
@@ -46,9 +46,7 @@ from spacegrasp_jax.dynamics import (
 )
 from spacegrasp_jax.integrator import (
     PlantState,
-    rk4_step_from_start_kinematics,
-    rk4_step_sharing_kinematics,
-    rk4_step_with_start,
+    rk4_step,
     state_rate,
 )
 from spacegrasp_jax.kinematics import Frames, point_jacobian_blocks
@@ -377,66 +375,76 @@ def controller_inputs(
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class LoopState:
-    """The closed loop's carry. A stage that is off holds ``()``, so the paper's loop
-    carries the plant and the controller only.
+    """The closed loop's carry.
 
     Attributes:
         plant: the true state. controller: the law's and the joint servo's memory.
-        wrench_filter: (6,) the low-passed F/T reading ``[f (N); n (N m)]``, sensor axes,
-            with the realism's low-pass on (``cutoff_hz > 0``); ``()`` without.
-        commands_in_flight: (delay_periods, N), the law's commands computed but not yet
-            applied, oldest first (desired joint rates, rad/s, or a torque law's N m), with
-            a delay line (``delay_periods > 0``); ``()`` without.
-        rates_in_flight: with a [`ServoInputDelay`][spacegrasp_jax.simulate.ServoInputDelay], its line of joint-rate
-            readings (``ServoInputDelay.init()``); ``()`` without.
+        stages: each stage's memory, in the order of the loop's chain
+            ([`loop_stages()`][spacegrasp_jax.simulate.loop_stages]); ``()`` in the paper's loop.
     """
 
     plant: PlantState
     controller: ControllerState
-    wrench_filter: jax.Array | tuple = ()
-    commands_in_flight: jax.Array | tuple = ()
-    rates_in_flight: tuple = ()
+    stages: tuple = ()
 
 
-@jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class ServoInputDelay:
-    """A delay of whole servo ticks between the joint sensors and the joint PID: at tick j
-    the PID reads the joint rates measured at tick ``j - ticks`` (zeros before the first).
+class LoopOptions:
+    """How the loop is compiled and differentiated, never what it computes (beyond rounding).
+    Static: a field of the program's key. The host fills it once
+    ([`experiment.loop_options()`][spacegrasp_jax.experiment.loop_options]); nothing in the
+    loop asks the process while it is traced.
 
     Attributes:
-        capacity: the line's length (static); ``ticks`` must be below it.
-        ticks: () int, the delay in servo ticks (a value: every delay below ``capacity``
-            runs the same program).
+        checkpoint: put the parts of each control period under ``jax.checkpoint`` for
+            reverse mode: the controller update, with the kinematics at the period's start;
+            in a period of several plant steps, each step's start (its kinematics and log
+            row); and each of RK4's stages, one by one
+            ([`integrator.rk4_step()`][spacegrasp_jax.integrator.rk4_step]). The tape keeps,
+            per plant step, the state, the kinematics at its start and the rates RK4's stages
+            start from, and per period the controller's inputs (the sensors' noise is drawn
+            outside the checkpoint, once). A forward run agrees with the unchecked loop's
+            to rounding.
+        reuse_start_kinematics: with ``checkpoint`` and a period of one step, RK4's first
+            stage reads the kinematics the controller computed instead of computing them
+            again. That puts them on the tape, in the inner scans of two steps: over 64
+            numbers an array, which makes XLA's CPU runtime run those loops as a task graph
+            where it runs them kernel by kernel (a gradient 35% slower than recomputing
+            them). Where loops compile whole it runs as fast and compiles in 56-71% of the
+            time (documentation, Performance): the host sets it where they do.
     """
 
-    capacity: int = dataclasses.field(metadata=dict(static=True))
-    ticks: jax.Array
+    checkpoint: bool = False
+    reuse_start_kinematics: bool = False
 
-    def init(self, n_joints: int, dtype) -> tuple:
-        """``(readings (capacity, n_joints) rad/s, head () int)``: the line, empty."""
-        return jnp.zeros((self.capacity, n_joints), dtype), jnp.zeros((), jnp.int32)
 
-    def push(self, line: tuple, reading: jax.Array) -> tuple[jax.Array, tuple]:
-        """``(the reading the PID gets (N,), the line after)`` when ``reading`` (N,) is measured."""
-        readings, head = line
-        readings = readings.at[head].set(reading)
-        return readings[(head - self.ticks) % self.capacity], (readings, (head + 1) % self.capacity)
+def loop_stages(spec: RunSpec) -> tuple:
+    """The loop's chain of stages: the realism's
+    ([`stages.realism_stages()`][spacegrasp_jax.stages.realism_stages]), then ``spec.stages``."""
+    realism = ideal() if spec.realism is None else spec.realism
+    period = realism.steps_per_period(spec.scenario.dt) * spec.scenario.dt
+    return stages.realism_stages(realism, period) + tuple(spec.stages)
 
 
 def initial_state(spec: RunSpec) -> LoopState:
     """The initial carry of the loop of ``spec`` ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]): the scenario's plant state, the
     law's initial state (``V_ref(0) = 0`` for the admittance law), the joint servo at rest,
-    the stages' memory empty (zeros)."""
-    realism = ideal() if spec.realism is None else spec.realism
+    each stage's initial memory (``init()``)."""
     initial = spec.scenario.initial
     dtype, n = initial.q.dtype, initial.q.shape[-1]
+    joints = (jnp.zeros(n, dtype), jnp.zeros(n, dtype))
+    values = dict(
+        wrench=jnp.zeros(6, dtype),
+        joints=joints,
+        lar=(jnp.zeros(3, dtype), jnp.zeros((3, 3), dtype)),
+        command=jnp.zeros(n, dtype),
+        servo_joints=joints,
+        torque=jnp.zeros(n, dtype),
+    )
     return LoopState(
         plant=initial,
         controller=spec.controller.init(n, dtype),
-        wrench_filter=jnp.zeros(6, dtype) if realism.cutoff_hz > 0.0 else (),
-        commands_in_flight=jnp.zeros((realism.delay_periods, n), dtype) if realism.delay_periods else (),
-        rates_in_flight=() if spec.servo_input_delay is None else spec.servo_input_delay.init(n, dtype),
+        stages=stages.init_chain(loop_stages(spec), values),
     )
 
 
@@ -466,88 +474,59 @@ class LoopBody:
     steps_per_period: int
 
 
-def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> LoopBody:
-    """The closed loop's body: one control period, from the sensors to the plant's steps.
+@dataclasses.dataclass(frozen=True)
+class _Period:
+    """What the parts of one control period share: the run's settings, decided once on the
+    host from the spec (``loop_body()``)."""
 
-    At the start of control period k (``t_k = k T``, ``T = realism.control_period``, by
-    default ``scenario.dt``): the sensors read the true state (noise drawn from
-    ``fold_in(key, k)``), the controller runs with its own model and LAR estimate, and its
-    command enters the delay line. The command leaving it is held over the period; at each
-    servo tick (``j S``, ``S = realism.servo_period``, by default ``T``) the joint PID reads
-    the joint sensors (noise from the same key of the period) and turns the rate error into
-    torques (anti-windup, saturation), held over the tick's plant steps (RK4 at
-    ``scenario.dt``, the contact force at every stage). Each stage is a function of
-    [`spacegrasp_jax.stages`][spacegrasp_jax.stages] that the realism switches on or off
-    (static fields: they fix the program); with every stage off and a period of one plant
-    step, this is the paper's loop (the modelling notes).
+    spec: RunSpec
+    gains: Gains
+    key: jax.Array | None
+    chain: tuple
+    control: Any  # the controller with the realism's actuators
+    own_model: bool  # the controller has a model of its own (``model``)
+    model: Robot  # the robot the controller believes
+    limit: jax.Array | None  # the actuators' saturation (N m), with the actuators' stage
+    senses: bool  # the controller's view differs from the truth
+    logs_readings: bool  # the log keeps the readings (the paper's loop: they would repeat the truth)
+    noisy: bool
+    n: int
+    dtype: Any
+    ticks: int  # servo ticks per control period
+    per_period: int
+    per_servo: int
+    period: float
+    servo_period: float
 
-    How a plant step is written depends on ``spec.checkpoint``. Without it (forward runs),
-    RK4's four stages are one ``lax.scan`` and what reads the step's start (the controller
-    and the log row of a one-step period, the log row of a longer period's step) runs at
-    the first stage on its kinematics
-    ([`rk4_step_with_start()`][spacegrasp_jax.integrator.rk4_step_with_start]): one copy
-    of the kinematics and the dynamics in the program, which then compiles in 55-70% of
-    the time. With it (reverse mode), the controller (with the kinematics at the period's
-    start), in a period of several steps each step's start (its kinematics and log row),
-    and each of RK4's four stages are checkpointed apart, which keeps the tape and the
-    backward pass small; no checkpoint spans a whole period. The stages are one scan whose
-    first reads the kinematics of the step's start
-    ([`rk4_step_from_start_kinematics()`][spacegrasp_jax.integrator.rk4_step_from_start_kinematics]):
-    one copy of the dynamics. The two are the same operations in the same order and agree
-    to rounding.
-
-    Args:
-        spec: the run ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]: the plant, the
-            controller, the realism, the controller's model, a servo input delay and
-            checkpointing; its observer is not the body's concern).
-        gains: the gains (any leaf may carry a vmap batch axis).
-        key: a ``jax.random`` key, needed with noisy sensors (``Stage.SENSORS``); same key,
-            same rollout.
-    """
-    robot, scenario, model_robot = spec.robot, spec.scenario, spec.model_robot
-    servo_input_delay, checkpoint = spec.servo_input_delay, spec.checkpoint
-    realism = ideal() if spec.realism is None else spec.realism
-    realism.check_timing(scenario.dt, scenario.n_steps)
-    per_period = realism.steps_per_period(scenario.dt)
-    per_servo = realism.steps_per_servo(scenario.dt)
-    periods = scenario.n_steps // per_period
-    ticks = per_period // per_servo  # servo ticks per control period
-    period, servo_period = per_period * scenario.dt, per_servo * scenario.dt
-    dtype = scenario.initial.q.dtype
-    n = n_joints(robot)
-    realism.check_joints(n)
-    noisy = Stage.SENSORS in realism.stages
-    if noisy and key is None:
-        raise ValueError("key: a realism with noisy sensors needs a jax.random key")
-    control = spec.controller.with_actuators(realism.saturation, realism.anti_windup)
-    limit = realism.torque_limit_Nm if Stage.ACTUATORS in realism.stages else None
-    own_model = bool(realism.stages & (Stage.SENSORS | Stage.MODEL)) or model_robot is not None
-    model = stages.believed_robot(robot if model_robot is None else model_robot, realism) if own_model else robot
-    # Whether the controller's view differs from the truth, and whether the log keeps its
-    # readings (the paper's loop reads the truth: they would repeat the true fields).
-    senses = own_model or bool(realism.stages & (Stage.SENSORS | Stage.ESTIMATE)) or realism.cutoff_hz > 0.0
-    logs_readings = not realism.is_ideal(scenario.dt) or model_robot is not None or servo_input_delay is not None
-    smoothing = stages.low_pass_gain(realism, period)
-
-    def period_noise(k):
+    def noise(self, k):
         """(6 + N ticks,) standard normals of period k: the wrench's, then each tick's rates."""
-        if not noisy:
-            return jnp.zeros(6 + n * ticks, dtype)  # read by no stage
-        return jax.random.normal(jax.random.fold_in(key, k.astype(jnp.uint32)), (6 + n * ticks,), dtype)
+        size = 6 + self.n * self.ticks
+        if not self.noisy:
+            return jnp.zeros(size, self.dtype)  # read by no stage
+        return jax.random.normal(jax.random.fold_in(self.key, k.astype(jnp.uint32)), (size,), self.dtype)
 
-    def sensed_inputs(state: LoopState, truth: PlantKinematics, t, noise):
-        """What the controller reads through its sensors, model and LAR estimate, and the
-        F/T reading (6,) (filtered)."""
-        plant = state.plant
-        reading = stages.wrench_reading(realism, *sensor_reading(robot, scenario, truth), noise)
-        q, qd = stages.joint_reading(realism, plant.q, plant.qd, noise[6 : 6 + n])
-        reading = stages.low_pass(realism, state.wrench_filter, reading, smoothing)
-        view = (
-            plant_kinematics(model, scenario, dataclasses.replace(plant, q=q), with_contact=False)
-            if own_model
-            else truth
+    def kinematics(self, plant: PlantState) -> PlantKinematics:
+        return plant_kinematics(self.spec.robot, self.spec.scenario, plant)
+
+    def rate(self, plant: PlantState, kinematics: PlantKinematics, u) -> PlantState:
+        return plant_rate(self.spec.robot, self.spec.scenario, plant, kinematics, u)
+
+    def observe(self, plant: PlantState, kinematics: PlantKinematics, t) -> Observation:
+        return observe(self.spec.robot, self.spec.scenario, plant, kinematics, t)
+
+    def sensed_inputs(self, memories: tuple, plant: PlantState, truth: PlantKinematics, t, noise):
+        """What the controller reads through the stages of the wrench, the joints and the
+        LAR and its own model: ``(inputs, the F/T reading (6,), the memories after)``."""
+        robot, scenario = self.spec.robot, self.spec.scenario
+        reading, memories = stages.run_chain(
+            self.chain, memories, "wrench", jnp.concatenate(sensor_reading(robot, scenario, truth)), noise[:6]
         )
-        p_lar, R_lar = stages.lar_estimate(realism, truth.p_lar, truth.R_lar)
+        (q, qd), memories = stages.run_chain(self.chain, memories, "joints", (plant.q, plant.qd), noise[6 : 6 + self.n])
+        if self.own_model:
+            view = plant_kinematics(self.model, scenario, dataclasses.replace(plant, q=q), with_contact=False)
+        else:
+            view = truth
+        (p_lar, R_lar), memories = stages.run_chain(self.chain, memories, "lar", (truth.p_lar, truth.R_lar))
         inputs, _ = controller_inputs(
             robot,
             scenario.trajectory,
@@ -563,149 +542,216 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
             t,
             lar_motion=target_motion(scenario, plant),
         )
-        return inputs, reading
+        return inputs, reading, memories
 
-    def control_update(state: LoopState, k, noise, truth: PlantKinematics, observed: Observation | None):
-        """The controller's update at the start of period k: the state with the stages'
-        memory moved on, the law's next state, and the fields held over the period (the
-        command leaving the delay line, the log's controller fields)."""
-        t = k * period
-        if senses:
-            inputs, reading = sensed_inputs(state, truth, t, noise)
+    def control_update(self, state: LoopState, k, noise, truth: PlantKinematics, observed: Observation | None):
+        """The controller's update at the start of period k: the stages' memories moved on,
+        the law's next state, and what is held over the period (the command leaving the
+        command's stages, the log's controller fields)."""
+        memories = state.stages
+        if self.senses:
+            inputs, reading, memories = self.sensed_inputs(memories, state.plant, truth, k * self.period, noise)
         else:
             inputs, reading = observed.inputs, jnp.concatenate([observed.force_fts, observed.torque_fts])
-        computed, law_state = control.command(gains, inputs, state.controller.law, period)
-        command, in_flight = stages.delay_line(realism, state.commands_in_flight, computed)
-        held = control.logged(command, state.controller.law)
-        if logs_readings:
+        computed, law_state = self.control.command(self.gains, inputs, state.controller.law, self.period)
+        command, memories = stages.run_chain(self.chain, memories, "command", computed)
+        held = self.control.logged(command, state.controller.law)
+        if self.logs_readings:
             held |= dict(
-                qd_des_computed=control.desired_rates(computed),
+                qd_des_computed=self.control.desired_rates(computed),
                 fts_force_measured=reading[:3],
                 fts_torque_measured=reading[3:],
             )
-        memory = reading if realism.cutoff_hz > 0.0 else ()
-        state = dataclasses.replace(state, wrench_filter=memory, commands_in_flight=in_flight)
-        return state, law_state, command, held
+        return memories, law_state, command, held
 
-    def servo_update(plant: PlantState, pid_state, line, j, command, held, noise):
+    def servo_update(self, plant: PlantState, pid_state, memories, j, command, held, noise):
         """Servo tick j (a float) of the whole run: the joint sensors and the PID; returns the
-        torques' log fields (``u`` (N,) N m and the readings), the PID's and the line's state."""
-        tick = j.astype(jnp.int32) % ticks if noisy else 0
-        tick_noise = jax.lax.dynamic_slice_in_dim(noise, 6 + n * tick, n)
-        q, qd = stages.joint_reading(realism, plant.q, plant.qd, tick_noise)
-        if servo_input_delay is not None:
-            qd, line = servo_input_delay.push(line, qd)
-        u, pid_state = control.torque(gains, command, qd, pid_state, j * servo_period, servo_period, limit)
-        fields = dict(held, u=u, q_measured=q, qd_measured=qd) if logs_readings else dict(held, u=u)
-        return fields, pid_state, line
-
-    def kinematics_of(plant: PlantState) -> PlantKinematics:
-        return plant_kinematics(robot, scenario, plant)
-
-    def rate_of(plant: PlantState, kinematics: PlantKinematics, u) -> PlantState:
-        return plant_rate(robot, scenario, plant, kinematics, u)
-
-    def control_at_start(state: LoopState, k, truth: PlantKinematics):
-        """A one-step period's controller, servo and log row at its start: ``(u, (the state
-        with the controller's memory moved on, the row))``."""
-        noise = period_noise(k)
-        observed = observe(robot, scenario, state.plant, truth, k * scenario.dt)
-        state, law_state, command, held = control_update(state, k, noise, truth, observed)
-        fields, pid_state, line = servo_update(
-            state.plant, state.controller.pid, state.rates_in_flight, k, command, held, noise
+        torques' log fields (``u`` (N,) N m and the readings), the PID's state and the
+        stages' memories."""
+        tick = j.astype(jnp.int32) % self.ticks if self.noisy else 0
+        tick_noise = jax.lax.dynamic_slice_in_dim(noise, 6 + self.n * tick, self.n)
+        (q, qd), memories = stages.run_chain(self.chain, memories, "servo_joints", (plant.q, plant.qd), tick_noise)
+        u, pid_state = self.control.torque(
+            self.gains, command, qd, pid_state, j * self.servo_period, self.servo_period, self.limit
         )
-        row = log_row(state.plant, truth, k * scenario.dt, observed, scenario.target, **fields)
-        state = dataclasses.replace(state, controller=ControllerState(law_state, pid_state), rates_in_flight=line)
+        u, memories = stages.run_chain(self.chain, memories, "torque", u)
+        fields = dict(held, u=u, q_measured=q, qd_measured=qd) if self.logs_readings else dict(held, u=u)
+        return fields, pid_state, memories
+
+    def row(self, plant: PlantState, kinematics: PlantKinematics, t, fields, observed=None) -> Log:
+        observed = self.observe(plant, kinematics, t) if observed is None else observed
+        return log_row(plant, kinematics, t, observed, self.spec.scenario.target, **fields)
+
+    def control_at_start(self, state: LoopState, k, truth: PlantKinematics):
+        """A one-step period's controller, servo and log row at its start: ``(u, (the state
+        with the controller's and the stages' memory moved on, the row))``."""
+        noise = self.noise(k)
+        t = k * self.spec.scenario.dt
+        observed = self.observe(state.plant, truth, t)
+        memories, law_state, command, held = self.control_update(state, k, noise, truth, observed)
+        fields, pid_state, memories = self.servo_update(
+            state.plant, state.controller.pid, memories, k, command, held, noise
+        )
+        row = self.row(state.plant, truth, t, fields, observed)
+        state = dataclasses.replace(state, controller=ControllerState(law_state, pid_state), stages=memories)
         return fields["u"], (state, row)
 
-    def period_of_one_step_forward(state: LoopState, k):
-        # The controller runs at RK4's first stage, on its kinematics: one copy of the
-        # kinematics and the rate in the program (integrator.rk4_step_with_start).
-        plant, _, (state, row) = rk4_step_with_start(
-            kinematics_of, rate_of, lambda truth: control_at_start(state, k, truth), state.plant, scenario.dt
-        )
-        return dataclasses.replace(state, plant=plant), jax.tree.map(lambda x: x[None], row)
+    def one_step(self, state: LoopState, k):
+        """A period of one plant step: the controller at its start, then RK4."""
+        dt = self.spec.scenario.dt
+        if not self.spec.options.checkpoint:
+            # The controller runs at RK4's first stage, on its kinematics: one copy of the
+            # kinematics and the rate in the program.
+            at_start = lambda truth: self.control_at_start(state, k, truth)
+            plant, _, (state, row) = rk4_step(self.kinematics, self.rate, state.plant, dt, at_start=at_start)
+            return dataclasses.replace(state, plant=plant), jax.tree.map(lambda x: x[None], row)
 
-    def period_of_one_step(state: LoopState, k):
-        # The controller reads the kinematics RK4's first stage starts from: they are shared.
         # Inside a scan no CSE can undo the checkpoint; without the optimisation barriers of
-        # the default prevent_cse=True, XLA fuses more (integrator.rk4_step_from_start_kinematics).
+        # the default prevent_cse=True, XLA fuses more (integrator.rk4_step).
         @functools.partial(jax.checkpoint, prevent_cse=False)
         def control(state: LoopState, k):
-            truth = plant_kinematics(robot, scenario, state.plant)
-            u, (state, row) = control_at_start(state, k, truth)
+            truth = self.kinematics(state.plant)
+            u, (state, row) = self.control_at_start(state, k, truth)
             return state, u, row, truth
 
         state, u, row, truth = control(state, k)
-        # Reusing the controller's kinematics saves computing them again, but puts them on
-        # the tape, in the inner scans of two steps: over 64 numbers an array, which makes
-        # XLA run those loops as a task graph where it runs them kernel by kernel (a gradient
-        # 35% slower than with the two-copy step this replaced; recomputing them, 13%
-        # faster). Loops compiled whole do not care: reusing them runs as fast as that step
-        # and compiles in 56-71% of its time (documentation, Performance).
-        reused = truth if compilation.loops_compile_whole() else None
-        plant = rk4_step_from_start_kinematics(kinematics_of, rate_of, state.plant, scenario.dt, u, reused)
+        reused = truth if self.spec.options.reuse_start_kinematics else None
+        plant, _, _ = rk4_step(self.kinematics, self.rate, state.plant, dt, u, start_kinematics=reused, checkpoint=True)
         return dataclasses.replace(state, plant=plant), jax.tree.map(lambda x: x[None], row)
 
-    def period_of_steps(state: LoopState, k):
-        noise = period_noise(k)
+    def plant_step(self, plant: PlantState, step, fields):
+        """Plant step ``step`` (a float) of a longer period with the servo's ``fields``: the
+        step and its log row."""
+        dt = self.spec.scenario.dt
+        t, u = step * dt, fields["u"]
+        if self.spec.options.checkpoint:
+            # The step's start (its kinematics and log row) is checkpointed like the
+            # controller: the tape keeps its inputs and the kinematics, not every intermediate.
+            @functools.partial(jax.checkpoint, prevent_cse=False)
+            def start_of_step(plant, t, fields):
+                kinematics = self.kinematics(plant)
+                return kinematics, self.row(plant, kinematics, t, fields)
+
+            kinematics, row = start_of_step(plant, t, fields)
+            next_plant, _, _ = rk4_step(
+                self.kinematics, self.rate, plant, dt, u, start_kinematics=kinematics, checkpoint=True
+            )
+            return next_plant, row
+        next_plant, _, kinematics = rk4_step(self.kinematics, self.rate, plant, dt, u)
+        return next_plant, self.row(plant, kinematics, t, fields)
+
+    def several_steps(self, state: LoopState, k):
+        """A period of several plant steps: the controller at its start, then each servo
+        tick's sensors and PID and its plant steps."""
+        dtype = self.dtype
+        noise = self.noise(k)
 
         def start_of_period(state, k, noise):
-            truth = plant_kinematics(robot, scenario, state.plant)
-            return control_update(
-                state, k, noise, truth, None if senses else (observe(robot, scenario, state.plant, truth, k * period))
-            )
+            truth = self.kinematics(state.plant)
+            observed = None if self.senses else self.observe(state.plant, truth, k * self.period)
+            return self.control_update(state, k, noise, truth, observed)
 
-        if checkpoint:  # the noise is drawn outside: once, not again in the backward pass
+        if self.spec.options.checkpoint:  # the noise is drawn outside: once, not again in the backward pass
             start_of_period = jax.checkpoint(start_of_period, prevent_cse=False)
-        state, law_state, command, held = start_of_period(state, k, noise)
-
-        def row_at(plant, kinematics, t, fields):
-            observed = observe(robot, scenario, plant, kinematics, t)
-            return log_row(plant, kinematics, t, observed, scenario.target, **fields)
-
-        # The step's start (its kinematics and log row) is checkpointed like the controller:
-        # the tape keeps its inputs and the kinematics, not every intermediate.
-        @functools.partial(jax.checkpoint, prevent_cse=False)
-        def start_of_step(plant, t, fields):
-            kinematics = kinematics_of(plant)
-            return kinematics, row_at(plant, kinematics, t, fields)
-
-        def plant_step(plant, step, fields):
-            t, u = step * scenario.dt, fields["u"]
-            if checkpoint:
-                kinematics, row = start_of_step(plant, t, fields)
-                next_plant = rk4_step_from_start_kinematics(kinematics_of, rate_of, plant, scenario.dt, u, kinematics)
-                return next_plant, row
-            # one copy of the kinematics and the rate (integrator)
-            next_plant, kinematics = rk4_step_sharing_kinematics(kinematics_of, rate_of, plant, scenario.dt, u)
-            return next_plant, row_at(plant, kinematics, t, fields)
+        memories, law_state, command, held = start_of_period(state, k, noise)
 
         def servo_tick(carry, j):
-            plant, pid_state, line = carry
-            fields, pid_state, line = servo_update(plant, pid_state, line, j, command, held, noise)
-            steps = j * per_servo + jnp.arange(per_servo, dtype=dtype)
-            if per_servo == 1:
-                plant, row = plant_step(plant, steps[0], fields)
-                return (plant, pid_state, line), jax.tree.map(lambda x: x[None], row)
-            plant, rows = jax.lax.scan(lambda p, i: plant_step(p, i, fields), plant, steps)
-            return (plant, pid_state, line), rows
+            plant, pid_state, memories = carry
+            fields, pid_state, memories = self.servo_update(plant, pid_state, memories, j, command, held, noise)
+            steps = j * self.per_servo + jnp.arange(self.per_servo, dtype=dtype)
+            if self.per_servo == 1:
+                plant, row = self.plant_step(plant, steps[0], fields)
+                return (plant, pid_state, memories), jax.tree.map(lambda x: x[None], row)
+            plant, rows = jax.lax.scan(lambda p, i: self.plant_step(p, i, fields), plant, steps)
+            return (plant, pid_state, memories), rows
 
-        carry = (state.plant, state.controller.pid, state.rates_in_flight)
-        if ticks == 1:
-            (plant, pid_state, line), rows = servo_tick(carry, k)
+        carry = (state.plant, state.controller.pid, memories)
+        if self.ticks == 1:
+            (plant, pid_state, memories), rows = servo_tick(carry, k)
         else:
-            (plant, pid_state, line), rows = jax.lax.scan(servo_tick, carry, k * ticks + jnp.arange(ticks, dtype=dtype))
-            rows = jax.tree.map(lambda x: x.reshape((per_period,) + x.shape[2:]), rows)
+            ticks = k * self.ticks + jnp.arange(self.ticks, dtype=dtype)
+            (plant, pid_state, memories), rows = jax.lax.scan(servo_tick, carry, ticks)
+            rows = jax.tree.map(lambda x: x.reshape((self.per_period,) + x.shape[2:]), rows)
         controller_state = ControllerState(law_state, pid_state)
-        return dataclasses.replace(state, plant=plant, controller=controller_state, rates_in_flight=line), rows
+        return LoopState(plant, controller_state, memories), rows
 
-    if per_period == 1:
-        one_period = period_of_one_step if checkpoint else period_of_one_step_forward
-    else:
-        one_period = period_of_steps
-    start = initial_state(spec)
-    return LoopBody(start=start, period=one_period, periods=periods, steps_per_period=per_period)
+
+def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> LoopBody:
+    """The closed loop's body: one control period, from the sensors to the plant's steps.
+
+    At the start of control period k (``t_k = k T``, ``T = realism.control_period``, by
+    default ``scenario.dt``): the sensors read the true state (noise drawn from
+    ``fold_in(key, k)``), the controller runs with its own model and LAR estimate, and its
+    command passes the command's stages (the delay line). The command leaving them is held
+    over the period; at each servo tick (``j S``, ``S = realism.servo_period``, by default
+    ``T``) the joint PID reads the joint sensors (noise from the same key of the period) and
+    turns the rate error into torques (anti-windup, saturation), which pass the torque's
+    stages and are held over the tick's plant steps (RK4 at ``scenario.dt``, the contact
+    force at every stage). Each signal passes its stages of the loop's chain
+    ([`loop_stages()`][spacegrasp_jax.simulate.loop_stages]: the realism's, then
+    ``spec.stages``; [`spacegrasp_jax.stages`][spacegrasp_jax.stages]); with none and a period
+    of one plant step, this is the paper's loop (the modelling notes).
+
+    How a plant step is written depends on ``spec.options``
+    ([`LoopOptions`][spacegrasp_jax.simulate.LoopOptions]). Without checkpointing (forward
+    runs), RK4's four stages are one ``lax.scan`` and what reads the step's start (the
+    controller and the log row of a one-step period, the log row of a longer period's step)
+    runs at the first stage on its kinematics: one copy of the kinematics and the dynamics
+    in the program, which then compiles in 55-70% of the time. With it (reverse mode), the
+    controller (with the kinematics at the period's start), in a period of several steps
+    each step's start (its kinematics and log row), and each of RK4's four stages are
+    checkpointed apart, which keeps the tape and the backward pass small; no checkpoint
+    spans a whole period. The two are the same operations in the same order and agree to
+    rounding ([`integrator.rk4_step()`][spacegrasp_jax.integrator.rk4_step]).
+
+    Args:
+        spec: the run ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]: the plant, the
+            controller, the realism, the controller's model, added stages and options; its
+            observer is not the body's concern).
+        gains: the gains (any leaf may carry a vmap batch axis).
+        key: a ``jax.random`` key, needed with noisy sensors (``Stage.SENSORS``); same key,
+            same rollout.
+    """
+    robot, scenario, model_robot = spec.robot, spec.scenario, spec.model_robot
+    realism = ideal() if spec.realism is None else spec.realism
+    realism.check_timing(scenario.dt, scenario.n_steps)
+    realism.check_joints(n_joints(robot))
+    chain = loop_stages(spec)
+    stages.check_chain(chain)
+    per_period = realism.steps_per_period(scenario.dt)
+    per_servo = realism.steps_per_servo(scenario.dt)
+    noisy = Stage.SENSORS in realism.stages
+    if noisy and key is None:
+        raise ValueError("key: a realism with noisy sensors needs a jax.random key")
+    own_model = bool(realism.stages & (Stage.SENSORS | Stage.MODEL)) or model_robot is not None
+    model = stages.believed_robot(robot if model_robot is None else model_robot, realism) if own_model else robot
+    period = _Period(
+        spec=spec,
+        gains=gains,
+        key=key,
+        chain=chain,
+        control=spec.controller.with_actuators(realism.saturation, realism.anti_windup),
+        own_model=own_model,
+        model=model,
+        limit=realism.torque_limit_Nm if Stage.ACTUATORS in realism.stages else None,
+        senses=own_model or stages.acts_on(chain, "wrench", "joints", "lar"),
+        logs_readings=not realism.is_ideal(scenario.dt) or model_robot is not None or bool(spec.stages),
+        noisy=noisy,
+        n=n_joints(robot),
+        dtype=scenario.initial.q.dtype,
+        ticks=per_period // per_servo,
+        per_period=per_period,
+        per_servo=per_servo,
+        period=per_period * scenario.dt,
+        servo_period=per_servo * scenario.dt,
+    )
+    one_period = period.one_step if per_period == 1 else period.several_steps
+    return LoopBody(
+        start=initial_state(spec),
+        period=one_period,
+        periods=scenario.n_steps // per_period,
+        steps_per_period=per_period,
+    )
 
 
 class Observer(Protocol):
@@ -783,9 +829,9 @@ class RunSpec:
     [`experiment.run()`][spacegrasp_jax.experiment.run] on the host.
 
     A pytree: the robot, the scenario, the realism's numbers, the controller's model and the
-    servo input delay are its arrays (each may carry a vmap batch axis); the controller, the
-    observer, checkpointing and every static setting of its parts (the realism's stages and
-    timing, the scenario's steps) are its structure. Two specs that differ only in numbers
+    added stages' numbers are its arrays (each may carry a vmap batch axis); the controller,
+    the observer, the options and every static setting of its parts (the realism's stages and
+    timing, the scenario's steps, the added stages' kinds and settings) are its structure. Two specs that differ only in numbers
     run one compiled program, and the host looks programs up by the spec's structure and its
     arrays' shapes ([`experiment.compiled_loop()`][spacegrasp_jax.experiment.compiled_loop]), never by a key written by hand.
 
@@ -801,20 +847,14 @@ class RunSpec:
         realism: the realism settings ([`loop_body()`][spacegrasp_jax.simulate.loop_body]; ``None``: the paper's loop).
         model_robot: the robot the controller's model starts from (``None``: ``robot``); its
             satellite mass and inertia are scaled by the realism's factors.
-        servo_input_delay: a [`ServoInputDelay`][spacegrasp_jax.simulate.ServoInputDelay] between the joint sensors and the PID
-            (``spacegrasp_jax.margins``); the log's ``qd_measured`` is then the delayed
-            reading. ``None``: none.
+        stages: stages added to the realism's, each on its signal after the realism's own
+            ([`spacegrasp_jax.stages`][spacegrasp_jax.stages]: a delay line, an actuator's
+            lag, a sensor of your own); with any, the log keeps the readings.
         observer: static: what the loop keeps ([`Observer`][spacegrasp_jax.simulate.Observer]; default
             [`FullLog`][spacegrasp_jax.simulate.FullLog], the whole log).
-        checkpoint: static: put the parts of each control period under
-            ``jax.checkpoint`` for reverse mode: the controller update, with the
-            kinematics at the period's start; in a period of several plant steps, each
-            step's start (its kinematics and log row); and each of RK4's stages, one by
-            one (``integrator.rk4_step_from_start_kinematics``). The tape keeps, per plant
-            step, the state, the kinematics at its start and the rates RK4's stages start
-            from, and per period the controller's inputs (the sensors' noise is drawn
-            outside the checkpoint, once). A forward run agrees with the unchecked loop's
-            to rounding.
+        options: static: how the loop is compiled and differentiated
+            ([`LoopOptions`][spacegrasp_jax.simulate.LoopOptions]: checkpointing for reverse
+            mode).
     """
 
     robot: Robot
@@ -822,9 +862,9 @@ class RunSpec:
     controller: Any = dataclasses.field(default="admittance", metadata=dict(static=True))
     realism: Realism | None = None
     model_robot: Robot | None = None
-    servo_input_delay: ServoInputDelay | None = None
+    stages: tuple = ()
     observer: Any = dataclasses.field(default=FullLog(), metadata=dict(static=True))
-    checkpoint: bool = dataclasses.field(default=False, metadata=dict(static=True))
+    options: LoopOptions = dataclasses.field(default=LoopOptions(), metadata=dict(static=True))
 
     def __post_init__(self):
         object.__setattr__(self, "controller", as_controller(self.controller))
@@ -859,7 +899,7 @@ def closed_loop(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> tu
         return (state, memory, k + 1), output
 
     start = body.start
-    if spec.checkpoint:
+    if spec.options.checkpoint:
         # The gains drive every part of the loop's state but a fixed target's: those parts
         # carry their derivative from the start, so reverse mode linearises the period once.
         start = with_derivative_of(start, gains)
@@ -887,10 +927,11 @@ def rollout(
     realism: Realism | None = None,
     key: jax.Array | None = None,
     model_robot: Robot | None = None,
+    options: LoopOptions | None = None,
 ) -> tuple[LoopState, Log]:
     """Simulate the closed loop over ``scenario.duration`` and keep its whole log: in one
     call, [`closed_loop()`][spacegrasp_jax.simulate.closed_loop] of ``RunSpec(robot, scenario, controller, realism=realism,
-    model_robot=model_robot, observer=FullLog(checkpoint_segment), checkpoint=True)``
+    model_robot=model_robot, observer=FullLog(checkpoint_segment), options=options)``
     ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]).
 
     Args:
@@ -901,21 +942,21 @@ def rollout(
             ([`as_controller()`][spacegrasp_jax.control.registry.as_controller]); a law
             object carries its settings (``control.Admittance(pinv_damping=0.01)``: damped
             least squares; a name: the paper's exact pseudoinverse).
-        checkpoint_segment: the number of steps per inner scan (static; must divide
-            ``n_steps``; ``None``: ``LOG_BLOCK`` or the largest divisor below it; a loop
-            whose control period spans several steps runs whole periods). The parts of
-            each control period are always under ``jax.checkpoint`` ([`loop_body()`][spacegrasp_jax.simulate.loop_body]), which changes
-            nothing in a forward rollout but rounding (the loop run without it has the same
-            operations, compiled as other code) and makes a reverse-mode gradient's tape
-            hold, per step, the state and the rates RK4's stages start from instead of
-            every intermediate (the measured cost:
-            documentation, Performance). A stage's rate is at most 7 numbers a field, so
-            the three of one step are (3, 7) and inner scans of 2 steps hold no array over
-            64 numbers, which matters where XLA runs loops kernel by kernel (with loops
-            compiled whole the length does not).
+        checkpoint_segment: the log's block: steps per inner scan of the loop (static;
+            must divide ``n_steps``; ``None``: ``LOG_BLOCK`` or the largest divisor below
+            it; a loop whose control period spans several steps runs whole periods;
+            [`FullLog`][spacegrasp_jax.simulate.FullLog]'s ``block_steps``). Where XLA runs
+            loops kernel by kernel, an inner scan whose arrays stay within 64 numbers runs
+            as a sequence: a checkpointed step's three RK4 rates are (3, 7), so inner scans
+            of 2 steps hold none larger (with loops compiled whole the length does not
+            matter). How each control period is checkpointed is ``options``'.
         realism: the realism settings ([`loop_body()`][spacegrasp_jax.simulate.loop_body]; ``None``: the paper's loop).
         key: the ``jax.random`` key of the sensors' noise (needed with noisy sensors).
         model_robot: the robot the controller believes, if not ``robot``.
+        options: static: the loop's [`LoopOptions`][spacegrasp_jax.simulate.LoopOptions]
+            (``None``: ``LoopOptions(checkpoint=True)``;
+            [`experiment.loop_options(checkpoint=True)`][spacegrasp_jax.experiment.loop_options]
+            gives the one this process compiles best).
 
     Returns:
         ``(final_state, log)``: the [`LoopState`][spacegrasp_jax.simulate.LoopState] after
@@ -932,7 +973,7 @@ def rollout(
         realism=realism,
         model_robot=model_robot,
         observer=FullLog(checkpoint_segment),
-        checkpoint=True,
+        options=LoopOptions(checkpoint=True) if options is None else options,
     )
     return closed_loop(spec, gains, key)
 

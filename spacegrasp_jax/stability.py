@@ -166,9 +166,9 @@ def _check_spec(spec: RunSpec) -> None:
     """Refuse what the linear analysis does not cover, rather than ignore it."""
     if spec.scenario.free_target:
         raise StabilityError("target: the linear analysis covers the paper's stationary target only")
-    if spec.model_robot is not None or spec.servo_input_delay is not None:
+    if spec.model_robot is not None or spec.stages:
         raise StabilityError(
-            "the linear analysis runs the nominal loop: the spec's model_robot and servo_input_delay must be None"
+            "the linear analysis runs the nominal loop: the spec's model_robot must be None and it must add no stages"
         )
 
 

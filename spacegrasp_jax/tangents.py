@@ -28,7 +28,8 @@ def with_derivative_of(value, anchor):
     ``value`` has none).
 
     Args:
-        value: a pytree of floating arrays (any shapes).
+        value: a pytree of arrays (any shapes; an integer leaf, such as a delay line's
+            head, has no derivative and passes as it is).
         anchor: a pytree whose derivative makes ``value``'s present.
 
     Returns:
@@ -47,4 +48,6 @@ def _with_derivative_of_jvp(primals, tangents):
         leaf for leaf in map(jnp.asarray, jax.tree.leaves(anchor_dot)) if jnp.issubdtype(leaf.dtype, jnp.inexact)
     ]
     zero = jnp.asarray(0.0 * sum(jnp.sum(leaf) for leaf in floating))  # 0.0 for an integer anchor
-    return value, jax.tree.map(lambda leaf: leaf + zero.astype(leaf.dtype), value_dot)
+    return value, jax.tree.map(
+        lambda leaf: leaf if leaf.dtype == jax.dtypes.float0 else leaf + zero.astype(leaf.dtype), value_dot
+    )

@@ -60,6 +60,7 @@ from spacegrasp_jax.campaign import (
 )
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import law_named
+from spacegrasp_jax.experiment import loop_options
 from spacegrasp_jax.inputs import read_document, short
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import NOISE_STREAM, lost, perturbed_run
@@ -247,14 +248,15 @@ def _measure_of_log(log, measure: str, criteria: tuple) -> jax.Array:
 
 def gradient_spec(robot: Robot, scenario: Scenario, controller, realism=None) -> RunSpec:
     """The nominal run whose perturbations the search differentiates: the whole log kept in
-    inner scans of two steps, each control period checkpointed for reverse mode."""
+    inner scans of two steps, each control period checkpointed for reverse mode (the
+    options this process compiles best: [`experiment.loop_options()`][spacegrasp_jax.experiment.loop_options])."""
     return RunSpec(
         robot,
         scenario,
         controller,
         realism=realism,
         observer=FullLog(largest_divisor(scenario.n_steps, 2)),
-        checkpoint=True,
+        options=loop_options(checkpoint=True),
     )
 
 

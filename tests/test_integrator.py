@@ -17,8 +17,6 @@ from spacegrasp_jax.integrator import (
     free_floating_derivative,
     plant_state,
     rk4_step,
-    rk4_step_sharing_kinematics,
-    rk4_step_with_start,
     simulate_free_floating,
 )
 
@@ -104,7 +102,7 @@ def test_dynamic_jacobian_matches_simulated_ee_twist(robot, random_states):
         h = 1e-4
 
         def advance(dt):
-            return rk4_step(lambda x: free_floating_derivative(robot, x, zero), start, dt)
+            return rk4_step(lambda x: (), lambda x, _, Q: free_floating_derivative(robot, x, Q), start, dt, zero)[0]
 
         ahead, behind = advance(h), advance(-h)
         p_ahead, R_ahead = sg.ee_pose(robot, ahead.p_base, ahead.R_base, ahead.q)
@@ -177,20 +175,32 @@ def _start_state():
 
 
 def test_rk4_as_one_scan_of_four_stages_is_rk4():
-    """Against RK4's closed form on an affine system, and against ``rk4_step``; the kinematics
-    returned are those of the step's start."""
+    """Against RK4's closed form on an affine system; the kinematics returned are those of
+    the step's start. The checkpointed step, with and without the start's kinematics handed
+    in, is the same step, and so is its derivative (against the unchecked one's)."""
     state, u = _start_state(), jnp.linspace(0.5, -0.5, 7)
     kinematics = lambda s: jnp.concatenate([s.q, s.qd])  # noqa: E731
-    step = jax.jit(lambda s, u: rk4_step_sharing_kinematics(kinematics, _affine_rate, s, DT, u))
-    moved, at_start = step(state, u)
+    step = jax.jit(lambda s, u: rk4_step(kinematics, _affine_rate, s, DT, u))
+    moved, held, at_start = step(state, u)
     np.testing.assert_allclose(moved.q, _rk4_affine(state.q, u), rtol=1e-14, atol=1e-15)
     np.testing.assert_allclose(moved.qd, _rk4_affine(state.qd, u), rtol=1e-14, atol=1e-15)
     np.testing.assert_allclose(moved.V_base, _rk4_affine(state.V_base, 0.0), rtol=1e-14)
     np.testing.assert_allclose(moved.quat_base, state.quat_base, atol=1e-15)
     np.testing.assert_array_equal(at_start, kinematics(state))
-    reference = rk4_step(lambda s: _affine_rate(s, None, u), state, DT)
-    for name in ("p_base", "q", "V_base", "qd"):
-        np.testing.assert_allclose(getattr(moved, name), getattr(reference, name), rtol=1e-15, atol=1e-16)
+    np.testing.assert_array_equal(held, u)
+    for start in (None, kinematics(state)):
+        checked = jax.jit(
+            lambda s, u: rk4_step(kinematics, _affine_rate, s, DT, u, start_kinematics=start, checkpoint=True)
+        )
+        other, _, nothing = checked(state, u)
+        assert nothing is None
+        for name in ("p_base", "q", "V_base", "qd"):
+            np.testing.assert_allclose(getattr(other, name), getattr(moved, name), rtol=1e-15, atol=1e-16)
+
+    def final_q(u, checkpoint):
+        return jnp.sum(rk4_step(kinematics, _affine_rate, state, DT, u, checkpoint=checkpoint)[0].q ** 2)
+
+    np.testing.assert_allclose(jax.grad(final_q)(u, True), jax.grad(final_q)(u, False), rtol=1e-14, atol=1e-16)
 
 
 def test_what_reads_the_steps_start_runs_once_on_its_kinematics_and_is_held():
@@ -200,7 +210,7 @@ def test_what_reads_the_steps_start_runs_once_on_its_kinematics_and_is_held():
     state = _start_state()
     kinematics = lambda s: s.q  # noqa: E731
     at_start = lambda q: (0.3 * q, 2.0 * q)  # noqa: E731
-    moved, held, out = jax.jit(lambda s: rk4_step_with_start(kinematics, _affine_rate, at_start, s, DT))(state)
+    moved, held, out = jax.jit(lambda s: rk4_step(kinematics, _affine_rate, s, DT, at_start=at_start))(state)
     u = 0.3 * state.q
     np.testing.assert_allclose(held, u, rtol=1e-15)
     np.testing.assert_allclose(out, 2.0 * state.q, rtol=1e-15)

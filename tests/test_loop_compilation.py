@@ -156,23 +156,26 @@ def _gradient_hlo(robot, gains, loops_whole: bool = True) -> str:
     scenario = paper_scenario(robot, contact_law="smooth", duration=0.1)
     config = TuneConfig(batch=1, objective="weighted", method="gradient")
     objective = Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 7)
-    loss = make_loss(
-        robot,
-        training_scenarios(scenario, config),
-        gains,
-        make_mask(gains, "admittance"),
-        config,
-        objective,
-        checkpoint_segment(scenario.n_steps),
-    )
+    # The host asks once, when it builds the loss (experiment.loop_options), never the loop
+    # while it is traced.
+    with pytest.MonkeyPatch.context() as patch:
+        if not loops_whole:
+            patch.setattr(compilation, "loops_compile_whole", lambda: False)
+        loss = make_loss(
+            robot,
+            training_scenarios(scenario, config),
+            gains,
+            make_mask(gains, "admittance"),
+            config,
+            objective,
+            checkpoint_segment(scenario.n_steps),
+        )
     params = initial_params(gains, "admittance")
     if loops_whole:
         return make_value_and_grad(loss, params, "reverse").lower(params).compile().as_text()
     # A jit of its own: the package's gradient program keeps its first trace for the process.
     gradient = compilation.jit(jax.value_and_grad(loss.function, has_aux=True))
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(compilation, "loops_compile_whole", lambda: False)
-        return gradient.lower(params, loss.values).compile().as_text()
+    return gradient.lower(params, loss.values).compile().as_text()
 
 
 def gradient_step_loops(hlo: str) -> set[str]:

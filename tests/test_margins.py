@@ -186,10 +186,11 @@ def test_the_servo_input_delay_margin_matches_a_sweep_over_every_delay(flight_ca
 @pytest.mark.slow
 def test_the_servo_input_delay_hands_the_pid_the_reading_of_d_ticks_before(robot, short_scenario):
     """In the log, what the PID read at each servo tick is the true joint rate d ticks
-    earlier (the sensors' noise off), and zero before the first reading."""
+    earlier (the sensors' noise off), and zero before the first reading: the margins'
+    servo delay line (``margins.delayed_spec()``)."""
     realism, d = stability.quiet(flight()), 7
-    delay = simulate.ServoInputDelay(capacity=16, ticks=jnp.int32(d))
-    spec = simulate.RunSpec(robot, short_scenario, "admittance", realism=realism, servo_input_delay=delay)
+    spec = simulate.RunSpec(robot, short_scenario, "admittance", realism=realism)
+    spec = margins.delayed_spec(spec, 2, jnp.int32(0), 16, jnp.int32(d))
     body = simulate.loop_body(spec, paper_gains(), jax.random.PRNGKey(0))
     _, rows = jax.jit(lambda: jax.lax.scan(body.period, body.start, jnp.arange(50.0)))()
     measured = np.asarray(rows.qd_measured).reshape(-1, 7)  # one row a plant step, one tick a step

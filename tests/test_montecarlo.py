@@ -25,7 +25,7 @@ from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.metrics import METRICS
 from spacegrasp_jax.montecarlo import success
 from spacegrasp_jax.perturbations import PerturbationRanges
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.simulate import LoopOptions, RunSpec
 
 SHORT_SCENARIO_TOML = """
 duration = 2.0
@@ -454,9 +454,10 @@ def test_a_perturbed_run_is_the_nominal_run_with_the_samples_plant_loop_and_beli
 
     ranges = PerturbationRanges()
     perturbation = draw(jax.random.PRNGKey(4), ranges, short_scenario.initial.q.dtype, 7)
-    spec = RunSpec(robot, short_scenario, "cartesian", observer=FoldedMetrics(10), checkpoint=True)
+    options = LoopOptions(checkpoint=True)
+    spec = RunSpec(robot, short_scenario, "cartesian", observer=FoldedMetrics(10), options=options)
     sample = perturbed_run(spec, perturbation, ranges)
-    assert (sample.controller, sample.observer, sample.checkpoint) == (spec.controller, spec.observer, True)
+    assert (sample.controller, sample.observer, sample.options) == (spec.controller, spec.observer, options)
     np.testing.assert_allclose(
         sample.robot.satellite_mass, robot.satellite_mass * perturbation.satellite_mass_scale, rtol=1e-15
     )
@@ -474,7 +475,7 @@ def test_a_spec_holding_what_a_run_would_ignore_is_refused_before_compiling(robo
 
     from spacegrasp_jax import stability
     from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples
-    from spacegrasp_jax.simulate import ServoInputDelay
+    from spacegrasp_jax.stages import DelayLine
     from spacegrasp_jax.tuning.gradients import envelope_gradients
     from spacegrasp_jax.tuning.objective import Objective, Weights
 
@@ -488,10 +489,10 @@ def test_a_spec_holding_what_a_run_would_ignore_is_refused_before_compiling(robo
     with pytest.raises(ValueError, match="run: the spec's observer must keep the whole log"):
         experiment.run(folded, gains)
     objective = Objective(Weights(), (1.0,) * 7)
-    with pytest.raises(ValueError, match="envelope_gradients: the spec's model_robot and servo_input_delay"):
+    with pytest.raises(ValueError, match="envelope_gradients: the spec's model_robot must be None"):
         envelope_gradients(RunSpec(robot, short_scenario, "admittance", model_robot=robot), gains, objective, n=1)
-    delayed = RunSpec(robot, short_scenario, "admittance", servo_input_delay=ServoInputDelay(4, jnp.int32(1)))
-    with pytest.raises(stability.StabilityError, match="model_robot and servo_input_delay must be None"):
+    delayed = RunSpec(robot, short_scenario, "admittance", stages=(DelayLine(4, jnp.int32(1), "servo_joints"),))
+    with pytest.raises(stability.StabilityError, match="model_robot must be None and it must add no stages"):
         stability.linear_analysis(delayed, gains)
 
 

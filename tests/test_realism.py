@@ -188,7 +188,8 @@ def test_the_controllers_model_is_its_own_and_the_plant_stays_the_plant(robot, g
     u = jnp.asarray(log.u)
 
     def replay(state, u_k):
-        return rk4_step(lambda s: plant_derivative(robot, quiet_scenario, s, u_k), state, quiet_scenario.dt), None
+        derivative = lambda s, _, u: plant_derivative(robot, quiet_scenario, s, u)  # noqa: E731
+        return rk4_step(lambda s: (), derivative, state, quiet_scenario.dt, u_k)[0], None
 
     replayed, _ = jax.jit(lambda: jax.lax.scan(replay, quiet_scenario.initial, u))()
     np.testing.assert_allclose(replayed.q, final.plant.q, rtol=1e-12, atol=1e-12)

@@ -172,16 +172,16 @@ def test_a_law_object_runs_the_loop_its_name_runs(robot, gains, short_scenario, 
 
 
 def test_the_checkpointed_steps_of_rollout_change_nothing_in_a_forward_run(robot, gains, short_scenario):
-    """``rollout`` always checkpoints each step's parts (for gradients), with RK4's first
+    """``rollout`` checkpoints each step's parts (for gradients), with RK4's first
     stage beside the controller; the loop run without checkpointing has the four stages in
-    one scan (``integrator.rk4_step_with_start``): the same operations in the same order,
+    one scan (``integrator.rk4_step``'s ``at_start``): the same operations in the same order,
     compiled as other code, so the two logs agree to rounding (measured: 1.2e-13 of a
     field's largest magnitude here, 3.3e-12 over the paper's 17 s), and the paper's
     reproduction does not depend on checkpointing."""
     from spacegrasp_jax.simulate import LOG_BLOCK, FullLog, RunSpec, closed_loop
 
     def plain_rollout(robot, scenario, gains):  # the arguments as rollout's: nothing folded in
-        spec = RunSpec(robot, scenario, "admittance", observer=FullLog(LOG_BLOCK), checkpoint=False)
+        spec = RunSpec(robot, scenario, "admittance", observer=FullLog(LOG_BLOCK))
         return closed_loop(spec, gains)[1]
 
     plain = jax.jit(plain_rollout)(robot, short_scenario, gains)
@@ -238,7 +238,7 @@ def test_a_run_spec_refuses_a_setting_that_cannot_be_part_of_a_programs_structur
     with pytest.raises(ValueError, match=r"controller: expected a name, a control law or a Controller"):
         RunSpec(robot, short_scenario, 3)
     spec = RunSpec(robot, short_scenario, "cartesian")
-    assert spec.controller.name == "cartesian" and spec.observer == FullLog() and not spec.checkpoint
+    assert spec.controller.name == "cartesian" and spec.observer == FullLog() and not spec.options.checkpoint
     leaves, structure = jax.tree.flatten(spec)
     rebuilt = jax.tree.unflatten(structure, leaves)  # a pytree that rebuilds itself
     assert jax.tree.structure(rebuilt) == structure and rebuilt.controller == spec.controller

@@ -21,7 +21,7 @@ import pytest
 from spacegrasp_jax import simulate
 from spacegrasp_jax.realism import flight
 from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import FullLog, RunSpec, closed_loop
+from spacegrasp_jax.simulate import FullLog, LoopOptions, RunSpec, closed_loop
 from spacegrasp_jax.tangents import with_derivative_of
 
 
@@ -112,14 +112,17 @@ def without_hints(monkeypatch):
 
 SPECS = {
     "ideal": lambda robot: RunSpec(
-        robot, paper_scenario(robot, contact_law="smooth", duration=0.004), observer=FullLog(2), checkpoint=True
+        robot,
+        paper_scenario(robot, contact_law="smooth", duration=0.004),
+        observer=FullLog(2),
+        options=LoopOptions(checkpoint=True),
     ),
     "flight": lambda robot: RunSpec(
         robot,
         paper_scenario(robot, contact_law="smooth", duration=0.02),
         realism=flight(),
         observer=FullLog(),
-        checkpoint=True,
+        options=LoopOptions(checkpoint=True),
     ),
 }
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from compile_labels import CompileLabels
@@ -143,10 +144,14 @@ def test_a_runs_program_is_looked_up_by_its_spec_structure_and_shapes(robot, gai
     from spacegrasp_jax.experiment import program_key
     from spacegrasp_jax.montecarlo import FoldedMetrics
     from spacegrasp_jax.realism import Stage, flight
-    from spacegrasp_jax.simulate import FullLog, RunSpec, ServoInputDelay
+    from spacegrasp_jax.simulate import FullLog, LoopOptions, RunSpec
+    from spacegrasp_jax.stages import DelayLine
+
+    def servo_delay(capacity, ticks):
+        return (DelayLine(capacity, jnp.int32(ticks), "servo_joints"),)
 
     key = jax.random.PRNGKey(0)
-    base = RunSpec(robot, short_scenario, "admittance", realism=flight(), servo_input_delay=ServoInputDelay(4, 1))
+    base = RunSpec(robot, short_scenario, "admittance", realism=flight(), stages=servo_delay(4, 1))
     reference = program_key(base, gains, key)
     noisier = dataclasses.replace(base.realism, force_noise_std=3.0 * np.asarray(base.realism.force_noise_std))
     same_program = [
@@ -160,10 +165,10 @@ def test_a_runs_program_is_looked_up_by_its_spec_structure_and_shapes(robot, gai
             gains,
             key,
         ),
-        (dataclasses.replace(base, servo_input_delay=ServoInputDelay(4, 3)), gains, key),
+        (dataclasses.replace(base, stages=servo_delay(4, 3)), gains, key),
         (base, gains, jax.random.PRNGKey(7)),
         (
-            RunSpec(robot, short_scenario, Admittance(), realism=flight(), servo_input_delay=ServoInputDelay(4, 2)),
+            RunSpec(robot, short_scenario, Admittance(), realism=flight(), stages=servo_delay(4, 2)),
             gains,
             key,
         ),
@@ -175,12 +180,14 @@ def test_a_runs_program_is_looked_up_by_its_spec_structure_and_shapes(robot, gai
         dataclasses.replace(base, controller="cartesian"),
         dataclasses.replace(base, observer=FoldedMetrics()),
         dataclasses.replace(base, observer=FullLog(4)),
-        dataclasses.replace(base, checkpoint=True),
+        dataclasses.replace(base, options=LoopOptions(checkpoint=True)),
+        dataclasses.replace(base, options=LoopOptions(checkpoint=True, reuse_start_kinematics=True)),
         dataclasses.replace(base, realism=dataclasses.replace(base.realism, stages=base.realism.stages & ~Stage.MODEL)),
         dataclasses.replace(base, scenario=paper_scenario(robot, duration=0.05)),
         dataclasses.replace(base, model_robot=robot),
-        dataclasses.replace(base, servo_input_delay=ServoInputDelay(8, 1)),
-        dataclasses.replace(base, servo_input_delay=None),
+        dataclasses.replace(base, stages=servo_delay(8, 1)),
+        dataclasses.replace(base, stages=(DelayLine(4, jnp.int32(1), "command"),)),
+        dataclasses.replace(base, stages=()),
     ]
     keys = [program_key(spec, gains, key) for spec in other_programs]
     assert all(other != reference for other in keys)

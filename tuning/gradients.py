@@ -37,6 +37,7 @@ from jax.flatten_util import ravel_pytree
 
 from spacegrasp_jax import batching, compilation
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.experiment import loop_options
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges
@@ -146,12 +147,13 @@ def envelope_gradients(
     samples 1..n of ``seed`` (``ranges``: the campaigns' default envelope), at each horizon.
     ``spec`` gives the robot, the scenario (its smooth contact law: gradients need it), the
     controller (a law's name or a law object with its settings,
-    ``control.Admittance(pinv_damping=0.01)``) and the realism; the controller believes the
-    nominal robot, as in a campaign, and the loop keeps its whole log, checkpointed.
+    ``control.Admittance(pinv_damping=0.01)``), the realism and any added stages; the
+    controller believes the nominal robot, as in a campaign, and the loop keeps its whole
+    log, checkpointed.
 
     Raises:
-        ValueError: ``spec`` has a ``model_robot`` or a servo input delay (this analysis
-            decides the first, as a campaign, and has no place for the second).
+        ValueError: ``spec`` has a ``model_robot`` (this analysis decides it, as a
+            campaign).
 
     Returns:
         ``(gradients, evaluate)``: the [`EnvelopeGradients`][tuning.gradients.EnvelopeGradients], and ``evaluate(params,
@@ -159,8 +161,8 @@ def envelope_gradients(
         (group -> (len(rows), size)), returning ``(losses (len(rows), H), gradients)``
         (for central differences without another compile).
     """
-    if spec.model_robot is not None or spec.servo_input_delay is not None:
-        raise ValueError("envelope_gradients: the spec's model_robot and servo_input_delay must be None")
+    if spec.model_robot is not None:
+        raise ValueError("envelope_gradients: the spec's model_robot must be None (each sample's is decided here)")
     robot, scenario, law, realism = spec.robot, spec.scenario, spec.controller, spec.realism
     ranges = PerturbationRanges() if ranges is None else ranges
     name = law.name
@@ -170,7 +172,10 @@ def envelope_gradients(
     steps = horizon_steps(scenario.n_steps, horizons)
     segment = 1 if items[2] is not None else checkpoint_segment(scenario.n_steps)
     block = functools.partial(_block, steps=steps)
-    nominal = objective_spec(robot, scenario, law, segment, realism, model_robot)
+    options = loop_options(checkpoint=True)
+    nominal = dataclasses.replace(
+        objective_spec(robot, scenario, law, segment, realism, model_robot, options), stages=spec.stages
+    )
     replicated = (nominal, gains, mask, objective)
 
     def evaluate(item_params, rows):

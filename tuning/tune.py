@@ -30,13 +30,14 @@ from jax.flatten_util import ravel_pytree
 from spacegrasp_jax import batching, compilation, joint_limits
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import CONTROLLERS
+from spacegrasp_jax.experiment import loop_options
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import SampleLoops, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
 from spacegrasp_jax.realism import Realism, make_realism
 from spacegrasp_jax.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import FullLog, RunSpec, closed_loop, largest_divisor
+from spacegrasp_jax.simulate import FullLog, LoopOptions, RunSpec, closed_loop, largest_divisor
 from spacegrasp_jax.tuning import cmaes, estimators
 from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights, objective_parts
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
@@ -394,9 +395,12 @@ def objective_spec(
     segment: int | None = None,
     realism: Realism | None = None,
     model_robot: Robot | None = None,
+    options: LoopOptions = LoopOptions(checkpoint=True),
 ) -> RunSpec:
     """The run the objective reads: the whole log, each control period checkpointed for
-    reverse mode ([`rollout()`][spacegrasp_jax.simulate.rollout]'s loop); ``segment``: its ``checkpoint_segment``."""
+    reverse mode ([`rollout()`][spacegrasp_jax.simulate.rollout]'s loop); ``segment``: its
+    ``checkpoint_segment``; ``options``: the loop's (checkpointed; the host's choice,
+    [`experiment.loop_options()`][spacegrasp_jax.experiment.loop_options])."""
     return RunSpec(
         robot,
         scenario,
@@ -404,26 +408,36 @@ def objective_spec(
         realism=realism,
         model_robot=model_robot,
         observer=FullLog(segment),
-        checkpoint=True,
+        options=options,
     )
 
 
-def batch_loss(params, values, *, controller: str, cvar_alpha: float | None, segment: int | None):
+def batch_loss(
+    params,
+    values,
+    *,
+    controller: str,
+    cvar_alpha: float | None,
+    segment: int | None,
+    in_sequence: bool = False,
+    options: LoopOptions = LoopOptions(checkpoint=True),
+):
     """``(loss, aux)`` at the log-gains ``params``: the batch mean (or CVaR) of the objective,
     and the batch-mean parts plus the worst hard peak torque (N m) for the divergence guard.
     ``values = (robot, scenarios, base, mask, objective)``, every number an argument of the
     program (other scenarios, gains or weights reuse it); the keywords shape it. The
-    scenarios run one after another or vmapped, as [`batch_in_sequence()`][tuning.tune.batch_in_sequence] says."""
+    scenarios run one after another with ``in_sequence``
+    ([`batch_in_sequence()`][tuning.tune.batch_in_sequence], asked by the host), else vmapped."""
     robot, scenarios, base, mask, objective = values
     gains = gains_from_params(params, base, mask)
 
     def one(scenario):
-        return scenario_parts(objective_spec(robot, scenario, controller, segment), gains, objective)
+        return scenario_parts(objective_spec(robot, scenario, controller, segment, options=options), gains, objective)
 
     count = jax.tree.leaves(scenarios)[0].shape[0]
     if count == 1:  # one scenario: the unbatched program
         parts = jax.tree.map(lambda x: x[None], one(jax.tree.map(lambda x: x[0], scenarios)))
-    elif batch_in_sequence(count):
+    elif in_sequence:
         parts = compilation.map_one_at_a_time(one, scenarios)
     else:
         parts = jax.vmap(one)(scenarios)
@@ -454,13 +468,24 @@ def make_loss(
     robot: Robot, scenarios: Scenario, base: Gains, mask, config: TuneConfig, objective: Objective, segment: int | None
 ) -> BoundLoss:
     """The tuning loss over ``scenarios`` (stacked), [`batch_loss()`][tuning.tune.batch_loss] with these values."""
-    function = _batch_loss_function(config.controller, config.cvar_alpha, segment)
+    in_sequence = batch_in_sequence(jax.tree.leaves(scenarios)[0].shape[0])
+    options = loop_options(checkpoint=True)
+    function = _batch_loss_function(config.controller, config.cvar_alpha, segment, in_sequence, options)
     return BoundLoss(function, (robot, scenarios, base, mask, objective))
 
 
 @functools.cache
-def _batch_loss_function(controller: str, cvar_alpha: float | None, segment: int | None) -> Callable:
-    return functools.partial(batch_loss, controller=controller, cvar_alpha=cvar_alpha, segment=segment)
+def _batch_loss_function(
+    controller: str, cvar_alpha: float | None, segment: int | None, in_sequence: bool, options: LoopOptions
+) -> Callable:
+    return functools.partial(
+        batch_loss,
+        controller=controller,
+        cvar_alpha=cvar_alpha,
+        segment=segment,
+        in_sequence=in_sequence,
+        options=options,
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -576,7 +601,9 @@ def aggregate_gradients(losses, gradients, config: TuneConfig):
     return total, gradient, jnp.sum(scale < 1.0)
 
 
-def _per_sample_gradients(params, base, mask, model_robot, objective: Objective, samples, *, controller: str):
+def _per_sample_gradients(
+    params, base, mask, model_robot, objective: Objective, samples, *, controller: str, options: LoopOptions
+):
     """``(losses, parts, gradients)``, each with the samples' leading axis: each sample's
     objective and its reverse-mode gradient (one control period a checkpoint), one sample
     after another (``compilation.map_one_at_a_time``: the tape of one rollout at a time)."""
@@ -586,7 +613,7 @@ def _per_sample_gradients(params, base, mask, model_robot, objective: Objective,
 
         def sample_loss(params):
             gains = gains_from_params(params, base, mask)
-            spec = objective_spec(r, scenario, controller, 1, realism, model_robot)
+            spec = objective_spec(r, scenario, controller, 1, realism, model_robot, options)
             parts = scenario_parts(spec, gains, objective, key)
             return parts["loss"], parts
 
@@ -611,7 +638,9 @@ def make_flight_value_and_grad(
     then [`aggregate_gradients()`][tuning.tune.aggregate_gradients] on the host. ``aux`` has the batch-mean parts, the worst
     hard peak torque and ``clipped_samples``. The samples are ``batch``, or at a step above
     0 ``fresh(step)`` where given (``config.fresh_batches``: the same program, other samples)."""
-    function = functools.partial(_per_sample_gradients, controller=config.controller)
+    function = functools.partial(
+        _per_sample_gradients, controller=config.controller, options=loop_options(checkpoint=True)
+    )
     count = int(batch.keys.shape[0])
 
     def value_and_grad(params, step: int = 0):
