@@ -226,3 +226,32 @@ def test_every_loop_over_runs_goes_through_map_one_at_a_time():
                 owner = node.value
                 name = owner.attr if isinstance(owner, ast.Attribute) else getattr(owner, "id", None)
                 assert name != "lax", f"{module}, line {node.lineno}: lax.map (use compilation.map_one_at_a_time)"
+
+
+#: The modules a control period is written in.
+LOOP_MODULES = {"spacegrasp_jax.simulate", "spacegrasp_jax.stages", "spacegrasp_jax.integrator"}
+
+
+def test_the_loop_asks_the_process_nothing_while_it_is_traced():
+    """How the loop is compiled is a static option the host fills (``LoopOptions``): the
+    loop's modules import no process setting and ask no backend."""
+    for module, path in module_files():
+        if module not in LOOP_MODULES:
+            continue
+        assert "spacegrasp_jax.compilation" not in imported(path), f"{module} imports compilation"
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Attribute):
+                assert node.attr not in {"default_backend", "devices"}, (
+                    f"{module}, line {node.lineno}: asks the backend"
+                )
+
+
+def test_no_function_of_the_loop_is_over_100_lines():
+    """The loop reads as the order of its stages and the integrator's call, not as one body."""
+    for module, path in module_files():
+        if module not in LOOP_MODULES:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1
+                assert lines <= 100, f"{module}.{node.name}: {lines} lines"
