@@ -37,6 +37,7 @@ from spacegrasp_jax.contact import (
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.law import ControlInputs, ControllerState
 from spacegrasp_jax.control.registry import as_controller
+from spacegrasp_jax.control.schedule import GainSchedule, scheduling_variable
 from spacegrasp_jax.dynamics import (
     dynamic_jacobian_from_parts,
     forward_dynamics_from_frames,
@@ -480,7 +481,7 @@ class _Period:
     host from the spec (``loop_body()``)."""
 
     spec: RunSpec
-    gains: Gains
+    gains: Gains | GainSchedule
     key: jax.Array | None
     chain: tuple
     control: Any  # the controller with the realism's actuators
@@ -544,16 +545,25 @@ class _Period:
         )
         return inputs, reading, memories
 
+    def gains_now(self, t, inputs: ControlInputs, reading: jax.Array) -> Gains:
+        """The period's gains: the gain set, or a schedule's at its variable as the
+        controller reads it at ``t`` (s) from its ``inputs`` and F/T ``reading`` (6,)
+        ([`control.schedule`][spacegrasp_jax.control.schedule])."""
+        if not isinstance(self.gains, GainSchedule):
+            return self.gains
+        return self.gains.at(scheduling_variable(self.gains.variable, t, inputs.pose, reading))
+
     def control_update(self, state: LoopState, k, noise, truth: PlantKinematics, observed: Observation | None):
         """The controller's update at the start of period k: the stages' memories moved on,
         the law's next state, and what is held over the period (the command leaving the
-        command's stages, the log's controller fields)."""
+        command's stages, the log's controller fields, the period's gains)."""
         memories = state.stages
         if self.senses:
             inputs, reading, memories = self.sensed_inputs(memories, state.plant, truth, k * self.period, noise)
         else:
             inputs, reading = observed.inputs, jnp.concatenate([observed.force_fts, observed.torque_fts])
-        computed, law_state = self.control.command(self.gains, inputs, state.controller.law, self.period)
+        gains = self.gains_now(k * self.period, inputs, reading)
+        computed, law_state = self.control.command(gains, inputs, state.controller.law, self.period)
         command, memories = stages.run_chain(self.chain, memories, "command", computed)
         held = self.control.logged(command, state.controller.law)
         if self.logs_readings:
@@ -562,17 +572,17 @@ class _Period:
                 fts_force_measured=reading[:3],
                 fts_torque_measured=reading[3:],
             )
-        return memories, law_state, command, held
+        return memories, law_state, command, held, gains
 
-    def servo_update(self, plant: PlantState, pid_state, memories, j, command, held, noise):
-        """Servo tick j (a float) of the whole run: the joint sensors and the PID; returns the
-        torques' log fields (``u`` (N,) N m and the readings), the PID's state and the
-        stages' memories."""
+    def servo_update(self, plant: PlantState, pid_state, memories, j, command, held, gains, noise):
+        """Servo tick j (a float) of the whole run: the joint sensors and the PID at the
+        period's ``gains``; returns the torques' log fields (``u`` (N,) N m and the readings),
+        the PID's state and the stages' memories."""
         tick = j.astype(jnp.int32) % self.ticks if self.noisy else 0
         tick_noise = jax.lax.dynamic_slice_in_dim(noise, 6 + self.n * tick, self.n)
         (q, qd), memories = stages.run_chain(self.chain, memories, "servo_joints", (plant.q, plant.qd), tick_noise)
         u, pid_state = self.control.torque(
-            self.gains, command, qd, pid_state, j * self.servo_period, self.servo_period, self.limit
+            gains, command, qd, pid_state, j * self.servo_period, self.servo_period, self.limit
         )
         u, memories = stages.run_chain(self.chain, memories, "torque", u)
         fields = dict(held, u=u, q_measured=q, qd_measured=qd) if self.logs_readings else dict(held, u=u)
@@ -588,9 +598,9 @@ class _Period:
         noise = self.noise(k)
         t = k * self.spec.scenario.dt
         observed = self.observe(state.plant, truth, t)
-        memories, law_state, command, held = self.control_update(state, k, noise, truth, observed)
+        memories, law_state, command, held, gains = self.control_update(state, k, noise, truth, observed)
         fields, pid_state, memories = self.servo_update(
-            state.plant, state.controller.pid, memories, k, command, held, noise
+            state.plant, state.controller.pid, memories, k, command, held, gains, noise
         )
         row = self.row(state.plant, truth, t, fields, observed)
         state = dataclasses.replace(state, controller=ControllerState(law_state, pid_state), stages=memories)
@@ -653,11 +663,11 @@ class _Period:
 
         if self.spec.options.checkpoint:  # the noise is drawn outside: once, not again in the backward pass
             start_of_period = jax.checkpoint(start_of_period, prevent_cse=False)
-        memories, law_state, command, held = start_of_period(state, k, noise)
+        memories, law_state, command, held, gains = start_of_period(state, k, noise)
 
         def servo_tick(carry, j):
             plant, pid_state, memories = carry
-            fields, pid_state, memories = self.servo_update(plant, pid_state, memories, j, command, held, noise)
+            fields, pid_state, memories = self.servo_update(plant, pid_state, memories, j, command, held, gains, noise)
             steps = j * self.per_servo + jnp.arange(self.per_servo, dtype=dtype)
             if self.per_servo == 1:
                 plant, row = self.plant_step(plant, steps[0], fields)
@@ -708,7 +718,8 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
         spec: the run ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]: the plant, the
             controller, the realism, the controller's model, added stages and options; its
             observer is not the body's concern).
-        gains: the gains (any leaf may carry a vmap batch axis).
+        gains: the gains, or a gain schedule ([`control.schedule`][spacegrasp_jax.control.schedule]; any leaf may
+            carry a vmap batch axis).
         key: a ``jax.random`` key, needed with noisy sensors (``Stage.SENSORS``); same key,
             same rollout.
     """
@@ -876,7 +887,8 @@ def closed_loop(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> tu
 
     Args:
         spec: the run ([`RunSpec`][spacegrasp_jax.simulate.RunSpec]).
-        gains: the gains (any leaf may carry a vmap batch axis).
+        gains: the gains, or a gain schedule ([`control.schedule`][spacegrasp_jax.control.schedule]; any leaf may
+            carry a vmap batch axis).
         key: the ``jax.random`` key of the sensors' noise (needed with noisy sensors).
 
     Returns:

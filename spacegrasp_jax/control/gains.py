@@ -286,7 +286,18 @@ def load_gains(
             file.
     """
     path = Path(path)
-    document = read_document(path, GainsError, "json")
+    return gains_from_document(read_document(path, GainsError, "json"), path, controller, n_joints, fill_from)
+
+
+def gains_from_document(
+    document: dict,
+    path: Path,
+    controller: str | tuple[str, ...] | list[str] | None = None,
+    n_joints: int = PAPER_JOINTS,
+    fill_from: str | Path | Gains | None = None,
+) -> Gains:
+    """[`load_gains()`][spacegrasp_jax.control.gains.load_gains] of a file's ``document``
+    (its JSON object), ``path`` naming the file in messages."""
     unknown = sorted(set(document) - set(GAIN_SHAPES))
     if unknown:
         raise GainsError(f"{path}: unknown gain(s): {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")

@@ -1,0 +1,211 @@
+"""Gain schedules (``spacegrasp_jax.control.schedule``): the interpolation against its
+analytic properties, the one-knot schedule bit for bit as the constant gains (the paper's
+loop, the flight-like loop, a campaign's samples and the 17 s reproduction), each variable
+switching the gains where it should, the gradient through the knots against central
+differences, the file format and the commands that take it."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from spacegrasp_jax import cli, simulate
+from spacegrasp_jax.control import GainsError, paper_gains
+from spacegrasp_jax.control.schedule import (
+    GainSchedule,
+    constant_schedule,
+    gain_set_from_dict,
+    interpolate,
+    load_schedule,
+    make_schedule,
+)
+from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples
+from spacegrasp_jax.perturbations import PerturbationRanges
+from spacegrasp_jax.realism import flight
+from spacegrasp_jax.simulate import RunSpec
+
+RNG = np.random.default_rng(59)
+KNOTS = np.array([0.0, 2.0, 5.0, 9.0])
+
+
+def test_the_blend_hits_each_knot_keeps_between_its_neighbours_and_is_smooth():
+    values = np.exp(RNG.normal(size=(4, 6)))
+    at = jax.jit(lambda x: interpolate(jnp.asarray(KNOTS), jnp.asarray(values), x))
+    for k, x in enumerate(KNOTS):
+        np.testing.assert_allclose(at(x), values[k], rtol=1e-14)
+    np.testing.assert_allclose(at(-3.0), values[0], rtol=1e-14)  # held before the first knot
+    np.testing.assert_allclose(at(30.0), values[-1], rtol=1e-14)  # and after the last
+    # Halfway, the smoothstep's weight is 1/2: the geometric mean of the two knots' gains.
+    np.testing.assert_allclose(at(3.5), np.sqrt(values[1] * values[2]), rtol=1e-14)
+    # Within [x_i, x_i+1] each gain lies between its two knots' values (no overshoot), for
+    # a thousand points.
+    xs = np.linspace(-1.0, 10.0, 1000)
+    gains = np.asarray(jax.vmap(at)(xs))
+    i = np.clip(np.searchsorted(KNOTS, np.clip(xs, 0.0, 9.0), side="right") - 1, 0, 2)
+    low, high = np.minimum(values[i], values[i + 1]), np.maximum(values[i], values[i + 1])
+    assert np.all(gains >= low * (1 - 1e-14)) and np.all(gains <= high * (1 + 1e-14))
+    # Continuously differentiable: the slope is zero on both sides of an inner knot, and the
+    # derivative matches central differences between knots.
+    slope = jax.jit(jax.jacfwd(lambda x: interpolate(jnp.asarray(KNOTS), jnp.asarray(values), x)))
+    for x in (2.0 - 1e-7, 2.0 + 1e-7):
+        assert np.max(np.abs(slope(x) / values[1])) < 1e-5
+    h = 1e-6
+    np.testing.assert_allclose(slope(3.0), (at(3.0 + h) - at(3.0 - h)) / (2 * h), rtol=1e-6)
+
+
+def test_a_one_knot_group_is_its_values_as_they_are():
+    values = jnp.asarray([[800.0, 0.0, 3.0 + 1e-13]])  # a zero too: a constant group is not log-blended
+    np.testing.assert_array_equal(interpolate(jnp.zeros(1), values, 12.0), values[0])
+
+
+@pytest.mark.parametrize("realism", [None, "flight"], ids=["paper loop", "flight"])
+def test_the_one_knot_schedule_runs_bit_for_bit_as_the_constant_gains(robot, short_scenario, realism):
+    realism = None if realism is None else flight()
+    spec = RunSpec(robot, short_scenario, "admittance", realism=realism)
+    run, key = jax.jit(simulate.closed_loop), jax.random.PRNGKey(5)
+    _, constant = run(spec, paper_gains(), key)
+    for variable in ("time", "force"):
+        _, scheduled = run(spec, constant_schedule(paper_gains(), variable), key)
+        for name, value in vars(constant).items():
+            if value is not None:
+                np.testing.assert_array_equal(getattr(scheduled, name), value, err_msg=name)
+
+
+def test_the_one_knot_schedule_gives_a_campaigns_samples_bit_for_bit(robot, short_scenario):
+    spec = RunSpec(robot, short_scenario, "admittance", realism=flight(), observer=FoldedMetrics())
+    indices, ranges = jnp.arange(2, dtype=jnp.uint32), PerturbationRanges()
+    evaluate = jax.jit(lambda spec, gains: evaluate_samples(spec, gains, 20261205, indices, ranges=ranges)[1])
+    constant, scheduled = evaluate(spec, paper_gains()), evaluate(spec, constant_schedule(paper_gains()))
+    for name, value in constant.items():
+        np.testing.assert_array_equal(scheduled[name], value, err_msg=name)
+
+
+@pytest.mark.slow
+def test_the_reproduction_does_not_move_under_a_one_knot_schedule(robot, full_runs):
+    """The paper's 17 s capture with both laws (the stored reproduction's runs)."""
+    from spacegrasp_jax import experiment
+    from spacegrasp_jax.scenario import paper_scenario
+
+    for controller, result in full_runs.items():
+        spec = RunSpec(robot, paper_scenario(robot), controller)
+        scheduled = experiment.run(spec, constant_schedule(paper_gains()))
+        for name in ("u", "q", "qd", "pose_ee", "contact_force", "V_ref", "qd_des"):
+            np.testing.assert_array_equal(getattr(scheduled.log, name), getattr(result.log, name), err_msg=name)
+
+
+@pytest.mark.parametrize(
+    ("variable", "knots", "before"),
+    [("time", (0.5, 1.0), lambda log: log.t < 0.5), ("force", (2.0, 6.0), None)],
+)
+def test_a_schedule_changes_the_run_only_where_its_variable_leaves_the_first_knot(
+    robot, short_scenario, variable, knots, before
+):
+    """Kd and kp halved past the knots: the run is the constant gains' (to rounding: the
+    log-blend of one knot's gains) while the variable stays at or before the first knot, and
+    departs from it after."""
+    gains = paper_gains()
+    schedule = make_schedule(
+        gains, variable, {"Kd": (knots, [gains.Kd, 0.5 * gains.Kd]), "kp": (knots, [gains.kp, 0.5 * gains.kp])}
+    )
+    spec = RunSpec(robot, short_scenario, "admittance")
+    run = jax.jit(simulate.closed_loop)
+    _, constant = run(spec, gains)
+    _, scheduled = run(spec, schedule)
+    if before is None:  # the F/T force the controller reads, at the start of each step
+        force = np.linalg.norm(np.asarray(constant.fts_force), axis=1)
+        first = int(np.argmax(force > knots[0]))
+        early = np.arange(len(force)) < first
+    else:
+        early = np.asarray(before(constant))
+    departed = np.abs(np.asarray(scheduled.pose_ee) - np.asarray(constant.pose_ee)).max(axis=1)
+    assert early.any() and not early.all()
+    assert departed[early].max() < 1e-9
+    assert departed[-1] > 1e-4
+
+
+@pytest.mark.slow
+def test_the_gradient_through_the_knots_matches_central_differences(robot, short_scenario):
+    gains = paper_gains()
+    schedule = make_schedule(
+        gains, "time", {"Kd": ([0.4, 1.2], [gains.Kd, 0.4 * gains.Kd]), "Bd": ([0.8, 1.6], [gains.Bd, 2.0 * gains.Bd])}
+    )
+    spec = RunSpec(robot, short_scenario, "admittance", options=simulate.LoopOptions(checkpoint=True))
+
+    def loss(log_values):
+        values = dict(schedule.values) | {name: jnp.exp(v) for name, v in log_values.items()}
+        _, log = simulate.closed_loop(spec, dataclasses.replace(schedule, values=values))
+        return 1e3 * jnp.sum(log.pose_ee[-1, :3] ** 2) + 1e-3 * jnp.mean(log.u**2)
+
+    log_values = {name: jnp.log(schedule.values[name]) for name in ("Kd", "Bd")}
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
+    _, gradient = value_and_grad(log_values)
+    direction = {name: jnp.asarray(RNG.normal(size=v.shape)) for name, v in log_values.items()}
+    norm = np.sqrt(sum(float(jnp.sum(d**2)) for d in direction.values()))
+    direction = {name: d / norm for name, d in direction.items()}
+    h = 1e-5
+    plus = value_and_grad({n: v + h * direction[n] for n, v in log_values.items()})[0]
+    minus = value_and_grad({n: v - h * direction[n] for n, v in log_values.items()})[0]
+    slope = sum(float(jnp.sum(gradient[n] * direction[n])) for n in log_values)
+    assert abs(slope) > 1e-6
+    np.testing.assert_allclose(slope, float(plus - minus) / (2 * h), rtol=1e-4)
+
+
+def test_a_schedule_file_reads_back_what_was_written_and_bad_ones_name_the_group(tmp_path):
+    gains = paper_gains()
+    schedule = make_schedule(gains, "distance", {"Kd": ([0.01, 0.05], [300.0, 900.0])})
+    path = tmp_path / "schedule.json"
+    path.write_text(json.dumps(schedule.to_dict("admittance")))
+    document = json.loads(path.read_text())
+    assert document["schedule"] == {"variable": "distance", "unit": "m"}
+    assert document["Kd"] == {"knots": [0.01, 0.05], "values": [[300.0] * 6, [900.0] * 6]}
+    assert document["Md"] == [800.0] * 6  # a constant group as a gains file has it
+    read = load_schedule(path, "admittance")
+    assert isinstance(read, GainSchedule) and read.variable == "distance"
+    for name in ("Md", "Bd", "Kd", "kp", "ki", "kd", "pinv_damping"):
+        np.testing.assert_array_equal(read.values[name], schedule.values[name])
+        np.testing.assert_array_equal(read.knots[name], schedule.knots[name])
+    recorded = gain_set_from_dict(json.loads(json.dumps(schedule.to_dict())))  # as a campaign records it
+    assert jax.tree.structure(recorded) == jax.tree.structure(schedule)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(recorded), jax.tree.leaves(schedule)))
+
+    def refused(change, match):
+        bad = tmp_path / "bad.json"
+        bad.write_text(json.dumps(document | change))
+        with pytest.raises(GainsError, match=match):
+            load_schedule(bad, "admittance")
+
+    refused(
+        {"schedule": {"variable": "altitude"}}, r"bad.json: schedule.variable: expected one of time, distance, force"
+    )
+    refused({"Kd": {"knots": [0.05, 0.01], "values": [300.0, 900.0]}}, r"bad.json: Kd.knots: .*strictly increasing")
+    refused({"Kd": {"knots": [0.01, 0.05], "values": [300.0, -900.0]}}, r"bad.json: Kd.values: .*positive")
+    refused({"Kd": {"knots": [0.01, 0.05], "values": [[1.0] * 5, [1.0] * 5]}}, r"bad.json: Kd: expected 6 values")
+    refused({"Kd": {"knots": [0.01, 0.05]}}, r"bad.json: Kd: a scheduled group holds exactly 'knots' and 'values'")
+    refused({"schedule": {"variable": "time", "unit": "ms"}}, r"bad.json: schedule.unit: time is in s")
+
+
+def test_simulate_runs_a_schedule_file_and_the_commands_that_cannot_refuse_it(tmp_path, capsys):
+    gains = paper_gains()
+    path = tmp_path / "schedule.json"
+    path.write_text(json.dumps(make_schedule(gains, "time", {"Kd": ([0.02, 0.04], [600.0, 300.0])}).to_dict()))
+    scenario = tmp_path / "short.toml"
+    scenario.write_text("duration = 0.05\n[trajectory]\nduration = 0.05\n")
+    out = tmp_path / "sim"
+    args = ["--compile-cache", "none", "--controller", "admittance", "--gains", str(path), "--scenario", str(scenario)]
+    assert cli.main(["simulate", *args, "--out", str(out)]) == 0
+    kept = json.loads((out / "gains.json").read_text())
+    assert kept["schedule"]["variable"] == "time" and kept["Kd"]["knots"] == [0.02, 0.04]
+    again = tmp_path / "again"  # the run folder's gains run again
+    assert cli.main(["simulate", *args[:5], str(out / "gains.json"), *args[6:], "--out", str(again)]) == 0
+    first, second = (np.load(folder / "timeseries_admittance.npz") for folder in (out, again))
+    np.testing.assert_array_equal(first["u"], second["u"])
+    capsys.readouterr()
+    assert cli.main(["export", "--format", "json", *args[2:], "--out", str(tmp_path / "export")]) == 2
+    assert "a gain schedule; this command takes constant gains (schedules run in simulate and montecarlo)" in (
+        capsys.readouterr().err
+    )
