@@ -727,7 +727,7 @@ def load_campaign(out: Path) -> tuple[Robot, Scenario, list[Variant], CampaignCo
     Raises:
         CampaignError: no campaign there, or its robot file is gone or changed shape.
     """
-    from spacegrasp_jax.control.gains import make_gains
+    from spacegrasp_jax.control.schedule import gain_set_from_dict
     from spacegrasp_jax.model import load_robot, paper_robot
     from spacegrasp_jax.realism import make_realism
     from spacegrasp_jax.scenario import scenario_from_dict
@@ -749,7 +749,7 @@ def load_campaign(out: Path) -> tuple[Robot, Scenario, list[Variant], CampaignCo
     realism = make_realism(fields["realism"], source=str(path))
     fields["realism"] = None if realism.to_dict() == ideal().to_dict() else realism
     variants = [
-        Variant(item["controller"], make_gains(n_joints=n_joints(robot), **item["gains"]), item["gains_label"])
+        Variant(item["controller"], gain_set_from_dict(item["gains"], n_joints(robot)), item["gains_label"])
         for item in record["variants"]
     ]
     return robot, scenario_from_dict(record["scenario"]), variants, CampaignConfig(**fields)

@@ -34,6 +34,7 @@ from spacegrasp_jax.control import (
     named_gains,
     paper_gains,
 )
+from spacegrasp_jax.control.schedule import is_schedule_file, load_schedule
 from spacegrasp_jax.model import n_joints, rate_limits_stated
 from spacegrasp_jax.perturbations import (
     PerturbationRanges,
@@ -110,19 +111,25 @@ def _check_joint_ranges(args, robot, scenario) -> None:
     _warn([f"{message} (--allow-outside-limits)"])
 
 
-def _load_inputs(args):
-    """Robot, scenario and gains from the command line, validated before any compile."""
+def _load_inputs(args, schedules: bool = False):
+    """Robot, scenario and gains from the command line, validated before any compile;
+    ``schedules``: the command runs gain schedules too."""
     robot = _load_robot(args)
     scenario = load_scenario(robot, args.scenario) if getattr(args, "scenario", None) else paper_scenario(robot)
     _check_joint_ranges(args, robot, scenario)
     controller = getattr(args, "controller", None)
-    return robot, scenario, _gains_option(getattr(args, "gains", None), args, robot, controller)
+    return robot, scenario, _gains_option(getattr(args, "gains", None), args, robot, controller, schedules)
 
 
-def _gains_option(value: str | None, args, robot, controller) -> sg.control.Gains:
+#: The commands that run gain schedules (``--gains`` a schedule file).
+RUNS_SCHEDULES = ("simulate", "montecarlo")
+
+
+def _gains_option(value: str | None, args, robot, controller, schedules: bool = False):
     """The gains ``--gains value`` names for ``controller`` (a law, several, or ``None``):
     the paper's by default, a shipped set by name, or a file whose missing groups come from
-    ``--fill-from``."""
+    ``--fill-from``; with ``schedules``, a schedule file's ``GainSchedule``
+    ([`control.schedule`][spacegrasp_jax.control.schedule]), which other commands refuse."""
     if getattr(args, "fill_from", None) is not None and (value is None or value in NAMED_GAINS):
         raise UsageError(
             f"--fill-from: completes a gains file given with --gains; {value or 'the paper'}'s gains are whole"
@@ -137,7 +144,15 @@ def _gains_option(value: str | None, args, robot, controller) -> sg.control.Gain
             )
         return named_gains(value)
     fill_from = getattr(args, "fill_from", None)
-    gains = load_gains(value, controller, n_joints(robot), fill_from=fill_from)
+    if is_schedule_file(value):
+        if not schedules:
+            raise UsageError(
+                f"--gains {value}: a gain schedule; this command takes constant gains (schedules run in "
+                f"{' and '.join(RUNS_SCHEDULES)})"
+            )
+        gains = load_schedule(value, controller, n_joints(robot), fill_from=fill_from)
+    else:
+        gains = load_gains(value, controller, n_joints(robot), fill_from=fill_from)
     filled = missing_groups(value, controller) if fill_from else []
     if filled:
         print(f"spacegrasp: notice: {value}: {', '.join(filled)} from {fill_from} (--fill-from)", file=sys.stderr)

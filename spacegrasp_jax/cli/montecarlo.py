@@ -75,7 +75,7 @@ def _montecarlo_variants(args: argparse.Namespace, robot) -> list[campaign.Varia
         label = path if path in NAMED_GAINS else Path(path).stem
         if label in {existing for existing, _ in gain_sets}:
             raise UsageError(f"--gains {path}: two gain sets would both be called {label!r}; rename one file")
-        gain_sets.append((label, _gains_option(path, args, robot, controllers)))
+        gain_sets.append((label, _gains_option(path, args, robot, controllers, schedules=True)))
     return [campaign.Variant(controller, gains, label) for controller in controllers for label, gains in gain_sets]
 
 

@@ -60,7 +60,7 @@ from spacegrasp_jax.simulate import RunSpec
 
 
 def _run_controllers(args, controllers) -> int:
-    robot, scenario, gains = _load_inputs(args)
+    robot, scenario, gains = _load_inputs(args, schedules=True)
     rate_limits = _rate_criterion(args, robot)
     criteria = None if rate_limits is None else campaign.CampaignConfig(n=1, joint_rate_limits_radps=rate_limits)
     laws = {controller: _law(controller, args) for controller in controllers}
