@@ -209,3 +209,34 @@ def test_simulate_runs_a_schedule_file_and_the_commands_that_cannot_refuse_it(tm
     assert "a gain schedule; this command takes constant gains (schedules run in simulate and montecarlo)" in (
         capsys.readouterr().err
     )
+
+
+def test_tune_refuses_a_bad_schedule_before_anything_compiles(tmp_path, capsys):
+    for schedule, message in (
+        ("time:1,0", "schedule_knots: need two or more finite values, increasing; got [1.0, 0.0]"),
+        ("altitude:1,2", "--schedule: expected VARIABLE:X1,X2,... with VARIABLE one of time, distance, force"),
+        ("time:0,x", "--schedule: the knots must be numbers"),
+    ):
+        assert cli.main(["tune", "--out", str(tmp_path / "run"), "--schedule", schedule, "--steps", "2"]) == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["cmaes", "gradient"])
+def test_tune_tunes_a_schedule_by_either_method(tmp_path, method):
+    """The parameters are the log-gains at every knot: the run hands back a schedule with
+    the knots asked, whose knots' gains moved apart from the starting constant ones."""
+    scenario = tmp_path / "short.toml"
+    scenario.write_text("duration = 0.1\n[trajectory]\nduration = 0.1\n")
+    out = tmp_path / method
+    args = ["tune", "--out", str(out), "--scenario", str(scenario), "--schedule", "time:0,0.05,0.1", "--steps", "2"]
+    args += ["--batch", "2", "--holdout", "0", "--method", method, "--compile-cache", "none"]
+    assert cli.main(args) == 0
+    tuned = load_schedule(out / "gains.json", "admittance")
+    assert tuned.variable == "time"
+    for name in ("Md", "Bd", "Kd", "kp", "ki", "kd"):
+        np.testing.assert_array_equal(tuned.knots[name], [0.0, 0.05, 0.1])
+    assert tuned.knot_counts()["pinv_damping"] == 1
+    moved = np.asarray(tuned.values["Kd"]) / np.asarray(paper_gains().Kd)
+    assert np.ptp(moved) > 1e-6  # the knots were tuned apart

@@ -30,9 +30,11 @@ import numpy as np
 
 from spacegrasp_jax import batching
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.experiment import loop_options
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import SampleLoops
 from spacegrasp_jax.runfiles import StopRequest
+from spacegrasp_jax.simulate import LoopOptions
 from spacegrasp_jax.tuning.objective import Objective
 from spacegrasp_jax.tuning.parameters import gains_from_params
 
@@ -67,18 +69,20 @@ def gains_of(vector: np.ndarray, params: dict, base: Gains, mask: dict) -> Gains
     return gains_from_params(unflatten(vector, params, mask), base, mask)
 
 
-def _candidate_parts(model_robot, objective: Objective, items, *, controller: str, realism_loop: bool):
+def _candidate_parts(
+    model_robot, objective: Objective, items, *, controller: str, realism_loop: bool, options: LoopOptions
+):
     """The objective's parts of each (gains, sample) item (vmapped)."""
     from spacegrasp_jax.tuning.tune import objective_spec, scenario_parts
 
     if realism_loop:
         gains, robot, scenario, realism, key = items
         one = lambda g, r, s, re, k: scenario_parts(
-            objective_spec(r, s, controller, realism=re, model_robot=model_robot), g, objective, k
+            objective_spec(r, s, controller, realism=re, model_robot=model_robot, options=options), g, objective, k
         )
         return jax.vmap(one)(gains, robot, scenario, realism, key)
     gains, scenario = items
-    one = lambda g, s: scenario_parts(objective_spec(model_robot, s, controller), g, objective)
+    one = lambda g, s: scenario_parts(objective_spec(model_robot, s, controller, options=options), g, objective)
     return jax.vmap(one)(gains, scenario)
 
 
@@ -112,7 +116,9 @@ def make_item_evaluator(
     else:
         per_sample = (samples,)
         model_robot = robot
-    function = functools.partial(_candidate_parts, controller=controller, realism_loop=realism_loop)
+    function = functools.partial(
+        _candidate_parts, controller=controller, realism_loop=realism_loop, options=loop_options(checkpoint=True)
+    )
 
     def evaluate(vectors: np.ndarray, rows: np.ndarray) -> dict:
         unique, inverse = np.unique(np.asarray(vectors, dtype=float), axis=0, return_inverse=True)

@@ -34,22 +34,22 @@ from spacegrasp_jax import batching, campaign, experiment, runfiles, statistics
 from spacegrasp_jax.control import (
     NAMED_GAINS,
     GainsError,
-    load_gains,
-    make_gains,
     missing_groups,
     named_gains,
     paper_gains,
     require_joints,
 )
+from spacegrasp_jax.control.schedule import GainSchedule, gain_set_from_dict, load_gains_or_schedule, schedule_of
+from spacegrasp_jax.experiment import loop_options
 from spacegrasp_jax.model import load_robot, n_joints, robot_from_text, robot_from_toml, robot_to_toml
 from spacegrasp_jax.montecarlo import SampleLoops, success
 from spacegrasp_jax.perturbations import sample_scenarios
 from spacegrasp_jax.realism import make_realism
 from spacegrasp_jax.scenario import paper_scenario, scenario_from_mapping
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.simulate import LoopOptions, RunSpec
 from spacegrasp_jax.tuning import cmaes
 from spacegrasp_jax.tuning.objective import Objective
-from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
+from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import (
     CHECKPOINT,
     VALIDATION_SEED_OFFSET,
@@ -170,7 +170,19 @@ def start_gains(gains_file: str, controller: str, n: int, fill_from: str | None 
                 f"--gains {gains_file}: the shipped sets are for the paper's 7-joint arm, not {n} joints"
             )
         return named_gains(gains_file)
-    return load_gains(gains_file, controller, n, fill_from=fill_from)
+    return load_gains_or_schedule(gains_file, controller, n, fill_from=fill_from)
+
+
+def tuned_base(base, config: TuneConfig):
+    """What the run tunes from the starting ``base``: a schedule on ``config``'s variable and
+    knots for every tuned group but the pseudoinverse's damping (``TuneConfig.schedule_variable``),
+    else ``base`` as it is (a gain set, or a starting schedule file's schedule)."""
+    if config.schedule_variable is None:
+        return base
+    if isinstance(base, GainSchedule):
+        raise TuneSetupError("--schedule: the starting gains are a schedule already; tune it as it is")
+    groups = [name for name in GROUPS[config.controller] if name != "pinv_damping" and name not in config.frozen]
+    return schedule_of(base, config.schedule_variable, config.schedule_knots, groups)
 
 
 def new_record(
@@ -188,6 +200,7 @@ def new_record(
     filled = []
     if gains_file:
         base = start_gains(gains_file, config.controller, n_joints(robot), fill_from)
+        tuned_base(base, config)  # refused here, before anything compiles
         filled = [] if gains_file in NAMED_GAINS else missing_groups(gains_file, config.controller)
     else:
         try:
@@ -212,19 +225,19 @@ def new_record(
     }
 
 
-def _scenarios_parts(robot, gains, objective: Objective, scenarios, *, controller: str):
+def _scenarios_parts(robot, gains, objective: Objective, scenarios, *, controller: str, options: LoopOptions):
     """[`scenario_parts()`][tuning.tune.scenario_parts] of each scenario of a batch (vmapped)."""
-    return jax.vmap(lambda scenario: scenario_parts(objective_spec(robot, scenario, controller), gains, objective))(
-        scenarios
-    )
+    return jax.vmap(
+        lambda scenario: scenario_parts(objective_spec(robot, scenario, controller, options=options), gains, objective)
+    )(scenarios)
 
 
-def _samples_parts(model_robot, gains, objective: Objective, samples, *, controller: str):
+def _samples_parts(model_robot, gains, objective: Objective, samples, *, controller: str, options: LoopOptions):
     """[`scenario_parts()`][tuning.tune.scenario_parts] of each sample of a flight-like
     batch ``samples = (robots, scenarios, realisms, keys)`` (vmapped)."""
 
     def one(robot, scenario, realism, key):
-        spec = objective_spec(robot, scenario, controller, realism=realism, model_robot=model_robot)
+        spec = objective_spec(robot, scenario, controller, realism=realism, model_robot=model_robot, options=options)
         return scenario_parts(spec, gains, objective, key)
 
     return jax.vmap(one)(*samples)
@@ -232,7 +245,7 @@ def _samples_parts(model_robot, gains, objective: Objective, samples, *, control
 
 def evaluate_flight(model_robot, batch: SampleLoops, gains, controller: str, objective: Objective, chunk: int = 10):
     """[`evaluate()`][tuning.run.evaluate] for samples of the flight-like loop ([`flight_batch()`][tuning.tune.flight_batch])."""
-    function = functools.partial(_samples_parts, controller=controller)
+    function = functools.partial(_samples_parts, controller=controller, options=loop_options(checkpoint=True))
     samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
     return batching.map_in_chunks(
         "tuning.evaluate_flight",
@@ -249,7 +262,7 @@ def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chu
     by vmapped rollouts in chunks of ``chunk`` ([`spacegrasp_jax.batching.map_in_chunks()`][spacegrasp_jax.batching.map_in_chunks]);
     NaN marks a diverged sample. The gains and the objective are arguments of the compiled
     program, so evaluating another gain set or objective reuses it."""
-    function = functools.partial(_scenarios_parts, controller=controller)
+    function = functools.partial(_scenarios_parts, controller=controller, options=loop_options(checkpoint=True))
     return batching.map_in_chunks(
         "tuning.evaluate", function, (robot, gains, objective), scenarios, chunk=chunk, progress=None
     )
@@ -556,7 +569,7 @@ def tune(
         runfiles.write_json(record_path, record)
 
     robot = record_robot(record)
-    base = make_gains(n_joints=n_joints(robot), **record["base_gains"])
+    base = tuned_base(gain_set_from_dict(record["base_gains"], n_joints(robot)), config)
     exact = dataclasses.replace(record_scenario(robot, record), contact_law="exact")
     smooth = dataclasses.replace(exact, contact_law="smooth")  # gradients need the smooth law
 

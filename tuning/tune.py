@@ -30,6 +30,7 @@ from jax.flatten_util import ravel_pytree
 from spacegrasp_jax import batching, compilation, joint_limits
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import CONTROLLERS
+from spacegrasp_jax.control.schedule import VARIABLES
 from spacegrasp_jax.experiment import loop_options
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import SampleLoops, sample_loops
@@ -141,6 +142,13 @@ class TuneConfig:
             a margin of the capture objective and a criterion of the held-out verdict
             (``None``, the default: none, as for the paper's arm, whose limits are assumed;
             ``spacegrasp tune`` sets it to a robot file's own limits).
+        schedule_variable: tune a gain schedule on this variable
+            ([`control.schedule.VARIABLES`][spacegrasp_jax.control.schedule.VARIABLES]):
+            every tuned group but the pseudoinverse's damping gets the knots
+            ``schedule_knots``, each starting at the starting gains; the parameters are the
+            log-gains at every knot (``None``: constant gains, or the starting file's
+            schedule as it is).
+        schedule_knots: the knots (increasing, at least two) on ``schedule_variable``.
     """
 
     controller: str = "admittance"
@@ -171,10 +179,13 @@ class TuneConfig:
     patience: int | None = None
     validation_size: int = 32
     joint_rate_limits_radps: tuple[float, ...] | None = None
+    schedule_variable: str | None = None
+    schedule_knots: tuple[float, ...] = ()
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
             raise ValueError(f"controller: expected one of {', '.join(CONTROLLERS)}, got {self.controller!r}")
+        self._check_schedule()
         if self.steps < 1 or self.batch < 1:
             raise ValueError("steps and batch must be at least 1")
         for name in (
@@ -268,9 +279,24 @@ class TuneConfig:
                 "gradient: tuning under a realism takes each sample's reverse-mode gradient; forward mode runs the ideal loop only"
             )
 
+    def _check_schedule(self) -> None:
+        object.__setattr__(self, "schedule_knots", tuple(float(x) for x in self.schedule_knots))
+        if self.schedule_variable is None:
+            if self.schedule_knots:
+                raise ValueError("schedule_knots: given without a schedule_variable")
+            return
+        if self.schedule_variable not in VARIABLES:
+            raise ValueError(
+                f"schedule_variable: expected one of {', '.join(VARIABLES)}, got {self.schedule_variable!r}"
+            )
+        knots = np.asarray(self.schedule_knots)
+        if knots.size < 2 or not np.all(np.isfinite(knots)) or np.any(np.diff(knots) <= 0.0):
+            raise ValueError(f"schedule_knots: need two or more finite values, increasing; got {knots.tolist()}")
+
     def to_dict(self) -> dict:
         document = dataclasses.asdict(self)
         document["frozen"] = list(self.frozen)
+        document["schedule_knots"] = list(self.schedule_knots)
         return document
 
     @classmethod
@@ -281,6 +307,7 @@ class TuneConfig:
         document["weights"] = Weights(**document["weights"])
         document["ranges"] = PerturbationRanges.from_mapping(document["ranges"], base=TUNING_RANGES)
         document["frozen"] = tuple(document["frozen"])
+        document["schedule_knots"] = tuple(document.get("schedule_knots", ()))
         return cls(**document)
 
 

@@ -49,6 +49,7 @@ from spacegrasp_jax.control import (
     CONTROLLERS,
     NAMED_GAINS,
 )
+from spacegrasp_jax.control.schedule import VARIABLES
 from spacegrasp_jax.model import n_joints
 from spacegrasp_jax.realism import ideal, load_realism
 from spacegrasp_jax.scenario import load_scenario, paper_scenario
@@ -62,6 +63,7 @@ from spacegrasp_jax.tuning.run import (
     record_scenario,
     start_gains,
     tune,
+    tuned_base,
 )
 from spacegrasp_jax.tuning.tune import KEEPS, METHODS, TUNING_RANGES, TuneConfig
 
@@ -96,7 +98,8 @@ def _tune(args: argparse.Namespace) -> int:
             f"--fill-from: completes a gains file given with --gains; {args.gains or 'the paper'}'s gains are whole"
         )
     try:
-        start_gains(args.gains, args.controller, n_joints(robot), args.fill_from) if args.gains else None
+        if args.gains:
+            tuned_base(start_gains(args.gains, args.controller, n_joints(robot), args.fill_from), config)
     except TuneSetupError as error:
         raise UsageError(str(error)) from None
     if not args.gains:
@@ -287,7 +290,22 @@ def _tune_fields(args: argparse.Namespace, robot) -> dict:
         patience=args.patience,
         validation_size=args.validation_size,
         joint_rate_limits_radps=_rate_criterion(args, robot),
+        **(_schedule(args.schedule) if args.schedule else {}),
     )
+
+
+def _schedule(text: str) -> dict:
+    """``--schedule VARIABLE:X1,X2,...`` as TuneConfig's ``schedule_variable`` and ``schedule_knots``."""
+    variable, _, knots = text.partition(":")
+    if variable not in VARIABLES or not knots:
+        raise UsageError(
+            f"--schedule: expected VARIABLE:X1,X2,... with VARIABLE one of {', '.join(VARIABLES)}, got {text!r}"
+        )
+    try:
+        values = tuple(float(x) for x in knots.split(","))
+    except ValueError:
+        raise UsageError(f"--schedule: the knots must be numbers, got {knots!r}") from None
+    return {"schedule_variable": variable, "schedule_knots": values}
 
 
 def add_parsers(commands) -> None:
@@ -389,6 +407,13 @@ def add_parsers(commands) -> None:
         help="the gains the run hands back: best, the least training objective it evaluated (CMA-ES's best "
         "candidate ever, the gradient method's best step), or last; either way gains.json holds the better of "
         "them and the starting gains on the held-out captures (default best)",
+    )
+    tune.add_argument(
+        "--schedule",
+        metavar="VARIABLE:X1,X2,...",
+        help="tune a gain schedule: every tuned group but the damping gets these knots on VARIABLE "
+        f"({', '.join(f'{name} in {unit}' for name, unit in VARIABLES.items())}), each starting at the starting "
+        "gains, e.g. time:0,4,8,12,17 (default: constant gains; a schedule file given with --gains is tuned as it is)",
     )
     _add_compile_cache_option(tune)
     tune.set_defaults(run=_tune)

@@ -128,6 +128,15 @@ def constant_schedule(gains: Gains, variable: str = "time") -> GainSchedule:
     )
 
 
+def schedule_of(gains: Gains, variable: str, knots, groups) -> GainSchedule:
+    """``gains`` as a schedule on ``variable`` whose ``groups`` each have the ``knots``, every
+    knot's gains ``gains``' (a start for tuning a schedule); the other groups constant."""
+    knots = [float(x) for x in knots]
+    return make_schedule(
+        gains, variable, {name: (knots, [np.asarray(getattr(gains, name))] * len(knots)) for name in groups}
+    )
+
+
 def make_schedule(base: Gains, variable: str, groups: dict) -> GainSchedule:
     """A schedule on ``variable`` whose ``groups`` (group -> ``(knots, values)``: (K,)
     increasing finite knots and (K, n) positive gains, or a scalar broadcast per knot) vary
@@ -276,5 +285,6 @@ __all__ = [
     "load_gains_or_schedule",
     "load_schedule",
     "make_schedule",
+    "schedule_of",
     "scheduling_variable",
 ]
