@@ -664,24 +664,36 @@ class _Period:
         if self.spec.options.checkpoint:  # the noise is drawn outside: once, not again in the backward pass
             start_of_period = jax.checkpoint(start_of_period, prevent_cse=False)
         memories, law_state, command, held, gains = start_of_period(state, k, noise)
+        if not isinstance(self.gains, GainSchedule):
+            gains = self.gains  # the loop's own argument, not a checkpoint's output: no adjoint through it
+        # The servo ticks carry the memories of the stages they run, no others.
+        ticking = [i for i, stage in enumerate(self.chain) if stage.signal in stages.TICK_SIGNALS]
 
         def servo_tick(carry, j):
-            plant, pid_state, memories = carry
-            fields, pid_state, memories = self.servo_update(plant, pid_state, memories, j, command, held, gains, noise)
+            plant, pid_state, carried = carry
+            every = list(memories)
+            for i, memory in zip(ticking, carried, strict=True):
+                every[i] = memory
+            fields, pid_state, every = self.servo_update(plant, pid_state, tuple(every), j, command, held, gains, noise)
+            carried = tuple(every[i] for i in ticking)
             steps = j * self.per_servo + jnp.arange(self.per_servo, dtype=dtype)
             if self.per_servo == 1:
                 plant, row = self.plant_step(plant, steps[0], fields)
-                return (plant, pid_state, memories), jax.tree.map(lambda x: x[None], row)
+                return (plant, pid_state, carried), jax.tree.map(lambda x: x[None], row)
             plant, rows = jax.lax.scan(lambda p, i: self.plant_step(p, i, fields), plant, steps)
-            return (plant, pid_state, memories), rows
+            return (plant, pid_state, carried), rows
 
-        carry = (state.plant, state.controller.pid, memories)
+        carry = (state.plant, state.controller.pid, tuple(memories[i] for i in ticking))
         if self.ticks == 1:
-            (plant, pid_state, memories), rows = servo_tick(carry, k)
+            (plant, pid_state, carried), rows = servo_tick(carry, k)
         else:
             ticks = k * self.ticks + jnp.arange(self.ticks, dtype=dtype)
-            (plant, pid_state, memories), rows = jax.lax.scan(servo_tick, carry, ticks)
+            (plant, pid_state, carried), rows = jax.lax.scan(servo_tick, carry, ticks)
             rows = jax.tree.map(lambda x: x.reshape((self.per_period,) + x.shape[2:]), rows)
+        memories = list(memories)
+        for i, memory in zip(ticking, carried, strict=True):
+            memories[i] = memory
+        memories = tuple(memories)
         controller_state = ControllerState(law_state, pid_state)
         return LoopState(plant, controller_state, memories), rows
 

@@ -53,6 +53,8 @@ from spacegrasp_jax.realism import Realism, Stage
 
 #: The signals a stage may act on, in the order the loop passes them (module docstring).
 SIGNALS = ("wrench", "joints", "lar", "command", "servo_joints", "torque")
+#: The signals of every servo tick (the others pass once a control period).
+TICK_SIGNALS = ("servo_joints", "torque")
 
 
 class LoopStage(Protocol):
@@ -287,6 +289,7 @@ __all__ = [
     "LoopStage",
     "LowPass",
     "SIGNALS",
+    "TICK_SIGNALS",
     "WrenchSensor",
     "acts_on",
     "believed_robot",

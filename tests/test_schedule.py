@@ -240,3 +240,33 @@ def test_tune_tunes_a_schedule_by_either_method(tmp_path, method):
     assert tuned.knot_counts()["pinv_damping"] == 1
     moved = np.asarray(tuned.values["Kd"]) / np.asarray(paper_gains().Kd)
     assert np.ptp(moved) > 1e-6  # the knots were tuned apart
+
+
+def test_a_campaign_runs_schedules_beside_constant_gains_and_reloads_them(robot, short_scenario, tmp_path):
+    """Paired on the same samples: the one-knot schedule ties the constant gains sample for
+    sample (no discordant pair), a real schedule differs; the campaign's record reloads each
+    gain set as it ran."""
+    from spacegrasp_jax import campaign
+
+    gains = paper_gains()
+    softer = make_schedule(gains, "time", {"Kd": ([0.5, 1.0], [gains.Kd, 0.5 * gains.Kd])})
+    variants = [
+        campaign.Variant("admittance", gains, "constant"),
+        campaign.Variant("admittance", constant_schedule(gains), "one_knot"),
+        campaign.Variant("admittance", softer, "softer"),
+    ]
+    config = campaign.CampaignConfig(n=3, chunk=3)
+    result = campaign.run_campaign(robot, short_scenario, variants, config, tmp_path / "c", progress=None)
+    metrics = result.metrics
+    for name, value in metrics["admittance/constant"].items():
+        np.testing.assert_array_equal(metrics["admittance/one_knot"][name], value, err_msg=name)
+    assert not np.array_equal(
+        metrics["admittance/softer"]["largest_peak_torque_Nm"], metrics["admittance/constant"]["largest_peak_torque_Nm"]
+    )
+    tie = result.summary["comparisons"]["admittance/one_knot vs admittance/constant"]["success"]
+    assert tie["only_candidate"] == tie["only_reference"] == 0
+    assert "admittance/softer vs admittance/constant" in result.summary["comparisons"]
+    _, _, reloaded, _ = campaign.load_campaign(tmp_path / "c")
+    assert isinstance(reloaded[2].gains, GainSchedule) and reloaded[2].gains.variable == "time"
+    for a, b in zip(jax.tree.leaves(reloaded[2].gains), jax.tree.leaves(softer), strict=True):
+        np.testing.assert_array_equal(a, b)
