@@ -2,9 +2,12 @@
 out on fresh captures.
 
     python -m spacegrasp_jax.benchmarks.race [--methods cmaes,gradient_fresh] [--minutes 15] [--marks 5,10,15]
-        [--seed 0] [--heldout 1000] [--heldout-seed 20261202] [--out notebooks/data/race]
+        [--seed 0] [--heldout 1000] [--heldout-seed 20261202] [--schedule time:0,4,8,12,17]
+        [--out notebooks/data/race]
 
-Every method tunes the 39 constant admittance and PID gains from the paper's on the same
+Every method tunes the 39 constant admittance and PID gains from the paper's (with
+``--schedule VARIABLE:X1,X2,...``, a gain schedule: those gains at every knot, ``spacegrasp
+tune --schedule``) on the same
 problem: the flight-like loop (``--realism flight``), the Monte-Carlo campaigns' envelope,
 the capture objective with a torque budget of 4 N m, a training batch of 32 drawn with
 ``--seed``. Each runs as a user runs it, ``spacegrasp tune`` in its own process with no
@@ -78,7 +81,9 @@ def common_options(seed: int) -> list[str]:
     ]
 
 
-def run_method(method: str, folder: Path, *, minutes: float, marks: list[float], seed: int) -> dict:
+def run_method(
+    method: str, folder: Path, *, minutes: float, marks: list[float], seed: int, schedule: str | None = None
+) -> dict:
     """One method's run: ``{mark: snapshot path}`` and the run's facts."""
     out = folder / method
     if out.exists():
@@ -88,6 +93,7 @@ def run_method(method: str, folder: Path, *, minutes: float, marks: list[float],
     steps = str(max(1, round(GRADIENT_STEPS_PER_MINUTE * minutes)))
     options = [option.replace("{steps}", steps) for option in METHODS[method]]
     command = [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), *common_options(seed), *options]
+    command += ["--schedule", schedule] if schedule else []
     start = time.monotonic()
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     taken = {}
@@ -120,20 +126,19 @@ def snapshot_gains(method: str, path: Path, run_folder: Path) -> dict:
     from spacegrasp_jax.control import paper_gains
     from spacegrasp_jax.tuning import cmaes
     from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
+    from spacegrasp_jax.tuning.run import tuned_base
     from spacegrasp_jax.tuning.tune import TuneConfig, load_checkpoint, make_optimizer
 
-    base = paper_gains()
+    config = TuneConfig.from_dict(json.loads((run_folder / "run.json").read_text())["config"])
+    base = tuned_base(paper_gains(), config)  # the paper's gains, or their schedule
     mask = make_mask(base, "admittance")
     params = initial_params(base, "admittance")
     if method == "cmaes":
         asked, told, *_ = cmaes.load_checkpoint(path)
-        record = json.loads((run_folder / "run.json").read_text())
-        config = TuneConfig.from_dict(record["config"])
         strategy = cmaes.new_strategy(cmaes.flatten(params, mask), config.population, config.seed, config.step_size)
         cmaes.replay(strategy, asked, told)
         gains = cmaes.gains_of(np.asarray(strategy.mean), {k: np.asarray(v) for k, v in params.items()}, base, mask)
     else:
-        config = TuneConfig.from_dict(json.loads((run_folder / "run.json").read_text())["config"])
         state, _ = load_checkpoint(path, params, make_optimizer(config)[0].init(params))
         gains = gains_from_params(state.params, base, mask)
     return gains.to_dict("admittance")
@@ -149,6 +154,11 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="the training batch's seed (default 0)")
     parser.add_argument("--heldout", type=int, default=1000, help="held-out captures (default 1000)")
     parser.add_argument("--heldout-seed", type=int, default=20261202, help="their campaign seed (default 20261202)")
+    parser.add_argument(
+        "--schedule",
+        metavar="VARIABLE:X1,X2,...",
+        help="race on a gain schedule (tune --schedule; default: constant gains)",
+    )
     parser.add_argument("--out", default="results/race", help="folder (default results/race)")
     args = parser.parse_args(argv)
     if not (math.isfinite(args.minutes) and args.minutes > 0):
@@ -175,6 +185,8 @@ def main(argv=None) -> int:
     record = json.loads(record_path.read_text()) if record_path.exists() else {"settings": {}, "methods": {}}
     settings = {"minutes": args.minutes, "marks": marks, "seed": args.seed, "heldout": args.heldout}
     settings["heldout_seed"] = args.heldout_seed
+    if args.schedule:  # a race of constant gains keeps the settings it was recorded with
+        settings["schedule"] = args.schedule
     if record["settings"] and record["settings"] != settings:
         parser.error(f"{record_path} holds a race of other settings {record['settings']}; choose another --out")
     record["settings"] = settings
@@ -183,7 +195,9 @@ def main(argv=None) -> int:
             print(f"{method}: done before", file=sys.stderr)
             continue
         print(f"{method}: {args.minutes:g} min of tuning...", file=sys.stderr, flush=True)
-        record["methods"][method] = run_method(method, folder, minutes=args.minutes, marks=marks, seed=args.seed)
+        record["methods"][method] = run_method(
+            method, folder, minutes=args.minutes, marks=marks, seed=args.seed, schedule=args.schedule
+        )
         record_path.write_text(json.dumps(record, indent=1) + "\n")
 
     gain_files = []
