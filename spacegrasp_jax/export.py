@@ -9,6 +9,11 @@ gain scaled by ``min(t / 1 s, 1)^2`` over the first second). Gains tuned in one 
 not the same gains in another: flight software that runs other periods or limits than these
 runs a controller that was never checked.
 
+A gain schedule ([`GainSchedule`][spacegrasp_jax.control.schedule.GainSchedule]) exports as
+JSON (its file, with units) or as a C header holding each group's knot table and the blend
+as a small C function, ``<prefix>_gains_at(x, &gains)``, the same arithmetic as the
+simulator's (tested against it at 1,000 points to 1e-12).
+
 [`export_text()`][spacegrasp_jax.export.export_text] writes one format;
 [`loop_settings()`][spacegrasp_jax.export.loop_settings] reads the settings from a realism and
 a scenario's step. ``spacegrasp export`` is the command line's face of it.
@@ -26,6 +31,7 @@ import numpy as np
 
 from spacegrasp_jax.control.gains import GAINS_USED, Gains
 from spacegrasp_jax.control.registry import GAIN_GROUPS
+from spacegrasp_jax.control.schedule import VARIABLES, GainSchedule
 from spacegrasp_jax.realism import Realism
 
 #: The formats [`export_text()`][spacegrasp_jax.export.export_text] writes.
@@ -98,19 +104,36 @@ def loop_settings(realism: Realism | None, dt: float, n_joints: int = 7) -> Loop
     )
 
 
+#: The formats a gain schedule exports to.
+SCHEDULE_FORMATS = ("json", "c-header")
+
+
 def export_text(
-    gains: Gains, controller: str, settings: LoopSettings, file_format: str, *, source: str = "", prefix: str = "SG"
+    gains: Gains | GainSchedule,
+    controller: str,
+    settings: LoopSettings,
+    file_format: str,
+    *,
+    source: str = "",
+    prefix: str = "SG",
 ) -> str:
     """The gains ``controller`` uses (``GAINS_USED``) and ``settings`` as the text of a file
     of ``file_format`` (one of ``FORMATS``). ``source``: where the gains came from (a
     comment); ``prefix``: the C header's names (``<prefix>_kp``, ``<prefix>_Kd``: a gain
     keeps its case, ``Kd`` and ``kd`` being two groups; ``<prefix>_CONTROL_PERIOD_S``, ...).
 
+    A gain schedule writes ``SCHEDULE_FORMATS`` only.
+
     Raises:
-        ValueError: an unknown format or controller, or a prefix that is not a C identifier.
+        ValueError: an unknown format or controller, a prefix that is not a C identifier,
+            or a schedule in a format other than ``SCHEDULE_FORMATS``.
     """
     if controller not in GAINS_USED:
         raise ValueError(f"controller: expected one of {', '.join(GAINS_USED)}, got {controller!r}")
+    if file_format in ("c-header",) and (not prefix.isidentifier() or not prefix.isascii()):
+        raise ValueError(f"prefix: {prefix!r} is not a C identifier")
+    if isinstance(gains, GainSchedule):
+        return _schedule_text(gains, controller, settings, file_format, source, prefix)
     values = {name: [float(x) for x in np.asarray(getattr(gains, name))] for name in GAINS_USED[controller]}
     title = f"spacegrasp-jax gains of the {controller} law" + (f", from {source}" if source else "")
     if file_format == "json":
@@ -118,12 +141,92 @@ def export_text(
     if file_format == "yaml":
         return _yaml(values, controller, settings, title)
     if file_format == "c-header":
-        if not prefix.isidentifier() or not prefix.isascii():
-            raise ValueError(f"prefix: {prefix!r} is not a C identifier")
         return _c_header(values, controller, settings, title, prefix)
     if file_format == "csv":
         return _csv(values, settings)
     raise ValueError(f"format: expected one of {', '.join(FORMATS)}, got {file_format!r}")
+
+
+def _schedule_text(
+    schedule: GainSchedule, controller: str, settings: LoopSettings, file_format: str, source: str, prefix: str
+) -> str:
+    if file_format not in SCHEDULE_FORMATS:
+        raise ValueError(
+            f"format: a gain schedule exports as {' or '.join(SCHEDULE_FORMATS)} (its knot tables), not {file_format}"
+        )
+    names = GAINS_USED[controller]
+    knots = {name: [float(x) for x in np.asarray(schedule.knots[name])] for name in names}
+    values = {name: [[float(x) for x in row] for row in np.asarray(schedule.values[name])] for name in names}
+    title = f"spacegrasp-jax gain schedule of the {controller} law" + (f", from {source}" if source else "")
+    if file_format == "json":
+        document = json.loads(_json({name: rows[0] for name, rows in values.items()}, controller, settings, title))
+        document["gains"] = schedule.to_dict(controller)
+        document["blend"] = BLEND_FORM
+        return json.dumps(document, indent=1) + "\n"
+    return _c_schedule(knots, values, schedule.variable, controller, settings, title, prefix)
+
+
+#: The schedule's blend, for the files' comments (documentation, Gain schedules).
+BLEND_FORM = (
+    "between knots x_i <= x < x_i+1: s = (x - x_i) / (x_i+1 - x_i), w = s^2 (3 - 2 s), "
+    "g = exp((1 - w) log g_i + w log g_i+1); x is held to [x_0, x_K-1]; a group of one knot is constant"
+)
+
+
+def _c_schedule(
+    knots: dict, values: dict, variable: str, controller: str, settings: LoopSettings, title: str, prefix: str
+) -> str:
+    """The C header of a schedule: the constant parts as a gain set's, each group's knot table,
+    and ``<prefix>_gains_at()``."""
+    base = _c_header({name: rows[0] for name, rows in values.items()}, controller, settings, title, prefix)
+    body, end = base.rsplit("#endif", 1)
+    lines = [
+        "/* The gain schedule: each group's gains at its knots on the scheduling variable, and",
+        f" * {prefix}_gains_at(x, &gains), the gains at x. The arrays above are the first knot's.",
+        f" * {BLEND_FORM}. */",
+        f'#define {prefix}_SCHEDULE_VARIABLE "{variable}" /* [{VARIABLES[variable]}] */',
+    ]
+    for name in values:
+        count, length = len(knots[name]), len(values[name][0])
+        rows = ", ".join("{" + ", ".join(map(_c_number, row)) + "}" for row in values[name])
+        lines.append(f"#define {prefix}_{name}_KNOT_COUNT {count}")
+        lines.append(
+            f"static const double {prefix}_{name}_KNOTS[{count}] = {{{', '.join(map(_c_number, knots[name]))}}};"
+        )
+        lines.append(f"static const double {prefix}_{name}_AT_KNOTS[{count}][{length}] = {{{rows}}};")
+    fields = " ".join(f"double {name}[{len(values[name][0])}];" for name in values)
+    lines += [
+        "",
+        f"typedef struct {{ {fields} }} {prefix}_gains;",
+        "",
+        "/* One group's gains at x from its knot table (count knots, length gains a knot). */",
+        f"static inline void {prefix}_blend(int count, const double *knots, int length, const double *table, double x,",
+        "                            double *out) {",
+        "    int i = 0, j;",
+        "    double s, w;",
+        "    if (count == 1) {",
+        "        for (j = 0; j < length; ++j) out[j] = table[j];",
+        "        return;",
+        "    }",
+        "    if (x < knots[0]) x = knots[0];",
+        "    if (x > knots[count - 1]) x = knots[count - 1];",
+        "    while (i < count - 2 && x >= knots[i + 1]) ++i;",
+        "    s = (x - knots[i]) / (knots[i + 1] - knots[i]);",
+        "    w = s * s * (3.0 - 2.0 * s);",
+        "    for (j = 0; j < length; ++j)",
+        "        out[j] = exp((1.0 - w) * log(table[i * length + j]) + w * log(table[(i + 1) * length + j]));",
+        "}",
+        "",
+        f"/* The gains at x, the scheduling variable ({variable}, {VARIABLES[variable]}). */",
+        f"static inline void {prefix}_gains_at(double x, {prefix}_gains *gains) {{",
+    ]
+    for name in values:
+        lines.append(
+            f"    {prefix}_blend({prefix}_{name}_KNOT_COUNT, {prefix}_{name}_KNOTS, {len(values[name][0])}, "
+            f"&{prefix}_{name}_AT_KNOTS[0][0], x, gains->{name});"
+        )
+    lines += ["}", ""]
+    return body + "\n".join(lines) + "\n#endif" + end
 
 
 def _settings_dict(settings: LoopSettings) -> dict:
@@ -250,7 +353,9 @@ def _csv(values: dict, settings: LoopSettings) -> str:
 
 
 __all__ = [
+    "BLEND_FORM",
     "FORMATS",
+    "SCHEDULE_FORMATS",
     "GROUPS",
     "PID_FORM",
     "SETTINGS",

@@ -205,10 +205,13 @@ def test_simulate_runs_a_schedule_file_and_the_commands_that_cannot_refuse_it(tm
     first, second = (np.load(folder / "timeseries_admittance.npz") for folder in (out, again))
     np.testing.assert_array_equal(first["u"], second["u"])
     capsys.readouterr()
-    assert cli.main(["export", "--format", "json", *args[2:], "--out", str(tmp_path / "export")]) == 2
-    assert "a gain schedule; this command takes constant gains (schedules run in simulate and montecarlo)" in (
-        capsys.readouterr().err
+    assert cli.main(["margins", *args[2:], "--out", str(tmp_path / "margins")]) == 2
+    assert (
+        "a gain schedule; this command takes constant gains (schedules run in simulate, montecarlo, tune and export)"
+        in (capsys.readouterr().err)
     )
+    assert cli.main(["export", "--format", "csv", *args[2:], "--out", str(tmp_path / "export.csv")]) == 2
+    assert "format: a gain schedule exports as json or c-header (its knot tables), not csv" in capsys.readouterr().err
 
 
 def test_tune_refuses_a_bad_schedule_before_anything_compiles(tmp_path, capsys):
@@ -270,3 +273,75 @@ def test_a_campaign_runs_schedules_beside_constant_gains_and_reloads_them(robot,
     assert isinstance(reloaded[2].gains, GainSchedule) and reloaded[2].gains.variable == "time"
     for a, b in zip(jax.tree.leaves(reloaded[2].gains), jax.tree.leaves(softer), strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+EXPORT_PRINTER = r"""
+#include <stdio.h>
+#include <stdlib.h>
+#include "schedule.h"
+
+int main(int argc, char **argv) {
+    SC_gains gains;
+    int k, j;
+    for (k = 1; k < argc; ++k) {
+        double x = strtod(argv[k], NULL);
+        SC_gains_at(x, &gains);
+        printf("%.17g", x);
+        {shows}
+        printf("\n");
+    }
+    return 0;
+}
+"""
+
+
+def test_the_c_header_of_a_schedule_computes_the_simulators_gains(tmp_path):
+    """Compiled and run at 1,000 points across and beyond the knots: every gain of every
+    group within 1e-12 of the JAX blend's (the same arithmetic; the C library's exp and log
+    against XLA's)."""
+    import shutil
+    import subprocess
+
+    from spacegrasp_jax.control.gains import GAINS_USED
+    from spacegrasp_jax.export import export_text, loop_settings
+
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    assert compiler is not None, "the export's C test needs a C compiler (the CI image has one)"
+    gains = paper_gains()
+    schedule = make_schedule(
+        gains,
+        "distance",
+        {
+            "Kd": ([0.01, 0.03, 0.08], [gains.Kd, 0.3 * gains.Kd, 2.0 * gains.Kd]),
+            "kp": ([0.02, 0.05], [gains.kp, np.linspace(0.5, 1.5, 7) * gains.kp]),
+            "Md": ([0.0, 0.04, 0.06, 0.1], [gains.Md, 1.1 * gains.Md, 0.7 * gains.Md, gains.Md]),
+        },
+    )
+    names = GAINS_USED["admittance"]
+    header = export_text(schedule, "admittance", loop_settings(None, 0.001), "c-header", prefix="SC")
+    (tmp_path / "schedule.h").write_text(header)
+    shows = "\n        ".join(
+        f'for (j = 0; j < (int)(sizeof gains.{n} / sizeof gains.{n}[0]); ++j) {{ printf(" %.17g", gains.{n}[j]); }}'
+        for n in names
+    )
+    (tmp_path / "main.c").write_text(EXPORT_PRINTER.replace("{shows}", shows))
+    flags = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic"]
+    built = subprocess.run(
+        [compiler, *flags, "main.c", "-o", "show", "-lm"], cwd=tmp_path, capture_output=True, text=True
+    )
+    assert built.returncode == 0, built.stderr
+    points = np.concatenate([np.linspace(-0.02, 0.12, 994), [0.01, 0.02, 0.03, 0.05, 0.06, 0.08]])
+    printed = subprocess.run(
+        [str(tmp_path / "show"), *(repr(float(x)) for x in points)], capture_output=True, text=True, check=True
+    ).stdout.splitlines()
+    assert len(printed) == 1000
+    at = jax.jit(schedule.at)
+    for line in printed:
+        numbers = np.array([float(v) for v in line.split()])
+        expected = np.concatenate([np.asarray(getattr(at(numbers[0]), n)) for n in names])
+        np.testing.assert_allclose(numbers[1:], expected, rtol=1e-12, atol=0.0)
+    # JSON: the schedule's own file, with the loop's settings and the blend in words.
+    document = json.loads(export_text(schedule, "admittance", loop_settings(None, 0.001), "json"))
+    assert document["gains"] == json.loads(json.dumps(schedule.to_dict("admittance")))
+    with pytest.raises(ValueError, match="a gain schedule exports as json or c-header"):
+        export_text(schedule, "admittance", loop_settings(None, 0.001), "csv")

@@ -122,7 +122,7 @@ def _load_inputs(args, schedules: bool = False):
 
 
 #: The commands that run gain schedules (``--gains`` a schedule file).
-RUNS_SCHEDULES = ("simulate", "montecarlo")
+RUNS_SCHEDULES = ("simulate", "montecarlo", "tune", "export")
 
 
 def _gains_option(value: str | None, args, robot, controller, schedules: bool = False):
@@ -148,7 +148,7 @@ def _gains_option(value: str | None, args, robot, controller, schedules: bool = 
         if not schedules:
             raise UsageError(
                 f"--gains {value}: a gain schedule; this command takes constant gains (schedules run in "
-                f"{' and '.join(RUNS_SCHEDULES)})"
+                f"{', '.join(RUNS_SCHEDULES[:-1])} and {RUNS_SCHEDULES[-1]})"
             )
         gains = load_schedule(value, controller, n_joints(robot), fill_from=fill_from)
     else:

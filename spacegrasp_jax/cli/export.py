@@ -9,6 +9,7 @@ from spacegrasp_jax import (
 )
 from spacegrasp_jax.cli.common import _load_inputs, _realism, _write_out_file
 from spacegrasp_jax.cli.options import (
+    UsageError,
     _add_command,
     _add_realism_option,
     add_gains_arguments,
@@ -38,12 +39,15 @@ def _source_words(gains: str | None) -> str:
 def _export(args: argparse.Namespace) -> int:
     """``spacegrasp export``: a gain set with its units, equations and the loop's settings, as
     one file of ``--format`` (printed without ``--out``)."""
-    robot, scenario, gains = _load_inputs(args)
+    robot, scenario, gains = _load_inputs(args, schedules=True)
     realism = _realism(args, scenario, robot)
     settings = export.loop_settings(realism, scenario.dt, n_joints(robot))
-    text = export.export_text(
-        gains, args.controller, settings, args.format, source=_source_words(args.gains), prefix=args.prefix
-    )
+    try:
+        text = export.export_text(
+            gains, args.controller, settings, args.format, source=_source_words(args.gains), prefix=args.prefix
+        )
+    except ValueError as error:
+        raise UsageError(str(error)) from None
     _write_out_file(args, text, f"the {args.controller} gains, their units and equations, and the loop's settings")
     return 0
 
