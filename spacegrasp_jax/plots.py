@@ -695,6 +695,34 @@ def save_margin_figures(out_dir, result: dict, tolerance_mm: float, title: str, 
 # ---- the EE path around the contact sphere, and gain sweeps ----------------------------
 
 
+def figure_gain_schedule(curves: dict[str, dict], variable: str, unit: str, caption: str | None = None):
+    """Each scheduled group's gains against the scheduling variable (one panel a group, one
+    line an axis or joint, each over its value at the first knot, log scale; the knots
+    marked): ``curves`` as ``control.schedule.schedule_curves()`` gives them."""
+    names = list(curves) or ["(no scheduled group)"]
+    fig, axes = plt.subplots(len(names), 1, figsize=(6.5, 2.3 * len(names)), sharex=True, squeeze=False)
+    title = f"Gain schedule on {variable}"
+    fig.suptitle(title if caption is None else f"{title}\n{caption}", fontsize=11 if caption else None)
+    for ax, name in zip(axes[:, 0], names):
+        curve = curves.get(name)
+        if curve is None:
+            ax.text(0.5, 0.5, "every group is constant", ha="center", va="center", transform=ax.transAxes)
+            continue
+        first = curve["at_knots"][0]
+        for j in range(curve["gains"].shape[1]):
+            ax.plot(curve["x"], curve["gains"][:, j] / first[j], color=f"C{j % 10}", linewidth=1.2, label=f"{j + 1}")
+            ax.plot(curve["knots"], curve["at_knots"][:, j] / first[j], "o", color=f"C{j % 10}", markersize=3)
+        for knot in curve["knots"]:
+            ax.axvline(knot, color="0.8", linewidth=0.8, zorder=0)
+        ax.set_yscale("log")
+        ax.set_ylabel(f"{name} / first knot's")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0, 0].legend(title="axis or joint", fontsize=7, ncol=7, loc="best")
+    axes[-1, 0].set_xlabel(f"{variable} [{unit}]")
+    fig.tight_layout()
+    return fig
+
+
 def _sphere_outline(centre_mm, radius_mm, axes_pair, n: int = 181):
     angle = np.linspace(0.0, 2.0 * np.pi, n)
     i, j = axes_pair

@@ -200,6 +200,7 @@ def test_simulate_runs_a_schedule_file_and_the_commands_that_cannot_refuse_it(tm
     assert cli.main(["simulate", *args, "--out", str(out)]) == 0
     kept = json.loads((out / "gains.json").read_text())
     assert kept["schedule"]["variable"] == "time" and kept["Kd"]["knots"] == [0.02, 0.04]
+    assert (out / "gain_schedule.png").exists()
     again = tmp_path / "again"  # the run folder's gains run again
     assert cli.main(["simulate", *args[:5], str(out / "gains.json"), *args[6:], "--out", str(again)]) == 0
     first, second = (np.load(folder / "timeseries_admittance.npz") for folder in (out, again))
@@ -243,6 +244,7 @@ def test_tune_tunes_a_schedule_by_either_method(tmp_path, method):
     assert tuned.knot_counts()["pinv_damping"] == 1
     moved = np.asarray(tuned.values["Kd"]) / np.asarray(paper_gains().Kd)
     assert np.ptp(moved) > 1e-6  # the knots were tuned apart
+    assert (out / "gain_schedule.png").exists()
 
 
 def test_a_campaign_runs_schedules_beside_constant_gains_and_reloads_them(robot, short_scenario, tmp_path):
@@ -345,3 +347,25 @@ def test_the_c_header_of_a_schedule_computes_the_simulators_gains(tmp_path):
     assert document["gains"] == json.loads(json.dumps(schedule.to_dict("admittance")))
     with pytest.raises(ValueError, match="a gain schedule exports as json or c-header"):
         export_text(schedule, "admittance", loop_settings(None, 0.001), "csv")
+
+
+def test_the_schedule_figure_draws_each_scheduled_group_over_its_first_knot():
+    from spacegrasp_jax import plots
+    from spacegrasp_jax.control.schedule import schedule_curves
+
+    gains = paper_gains()
+    schedule = make_schedule(gains, "force", {"Kd": ([2.0, 6.0], [gains.Kd, gains.Kd / 3.0])})
+    curves = schedule_curves(schedule, points=51)
+    assert list(curves) == ["Kd"]
+    curve = curves["Kd"]
+    assert curve["x"][0] < 2.0 and curve["x"][-1] > 6.0  # a little beyond the knots
+    for x, row in zip(curve["x"], curve["gains"], strict=True):
+        np.testing.assert_allclose(row, interpolate(jnp.asarray([2.0, 6.0]), schedule.values["Kd"], x), rtol=1e-14)
+    figure = plots.figure_gain_schedule(curves, "force", "N")
+    (ax,) = figure.axes
+    first_line = ax.get_lines()[0]
+    np.testing.assert_allclose(first_line.get_ydata(), curve["gains"][:, 0] / 600.0, rtol=1e-14)
+    assert ax.get_ylabel() == "Kd / first knot's" and ax.get_xlabel() == "force [N]"
+    import matplotlib.pyplot as plt
+
+    plt.close(figure)

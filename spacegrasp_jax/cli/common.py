@@ -34,7 +34,7 @@ from spacegrasp_jax.control import (
     named_gains,
     paper_gains,
 )
-from spacegrasp_jax.control.schedule import is_schedule_file, load_schedule
+from spacegrasp_jax.control.schedule import VARIABLES, GainSchedule, is_schedule_file, load_schedule, schedule_curves
 from spacegrasp_jax.model import n_joints, rate_limits_stated
 from spacegrasp_jax.perturbations import (
     PerturbationRanges,
@@ -157,6 +157,14 @@ def _gains_option(value: str | None, args, robot, controller, schedules: bool = 
     if filled:
         print(f"spacegrasp: notice: {value}: {', '.join(filled)} from {fill_from} (--fill-from)", file=sys.stderr)
     return gains
+
+
+def _save_schedule_figure(out: Path, schedule: GainSchedule) -> None:
+    """``gain_schedule.png`` in ``out``: each scheduled group against its variable."""
+    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+
+    figure = plots.figure_gain_schedule(schedule_curves(schedule), schedule.variable, VARIABLES[schedule.variable])
+    plots.save({"gain_schedule.png": figure}, out, runfiles.write_atomically)
 
 
 def _gains_record(value: str | None, args, controller) -> dict:

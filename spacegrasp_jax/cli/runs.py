@@ -34,6 +34,7 @@ from spacegrasp_jax.cli.common import (
     _realism,
     _robot_links,
     _run_caption,
+    _save_schedule_figure,
     _warn,
     _write_results,
 )
@@ -56,6 +57,7 @@ from spacegrasp_jax.control import (
     CONTROLLERS,
     PAPER_CONTROLLERS,
 )
+from spacegrasp_jax.control.schedule import GainSchedule
 from spacegrasp_jax.simulate import RunSpec
 
 
@@ -120,6 +122,8 @@ def _run_controllers(args, controllers) -> int:
         csv=args.csv,
         criteria=criteria,
     )
+    if isinstance(gains, GainSchedule):
+        _save_schedule_figure(out, gains)
     print(
         f"wrote {out}/: table5.csv, summary.json, figures, timeseries_*.npz{', .csv' if args.csv else ''}, config.json"
     )

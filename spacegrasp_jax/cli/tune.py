@@ -27,6 +27,7 @@ from spacegrasp_jax.cli.common import (
     _realism,
     _robot_links,
     _run_caption,
+    _save_schedule_figure,
     _warn,
 )
 from spacegrasp_jax.cli.options import (
@@ -49,7 +50,7 @@ from spacegrasp_jax.control import (
     CONTROLLERS,
     NAMED_GAINS,
 )
-from spacegrasp_jax.control.schedule import VARIABLES
+from spacegrasp_jax.control.schedule import VARIABLES, load_schedule
 from spacegrasp_jax.model import n_joints
 from spacegrasp_jax.realism import ideal, load_realism
 from spacegrasp_jax.scenario import load_scenario, paper_scenario
@@ -249,10 +250,12 @@ def _tune_finished(out: Path, result) -> int:
     other = OTHER_GAINS_FILES[holds] if (out / OTHER_GAINS_FILES[holds]).exists() else None
     words = "starting" if holds == "start" else "tuned"
     gains_files = f"gains.json (the {words} gains" + (f"; the other set in {other})" if other else ")")
-    print(
-        f"wrote {out}/: {gains_files}, history.csv, summary.json, loss.png, peak_torques.png, ee_pose.png",
-        file=sys.stderr,
-    )
+    kept = json.loads((out / "gains.json").read_text())
+    figures = "loss.png, peak_torques.png, ee_pose.png"
+    if "schedule" in kept:
+        _save_schedule_figure(out, load_schedule(out / "gains.json", record["config"]["controller"], n_joints(robot)))
+        figures += ", gain_schedule.png"
+    print(f"wrote {out}/: {gains_files}, history.csv, summary.json, {figures}", file=sys.stderr)
     return 0
 
 

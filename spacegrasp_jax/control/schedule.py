@@ -261,6 +261,23 @@ def scheduling_variable(variable: str, t, pose: jax.Array, wrench: jax.Array) ->
     return jnp.sqrt(jnp.sum(vector * vector) + eps * eps) - eps
 
 
+def schedule_curves(schedule: GainSchedule, points: int = 241) -> dict[str, dict]:
+    """Each scheduled group's gains along its variable, for a figure: group -> ``x``
+    (points,) from a tenth of the knots' span before the first to as far after the last,
+    ``gains`` (points, n) there, ``knots`` (K,) and ``at_knots`` (K, n) (NumPy)."""
+    curves = {}
+    for name in GAIN_SHAPES:
+        knots = np.asarray(schedule.knots[name])
+        if knots.size < 2:
+            continue
+        margin = 0.1 * (knots[-1] - knots[0])
+        x = np.linspace(knots[0] - margin, knots[-1] + margin, points)
+        values = jnp.asarray(schedule.values[name])
+        gains = np.asarray(jax.vmap(lambda v: interpolate(jnp.asarray(knots), values, v))(jnp.asarray(x)))
+        curves[name] = {"x": x, "gains": gains, "knots": knots, "at_knots": np.asarray(values)}
+    return curves
+
+
 def knot_table(schedule: GainSchedule) -> list[dict]:
     """One row a scheduled group: its knots and each knot's gains (plain lists), for reports."""
     return [
@@ -285,6 +302,7 @@ __all__ = [
     "load_gains_or_schedule",
     "load_schedule",
     "make_schedule",
+    "schedule_curves",
     "schedule_of",
     "scheduling_variable",
 ]
