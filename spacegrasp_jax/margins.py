@@ -53,6 +53,7 @@ from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.law import Output
 from spacegrasp_jax.control.pid import PID
 from spacegrasp_jax.control.registry import LAWS, as_controller, law_named
+from spacegrasp_jax.control.schedule import GainSchedule
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, lost, success
 from spacegrasp_jax.scenario import Scenario
@@ -450,6 +451,46 @@ def find_margins(
     }
 
 
+def schedule_knots(schedule: GainSchedule) -> list[float]:
+    """Every knot of every scheduled group, once, in increasing order: where a schedule's
+    margins are checked (``[0.0]`` for a schedule of constant groups)."""
+    knots = sorted(
+        {float(x) for name, count in schedule.knot_counts().items() if count > 1 for x in schedule.knots[name]}
+    )
+    return knots or [0.0]
+
+
+def frozen_gains(schedule: GainSchedule, x: float) -> Gains:
+    """The schedule's gains frozen at ``x``, as a constant gain set (NumPy leaves)."""
+    frozen = schedule.at(x)
+    return Gains(**{field.name: np.asarray(getattr(frozen, field.name)) for field in dataclasses.fields(frozen)})
+
+
+def margin_size(result: dict) -> dict[str, float]:
+    """Each margin of one ``find_margins()`` result as one number, larger the safer: a gain
+    margin's ``|log10|`` of the factor that holds (a search that met its limit counts as that
+    limit), a delay's periods or ticks that hold."""
+    sizes = {}
+    for loop in LOOPS:
+        for direction in ("increase", "decrease"):
+            sizes[f"{loop}_{direction}"] = abs(math.log10(result["gain_margins"][loop][direction]["holds"]))
+    sizes["delay"] = float(result["delay_margin"]["holds_periods"])
+    if result.get("servo_delay_margin") is not None:
+        sizes["servo_delay"] = float(result["servo_delay_margin"]["holds_periods"])
+    return sizes
+
+
+def worst_knots(per_knot: list[dict]) -> dict[str, dict]:
+    """For each margin, the knot where it is smallest: margin name -> ``{"x": the knot,
+    "size": margin_size()'s number}`` (``per_knot``: ``{"x", "margins"}`` items)."""
+    worst = {}
+    for item in per_knot:
+        for name, size in margin_size(item["margins"]).items():
+            if name not in worst or size < worst[name]["size"]:
+                worst[name] = {"x": item["x"], "size": size}
+    return worst
+
+
 def margin_lines(result: dict) -> list[str]:
     """The margins in words, with their units."""
 
@@ -495,6 +536,10 @@ def margin_lines(result: dict) -> list[str]:
 
 __all__ = [
     "LOOPS",
+    "frozen_gains",
+    "margin_size",
+    "schedule_knots",
+    "worst_knots",
     "PID_LOOP_GROUPS",
     "MarginError",
     "MarginSettings",

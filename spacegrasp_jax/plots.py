@@ -723,6 +723,39 @@ def figure_gain_schedule(curves: dict[str, dict], variable: str, unit: str, capt
     return fig
 
 
+def figure_schedule_regime(
+    t: np.ndarray, x: np.ndarray, knots: dict, gains: dict, variable: str, unit: str, caption: str | None = None
+):
+    """Which regime a capture was in: the scheduling variable along the run ``x`` (T,) at
+    times ``t`` (T,) s, each scheduled group's knots as horizontal lines (``knots``: group ->
+    (K,)), and below each group's gains along the run (``gains``: group -> (T, n)), each over
+    its value at the start."""
+    names = list(gains)
+    fig, axes = plt.subplots(1 + len(names), 1, figsize=(6.5, 2.2 * (1 + len(names))), sharex=True, squeeze=False)
+    title = f"The schedule's regime along the capture ({variable})"
+    fig.suptitle(title if caption is None else f"{title}\n{caption}", fontsize=11 if caption else None)
+    top = axes[0, 0]
+    top.plot(t, x, color="black", linewidth=1.2)
+    for index, name in enumerate(names):
+        for knot in knots[name]:
+            top.axhline(knot, color=f"C{index % 10}", linestyle=":", linewidth=0.9)
+        top.plot([], [], color=f"C{index % 10}", linestyle=":", label=f"{name} knots")
+    top.set_ylabel(f"{variable} [{unit}]")
+    if names:
+        top.legend(fontsize=7, loc="best")
+    for ax, name in zip(axes[1:, 0], names):
+        series = gains[name]
+        for j in range(series.shape[1]):
+            ax.plot(t, series[:, j] / series[0, j], color=f"C{j % 10}", linewidth=1.1)
+        ax.set_yscale("log")
+        ax.set_ylabel(f"{name} / at start")
+    for ax in axes[:, 0]:
+        ax.grid(True, alpha=0.3)
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.tight_layout()
+    return fig
+
+
 def _sphere_outline(centre_mm, radius_mm, axes_pair, n: int = 181):
     angle = np.linspace(0.0, 2.0 * np.pi, n)
     i, j = axes_pair

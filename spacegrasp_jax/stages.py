@@ -6,21 +6,14 @@ gives its memory for a signal shaped like ``value``, and ``apply(memory, value, 
 (value, memory)``, which passes the signal on. The loop runs, in this order
 ([`loop_body()`][spacegrasp_jax.simulate.loop_body]):
 
-=================  =======================================  ====================================
-signal             value                                    when
-=================  =======================================  ====================================
-``"wrench"``       (6,) F/T reading ``[f (N); n (N m)]``,   once a control period, at its start
-                   sensor axes
-``"joints"``       ``(q (N,) rad, qd (N,) rad/s)``, the     once a control period, at its start
-                   controller's joint reading
-``"lar"``          ``(p (3,) m, R (3, 3))`` inertial, the   once a control period, at its start
-                   LAR pose the controller believes
-``"command"``      (N,) the law's command (desired joint    once a control period, from the law
-                   rates, rad/s, or a torque law's N m)     to the joint servo
-``"servo_joints"`` ``(q, qd)``, the joint PID's reading     at every servo tick
-``"torque"``       (N,) N m, the PID's torques (after its   at every servo tick, held over the
-                   saturation) applied to the plant         tick's plant steps
-=================  =======================================  ====================================
+| signal | value | when |
+| --- | --- | --- |
+| ``"wrench"`` | (6,) the F/T reading ``[f (N); n (N m)]``, sensor axes | once a control period, at its start |
+| ``"joints"`` | ``(q (N,) rad, qd (N,) rad/s)``, the controller's joint reading | once a control period, at its start |
+| ``"lar"`` | ``(p (3,) m, R (3, 3))`` inertial, the LAR pose the controller believes | once a control period, at its start |
+| ``"command"`` | (N,) the law's command (desired joint rates, rad/s, or a torque law's N m) | once a control period, from the law to the joint servo |
+| ``"servo_joints"`` | ``(q, qd)``, the joint PID's reading | at every servo tick |
+| ``"torque"`` | (N,) N m, the PID's torques (after its saturation), applied to the plant | at every servo tick, held over the tick's plant steps |
 
 ``noise`` holds the period's standard normals for the signal where the loop draws noise (a
 realism with noisy sensors; zeros otherwise): (6,) for ``"wrench"``, (N,) for the two joint

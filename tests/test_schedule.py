@@ -186,6 +186,7 @@ def test_a_schedule_file_reads_back_what_was_written_and_bad_ones_name_the_group
     refused({"Kd": {"knots": [0.01, 0.05], "values": [300.0, -900.0]}}, r"bad.json: Kd.values: .*positive")
     refused({"Kd": {"knots": [0.01, 0.05], "values": [[1.0] * 5, [1.0] * 5]}}, r"bad.json: Kd: expected 6 values")
     refused({"Kd": {"knots": [0.01, 0.05]}}, r"bad.json: Kd: a scheduled group holds exactly 'knots' and 'values'")
+    refused({"Kd": {"knots": [0.01, 0.05], "values": 300.0}}, r"bad.json: Kd.values: expected a list of one row")
     refused({"schedule": {"variable": "time", "unit": "ms"}}, r"bad.json: schedule.unit: time is in s")
 
 
@@ -200,16 +201,19 @@ def test_simulate_runs_a_schedule_file_and_the_commands_that_cannot_refuse_it(tm
     assert cli.main(["simulate", *args, "--out", str(out)]) == 0
     kept = json.loads((out / "gains.json").read_text())
     assert kept["schedule"]["variable"] == "time" and kept["Kd"]["knots"] == [0.02, 0.04]
-    assert (out / "gain_schedule.png").exists()
+    assert (out / "gain_schedule.png").exists() and (out / "regime_admittance.png").exists()
     again = tmp_path / "again"  # the run folder's gains run again
     assert cli.main(["simulate", *args[:5], str(out / "gains.json"), *args[6:], "--out", str(again)]) == 0
     first, second = (np.load(folder / "timeseries_admittance.npz") for folder in (out, again))
     np.testing.assert_array_equal(first["u"], second["u"])
+    compared = tmp_path / "compared"  # compare shows each schedule run's regime
+    assert cli.main(["compare", str(out), str(again), "--out", str(compared)]) == 0
+    assert (compared / "regime_run_1.png").exists() and (compared / "regime_run_2.png").exists()
     capsys.readouterr()
-    assert cli.main(["margins", *args[2:], "--out", str(tmp_path / "margins")]) == 2
+    assert cli.main(["worstcase", *args[2:], "--out", str(tmp_path / "worst")]) == 2
     assert (
-        "a gain schedule; this command takes constant gains (schedules run in simulate, montecarlo, tune and export)"
-        in (capsys.readouterr().err)
+        "a gain schedule; this command takes constant gains (schedules run in simulate, montecarlo, tune, margins "
+        "and export)" in capsys.readouterr().err
     )
     assert cli.main(["export", "--format", "csv", *args[2:], "--out", str(tmp_path / "export.csv")]) == 2
     assert "format: a gain schedule exports as json or c-header (its knot tables), not csv" in capsys.readouterr().err
@@ -369,3 +373,56 @@ def test_the_schedule_figure_draws_each_scheduled_group_over_its_first_knot():
     import matplotlib.pyplot as plt
 
     plt.close(figure)
+    # Along a run: the variable from the log (the force the controller read) and the gains it gives.
+    from types import SimpleNamespace
+
+    from spacegrasp_jax.control.schedule import gains_along, variable_series
+
+    t = np.linspace(0.0, 1.0, 11)
+    force = np.stack([np.zeros(11), 8.0 * t, np.zeros(11)], axis=1)
+    log = SimpleNamespace(t=t, fts_force=force, fts_force_measured=None, pose_ee=np.zeros((11, 6)))
+    x = variable_series("force", log)
+    np.testing.assert_allclose(x, 8.0 * t, rtol=1e-15)
+    along = gains_along(schedule, x)
+    np.testing.assert_allclose(along["Kd"][-1], gains.Kd / 3.0, rtol=1e-14)  # 8 N: past the last knot
+    np.testing.assert_allclose(along["Kd"][0], gains.Kd, rtol=1e-14)
+    figure = plots.figure_schedule_regime(t, x, {"Kd": np.array([2.0, 6.0])}, along, "force", "N")
+    top, panel = figure.axes
+    np.testing.assert_allclose(top.get_lines()[0].get_ydata(), x)
+    np.testing.assert_allclose(panel.get_lines()[0].get_ydata(), along["Kd"][:, 0] / along["Kd"][0, 0])
+    plt.close(figure)
+
+
+@pytest.mark.slow
+def test_margins_check_a_schedule_at_every_knot_and_name_each_margins_worst(tmp_path):
+    gains = paper_gains()
+    path = tmp_path / "schedule.json"
+    schedule = make_schedule(
+        gains, "time", {"Kd": ([0.1, 0.2], [600.0, 300.0]), "kp": ([0.15, 0.2], [gains.kp, 2 * gains.kp])}
+    )
+    path.write_text(json.dumps(schedule.to_dict()))
+    scenario = tmp_path / "short.toml"
+    scenario.write_text("duration = 0.3\n[trajectory]\nduration = 0.3\n")
+    out = tmp_path / "margins"
+    args = ["margins", "--compile-cache", "none", "--gains", str(path), "--scenario", str(scenario), "--out", str(out)]
+    args += ["--samples", "2", "--max-factor", "4", "--factor-resolution", "1.5", "--max-delay", "2", "--no-linear"]
+    assert cli.main(args) == 0
+    document = json.loads((out / "margins.json").read_text())
+    assert [item["x"] for item in document["knots"]] == [0.1, 0.15, 0.2]  # every scheduled group's knots, once
+    for item in document["knots"]:
+        frozen = schedule.at(item["x"])
+        np.testing.assert_allclose(item["margins"]["settings"]["gains"]["Kd"], np.asarray(frozen.Kd), rtol=1e-15)
+        np.testing.assert_allclose(item["margins"]["settings"]["gains"]["kp"], np.asarray(frozen.kp), rtol=1e-15)
+    # Each margin's worst knot, found again from the knots' own results.
+    for name, worst in document["worst"].items():
+        loop, _, direction = name.partition("_")
+        sizes = []
+        for item in document["knots"]:
+            result = item["margins"]
+            if name == "delay":
+                sizes.append(result["delay_margin"]["holds_periods"])
+            else:
+                sizes.append(abs(np.log10(result["gain_margins"][loop][direction]["holds"])))
+        assert worst["size"] == pytest.approx(min(sizes), rel=1e-12)
+        assert worst["x"] == document["knots"][int(np.argmin(sizes))]["x"]
+    assert all((out / f"knot_{i}" / "margins.png").exists() for i in (1, 2, 3))

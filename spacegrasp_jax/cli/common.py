@@ -34,7 +34,15 @@ from spacegrasp_jax.control import (
     named_gains,
     paper_gains,
 )
-from spacegrasp_jax.control.schedule import VARIABLES, GainSchedule, is_schedule_file, load_schedule, schedule_curves
+from spacegrasp_jax.control.schedule import (
+    VARIABLES,
+    GainSchedule,
+    gains_along,
+    is_schedule_file,
+    load_schedule,
+    schedule_curves,
+    variable_series,
+)
 from spacegrasp_jax.model import n_joints, rate_limits_stated
 from spacegrasp_jax.perturbations import (
     PerturbationRanges,
@@ -122,7 +130,7 @@ def _load_inputs(args, schedules: bool = False):
 
 
 #: The commands that run gain schedules (``--gains`` a schedule file).
-RUNS_SCHEDULES = ("simulate", "montecarlo", "tune", "export")
+RUNS_SCHEDULES = ("simulate", "montecarlo", "tune", "margins", "export")
 
 
 def _gains_option(value: str | None, args, robot, controller, schedules: bool = False):
@@ -159,12 +167,25 @@ def _gains_option(value: str | None, args, robot, controller, schedules: bool = 
     return gains
 
 
-def _save_schedule_figure(out: Path, schedule: GainSchedule) -> None:
-    """``gain_schedule.png`` in ``out``: each scheduled group against its variable."""
+def _save_schedule_figure(
+    out: Path, schedule: GainSchedule, logs: dict | None = None, *, with_curves: bool = True
+) -> list[str]:
+    """``gain_schedule.png`` in ``out`` (with ``with_curves``): each scheduled group against
+    its variable; with ``logs`` (a run's name -> its log), ``regime_<name>.png``: the variable
+    along each run and the gains it ran with. Returns the files' names."""
     from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
 
-    figure = plots.figure_gain_schedule(schedule_curves(schedule), schedule.variable, VARIABLES[schedule.variable])
-    plots.save({"gain_schedule.png": figure}, out, runfiles.write_atomically)
+    unit = VARIABLES[schedule.variable]
+    figures = {}
+    if with_curves:
+        figures["gain_schedule.png"] = plots.figure_gain_schedule(schedule_curves(schedule), schedule.variable, unit)
+    knots = {name: np.asarray(schedule.knots[name]) for name, count in schedule.knot_counts().items() if count > 1}
+    for controller, log in (logs or {}).items():
+        x = variable_series(schedule.variable, log)
+        figures[f"regime_{_file_name(controller)}.png"] = plots.figure_schedule_regime(
+            np.asarray(log.t), x, knots, gains_along(schedule, x), schedule.variable, unit, caption=controller
+        )
+    return plots.save(figures, out, runfiles.write_atomically)
 
 
 def _gains_record(value: str | None, args, controller) -> dict:

@@ -12,8 +12,9 @@ from spacegrasp_jax import (
     experiment,
     runfiles,
 )
-from spacegrasp_jax.cli.common import _claim, _file_name
+from spacegrasp_jax.cli.common import _claim, _file_name, _save_schedule_figure
 from spacegrasp_jax.cli.options import UsageError, _add_command, _add_overwrite_option
+from spacegrasp_jax.control.schedule import is_schedule_file, load_schedule
 from spacegrasp_jax.realism import ideal
 
 
@@ -108,6 +109,14 @@ def _compare(args: argparse.Namespace) -> int:
     from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
 
     plots.save_figures(logs, out, runfiles.write_atomically, caption=caption)
+    regimes = []  # the runs of a gain schedule: the regime each was in
+    for index, ((folder, key, config, _, _), descriptor) in enumerate(zip(runs, descriptors), start=1):
+        kept = folder / config["gains_file"] if config.get("gains_file") else None
+        if kept is not None and is_schedule_file(kept):
+            schedule = load_schedule(kept, descriptor["law"], np.shape(logs[labels[index - 1]].u)[-1])
+            regimes += _save_schedule_figure(
+                out, schedule, {f"run_{index}": logs[labels[index - 1]]}, with_curves=False
+            )
     runfiles.write_json(
         out / "compare.json",
         {
@@ -121,7 +130,10 @@ def _compare(args: argparse.Namespace) -> int:
             **runfiles.provenance(),
         },
     )
-    print(f"wrote {out}/: compare.json and the figures of {len(runs)} runs, labelled by {', '.join(differing)}")
+    figures = f"the figures of {len(runs)} runs" + (
+        f" ({', '.join(regimes)}: the schedules' regimes)" if regimes else ""
+    )
+    print(f"wrote {out}/: compare.json and {figures}, labelled by {', '.join(differing)}")
     return 0
 
 

@@ -38,6 +38,7 @@ from spacegrasp_jax.cli.options import (
     _real,
     _whole,
 )
+from spacegrasp_jax.control.schedule import VARIABLES, GainSchedule
 from spacegrasp_jax.perturbations import (
     PerturbationError,
     PerturbationRanges,
@@ -61,7 +62,7 @@ def _margins(args: argparse.Namespace) -> int:
         )
     except (margins.MarginError, PerturbationError) as error:
         raise UsageError(str(error)) from None
-    robot, scenario, gains = _load_inputs(args)
+    robot, scenario, gains = _load_inputs(args, schedules=True)
     realism = _realism(args, scenario, robot)
     config = _criteria(args, robot, n=args.samples, seed=args.seed, ranges=ranges, realism=realism)
     _warn(plausibility.input_warnings(scenario))
@@ -75,6 +76,67 @@ def _margins(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
+    record = {
+        **_gains_record(args.gains, args, args.controller),
+        "robot": args.robot or "paper_robot()",
+        "robot_links": _robot_links(args) or None,
+        "criteria": campaign.capture_criteria(config),
+        "campaign": config.to_dict(),
+        "scenario_duration_s": scenario.duration,
+        **runfiles.provenance(),
+    }
+    title = f"{args.controller}, {args.gains or 'paper gains'}, {args.samples} samples" + (
+        f", realism {args.realism}" if args.realism else ""
+    )
+    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+
+    tolerance_mm = 1e3 * config.position_tolerance_m
+    if not isinstance(gains, GainSchedule):
+        result = _margins_of(args, robot, scenario, gains, config, settings, realism)
+        result["settings"] |= {"gains": gains.to_dict(args.controller), **record}
+        runfiles.write_json(out / "margins.json", result)
+        plots.save_margin_figures(out, result, tolerance_mm, title, runfiles.write_atomically)
+        for line in _result_lines(result):
+            print(line)
+        print(f"wrote {out}/: margins.json, margins.png" + (", eigenvalues.png" if result["linear"] else ""))
+        return 0
+    # A schedule: the frozen gains at each knot, each checked as a constant gain set.
+    per_knot = []
+    for number, x in enumerate(margins.schedule_knots(gains)):
+        print(f"knot {number + 1}: {gains.variable} = {x:g} {VARIABLES[gains.variable]}", file=sys.stderr, flush=True)
+        frozen = margins.frozen_gains(gains, x)
+        result = _margins_of(args, robot, scenario, frozen, config, settings, realism)
+        result["settings"] |= {"gains": frozen.to_dict(args.controller)}
+        per_knot.append({"x": x, "margins": result})
+        knot_title = f"{title}, {gains.variable} = {x:g} {VARIABLES[gains.variable]}"
+        folder = out / f"knot_{number + 1}"
+        folder.mkdir(parents=True, exist_ok=True)
+        plots.save_margin_figures(folder, result, tolerance_mm, knot_title, runfiles.write_atomically)
+        for line in _result_lines(result):
+            print(f"  {line}")
+    worst = margins.worst_knots(per_knot)
+    linear = [(item["x"], item["margins"]["linear"]) for item in per_knot if item["margins"]["linear"]]
+    if linear:
+        x, fastest = max(linear, key=lambda pair: pair[1]["fastest_growth_per_s"])
+        worst["linear_growth"] = {"x": x, "size": fastest["fastest_growth_per_s"]}
+    document = {
+        "schedule": gains.to_dict(args.controller),
+        "knots": per_knot,
+        "worst": worst,
+        "settings": {"samples": args.samples, **record},
+    }
+    runfiles.write_json(out / "margins.json", document)
+    unit = VARIABLES[gains.variable]
+    print(f"the worst knot of each margin ({len(per_knot)} knots on {gains.variable}):")
+    for name, item in worst.items():
+        size = f"{item['size']:+.3g} 1/s" if name == "linear_growth" else f"{item['size']:.3g}"
+        print(f"  {name}: {size} at {gains.variable} = {item['x']:g} {unit}")
+    print(f"wrote {out}/: margins.json, knot_*/margins.png")
+    return 0
+
+
+def _margins_of(args, robot, scenario, gains, config, settings, realism) -> dict:
+    """The margins of one constant gain set, with the linear analysis unless it is skipped."""
     result = margins.find_margins(
         robot,
         scenario,
@@ -102,27 +164,11 @@ def _margins(args: argparse.Namespace) -> int:
             settings,
             growth_limit_per_s=args.growth_limit,
         )
-    result["settings"] |= {
-        "gains": gains.to_dict(args.controller),
-        **_gains_record(args.gains, args, args.controller),
-        "robot": args.robot or "paper_robot()",
-        "robot_links": _robot_links(args) or None,
-        "criteria": campaign.capture_criteria(config),
-        "campaign": config.to_dict(),
-        "scenario_duration_s": scenario.duration,
-        **runfiles.provenance(),
-    }
-    runfiles.write_json(out / "margins.json", result)
-    title = f"{args.controller}, {args.gains or 'paper gains'}, {args.samples} samples" + (
-        f", realism {args.realism}" if args.realism else ""
-    )
-    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+    return result
 
-    plots.save_margin_figures(out, result, 1e3 * config.position_tolerance_m, title, runfiles.write_atomically)
-    for line in margins.margin_lines(result) + (stability.linear_lines(result["linear"]) if result["linear"] else []):
-        print(line)
-    print(f"wrote {out}/: margins.json, margins.png" + (", eigenvalues.png" if result["linear"] else ""))
-    return 0
+
+def _result_lines(result: dict) -> list[str]:
+    return margins.margin_lines(result) + (stability.linear_lines(result["linear"]) if result["linear"] else [])
 
 
 def add_parsers(commands) -> None:

@@ -123,7 +123,7 @@ def _run_controllers(args, controllers) -> int:
         criteria=criteria,
     )
     if isinstance(gains, GainSchedule):
-        _save_schedule_figure(out, gains)
+        _save_schedule_figure(out, gains, {controller: result.log for controller, result in results.items()})
     print(
         f"wrote {out}/: table5.csv, summary.json, figures, timeseries_*.npz{', .csv' if args.csv else ''}, config.json"
     )

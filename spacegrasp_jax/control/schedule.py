@@ -213,10 +213,12 @@ def load_schedule(path: str | Path, controller=None, n_joints: int = 7, fill_fro
             raise GainsError(
                 f"{path}: {name}: a scheduled group holds exactly 'knots' and 'values', got {sorted(value)}"
             )
+        if not isinstance(value["values"], list) or not value["values"]:
+            raise GainsError(f"{path}: {name}.values: expected a list of one row (or one number) a knot")
     constant = {name: value for name, value in document.items() if name not in scheduled}
     # The constant groups, and each scheduled group's first knot, make the base set: the
     # gains file's rules (which groups the law needs, filling) apply to it as to any file.
-    first = {name: value["values"][0] if value["values"] else [] for name, value in scheduled.items()}
+    first = {name: value["values"][0] for name, value in scheduled.items()}
     try:
         base = gains_from_document(constant | first, path, controller, n_joints, fill_from)
         unit = header.get("unit", VARIABLES.get(variable))
@@ -278,6 +280,25 @@ def schedule_curves(schedule: GainSchedule, points: int = 241) -> dict[str, dict
     return curves
 
 
+def variable_series(variable: str, log) -> np.ndarray:
+    """(T,) the scheduling variable along a run's log (NumPy fields): ``time`` its ``t``;
+    ``force`` the norm of the F/T force the controller read (``fts_force_measured`` where the
+    loop logs readings, else ``fts_force``); ``distance`` the norm of the logged EE position in
+    LAR (the true one: the controller's estimate differs by its LAR estimate's error)."""
+    if variable == "time":
+        return np.asarray(log.t)
+    if variable == "force":
+        force = log.fts_force_measured if log.fts_force_measured is not None else log.fts_force
+        return np.linalg.norm(np.asarray(force), axis=-1)
+    return np.linalg.norm(np.asarray(log.pose_ee)[:, :3], axis=-1)
+
+
+def gains_along(schedule: GainSchedule, x: np.ndarray) -> dict[str, np.ndarray]:
+    """Each scheduled group's gains at the values ``x`` (T,) of its variable: group -> (T, n)."""
+    at = jax.jit(jax.vmap(lambda value: schedule.at(value)))(jnp.asarray(x))
+    return {name: np.asarray(getattr(at, name)) for name, count in schedule.knot_counts().items() if count > 1}
+
+
 def knot_table(schedule: GainSchedule) -> list[dict]:
     """One row a scheduled group: its knots and each knot's gains (plain lists), for reports."""
     return [
@@ -303,6 +324,8 @@ __all__ = [
     "load_schedule",
     "make_schedule",
     "schedule_curves",
+    "gains_along",
     "schedule_of",
+    "variable_series",
     "scheduling_variable",
 ]
