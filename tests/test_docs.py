@@ -101,6 +101,7 @@ def test_the_pages_with_examples_are_the_ones_expected():
         "flight-like-loop.md",
         "free-target.md",
         "flight-software.md",
+        "gain-schedules.md",
         "your-own-arm.md",
         "your-own-law.md",
     }

@@ -143,7 +143,7 @@ class TuneConfig:
             (``None``, the default: none, as for the paper's arm, whose limits are assumed;
             ``spacegrasp tune`` sets it to a robot file's own limits).
         schedule_variable: tune a gain schedule on this variable
-            ([`control.schedule.VARIABLES`][spacegrasp_jax.control.schedule.VARIABLES]):
+            (``control.schedule.VARIABLES``):
             every tuned group but the pseudoinverse's damping gets the knots
             ``schedule_knots``, each starting at the starting gains; the parameters are the
             log-gains at every knot (``None``: constant gains, or the starting file's

@@ -13,7 +13,7 @@ schedule is its knots' range). Before the first knot and after the last the gain
 end knots'. A group with one knot is constant, its values used as they are: a schedule of
 one knot a group runs bit for bit as the constant gain set it holds.
 
-The variables ([`VARIABLES`][spacegrasp_jax.control.schedule.VARIABLES]), each read at the
+The variables (``VARIABLES``), each read at the
 start of a control period, as the controller sees it:
 
 * ``"time"`` (s): since the approach began (the scenario's start);
