@@ -164,6 +164,9 @@ def test_a_schedule_file_reads_back_what_was_written_and_bad_ones_name_the_group
     assert document["schedule"] == {"variable": "distance", "unit": "m"}
     assert document["Kd"] == {"knots": [0.01, 0.05], "values": [[300.0] * 6, [900.0] * 6]}
     assert document["Md"] == [800.0] * 6  # a constant group as a gains file has it
+    assert document["pinv_damping"] == [0.0]  # every group the law uses, the optional damping too
+    damped = dataclasses.replace(schedule, values=dict(schedule.values) | {"pinv_damping": jnp.asarray([[1e-3]])})
+    assert damped.to_dict("admittance")["pinv_damping"] == [1e-3]
     read = load_schedule(path, "admittance")
     assert isinstance(read, GainSchedule) and read.variable == "distance"
     for name in ("Md", "Bd", "Kd", "kp", "ki", "kd", "pinv_damping"):

@@ -39,12 +39,12 @@ import numpy as np
 
 from spacegrasp_jax.control.gains import (
     GAIN_SHAPES,
+    GAINS_USED,
     Gains,
     GainsError,
     gains_from_document,
     load_gains,
     make_gains,
-    required_groups,
 )
 from spacegrasp_jax.inputs import numbers, read_document
 
@@ -92,9 +92,9 @@ class GainSchedule:
 
     def to_dict(self, controller: str | None = None) -> dict:
         """The schedule as its file holds it (JSON-ready): the groups ``controller`` uses
-        (every group: ``None``), a constant group as a list, a scheduled one as its knots and
-        values."""
-        names = GAIN_SHAPES if controller is None else required_groups(controller)
+        (``GAINS_USED``, the optional pseudoinverse damping included; every group: ``None``),
+        a constant group as a list, a scheduled one as its knots and values."""
+        names = GAIN_SHAPES if controller is None else GAINS_USED[controller]
         document: dict = {"schedule": {"variable": self.variable, "unit": VARIABLES[self.variable]}}
         for name in names:
             knots, values = np.asarray(self.knots[name]), np.asarray(self.values[name])
