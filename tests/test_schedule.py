@@ -429,3 +429,48 @@ def test_margins_check_a_schedule_at_every_knot_and_name_each_margins_worst(tmp_
         assert worst["size"] == pytest.approx(min(sizes), rel=1e-12)
         assert worst["x"] == document["knots"][int(np.argmin(sizes))]["x"]
     assert all((out / f"knot_{i}" / "margins.png").exists() for i in (1, 2, 3))
+
+
+def test_the_shipped_flight_schedule_is_the_one_held_out_and_its_settings_say_what_the_data_say():
+    """``tuned_schedule("flight_schedule")`` is bit for bit the race's 15-minute gradient
+    schedule that the committed held-out campaigns ran, and its ``settings.json``'s rates,
+    torques and McNemar tests are those of the committed confirmation campaign."""
+    from pathlib import Path
+
+    from spacegrasp_jax import statistics
+    from spacegrasp_jax.campaign import load_samples
+    from spacegrasp_jax.control.schedule import tuned_schedule, tuned_schedule_file
+
+    data = Path(__file__).resolve().parents[1] / "notebooks" / "data" / "race_schedule_time"
+    shipped = tuned_schedule("flight_schedule")
+    held_out = load_schedule(data / "gradient_fresh_15min.json", "admittance")
+    assert shipped.variable == "time"
+    for a, b in zip(jax.tree.leaves(shipped), jax.tree.leaves(held_out), strict=True):
+        np.testing.assert_array_equal(a, b)
+    settings = json.loads(tuned_schedule_file().with_suffix(".settings.json").read_text())
+    heldout = settings["heldout"]
+    _, by_variant = load_samples(data / f"confirm_{heldout['seed']}" / "samples.npz")
+    success = {key.split("/", 1)[1]: np.asarray(v["success"], bool) for key, v in by_variant.items()}
+    peaks = {key.split("/", 1)[1]: np.asarray(v["largest_peak_torque_Nm"]) for key, v in by_variant.items()}
+    names = {"flight_schedule": "schedule_flight", "flight": "flight", "paper": "paper"}
+    for name, key in names.items():
+        assert heldout["success"][name]["successes"] == int(success[key].sum())
+        assert heldout["largest_peak_torque_p95_Nm"][name] == pytest.approx(np.nanpercentile(peaks[key], 95), rel=1e-12)
+    for reference in ("flight", "paper"):
+        expected = statistics.compare_success(success[reference], success["schedule_flight"])
+        assert heldout["mcnemar"][f"vs_{reference}"]["p_value"] == pytest.approx(expected["p_value"], rel=1e-12)
+    # The issue's bar, on the data: at least 94%, McNemar p < 0.01 against the constant
+    # flight gains, and a 95th-percentile largest peak torque no higher than theirs.
+    assert success["schedule_flight"].mean() >= 0.94
+    assert heldout["mcnemar"]["vs_flight"]["p_value"] < 0.01
+    assert np.nanpercentile(peaks["schedule_flight"], 95) <= np.nanpercentile(peaks["flight"], 95)
+
+
+def test_the_shipped_schedule_is_named_where_schedules_run_and_refused_elsewhere(tmp_path, capsys):
+    scenario = tmp_path / "short.toml"
+    scenario.write_text("duration = 0.05\n[trajectory]\nduration = 0.05\n")
+    args = ["--compile-cache", "none", "--gains", "flight_schedule", "--scenario", str(scenario)]
+    assert cli.main(["worstcase", *args, "--out", str(tmp_path / "worst")]) == 2
+    assert "--gains flight_schedule: a gain schedule; this command takes constant gains" in capsys.readouterr().err
+    assert cli.main(["export", "--format", "c-header", *args[2:], "--out", str(tmp_path / "schedule.h")]) == 0
+    assert "SG_gains_at" in (tmp_path / "schedule.h").read_text()

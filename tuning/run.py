@@ -32,14 +32,19 @@ import numpy as np
 import spacegrasp_jax as sg
 from spacegrasp_jax import batching, campaign, experiment, runfiles, statistics
 from spacegrasp_jax.control import (
-    NAMED_GAINS,
     GainsError,
     missing_groups,
-    named_gains,
     paper_gains,
     require_joints,
 )
-from spacegrasp_jax.control.schedule import GainSchedule, gain_set_from_dict, load_gains_or_schedule, schedule_of
+from spacegrasp_jax.control.schedule import (
+    NAMED_GAIN_SETS,
+    GainSchedule,
+    gain_set_from_dict,
+    load_gains_or_schedule,
+    named_gain_set,
+    schedule_of,
+)
 from spacegrasp_jax.experiment import loop_options
 from spacegrasp_jax.model import load_robot, n_joints, robot_from_text, robot_from_toml, robot_to_toml
 from spacegrasp_jax.montecarlo import SampleLoops, success
@@ -162,14 +167,15 @@ def record_scenario(robot, record: dict):
 
 
 def start_gains(gains_file: str, controller: str, n: int, fill_from: str | None = None):
-    """The starting gains ``gains_file`` names: a shipped set by name (``NAMED_GAINS``) or a
-    gains file for ``controller`` on an arm of ``n`` joints, its missing groups from ``fill_from``."""
-    if gains_file in NAMED_GAINS:
+    """The starting gains ``gains_file`` names: a shipped set by name (``NAMED_GAIN_SETS``, a
+    shipped schedule included) or a gains file for ``controller`` on an arm of ``n`` joints,
+    its missing groups from ``fill_from``."""
+    if gains_file in NAMED_GAIN_SETS:
         if n != len(paper_gains().kp):
             raise TuneSetupError(
                 f"--gains {gains_file}: the shipped sets are for the paper's 7-joint arm, not {n} joints"
             )
-        return named_gains(gains_file)
+        return named_gain_set(gains_file)
     return load_gains_or_schedule(gains_file, controller, n, fill_from=fill_from)
 
 
@@ -201,7 +207,7 @@ def new_record(
     if gains_file:
         base = start_gains(gains_file, config.controller, n_joints(robot), fill_from)
         tuned_base(base, config)  # refused here, before anything compiles
-        filled = [] if gains_file in NAMED_GAINS else missing_groups(gains_file, config.controller)
+        filled = [] if gains_file in NAMED_GAIN_SETS else missing_groups(gains_file, config.controller)
     else:
         try:
             require_joints(paper_gains(), n_joints(robot), "the paper's gains")

@@ -26,20 +26,21 @@ from spacegrasp_jax import (
 from spacegrasp_jax.cli.options import NAMED_RANGES, UsageError
 from spacegrasp_jax.control import (
     GAINS_USED,
-    NAMED_GAINS,
     PAPER_CONTROLLERS,
     law_named,
     load_gains,
     missing_groups,
-    named_gains,
     paper_gains,
 )
 from spacegrasp_jax.control.schedule import (
+    NAMED_GAIN_SETS,
+    TUNED_SCHEDULE_FILES,
     VARIABLES,
     GainSchedule,
     gains_along,
     is_schedule_file,
     load_schedule,
+    named_gain_set,
     schedule_curves,
     variable_series,
 )
@@ -91,7 +92,7 @@ def _keep_inputs(args, out: Path, gains, realism, controllers) -> dict:
         suffix = ".json" if Path(args.scenario).suffix.lower() == ".json" else ".toml"
         kept["scenario_file"] = "scenario" + suffix
         runfiles.write_text(out / kept["scenario_file"], Path(args.scenario).read_text())
-    if getattr(args, "gains", None) and args.gains not in NAMED_GAINS:
+    if getattr(args, "gains", None) and args.gains not in NAMED_GAIN_SETS:
         kept["gains_file"] = "gains.json"
         law = controllers[0] if len(controllers) == 1 else None
         runfiles.write_json(out / kept["gains_file"], gains.to_dict(law))
@@ -138,19 +139,24 @@ def _gains_option(value: str | None, args, robot, controller, schedules: bool = 
     the paper's by default, a shipped set by name, or a file whose missing groups come from
     ``--fill-from``; with ``schedules``, a schedule file's ``GainSchedule``
     ([`control.schedule`][spacegrasp_jax.control.schedule]), which other commands refuse."""
-    if getattr(args, "fill_from", None) is not None and (value is None or value in NAMED_GAINS):
+    if getattr(args, "fill_from", None) is not None and (value is None or value in NAMED_GAIN_SETS):
         raise UsageError(
             f"--fill-from: completes a gains file given with --gains; {value or 'the paper'}'s gains are whole"
         )
     if value is None or value == "paper":
         return _paper_gains_for(robot, controller if isinstance(controller, str) else None)
-    if value in NAMED_GAINS:
+    if value in NAMED_GAIN_SETS:
         if n_joints(robot) != len(paper_gains().kp):
             raise UsageError(
                 f"--gains {value}: the shipped tuned sets are for the paper's {len(paper_gains().kp)}-joint arm, "
                 f"not this {n_joints(robot)}-joint one; give a gains file (spacegrasp gains --start writes a start)"
             )
-        return named_gains(value)
+        if value in TUNED_SCHEDULE_FILES and not schedules:
+            raise UsageError(
+                f"--gains {value}: a gain schedule; this command takes constant gains (schedules run in "
+                f"{', '.join(RUNS_SCHEDULES[:-1])} and {RUNS_SCHEDULES[-1]})"
+            )
+        return named_gain_set(value)
     fill_from = getattr(args, "fill_from", None)
     if is_schedule_file(value):
         if not schedules:
@@ -192,7 +198,7 @@ def _gains_record(value: str | None, args, controller) -> dict:
     """What a run's record says of its gains: where they came from and, for a file that left
     groups out, which ones ``--fill-from`` gave and from where."""
     fill_from = getattr(args, "fill_from", None)
-    filled = [] if value is None or value in NAMED_GAINS else missing_groups(value, controller)
+    filled = [] if value is None or value in NAMED_GAIN_SETS else missing_groups(value, controller)
     return {
         "gains_source": value,
         "gains_filled": {"groups": filled, "from": fill_from} if filled else None,

@@ -19,6 +19,7 @@ from spacegrasp_jax.control import (
     CONTROLLERS,
     NAMED_GAINS,
 )
+from spacegrasp_jax.control.schedule import TUNED_SCHEDULE_FILES
 from spacegrasp_jax.model import n_joints
 
 
@@ -33,6 +34,8 @@ def _source_words(gains: str | None) -> str:
     """Where the exported gains came from, as the file's first line says it."""
     if gains is None or gains == "paper":
         return "paper_gains()"
+    if gains in TUNED_SCHEDULE_FILES:
+        return f"the shipped {gains} (tuned_schedule({gains!r}))"
     return f"the shipped {gains} gains (tuned_gains({gains!r}))" if gains in NAMED_GAINS else gains
 
 

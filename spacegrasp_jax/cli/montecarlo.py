@@ -47,10 +47,10 @@ from spacegrasp_jax.cli.options import (
 )
 from spacegrasp_jax.control import (
     CONTROLLERS,
-    NAMED_GAINS,
     PAPER_CONTROLLERS,
     paper_gains,
 )
+from spacegrasp_jax.control.schedule import NAMED_GAIN_SETS
 from spacegrasp_jax.model import n_joints
 from spacegrasp_jax.perturbations import (
     PerturbationError,
@@ -66,13 +66,13 @@ def _montecarlo_variants(args: argparse.Namespace, robot) -> list[campaign.Varia
     controllers = PAPER_CONTROLLERS if args.controller == "both" else (args.controller,)
     n = n_joints(robot)
     papers = all(controller in PAPER_CONTROLLERS for controller in controllers)
-    if args.fill_from is not None and all(path in NAMED_GAINS for path in args.gains):
+    if args.fill_from is not None and all(path in NAMED_GAIN_SETS for path in args.gains):
         raise UsageError("--fill-from: completes a gains file given with --gains; the campaign's gain sets are whole")
     if not args.gains:
         _paper_gains_for(robot, None if papers else args.controller)
     gain_sets = [("paper", paper_gains())] if n == len(paper_gains().kp) and papers else []
     for path in args.gains:
-        label = path if path in NAMED_GAINS else Path(path).stem
+        label = path if path in NAMED_GAIN_SETS else Path(path).stem
         if label in {existing for existing, _ in gain_sets}:
             raise UsageError(f"--gains {path}: two gain sets would both be called {label!r}; rename one file")
         gain_sets.append((label, _gains_option(path, args, robot, controllers, schedules=True)))

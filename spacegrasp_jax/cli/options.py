@@ -7,8 +7,8 @@ import math
 
 from spacegrasp_jax.control import (
     CONTROLLERS,
-    NAMED_GAINS,
 )
+from spacegrasp_jax.control.schedule import NAMED_GAIN_SETS
 from spacegrasp_jax.perturbations import (
     FREE_TARGET_RANGES,
     PerturbationRanges,
@@ -215,7 +215,7 @@ def add_ranges_arguments(parser: argparse.ArgumentParser, default: str) -> None:
 def add_gains_arguments(parser: argparse.ArgumentParser, repeatable: bool = False) -> None:
     """``--gains`` (a named set or a file; ``repeatable``: several, to compare) and
     ``--fill-from`` (where the groups a file leaves out come from) on ``parser``."""
-    names = "|".join(NAMED_GAINS)
+    names = "|".join(NAMED_GAIN_SETS)
     if repeatable:
         parser.add_argument(
             "--gains",

@@ -48,9 +48,8 @@ from spacegrasp_jax.cli.options import (
 )
 from spacegrasp_jax.control import (
     CONTROLLERS,
-    NAMED_GAINS,
 )
-from spacegrasp_jax.control.schedule import VARIABLES, load_schedule
+from spacegrasp_jax.control.schedule import NAMED_GAIN_SETS, VARIABLES, load_schedule
 from spacegrasp_jax.model import n_joints
 from spacegrasp_jax.realism import ideal, load_realism
 from spacegrasp_jax.scenario import load_scenario, paper_scenario
@@ -94,7 +93,7 @@ def _tune(args: argparse.Namespace) -> int:
     _realism(args, scenario, robot)
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
-    if args.fill_from is not None and (args.gains is None or args.gains in NAMED_GAINS):
+    if args.fill_from is not None and (args.gains is None or args.gains in NAMED_GAIN_SETS):
         raise UsageError(
             f"--fill-from: completes a gains file given with --gains; {args.gains or 'the paper'}'s gains are whole"
         )

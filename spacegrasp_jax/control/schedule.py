@@ -40,16 +40,26 @@ import numpy as np
 from spacegrasp_jax.control.gains import (
     GAIN_SHAPES,
     GAINS_USED,
+    NAMED_GAINS,
     Gains,
     GainsError,
     gains_from_document,
     load_gains,
     make_gains,
+    named_gains,
 )
 from spacegrasp_jax.inputs import numbers, read_document
 
 #: The scheduling variables and their units (module docstring).
 VARIABLES = {"time": "s", "distance": "m", "force": "N"}
+
+#: The shipped gain schedules by name -> their data file (beside it, ``*.settings.json``: the
+#: command, the selection and the held-out result).
+TUNED_SCHEDULE_FILES = {"flight_schedule": "tuned_admittance_flight_schedule.json"}
+
+#: Every gain set known by name (``--gains NAME``): the constant ones
+#: (``control.gains.NAMED_GAINS``) and the shipped schedules.
+NAMED_GAIN_SETS = NAMED_GAINS + tuple(TUNED_SCHEDULE_FILES)
 
 
 @jax.tree_util.register_dataclass
@@ -230,6 +240,30 @@ def load_schedule(path: str | Path, controller=None, n_joints: int = 7, fill_fro
         raise GainsError(message if message.startswith(str(path)) else f"{path}: {message}") from None
 
 
+def tuned_schedule_file(name: str = "flight_schedule") -> Path:
+    """The data file of the shipped schedule ``name`` (``TUNED_SCHEDULE_FILES``)."""
+    if name not in TUNED_SCHEDULE_FILES:
+        raise ValueError(f"tuned_schedule: expected one of {', '.join(TUNED_SCHEDULE_FILES)}, got {name!r}")
+    return Path(__file__).resolve().parents[1] / "data" / TUNED_SCHEDULE_FILES[name]
+
+
+def tuned_schedule(name: str = "flight_schedule") -> GainSchedule:
+    """The shipped gain schedule ``name`` for the paper's arm and the admittance law.
+
+    ``"flight_schedule"``: every admittance and PID group on the time since the approach
+    began, knots at 0, 4, 8, 12 and 17 s (195 gains), tuned by the gradient method (a fresh
+    batch of 32 flight-like captures a step, the median of four group means of their
+    gradients, 75 steps, 15 minutes on 2 cores; the capture objective with a 4 N m budget)
+    from the paper's gains; the pseudoinverse exact. Held out on 1,000 fresh flight-like
+    captures of a seed chosen before any result (documentation, Gain schedules)."""
+    return load_schedule(tuned_schedule_file(name), "admittance")
+
+
+def named_gain_set(name: str):
+    """The gain set ``name`` names (``NAMED_GAIN_SETS``): a ``Gains`` or a shipped ``GainSchedule``."""
+    return tuned_schedule(name) if name in TUNED_SCHEDULE_FILES else named_gains(name)
+
+
 def gain_set_from_dict(document: dict, n_joints: int = 7):
     """A gain set as a record holds it (``Gains.to_dict()`` or ``GainSchedule.to_dict()``):
     a ``Gains``, or a ``GainSchedule`` where the document has a ``"schedule"`` entry."""
@@ -313,7 +347,12 @@ def knot_table(schedule: GainSchedule) -> list[dict]:
 
 
 __all__ = [
+    "NAMED_GAIN_SETS",
+    "TUNED_SCHEDULE_FILES",
     "GainSchedule",
+    "named_gain_set",
+    "tuned_schedule",
+    "tuned_schedule_file",
     "VARIABLES",
     "constant_schedule",
     "gain_set_from_dict",
