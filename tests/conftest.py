@@ -121,6 +121,7 @@ def short_scenario(robot):
 #: the end (the notebooks come last alphabetically) would leave one worker running them alone.
 LONGEST_FIRST = (
     "tests/test_tune_cli.py",
+    "tests/test_schedule.py",
     "tests/test_margins.py",
     "tests/test_cli.py",
     "tests/test_benchmark.py",

@@ -30,7 +30,6 @@ documentation, File formats).
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import jax
@@ -194,9 +193,9 @@ def _check_variable(variable: str) -> None:
 def is_schedule_file(path: str | Path) -> bool:
     """Whether the gains file at ``path`` holds a schedule (a ``"schedule"`` entry)."""
     try:
-        document = json.loads(Path(path).read_text())
-    except (OSError, ValueError):
-        return False
+        document = read_document(Path(path), GainsError, "json")
+    except GainsError:
+        return False  # not readable as gains at all: the gains reader says why
     return isinstance(document, dict) and "schedule" in document
 
 
