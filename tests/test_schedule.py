@@ -76,6 +76,7 @@ def test_the_one_knot_schedule_runs_bit_for_bit_as_the_constant_gains(robot, sho
                 np.testing.assert_array_equal(getattr(scheduled, name), value, err_msg=name)
 
 
+@pytest.mark.slow
 def test_the_one_knot_schedule_gives_a_campaigns_samples_bit_for_bit(robot, short_scenario):
     spec = RunSpec(robot, short_scenario, "admittance", realism=flight(), observer=FoldedMetrics())
     indices, ranges = jnp.arange(2, dtype=jnp.uint32), PerturbationRanges()
@@ -98,6 +99,7 @@ def test_the_reproduction_does_not_move_under_a_one_knot_schedule(robot, full_ru
             np.testing.assert_array_equal(getattr(scheduled.log, name), getattr(result.log, name), err_msg=name)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("variable", "knots", "before"),
     [("time", (0.5, 1.0), lambda log: log.t < 0.5), ("force", (2.0, 6.0), None)],
@@ -193,6 +195,7 @@ def test_a_schedule_file_reads_back_what_was_written_and_bad_ones_name_the_group
     refused({"schedule": {"variable": "time", "unit": "ms"}}, r"bad.json: schedule.unit: time is in s")
 
 
+@pytest.mark.slow
 def test_simulate_runs_a_schedule_file_and_the_commands_that_cannot_refuse_it(tmp_path, capsys):
     gains = paper_gains()
     path = tmp_path / "schedule.json"
@@ -274,6 +277,109 @@ def test_cmaes_searches_a_schedules_knots():
     ratio = np.asarray(schedule.values["Md"]) / np.asarray(base.values["Md"])
     assert np.argwhere(~np.isclose(ratio, 1.0, rtol=1e-14)).tolist() == [[1, 1]]
     np.testing.assert_allclose(ratio[1, 1], 2.0, rtol=1e-14)
+
+
+@pytest.mark.slow
+def test_a_campaign_runs_schedules_beside_constant_gains_and_reloads_them(robot, short_scenario, tmp_path):
+    """Paired on the same samples: the one-knot schedule ties the constant gains sample for
+    sample (no discordant pair), a real schedule differs; the campaign's record reloads each
+    gain set as it ran."""
+    from spacegrasp_jax import campaign
+
+    gains = paper_gains()
+    softer = make_schedule(gains, "time", {"Kd": ([0.5, 1.0], [gains.Kd, 0.5 * gains.Kd])})
+    variants = [
+        campaign.Variant("admittance", gains, "constant"),
+        campaign.Variant("admittance", constant_schedule(gains), "one_knot"),
+        campaign.Variant("admittance", softer, "softer"),
+    ]
+    config = campaign.CampaignConfig(n=3, chunk=3)
+    result = campaign.run_campaign(robot, short_scenario, variants, config, tmp_path / "c", progress=None)
+    metrics = result.metrics
+    for name, value in metrics["admittance/constant"].items():
+        np.testing.assert_array_equal(metrics["admittance/one_knot"][name], value, err_msg=name)
+    assert not np.array_equal(
+        metrics["admittance/softer"]["largest_peak_torque_Nm"], metrics["admittance/constant"]["largest_peak_torque_Nm"]
+    )
+    tie = result.summary["comparisons"]["admittance/one_knot vs admittance/constant"]["success"]
+    assert tie["only_candidate"] == tie["only_reference"] == 0
+    assert "admittance/softer vs admittance/constant" in result.summary["comparisons"]
+    _, _, reloaded, _ = campaign.load_campaign(tmp_path / "c")
+    assert isinstance(reloaded[2].gains, GainSchedule) and reloaded[2].gains.variable == "time"
+    for a, b in zip(jax.tree.leaves(reloaded[2].gains), jax.tree.leaves(softer), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+EXPORT_PRINTER = r"""
+#include <stdio.h>
+#include <stdlib.h>
+#include "schedule.h"
+
+int main(int argc, char **argv) {
+    SC_gains gains;
+    int k, j;
+    for (k = 1; k < argc; ++k) {
+        double x = strtod(argv[k], NULL);
+        SC_gains_at(x, &gains);
+        printf("%.17g", x);
+        {shows}
+        printf("\n");
+    }
+    return 0;
+}
+"""
+
+
+def test_the_c_header_of_a_schedule_computes_the_simulators_gains(tmp_path):
+    """Compiled and run at 1,000 points across and beyond the knots: every gain of every
+    group within 1e-12 of the JAX blend's (the same arithmetic; the C library's exp and log
+    against XLA's)."""
+    import shutil
+    import subprocess
+
+    from spacegrasp_jax.control.gains import GAINS_USED
+    from spacegrasp_jax.export import export_text, loop_settings
+
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    assert compiler is not None, "the export's C test needs a C compiler (the CI image has one)"
+    gains = paper_gains()
+    schedule = make_schedule(
+        gains,
+        "distance",
+        {
+            "Kd": ([0.01, 0.03, 0.08], [gains.Kd, 0.3 * gains.Kd, 2.0 * gains.Kd]),
+            "kp": ([0.02, 0.05], [gains.kp, np.linspace(0.5, 1.5, 7) * gains.kp]),
+            "Md": ([0.0, 0.04, 0.06, 0.1], [gains.Md, 1.1 * gains.Md, 0.7 * gains.Md, gains.Md]),
+        },
+    )
+    names = GAINS_USED["admittance"]
+    header = export_text(schedule, "admittance", loop_settings(None, 0.001), "c-header", prefix="SC")
+    (tmp_path / "schedule.h").write_text(header)
+    shows = "\n        ".join(
+        f'for (j = 0; j < (int)(sizeof gains.{n} / sizeof gains.{n}[0]); ++j) {{ printf(" %.17g", gains.{n}[j]); }}'
+        for n in names
+    )
+    (tmp_path / "main.c").write_text(EXPORT_PRINTER.replace("{shows}", shows))
+    flags = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic"]
+    built = subprocess.run(
+        [compiler, *flags, "main.c", "-o", "show", "-lm"], cwd=tmp_path, capture_output=True, text=True
+    )
+    assert built.returncode == 0, built.stderr
+    points = np.concatenate([np.linspace(-0.02, 0.12, 994), [0.01, 0.02, 0.03, 0.05, 0.06, 0.08]])
+    printed = subprocess.run(
+        [str(tmp_path / "show"), *(repr(float(x)) for x in points)], capture_output=True, text=True, check=True
+    ).stdout.splitlines()
+    assert len(printed) == 1000
+    at = jax.jit(schedule.at)
+    for line in printed:
+        numbers = np.array([float(v) for v in line.split()])
+        expected = np.concatenate([np.asarray(getattr(at(numbers[0]), n)) for n in names])
+        np.testing.assert_allclose(numbers[1:], expected, rtol=1e-12, atol=0.0)
+    # JSON: the schedule's own file, with the loop's settings and the blend in words.
+    document = json.loads(export_text(schedule, "admittance", loop_settings(None, 0.001), "json"))
+    assert document["gains"] == json.loads(json.dumps(schedule.to_dict("admittance")))
+    with pytest.raises(ValueError, match="a gain schedule exports as json or c-header"):
+        export_text(schedule, "admittance", loop_settings(None, 0.001), "csv")
 
 
 def test_the_schedule_figure_draws_each_scheduled_group_over_its_first_knot():

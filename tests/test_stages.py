@@ -178,7 +178,11 @@ def lagged(torques: np.ndarray, alpha: float) -> np.ndarray:
     return out
 
 
-@pytest.mark.parametrize("realism", [None, "flight"], ids=["paper loop", "flight, 10 servo ticks a period"])
+@pytest.mark.parametrize(
+    "realism",
+    [None, pytest.param("flight", marks=pytest.mark.slow)],
+    ids=["paper loop", "flight, 10 servo ticks a period"],
+)
 def test_a_stage_written_here_runs_in_the_loop_at_every_servo_tick_in_order(robot, short_scenario, realism):
     """A recorder then a lag on the PID's torques: the log's torques (those the plant gets)
     are the lag's recursion applied to what the recorder saw, tick by tick, carried across
