@@ -89,16 +89,6 @@ class GainSchedule:
         """group -> its number of knots."""
         return {name: int(np.shape(self.knots[name])[-1]) for name in GAIN_SHAPES}
 
-    def gains_at_knots(self) -> list[tuple[str, float, Gains]]:
-        """Every knot of every scheduled group as ``(group, x, the gains at x)``: the frozen
-        gain sets whose stability each knot's margins check."""
-        return [
-            (name, float(x), self.at(x))
-            for name in GAIN_SHAPES
-            if np.shape(self.knots[name])[-1] > 1
-            for x in np.asarray(self.knots[name])
-        ]
-
     def to_dict(self, controller: str | None = None) -> dict:
         """The schedule as its file holds it (JSON-ready): the groups ``controller`` uses
         (``GAINS_USED``, the optional pseudoinverse damping included; every group: ``None``),
@@ -332,19 +322,6 @@ def gains_along(schedule: GainSchedule, x: np.ndarray) -> dict[str, np.ndarray]:
     return {name: np.asarray(getattr(at, name)) for name, count in schedule.knot_counts().items() if count > 1}
 
 
-def knot_table(schedule: GainSchedule) -> list[dict]:
-    """One row a scheduled group: its knots and each knot's gains (plain lists), for reports."""
-    return [
-        {
-            "group": name,
-            "knots": np.asarray(schedule.knots[name]).tolist(),
-            "values": np.asarray(schedule.values[name]).tolist(),
-        }
-        for name in GAIN_SHAPES
-        if np.shape(schedule.knots[name])[-1] > 1
-    ]
-
-
 __all__ = [
     "NAMED_GAIN_SETS",
     "TUNED_SCHEDULE_FILES",
@@ -357,7 +334,6 @@ __all__ = [
     "gain_set_from_dict",
     "interpolate",
     "is_schedule_file",
-    "knot_table",
     "load_gains_or_schedule",
     "load_schedule",
     "make_schedule",
