@@ -3,7 +3,8 @@
     python -m spacegrasp_jax.benchmarks.rollout [--out results/benchmarks] [--repeats 5] [--duration 17]
 
 Run time is measured after compilation, as the median (and spread) of ``--repeats`` runs of
-the paper scenario (dt = 1 ms, 17,000 RK4 steps). For the figure "on one CPU core", run it
+the paper scenario (dt = 1 ms, 17,000 RK4 steps); besides the paper's gains, the flight-like
+loop with the shipped flight schedule (``admittance/flight-schedule``). For the figure "on one CPU core", run it
 pinned to one core: ``taskset -c 0 python -m spacegrasp_jax.benchmarks.rollout``. Batched throughput is
 ``benchmarks.montecarlo``'s. Writes ``rollout.json``.
 """
@@ -24,6 +25,7 @@ from spacegrasp_jax import compilation
 from spacegrasp_jax.benchmarks.dynamics import machine, timed
 from spacegrasp_jax.compilation import configure
 from spacegrasp_jax.control import PAPER_CONTROLLERS, paper_gains
+from spacegrasp_jax.control.schedule import tuned_schedule
 from spacegrasp_jax.realism import flight
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import rollout
@@ -77,6 +79,11 @@ def main(argv: list[str] | None = None) -> int:
         result[f"{controller}/flight"] = bench_controller(robot, scenario, gains, controller, args.repeats, flight())
     free_target = paper_scenario(robot, duration=args.duration, target=FREE_TARGET)  # a second body in the state
     result["admittance/free-target"] = bench_controller(robot, free_target, gains, "admittance", args.repeats)
+    # the shipped flight schedule against the constant gains in the same flight-like loop
+    schedule = tuned_schedule("flight_schedule")
+    result["admittance/flight-schedule"] = bench_controller(
+        robot, scenario, schedule, "admittance", args.repeats, flight()
+    )
 
     info = result["machine"]
     print(
@@ -85,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{'controller':18} {'compile [s]':>12} {'run [s]':>10} {'spread [s]':>16} {'us/step':>9} {'sim s / wall s':>15}"
     )
-    for controller in [*PAPER_CONTROLLERS, *(f"{c}/flight" for c in PAPER_CONTROLLERS), "admittance/free-target"]:
+    rows = [*PAPER_CONTROLLERS, *(f"{c}/flight" for c in PAPER_CONTROLLERS)]
+    for controller in [*rows, "admittance/free-target", "admittance/flight-schedule"]:
         r = result[controller]
         spread = f"{r['run_spread_s'][0]:.3f}-{r['run_spread_s'][1]:.3f}"
         print(

@@ -48,6 +48,7 @@ KEYS = (
     "us_per_step",
     "flight_over_ideal_step",
     "free_target_over_stationary_step",
+    "schedule_over_constant_step",
     "batch_steps_per_s",
     "batch_peak_rss_mb",
     "sequential_steps_per_s",
@@ -149,6 +150,9 @@ def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: l
     }
     report["free_target_over_stationary_step"] = (
         rollout["admittance/free-target"]["us_per_step"] / rollout["admittance"]["us_per_step"]
+    )
+    report["schedule_over_constant_step"] = (
+        rollout["admittance/flight-schedule"]["us_per_step"] / rollout["admittance/flight"]["us_per_step"]
     )
 
     print(f"2/6 batches {batches}...", flush=True)
@@ -297,6 +301,13 @@ def table(report: dict) -> str:
         "",
         "",
         "<= 1.25",
+    )
+    row(
+        "scheduled step / constant-gain step, admittance flight-like",
+        f"{report['schedule_over_constant_step']:.2f}",
+        "",
+        "",
+        "<= 1.1",
     )
     if "flight_over_ideal_chunk" in report:
         row("Monte-Carlo chunk, flight-like / ideal", f"{report['flight_over_ideal_chunk']:.2f}", "", "", "<= 1.6")

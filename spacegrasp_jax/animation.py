@@ -55,6 +55,8 @@ class Scene:
         sphere_radius: m.
         ee: (T, 3) the EE point. force: (T, 3) N, the contact force on the EE.
         final_position_error_mm, final_orientation_error_deg: the run's final errors.
+        regime: (T,) words saying which regime of a gain schedule each row ran in
+            (``schedule.regime_labels``), or ``None`` for constant gains.
     """
 
     t: np.ndarray
@@ -67,6 +69,7 @@ class Scene:
     force: np.ndarray
     final_position_error_mm: float
     final_orientation_error_deg: float
+    regime: tuple[str, ...] | None = None
 
 
 def _box_edges(robot: Robot) -> np.ndarray:
@@ -96,10 +99,13 @@ def lar_poses(log, scenario) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(log.target_position) - np.einsum("tij,j->ti", R, com_in_lar), R
 
 
-def capture_scene(robot: Robot, scenario, log, rows=None) -> Scene:
+def capture_scene(robot: Robot, scenario, log, rows=None, regime=None) -> Scene:
     """The [`Scene`][spacegrasp_jax.animation.Scene] of ``log`` (a run of ``robot`` on
-    ``scenario``) at its steps ``rows`` (an index array; ``None``: every step)."""
+    ``scenario``) at its steps ``rows`` (an index array; ``None``: every step); ``regime``:
+    a gain schedule's regime in words at every step of ``log`` (``None``: constant gains)."""
     rows = slice(None) if rows is None else np.asarray(rows)
+    if regime is not None and len(regime) != len(np.asarray(log.t)):
+        raise AnimationError(f"regime: expected a label for each of the log's {len(log.t)} steps, got {len(regime)}")
     p_lar_all, R_lar_all = lar_poses(log, scenario)
     p_lar, R_lar = p_lar_all[rows], R_lar_all[rows]
     pose_ee = np.asarray(log.pose_ee)[rows]
@@ -141,6 +147,7 @@ def capture_scene(robot: Robot, scenario, log, rows=None) -> Scene:
         force=force,
         final_position_error_mm=1e3 * float(np.linalg.norm(final[:3])),
         final_orientation_error_deg=math.degrees(float(np.linalg.norm(spatial.rotation_log(R_wanted.T @ R_final)))),
+        regime=None if regime is None else tuple(np.asarray(regime, dtype=object)[rows].tolist()),
     )
 
 
@@ -192,6 +199,9 @@ class _Frame:
             va="top",
             fontsize=8,
         )
+        self.regime = None
+        if scene.regime is not None:
+            self.regime = self.figure.text(0.02, 0.015, "", fontsize=8, family="monospace", color="tab:purple")
         angle = np.linspace(0.0, 2.0 * math.pi, 32)
         self._circle = np.stack([np.cos(angle), np.sin(angle)], axis=-1)
 
@@ -215,6 +225,8 @@ class _Frame:
         tip = s.ee[k] + ARROW_M_PER_N * s.force[k]
         self.force.set_data_3d([s.ee[k, 0], tip[0]], [s.ee[k, 1], tip[1]], [s.ee[k, 2], tip[2]])
         self.clock.set_text(f"t = {s.t[k]:6.2f} s   |F| = {np.linalg.norm(s.force[k]):5.2f} N")
+        if self.regime is not None:
+            self.regime.set_text(f"gain schedule: {s.regime[k]}")
 
 
 def frame_rows(t: np.ndarray, fps: float, speed: float) -> np.ndarray:

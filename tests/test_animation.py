@@ -100,3 +100,45 @@ def test_animate_films_a_run_folder_and_refuses_what_it_cannot_do(robot, tmp_pat
     assert cli.main(["animate", str(out), "--out", str(tmp_path / "again.gif"), "--fps", "5", "--speed", "2"]) == 0
     with Image.open(tmp_path / "again.gif") as film:
         assert film.n_frames == 5  # 2 s at 5 frames a second, twice as fast
+
+
+def test_a_schedules_film_says_the_regime_of_each_frame(robot, gains, short_scenario, run, scene):
+    """A time schedule's knots at 0, 0.5 and 1.5 s: each frame's words name the interval of
+    the knots that holds its time, and only a schedule's frames carry them (the purple line)."""
+    from spacegrasp_jax.control.schedule import regime_labels, schedule_of, variable_series
+
+    schedule = schedule_of(gains, "time", [0.0, 0.5, 1.5], ["Kd"])
+    labels = regime_labels(schedule, variable_series("time", run.log))
+    rows = animation.frame_rows(run.log.t, fps=10.0, speed=1.0)
+    scheduled = animation.capture_scene(robot, short_scenario, run.log, rows, regime=labels)
+    words = dict(zip(np.round(scheduled.t, 6), scheduled.regime))
+    assert words[0.0] == "time 0 s: regime 1 of 2 (0-0.5 s)"
+    assert words[0.7] == "time 0.7 s: regime 2 of 2 (0.5-1.5 s)"
+    assert words[1.9] == "time 1.9 s: after the last knot (1.5 s)"
+    assert scene.regime is None
+    purple = []
+    for frame_scene in (scene, scheduled):
+        figure, _ = animation.draw_frame(frame_scene, 3)
+        figure.canvas.draw()
+        image = np.asarray(figure.canvas.buffer_rgba())[..., :3].astype(int)
+        purple.append(np.all(np.abs(image - [0x94, 0x67, 0xBD]) <= 8, axis=-1).sum())
+        plt.close(figure)
+    assert purple[0] == 0 and purple[1] > 50
+    with pytest.raises(animation.AnimationError, match="a label for each of the log's"):
+        animation.capture_scene(robot, short_scenario, run.log, rows, regime=labels[:-1])
+
+
+def test_the_film_finds_the_schedule_a_run_folder_ran_with(tmp_path):
+    """A kept schedule file, a shipped schedule by name, constant gains: the film's schedule."""
+    from spacegrasp_jax.cli.common import _run_schedule
+    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.control.schedule import GainSchedule, schedule_of
+
+    schedule = schedule_of(paper_gains(), "time", [0.0, 5.0], ["Kd"])
+    (tmp_path / "gains.json").write_text(json.dumps(schedule.to_dict("admittance")))
+    kept = _run_schedule(tmp_path, {"gains_file": "gains.json"}, "admittance", 7)
+    assert isinstance(kept, GainSchedule) and np.array_equal(kept.knots["Kd"], [0.0, 5.0])
+    assert isinstance(_run_schedule(tmp_path, {"gains_source": "flight_schedule"}, "admittance", 7), GainSchedule)
+    assert _run_schedule(tmp_path, {"gains_source": "flight"}, "admittance", 7) is None
+    (tmp_path / "constant.json").write_text(json.dumps(paper_gains().to_dict("admittance")))
+    assert _run_schedule(tmp_path, {"gains_file": "constant.json"}, "admittance", 7) is None

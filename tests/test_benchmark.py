@@ -33,6 +33,7 @@ def test_quick_benchmark_writes_every_key(tmp_path):
         *report["compile_s"].values(),
         *report["flight_over_ideal_step"].values(),
         report["free_target_over_stationary_step"],
+        report["schedule_over_constant_step"],
         *report["batch_steps_per_s"].values(),
         *report["gradient_over_forward"].values(),
         report["gradient_peak_mb"]["reverse"],

@@ -7,8 +7,9 @@ import json
 from pathlib import Path
 
 from spacegrasp_jax import experiment
-from spacegrasp_jax.cli.common import _file_name, _films
+from spacegrasp_jax.cli.common import _file_name, _films, _run_schedule
 from spacegrasp_jax.cli.options import UsageError, _add_command, _add_film_options, _add_overwrite_option
+from spacegrasp_jax.model import n_joints
 
 
 def _animate(args: argparse.Namespace) -> int:
@@ -54,7 +55,9 @@ def _animate(args: argparse.Namespace) -> int:
     except experiment.RunFolderError as error:
         raise UsageError(str(error)) from None
     logs = {key: experiment.read_log(folder / f"timeseries_{_file_name(key)}.npz") for key in keys}
-    written = _films(args, folder, keys, robot, scenario, logs, Path(args.out) if args.out else None)
+    laws = {key.split("/", 1)[0] for key in keys}
+    schedule = _run_schedule(folder, config, laws.pop(), n_joints(robot)) if len(laws) == 1 else None
+    written = _films(args, folder, keys, robot, scenario, logs, Path(args.out) if args.out else None, schedule)
     print(f"wrote {', '.join(str(path) for path in written)}")
     return 0
 

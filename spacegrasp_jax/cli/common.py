@@ -41,6 +41,7 @@ from spacegrasp_jax.control.schedule import (
     is_schedule_file,
     load_schedule,
     named_gain_set,
+    regime_labels,
     schedule_curves,
     variable_series,
 )
@@ -482,18 +483,39 @@ def _write_results(
     runfiles.write_json(out / "config.json", config | {"caption": caption})
 
 
+def _run_schedule(folder: Path, config: dict, law: str, n: int) -> GainSchedule | None:
+    """The gain schedule a run folder's run ran with (its kept ``gains.json``, or a shipped
+    schedule it names), ``None`` for constant gains; ``n`` the arm's joints."""
+    if config.get("gains_file"):
+        kept = folder / config["gains_file"]
+        return load_schedule(kept, law, n) if is_schedule_file(kept) else None
+    source = config.get("gains_source")
+    return named_gain_set(source) if source in TUNED_SCHEDULE_FILES else None
+
+
 def _films(
-    args: argparse.Namespace, folder: Path, keys: list[str], robot, scenario, logs: dict, film: Path | None = None
+    args: argparse.Namespace,
+    folder: Path,
+    keys: list[str],
+    robot,
+    scenario,
+    logs: dict,
+    film: Path | None = None,
+    schedule: GainSchedule | None = None,
 ) -> list[Path]:
     """Write the film (and its poster) of each run ``keys`` of ``folder``, to ``film`` (one run)
-    or to ``capture_<run>.gif`` in ``folder``; returns the files written."""
+    or to ``capture_<run>.gif`` in ``folder``; with a gain ``schedule``, each frame says which of
+    its regimes the capture was in. Returns the files written."""
     written = []
     for key in keys:
         out = film if film is not None else folder / f"capture_{_file_name(key)}.gif"
         poster = out.with_name(out.stem + "_poster.png")
         rows = animation.frame_rows(logs[key].t, args.fps, args.speed)
         print(f"drawing {len(rows)} frames of the {key} capture into {out}...", flush=True)
-        scene = animation.capture_scene(robot, scenario, logs[key], rows)
+        regime = None
+        if schedule is not None:
+            regime = regime_labels(schedule, variable_series(schedule.variable, logs[key]))
+        scene = animation.capture_scene(robot, scenario, logs[key], rows, regime=regime)
         title = f"{key}: {folder.name}"
         runfiles.write_atomically(out, lambda target: animation.write_film(scene, target, args.fps, title=title))
         runfiles.write_atomically(poster, lambda target: animation.write_poster(scene, target, title))

@@ -12,9 +12,8 @@ from spacegrasp_jax import (
     experiment,
     runfiles,
 )
-from spacegrasp_jax.cli.common import _claim, _file_name, _save_schedule_figure
+from spacegrasp_jax.cli.common import _claim, _file_name, _run_schedule, _save_schedule_figure
 from spacegrasp_jax.cli.options import UsageError, _add_command, _add_overwrite_option
-from spacegrasp_jax.control.schedule import is_schedule_file, load_schedule
 from spacegrasp_jax.realism import ideal
 
 
@@ -111,9 +110,8 @@ def _compare(args: argparse.Namespace) -> int:
     plots.save_figures(logs, out, runfiles.write_atomically, caption=caption)
     regimes = []  # the runs of a gain schedule: the regime each was in
     for index, ((folder, key, config, _, _), descriptor) in enumerate(zip(runs, descriptors), start=1):
-        kept = folder / config["gains_file"] if config.get("gains_file") else None
-        if kept is not None and is_schedule_file(kept):
-            schedule = load_schedule(kept, descriptor["law"], np.shape(logs[labels[index - 1]].u)[-1])
+        schedule = _run_schedule(folder, config, descriptor["law"], np.shape(logs[labels[index - 1]].u)[-1])
+        if schedule is not None:
             regimes += _save_schedule_figure(
                 out, schedule, {f"run_{index}": logs[labels[index - 1]]}, with_curves=False
             )

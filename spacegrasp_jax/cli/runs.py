@@ -130,7 +130,8 @@ def _run_controllers(args, controllers) -> int:
     if getattr(args, "animate", False):
         ran_away = {error.controller for error in diverged}
         logs = {controller: result.log for controller, result in results.items() if controller not in ran_away}
-        _films(args, out, list(logs), robot, scenario, logs)
+        schedule = gains if isinstance(gains, GainSchedule) else None
+        _films(args, out, list(logs), robot, scenario, logs, schedule=schedule)
     for error in diverged:
         print(
             f"spacegrasp: error: {error}; its log up to that step and the state there are in {out}/",

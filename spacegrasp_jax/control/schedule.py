@@ -322,6 +322,30 @@ def gains_along(schedule: GainSchedule, x: np.ndarray) -> dict[str, np.ndarray]:
     return {name: np.asarray(getattr(at, name)) for name, count in schedule.knot_counts().items() if count > 1}
 
 
+def regime_labels(schedule: GainSchedule, x: np.ndarray) -> list[str]:
+    """What regime a run was in at each value ``x`` (T,) of ``schedule``'s variable, in words
+    for a film's frames: the interval between two of the scheduled groups' knots (all of
+    them together) that holds it, e.g. ``"time 5.20 s: regime 2 of 4 (4-8 s)"``; before
+    the first knot and after the last the gains are the end knots', so those say so."""
+    unit = VARIABLES[schedule.variable]
+    knots = sorted(
+        {float(k) for name, count in schedule.knot_counts().items() if count > 1 for k in schedule.knots[name]}
+    )
+    if len(knots) < 2:
+        return [f"{schedule.variable} {value:.3g} {unit}: constant gains" for value in np.asarray(x, dtype=float)]
+    labels = []
+    for value in np.asarray(x, dtype=float):
+        i = int(np.searchsorted(knots, value, side="right"))
+        if i == 0:
+            where = f"before the first knot ({knots[0]:g} {unit})"
+        elif i == len(knots):
+            where = f"after the last knot ({knots[-1]:g} {unit})"
+        else:
+            where = f"regime {i} of {len(knots) - 1} ({knots[i - 1]:g}-{knots[i]:g} {unit})"
+        labels.append(f"{schedule.variable} {value:.3g} {unit}: {where}")
+    return labels
+
+
 __all__ = [
     "NAMED_GAIN_SETS",
     "TUNED_SCHEDULE_FILES",
@@ -339,6 +363,7 @@ __all__ = [
     "make_schedule",
     "schedule_curves",
     "gains_along",
+    "regime_labels",
     "schedule_of",
     "variable_series",
     "scheduling_variable",
