@@ -54,7 +54,10 @@ VARIABLES = {"time": "s", "distance": "m", "force": "N"}
 
 #: The shipped gain schedules by name -> their data file (beside it, ``*.settings.json``: the
 #: command, the selection and the held-out result).
-TUNED_SCHEDULE_FILES = {"flight_schedule": "tuned_admittance_flight_schedule.json"}
+TUNED_SCHEDULE_FILES = {
+    "flight_schedule": "tuned_admittance_flight_schedule.json",
+    "free_target_schedule": "tuned_admittance_free_target_schedule.json",
+}
 
 #: Every gain set known by name (``--gains NAME``): the constant ones
 #: (``control.gains.NAMED_GAINS``) and the shipped schedules.
@@ -240,11 +243,18 @@ def tuned_schedule(name: str = "flight_schedule") -> GainSchedule:
     """The shipped gain schedule ``name`` for the paper's arm and the admittance law.
 
     ``"flight_schedule"``: every admittance and PID group on the time since the approach
-    began, knots at 0, 4, 8, 12 and 17 s (195 gains), tuned by the gradient method (a fresh
+    began, knots at 0, 4, 8, 12 and 17 s (195 gains) tuned by the gradient method (a fresh
     batch of 32 flight-like captures a step, the median of four group means of their
     gradients, 75 steps, 15 minutes on 2 cores; the capture objective with a 4 N m budget)
-    from the paper's gains; the pseudoinverse exact. Held out on 1,000 fresh flight-like
-    captures of a seed chosen before any result (documentation, Gain schedules)."""
+    from the paper's gains, then a hold knot at 18 s with ``tuned_gains("flight")``, which
+    it keeps from then on (the 17 s knot's gains alone do not hold a capture); the
+    pseudoinverse exact. Held out on 1,000 fresh flight-like captures of a seed chosen before
+    any result, and on 30 s captures (documentation, Gain schedules).
+
+    ``"free_target_schedule"``: the same groups and knots for the free-target envelope,
+    tuned by the same recipe on that envelope (75 steps) from ``tuned_gains("free_target")``;
+    for the paper's 17 s capture window (past its last knot it holds two thirds of 30 s
+    captures). Held out on 1,000 fresh flight-like captures of that envelope."""
     return load_schedule(tuned_schedule_file(name), "admittance")
 
 
