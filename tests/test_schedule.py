@@ -308,6 +308,17 @@ def test_a_campaign_runs_schedules_beside_constant_gains_and_reloads_them(robot,
     assert isinstance(reloaded[2].gains, GainSchedule) and reloaded[2].gains.variable == "time"
     for a, b in zip(jax.tree.leaves(reloaded[2].gains), jax.tree.leaves(softer), strict=True):
         np.testing.assert_array_equal(a, b)
+    # ``replay`` runs a schedule's sample again as the campaign ran it, and draws its regime.
+    out = tmp_path / "replay"
+    assert (
+        cli.main(["replay", str(tmp_path / "c"), "--sample", "1", "--variant", "admittance/softer", "--out", str(out)])
+        == 0
+    )
+    replayed = json.loads((out / "summary.json").read_text())["admittance/softer"]
+    assert replayed["final_position_error_m"] == pytest.approx(
+        float(metrics["admittance/softer"]["final_position_error_m"][1]), rel=1e-9
+    )
+    assert (out / "regime_admittance_softer.png").is_file() and (out / "gain_schedule.png").is_file()
 
 
 EXPORT_PRINTER = r"""

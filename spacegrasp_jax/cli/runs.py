@@ -205,6 +205,10 @@ def _replay(args: argparse.Namespace) -> int:
         csv=args.csv,
         criteria=config,
     )
+    scheduled = [variant for variant in variants if isinstance(variant.gains, GainSchedule)]
+    for variant in scheduled:  # the regime each schedule's replay was in; its curves when it is the only one
+        logs = {variant.key: results[variant.key].log}
+        _save_schedule_figure(out, variant.gains, logs, with_curves=len(scheduled) == 1)
     print(
         f"wrote {out}/: table5.csv, summary.json, figures, timeseries_*.npz{', .csv' if args.csv else ''}, config.json"
     )
