@@ -53,7 +53,7 @@ from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.law import Output
 from spacegrasp_jax.control.pid import PID
 from spacegrasp_jax.control.registry import LAWS, as_controller, law_named
-from spacegrasp_jax.control.schedule import GainSchedule
+from spacegrasp_jax.control.schedule import GainSchedule, scheduled_knots
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, lost, success
 from spacegrasp_jax.scenario import Scenario
@@ -454,10 +454,7 @@ def find_margins(
 def schedule_knots(schedule: GainSchedule) -> list[float]:
     """Every knot of every scheduled group, once, in increasing order: where a schedule's
     margins are checked (``[0.0]`` for a schedule of constant groups)."""
-    knots = sorted(
-        {float(x) for name, count in schedule.knot_counts().items() if count > 1 for x in schedule.knots[name]}
-    )
-    return knots or [0.0]
+    return scheduled_knots(schedule) or [0.0]
 
 
 def frozen_gains(schedule: GainSchedule, x: float) -> Gains:

@@ -332,15 +332,21 @@ def gains_along(schedule: GainSchedule, x: np.ndarray) -> dict[str, np.ndarray]:
     return {name: np.asarray(getattr(at, name)) for name, count in schedule.knot_counts().items() if count > 1}
 
 
+def scheduled_knots(schedule: GainSchedule) -> list[float]:
+    """Every knot of every scheduled group (more than one knot), once, in increasing order
+    (``[]`` when no group is scheduled)."""
+    return sorted(
+        {float(x) for name, count in schedule.knot_counts().items() if count > 1 for x in schedule.knots[name]}
+    )
+
+
 def regime_labels(schedule: GainSchedule, x: np.ndarray) -> list[str]:
     """What regime a run was in at each value ``x`` (T,) of ``schedule``'s variable, in words
     for a film's frames: the interval between two of the scheduled groups' knots (all of
     them together) that holds it, e.g. ``"time 5.20 s: regime 2 of 4 (4-8 s)"``; before
     the first knot and after the last the gains are the end knots', so those say so."""
     unit = VARIABLES[schedule.variable]
-    knots = sorted(
-        {float(k) for name, count in schedule.knot_counts().items() if count > 1 for k in schedule.knots[name]}
-    )
+    knots = scheduled_knots(schedule)
     if len(knots) < 2:
         return [f"{schedule.variable} {value:.3g} {unit}: constant gains" for value in np.asarray(x, dtype=float)]
     labels = []
@@ -374,6 +380,7 @@ __all__ = [
     "schedule_curves",
     "gains_along",
     "regime_labels",
+    "scheduled_knots",
     "schedule_of",
     "variable_series",
     "scheduling_variable",
