@@ -105,6 +105,7 @@ def run_method(
             target = snapshots / f"{mark:g}min.npz"
             shutil.copyfile(checkpoint, target)
             taken[f"{mark:g}"] = {"path": str(target.relative_to(folder)), "at_s": time.monotonic() - start}
+            taken[f"{mark:g}"] |= snapshot_work(target)
     if process.poll() is None:
         process.send_signal(signal.SIGINT)  # stops after the step under way; a second one at once
         try:
@@ -119,6 +120,21 @@ def run_method(
         "exit": process.returncode,
         "log_tail": stderr[-2000:],
     }
+
+
+def snapshot_work(path: Path) -> dict:
+    """What a run had done when its checkpoint ``path`` was copied: its steps (CMA-ES:
+    generations), the forward rollouts (CMA-ES: the start's mean, then each generation's
+    candidates and mean on the batch) or the gradients of one capture (the start, each step
+    and each rejected candidate on a batch) it had computed."""
+    with np.load(path, allow_pickle=False) as stored:
+        meta = json.loads(str(stored["meta"]))
+    batch = meta["config"]["batch"]
+    if "generation" in meta:  # a CMA-ES checkpoint
+        generations = meta["generation"]
+        return {"steps": generations, "rollouts": (1 + generations * (meta["config"]["population"] + 1)) * batch}
+    rejected = sum(int(row.get("rejected_candidates", 0)) for row in meta["history"])
+    return {"steps": meta["step"], "gradients": (1 + meta["step"] + rejected) * batch}
 
 
 def snapshot_gains(method: str, path: Path, run_folder: Path) -> dict:

@@ -1,6 +1,7 @@
 """Wall time of a whole tuning run, compile included, and the rollouts each method uses.
 
     python -m spacegrasp_jax.benchmarks.tuning [--out results/benchmarks] [--methods cmaes,gradient]
+    python -m spacegrasp_jax.benchmarks.tuning --races notebooks/data [--out results/benchmarks]
 
 Runs ``spacegrasp tune`` as a user does, each run in its own process with no persistent
 compilation cache (``--compile-cache none``: the compile a first run pays), under the flight
@@ -17,6 +18,14 @@ the others (about the compile), that median, and the rollouts used: per CMA-ES g
 ``(population + 1) x batch`` forward rollouts (the candidates and the mean, and the last
 mean once more), per gradient step ``batch`` gradients of one capture (each costs a few
 forward rollouts: ``benchmarks.gradient``), and the totals per method. Writes ``tuning.json``.
+
+With ``--races DIR`` it runs nothing: it reports every finished race under ``DIR``
+(``benchmarks.race``, a folder holding ``race.json``) per problem (constant gains or a
+schedule), training seed, method and wall-time mark: the held-out success with its 95%
+interval, the steps (CMA-ES: generations), forward rollouts or gradients of one capture used
+by the mark, the compile (the first step's wall time less the median of the others), and the
+gradient method's margin over CMA-ES at the same mark (exact McNemar on the same held-out
+captures). Writes ``races.json`` and prints the table.
 """
 
 from __future__ import annotations
@@ -126,11 +135,122 @@ def shipped_difference(gains: dict) -> float:
     return max(differences)
 
 
+def compile_estimate(history: Path) -> float:
+    """A run's compile, about: its first step's wall time less the median of the others (s)."""
+    with open(history, newline="") as file:
+        walls = [float(row["wall_s"]) for row in csv.DictReader(file) if row["wall_s"] not in ("", "nan")]
+    return walls[0] - statistics.median(walls[1:]) if len(walls) > 1 else float("nan")
+
+
+def race_rows(root: Path) -> list[dict]:
+    """One row per finished race under ``root``, method and mark (module docstring)."""
+    rows = []
+    for record_path in sorted(root.glob("*/race.json")):
+        record = json.loads(record_path.read_text())
+        if "heldout" not in record:
+            continue
+        settings = record["settings"]
+        for method, run in record["methods"].items():
+            history = record_path.parent / method / "history.csv"
+            compile_s = compile_estimate(history) if history.exists() else float("nan")
+            for mark, snapshot in run["snapshots"].items():
+                held_out = record["heldout"][f"{method}_{mark}min"]
+                rows.append(
+                    {
+                        "race": record_path.parent.name,
+                        "problem": f"schedule {settings['schedule']}" if "schedule" in settings else "constant gains",
+                        "training_seed": settings["seed"],
+                        "heldout_seed": settings["heldout_seed"],
+                        "method": method,
+                        "minutes": float(mark),
+                        "success": held_out["success"],
+                        "vs_cmaes_same_mark": held_out.get("vs_cmaes_same_mark"),
+                        "steps": snapshot.get("steps"),
+                        "rollouts": snapshot.get("rollouts"),
+                        "gradients": snapshot.get("gradients"),
+                        "compile_s": compile_s,
+                    }
+                )
+    return sorted(rows, key=lambda row: (row["problem"], row["training_seed"], row["method"], row["minutes"]))
+
+
+#: A win: the gradient method captures at least this much more of the held-out captures
+#: than CMA-ES at the same mark, with an exact McNemar p below ``WIN_P``.
+WIN_POINTS, WIN_P = 0.03, 0.05
+
+
+def race_verdicts(rows: list[dict]) -> list[dict]:
+    """Per problem and mark that every training seed of the problem reached: on how many
+    seeds a gradient-using method won (``WIN_POINTS``, ``WIN_P``) against CMA-ES."""
+    verdicts = []
+    for problem in sorted({row["problem"] for row in rows}):
+        ours = [row for row in rows if row["problem"] == problem and row["vs_cmaes_same_mark"]]
+        seeds = sorted({row["training_seed"] for row in rows if row["problem"] == problem})
+        for minutes in sorted({row["minutes"] for row in ours}):
+            at_mark = [row for row in ours if row["minutes"] == minutes]
+            if sorted({row["training_seed"] for row in at_mark}) != seeds:
+                continue
+            won = [
+                row["training_seed"]
+                for row in at_mark
+                if row["vs_cmaes_same_mark"]["rate_difference"] >= WIN_POINTS
+                and row["vs_cmaes_same_mark"]["p_value"] < WIN_P
+            ]
+            verdicts.append({"problem": problem, "minutes": minutes, "seeds": seeds, "won_on": sorted(set(won))})
+    return verdicts
+
+
+def race_table(rows: list[dict]) -> str:
+    """The rows as a markdown table."""
+    lines = [
+        "| problem | training seed | minutes | method | held-out success [95% CI] | steps | rollouts or gradients "
+        "| compile, s | vs CMA-ES at the same mark (McNemar) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for row in rows:
+        success, versus = row["success"], row["vs_cmaes_same_mark"]
+        used = f"{row['rollouts']} rollouts" if row["rollouts"] is not None else f"{row['gradients']} gradients"
+        margin = (
+            f"{100 * versus['rate_difference']:+.1f} points, {versus['only_candidate']} vs "
+            f"{versus['only_reference']}, p = {versus['p_value']:.2g}"
+            if versus
+            else ""
+        )
+        lines.append(
+            f"| {row['problem']} | {row['training_seed']} | {row['minutes']:g} | {row['method']} | "
+            f"{100 * success['rate']:.1f}% [{100 * success['low']:.1f}, {100 * success['high']:.1f}] | "
+            f"{row['steps']} | {used} | {row['compile_s']:.0f} | {margin} |"
+        )
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks")
     parser.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {', '.join(METHODS)}")
+    parser.add_argument("--races", metavar="DIR", help="report the finished races under DIR instead of running")
     args = parser.parse_args(argv)
+    if args.races is not None:
+        if not Path(args.races).is_dir():
+            parser.error(f"--races: {args.races} is not a folder")
+        rows = race_rows(Path(args.races))
+        if not rows:
+            parser.error(
+                f"--races: no finished race (a folder with race.json and its held-out results) in {args.races}"
+            )
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        verdicts = race_verdicts(rows)
+        (out / "races.json").write_text(json.dumps({"rows": rows, "verdicts": verdicts}, indent=1) + "\n")
+        print(race_table(rows))
+        for verdict in verdicts:
+            print(
+                f"{verdict['problem']}, {verdict['minutes']:g} min: the gradient method beats CMA-ES by "
+                f"{100 * WIN_POINTS:g} points or more (McNemar p < {WIN_P:g}) on {len(verdict['won_on'])} of "
+                f"{len(verdict['seeds'])} training seeds"
+            )
+        print(f"wrote {out / 'races.json'}")
+        return 0
     methods = [method for method in args.methods.split(",") if method]
     unknown = set(methods) - set(METHODS)
     if unknown:

@@ -181,3 +181,43 @@ def test_the_race_pairs_each_method_with_cmaes_at_the_same_mark_and_refuses_bad_
             race.main([*argv, "--out", str(tmp_path / "race")])
         assert refused.value.code == 2, argv
     assert not (tmp_path / "race").exists()
+
+
+def test_the_race_report_reads_each_mark_off_the_committed_campaigns_and_the_runs(tmp_path, capsys):
+    """``benchmarks.tuning --races``: every row's success and McNemar counts recounted from the
+    held-out campaign's per-sample flags, its steps from the run's history."""
+    import csv
+    import json
+    from pathlib import Path
+
+    from spacegrasp_jax.benchmarks import tuning
+    from spacegrasp_jax.campaign import load_samples
+
+    data = Path(__file__).parent.parent / "notebooks" / "data"
+    assert tuning.main(["--races", str(data), "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "races.json").read_text())
+    assert {row["race"] for row in report["rows"]} >= {"race", "race_seed1", "race_seed2", "race_schedule_time"}
+    for row in report["rows"]:
+        _, by_variant = load_samples(data / row["race"] / "heldout" / "samples.npz")
+        flags = {key.split("/", 1)[1]: np.asarray(value["success"], bool) for key, value in by_variant.items()}
+        hits = flags[f"{row['method']}_{row['minutes']:g}min"]
+        assert (row["success"]["successes"], row["success"]["samples"]) == (hits.sum(), hits.size)
+        if row["method"] != "cmaes":
+            cmaes = flags[f"cmaes_{row['minutes']:g}min"]
+            versus = row["vs_cmaes_same_mark"]
+            assert (versus["only_candidate"], versus["only_reference"]) == (
+                (hits & ~cmaes).sum(),
+                (cmaes & ~hits).sum(),
+            )
+            assert row["gradients"] % 32 == 0 and row["rollouts"] is None
+        with open(data / row["race"] / row["method"] / "history.csv", newline="") as file:
+            steps_run = len(list(csv.DictReader(file))) - 1
+        assert 0 < row["steps"] <= steps_run
+    seed0 = {(row["method"], row["minutes"]): row for row in report["rows"] if row["race"] == "race"}
+    assert seed0[("gradient_fresh", 15.0)]["steps"] == 75  # the run's whole schedule, done by 15 minutes
+    verdict = next(v for v in report["verdicts"] if v["problem"] == "constant gains" and v["minutes"] == 10.0)
+    assert verdict["seeds"] == [0, 1, 2] and verdict["won_on"] == [0, 1, 2]
+    assert "| constant gains | 1 | 10 | gradient_fresh | 94.8% [93.2, 96.0] |" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as refused:
+        tuning.main(["--races", str(tmp_path / "none"), "--out", str(tmp_path)])
+    assert refused.value.code == 2
