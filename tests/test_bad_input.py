@@ -306,8 +306,16 @@ def cases(paths, out):
             "--aggregate: clip combines the samples' separate gradients of a run under a realism",
         ),
         "tune aggregate under CMA-ES": (
-            [*TUNE, "--realism", "flight", "--aggregate", "clip", "--out", out],
+            [*TUNE, "--method", "cmaes", "--realism", "flight", "--aggregate", "clip", "--out", out],
             "--aggregate: a setting of the gradient method; CMA-ES does not use it",
+        ),
+        "tune CMA-ES's population under the flight recipe": (
+            [*TUNE, "--realism", "flight", "--population", "8", "--out", out],
+            "--population: a setting of CMA-ES; without --method, tune under --realism runs the gradient method",
+        ),
+        "tune CMA-ES's step size under the flight recipe": (
+            [*TUNE, "--realism", "flight", "--step-size", "0.1", "--out", out],
+            "--step-size: a setting of CMA-ES",
         ),
         "tune lr under CMA-ES": ([*TUNE, "--lr", "0.3", "--out", out], "--lr: a setting of the gradient method"),
         "tune torque guard under CMA-ES": (

@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -244,6 +245,58 @@ def cmaes_command(tmp_path, out, steps):
     command = command[:cut] + ["--population", "3"]
     command[command.index("--steps") + 1] = str(steps)
     return command
+
+
+RACES = Path(__file__).parent.parent / "notebooks" / "data"
+
+#: The options of a race's command that choose its method (the recipe); the rest state the problem.
+RECIPE_OPTIONS = {"--method": 1, "--fresh-batches": 0, "--aggregate": 1, "--steps": 1, "--batch": 1}
+
+
+def _problem_and_recipe(command: str) -> tuple[list[str], list[str]]:
+    """A race's ``spacegrasp tune`` command split into the problem's options and the method's."""
+    words, problem, recipe = command.split()[2:], [], []
+    while words:
+        word = words.pop(0)
+        if word in RECIPE_OPTIONS:
+            recipe += [word, *[words.pop(0) for _ in range(RECIPE_OPTIONS[word])]]
+        elif word != "--out":
+            problem.append(word)
+        else:
+            words.pop(0)
+    return problem, recipe
+
+
+@pytest.mark.parametrize("race", ["race", "race_schedule_time"])
+def test_without_method_tune_runs_the_recipe_that_won_the_race_on_its_problem(race, tmp_path):
+    """The race's record (committed data) names the winner at 15 minutes, held out; tune
+    given only the race's problem must build the winner's configuration, option for option."""
+    from spacegrasp_jax.cli import build_parser
+    from spacegrasp_jax.cli.tune import _tune_config
+
+    record = json.loads((RACES / race / "race.json").read_text())
+    winner = record["heldout"]["gradient_fresh_15min"]
+    assert winner["vs_cmaes_same_mark"]["p_value"] < 0.05
+    assert winner["success"]["rate"] > record["heldout"]["cmaes_15min"]["success"]["rate"]
+    problem, recipe = _problem_and_recipe(record["methods"]["gradient_fresh"]["command"])
+    assert "--method" in recipe and "--realism" in problem
+
+    def config(*options):
+        return _tune_config(build_parser().parse_args(["tune", "--out", str(tmp_path / "x"), *options]), None)
+
+    assert config(*problem) == config(*problem, *recipe)
+    overridden = config(*problem, "--batch", "8", "--no-fresh-batches", "--steps", "3")
+    assert (overridden.method, overridden.batch, overridden.fresh_batches, overridden.steps) == (
+        "gradient",
+        8,
+        False,
+        3,
+    )
+    explicit = config(*problem, "--method", "gradient")  # an explicit method keeps its own defaults
+    assert (explicit.aggregate, explicit.fresh_batches, explicit.batch) == ("clip", False, 4)
+    assert config(*problem, "--method", "cmaes").method == "cmaes"
+    ideal = [word for word in problem if word not in ("--realism", "flight")]
+    assert (config(*ideal).method, config(*ideal).batch, config(*ideal).steps) == ("cmaes", 4, 60)
 
 
 @pytest.mark.slow

@@ -65,7 +65,7 @@ from spacegrasp_jax.tuning.run import (
     tune,
     tuned_base,
 )
-from spacegrasp_jax.tuning.tune import KEEPS, METHODS, TUNING_RANGES, TuneConfig
+from spacegrasp_jax.tuning.tune import KEEPS, METHODS, TUNING_RANGES, TuneConfig, default_recipe
 
 
 def _tune(args: argparse.Namespace) -> int:
@@ -265,29 +265,45 @@ def _tune_config(args: argparse.Namespace, robot) -> TuneConfig:
 
 def _tune_fields(args: argparse.Namespace, robot) -> dict:
     """TuneConfig's fields as the command line gives them, not yet checked together
-    (``--realism flight``'s actuators ``robot``'s motors)."""
+    (``--realism flight``'s actuators ``robot``'s motors). Without ``--method``, the
+    problem's recipe (``tuning.tune.default_recipe``) fills the options not given."""
+    recipe = default_recipe(args.realism) if args.method is None else {}
+    if recipe.get("method") == "gradient":
+        for option, value in (("--population", args.population), ("--step-size", args.step_size)):
+            if value is not None:
+                raise UsageError(
+                    f"{option}: a setting of CMA-ES; without --method, tune under --realism runs the gradient "
+                    "method, the measured winner there (choose --method cmaes)"
+                )
+
+    def given_or(value, field):
+        return value if value is not None else recipe.get(field, getattr(TuneConfig, field))
+
+    method = given_or(args.method, "method")
     return dict(
         controller=args.controller,
-        steps=args.steps,
+        steps=given_or(args.steps, "steps"),
         learning_rate=args.lr,
         optimizer=args.optimizer,
         weights=Weights.parse(args.weights or ""),
-        batch=args.batch,
+        batch=given_or(args.batch, "batch"),
         cvar_alpha=args.cvar,
         seed=args.seed,
         frozen=tuple(filter(None, (args.freeze or "").split(","))),
         gradient=args.gradient,
         torque_guard_Nm=args.torque_guard,
         realism=load_realism(args.realism, robot).to_dict() if args.realism else None,
-        aggregate=args.aggregate or ("clip" if args.realism and args.method == "gradient" else "mean"),
+        aggregate=args.aggregate
+        or recipe.get("aggregate")
+        or ("clip" if args.realism and method == "gradient" else "mean"),
         ranges=_ranges(args, TUNING_RANGES),
         objective=args.objective,
-        method=args.method,
+        method=method,
         population=args.population,
-        step_size=args.step_size,
+        step_size=given_or(args.step_size, "step_size"),
         torque_fraction=args.torque_fraction,
         torque_cap_Nm=args.torque_cap,
-        fresh_batches=args.fresh_batches,
+        fresh_batches=given_or(args.fresh_batches, "fresh_batches"),
         keep=args.keep,
         patience=args.patience,
         validation_size=args.validation_size,
@@ -318,7 +334,13 @@ def add_parsers(commands) -> None:
     tune.add_argument("--out", required=True, help="output folder (also holds the checkpoint)")
     _add_overwrite_option(tune)
     tune.add_argument("--controller", choices=CONTROLLERS, default="admittance")
-    tune.add_argument("--steps", type=_whole(1, 1_000_000), default=60, help="optimiser steps (default 60)")
+    tune.add_argument(
+        "--steps",
+        type=_whole(1, 1_000_000),
+        default=None,
+        help=f"optimiser steps or CMA-ES generations (default {TuneConfig.steps}; without --method under --realism, "
+        f"{default_recipe({})['steps']})",
+    )
     tune.add_argument(
         "--lr",
         type=_real(0.0, 10.0, above=True),
@@ -328,8 +350,10 @@ def add_parsers(commands) -> None:
     tune.add_argument(
         "--method",
         choices=METHODS,
-        default=TuneConfig.method,
-        help=f"gradient: optax on the gradient; cmaes: CMA-ES, --steps generations of forward rollouts (default {TuneConfig.method})",
+        default=None,
+        help="gradient: optax on the gradient; cmaes: CMA-ES, --steps generations of forward rollouts (default: the "
+        "problem's measured winner: under --realism, gradient with --fresh-batches --aggregate median_of_means "
+        f"--batch 32 --steps 75; in the ideal loop, {default_recipe(None)['method']})",
     )
     tune.add_argument(
         "--population",
@@ -340,12 +364,16 @@ def add_parsers(commands) -> None:
     tune.add_argument(
         "--step-size",
         type=_real(0.0, 10.0, above=True),
-        default=TuneConfig.step_size,
+        default=None,
         help=f"CMA-ES's initial step in log-gain units (default {TuneConfig.step_size}: about +-30%% on every gain)",
     )
     add_objective_arguments(tune)
     tune.add_argument(
-        "--batch", type=_whole(1, 65_536), default=4, help="scenarios per step: nominal + batch-1 perturbed (default 4)"
+        "--batch",
+        type=_whole(1, 65_536),
+        default=None,
+        help=f"scenarios per step: nominal + batch-1 perturbed (default {TuneConfig.batch}; without --method under "
+        f"--realism, {default_recipe({})['batch']})",
     )
     tune.add_argument(
         "--cvar",
@@ -380,12 +408,14 @@ def add_parsers(commands) -> None:
         choices=AGGREGATES,
         help="the gradient method under --realism: combine the samples' gradients as their mean; clip each to 3x "
         "the median norm first; their trimmed mean (10%% at each end, per gain); or the median of 4 group means "
-        "(default: clip there, else mean)",
+        "(default: without --method, median_of_means there; with --method gradient, clip there; else mean)",
     )
     tune.add_argument(
         "--fresh-batches",
-        action="store_true",
-        help="the gradient method under --realism: a new batch of the envelope for every step (default: one batch)",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the gradient method under --realism: a new batch of the envelope for every step (default: without "
+        "--method, a new batch; with --method gradient, one batch)",
     )
     tune.add_argument(
         "--patience",
