@@ -311,7 +311,7 @@ def cases(paths, out):
         ),
         "tune CMA-ES's population under the flight recipe": (
             [*TUNE, "--realism", "flight", "--population", "8", "--out", out],
-            "--population: a setting of CMA-ES; without --method, tune under --realism runs the gradient method",
+            "--population: a setting of CMA-ES; without --method, tune in a flight-like loop runs the gradient method",
         ),
         "tune CMA-ES's step size under the flight recipe": (
             [*TUNE, "--realism", "flight", "--step-size", "0.1", "--out", out],

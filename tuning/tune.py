@@ -35,7 +35,7 @@ from spacegrasp_jax.experiment import loop_options
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import SampleLoops, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
-from spacegrasp_jax.realism import Realism, make_realism
+from spacegrasp_jax.realism import Realism, ideal, make_realism
 from spacegrasp_jax.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import FullLog, LoopOptions, RunSpec, closed_loop, largest_divisor
@@ -50,21 +50,27 @@ METHODS = ("gradient", "cmaes")
 
 #: What ``spacegrasp tune`` runs when ``--method`` is not given, by problem: the recipe that
 #: won the race at equal wall time on that problem (documentation, Tuning the gains, "Which
-#: method"). Under a realism (the flight-like loop), on constant gains and on gain schedules,
-#: the gradient method on a fresh batch of 32 captures every step, combined as the median of
-#: four group means, for 75 steps (about 15 minutes on 2 cores). The ideal loop was not
-#: raced: CMA-ES, the earlier default, stays its default.
+#: method"). In a flight-like loop (a realism other than the ideal one), on constant gains and
+#: on gain schedules, the gradient method on a fresh batch of 32 captures every step, combined
+#: as the median of four group means, for 75 steps (about 15 minutes on 2 cores). The ideal
+#: loop was not raced: CMA-ES, the earlier default, stays its default.
 RECIPES = {
     "ideal": {"method": "cmaes"},
-    "realism": {"method": "gradient", "fresh_batches": True, "aggregate": "median_of_means", "batch": 32, "steps": 75},
+    "flight_like": {
+        "method": "gradient",
+        "fresh_batches": True,
+        "aggregate": "median_of_means",
+        "batch": 32,
+        "steps": 75,
+    },
 }
 
 
-def default_recipe(realism: dict | str | None) -> dict:
+def default_recipe(realism: dict | None) -> dict:
     """The TuneConfig fields ``spacegrasp tune`` fills when ``--method`` is not given, for a
-    run under ``realism`` (a realism or its name; ``None``: the ideal loop). An option given
-    explicitly overrides its field."""
-    return dict(RECIPES["ideal" if realism is None else "realism"])
+    run under ``realism`` (``Realism.to_dict()``; ``None`` or the ideal realism's: the
+    paper's loop). An option given explicitly overrides its field."""
+    return dict(RECIPES["ideal" if realism is None or realism == ideal().to_dict() else "flight_like"])
 
 
 #: The robust batch's perturbations: initial joint angles, LAR pose and contact stiffness,

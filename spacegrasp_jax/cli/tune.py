@@ -65,7 +65,7 @@ from spacegrasp_jax.tuning.run import (
     tune,
     tuned_base,
 )
-from spacegrasp_jax.tuning.tune import KEEPS, METHODS, TUNING_RANGES, TuneConfig, default_recipe
+from spacegrasp_jax.tuning.tune import KEEPS, METHODS, RECIPES, TUNING_RANGES, TuneConfig, default_recipe
 
 
 def _tune(args: argparse.Namespace) -> int:
@@ -267,13 +267,14 @@ def _tune_fields(args: argparse.Namespace, robot) -> dict:
     """TuneConfig's fields as the command line gives them, not yet checked together
     (``--realism flight``'s actuators ``robot``'s motors). Without ``--method``, the
     problem's recipe (``tuning.tune.default_recipe``) fills the options not given."""
-    recipe = default_recipe(args.realism) if args.method is None else {}
+    realism = load_realism(args.realism, robot).to_dict() if args.realism else None
+    recipe = default_recipe(realism) if args.method is None else {}
     if recipe.get("method") == "gradient":
         for option, value in (("--population", args.population), ("--step-size", args.step_size)):
             if value is not None:
                 raise UsageError(
-                    f"{option}: a setting of CMA-ES; without --method, tune under --realism runs the gradient "
-                    "method, the measured winner there (choose --method cmaes)"
+                    f"{option}: a setting of CMA-ES; without --method, tune in a flight-like loop runs the "
+                    "gradient method, the measured winner there (choose --method cmaes)"
                 )
 
     def given_or(value, field):
@@ -292,7 +293,7 @@ def _tune_fields(args: argparse.Namespace, robot) -> dict:
         frozen=tuple(filter(None, (args.freeze or "").split(","))),
         gradient=args.gradient,
         torque_guard_Nm=args.torque_guard,
-        realism=load_realism(args.realism, robot).to_dict() if args.realism else None,
+        realism=realism,
         aggregate=args.aggregate
         or recipe.get("aggregate")
         or ("clip" if args.realism and method == "gradient" else "mean"),
@@ -338,8 +339,8 @@ def add_parsers(commands) -> None:
         "--steps",
         type=_whole(1, 1_000_000),
         default=None,
-        help=f"optimiser steps or CMA-ES generations (default {TuneConfig.steps}; without --method under --realism, "
-        f"{default_recipe({})['steps']})",
+        help=f"optimiser steps or CMA-ES generations (default {TuneConfig.steps}; without --method in a flight-like loop, "
+        f"{RECIPES['flight_like']['steps']})",
     )
     tune.add_argument(
         "--lr",
@@ -351,9 +352,10 @@ def add_parsers(commands) -> None:
         "--method",
         choices=METHODS,
         default=None,
-        help="gradient: optax on the gradient; cmaes: CMA-ES, --steps generations of forward rollouts (default: the "
-        "problem's measured winner: under --realism, gradient with --fresh-batches --aggregate median_of_means "
-        f"--batch 32 --steps 75; in the ideal loop, {default_recipe(None)['method']})",
+        help="gradient: optax on the gradient; cmaes: CMA-ES, --steps generations of forward rollouts (default: "
+        "the problem's measured winner; in a flight-like loop, --realism other than ideal, gradient with "
+        f"--fresh-batches --aggregate median_of_means --batch {RECIPES['flight_like']['batch']} --steps "
+        f"{RECIPES['flight_like']['steps']}; in the ideal loop, {RECIPES['ideal']['method']})",
     )
     tune.add_argument(
         "--population",
@@ -372,8 +374,8 @@ def add_parsers(commands) -> None:
         "--batch",
         type=_whole(1, 65_536),
         default=None,
-        help=f"scenarios per step: nominal + batch-1 perturbed (default {TuneConfig.batch}; without --method under "
-        f"--realism, {default_recipe({})['batch']})",
+        help=f"scenarios per step: nominal + batch-1 perturbed (default {TuneConfig.batch}; without --method in a "
+        f"flight-like loop, {RECIPES['flight_like']['batch']})",
     )
     tune.add_argument(
         "--cvar",
