@@ -268,11 +268,11 @@ def _problem_and_recipe(command: str) -> tuple[list[str], list[str]]:
 
 
 @pytest.mark.parametrize("race", ["race", "race_schedule_time"])
-def test_without_method_tune_runs_the_recipe_that_won_the_race_on_its_problem(race, tmp_path):
+def test_without_method_tune_runs_the_recipe_that_won_the_race_on_its_problem(race, tmp_path, capsys):
     """The race's record (committed data) names the winner at 15 minutes, held out; tune
     given only the race's problem must build the winner's configuration, option for option."""
     from spacegrasp_jax.cli import build_parser
-    from spacegrasp_jax.cli.tune import _tune_config
+    from spacegrasp_jax.cli.tune import _say_recipe, _tune_config
 
     record = json.loads((RACES / race / "race.json").read_text())
     winner = record["heldout"]["gradient_fresh_15min"]
@@ -298,6 +298,8 @@ def test_without_method_tune_runs_the_recipe_that_won_the_race_on_its_problem(ra
     ideal = [word for word in problem if word not in ("--realism", "flight")]
     assert (config(*ideal).method, config(*ideal).batch, config(*ideal).steps) == ("cmaes", 4, 60)
     assert config(*ideal, "--realism", "ideal").method == "cmaes"  # the paper's loop under the realism code: not raced
+    _say_recipe(config(*problem))
+    assert "gradient method, fresh batches of 32, median_of_means, 75 steps" in capsys.readouterr().err
 
 
 @pytest.mark.slow

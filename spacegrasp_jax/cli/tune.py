@@ -105,6 +105,8 @@ def _tune(args: argparse.Namespace) -> int:
     if not args.gains:
         _paper_gains_for(robot, args.controller)
     _claim(args, Path(args.out))
+    if args.method is None:
+        _say_recipe(config)
     try:
         result = tune(
             Path(args.out),
@@ -120,6 +122,18 @@ def _tune(args: argparse.Namespace) -> int:
     except TuneSetupError as error:
         raise UsageError(str(error)) from None
     return _tune_finished(Path(args.out), result)
+
+
+def _say_recipe(config: TuneConfig) -> None:
+    """Which method ``tune`` without ``--method`` runs, and why (stderr)."""
+    if config.method == "gradient":
+        chosen = (
+            f"the gradient method, {'fresh batches' if config.fresh_batches else 'one batch'} of {config.batch}, "
+            f"{config.aggregate}, {config.steps} steps: the measured winner in a flight-like loop"
+        )
+    else:
+        chosen = "CMA-ES, the ideal loop's default (not raced)"
+    print(f"no --method: {chosen} (--method gradient or cmaes to choose)", file=sys.stderr, flush=True)
 
 
 def _resume_tune(args: argparse.Namespace):
