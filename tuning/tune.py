@@ -52,7 +52,7 @@ METHODS = ("gradient", "cmaes")
 #: won the race at equal wall time on that problem (documentation, Tuning the gains, "Which
 #: method"). In a flight-like loop (a realism other than the ideal one), on constant gains and
 #: on gain schedules, the gradient method on a fresh batch of 32 captures every step, combined
-#: as the median of four group means, for 75 steps (about 15 minutes on 2 cores). The ideal
+#: as the median of four group means, for 75 steps (14-21 minutes on 2-core VMs). The ideal
 #: loop was not raced: CMA-ES, the earlier default, stays its default.
 RECIPES = {
     "ideal": {"method": "cmaes"},
