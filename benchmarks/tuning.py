@@ -95,8 +95,7 @@ def run_call(
     wall_s = time.perf_counter() - start
     with open(out / "history.csv", newline="") as file:
         rows = list(csv.DictReader(file))
-    step_walls = [float(row["wall_s"]) for row in rows if row["wall_s"] not in ("", "nan")]
-    first, later = step_walls[0], step_walls[1:]
+    first, *later = step_walls(out / "history.csv")
     per_step = statistics.median(later) if later else float("nan")
     if method == "cmaes":
         population = int(extra[extra.index("--population") + 1])
@@ -135,11 +134,16 @@ def shipped_difference(gains: dict) -> float:
     return max(differences)
 
 
+def step_walls(history: Path) -> list[float]:
+    """A run's wall time of each step that records one (s), from its ``history.csv``."""
+    with open(history, newline="") as file:
+        return [float(row["wall_s"]) for row in csv.DictReader(file) if row["wall_s"] not in ("", "nan")]
+
+
 def compile_estimate(history: Path) -> float:
     """A run's compile, about: its first step's wall time less the median of the others (s)."""
-    with open(history, newline="") as file:
-        walls = [float(row["wall_s"]) for row in csv.DictReader(file) if row["wall_s"] not in ("", "nan")]
-    return walls[0] - statistics.median(walls[1:]) if len(walls) > 1 else float("nan")
+    first, *later = step_walls(history)
+    return first - statistics.median(later) if later else float("nan")
 
 
 def race_rows(root: Path) -> list[dict]:
