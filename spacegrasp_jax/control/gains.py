@@ -39,9 +39,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from spacegrasp_jax import model
 from spacegrasp_jax.compilation import require_float64
 from spacegrasp_jax.control.groups import PER_JOINT, fields_of_groups
 from spacegrasp_jax.control.registry import CONTROLLERS, GAIN_GROUPS, gains_used
+from spacegrasp_jax.dynamics import mass_matrix
 from spacegrasp_jax.inputs import numbers, read_document
 
 #: Each group's length; ``"N"``: the arm's number of joints.
@@ -207,14 +209,11 @@ def starting_gains(robot, q_init=None, R_base=None) -> Gains:
         R_base: (3, 3) satellite attitude (default: the identity; the effective inertia does
             not depend on it).
     """
-    from spacegrasp_jax.dynamics import mass_matrix
-    from spacegrasp_jax.model import PAPER_Q_INIT, n_joints
-
-    n = n_joints(robot)
+    n = model.n_joints(robot)
     if q_init is None:
         if n != PAPER_JOINTS:
             raise GainsError(f"starting_gains: q_init: required for an arm of {n} joints (the paper's is for 7)")
-        q_init = PAPER_Q_INIT
+        q_init = model.PAPER_Q_INIT
     R_base = np.eye(3) if R_base is None else R_base
     inertia = effective_joint_inertia(mass_matrix(robot, jnp.asarray(R_base), jnp.asarray(q_init, dtype=jnp.float64)))
     kp = START_RATE_PER_S * inertia

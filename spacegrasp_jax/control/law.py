@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import jax
 import jax.numpy as jnp
@@ -27,8 +27,10 @@ import jax.numpy as jnp
 from spacegrasp_jax.control.groups import view
 from spacegrasp_jax.control.pid import PID, PIDState, saturate
 
-if TYPE_CHECKING:
-    from spacegrasp_jax.control.gains import Gains
+#: A gain set: a [`Gains`][spacegrasp_jax.control.gains.Gains] or a schedule's gains at one
+#: instant, any pytree holding each law's groups by name (the registry of the laws, above
+#: this module, defines it).
+GainSet = Any
 
 
 @jax.tree_util.register_dataclass
@@ -181,13 +183,13 @@ class Controller:
         servo = () if self.servo is None else self.servo.init(n_joints, dtype)
         return ControllerState(law=self.law.init(n_joints, dtype), pid=servo)
 
-    def command(self, gains: Gains, inputs: ControlInputs, state: Any, dt) -> tuple[jax.Array, Any]:
+    def command(self, gains: GainSet, inputs: ControlInputs, state: Any, dt) -> tuple[jax.Array, Any]:
         """``(command (N,), the law's next state)``: the law's update with its own view of the
         gain set ``gains`` over the control period ``dt`` (s)."""
         return self.law.update(view(self.law.gains_type, gains), inputs, state, dt)
 
     def torque(
-        self, gains: Gains, command: jax.Array, qd: jax.Array, state: PIDState | tuple, t, dt, limit=None
+        self, gains: GainSet, command: jax.Array, qd: jax.Array, state: PIDState | tuple, t, dt, limit=None
     ) -> tuple[jax.Array, PIDState | tuple]:
         """``(u (N,) N m, the servo's next state)`` for the law's ``command`` (N,), the joint
         rates ``qd`` (N,) rad/s the servo reads at time ``t`` (s), its view of the gain set
