@@ -35,7 +35,7 @@ from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import SampleLoops
 from spacegrasp_jax.runfiles import StopRequest
 from spacegrasp_jax.simulate import LoopOptions
-from spacegrasp_jax.tuning.objective import Objective
+from spacegrasp_jax.tuning.objective import Objective, objective_spec, scenario_parts
 from spacegrasp_jax.tuning.parameters import gains_from_params
 
 if TYPE_CHECKING:
@@ -73,8 +73,6 @@ def _candidate_parts(
     model_robot, objective: Objective, items, *, controller: str, realism_loop: bool, options: LoopOptions
 ):
     """The objective's parts of each (gains, sample) item (vmapped)."""
-    from spacegrasp_jax.tuning.tune import objective_spec, scenario_parts
-
     if realism_loop:
         gains, robot, scenario, realism, key = items
         one = lambda g, r, s, re, k: scenario_parts(

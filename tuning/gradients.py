@@ -44,9 +44,9 @@ from spacegrasp_jax.perturbations import PerturbationRanges
 from spacegrasp_jax.realism import ideal
 from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import RunSpec, closed_loop
-from spacegrasp_jax.tuning.objective import Objective, objective_parts
+from spacegrasp_jax.tuning.objective import Objective, objective_parts, objective_spec
 from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
-from spacegrasp_jax.tuning.tune import checkpoint_segment, objective_spec
+from spacegrasp_jax.tuning.tune import checkpoint_segment
 
 #: Horizons, as fractions of the scenario's duration, at which the gradient is taken.
 HORIZONS = (0.125, 0.25, 0.5, 1.0)

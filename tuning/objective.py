@@ -51,6 +51,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax import joint_limits, metrics
+from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.model import Robot
+from spacegrasp_jax.realism import Realism
+from spacegrasp_jax.scenario import Scenario
+from spacegrasp_jax.simulate import FullLog, LoopOptions, RunSpec, closed_loop
 
 #: The objectives by name (``--objective``).
 OBJECTIVES = ("capture", "weighted")
@@ -263,3 +268,47 @@ def objective_parts(log, objective: Objective, *, free_target: bool) -> dict[str
     parts["capture_loss"] = capture_loss(margins, objective)
     parts["loss"] = parts["capture_loss"] if objective.kind == "capture" else parts["weighted_loss"]
     return parts
+
+
+# ---- the objective of one run ----------------------------------------------------------------
+
+
+def scenario_parts(spec: RunSpec, gains: Gains, objective: Objective, key: jax.Array | None = None) -> dict:
+    """Every part of the objective on the run ``spec`` ([`objective_parts()`][tuning.objective.objective_parts]),
+    plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m), for a robot with
+    joint ranges ``range_excess_rad``, the furthest a joint went beyond one, and where rate
+    limits are criteria ``joint_rate_ratio``, the largest peak |qd_i| over its limit. ``spec`` keeps the
+    whole log ([`objective_spec()`][tuning.objective.objective_spec]); ``key``: the sensors' noise key of a
+    flight-like loop."""
+    _, log = closed_loop(spec, gains, key)
+    parts = objective_parts(log, objective, free_target=spec.scenario.free_target)
+    parts["largest_peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
+    if objective.joint_ranges:  # the hard excess beyond the ranges (rad), for the held-out verdict
+        parts["range_excess_rad"] = jnp.max(joint_limits.range_excess(log.q, objective.joint_ranges))
+    if objective.joint_rate_limits:  # the hard peak rate over its limit, for the held-out verdict
+        parts["joint_rate_ratio"] = jnp.max(jnp.abs(log.qd) / jnp.asarray(objective.joint_rate_limits))
+    return parts
+
+
+def objective_spec(
+    robot: Robot,
+    scenario: Scenario,
+    controller,
+    segment: int | None = None,
+    realism: Realism | None = None,
+    model_robot: Robot | None = None,
+    options: LoopOptions = LoopOptions(checkpoint=True),
+) -> RunSpec:
+    """The run the objective reads: the whole log, each control period checkpointed for
+    reverse mode ([`rollout()`][spacegrasp_jax.simulate.rollout]'s loop); ``segment``: its
+    ``checkpoint_segment``; ``options``: the loop's (checkpointed; the host's choice,
+    [`experiment.loop_options()`][spacegrasp_jax.experiment.loop_options])."""
+    return RunSpec(
+        robot,
+        scenario,
+        controller,
+        realism=realism,
+        model_robot=model_robot,
+        observer=FullLog(segment),
+        options=options,
+    )

@@ -46,14 +46,15 @@ from spacegrasp_jax.control.schedule import (
     schedule_of,
 )
 from spacegrasp_jax.experiment import loop_options
-from spacegrasp_jax.model import load_robot, n_joints, robot_from_text, robot_from_toml, robot_to_toml
+from spacegrasp_jax.model import n_joints, robot_to_toml
 from spacegrasp_jax.montecarlo import SampleLoops, success
 from spacegrasp_jax.perturbations import sample_scenarios
 from spacegrasp_jax.realism import make_realism
+from spacegrasp_jax.robot_files import load_robot, robot_from_text, robot_from_toml
 from spacegrasp_jax.scenario import paper_scenario, scenario_from_mapping
 from spacegrasp_jax.simulate import LoopOptions, RunSpec
 from spacegrasp_jax.tuning import cmaes
-from spacegrasp_jax.tuning.objective import Objective
+from spacegrasp_jax.tuning.objective import Objective, objective_spec, scenario_parts
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import (
     CHECKPOINT,
@@ -63,10 +64,8 @@ from spacegrasp_jax.tuning.tune import (
     load_checkpoint,
     make_objective,
     make_optimizer,
-    objective_spec,
     optimise,
     progress_line,
-    scenario_parts,
     setup,
     training_batch,
 )
@@ -232,14 +231,14 @@ def new_record(
 
 
 def _scenarios_parts(robot, gains, objective: Objective, scenarios, *, controller: str, options: LoopOptions):
-    """[`scenario_parts()`][tuning.tune.scenario_parts] of each scenario of a batch (vmapped)."""
+    """[`scenario_parts()`][tuning.objective.scenario_parts] of each scenario of a batch (vmapped)."""
     return jax.vmap(
         lambda scenario: scenario_parts(objective_spec(robot, scenario, controller, options=options), gains, objective)
     )(scenarios)
 
 
 def _samples_parts(model_robot, gains, objective: Objective, samples, *, controller: str, options: LoopOptions):
-    """[`scenario_parts()`][tuning.tune.scenario_parts] of each sample of a flight-like
+    """[`scenario_parts()`][tuning.objective.scenario_parts] of each sample of a flight-like
     batch ``samples = (robots, scenarios, realisms, keys)`` (vmapped)."""
 
     def one(robot, scenario, realism, key):

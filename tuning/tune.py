@@ -35,12 +35,12 @@ from spacegrasp_jax.experiment import loop_options
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import SampleLoops, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
-from spacegrasp_jax.realism import Realism, ideal, make_realism
+from spacegrasp_jax.realism import ideal, make_realism
 from spacegrasp_jax.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import FullLog, LoopOptions, RunSpec, closed_loop, largest_divisor
+from spacegrasp_jax.simulate import LoopOptions, largest_divisor
 from spacegrasp_jax.tuning import cmaes, estimators
-from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights, objective_parts
+from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights, objective_spec, scenario_parts
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 
 CHECKPOINT = "checkpoint.npz"
@@ -420,47 +420,6 @@ def training_scenarios(nominal: Scenario, config: TuneConfig) -> Scenario:
         return stacked
     perturbed = sample_scenarios(nominal, config.seed, range(1, config.batch), config.ranges)
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), stacked, perturbed)
-
-
-def scenario_parts(spec: RunSpec, gains: Gains, objective: Objective, key: jax.Array | None = None) -> dict:
-    """Every part of the objective on the run ``spec`` ([`objective_parts()`][tuning.objective.objective_parts]),
-    plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m), for a robot with
-    joint ranges ``range_excess_rad``, the furthest a joint went beyond one, and where rate
-    limits are criteria ``joint_rate_ratio``, the largest peak |qd_i| over its limit. ``spec`` keeps the
-    whole log ([`objective_spec()`][tuning.tune.objective_spec]); ``key``: the sensors' noise key of a
-    flight-like loop."""
-    _, log = closed_loop(spec, gains, key)
-    parts = objective_parts(log, objective, free_target=spec.scenario.free_target)
-    parts["largest_peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
-    if objective.joint_ranges:  # the hard excess beyond the ranges (rad), for the held-out verdict
-        parts["range_excess_rad"] = jnp.max(joint_limits.range_excess(log.q, objective.joint_ranges))
-    if objective.joint_rate_limits:  # the hard peak rate over its limit, for the held-out verdict
-        parts["joint_rate_ratio"] = jnp.max(jnp.abs(log.qd) / jnp.asarray(objective.joint_rate_limits))
-    return parts
-
-
-def objective_spec(
-    robot: Robot,
-    scenario: Scenario,
-    controller,
-    segment: int | None = None,
-    realism: Realism | None = None,
-    model_robot: Robot | None = None,
-    options: LoopOptions = LoopOptions(checkpoint=True),
-) -> RunSpec:
-    """The run the objective reads: the whole log, each control period checkpointed for
-    reverse mode ([`rollout()`][spacegrasp_jax.simulate.rollout]'s loop); ``segment``: its
-    ``checkpoint_segment``; ``options``: the loop's (checkpointed; the host's choice,
-    [`experiment.loop_options()`][spacegrasp_jax.experiment.loop_options])."""
-    return RunSpec(
-        robot,
-        scenario,
-        controller,
-        realism=realism,
-        model_robot=model_robot,
-        observer=FullLog(segment),
-        options=options,
-    )
 
 
 def batch_loss(
