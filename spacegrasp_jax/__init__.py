@@ -36,10 +36,10 @@ from spacegrasp_jax.model import (
     PAPER_Q_INIT,
     Robot,
     RobotConfigError,
-    load_robot,
     make_robot,
     paper_robot,
 )
+from spacegrasp_jax.robot_files import load_robot
 
 __version__ = "0.1.0"
 

@@ -23,7 +23,7 @@ Frames and conventions (the modelling notes of the documentation)
 
 Every leaf is a float64 array, so a batch of robots (e.g. perturbed satellite mass in a
 Monte-Carlo campaign) is simply a ``Robot`` with a leading batch axis under ``jax.vmap``.
-Build robots with [`make_robot()`][spacegrasp_jax.model.make_robot], [`paper_robot()`][spacegrasp_jax.model.paper_robot] or [`load_robot()`][spacegrasp_jax.model.load_robot], which
+Build robots with [`make_robot()`][spacegrasp_jax.model.make_robot], [`paper_robot()`][spacegrasp_jax.model.paper_robot] or [`load_robot()`][spacegrasp_jax.robot_files.load_robot], which
 validate their input; the dataclass constructor itself does not (it must accept tracers).
 """
 
@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -39,7 +38,7 @@ import numpy as np
 
 from spacegrasp_jax import spatial
 from spacegrasp_jax.compilation import require_float64
-from spacegrasp_jax.inputs import numbers, parse_document, read_text
+from spacegrasp_jax.inputs import numbers
 
 #: The paper's arm has 7 joints; a robot's own number is [`n_joints()`][spacegrasp_jax.model.n_joints].
 N_JOINTS = 7
@@ -372,13 +371,13 @@ def inertia_from_table(row) -> np.ndarray:
 
 def robot_to_toml(robot: Robot, comment: str = "", *, rate_limits_stated: bool = True) -> str:
     """``robot`` as a robot TOML of its frames (``arm.frame_rotation``, ``arm.frame_position``)
-    that [`load_robot()`][spacegrasp_jax.model.load_robot] reads back bit for bit: every field,
+    that [`load_robot()`][spacegrasp_jax.robot_files.load_robot] reads back bit for bit: every field,
     each float written with the 17 digits that name it (``inf`` for an open joint range).
     ``comment``: lines put at the top, each after ``#``. A run folder keeps its robot so.
     ``rate_limits_stated=False`` leaves ``limits.joint_rate`` out (a comment line says it)
     where they are the paper's assumed limits, which the file then takes by default: like the
     file it came from, it does not make them success criteria
-    ([`rate_limits_stated()`][spacegrasp_jax.model.rate_limits_stated]). Other limits are
+    ([`rate_limits_stated()`][spacegrasp_jax.robot_files.rate_limits_stated]). Other limits are
     always written.
     """
     default = _DEFAULTS["joint_rate_limit"](n_joints(robot))
@@ -408,100 +407,12 @@ def robot_to_toml(robot: Robot, comment: str = "", *, rate_limits_stated: bool =
     return "\n".join(lines).lstrip("\n") + "\n"
 
 
-#: How a URDF arm is mounted (``load_robot(..., mount=)``, ``--mount``): on the paper's
-#: satellite, or as the URDF has it (its base link is the satellite body); else a file.
-MOUNTS = ("paper", "urdf")
-
-
-def load_robot(
-    path: str | Path, *, mount: str | Path | None = None, base_link: str | None = None, tip_link: str | None = None
-) -> Robot:
-    """Read a robot from a TOML or URDF file.
-
-    * A TOML robot (schema in the documentation's File formats and
-      ``configs/paper_robot.toml``) has three tables, ``[satellite]``, ``[arm]`` and
-      ``[end_effector]``, and an optional ``[limits]`` (``joint_rate`` in rad/s,
-      ``joint_torque`` in N m, ``joint_position`` in rad); each key maps to one
-      [`Robot`][spacegrasp_jax.model.Robot] field (``satellite.mass`` -> ``satellite_mass``,
-      ``end_effector.offset`` -> ``ee_offset``, ``arm.link_com`` -> ``link_com``, ...). The arm
-      is a DH table (``arm.dh_lambda``, ``arm.dh_length``, ``arm.dh_alpha``) or the chain's
-      frames (``arm.frame_rotation``, ``arm.frame_position``).
-    * A TOML with a ``[urdf]`` table mounts a URDF arm on a satellite
-      ([`spacegrasp_jax.urdf.robot_from_mounting()`][spacegrasp_jax.urdf.robot_from_mounting]).
-    * A ``.urdf`` file is an arm, the chain from ``base_link`` to ``tip_link`` (each ``None``:
-      the URDF's one root link, its one leaf link). ``mount``: ``"paper"`` (the default) bolts
-      its base link to the paper's 500 kg satellite at the paper's mount point; ``"urdf"``
-      takes the URDF as the whole servicer, its base link the satellite body (the URDF that
-      [`robot_to_urdf()`][spacegrasp_jax.urdf.robot_to_urdf] writes); a mounting file (a TOML
-      with ``[satellite]`` and optional ``[limits]``, as a mounting TOML's) gives the satellite
-      ([`spacegrasp_jax.urdf.urdf_arm()`][spacegrasp_jax.urdf.urdf_arm]).
-
-    Raises:
-        RobotConfigError: the file is not valid TOML or URDF, or a key or element is
-            missing, unknown or invalid, or ``mount``, ``base_link`` or ``tip_link`` is given
-            for a robot TOML; the message names the file and the key (``arm.link_mass``) or
-            the element.
-    """
-    path = Path(path)
-    return robot_from_text(
-        read_text(path, RobotConfigError), source=str(path), mount=mount, base_link=base_link, tip_link=tip_link
-    )
-
-
-def rate_limits_stated(path: str | Path) -> bool:
-    """Whether the robot file ``path`` (one [`load_robot()`][spacegrasp_jax.model.load_robot]
-    reads) states its joints' rate limits: a URDF does (``<limit velocity>`` is required), and
-    so does a mounting TOML (its URDF's, or its own ``[limits]``); a robot TOML does when it
-    gives ``limits.joint_rate``. Stated limits are the arm's own and success criteria; a
-    7-joint TOML without them takes the paper's arm's assumed ``PAPER_JOINT_RATE_LIMIT``,
-    which only detects runaways (the paper gives no rate limits).
-
-    Raises:
-        RobotConfigError: the file cannot be read or is not valid TOML.
-    """
-    path = Path(path)
-    if path.suffix.lower() == ".urdf":
-        return True
-    document = parse_document(read_text(path, RobotConfigError), "toml", str(path), RobotConfigError)
-    limits = document.get("limits")
-    return "urdf" in document or (isinstance(limits, dict) and "joint_rate" in limits)
-
-
-def robot_from_text(
-    text: str,
-    source: str,
-    *,
-    mount: str | Path | None = None,
-    base_link: str | None = None,
-    tip_link: str | None = None,
-) -> Robot:
-    """[`load_robot()`][spacegrasp_jax.model.load_robot] on the text of the file ``source``
-    (URDF if its name ends in ``.urdf``, else TOML)."""
-    # The URDF reader builds its robots with this module: imported here, not at the top.
-    from spacegrasp_jax import urdf
-
-    if Path(source).suffix.lower() == ".urdf":
-        return urdf.urdf_arm(
-            text, source, mount="paper" if mount is None else mount, base_link=base_link, tip_link=tip_link
-        )
-    given = [name for name, value in (("mount", mount), ("base_link", base_link), ("tip_link", tip_link)) if value]
-    if given:
-        raise RobotConfigError(
-            f"{source}: {', '.join(given)}: for a URDF arm only (a robot TOML is the whole servicer; a mounting "
-            f"TOML names its links in its [urdf] table and its satellite in [satellite])"
-        )
-    return robot_from_toml(text, source=source)
-
-
-def robot_from_toml(text: str, source: str = "<robot TOML>") -> Robot:
-    """[`load_robot()`][spacegrasp_jax.model.load_robot] on the text of a TOML file; errors name
-    ``source``, and a ``[urdf]`` table's file is found from ``source``'s folder."""
-    from spacegrasp_jax import urdf
-
+def robot_from_tables(document: dict, source: str = "<robot TOML>") -> Robot:
+    """The robot of a robot TOML's tables ``document`` (``[satellite]``, ``[arm]``,
+    ``[end_effector]``, ``[limits]``, already parsed; the schema of
+    [`load_robot()`][spacegrasp_jax.robot_files.load_robot]), validated; errors name ``source``
+    and the key."""
     path = source
-    document = parse_document(text, "toml", path, RobotConfigError)
-    if "urdf" in document:
-        return urdf.robot_from_mounting(document, source)
     key_to_field = {key: field for field, (_, _, key) in (_FIELDS | _DH_FIELDS).items()}
     fields = {}
     for section, table in document.items():

@@ -41,7 +41,7 @@ import numpy as np
 
 from spacegrasp_jax.inputs import numbers, parse_document, read_text
 from spacegrasp_jax.kinematics import joint_transforms
-from spacegrasp_jax.model import MIN_JOINTS, Robot, RobotConfigError, check_inertia, make_robot, n_joints
+from spacegrasp_jax.model import MIN_JOINTS, Robot, RobotConfigError, check_inertia, make_robot, n_joints, paper_robot
 
 
 def _number(value) -> str:
@@ -527,8 +527,6 @@ _MOUNTING_KEYS = {
 def paper_mounting(base_link: str | None = None, tip_link: str | None = None) -> Mounting:
     """The paper's satellite for a URDF arm (``--mount paper``): Section 4's 500 kg body,
     its inertia, and the arm's base link at the paper's mount point, its axes the satellite's."""
-    from spacegrasp_jax.model import paper_robot
-
     robot = paper_robot()
     return Mounting(
         base_link=base_link,

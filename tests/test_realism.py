@@ -16,8 +16,8 @@ import pytest
 from spacegrasp_jax import metrics
 from spacegrasp_jax.control import paper_gains
 from spacegrasp_jax.integrator import rk4_step
-from spacegrasp_jax.model import load_robot
 from spacegrasp_jax.realism import FLIGHT, RealismError, Stage, flight, ideal, load_realism, make_realism
+from spacegrasp_jax.robot_files import load_robot
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import RunSpec, loop_body, plant_derivative, rollout
 

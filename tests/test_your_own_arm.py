@@ -21,7 +21,8 @@ from spacegrasp_jax import cli
 from spacegrasp_jax.control import load_gains, paper_gains
 from spacegrasp_jax.control.gains import effective_joint_inertia, starting_gains
 from spacegrasp_jax.joint_limits import first_crossings, outside_ranges
-from spacegrasp_jax.model import load_robot, n_joints, robot_from_toml, robot_to_toml
+from spacegrasp_jax.model import n_joints, robot_to_toml
+from spacegrasp_jax.robot_files import load_robot, robot_from_toml
 from spacegrasp_jax.scenario import load_scenario
 from spacegrasp_jax.urdf import URDFError
 
@@ -320,7 +321,7 @@ def test_rate_limits_are_criteria_where_a_robot_file_states_them(tmp_path):
     robot TOML when it gives limits.joint_rate; the paper's robot TOML gives none, and reads
     back as the paper's robot with its assumed limits. A run folder keeps a robot without
     stated limits without them, bit for bit."""
-    from spacegrasp_jax.model import rate_limits_stated
+    from spacegrasp_jax.robot_files import rate_limits_stated
 
     assert rate_limits_stated(ARMS / "xarm7.urdf") and rate_limits_stated(CONFIGS / "ur5_on_satellite.toml")
     assert not rate_limits_stated(CONFIGS / "paper_robot.toml")

@@ -45,12 +45,13 @@ from spacegrasp_jax.control.schedule import (
     schedule_curves,
     variable_series,
 )
-from spacegrasp_jax.model import n_joints, rate_limits_stated
+from spacegrasp_jax.model import n_joints
 from spacegrasp_jax.perturbations import (
     PerturbationRanges,
     load_ranges,
 )
 from spacegrasp_jax.realism import Realism, RealismError, load_realism
+from spacegrasp_jax.robot_files import rate_limits_stated
 from spacegrasp_jax.scenario import load_scenario, paper_scenario
 
 
@@ -282,7 +283,7 @@ def _check_envelope(args: argparse.Namespace, scenario) -> None:
 
 def _rate_criterion(args: argparse.Namespace, robot) -> tuple[float, ...] | None:
     """``robot``'s joint rate limits (rad/s) as a success criterion where ``--robot``'s file
-    states them (``model.rate_limits_stated()``); ``None`` for the paper's arm, whose rate
+    states them (``robot_files.rate_limits_stated()``); ``None`` for the paper's arm, whose rate
     limits are assumed and only detect runaways."""
     if not args.robot:
         return None
