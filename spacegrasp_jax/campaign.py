@@ -34,15 +34,18 @@ import jax
 import numpy as np
 from jax.experimental import multihost_utils
 
-from spacegrasp_jax import anatomy, batching, joint_limits, runfiles, statistics
+from spacegrasp_jax import anatomy, batching, experiment, joint_limits, runfiles, statistics
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import CONTROLLERS, law_named
+from spacegrasp_jax.control.schedule import gain_set_from_dict
+from spacegrasp_jax.experiment import RunFolderError
 from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
-from spacegrasp_jax.model import Robot, n_joints
+from spacegrasp_jax.model import Robot, RobotConfigError, n_joints, paper_robot, robot_to_toml
 from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges
-from spacegrasp_jax.realism import Realism, ideal
-from spacegrasp_jax.scenario import Scenario, scenario_to_dict
+from spacegrasp_jax.realism import Realism, ideal, make_realism
+from spacegrasp_jax.robot_files import load_robot
+from spacegrasp_jax.scenario import Scenario, scenario_from_dict, scenario_to_dict
 from spacegrasp_jax.simulate import Log, RunSpec
 
 PERCENTILES = (5, 50, 95)
@@ -81,7 +84,7 @@ class CampaignConfig:
             a sample whose peak |qd_i| exceeds it fails (``joint_rate``). ``None`` (the
             default): rates are no criterion, only a runaway (ten times the robot's
             ``joint_rate_limit``) fails. The commands set it to the robot's limits when a
-            robot file states them ([`rate_limits_stated()`][spacegrasp_jax.model.rate_limits_stated]).
+            robot file states them ([`rate_limits_stated()`][spacegrasp_jax.robot_files.rate_limits_stated]).
     """
 
     n: int
@@ -284,8 +287,6 @@ def _check_resume(out: Path, record: dict, resume: bool, robot: Robot) -> None:
     previous["config"] = _ADDED_SETTINGS | previous.get("config", {})
     # The robot by what it is, not by the path it was read from (a resume from elsewhere
     # names the same file another way); a campaign of an older version, by its path.
-    from spacegrasp_jax.model import load_robot, robot_to_toml
-
     if previous.get("robot_file"):
         kept = load_robot(out / previous["robot_file"])
         if robot_to_toml(robot) != robot_to_toml(kept):
@@ -727,11 +728,6 @@ def load_campaign(out: Path) -> tuple[Robot, Scenario, list[Variant], CampaignCo
     Raises:
         CampaignError: no campaign there, or its robot file is gone or changed shape.
     """
-    from spacegrasp_jax.control.schedule import gain_set_from_dict
-    from spacegrasp_jax.model import load_robot, paper_robot
-    from spacegrasp_jax.realism import make_realism
-    from spacegrasp_jax.scenario import scenario_from_dict
-
     path = Path(out) / "campaign.json"
     try:
         record = json.loads(path.read_text())
@@ -762,11 +758,35 @@ def replay_sample(robot: Robot, scenario: Scenario, config: CampaignConfig, inde
     return jax.tree.map(lambda x: x[0], loops.robots), jax.tree.map(lambda x: x[0], loops.scenarios)
 
 
+def robot_and_scenario_of_run(folder, config: dict) -> tuple[Robot, Scenario]:
+    """The robot and scenario a run folder's ``config.json`` (``config``, read) ran: the robot
+    kept in the folder (``robot_file``; a run of an older version: its robot file as named,
+    or the paper's robot) and its scenario; for a replay of a campaign sample,
+    the sample's perturbed plant and scenario, from the campaign's folder
+    ([`replay_sample()`][spacegrasp_jax.campaign.replay_sample]).
+
+    Raises:
+        RunFolderError: the robot file or the campaign cannot be read.
+    """
+    if "campaign_record" in config:
+        try:
+            robot, scenario, _, campaign_config = load_campaign(Path(config["campaign"]))
+        except CampaignError as error:
+            raise RunFolderError(f"{folder}: a replay of {config['campaign']}, which cannot be read: {error}") from None
+        return replay_sample(robot, scenario, campaign_config, int(config["sample"]))
+    source = config["robot"]
+    if config.get("robot_file"):  # the robot as it ran, kept in the folder
+        source = str(Path(folder) / config["robot_file"])
+    try:
+        robot = paper_robot() if source == "paper_robot()" else load_robot(source)
+    except RobotConfigError as error:
+        raise RunFolderError(f"{folder}: its robot {source}: {error}") from None
+    return robot, scenario_from_dict(config["scenario"])
+
+
 def replay(robot: Robot, scenario: Scenario, variant: Variant, config: CampaignConfig, index: int, check: bool = False):
     """Sample ``index`` of the campaign run again with its full log, as the campaign ran it
     (same plant, scenario, loop, model and noise): a [`RunResult`][spacegrasp_jax.experiment.RunResult]."""
-    from spacegrasp_jax import experiment
-
     loops = sample_loops(robot, scenario, config.seed, [index], config.ranges, config.realism, config.identified)
     first = lambda tree: None if tree is None else jax.tree.map(lambda x: x[0], tree)
     spec = RunSpec(
@@ -792,6 +812,7 @@ __all__ = [
     "load_samples",
     "replay",
     "replay_sample",
+    "robot_and_scenario_of_run",
     "figure_title",
     "variant_law",
     "variant_spec",

@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -19,7 +18,7 @@ from spacegrasp_jax import anatomy, compilation, joint_limits, metrics, paper, r
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism, ideal
-from spacegrasp_jax.scenario import Scenario, scenario_from_dict, scenario_to_dict
+from spacegrasp_jax.scenario import Scenario, scenario_to_dict
 from spacegrasp_jax.simulate import (
     FullLog,
     Log,
@@ -166,35 +165,6 @@ def read_log(path) -> Log:
 
 class RunFolderError(ValueError):
     """A run folder whose robot or campaign cannot be read; names the folder and the cause."""
-
-
-def robot_and_scenario_of_run(folder, config: dict) -> tuple[Robot, Scenario]:
-    """The robot and scenario a run folder's ``config.json`` (``config``, read) ran: the robot
-    kept in the folder (``robot_file``; a run of an older version: its robot file as named,
-    or the paper's robot) and its scenario; for a replay of a campaign sample,
-    the sample's perturbed plant and scenario, from the campaign's folder
-    ([`campaign.replay_sample()`][spacegrasp_jax.campaign.replay_sample]).
-
-    Raises:
-        RunFolderError: the robot file or the campaign cannot be read.
-    """
-    from spacegrasp_jax import campaign
-    from spacegrasp_jax.model import RobotConfigError, load_robot, paper_robot
-
-    if "campaign_record" in config:
-        try:
-            robot, scenario, _, campaign_config = campaign.load_campaign(Path(config["campaign"]))
-        except campaign.CampaignError as error:
-            raise RunFolderError(f"{folder}: a replay of {config['campaign']}, which cannot be read: {error}") from None
-        return campaign.replay_sample(robot, scenario, campaign_config, int(config["sample"]))
-    source = config["robot"]
-    if config.get("robot_file"):  # the robot as it ran, kept in the folder
-        source = str(Path(folder) / config["robot_file"])
-    try:
-        robot = paper_robot() if source == "paper_robot()" else load_robot(source)
-    except RobotConfigError as error:
-        raise RunFolderError(f"{folder}: its robot {source}: {error}") from None
-    return robot, scenario_from_dict(config["scenario"])
 
 
 # One small program rather than some six single operations, each compiled apart; at LLVM's

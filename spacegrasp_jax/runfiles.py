@@ -24,6 +24,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from spacegrasp_jax import __version__
+from spacegrasp_jax.model import robot_to_toml
+
 
 class OutputFolderError(ValueError):
     """An output folder that cannot be created or written; names the folder."""
@@ -190,8 +193,6 @@ def write_robot(folder: Path, robot, source: str, links: dict | None = None, *, 
     came from (``source``) and, for a URDF arm, its mount and links (``links``); its rate
     limits stated only where the run judged by them (``rate_limits_stated``). Returns the
     file's name, which the folder's record keeps."""
-    from spacegrasp_jax.model import robot_to_toml
-
     said = ", ".join(f"{name} {value}" for name, value in (links or {}).items())
     comment = f"The robot of this run, read from {source}" + (f" ({said})" if said else "") + "."
     comment += "\nEvery field as the run used it; spacegrasp reads it with --robot."
@@ -270,8 +271,6 @@ def git_revision() -> str | None:
 def provenance() -> dict:
     """Versions, backend and git revision: what every ``config.json`` records beside the
     run's own settings."""
-    from spacegrasp_jax import __version__
-
     return {
         "spacegrasp_jax_version": __version__,
         "jax_version": jax.__version__,

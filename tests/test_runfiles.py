@@ -109,7 +109,8 @@ def test_a_run_folders_robot_and_scenario_are_read_back_or_the_cause_is_named(tm
     import numpy as np
 
     import spacegrasp_jax as sg
-    from spacegrasp_jax.experiment import RunFolderError, robot_and_scenario_of_run
+    from spacegrasp_jax.campaign import robot_and_scenario_of_run
+    from spacegrasp_jax.experiment import RunFolderError
     from spacegrasp_jax.scenario import paper_scenario, scenario_to_dict
 
     robot = sg.paper_robot()

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from spacegrasp_jax import experiment
+from spacegrasp_jax import campaign, experiment
 from spacegrasp_jax.cli.common import _file_name, _films, _run_schedule
 from spacegrasp_jax.cli.options import UsageError, _add_command, _add_film_options, _add_overwrite_option
 from spacegrasp_jax.model import n_joints
@@ -51,7 +51,7 @@ def _animate(args: argparse.Namespace) -> int:
                 "--out: an MP4 needs imageio-ffmpeg (pip install spacegrasp-jax[video]); a .gif needs nothing more"
             ) from None
     try:
-        robot, scenario = experiment.robot_and_scenario_of_run(folder, config)
+        robot, scenario = campaign.robot_and_scenario_of_run(folder, config)
     except experiment.RunFolderError as error:
         raise UsageError(str(error)) from None
     logs = {key: experiment.read_log(folder / f"timeseries_{_file_name(key)}.npz") for key in keys}
