@@ -255,3 +255,85 @@ def test_no_function_of_the_loop_is_over_100_lines():
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 lines = node.end_lineno - node.lineno + 1
                 assert lines <= 100, f"{module}.{node.name}: {lines} lines"
+
+
+def import_graph(modules: dict[str, Path]) -> dict[str, set[str]]:
+    """Which of ``modules`` (name -> file) each imports, by every import statement in its
+    file: at the top, in a function body or under ``TYPE_CHECKING`` alike. An imported name
+    counts as the module that holds it (``spacegrasp_jax.model.Robot``: the model)."""
+
+    def module_of(name: str) -> str | None:
+        while name and name not in modules:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph = {}
+    for module, path in modules.items():
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [f"{node.module}.{alias.name}" for alias in node.names]
+            else:
+                continue
+            targets |= {module_of(name) for name in names} - {None, module}
+        graph[module] = targets
+    return graph
+
+
+def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The groups of modules that import one another, directly or round a circle (the
+    strongly connected components of more than one module; Tarjan's algorithm)."""
+    index, low, on_stack, stack, circles = {}, {}, set(), [], []
+
+    def visit(module):
+        index[module] = low[module] = len(index)
+        stack.append(module)
+        on_stack.add(module)
+        for target in graph[module]:
+            if target not in index:
+                visit(target)
+                low[module] = min(low[module], low[target])
+            elif target in on_stack:
+                low[module] = min(low[module], index[target])
+        if low[module] == index[module]:
+            group = []
+            while not group or group[-1] != module:
+                group.append(stack.pop())
+                on_stack.discard(group[-1])
+            if len(group) > 1:
+                circles.append(sorted(group))
+
+    for module in sorted(graph):
+        if module not in index:
+            visit(module)
+    return circles
+
+
+def test_no_import_circle_anywhere_in_the_package():
+    """No two modules import one another, round a circle of any length, including the
+    imports written in a function body or under ``TYPE_CHECKING`` to dodge one."""
+    assert import_circles(import_graph(dict(module_files()))) == []
+
+
+def test_an_import_circle_hidden_in_a_function_body_is_found(tmp_path):
+    files = {
+        "spacegrasp_jax.low": "import math\n",
+        "spacegrasp_jax.model": "from spacegrasp_jax.low import x\n",
+        "spacegrasp_jax.urdf": "from spacegrasp_jax.kinematics import joint_transforms\n",
+        "spacegrasp_jax.kinematics": "from spacegrasp_jax.model import Robot\n",
+        "spacegrasp_jax.top": "from spacegrasp_jax import low, model\n",
+    }
+    modules = {}
+    for name, text in files.items():
+        modules[name] = tmp_path / f"{name}.py"
+        modules[name].write_text(text)
+    assert import_circles(import_graph(modules)) == []
+    modules["spacegrasp_jax.model"].write_text("def load():\n    from spacegrasp_jax import urdf\n")
+    assert import_circles(import_graph(modules)) == [
+        ["spacegrasp_jax.kinematics", "spacegrasp_jax.model", "spacegrasp_jax.urdf"]
+    ]
+    typing_only = "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from spacegrasp_jax.top import T\n"
+    modules["spacegrasp_jax.low"].write_text(typing_only)
+    assert len(import_circles(import_graph(modules))) == 2
