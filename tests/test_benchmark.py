@@ -66,6 +66,7 @@ def test_batch_efficiency_reports_each_part(tmp_path):
     assert refused.returncode == 2 and "unknown ['rnea']" in refused.stderr
 
 
+@pytest.mark.slow
 def test_gradient_parts_reports_each_part(tmp_path):
     """``benchmarks.gradient_parts`` on two states: a row per part with finite positive
     forward and reverse times; bad options are refused before anything compiles."""
@@ -124,6 +125,7 @@ def test_compile_benchmark_times_its_calls_in_turn_after_the_warm_up():
     assert all(t >= 0 for t in times["run"] + times["forward"])
 
 
+@pytest.mark.slow
 def test_worstcase_benchmark_writes_its_rows_resumes_and_refuses_bad_options(tmp_path):
     """``benchmarks.worstcase`` on one seed of a 0.1 s approach and a budget of 12: one row
     whose ratio and verdicts follow from its two worst values, a summary of it; run again,

@@ -104,6 +104,7 @@ else:  # a chunk run in sub-batches: a loop over runs (compilation.map_one_at_a_
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("program", ["rollout", "chunk_in_sub_batches"])
 def test_a_later_process_loads_the_program_without_tracing_it_and_gets_the_same_log(tmp_path, program):
     # The chunk's loop over its sub-batches once made a LAPACK call to keep it from being

@@ -339,6 +339,7 @@ def test_a_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tmp_path):
     assert result.returncode == 2 and "--population 5 (the run's: 3)" in result.stderr
 
 
+@pytest.mark.slow
 def test_a_run_that_ends_worse_than_it_started_hands_back_the_start_and_says_so(tmp_path, capsys):
     """A tuning run whose result is worse than its start on the held-out captures (one CMA-ES
     generation of a wide step on one capture, the final mean kept): ``gains.json`` holds the
@@ -370,6 +371,7 @@ def test_a_run_that_ends_worse_than_it_started_hands_back_the_start_and_says_so(
     assert summary["kept"]["training_objective"] == min([*told, summary["kept"]["training_objective"]])
 
 
+@pytest.mark.slow
 def test_early_stopping_from_the_command_line(tmp_path, capsys):
     """``--patience``: the run evaluates each mean on its validation captures, stops once they
     stall, hands back the mean with the best validation objective and records it; a setting
