@@ -1,0 +1,137 @@
+"""The worst-case search at a small budget: other settings of the cross-entropy search, and
+how far the gradient's direction climbs, against the campaign of the same rollouts.
+
+    python -m spacegrasp_jax.benchmarks.worstcase_settings --realism ideal --seeds 0-9 \\
+        --budget 64 --duration 3 >> notebooks/data/worstcase/settings_budget64.jsonl
+    python -m spacegrasp_jax.benchmarks.worstcase_settings --lines --realism ideal --seeds 0-9 \\
+        >> notebooks/data/worstcase/gradient_lines_budget64.jsonl
+
+For each seed, runs the campaign of ``--budget`` samples (the paper's admittance gains on the
+default envelope, measure ``final_error``) and prints one JSON line with its worst and:
+
+* each of ``SETTINGS``' search of the same budget (``spacegrasp_jax.worstcase.search()``,
+  method ``cem``), its worst over the campaign's. A setting is the screening's samples, the
+  generation's, the elites, the spread and its shrink; the defaults are ``base``.
+* with ``--lines``, for each of the three worst of the campaign's first 16 samples (the
+  screening of a budget of 64), the measure along the sign of its gradient in ``U`` at the
+  steps ``LINE_STEPS``, with the sample's noise key (``line0``: from the worst).
+
+The seeds are design seeds (0-9), not the benchmark's (100-109).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+
+import jax
+import numpy as np
+
+import spacegrasp_jax as sg
+from spacegrasp_jax import metrics, worstcase
+from spacegrasp_jax.benchmarks.worstcase import _numbers, scenario_of
+from spacegrasp_jax.campaign import CampaignConfig
+from spacegrasp_jax.control import paper_gains
+from spacegrasp_jax.control.registry import law_named
+from spacegrasp_jax.model import paper_robot
+from spacegrasp_jax.montecarlo import perturbed_run
+from spacegrasp_jax.perturbations import from_units, project_units
+from spacegrasp_jax.realism import load_realism
+from spacegrasp_jax.simulate import closed_loop
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings(worstcase.SearchSettings):
+    """``SearchSettings`` whose screening and generation sizes are given, not derived."""
+
+    screen: int = 16
+    gen: int = 8
+
+    @property
+    def screening(self):
+        return self.screen
+
+    @property
+    def generation(self):
+        return self.gen
+
+
+#: The settings raced, at a budget of 64 (scaled with the budget): name -> fields.
+SETTINGS = {
+    "base": dict(screen=16, gen=8, elites=4, spread=0.3, shrink=0.8),
+    "scr32": dict(screen=32, gen=8, elites=4, spread=0.3, shrink=0.8),
+    "e2s02": dict(screen=16, gen=8, elites=2, spread=0.2, shrink=0.8),
+    "e1s015": dict(screen=16, gen=8, elites=1, spread=0.15, shrink=0.8),
+    "scr32e2s02": dict(screen=32, gen=8, elites=2, spread=0.2, shrink=0.8),
+    "scr32e1s01": dict(screen=32, gen=8, elites=1, spread=0.1, shrink=0.8),
+    "scr8e2": dict(screen=8, gen=8, elites=2, spread=0.3, shrink=0.8),
+    "scr16e4s01": dict(screen=16, gen=8, elites=4, spread=0.1, shrink=0.9),
+}
+
+
+#: The steps along the gradient's sign (in ``U``, the box being [-1, 1]) of ``--lines``.
+LINE_STEPS = (0.02, 0.04, 0.06, 0.08, 0.1, 0.12, 0.15, 0.2)
+
+
+def gradient_lines(robot, scenario, gains, config: CampaignConfig, values, starts: int = 3) -> dict:
+    """``line0 .. line{starts-1}``: the measure along the sign of the gradient from each of
+    the ``starts`` worst of the campaign's first 16 samples (``values``, its measures)."""
+    spec = worstcase.gradient_spec(robot, scenario, law_named("admittance", config.pinv_damping), config.realism)
+    ranges = config.ranges
+
+    def value(units, key):
+        sample = perturbed_run(spec, from_units(units, ranges), ranges, config.identified)
+        return metrics.final_position_error(closed_loop(sample, gains, key)[1])
+
+    value_and_gradient, values_at = jax.jit(jax.value_and_grad(value)), jax.jit(jax.vmap(value))
+    n = len(values)
+    keys = worstcase.noise_keys(config.seed, range(n))
+    units = worstcase.units_of_samples(config.seed, range(n))
+    lines = {}
+    for rank, sample in enumerate(np.argsort(-np.asarray(values[:16]))[:starts]):
+        start = jax.tree.map(lambda x: x[sample], units)
+        _, gradient = value_and_gradient(start, keys[sample])
+        points = project_units(
+            jax.tree.map(lambda u, g: np.stack([u + step * np.sign(g) for step in LINE_STEPS]), start, gradient)
+        )
+        measured = values_at(points, np.repeat(keys[sample][None], len(LINE_STEPS), axis=0))
+        lines[f"line{rank}"] = np.asarray(measured).tolist()
+    return lines
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--realism", default="ideal")
+    parser.add_argument("--seeds", default="0-9")
+    parser.add_argument("--budget", type=int, default=64)
+    parser.add_argument("--duration", type=float, default=3.0)
+    parser.add_argument("--lines", action="store_true", help="the gradient's lines instead of the settings")
+    args = parser.parse_args(argv)
+    sg.configure()
+    robot = paper_robot()
+    scenario = scenario_of(robot, args.duration)
+    gains = paper_gains()
+    for seed in _numbers(args.seeds):
+        realism = None if args.realism == "ideal" else load_realism(args.realism, robot)
+        config = CampaignConfig(n=1, seed=seed, realism=realism)
+        campaign = worstcase.compare_with_campaign(
+            robot, scenario, gains, "admittance", config, args.budget, "final_error", chunk=8
+        )
+        row = {"realism": args.realism, "duration_s": args.duration, "budget": args.budget, "seed": seed}
+        row["campaign"] = campaign["value"]
+        if args.lines:
+            row["screen16"] = float(np.max(campaign["values"][:16]))
+            print(json.dumps(row | gradient_lines(robot, scenario, gains, config, campaign["values"])), flush=True)
+            continue
+        for name, fields in SETTINGS.items():
+            fields = dict(fields, screen=fields["screen"] * args.budget // 64, gen=fields["gen"] * args.budget // 64)
+            found = worstcase.search(
+                robot, scenario, gains, "admittance", config, Settings(budget=args.budget, **fields)
+            )
+            row[name] = found.value / campaign["value"]
+        print(json.dumps(row), flush=True)
+
+
+if __name__ == "__main__":
+    main()
