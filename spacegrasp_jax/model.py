@@ -412,22 +412,21 @@ def robot_from_tables(document: dict, source: str = "<robot TOML>") -> Robot:
     ``[end_effector]``, ``[limits]``, already parsed; the schema of
     [`load_robot()`][spacegrasp_jax.robot_files.load_robot]), validated; errors name ``source``
     and the key."""
-    path = source
     key_to_field = {key: field for field, (_, _, key) in (_FIELDS | _DH_FIELDS).items()}
     fields = {}
     for section, table in document.items():
         if not isinstance(table, dict):
-            raise RobotConfigError(f"{path}: unknown key {section!r} outside the tables")
+            raise RobotConfigError(f"{source}: unknown key {section!r} outside the tables")
         for key, value in table.items():
             dotted = f"{section}.{key}"
             if dotted not in key_to_field:
-                raise RobotConfigError(f"{path}: unknown robot key {dotted}")
+                raise RobotConfigError(f"{source}: unknown robot key {dotted}")
             fields[key_to_field[dotted]] = value
     field_to_key = {field: key for key, field in key_to_field.items()}
     try:
         return Robot(**_validated(fields, label=lambda field: field_to_key[field]))
     except RobotConfigError as error:
-        raise RobotConfigError(f"{path}: {error}") from None
+        raise RobotConfigError(f"{source}: {error}") from None
 
 
 def body_inertials(robot: Robot) -> tuple[jax.Array, jax.Array, jax.Array]:
