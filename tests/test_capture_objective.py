@@ -65,6 +65,7 @@ def test_a_runaway_weighs_its_log_not_its_size():
 
 
 def test_gradient_matches_central_differences():
+    @jax.jit  # one program for the loss's 13 calls, not each operation dispatched alone
     def loss(x):
         offset, yaw, torque = x[:3], x[3], x[4:]
         return objective_parts(make_log(offset, yaw, torque), OBJECTIVE, free_target=False)["loss"]
