@@ -84,11 +84,23 @@ def main(argv=None) -> int:
     parser.add_argument("--n", type=int, default=32)
     parser.add_argument("--out", default="results/benchmarks")
     args = parser.parse_args(argv)
+    gain_sets = args.gains.split(",")
+    for name in gain_sets:
+        if name not in ("paper", "flight") and not Path(name).is_file():
+            parser.error(f"--gains: expected paper, flight or a gains file, got {name!r}")
+    try:
+        cuts = [float(cut) for cut in args.cuts.split(",")]
+    except ValueError:
+        parser.error(f"--cuts: expected times in s separated by commas, got {args.cuts!r}")
+    if not all(0.01 < cut < 17.0 for cut in cuts):
+        parser.error(f"--cuts: each must lie inside the 17 s capture, got {args.cuts!r}")
+    if args.n < 2:
+        parser.error(f"--n: at least 2 captures, got {args.n}")
     sg.configure()
     rows = []
-    for gains_name in args.gains.split(","):
-        for cut in args.cuts.split(","):
-            rows.append(truncation_row(gains_name, float(cut), args.n))
+    for gains_name in gain_sets:
+        for cut in cuts:
+            rows.append(truncation_row(gains_name, cut, args.n))
             print(json.dumps(rows[-1]), flush=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -108,11 +109,21 @@ def main(argv=None) -> None:
     parser.add_argument("--duration", type=float, default=3.0)
     parser.add_argument("--lines", action="store_true", help="the gradient's lines instead of the settings")
     args = parser.parse_args(argv)
+    if args.realism not in ("ideal", "flight") and not Path(args.realism).is_file():
+        parser.error(f"--realism: expected ideal, flight or a realism file, got {args.realism!r}")
+    try:
+        seeds = _numbers(args.seeds)
+    except ValueError:
+        parser.error(f"--seeds: expected whole numbers such as 0-9 or 1,5, got {args.seeds!r}")
+    if args.budget < 64 or args.budget % 64:
+        parser.error(f"--budget: a multiple of 64 (the settings are sized at 64 and scaled), got {args.budget}")
+    if not 0.0 < args.duration <= 17.0:
+        parser.error(f"--duration: in (0, 17] s, got {args.duration}")
     sg.configure()
     robot = paper_robot()
     scenario = scenario_of(robot, args.duration)
     gains = paper_gains()
-    for seed in _numbers(args.seeds):
+    for seed in seeds:
         realism = None if args.realism == "ideal" else load_realism(args.realism, robot)
         config = CampaignConfig(n=1, seed=seed, realism=realism)
         campaign = worstcase.compare_with_campaign(

@@ -151,3 +151,27 @@ def test_worstcase_benchmark_writes_its_rows_resumes_and_refuses_bad_options(tmp
     ):
         refused = subprocess.run(base + option, capture_output=True, text=True, timeout=60)
         assert refused.returncode == 2 and message in refused.stderr, refused.stderr
+
+
+@pytest.mark.parametrize(
+    "module, argv, named",
+    [
+        ("truncation", ["--cuts", "20"], "--cuts"),
+        ("truncation", ["--cuts", "x"], "--cuts"),
+        ("truncation", ["--gains", "nope"], "--gains"),
+        ("truncation", ["--n", "1"], "--n"),
+        ("worstcase_settings", ["--budget", "32"], "--budget"),
+        ("worstcase_settings", ["--realism", "nope"], "--realism"),
+        ("worstcase_settings", ["--seeds", "a-b"], "--seeds"),
+        ("worstcase_settings", ["--duration", "0"], "--duration"),
+    ],
+)
+def test_the_gradient_probes_refuse_bad_options_before_anything_runs(module, argv, named, capsys):
+    """``benchmarks.truncation`` and ``benchmarks.worstcase_settings``: a bad option exits 2
+    naming it, before the package is configured or anything compiles."""
+    import importlib
+
+    main = importlib.import_module(f"spacegrasp_jax.benchmarks.{module}").main
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2 and f"error: {named}:" in capsys.readouterr().err
