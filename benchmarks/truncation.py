@@ -47,6 +47,7 @@ def _cosine(a: np.ndarray, b: np.ndarray) -> float:
 def truncation_row(gains_name: str, cut_s: float, n: int) -> dict:
     """One gain set and cut: the module docstring's figures."""
     spec, gains, objective, ranges = _problem(gains_name)
+    duration_s = spec.scenario.n_steps * spec.scenario.dt
     # The law's and the servo's tuned groups (39 log-gains for the paper's arm); the
     # pseudoinverse's damping, zero in the paper's gains, has no log.
     groups = [name for name in make_mask(gains, "admittance") if name != "pinv_damping"]
@@ -72,7 +73,7 @@ def truncation_row(gains_name: str, cut_s: float, n: int) -> dict:
             method: _cosine(estimators.aggregate(truncated, method), estimators.aggregate(full, method))
             for method in ("mean", "clip", "median_of_means")
         },
-        "estimated_rollouts_per_truncated_gradient": 1.0 + 2.5 * (17.0 - cut_s) / 17.0,
+        "estimated_rollouts_per_truncated_gradient": 1.0 + 2.5 * (duration_s - cut_s) / duration_s,
         "wall_s": wall_s,
     }
 

@@ -75,9 +75,10 @@ SETTINGS = {
 LINE_STEPS = (0.02, 0.04, 0.06, 0.08, 0.1, 0.12, 0.15, 0.2)
 
 
-def gradient_lines(robot, scenario, gains, config: CampaignConfig, values, starts: int = 3) -> dict:
-    """``line0 .. line{starts-1}``: the measure along the sign of the gradient from each of
-    the ``starts`` worst of the campaign's first 16 samples (``values``, its measures)."""
+def line_programs(robot, scenario, gains, config: CampaignConfig):
+    """``(value_and_gradient, values_at)``: the measure and its gradient in ``U`` at one point
+    ``(units, key)``, and the measure at a batch of points and keys, on the nominal
+    loop of ``config``'s realism; compiled once for every seed (the seed is in the points)."""
     spec = worstcase.gradient_spec(robot, scenario, law_named("admittance", config.pinv_damping), config.realism)
     ranges = config.ranges
 
@@ -85,10 +86,17 @@ def gradient_lines(robot, scenario, gains, config: CampaignConfig, values, start
         sample = perturbed_run(spec, from_units(units, ranges), ranges, config.identified)
         return metrics.final_position_error(closed_loop(sample, gains, key)[1])
 
-    value_and_gradient, values_at = jax.jit(jax.value_and_grad(value)), jax.jit(jax.vmap(value))
+    return jax.jit(jax.value_and_grad(value)), jax.jit(jax.vmap(value))
+
+
+def gradient_lines(programs, seed: int, values, starts: int = 3) -> dict:
+    """``line0 .. line{starts-1}``: the measure along the sign of the gradient from each of
+    the ``starts`` worst of the campaign's first 16 samples (``values``, its measures), by
+    ``line_programs()``'s ``programs``."""
+    value_and_gradient, values_at = programs
     n = len(values)
-    keys = worstcase.noise_keys(config.seed, range(n))
-    units = worstcase.units_of_samples(config.seed, range(n))
+    keys = worstcase.noise_keys(seed, range(n))
+    units = worstcase.units_of_samples(seed, range(n))
     lines = {}
     for rank, sample in enumerate(np.argsort(-np.asarray(values[:16]))[:starts]):
         start = jax.tree.map(lambda x: x[sample], units)
@@ -96,8 +104,8 @@ def gradient_lines(robot, scenario, gains, config: CampaignConfig, values, start
         points = project_units(
             jax.tree.map(lambda u, g: np.stack([u + step * np.sign(g) for step in LINE_STEPS]), start, gradient)
         )
-        measured = values_at(points, np.repeat(keys[sample][None], len(LINE_STEPS), axis=0))
-        lines[f"line{rank}"] = np.asarray(measured).tolist()
+        same_key = np.repeat(keys[sample][None], len(LINE_STEPS), axis=0)
+        lines[f"line{rank}"] = np.asarray(values_at(points, same_key)).tolist()
     return lines
 
 
@@ -123,8 +131,9 @@ def main(argv=None) -> None:
     robot = paper_robot()
     scenario = scenario_of(robot, args.duration)
     gains = paper_gains()
+    realism = None if args.realism == "ideal" else load_realism(args.realism, robot)
+    programs = None
     for seed in seeds:
-        realism = None if args.realism == "ideal" else load_realism(args.realism, robot)
         config = CampaignConfig(n=1, seed=seed, realism=realism)
         campaign = worstcase.compare_with_campaign(
             robot, scenario, gains, "admittance", config, args.budget, "final_error", chunk=8
@@ -133,7 +142,8 @@ def main(argv=None) -> None:
         row["campaign"] = campaign["value"]
         if args.lines:
             row["screen16"] = float(np.max(campaign["values"][:16]))
-            print(json.dumps(row | gradient_lines(robot, scenario, gains, config, campaign["values"])), flush=True)
+            programs = programs or line_programs(robot, scenario, gains, config)
+            print(json.dumps(row | gradient_lines(programs, seed, campaign["values"])), flush=True)
             continue
         for name, fields in SETTINGS.items():
             fields = dict(fields, screen=fields["screen"] * args.budget // 64, gen=fields["gen"] * args.budget // 64)

@@ -38,7 +38,6 @@ from spacegrasp_jax import anatomy, batching, experiment, joint_limits, runfiles
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import CONTROLLERS, law_named
 from spacegrasp_jax.control.schedule import gain_set_from_dict
-from spacegrasp_jax.experiment import RunFolderError
 from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
 from spacegrasp_jax.model import Robot, RobotConfigError, n_joints, paper_robot, robot_to_toml
 from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
@@ -766,13 +765,15 @@ def robot_and_scenario_of_run(folder, config: dict) -> tuple[Robot, Scenario]:
     ([`replay_sample()`][spacegrasp_jax.campaign.replay_sample]).
 
     Raises:
-        RunFolderError: the robot file or the campaign cannot be read.
+        experiment.RunFolderError: the robot file or the campaign cannot be read.
     """
     if "campaign_record" in config:
         try:
             robot, scenario, _, campaign_config = load_campaign(Path(config["campaign"]))
         except CampaignError as error:
-            raise RunFolderError(f"{folder}: a replay of {config['campaign']}, which cannot be read: {error}") from None
+            raise experiment.RunFolderError(
+                f"{folder}: a replay of {config['campaign']}, which cannot be read: {error}"
+            ) from None
         return replay_sample(robot, scenario, campaign_config, int(config["sample"]))
     source = config["robot"]
     if config.get("robot_file"):  # the robot as it ran, kept in the folder
@@ -780,7 +781,7 @@ def robot_and_scenario_of_run(folder, config: dict) -> tuple[Robot, Scenario]:
     try:
         robot = paper_robot() if source == "paper_robot()" else load_robot(source)
     except RobotConfigError as error:
-        raise RunFolderError(f"{folder}: its robot {source}: {error}") from None
+        raise experiment.RunFolderError(f"{folder}: its robot {source}: {error}") from None
     return robot, scenario_from_dict(config["scenario"])
 
 
