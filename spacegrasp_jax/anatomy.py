@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax import spatial
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.realism import Stage
 
 #: The parts of the final position error: name -> (shape, unit, meaning).
@@ -72,32 +73,25 @@ FAILURE_CLASSES = (
     "runaway",
     "joint_range",
     "joint_rate",
-    "torque_limit",
+    "torque_threshold",
     "position",
     "orientation",
     "target_speed",
 )
 
 
-def failure_classes(
-    sample_metrics: dict,
-    position_tolerance_m: float,
-    orientation_tolerance_rad: float,
-    torque_limit_Nm: float | None = None,
-    target_speed_limit_mps: float | None = None,
-    joint_rate_limits_radps: tuple[float, ...] | None = None,
-) -> dict[str, np.ndarray]:
-    """Which criteria each sample missed and by how much (NumPy).
-
-    ``joint_rate_limits_radps``: (N,) rad/s, each joint's rate limit as a criterion (the
-    samples' ``max_joint_rate_radps``, (n, N), against it); ``None``: rates are no criterion.
+def failure_classes(sample_metrics: dict, criteria: CaptureCriteria) -> dict[str, np.ndarray]:
+    """Which of ``criteria`` each sample missed and by how much (NumPy). A criterion that
+    does not apply is not missed: no torque threshold, a fixed target (``sample_metrics``
+    without ``final_target_speed_mps``), no rate limits (else the samples'
+    ``max_joint_rate_radps``, (n, N), against them).
 
     Returns:
         ``failed_<class>`` (n,) bool for each of ``FAILURE_CLASSES`` (a sample can miss
         several); ``failure`` (n,) str, the first class it missed or ``"success"``; and
         the margins, each a value over its tolerance (above 1: missed):
         ``position_margin``, ``orientation_margin``, ``torque_margin`` (largest peak over
-        ``torque_limit_Nm``; NaN without one), ``target_speed_margin`` (NaN without a
+        the torque threshold; NaN without one), ``target_speed_margin`` (NaN without a
         free-floating target); and ``range_excess_rad``, the furthest any joint went beyond
         its range (rad; above 0: missed; NaN for a robot without ranges); and
         ``joint_rate_margin``, the largest peak joint rate over its limit (NaN without rate
@@ -109,12 +103,12 @@ def failure_classes(
     peak = np.asarray(sample_metrics["largest_peak_torque_Nm"], dtype=float)
     nan = np.full(n, np.nan)
     margins = {
-        "position_margin": position / position_tolerance_m,
-        "orientation_margin": orientation / orientation_tolerance_rad,
-        "torque_margin": peak / torque_limit_Nm if torque_limit_Nm is not None else nan,
+        "position_margin": position / criteria.position_tolerance_m,
+        "orientation_margin": orientation / criteria.orientation_tolerance_rad,
+        "torque_margin": peak / criteria.torque_threshold_Nm if criteria.torque_threshold_Nm is not None else nan,
         "target_speed_margin": (
-            np.asarray(sample_metrics["final_target_speed_mps"], dtype=float) / target_speed_limit_mps
-            if target_speed_limit_mps is not None and "final_target_speed_mps" in sample_metrics
+            np.asarray(sample_metrics["final_target_speed_mps"], dtype=float) / criteria.target_speed_limit_mps
+            if "final_target_speed_mps" in sample_metrics
             else nan
         ),
     }
@@ -125,16 +119,16 @@ def failure_classes(
         warnings.simplefilter("ignore", RuntimeWarning)
         range_excess = np.nanmax(excess, axis=1) if excess.size else nan
     rate_margin = nan
-    if joint_rate_limits_radps is not None:
+    if criteria.joint_rate_limits_radps is not None:
         rates = np.asarray(sample_metrics["max_joint_rate_radps"], dtype=float).reshape(n, -1)
-        rate_margin = np.max(rates / np.asarray(joint_rate_limits_radps, dtype=float), axis=1)
+        rate_margin = np.max(rates / np.asarray(criteria.joint_rate_limits_radps, dtype=float), axis=1)
     with np.errstate(invalid="ignore"):
         failed = {
             "diverged": diverged,
             "runaway": runaway & ~diverged,
             "joint_range": range_excess > 0.0,
             "joint_rate": rate_margin > 1.0,
-            "torque_limit": margins["torque_margin"] > 1.0,
+            "torque_threshold": margins["torque_margin"] > 1.0,
             # A NaN error (diverged) is no position failure of its own.
             "position": margins["position_margin"] > 1.0,
             "orientation": margins["orientation_margin"] > 1.0,
@@ -197,12 +191,11 @@ def anatomy_summary(sample_metrics: dict) -> dict:
     }
 
 
-def verdict_line(summary: dict, classes: dict[str, np.ndarray], tolerances: dict) -> str | None:
+def verdict_line(summary: dict, classes: dict[str, np.ndarray], criteria: CaptureCriteria) -> str | None:
     """One line for a single run that failed its capture (``None`` if it succeeded): the
     class, the numbers that decided it and the error's parts. ``summary``: the run's
     summary.json (metrics as floats and lists); ``classes``: [`failure_classes()`][spacegrasp_jax.anatomy.failure_classes] of it
-    as a one-sample batch; ``tolerances``: ``final_position_m``, ``final_orientation_rad``,
-    ``torque_limit_Nm``, ``target_speed_mps``, ``joint_rate_radps``."""
+    as a one-sample batch by ``criteria``."""
     failure = str(classes["failure"][0])
     if failure == "success":
         return None
@@ -227,11 +220,13 @@ def verdict_line(summary: dict, classes: dict[str, np.ndarray], tolerances: dict
         )
     if "joint_rate" in missed and "runaway" not in missed:
         rates = np.asarray(summary["max_joint_rate_radps"], dtype=float)
-        limits = np.asarray(tolerances["joint_rate_radps"], dtype=float)
+        limits = np.asarray(criteria.joint_rate_limits_radps, dtype=float)
         joint = int(np.argmax(rates / limits))
         numbers.append(f"joint {joint + 1} turned at {rates[joint]:.3g} rad/s > its limit {limits[joint]:g}")
-    if "torque_limit" in missed and "runaway" not in missed:
-        numbers.append(f"peak torque {summary['largest_peak_torque_Nm']:.3g} N m > {tolerances['torque_limit_Nm']:g}")
+    if "torque_threshold" in missed and "runaway" not in missed:
+        numbers.append(
+            f"peak torque {summary['largest_peak_torque_Nm']:.3g} N m > the threshold {criteria.torque_threshold_Nm:g}"
+        )
     if "position" in missed:
         parts = error_decomposition(
             {
@@ -242,19 +237,19 @@ def verdict_line(summary: dict, classes: dict[str, np.ndarray], tolerances: dict
         )
         numbers.append(
             f"final position error {1e3 * summary['final_position_error_m']:.2f} mm > "
-            f"{1e3 * tolerances['final_position_m']:g} (along the approach {1e3 * parts['final_error_along_m'][0]:+.2f}, "
+            f"{1e3 * criteria.position_tolerance_m:g} (along the approach {1e3 * parts['final_error_along_m'][0]:+.2f}, "
             f"across {1e3 * parts['final_error_across_m'][0]:.2f}; estimate {1e3 * parts['final_error_estimate_m'][0]:.2f}, "
             f"compliance {1e3 * parts['final_error_compliance_m'][0]:.2f}, residual {1e3 * parts['final_error_residual_m'][0]:.2f})"
         )
     if "orientation" in missed:
         numbers.append(
             f"final orientation error {np.degrees(summary['final_orientation_error_rad']):.2f} deg > "
-            f"{np.degrees(tolerances['final_orientation_rad']):g}"
+            f"{np.degrees(criteria.orientation_tolerance_rad):g}"
         )
     if "target_speed" in missed:
         numbers.append(
             f"target pushed to {1e3 * summary['final_target_speed_mps']:.2f} mm/s > "
-            f"{1e3 * tolerances['target_speed_mps']:g}"
+            f"{1e3 * criteria.target_speed_limit_mps:g}"
         )
     return f"capture failed ({failure}): " + "; ".join(numbers)
 

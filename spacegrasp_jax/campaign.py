@@ -34,10 +34,11 @@ import jax
 import numpy as np
 from jax.experimental import multihost_utils
 
-from spacegrasp_jax import anatomy, batching, experiment, joint_limits, runfiles, statistics
+from spacegrasp_jax import anatomy, batching, experiment, runfiles, statistics
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import CONTROLLERS, law_named
 from spacegrasp_jax.control.schedule import gain_set_from_dict
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
 from spacegrasp_jax.model import Robot, RobotConfigError, n_joints, paper_robot, robot_to_toml
 from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
@@ -64,13 +65,11 @@ class CampaignConfig:
         chunk: samples per compiled call; a multiple of the number of devices. Memory grows
             with it; results do not depend on it.
         ranges: perturbation half-widths.
-        position_tolerance_m, orientation_tolerance_rad: success thresholds on the final errors.
-        torque_limit_Nm: a sample whose peak |u_i| on any joint exceeds this (N m) is counted as
-            unstable and is not a success, even if it never turns non-finite (unstable captures
-            reach 1e4-1e5 N m without a NaN); ``None``: no limit.
-        target_speed_limit_mps: with a free-floating target, a capture succeeds only if the
-            target's final speed is at most this (m/s): pushed away faster, it drifts out of
-            reach before the grasp closes.
+        criteria: when a sample is a capture
+            ([`CaptureCriteria`][spacegrasp_jax.criteria.CaptureCriteria]; the defaults: 5 mm,
+            1 deg, a torque threshold of 100 N m, 5 mm/s for a free target's final speed, rates
+            no criterion). The commands set its rate limits to the robot's when a robot file
+            states them ([`rate_limits_stated()`][spacegrasp_jax.robot_files.rate_limits_stated]).
         timeseries_every: keep every k-th log row of every sample (``None``: metrics only).
         pinv_damping: damping of the pseudoinverse (0: exact, the paper).
         device_batch: samples each device simulates at once (``None``: its whole share of the
@@ -79,27 +78,18 @@ class CampaignConfig:
         realism: the loop's realism ([`spacegrasp_jax.realism`][spacegrasp_jax.realism]; ``None``: the paper's).
         identified: tell the controller each sample's perturbed satellite (a perfectly
             identified plant); by default it believes the nominal robot.
-        joint_rate_limits_radps: (N,) rad/s, each joint's rate limit as a success criterion:
-            a sample whose peak |qd_i| exceeds it fails (``joint_rate``). ``None`` (the
-            default): rates are no criterion, only a runaway (ten times the robot's
-            ``joint_rate_limit``) fails. The commands set it to the robot's limits when a
-            robot file states them ([`rate_limits_stated()`][spacegrasp_jax.robot_files.rate_limits_stated]).
     """
 
     n: int
     seed: int = 0
     chunk: int = 64
     ranges: PerturbationRanges = PerturbationRanges()
-    position_tolerance_m: float = 0.005
-    orientation_tolerance_rad: float = math.radians(1.0)
-    torque_limit_Nm: float | None = 100.0
-    target_speed_limit_mps: float = 0.005
+    criteria: CaptureCriteria = CaptureCriteria()
     timeseries_every: int | None = None
     pinv_damping: float = 0.0
     device_batch: int | None = None
     realism: Realism | None = None
     identified: bool = False
-    joint_rate_limits_radps: tuple[float, ...] | None = None
 
     def __post_init__(self):
         for name in ("n", "seed", "chunk"):
@@ -112,16 +102,8 @@ class CampaignConfig:
             raise CampaignError(f"chunk: must be at least 1, got {self.chunk}")
         if not 0 <= self.seed < 2**32:
             raise CampaignError(f"seed: must be in [0, 2^32), got {self.seed}")
-        for name in ("position_tolerance_m", "orientation_tolerance_rad", "target_speed_limit_mps"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0.0):
-                raise CampaignError(f"{name}: must be positive and finite, got {value!r}")
-        if self.torque_limit_Nm is not None and not (
-            isinstance(self.torque_limit_Nm, (int, float))
-            and math.isfinite(self.torque_limit_Nm)
-            and self.torque_limit_Nm > 0.0
-        ):
-            raise CampaignError(f"torque_limit_Nm: must be positive and finite, or None, got {self.torque_limit_Nm!r}")
+        if not isinstance(self.criteria, CaptureCriteria):
+            raise CampaignError(f"criteria: must be a CaptureCriteria, got {self.criteria!r}")
         if self.timeseries_every is not None and self.timeseries_every < 1:
             raise CampaignError(f"timeseries_every: must be at least 1, got {self.timeseries_every}")
         if self.device_batch is not None and (
@@ -130,16 +112,52 @@ class CampaignConfig:
             raise CampaignError(f"device_batch: must be a positive integer or None, got {self.device_batch!r}")
         if not (math.isfinite(self.pinv_damping) and self.pinv_damping >= 0.0):
             raise CampaignError(f"pinv_damping: must be non-negative, got {self.pinv_damping}")
-        try:
-            object.__setattr__(
-                self, "joint_rate_limits_radps", joint_limits.rate_criterion(self.joint_rate_limits_radps)
-            )
-        except ValueError as error:
-            raise CampaignError(f"joint_rate_limits_radps: {error}") from None
 
     def to_dict(self) -> dict:
         fields = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}
-        return fields | {"ranges": self.ranges.to_dict(), "realism": (self.realism or ideal()).to_dict()}
+        return fields | {
+            "ranges": self.ranges.to_dict(),
+            "criteria": self.criteria.to_dict(),
+            "realism": (self.realism or ideal()).to_dict(),
+        }
+
+    @classmethod
+    def from_dict(cls, document: dict, source: str = "campaign settings") -> CampaignConfig:
+        """The settings ``to_dict()`` wrote, or a campaign record of an older version (the
+        criteria as settings of their own, ``torque_limit_Nm`` for the threshold; no rate
+        limits: none were criteria). ``source`` names the record in errors.
+
+        Raises:
+            CampaignError: a setting that is not one, or a bad value, naming it.
+        """
+        fields = dict(document)
+        criteria = dict(fields.pop("criteria", {}))
+        for name in _CRITERIA_SETTINGS_OF_OLDER_RECORDS:
+            if name in fields:
+                criteria[name] = fields.pop(name)
+        unknown = sorted(set(fields) - {field.name for field in dataclasses.fields(cls)})
+        if unknown:
+            raise CampaignError(f"{source}: {', '.join(unknown)}: no such setting")
+        try:
+            fields["criteria"] = CaptureCriteria.from_dict(criteria)
+        except ValueError as error:
+            raise CampaignError(f"{source}: {error}") from None
+        if "ranges" in fields:
+            fields["ranges"] = PerturbationRanges.from_mapping(fields["ranges"])
+        if "realism" in fields:
+            realism = make_realism(fields["realism"], source=source)
+            fields["realism"] = None if realism.to_dict() == ideal().to_dict() else realism
+        return cls(**fields)
+
+
+#: The criteria a campaign record of an older version kept among its settings.
+_CRITERIA_SETTINGS_OF_OLDER_RECORDS = (
+    "position_tolerance_m",
+    "orientation_tolerance_rad",
+    "torque_limit_Nm",
+    "target_speed_limit_mps",
+    "joint_rate_limits_radps",
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -268,11 +286,6 @@ def _record(config: CampaignConfig, variants, robot_source: str, scenario: Scena
     }
 
 
-#: CampaignConfig's fields added after campaigns were first recorded, and the values a
-#: record without them ran with.
-_ADDED_SETTINGS = {"joint_rate_limits_radps": None}
-
-
 def _check_resume(out: Path, record: dict, resume: bool, robot: Robot) -> None:
     path = out / "campaign.json"
     if not path.exists():
@@ -282,8 +295,8 @@ def _check_resume(out: Path, record: dict, resume: bool, robot: Robot) -> None:
             f"{out} already holds a campaign: pass --resume (resume=True) to continue it, or choose another output folder"
         )
     previous = json.loads(path.read_text())
-    # A campaign of an older version lacks the settings added since: it ran with their defaults.
-    previous["config"] = _ADDED_SETTINGS | previous.get("config", {})
+    # A campaign of an older version: its settings as this version records them.
+    previous["config"] = CampaignConfig.from_dict(previous.get("config", {})).to_dict()
     # The robot by what it is, not by the path it was read from (a resume from elsewhere
     # names the same file another way); a campaign of an older version, by its path.
     if previous.get("robot_file"):
@@ -331,61 +344,39 @@ def _statistics(values: np.ndarray) -> dict:
 
 def classify(sample_metrics: dict[str, np.ndarray], config: CampaignConfig) -> dict[str, np.ndarray]:
     """[`spacegrasp_jax.anatomy.failure_classes()`][spacegrasp_jax.anatomy.failure_classes] of the samples by the campaign's criteria."""
-    return anatomy.failure_classes(
-        sample_metrics,
-        config.position_tolerance_m,
-        config.orientation_tolerance_rad,
-        config.torque_limit_Nm,
-        config.target_speed_limit_mps,
-        config.joint_rate_limits_radps,
-    )
-
-
-def capture_criteria(config: CampaignConfig | None = None) -> dict:
-    """A campaign's success criteria (``None``: the campaigns' defaults) as a run's
-    ``summary.json`` names them: ``final_position_m``, ``final_orientation_rad``,
-    ``torque_limit_Nm``, ``target_speed_mps``, ``joint_rate_radps`` (a list, ``None``: rates
-    are no criterion)."""
-    config = CampaignConfig(n=1) if config is None else config
-    rates = config.joint_rate_limits_radps
-    return {
-        "final_position_m": config.position_tolerance_m,
-        "final_orientation_rad": config.orientation_tolerance_rad,
-        "torque_limit_Nm": config.torque_limit_Nm,
-        "target_speed_mps": config.target_speed_limit_mps,
-        "joint_rate_radps": None if rates is None else list(rates),
-    }
+    return anatomy.failure_classes(sample_metrics, config.criteria)
 
 
 #: The metrics a run or a sample reports (a free target's where there is one).
 _REPORTED = (*METRICS, *TARGET_METRICS, *anatomy.ANATOMY_METRICS)
 
 
-def run_failure_classes(summary: dict, config: CampaignConfig | None = None) -> dict[str, np.ndarray]:
-    """[`classify()`][spacegrasp_jax.campaign.classify] of one run's summary (its metrics as
-    floats and lists, ``metrics.summary``) as a one-sample batch, by ``config``'s criteria
+def run_failure_classes(summary: dict, criteria: CaptureCriteria | None = None) -> dict[str, np.ndarray]:
+    """[`failure_classes()`][spacegrasp_jax.anatomy.failure_classes] of one run's summary (its
+    metrics as floats and lists, ``metrics.summary``) as a one-sample batch, by ``criteria``
     (``None``: the campaigns' defaults)."""
     sample = {name: np.asarray([value], dtype=float) for name, value in summary.items() if name in _REPORTED}
-    return classify(sample, CampaignConfig(n=1) if config is None else config)
+    return anatomy.failure_classes(sample, CaptureCriteria() if criteria is None else criteria)
 
 
-def with_capture_verdict(summary: dict, config: CampaignConfig | None = None) -> dict:
-    """``summary`` (one run's, ``metrics.summary``) and its verdict by a campaign's criteria
-    (``None``: the defaults): whether the run is a capture (``capture_success``), the
-    criteria (``capture_criteria``), which it missed and by how much (``capture_failure``,
+def with_capture_verdict(summary: dict, criteria: CaptureCriteria | None = None) -> dict:
+    """``summary`` (one run's, ``metrics.summary``) and its verdict by ``criteria`` (``None``:
+    the campaigns' defaults): whether the run is a capture (``capture_success``), the
+    criteria (``capture_criteria``, [`CaptureCriteria.to_dict()`][spacegrasp_jax.criteria.CaptureCriteria.to_dict]), which it missed and by how much (``capture_failure``,
     ``capture_missed``, ``capture_margins``: value over tolerance, ``None`` where a criterion
     does not apply) and the parts of its final position error (``final_error_parts_m``). What
     ``spacegrasp simulate`` writes into ``summary.json``. A diverged run's summary is returned
     as it is."""
     if summary.get("diverged"):
         return summary
-    classes = run_failure_classes(summary, config)
+    criteria = CaptureCriteria() if criteria is None else criteria
+    classes = run_failure_classes(summary, criteria)
     parts = anatomy.error_decomposition(
         {name: np.asarray([summary[name]]) for name in ("final_position_error_lar_m", *anatomy.ANATOMY_METRICS)}
     )
     return summary | {
         "capture_success": bool(classes["failure"][0] == "success"),
-        "capture_criteria": capture_criteria(config),
+        "capture_criteria": criteria.to_dict(),
         "capture_failure": str(classes["failure"][0]),
         "capture_missed": [name for name in anatomy.FAILURE_CLASSES if classes[f"failed_{name}"][0]],
         "capture_margins": {
@@ -423,7 +414,7 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
             over_non_diverged[name] = _statistics(values[ok])
     peak = np.asarray(sample_metrics["largest_peak_torque_Nm"])
     classes = classify(sample_metrics, config)
-    unstable = np.flatnonzero(ok & classes["failed_torque_limit"])
+    unstable = np.flatnonzero(ok & classes["failed_torque_threshold"])
 
     def worst(values):
         order = np.argsort(np.where(np.isfinite(values), values, np.inf))[::-1]
@@ -516,7 +507,7 @@ def run_campaign(
     Args:
         robot, scenario: the nominal system; every sample perturbs them.
         variants: the controller/gains pairs to evaluate on the same samples.
-        config: sizes, seed, ranges and tolerances.
+        config: sizes, seed, ranges and criteria.
         out: output folder (``None``: nothing written and no resume).
         resume: continue the campaign already in ``out`` (its configuration must match).
         robot_source, robot_links: where ``robot`` was read from and, for a URDF arm, its
@@ -659,17 +650,7 @@ def run_campaign(
         "dt_s": scenario.dt,
         "contact_law": scenario.contact_law,
         "target": f"free, {float(scenario.target.mass):g} kg nominal" if scenario.free_target else "fixed",
-        "tolerances": {
-            "final_position_m": config.position_tolerance_m,
-            "final_orientation_rad": config.orientation_tolerance_rad,
-            "torque_limit_Nm": config.torque_limit_Nm,
-            **({"target_speed_mps": config.target_speed_limit_mps} if scenario.free_target else {}),
-            **(
-                {"joint_rate_radps": list(config.joint_rate_limits_radps)}
-                if config.joint_rate_limits_radps is not None
-                else {}
-            ),
-        },
+        "capture_criteria": config.criteria.to_dict(),
         "ranges": config.ranges.to_dict(),
         "realism": (config.realism or ideal()).to_dict(),
         "controller_believes": "each sample's perturbed robot" if config.identified else "the nominal robot",
@@ -706,16 +687,26 @@ def figure_title(summary: dict) -> str:
     )
 
 
+#: The failure classes older campaigns named otherwise, and today's names.
+_OLDER_CLASS_NAMES = {"torque_limit": "torque_threshold"}
+
+
 def load_samples(path: Path) -> tuple[dict[str, np.ndarray], dict[str, dict[str, np.ndarray]]]:
-    """``(perturbations, metrics by variant key)`` from a campaign's samples.npz."""
+    """``(perturbations, metrics by variant key)`` from a campaign's samples.npz; an older
+    campaign's failure classes in today's names (``torque_limit`` is ``torque_threshold``)."""
     perturbations, by_variant = {}, {}
     with np.load(path) as data:
         for name in data.files:
             head, _, field = name.rpartition("/")
             if head == "perturbation":
                 perturbations[field] = data[name]
-            else:
-                by_variant.setdefault(head, {})[field] = data[name]
+                continue
+            value = data[name]
+            for old, new in _OLDER_CLASS_NAMES.items():
+                if field == "failure":
+                    value = np.where(value == old, new, value)
+                field = field.replace(f"failed_{old}", f"failed_{new}")
+            by_variant.setdefault(head, {})[field] = value
     return perturbations, by_variant
 
 
@@ -739,15 +730,12 @@ def load_campaign(out: Path) -> tuple[Robot, Scenario, list[Variant], CampaignCo
         robot = paper_robot() if source == "paper_robot()" else load_robot(source)
     except (OSError, ValueError) as error:
         raise CampaignError(f"{path}: its robot {source}: {error}") from None
-    fields = dict(record["config"])
-    fields["ranges"] = PerturbationRanges.from_mapping(fields["ranges"])
-    realism = make_realism(fields["realism"], source=str(path))
-    fields["realism"] = None if realism.to_dict() == ideal().to_dict() else realism
+    config = CampaignConfig.from_dict(record["config"], source=str(path))
     variants = [
         Variant(item["controller"], gain_set_from_dict(item["gains"], n_joints(robot)), item["gains_label"])
         for item in record["variants"]
     ]
-    return robot, scenario_from_dict(record["scenario"]), variants, CampaignConfig(**fields)
+    return robot, scenario_from_dict(record["scenario"]), variants, config
 
 
 def replay_sample(robot: Robot, scenario: Scenario, config: CampaignConfig, index: int) -> tuple[Robot, Scenario]:
@@ -805,7 +793,6 @@ __all__ = [
     "CampaignError",
     "CampaignResult",
     "Variant",
-    "capture_criteria",
     "classify",
     "compiled_chunk",
     "evaluate_indices",

@@ -25,7 +25,7 @@ The changes probed:
   program for every ``d``; the line starts full of zero readings).
 
 A probe *fails* when a sample that captures at the nominal gains no longer captures (the
-campaign's criteria: tolerances, torque limit, target speed, no runaway), or a sample that
+campaign's criteria: tolerances, torque threshold, target speed, no runaway), or a sample that
 stays bounded at the nominal gains runs away or diverges (``RUNAWAY_FACTOR`` times a joint
 limit, or a non-finite state). A sample that already fails at the nominal gains can only
 make a probe fail by running away. The gain margins are searched in both directions
@@ -248,15 +248,7 @@ class Prober:
             self._executable, self._replicated(gains, delay_periods, servo_delay_ticks), self._indices
         )
         sample_metrics = {name: value[: self.settings.samples] for name, value in sample_metrics.items()}
-        config = self.config
-        captured = success(
-            sample_metrics,
-            config.position_tolerance_m,
-            config.orientation_tolerance_rad,
-            config.torque_limit_Nm,
-            config.target_speed_limit_mps,
-            config.joint_rate_limits_radps,
-        )
+        captured = success(sample_metrics, self.config.criteria)
         bounded = ~lost(sample_metrics)
         return sample_metrics | {"success": captured, "bounded": bounded}
 

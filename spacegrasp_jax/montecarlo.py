@@ -22,6 +22,7 @@ import numpy as np
 
 from spacegrasp_jax import anatomy, metrics
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.perturbations import (
     Perturbation,
@@ -227,28 +228,13 @@ def lost(sample_metrics: dict) -> np.ndarray:
     )
 
 
-def success(
-    sample_metrics: dict,
-    position_tolerance_m: float,
-    orientation_tolerance_rad: float,
-    torque_limit_Nm: float | None = None,
-    target_speed_limit_mps: float | None = None,
-    joint_rate_limits_radps: tuple[float, ...] | None = None,
-):
-    """(n,) bool: the sample did not diverge nor run away (``first_runaway_s``), its peak
-    |u_i| stayed at or below ``torque_limit_Nm`` (N m; ``None``: no limit), it ended within
-    both tolerances (relative to the LAR frame, moving or not) and, with a free-floating
-    target (``sample_metrics`` holds ``final_target_speed_mps``), the target's final speed
-    is at most ``target_speed_limit_mps`` (m/s; ``None``: any), no joint left its range and,
-    with ``joint_rate_limits_radps`` ((N,) rad/s; ``None``: no criterion), no joint's peak
-    rate exceeded its limit (NumPy). Which criterion a failed sample missed:
+def success(sample_metrics: dict, criteria: CaptureCriteria):
+    """(n,) bool: each sample's capture by ``criteria``
+    ([`CaptureCriteria`][spacegrasp_jax.criteria.CaptureCriteria]): it did not diverge nor run
+    away (``first_runaway_s``), no joint left its range, its peak |u_i| stayed at or below the
+    torque threshold, it ended within both tolerances (relative to the LAR frame, moving or
+    not), with a free-floating target (``sample_metrics`` holds ``final_target_speed_mps``)
+    the target's final speed is at most its limit and, where rate limits are criteria, no
+    joint's peak rate exceeded its limit (NumPy). Which criterion a failed sample missed:
     [`spacegrasp_jax.anatomy.failure_classes()`][spacegrasp_jax.anatomy.failure_classes]."""
-    classes = anatomy.failure_classes(
-        sample_metrics,
-        position_tolerance_m,
-        orientation_tolerance_rad,
-        torque_limit_Nm,
-        target_speed_limit_mps,
-        joint_rate_limits_radps,
-    )
-    return classes["failure"] == "success"
+    return anatomy.failure_classes(sample_metrics, criteria)["failure"] == "success"

@@ -357,10 +357,10 @@ def figure_campaign_histograms(
     metrics: dict,
     title: str = "Monte-Carlo campaign",
     tolerance_mm: float | None = None,
-    torque_limit_Nm: float | None = None,
+    torque_threshold_Nm: float | None = None,
 ):
     """Histograms of the final position error (with the success tolerance, if given) and of
-    the largest peak joint torque (with the success criterion's torque limit, if given: a
+    the largest peak joint torque (with the success criterion's torque threshold, if given: a
     line where it lies within twice the largest peak, else named in the legend)."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
     values = {key: _campaign_values(m) for key, m in metrics.items()}
@@ -388,10 +388,10 @@ def figure_campaign_histograms(
             ax.axvline(
                 tolerance_mm, color="black", linestyle="--", linewidth=1, label=f"success tolerance {tolerance_mm:g} mm"
             )
-        if column == 1 and torque_limit_Nm is not None:
-            label = f"torque limit {torque_limit_Nm:g} N m"
-            if pooled.size and torque_limit_Nm <= 2.0 * np.max(pooled):
-                ax.axvline(torque_limit_Nm, color="black", linestyle="--", linewidth=1, label=label)
+        if column == 1 and torque_threshold_Nm is not None:
+            label = f"torque threshold {torque_threshold_Nm:g} N m"
+            if pooled.size and torque_threshold_Nm <= 2.0 * np.max(pooled):
+                ax.axvline(torque_threshold_Nm, color="black", linestyle="--", linewidth=1, label=label)
             else:
                 ax.plot([], [], color="black", linestyle="--", linewidth=1, label=f"{label} (beyond the axis)")
         ax.set_xlabel(xlabel)
@@ -429,7 +429,9 @@ _FAILURE_COLOURS = {
     "success": "tab:green",
     "diverged": "black",
     "runaway": "tab:red",
-    "torque_limit": "tab:orange",
+    "joint_range": "tab:pink",
+    "joint_rate": "tab:olive",
+    "torque_threshold": "tab:orange",
     "position": "tab:blue",
     "orientation": "tab:purple",
     "target_speed": "tab:brown",
@@ -477,11 +479,11 @@ def figure_campaign_failures(metrics: dict, title: str = "Monte-Carlo campaign")
 
 
 def save_campaign_figures(
-    out_dir, metrics: dict, title: str, tolerance_mm: float, write_atomically, torque_limit_Nm: float | None = None
+    out_dir, metrics: dict, title: str, tolerance_mm: float, write_atomically, torque_threshold_Nm: float | None = None
 ) -> None:
     """``histograms.png``, ``torque_vs_error.png`` and ``failures.png`` of a Monte-Carlo campaign."""
     figures = {
-        "histograms.png": figure_campaign_histograms(metrics, title, tolerance_mm, torque_limit_Nm),
+        "histograms.png": figure_campaign_histograms(metrics, title, tolerance_mm, torque_threshold_Nm),
         "torque_vs_error.png": figure_campaign_scatter(metrics, title),
         "failures.png": figure_campaign_failures(metrics, title),
     }

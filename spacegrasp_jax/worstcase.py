@@ -60,6 +60,7 @@ from spacegrasp_jax.campaign import (
 )
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import law_named
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.experiment import loop_options
 from spacegrasp_jax.inputs import read_document, short
 from spacegrasp_jax.model import Robot
@@ -205,44 +206,37 @@ def measure_of_metrics(sample_metrics: dict, measure: str, config: CampaignConfi
     elif measure == "peak_torque":
         values = np.asarray(sample_metrics["largest_peak_torque_Nm"], dtype=float)
     else:
-        margins = anatomy.failure_classes(
-            sample_metrics,
-            config.position_tolerance_m,
-            config.orientation_tolerance_rad,
-            config.torque_limit_Nm,
-            joint_rate_limits_radps=config.joint_rate_limits_radps,
-        )
+        margins = anatomy.failure_classes(sample_metrics, config.criteria)
         parts = [margins["position_margin"], margins["orientation_margin"]]
-        if config.torque_limit_Nm is not None:
+        if config.criteria.torque_threshold_Nm is not None:
             parts.append(margins["torque_margin"])
         excess = margins["range_excess_rad"]
         if np.isfinite(excess).any():  # a robot with joint ranges
             with np.errstate(over="ignore"):
                 parts.append(np.exp(excess / joint_limits.RANGE_MARGIN_SCALE_RAD))
-        if config.joint_rate_limits_radps is not None:
+        if config.criteria.joint_rate_limits_radps is not None:
             parts.append(margins["joint_rate_margin"])
         values = np.max(np.stack(parts), axis=0)
     return np.where(lost(sample_metrics) | ~np.isfinite(values), np.inf, values)
 
 
-def _measure_of_log(log, measure: str, criteria: tuple) -> jax.Array:
-    position_tolerance, orientation_tolerance, torque_limit, ranges, rate_limits = criteria
+def _measure_of_log(log, measure: str, criteria: CaptureCriteria, ranges: tuple) -> jax.Array:
     if measure == "final_error":
         return metrics.final_position_error(log)
     peak = jnp.max(jnp.abs(log.u))
     if measure == "peak_torque":
         return peak
     ratios = [
-        metrics.final_position_error(log) / position_tolerance,
-        metrics.final_orientation_error(log) / orientation_tolerance,
+        metrics.final_position_error(log) / criteria.position_tolerance_m,
+        metrics.final_orientation_error(log) / criteria.orientation_tolerance_rad,
     ]
-    if torque_limit is not None:
-        ratios.append(peak / torque_limit)
+    if criteria.torque_threshold_Nm is not None:
+        ratios.append(peak / criteria.torque_threshold_Nm)
     if ranges:  # the hard excess, as the campaign's criterion: exp(excess / scale), 1 at a limit
         excess = jnp.max(joint_limits.range_excess(log.q, ranges))
         ratios.append(jnp.exp(jnp.minimum(excess / joint_limits.RANGE_MARGIN_SCALE_RAD, 50.0)))
-    if rate_limits is not None:
-        ratios.append(jnp.max(jnp.abs(log.qd) / jnp.asarray(rate_limits)))
+    if criteria.joint_rate_limits_radps is not None:
+        ratios.append(jnp.max(jnp.abs(log.qd) / jnp.asarray(criteria.joint_rate_limits_radps)))
     return jnp.max(jnp.stack(ratios))
 
 
@@ -260,7 +254,7 @@ def gradient_spec(robot: Robot, scenario: Scenario, controller, realism=None) ->
     )
 
 
-def _value_and_gradient(spec, gains, ranges, block, *, measure, criteria, identified):
+def _value_and_gradient(spec, gains, ranges, block, *, measure, criteria, joint_ranges, identified):
     """The measure and its gradient in ``U`` for a block ``(units, keys)`` of points of the
     nominal run ``spec`` (its whole log kept, checkpointed: [`gradient_spec()`][spacegrasp_jax.worstcase.gradient_spec]), one
     point after another (``compilation.map_one_at_a_time``): the program then holds the gradient of one rollout,
@@ -269,7 +263,7 @@ def _value_and_gradient(spec, gains, ranges, block, *, measure, criteria, identi
     def value(units, key):
         sample = perturbed_run(spec, from_units(units, ranges), ranges, identified)
         _, log = closed_loop(sample, gains, key)
-        return _measure_of_log(log, measure, criteria)
+        return _measure_of_log(log, measure, criteria, joint_ranges)
 
     return compilation.map_one_at_a_time(lambda point: jax.value_and_grad(value)(*point), block)
 
@@ -377,13 +371,8 @@ def _ascent(robot, scenario, gains, controller, config, settings, values, compil
     function = functools.partial(
         _value_and_gradient,
         measure=settings.measure,
-        criteria=(
-            config.position_tolerance_m,
-            config.orientation_tolerance_rad,
-            config.torque_limit_Nm,
-            joint_limits.finite_ranges(robot),
-            config.joint_rate_limits_radps,
-        ),
+        criteria=config.criteria,
+        joint_ranges=joint_limits.finite_ranges(robot),
         identified=config.identified,
     )
     spec = gradient_spec(robot, scenario, law_named(controller, config.pinv_damping), config.realism)

@@ -15,11 +15,14 @@ from scipy.spatial.transform import Rotation
 import spacegrasp_jax as sg
 from spacegrasp_jax import anatomy, metrics
 from spacegrasp_jax.contact import contact_force_exact
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.realism import make_realism
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.simulate import Log
 
-TOLERANCES = dict(position_tolerance_m=0.005, orientation_tolerance_rad=math.radians(1.0), torque_limit_Nm=100.0)
+CRITERIA = CaptureCriteria(
+    position_tolerance_m=0.005, orientation_tolerance_rad=math.radians(1.0), torque_threshold_Nm=100.0
+)
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +60,7 @@ def test_a_pure_estimate_error_is_all_estimate(scenario):
     np.testing.assert_allclose(parts["final_error_compliance_m"], 0.0)
     np.testing.assert_allclose(parts["final_error_along_m"], error[2])
     np.testing.assert_allclose(parts["final_error_across_m"], np.hypot(error[0], error[1]))
-    classes = anatomy.failure_classes(run, **TOLERANCES)
+    classes = anatomy.failure_classes(run, CRITERIA)
     assert classes["failure"][0] == "position"  # 5.4 mm > 5 mm
     np.testing.assert_allclose(classes["position_margin"], np.linalg.norm(error) / 0.005)
     # Without the estimate stage the same error is the controller's own.
@@ -118,11 +121,11 @@ def test_a_runaway_is_caught_in_the_fold(rate, torque, runaway):
     # Without a robot nothing is a runaway.
     assert np.isnan(float(metrics.log_metrics(log, free_target=False)["first_runaway_s"]))
     sample = {name: np.asarray(value)[None] for name, value in whole.items()}
-    classes = anatomy.failure_classes(sample, **dict(TOLERANCES, torque_limit_Nm=None))
+    classes = anatomy.failure_classes(sample, dataclasses.replace(CRITERIA, torque_threshold_Nm=None))
     assert (classes["failure"][0] == "runaway") == runaway
     if runaway:
         summary = {name: np.asarray(value).tolist() for name, value in whole.items()}
-        line = anatomy.verdict_line(summary, classes, dict(final_position_m=0.005, final_orientation_rad=0.01))
+        line = anatomy.verdict_line(summary, classes, CaptureCriteria(0.005, 0.01))
         assert line.startswith("capture failed (runaway): at t = 1.00 s") and f"{abs(rate):.3g} rad/s" in line
 
 
@@ -136,17 +139,17 @@ def test_failure_classes_order_and_margins():
         "first_runaway_s": np.array([nan, nan, nan, nan, nan, 2.0, nan]),
         "final_target_speed_mps": np.array([0.001, 0.001, 0.001, 0.0, 0.001, 0.001, 0.009]),
     }
-    classes = anatomy.failure_classes(sample, **TOLERANCES, target_speed_limit_mps=0.005)
+    classes = anatomy.failure_classes(sample, dataclasses.replace(CRITERIA, target_speed_limit_mps=0.005))
     assert list(classes["failure"]) == [
         "success",
         "position",
         "orientation",
         "diverged",
-        "torque_limit",  # 200 N m, also 20 mm off
+        "torque_threshold",  # 200 N m, also 20 mm off
         "runaway",
         "target_speed",
     ]
-    assert classes["failed_position"][4] and classes["failed_torque_limit"][4]
+    assert classes["failed_position"][4] and classes["failed_torque_threshold"][4]
     np.testing.assert_allclose(classes["position_margin"][:2], [0.2, 1.2])
     np.testing.assert_allclose(classes["torque_margin"][4], 2.0)
     np.testing.assert_allclose(classes["target_speed_margin"][6], 1.8)
@@ -174,8 +177,8 @@ def test_a_position_failure_is_said_in_one_line_with_its_parts(scenario):
     realism = make_realism({"target_estimate": {"position_error_m": [0.004, -0.003, 0.002]}})
     run = one_run(scenario, [0.0046, -0.0031, 0.0019], np.zeros(3), realism)
     summary = {name: np.asarray(value[0]).tolist() for name, value in run.items()}
-    classes = anatomy.failure_classes(run, **TOLERANCES)
-    line = anatomy.verdict_line(summary, classes, dict(final_position_m=0.005, final_orientation_rad=0.01745))
+    classes = anatomy.failure_classes(run, CRITERIA)
+    line = anatomy.verdict_line(summary, classes, CaptureCriteria(0.005, 0.01745))
     # |(4.6, -3.1, 1.9)| = 5.86 mm; across sqrt(4.6^2 + 3.1^2) = 5.55; estimate |(4, -3, 2)| = 5.39;
     # residual |(0.6, -0.1, -0.1)| = 0.62.
     assert line.startswith("capture failed (position): final position error 5.86 mm > 5")
@@ -203,10 +206,10 @@ def test_one_runs_capture_verdict_is_its_margins_over_the_campaigns_tolerances()
     assert verdict["capture_margins"]["orientation_margin"] == pytest.approx(0.25)
     assert verdict["capture_margins"]["torque_margin"] == pytest.approx(1.5)
     assert verdict["capture_margins"]["target_speed_margin"] is None  # a fixed target: no such criterion
-    assert not verdict["capture_success"] and verdict["capture_missed"] == ["torque_limit"]
+    assert not verdict["capture_success"] and verdict["capture_missed"] == ["torque_threshold"]
     assert verdict["final_error_parts_m"]["along"] == pytest.approx(-0.003)
     assert verdict["final_error_parts_m"]["residual"] == pytest.approx(0.002)
-    loose = campaign.CampaignConfig(n=1, torque_limit_Nm=200.0)
+    loose = CaptureCriteria(torque_threshold_Nm=200.0)
     assert campaign.with_capture_verdict(summary, loose)["capture_success"]
-    assert campaign.capture_criteria(loose)["torque_limit_Nm"] == 200.0
+    assert campaign.with_capture_verdict(summary, loose)["capture_criteria"]["torque_threshold_Nm"] == 200.0
     assert campaign.with_capture_verdict({"diverged": True}) == {"diverged": True}

@@ -261,8 +261,18 @@ def cases(paths, out):
         "freeze a group the law lacks": ([*TUNE, "--freeze", "K_lin", "--out", out], "--freeze: K_lin"),
         "pinv-damping nan": ([*SIMULATE, "--pinv-damping", "nan", "--out", out], "argument --pinv-damping:"),
         "pinv-damping inf": ([*MONTECARLO, "--pinv-damping", "inf", "--out", out], "argument --pinv-damping:"),
-        "torque-limit nan": ([*MONTECARLO, "--torque-limit", "nan", "--out", out], "argument --torque-limit:"),
-        "torque-limit negative": ([*MONTECARLO, "--torque-limit", "-5", "--out", out], "argument --torque-limit:"),
+        "torque-threshold nan": (
+            [*MONTECARLO, "--torque-threshold", "nan", "--out", out],
+            "argument --torque-threshold:",
+        ),
+        "torque-threshold negative": (
+            [*MONTECARLO, "--torque-threshold", "-5", "--out", out],
+            "argument --torque-threshold:",
+        ),
+        "torque-limit (its old name) nan": (
+            [*MONTECARLO, "--torque-limit", "nan", "--out", out],
+            "argument --torque-limit:",
+        ),
         "optimizer not an optimiser": ([*TUNE, "--optimizer", "clip", "--out", out], "--optimizer: 'clip'"),
         "optimizer a module": ([*TUNE, "--optimizer", "tree_utils", "--out", out], "--optimizer:"),
         "lr nan": ([*TUNE, "--lr", "nan", "--out", out], "argument --lr:"),
@@ -600,3 +610,17 @@ def test_a_refused_run_leaves_no_files(rejected):
     assert sorted(path.name for path in (folder / "occupied").iterdir()) == [".spacegrasp-run.json", "summary.json"]
     assert (folder / "occupied" / "summary.json").read_text() == "{}\n"
     assert [path.name for path in (folder / "foreign").iterdir()] == ["notes.txt"]
+
+
+def test_an_option_under_its_old_name_still_works_and_says_its_new_name(capsys):
+    """``--torque-limit`` (the success criterion's old name) sets the torque threshold, warns
+    once naming ``--torque-threshold``, and is left out of the help."""
+    from spacegrasp_jax.cli import build_parser
+
+    parser = build_parser()
+    args = parser.parse_args([*MONTECARLO, "--torque-limit", "50", "--out", "x"])
+    assert args.torque_threshold == 50.0
+    assert "--torque-limit is now --torque-threshold" in capsys.readouterr().err
+    assert parser.parse_args([*MONTECARLO, "--torque-threshold", "60", "--out", "x"]).torque_threshold == 60.0
+    assert capsys.readouterr().err == ""
+    assert "--torque-limit" not in parser.commands["montecarlo"].format_help()

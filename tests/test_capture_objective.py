@@ -12,11 +12,12 @@ import pytest
 from hand_logs import log_of
 
 from spacegrasp_jax import anatomy
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.simulate import Log
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts
 
 LIMITS = (10.0, 10.0, 10.0, 5.0, 5.0, 2.0, 2.0)
-OBJECTIVE = Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 7, kind="capture", torque_limit_Nm=LIMITS)
+OBJECTIVE = Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 7, kind="capture", torque_constraint_Nm=LIMITS)
 
 
 def make_log(final_offset_m, final_yaw_rad, torque_peaks_Nm, n: int = 50) -> Log:
@@ -105,7 +106,7 @@ def test_the_margins_agree_with_the_campaigns_criteria(offset, yaw, scale):
         "largest_peak_torque_Nm": np.array([scale * max(LIMITS)]),
         "first_nonfinite_s": np.array([np.nan]),
     }
-    classes = anatomy.failure_classes(sample, 0.005, math.radians(1.0), None)
+    classes = anatomy.failure_classes(sample, CaptureCriteria(torque_threshold_Nm=None))
     # The smooth torque margin sits above the hard one by at most T log(count).
     fails_errors = classes["failure"][0] != "success"
     assert (max(margins[:2]) > 1.0) == fails_errors

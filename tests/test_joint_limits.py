@@ -15,6 +15,7 @@ from hand_logs import log_of
 
 import spacegrasp_jax as sg
 from spacegrasp_jax import anatomy, campaign, joint_limits, metrics, worstcase
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts
 
 LIMITS = (10.0, 10.0, 10.0, 5.0, 5.0, 2.0, 2.0)
@@ -59,7 +60,7 @@ def test_a_joint_out_of_its_range_fails_the_capture_and_the_verdict_says_which()
     summary = metrics.summary(swinging_log(1.3), robot, free_target=False)
     classes = campaign.run_failure_classes(summary)
     assert classes["failure"][0] == "joint_range" and classes["range_excess_rad"][0] == pytest.approx(0.3, rel=1e-12)
-    line = anatomy.verdict_line(summary, classes, campaign.capture_criteria())
+    line = anatomy.verdict_line(summary, classes, CaptureCriteria())
     assert line.startswith("capture failed (joint_range): joint 3 went 0.3 rad beyond its range (first left at t = ")
     for robot_without in (sg.paper_robot(), ranged_robot(-np.inf, np.inf)):  # no ranges: as before
         classes = campaign.run_failure_classes(metrics.summary(swinging_log(1.3), robot_without, free_target=False))
@@ -75,7 +76,7 @@ def test_the_capture_objective_counts_a_joint_range_as_a_margin():
     assert ranges == ((2, -1.0, 1.0),) and joint_limits.finite_ranges(sg.paper_robot()) == ()
     one_row = jnp.zeros((1, 7)).at[0, 2].set(1.02)
     assert float(joint_limits.range_margin(one_row, ranges, 0.02)) == pytest.approx(math.exp(0.02 / 0.05), rel=1e-12)
-    objective = Objective(Weights(), (1.0,) * 7, kind="capture", torque_limit_Nm=LIMITS, joint_ranges=ranges)
+    objective = Objective(Weights(), (1.0,) * 7, kind="capture", torque_constraint_Nm=LIMITS, joint_ranges=ranges)
     plain = dataclasses.replace(objective, joint_ranges=())
     out, inside = swinging_log(1.3), swinging_log(0.5)
     parts_out = objective_parts(out, objective, free_target=False)
@@ -109,9 +110,8 @@ def test_the_worst_case_criteria_measure_counts_a_joint_range():
     sample["max_range_excess_rad"] = np.array([[np.nan, np.nan, 0.1, np.nan, np.nan, np.nan, np.nan]])
     assert worstcase.measure_of_metrics(sample, "criteria", config)[0] == pytest.approx(math.exp(0.1 / 0.05))
     ranges = joint_limits.finite_ranges(ranged_robot())
-    criteria = (config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm, ranges, None)
     log = swinging_log(1.1)
-    measured = float(worstcase._measure_of_log(log, "criteria", criteria))
+    measured = float(worstcase._measure_of_log(log, "criteria", config.criteria, ranges))
     assert measured == pytest.approx(math.exp((np.max(np.asarray(log.q)[:, 2]) - 1.0) / 0.05), rel=1e-12)
 
 
@@ -142,7 +142,7 @@ def rate_sample(peaks) -> dict:
 
 def test_a_joint_faster_than_a_stated_rate_limit_fails_the_capture_and_the_verdict_says_which():
     peaks = [0.1, 0.2, 0.3, 0.4, 0.9, 0.3, 0.2]  # joint 5 at 0.9 rad/s against 0.5
-    config = campaign.CampaignConfig(n=1, joint_rate_limits_radps=RATES)
+    config = campaign.CampaignConfig(n=1, criteria=CaptureCriteria(joint_rate_limits_radps=RATES))
     classes = campaign.classify(rate_sample(peaks), config)
     assert classes["failure"][0] == "joint_rate" and classes["joint_rate_margin"][0] == pytest.approx(0.9 / 0.5)
     summary = {
@@ -152,12 +152,12 @@ def test_a_joint_faster_than_a_stated_rate_limit_fails_the_capture_and_the_verdi
         "first_nonfinite_s": None,
         "max_joint_rate_radps": peaks,
     }
-    line = anatomy.verdict_line(summary, classes, campaign.capture_criteria(config))
+    line = anatomy.verdict_line(summary, classes, config.criteria)
     assert line == "capture failed (joint_rate): joint 5 turned at 0.9 rad/s > its limit 0.5"
     # Without stated limits (the paper's arm), the same sample is a capture, as before.
     plain = campaign.classify(rate_sample(peaks), campaign.CampaignConfig(n=1))
     assert plain["failure"][0] == "success" and np.isnan(plain["joint_rate_margin"][0])
-    assert campaign.capture_criteria()["joint_rate_radps"] is None
+    assert CaptureCriteria().to_dict()["joint_rate_limits_radps"] is None
     # Within the limits, a capture; a runaway (ten times the robot's limit) stays a runaway.
     assert campaign.classify(rate_sample([0.49] * 7), config)["failure"][0] == "success"
     runaway = rate_sample([9.0] * 7) | {"first_runaway_s": np.array([1.0])}
@@ -166,15 +166,21 @@ def test_a_joint_faster_than_a_stated_rate_limit_fails_the_capture_and_the_verdi
 
 @pytest.mark.parametrize("limits", [(), (0.5, -1.0), (0.5, math.inf), ("fast",), (True,)])
 def test_rate_limits_as_criteria_must_be_positive_finite_numbers(limits):
-    with pytest.raises(campaign.CampaignError, match="joint_rate_limits_radps"):
-        campaign.CampaignConfig(n=1, joint_rate_limits_radps=limits)
+    with pytest.raises(ValueError, match="joint_rate_limits_radps"):
+        CaptureCriteria(joint_rate_limits_radps=limits)
 
 
 def test_the_capture_objective_counts_a_stated_rate_limit_as_a_margin():
     """The margin is a smooth upper bound of the hard largest |qd_i| / limit_i (within the
     smooth maximum's T log(entries)); without rate limits the objective is as before."""
-    objective = Objective(Weights(), (1.0,) * 7, kind="capture", torque_limit_Nm=LIMITS, joint_rate_limits=RATES)
-    plain = dataclasses.replace(objective, joint_rate_limits=())
+    objective = Objective(
+        Weights(),
+        (1.0,) * 7,
+        kind="capture",
+        torque_constraint_Nm=LIMITS,
+        criteria=CaptureCriteria(joint_rate_limits_radps=RATES),
+    )
+    plain = dataclasses.replace(objective, criteria=CaptureCriteria())
     fast, slow = turning_log(0.9), turning_log(0.01)  # slow: 2% of the limit, far below the other margins
     parts_fast = objective_parts(fast, objective, free_target=False)
     hard = np.max(np.abs(np.asarray(fast.qd)) / np.asarray(RATES))
@@ -184,8 +190,14 @@ def test_the_capture_objective_counts_a_stated_rate_limit_as_a_margin():
     assert "joint_rate_margin" not in objective_parts(fast, plain, free_target=False)
     parts_slow = objective_parts(slow, objective, free_target=False)  # well inside: the loss stays ~0
     assert float(parts_slow["joint_rate_margin"]) < 0.2 and float(parts_slow["capture_loss"]) < 1e-9
-    with pytest.raises(ValueError, match="joint_rate_limits"):
-        Objective(Weights(), (1.0,) * 7, kind="capture", torque_limit_Nm=LIMITS, joint_rate_limits=(0.5,) * 6)
+    with pytest.raises(ValueError, match="joint_rate_limits_radps: need 7 numbers"):
+        Objective(
+            Weights(),
+            (1.0,) * 7,
+            kind="capture",
+            torque_constraint_Nm=LIMITS,
+            criteria=CaptureCriteria(joint_rate_limits_radps=(0.5,) * 6),
+        )
 
 
 def test_a_tuning_run_judges_its_held_out_captures_by_the_stated_rate_limits():
@@ -202,8 +214,8 @@ def test_a_tuning_run_judges_its_held_out_captures_by_the_stated_rate_limits():
     assert captured(parts | {"joint_rate_ratio": np.array([0.9, 1.2])}).tolist() == [True, False]
     config = TuneConfig(joint_rate_limits_radps=[0.5] * 7)
     assert config.joint_rate_limits_radps == RATES
-    assert make_objective(sg.paper_robot(), config, (1.0,) * 7).joint_rate_limits == RATES
-    assert make_objective(sg.paper_robot(), TuneConfig(), (1.0,) * 7).joint_rate_limits == ()
+    assert make_objective(sg.paper_robot(), config, (1.0,) * 7).criteria.joint_rate_limits_radps == RATES
+    assert make_objective(sg.paper_robot(), TuneConfig(), (1.0,) * 7).criteria.joint_rate_limits_radps is None
     with pytest.raises(ValueError, match="joint_rate_limits_radps"):
         TuneConfig(joint_rate_limits_radps=(0.5, 0.0))
 
@@ -212,8 +224,7 @@ def test_the_worst_case_criteria_measure_counts_a_stated_rate_limit():
     sample = rate_sample([0.1, 0.2, 0.3, 0.4, 0.9, 0.3, 0.2])
     plain = campaign.CampaignConfig(n=1)
     assert worstcase.measure_of_metrics(sample, "criteria", plain)[0] == pytest.approx(0.2)  # 1 mm of 5
-    config = campaign.CampaignConfig(n=1, joint_rate_limits_radps=RATES)
+    config = campaign.CampaignConfig(n=1, criteria=CaptureCriteria(joint_rate_limits_radps=RATES))
     assert worstcase.measure_of_metrics(sample, "criteria", config)[0] == pytest.approx(1.8)
-    criteria = (config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm, (), RATES)
     log = turning_log(0.9)
-    assert float(worstcase._measure_of_log(log, "criteria", criteria)) == pytest.approx(1.8, rel=1e-12)
+    assert float(worstcase._measure_of_log(log, "criteria", config.criteria, ())) == pytest.approx(1.8, rel=1e-12)

@@ -21,6 +21,7 @@ import pytest
 
 from spacegrasp_jax import campaign, cli, margins, simulate, stability
 from spacegrasp_jax.control import paper_gains
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.montecarlo import success
 from spacegrasp_jax.realism import flight
 
@@ -122,8 +123,7 @@ def flight_capture(robot, short_scenario):
         n=SAMPLES,
         chunk=SAMPLES,
         realism=flight(),
-        position_tolerance_m=0.025,
-        orientation_tolerance_rad=math.radians(2.0),
+        criteria=CaptureCriteria(position_tolerance_m=0.025, orientation_tolerance_rad=math.radians(2.0)),
     )
     settings = margins.MarginSettings(samples=SAMPLES, max_delay_periods=MAX_DELAY)
     prober = margins.Prober(robot, short_scenario, paper_gains(), "admittance", config, settings)
@@ -135,13 +135,7 @@ def _campaign_outcome(robot, scenario, config, gains):
     metrics = campaign.evaluate_indices(
         robot, scenario, campaign.Variant("admittance", gains), config, np.arange(SAMPLES)
     )
-    captured = success(
-        metrics,
-        config.position_tolerance_m,
-        config.orientation_tolerance_rad,
-        config.torque_limit_Nm,
-        config.target_speed_limit_mps,
-    )
+    captured = success(metrics, config.criteria)
     bounded = ~(np.isfinite(metrics["first_runaway_s"]) | np.isfinite(metrics["first_nonfinite_s"]))
     return metrics, captured, bounded
 
@@ -256,7 +250,7 @@ def test_the_margins_command_writes_its_files_and_prints_the_margins(flight_capt
     _, _, _, prober = flight_capture
     assert delay["fails_periods"] == margins.delay_margin(prober, 0.01)["fails_periods"]
     assert document["rollouts"] == len(document["probes"]) * SAMPLES
-    assert document["settings"]["criteria"]["final_position_m"] == pytest.approx(0.025)
+    assert document["settings"]["campaign"]["criteria"]["position_tolerance_m"] == pytest.approx(0.025)
     assert set(document["gain_margins"]) == {"pid", "law"}
     # The linear analysis (tests/test_stability.py checks it): its margins, modes and figure.
     linear = document["linear"]

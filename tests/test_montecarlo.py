@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import re
 import subprocess
@@ -22,6 +23,7 @@ from csv_files import assert_csv_holds
 from spacegrasp_jax import campaign, experiment, runfiles
 from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, run_campaign, variant_summary
 from spacegrasp_jax.control import paper_gains
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.metrics import METRICS
 from spacegrasp_jax.montecarlo import success
 from spacegrasp_jax.perturbations import PerturbationRanges
@@ -291,16 +293,47 @@ def test_summary_statistics_are_those_of_the_samples(five_samples, variant):
         (dict(n=0), "n: must be at least 1"),
         (dict(chunk=0), "chunk: must be at least 1"),
         (dict(seed=-1), "seed: must be in"),
-        (dict(position_tolerance_m=0.0), "position_tolerance_m: must be positive"),
-        (dict(torque_limit_Nm=-1.0), "torque_limit_Nm: must be positive and finite, or None"),
-        (dict(torque_limit_Nm=float("inf")), "torque_limit_Nm: must be positive and finite, or None"),
         (dict(timeseries_every=0), "timeseries_every: must be at least 1"),
+        (dict(criteria=(0.005, 0.01)), "criteria: must be a CaptureCriteria"),
         (dict(device_batch=0), "device_batch: must be a positive integer"),
     ],
 )
 def test_campaign_config_is_validated(change, message):
     with pytest.raises(CampaignError, match=message):
         CampaignConfig(**{"n": 4} | change)
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(position_tolerance_m=0.0), "position_tolerance_m: must be positive"),
+        (dict(orientation_tolerance_rad=float("nan")), "orientation_tolerance_rad: must be positive"),
+        (dict(target_speed_limit_mps=-1.0), "target_speed_limit_mps: must be positive"),
+        (dict(torque_threshold_Nm=-1.0), "torque_threshold_Nm: must be positive and finite, or None"),
+        (dict(torque_threshold_Nm=float("inf")), "torque_threshold_Nm: must be positive and finite, or None"),
+        (dict(joint_rate_limits_radps=(1.0, 0.0)), "joint_rate_limits_radps: must be positive finite"),
+    ],
+)
+def test_capture_criteria_are_validated(change, message):
+    with pytest.raises(ValueError, match=message):
+        CaptureCriteria(**change)
+
+
+def test_a_campaign_record_of_an_older_version_reads_as_todays_settings():
+    """Older campaign records kept the criteria among the settings and called the torque
+    threshold ``torque_limit_Nm``; they read as today's ``criteria``, and today's round-trip."""
+    today = CampaignConfig(n=4, criteria=CaptureCriteria(position_tolerance_m=0.01, torque_threshold_Nm=None))
+    assert CampaignConfig.from_dict(today.to_dict()) == today
+    older = {name: value for name, value in today.to_dict().items() if name != "criteria"}
+    older |= {"position_tolerance_m": 0.01, "orientation_tolerance_rad": math.radians(1.0), "torque_limit_Nm": None}
+    older |= {"target_speed_limit_mps": 0.005}
+    assert CampaignConfig.from_dict(older) == today
+    with pytest.raises(CampaignError, match="tolerance_mm: no such setting"):
+        CampaignConfig.from_dict(today.to_dict() | {"tolerance_mm": 5})
+    summary = {"final_position_m": 0.01, "final_orientation_rad": 0.02, "torque_limit_Nm": 50.0}
+    assert CaptureCriteria.from_dict(summary) == CaptureCriteria(0.01, 0.02, 50.0)
+    with pytest.raises(ValueError, match="no criterion named 'speed'"):
+        CaptureCriteria.from_dict({"speed": 1.0})
 
 
 def test_bad_campaign_setups_fail_before_compiling(robot, short_scenario, gains, variant):
@@ -377,15 +410,15 @@ def test_unstable_samples_are_counted_and_are_not_successes(five_samples, varian
     sample_metrics = dict(five_samples[2].metrics[variant.key])
     peaks = sample_metrics["max_abs_torque_Nm"].max(axis=1)
     limit = float(np.median(peaks))  # about half the samples above it
-    loose = CampaignConfig(n=5, position_tolerance_m=1.0, orientation_tolerance_rad=1.0, torque_limit_Nm=None)
-    strict = dataclasses.replace(loose, torque_limit_Nm=limit)
-    assert success(sample_metrics, 1.0, 1.0, None).all()
-    np.testing.assert_array_equal(success(sample_metrics, 1.0, 1.0, limit), peaks <= limit)
-    sample_metrics["success"] = success(sample_metrics, 1.0, 1.0, limit)
+    loose = CampaignConfig(n=5, criteria=CaptureCriteria(1.0, 1.0, torque_threshold_Nm=None))
+    strict = dataclasses.replace(loose, criteria=CaptureCriteria(1.0, 1.0, torque_threshold_Nm=limit))
+    assert success(sample_metrics, loose.criteria).all()
+    np.testing.assert_array_equal(success(sample_metrics, strict.criteria), peaks <= limit)
+    sample_metrics["success"] = success(sample_metrics, strict.criteria)
     summary = variant_summary(sample_metrics, strict)
     assert summary["unstable_samples"] == [int(i) for i in np.flatnonzero(peaks > limit)]
     assert summary["unstable"] >= 1 and summary["success_rate"] == pytest.approx(np.mean(peaks <= limit))
-    sample_metrics["success"] = success(sample_metrics, 1.0, 1.0, None)
+    sample_metrics["success"] = success(sample_metrics, loose.criteria)
     assert variant_summary(sample_metrics, loose)["unstable"] == 0
 
 

@@ -1,6 +1,6 @@
 """The figures, on synthetic logs whose curves are known: runs of any name get a style of
 their own, every figure carries its caption and no label runs into a title, the motor
-limits are drawn on Fig. 8, the campaign histogram names its torque limit, and the target's
+limits are drawn on Fig. 8, the campaign histogram names its torque threshold, and the target's
 figure draws the displacement, speed, rate and impulse that the log implies."""
 
 from __future__ import annotations
@@ -107,7 +107,7 @@ def test_fig8_shows_each_joints_motor_limit():
     plt.close(fig)
 
 
-def test_the_campaign_histogram_names_its_torque_limit():
+def test_the_campaign_histogram_names_its_torque_threshold():
     metrics = {
         "admittance/paper": {
             "final_position_error_m": np.array([0.002, 0.004, 0.006]),
@@ -115,11 +115,11 @@ def test_the_campaign_histogram_names_its_torque_limit():
             "first_nonfinite_s": np.full(3, np.nan),
         }
     }
-    near = plots.figure_campaign_histograms(metrics, tolerance_mm=5.0, torque_limit_Nm=4.0)
-    far = plots.figure_campaign_histograms(metrics, tolerance_mm=5.0, torque_limit_Nm=100.0)
+    near = plots.figure_campaign_histograms(metrics, tolerance_mm=5.0, torque_threshold_Nm=4.0)
+    far = plots.figure_campaign_histograms(metrics, tolerance_mm=5.0, torque_threshold_Nm=100.0)
     near_labels = [text.get_text() for text in near.axes[1].get_legend().get_texts()]
     far_labels = [text.get_text() for text in far.axes[1].get_legend().get_texts()]
-    assert "torque limit 4 N m" in near_labels and "torque limit 100 N m (beyond the axis)" in far_labels
+    assert "torque threshold 4 N m" in near_labels and "torque threshold 100 N m (beyond the axis)" in far_labels
     assert any(np.allclose(line.get_xdata(), 4.0) for line in near.axes[1].lines)
     plt.close(near)
     plt.close(far)

@@ -75,7 +75,7 @@ def loss_and_gradient(ur5, short):
     objective = Objective(
         weights=Weights(contact_force=0.1),
         torque_scale_Nm=tuple(peaks),
-        torque_limit_Nm=tuple(float(x) for x in ur5.joint_torque_limit),
+        torque_constraint_Nm=tuple(float(x) for x in ur5.joint_torque_limit),
     )
     params = initial_params(gains, "admittance")
     mask = make_mask(gains, "admittance")

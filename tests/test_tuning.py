@@ -97,16 +97,16 @@ def test_torque_constraint_is_the_lower_of_the_fraction_and_the_cap(robot):
     assert capped == (4.0, 4.0, 4.0, 4.0, 4.0, 2.0, 2.0)
     both = torque_constraint_Nm(robot, TuneConfig(torque_fraction=0.5, torque_cap_Nm=4.0))
     assert both == (4.0, 4.0, 4.0, 2.5, 2.5, 1.0, 1.0)
-    assert make_objective(robot, TuneConfig(torque_cap_Nm=4.0), (1.0,) * 7).torque_limit_Nm == capped
+    assert make_objective(robot, TuneConfig(torque_cap_Nm=4.0), (1.0,) * 7).torque_constraint_Nm == capped
 
 
-def test_an_objective_has_one_torque_scale_and_limit_a_joint():
+def test_an_objective_has_one_torque_scale_and_constraint_a_joint():
     """A 6-joint arm's objective with the paper's seven limits is refused when it is made."""
-    Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 6, torque_limit_Nm=(5.0,) * 6)
-    with pytest.raises(ValueError, match=r"torque_limit_Nm: need 6 positive numbers \(one a joint\)"):
+    Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 6, torque_constraint_Nm=(5.0,) * 6)
+    with pytest.raises(ValueError, match=r"torque_constraint_Nm: need 6 positive numbers \(one a joint\)"):
         Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 6)
     with pytest.raises(ValueError, match=r"torque_scale_Nm: need one positive number a joint"):
-        Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 6 + (0.0,), torque_limit_Nm=(5.0,) * 7)
+        Objective(weights=Weights(), torque_scale_Nm=(1.0,) * 6 + (0.0,), torque_constraint_Nm=(5.0,) * 7)
 
 
 def test_parameters_round_trip_and_mask(gains):

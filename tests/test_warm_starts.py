@@ -15,6 +15,7 @@ import pytest
 from compile_labels import CompileLabels
 
 from spacegrasp_jax import campaign, compilation
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.perturbations import PerturbationRanges
 from spacegrasp_jax.scenario import paper_scenario
 from spacegrasp_jax.tuning import run as tuning_run
@@ -52,7 +53,10 @@ def test_an_objective_with_other_weights_and_tolerances_reuses_the_evaluation(ro
     scenarios = jax.tree.map(lambda x: np.stack([x, x]), paper_scenario(robot, duration=0.03))
     first = Objective(Weights(), (1.0,) * 7, kind="weighted")
     second = Objective(
-        Weights(peak_torque=2.0, final_position=3.0), (2.0,) * 7, kind="weighted", position_tolerance_m=0.01
+        Weights(peak_torque=2.0, final_position=3.0),
+        (2.0,) * 7,
+        kind="weighted",
+        criteria=CaptureCriteria(position_tolerance_m=0.01),
     )
     heard = CompileLabels()
     with compilation.listening(heard):

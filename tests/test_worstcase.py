@@ -271,7 +271,8 @@ def test_the_ascents_gradient_matches_central_differences(robot):
     function = functools.partial(
         worstcase._value_and_gradient,
         measure="final_error",
-        criteria=(config.position_tolerance_m, config.orientation_tolerance_rad, config.torque_limit_Nm, (), None),
+        criteria=config.criteria,
+        joint_ranges=(),
         identified=config.identified,
     )
     spec = worstcase.gradient_spec(robot, scenario, law_named(controller, config.pinv_damping), config.realism)

@@ -285,7 +285,10 @@ def test_a_campaign_and_a_tuning_run_of_an_arm_move_and_go_on(tmp_path, capsys, 
     tune_args += ["--gains", gains, "--steps", "1", "--batch", "1", "--population", "4", "--holdout", "0"]
     assert cli.main([*tune_args, "--out", "tune"]) == 0, capsys.readouterr().err
     limits = np.asarray(load_robot(work / "ur5.toml").joint_rate_limit).tolist()  # a mounting file states them
-    assert json.loads((work / "campaign" / "campaign.json").read_text())["config"]["joint_rate_limits_radps"] == limits
+    assert (
+        json.loads((work / "campaign" / "campaign.json").read_text())["config"]["criteria"]["joint_rate_limits_radps"]
+        == limits
+    )
     assert json.loads((work / "tune" / "run.json").read_text())["config"]["joint_rate_limits_radps"] == limits
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
@@ -358,11 +361,11 @@ def test_a_simulate_run_fails_a_joint_faster_than_its_files_rate_limit(tmp_path,
     assert f"capture failed (joint_rate): joint {joint} turned at {peaks[joint - 1]:.3g} rad/s > its limit 0.2" in out
     summary = json.loads(Path("tight/summary.json").read_text())["cartesian"]
     assert summary["capture_failure"] == "joint_rate"
-    assert summary["capture_criteria"]["joint_rate_radps"] == [0.2] * 7
+    assert summary["capture_criteria"]["joint_rate_limits_radps"] == [0.2] * 7
     assert summary["capture_margins"]["joint_rate_margin"] == pytest.approx(np.max(peaks) / 0.2, rel=1e-12)
     assert "\njoint_rate = " in Path("tight/robot.toml").read_text()  # the folder's robot judges the same
     assert cli.main([*run, "--robot", str(CONFIGS / "paper_robot.toml"), "--out", "paper"]) == 0
     summary = json.loads(Path("paper/summary.json").read_text())["cartesian"]
     assert summary["capture_failure"] == "position" and "joint_rate" not in summary["capture_missed"]
-    assert summary["capture_criteria"]["joint_rate_radps"] is None
+    assert summary["capture_criteria"]["joint_rate_limits_radps"] is None
     assert summary["capture_margins"]["joint_rate_margin"] is None

@@ -52,6 +52,7 @@ import numpy as np
 
 from spacegrasp_jax import joint_limits, metrics
 from spacegrasp_jax.control.gains import Gains
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.realism import Realism
 from spacegrasp_jax.scenario import Scenario
@@ -125,11 +126,16 @@ class Objective:
         torque_scale_Nm: (N,) per-joint torque scale of the ``weighted`` objective;
             ``tuning`` sets it to the peaks of the initial gains on the nominal scenario.
         kind: ``"capture"`` or ``"weighted"``.
-        torque_limit_Nm: (N,) the motors' limits of the ``capture`` objective (the robot's
-            ``joint_torque_limit``; the paper's arm's by default), one a joint like
-            ``torque_scale_Nm``.
-        position_tolerance_m, orientation_tolerance_rad, target_speed_limit_mps: the
-            success criteria of the ``capture`` objective (the campaigns' defaults).
+        torque_constraint_Nm: (N,) N m, the ``capture`` objective's torque constraint, one a
+            joint like ``torque_scale_Nm`` (the run's: ``min(torque_fraction * limit_i,
+            torque_cap_Nm)`` of the robot's torque limits; by default the paper's arm's
+            limits).
+        criteria: the ``capture`` objective's success criteria
+            ([`CaptureCriteria`][spacegrasp_jax.criteria.CaptureCriteria], the campaigns'
+            defaults): its tolerances, its target speed limit and, where they are criteria,
+            its rate limits (``joint_rate_margin``, the smooth largest |qd_i| over its limit,
+            as the torque margin); its torque threshold is not the objective's, whose torque
+            margin is against ``torque_constraint_Nm``.
         safety: ``d``, the share of each tolerance kept in reserve (the hinge sits at
             ``1 - d`` of it).
         hinge_width: ``tau``, the softplus hinge's width in log-margin units.
@@ -138,9 +144,6 @@ class Objective:
             ([`finite_ranges()`][spacegrasp_jax.joint_limits.finite_ranges]): each is a margin of
             the ``capture`` objective ([`range_margin()`][spacegrasp_jax.joint_limits.range_margin]);
             empty (the paper's arm): none.
-        joint_rate_limits: (N,) rad/s, each joint's rate limit as a criterion, static: the
-            ``capture`` objective's ``joint_rate_margin``, the smooth largest |qd_i| over its
-            limit (as the torque margin); empty (the default, and the paper's arm): none.
     """
 
     weights: Weights
@@ -152,15 +155,12 @@ class Objective:
     target_speed_scale_mps: float = 1e-3
     temperature: float = 0.02
     kind: str = dataclasses.field(default="weighted", metadata=dict(static=True))
-    torque_limit_Nm: tuple[float, ...] = (10.0, 10.0, 10.0, 5.0, 5.0, 2.0, 2.0)
-    position_tolerance_m: float = 0.005
-    orientation_tolerance_rad: float = 0.017453292519943295  # 1 deg
-    target_speed_limit_mps: float = 0.005
+    torque_constraint_Nm: tuple[float, ...] = (10.0, 10.0, 10.0, 5.0, 5.0, 2.0, 2.0)
+    criteria: CaptureCriteria = CaptureCriteria()
     safety: float = 0.2
     hinge_width: float = 0.1
     margin_temperature: float = 0.05
     joint_ranges: tuple = dataclasses.field(default=(), metadata=dict(static=True))
-    joint_rate_limits: tuple = dataclasses.field(default=(), metadata=dict(static=True))
 
     def __post_init__(self):
         if self.kind not in OBJECTIVES:
@@ -171,19 +171,17 @@ class Objective:
         n = len(self.torque_scale_Nm)
         if n < 6 or min(self.torque_scale_Nm) <= 0.0:
             raise ValueError(f"torque_scale_Nm: need one positive number a joint, got {self.torque_scale_Nm}")
-        if len(self.torque_limit_Nm) != n or min(self.torque_limit_Nm) <= 0.0:
-            raise ValueError(f"torque_limit_Nm: need {n} positive numbers (one a joint), got {self.torque_limit_Nm}")
-        if self.joint_rate_limits and (len(self.joint_rate_limits) != n or min(self.joint_rate_limits) <= 0.0):
+        if len(self.torque_constraint_Nm) != n or min(self.torque_constraint_Nm) <= 0.0:
             raise ValueError(
-                f"joint_rate_limits: need {n} positive numbers (one a joint) or none, got {self.joint_rate_limits}"
+                f"torque_constraint_Nm: need {n} positive numbers (one a joint), got {self.torque_constraint_Nm}"
             )
+        rates = self.criteria.joint_rate_limits_radps
+        if rates is not None and len(rates) != n:
+            raise ValueError(f"criteria.joint_rate_limits_radps: need {n} numbers (one a joint) or None, got {rates}")
         if not self.temperature > 0.0:
             raise ValueError(f"temperature: must be positive, got {self.temperature}")
         if not 0.0 <= self.safety < 1.0:
             raise ValueError(f"safety: must be in [0, 1), got {self.safety}")
-        for name in ("position_tolerance_m", "orientation_tolerance_rad", "target_speed_limit_mps"):
-            if not getattr(self, name) > 0.0:
-                raise ValueError(f"{name}: must be positive, got {getattr(self, name)}")
         if not (self.hinge_width > 0.0 and self.margin_temperature > 0.0):
             raise ValueError("hinge_width and margin_temperature: must be positive")
 
@@ -206,20 +204,21 @@ def capture_margins(
     ``orientation_margin``, ``torque_margin`` (smooth), with ``free_target`` (static:
     the scenario's target floats free) ``target_speed_margin``, for a robot with joint
     ranges (``objective.joint_ranges``) ``joint_range_margin``, and where rate limits are
-    criteria (``objective.joint_rate_limits``) ``joint_rate_margin``."""
-    torque_ratio = jnp.abs(log.u) / jnp.asarray(objective.torque_limit_Nm)
+    criteria (``objective.criteria.joint_rate_limits_radps``) ``joint_rate_margin``."""
+    criteria = objective.criteria
+    torque_ratio = jnp.abs(log.u) / jnp.asarray(objective.torque_constraint_Nm)
     margins = {
-        "position_margin": (parts["final_position_m"] + _LOG_FLOOR) / objective.position_tolerance_m,
-        "orientation_margin": (parts["final_orientation_rad"] + _LOG_FLOOR) / objective.orientation_tolerance_rad,
+        "position_margin": (parts["final_position_m"] + _LOG_FLOOR) / criteria.position_tolerance_m,
+        "orientation_margin": (parts["final_orientation_rad"] + _LOG_FLOOR) / criteria.orientation_tolerance_rad,
         "torque_margin": smooth_max(torque_ratio, objective.temperature),
     }
     if free_target:
         speed = metrics.safe_norm(log.target_velocity[-1])
-        margins["target_speed_margin"] = (speed + _LOG_FLOOR) / objective.target_speed_limit_mps
+        margins["target_speed_margin"] = (speed + _LOG_FLOOR) / criteria.target_speed_limit_mps
     if objective.joint_ranges:
         margins["joint_range_margin"] = joint_limits.range_margin(log.q, objective.joint_ranges, objective.temperature)
-    if objective.joint_rate_limits:
-        rate_ratio = jnp.abs(log.qd) / jnp.asarray(objective.joint_rate_limits)
+    if criteria.joint_rate_limits_radps is not None:
+        rate_ratio = jnp.abs(log.qd) / jnp.asarray(criteria.joint_rate_limits_radps)
         margins["joint_rate_margin"] = smooth_max(rate_ratio, objective.temperature)
     return margins
 
@@ -285,8 +284,9 @@ def scenario_parts(spec: RunSpec, gains: Gains, objective: Objective, key: jax.A
     parts["largest_peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
     if objective.joint_ranges:  # the hard excess beyond the ranges (rad), for the held-out verdict
         parts["range_excess_rad"] = jnp.max(joint_limits.range_excess(log.q, objective.joint_ranges))
-    if objective.joint_rate_limits:  # the hard peak rate over its limit, for the held-out verdict
-        parts["joint_rate_ratio"] = jnp.max(jnp.abs(log.qd) / jnp.asarray(objective.joint_rate_limits))
+    rates = objective.criteria.joint_rate_limits_radps
+    if rates is not None:  # the hard peak rate over its limit, for the held-out verdict
+        parts["joint_rate_ratio"] = jnp.max(jnp.abs(log.qd) / jnp.asarray(rates))
     return parts
 
 

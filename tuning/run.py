@@ -30,7 +30,7 @@ import jax
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import batching, campaign, experiment, runfiles, statistics
+from spacegrasp_jax import batching, experiment, runfiles, statistics
 from spacegrasp_jax.control import (
     GainsError,
     missing_groups,
@@ -45,6 +45,7 @@ from spacegrasp_jax.control.schedule import (
     named_gain_set,
     schedule_of,
 )
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.experiment import loop_options
 from spacegrasp_jax.model import n_joints, robot_to_toml
 from spacegrasp_jax.montecarlo import SampleLoops, success
@@ -283,11 +284,10 @@ def _write_history(path: Path, history: list) -> None:
 
 def captured(parts: dict) -> np.ndarray:
     """(n,) bool: each held-out sample's capture by the campaigns' default criteria
-    ([`success()`][spacegrasp_jax.montecarlo.success] with
-    [`CampaignConfig`][spacegrasp_jax.campaign.CampaignConfig]'s tolerances, and the rate
-    limits where the objective has them), from the objective's parts; a sample whose
-    objective is not finite diverged."""
-    criteria = campaign.CampaignConfig(n=1)
+    ([`success()`][spacegrasp_jax.montecarlo.success] with a default
+    [`CaptureCriteria`][spacegrasp_jax.criteria.CaptureCriteria], and the rate limits where the
+    objective has them), from the objective's parts; a sample whose objective is not finite
+    diverged."""
     sample_metrics = {
         "final_position_error_m": parts["final_position_m"],
         "final_orientation_error_rad": parts["final_orientation_rad"],
@@ -298,21 +298,11 @@ def captured(parts: dict) -> np.ndarray:
         sample_metrics["final_target_speed_mps"] = parts["final_target_speed_mps"]
     if "range_excess_rad" in parts:
         sample_metrics["max_range_excess_rad"] = np.asarray(parts["range_excess_rad"])[:, None]
-    rate_limits = None
+    criteria = CaptureCriteria()
     if "joint_rate_ratio" in parts:  # the peak rate over its limit: judged against a limit of 1
         sample_metrics["max_joint_rate_radps"] = np.asarray(parts["joint_rate_ratio"])[:, None]
-        rate_limits = (1.0,)
-    return np.asarray(
-        success(
-            sample_metrics,
-            criteria.position_tolerance_m,
-            criteria.orientation_tolerance_rad,
-            criteria.torque_limit_Nm,
-            criteria.target_speed_limit_mps,
-            rate_limits,
-        ),
-        dtype=bool,
-    )
+        criteria = CaptureCriteria(joint_rate_limits_radps=(1.0,))
+    return np.asarray(success(sample_metrics, criteria), dtype=bool)
 
 
 def holdout_success(before_parts: dict, after_parts: dict) -> dict:

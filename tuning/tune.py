@@ -31,6 +31,7 @@ from spacegrasp_jax import batching, compilation, joint_limits
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.control.registry import CONTROLLERS
 from spacegrasp_jax.control.schedule import VARIABLES
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.experiment import loop_options
 from spacegrasp_jax.model import Robot
 from spacegrasp_jax.montecarlo import SampleLoops, sample_loops
@@ -869,9 +870,9 @@ def make_objective(robot: Robot, config: TuneConfig, torque_scale_Nm) -> Objecti
         torque_scale_Nm=tuple(float(x) for x in torque_scale_Nm),
         temperature=config.temperature,
         kind=config.objective,
-        torque_limit_Nm=torque_constraint_Nm(robot, config),
+        torque_constraint_Nm=torque_constraint_Nm(robot, config),
+        criteria=CaptureCriteria(joint_rate_limits_radps=config.joint_rate_limits_radps),
         joint_ranges=joint_limits.finite_ranges(robot),
-        joint_rate_limits=config.joint_rate_limits_radps or (),
     )
 
 

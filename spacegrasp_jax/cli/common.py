@@ -45,6 +45,7 @@ from spacegrasp_jax.control.schedule import (
     schedule_curves,
     variable_series,
 )
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.model import n_joints
 from spacegrasp_jax.perturbations import (
     PerturbationRanges,
@@ -301,17 +302,17 @@ def _criteria(args: argparse.Namespace, robot, **fields) -> campaign.CampaignCon
     if args.controller != "both":
         _law(args.controller, args)
     try:
-        return campaign.CampaignConfig(
+        criteria = CaptureCriteria(
             position_tolerance_m=args.tolerance_mm * 1e-3,
             orientation_tolerance_rad=math.radians(args.tolerance_deg),
-            torque_limit_Nm=args.torque_limit if args.torque_limit > 0 else None,
+            torque_threshold_Nm=args.torque_threshold if args.torque_threshold > 0 else None,
             target_speed_limit_mps=args.target_speed_limit,
-            pinv_damping=args.pinv_damping,
-            identified=args.identified,
             joint_rate_limits_radps=_rate_criterion(args, robot),
-            **fields,
         )
-    except campaign.CampaignError as error:
+        return campaign.CampaignConfig(
+            criteria=criteria, pinv_damping=args.pinv_damping, identified=args.identified, **fields
+        )
+    except (ValueError, campaign.CampaignError) as error:
         raise UsageError(str(error)) from None
 
 
@@ -343,12 +344,12 @@ def _warn(lines: list[str], prefix: str = "") -> None:
         print(f"spacegrasp: warning: {prefix}{line}", file=sys.stderr, flush=True)
 
 
-def _print_capture_verdicts(results: dict, criteria: campaign.CampaignConfig | None = None) -> list[str]:
+def _print_capture_verdicts(results: dict, criteria: CaptureCriteria | None = None) -> list[str]:
     """Each run's capture verdict by ``criteria`` (default: the campaigns' defaults): one line that says why
     a failed capture failed (a result, not an error: exit 0 unless ``--strict``), or the margins of a
     success; with a free-floating target, one more line for the target's motion. Returns the keys
     of ``results`` whose capture failed (a diverged run is not among them: it has its own exit code)."""
-    tolerances = campaign.capture_criteria(criteria)
+    criteria = CaptureCriteria() if criteria is None else criteria
     failed = []
     for controller, result in results.items():
         summary = result.summary
@@ -358,21 +359,21 @@ def _print_capture_verdicts(results: dict, criteria: campaign.CampaignConfig | N
             print(f"{controller:>10}: joint limits: {words}")
         if summary.get("diverged"):
             continue
-        line = anatomy.verdict_line(summary, campaign.run_failure_classes(summary, criteria), tolerances)
+        line = anatomy.verdict_line(summary, campaign.run_failure_classes(summary, criteria), criteria)
         if line is not None:
             failed.append(controller)
         else:
             line = (
                 f"capture succeeded: final position error {1e3 * summary['final_position_error_m']:.2f} mm <= "
-                f"{1e3 * tolerances['final_position_m']:g}, orientation {np.degrees(summary['final_orientation_error_rad']):.3f} deg <= "
-                f"{np.degrees(tolerances['final_orientation_rad']):g}, peak torque {summary['largest_peak_torque_Nm']:.3g} N m"
-                + (f" <= {tolerances['torque_limit_Nm']:g}" if tolerances["torque_limit_Nm"] is not None else "")
+                f"{1e3 * criteria.position_tolerance_m:g}, orientation {np.degrees(summary['final_orientation_error_rad']):.3f} deg <= "
+                f"{np.degrees(criteria.orientation_tolerance_rad):g}, peak torque {summary['largest_peak_torque_Nm']:.3g} N m"
+                + (f" <= {criteria.torque_threshold_Nm:g}" if criteria.torque_threshold_Nm is not None else "")
             )
         print(f"{controller:>10}: {line}")
         if "final_target_speed_mps" in summary:
             print(
                 f"{controller:>10}: target: final speed {1e3 * summary['final_target_speed_mps']:.2f} mm/s "
-                f"(limit {1e3 * tolerances['target_speed_mps']:g}), rate {np.degrees(summary['final_target_rate_radps']):.3f} deg/s, "
+                f"(limit {1e3 * criteria.target_speed_limit_mps:g}), rate {np.degrees(summary['final_target_rate_radps']):.3f} deg/s, "
                 f"drifted {1e3 * summary['target_displacement_m']:.1f} mm, contact impulse {summary['target_impulse_Ns']:.3g} N s"
             )
     return failed
@@ -449,7 +450,7 @@ def _write_results(
     caption: str | None = None,
     torque_limit_Nm=None,
     csv: bool = False,
-    criteria: campaign.CampaignConfig | None = None,
+    criteria: CaptureCriteria | None = None,
 ) -> None:
     """Every file of a ``reproduce``, ``simulate`` or ``replay`` run; ``table5.csv`` has Table 5's
     columns beside the run's only for the paper's run (``_is_papers_run()``)."""

@@ -120,7 +120,7 @@ def _gradients(args: argparse.Namespace) -> int:
         "objective": config.objective,
         "weights": dataclasses.asdict(config.weights),
         "torque_scale_Nm": objective.torque_scale_Nm,
-        "torque_constraint_Nm": objective.torque_limit_Nm if config.objective == "capture" else None,
+        "torque_constraint_Nm": objective.torque_constraint_Nm if config.objective == "capture" else None,
         "scenario_duration_s": scenario.duration,
         "pinv_damping": args.pinv_damping,
         "contact_law": "smooth",

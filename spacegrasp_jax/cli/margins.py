@@ -10,7 +10,6 @@ import jax
 
 from spacegrasp_jax import (
     batching,
-    campaign,
     margins,
     plausibility,
     runfiles,
@@ -80,7 +79,6 @@ def _margins(args: argparse.Namespace) -> int:
         **_gains_record(args.gains, args, args.controller),
         "robot": args.robot or "paper_robot()",
         "robot_links": _robot_links(args) or None,
-        "criteria": campaign.capture_criteria(config),
         "campaign": config.to_dict(),
         "scenario_duration_s": scenario.duration,
         **runfiles.provenance(),
@@ -90,7 +88,7 @@ def _margins(args: argparse.Namespace) -> int:
     )
     from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
 
-    tolerance_mm = 1e3 * config.position_tolerance_m
+    tolerance_mm = 1e3 * config.criteria.position_tolerance_m
     if not isinstance(gains, GainSchedule):
         result = _margins_of(args, robot, scenario, gains, config, settings, realism)
         result["settings"] |= {"gains": gains.to_dict(args.controller), **record}

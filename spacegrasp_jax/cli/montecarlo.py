@@ -144,7 +144,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
         return 130
     _print_campaign(result)
     if jax.process_index() == 0:
-        tolerance_mm = 1e3 * result.summary["tolerances"]["final_position_m"]
+        tolerance_mm = 1e3 * config.criteria.position_tolerance_m
         from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
 
         plots.save_campaign_figures(
@@ -153,7 +153,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
             campaign.figure_title(result.summary),
             tolerance_mm,
             runfiles.write_atomically,
-            torque_limit_Nm=config.torque_limit_Nm,
+            torque_threshold_Nm=config.criteria.torque_threshold_Nm,
         )
         if args.csv:
             with np.load(out / "samples.npz") as samples:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 from spacegrasp_jax.control import (
     CONTROLLERS,
@@ -251,9 +252,25 @@ def _add_envelope_options(parser: argparse.ArgumentParser, seed_help: str) -> No
     parser.add_argument("--seed", type=_SEED, default=0, help=seed_help)
 
 
+class _RenamedOption(argparse.Action):
+    """An option under the name it had before (hidden from the help): stores into the new
+    option's destination and warns once on stderr, naming the new option."""
+
+    def __init__(self, option_strings, dest, new_name: str, **kwargs):
+        self.new_name = new_name
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(
+            f"spacegrasp: warning: {option_string} is now {self.new_name} (the old name will be removed)",
+            file=sys.stderr,
+        )
+        setattr(namespace, self.dest, values)
+
+
 def _add_criteria_options(parser: argparse.ArgumentParser) -> None:
-    """A capture's success criteria, as a campaign's (``campaign.CampaignConfig``), and what
-    the controller is told of each sample."""
+    """A capture's success criteria (``criteria.CaptureCriteria``), and what the controller is
+    told of each sample."""
     parser.add_argument(
         "--tolerance-mm",
         type=_real(0.0, 1e6, above=True),
@@ -267,11 +284,19 @@ def _add_criteria_options(parser: argparse.ArgumentParser) -> None:
         help="success: final orientation error at most this (default 1 deg)",
     )
     parser.add_argument(
-        "--torque-limit",
+        "--torque-threshold",
         type=_real(0.0, 1e6),
         default=100.0,
         metavar="NM",
-        help="success: peak |u_i| at most this, else the sample counts as unstable (default 100 N m; 0: no limit)",
+        help="success: peak |u_i| at most this, else the sample counts as unstable (default 100 N m; 0: none)",
+    )
+    parser.add_argument(
+        "--torque-limit",
+        type=_real(0.0, 1e6),
+        dest="torque_threshold",
+        action=_RenamedOption,
+        new_name="--torque-threshold",
+        help=argparse.SUPPRESS,
     )
     parser.add_argument(
         "--target-speed-limit",

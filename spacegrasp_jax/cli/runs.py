@@ -58,13 +58,14 @@ from spacegrasp_jax.control import (
     PAPER_CONTROLLERS,
 )
 from spacegrasp_jax.control.schedule import GainSchedule
+from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.simulate import RunSpec
 
 
 def _run_controllers(args, controllers) -> int:
     robot, scenario, gains = _load_inputs(args, schedules=True)
     rate_limits = _rate_criterion(args, robot)
-    criteria = None if rate_limits is None else campaign.CampaignConfig(n=1, joint_rate_limits_radps=rate_limits)
+    criteria = CaptureCriteria(joint_rate_limits_radps=rate_limits)
     laws = {controller: _law(controller, args) for controller in controllers}
     realism = _realism(args, scenario, robot)
     _warn(plausibility.input_warnings(scenario))
@@ -184,7 +185,7 @@ def _replay(args: argparse.Namespace) -> int:
         print(f"replaying sample {args.sample} of {folder} with {variant.key}...", flush=True)
         results[variant.key] = campaign.replay(robot, scenario, variant, config, args.sample)
     _print_table(results, beside_paper=False)
-    failed = _print_capture_verdicts(results, config)
+    failed = _print_capture_verdicts(results, config.criteria)
     for key, result in results.items():
         _warn(plausibility.result_warnings(result.summary), f"{key}: ")
     loop = "ideal loop" if config.realism is None else "flight-like loop"
@@ -203,7 +204,7 @@ def _replay(args: argparse.Namespace) -> int:
         caption=_run_caption(f"sample {args.sample} of the campaign {folder.name}: {loop}", "its gains", scenario),
         torque_limit_Nm=np.asarray(robot.joint_torque_limit),
         csv=args.csv,
-        criteria=config,
+        criteria=config.criteria,
     )
     scheduled = [variant for variant in variants if isinstance(variant.gains, GainSchedule)]
     for variant in scheduled:  # the regime each schedule's replay was in; its curves when it is the only one

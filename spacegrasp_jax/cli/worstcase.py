@@ -74,8 +74,8 @@ def _worstcase(args: argparse.Namespace) -> int:
     robot, scenario, gains = _load_inputs(args)
     realism = _realism(args, scenario, robot)
     config = _criteria(args, robot, n=1, seed=args.seed, ranges=ranges, realism=realism)
-    if args.measure == "criteria" and config.torque_limit_Nm is None:
-        _warn(["--measure criteria with --torque-limit 0: the peak torque is not among the criteria"])
+    if args.measure == "criteria" and config.criteria.torque_threshold_Nm is None:
+        _warn(["--measure criteria with --torque-threshold 0: the peak torque is not among the criteria"])
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
     out = Path(args.out)
@@ -153,7 +153,7 @@ def _worstcase(args: argparse.Namespace) -> int:
             "units": worstcase.units_to_dict(found.units),
             "perturbation": perturbation,
             "noise_key": [int(x) for x in found.key],
-            "summary": campaign.with_capture_verdict(result.summary, config),
+            "summary": campaign.with_capture_verdict(result.summary, config.criteria),
         },
         "campaign": {
             "n": args.budget,
@@ -175,7 +175,6 @@ def _worstcase(args: argparse.Namespace) -> int:
             **_gains_record(args.gains, args, args.controller),
             "robot": args.robot or "paper_robot()",
             "robot_links": _robot_links(args) or None,
-            "criteria": campaign.capture_criteria(config),
             "campaign": config.to_dict(),
             "scenario_duration_s": scenario.duration,
             **runfiles.provenance(),
@@ -190,7 +189,7 @@ def _worstcase(args: argparse.Namespace) -> int:
         beside_paper=False,
         caption=_run_caption(f"the worst capture found ({args.measure}): {loop}", "its gains", scenario),
         torque_limit_Nm=np.asarray(robot.joint_torque_limit),
-        criteria=config,
+        criteria=config.criteria,
     )
     label = f"{args.measure} [{unit}]" if unit else args.measure
     title = f"worst case, {args.controller}, {args.gains or 'paper gains'}" + (
