@@ -35,6 +35,7 @@ import numpy as np
 
 import spacegrasp_jax as sg
 from spacegrasp_jax.campaign import CampaignConfig, Variant, run_campaign
+from spacegrasp_jax.control import PAPER_CONTROLLERS
 from spacegrasp_jax.control.gains import paper_gains, tuned_gains
 from spacegrasp_jax.realism import flight
 from spacegrasp_jax.scenario import paper_scenario
@@ -71,7 +72,7 @@ def arrays_of_this_version() -> dict[str, np.ndarray]:
     robot = sg.paper_robot()
     arrays = {}
     scenario = paper_scenario(robot)
-    for law in ("admittance", "cartesian"):
+    for law in PAPER_CONTROLLERS:
         _, log = rollout(robot, scenario, paper_gains(), law)
         arrays |= {f"reproduction/{law}/{k}": v for k, v in _log_arrays(log, 10).items()}
     short = paper_scenario(robot, duration=2.0)

@@ -34,18 +34,18 @@ import jax
 import numpy as np
 from jax.experimental import multihost_utils
 
-from spacegrasp_jax import anatomy, batching, experiment, runfiles, statistics
-from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.control.registry import CONTROLLERS, law_named
+from spacegrasp_jax import anatomy, batching, experiment, records, runfiles, statistics
+from spacegrasp_jax.control.registry import law_named
 from spacegrasp_jax.control.schedule import gain_set_from_dict
 from spacegrasp_jax.criteria import CaptureCriteria
 from spacegrasp_jax.metrics import METRICS, TARGET_METRICS
-from spacegrasp_jax.model import Robot, RobotConfigError, n_joints, paper_robot, robot_to_toml
+from spacegrasp_jax.model import Robot, RobotConfigError, n_joints, paper_robot
 from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
 from spacegrasp_jax.perturbations import PerturbationRanges
 from spacegrasp_jax.realism import Realism, ideal, make_realism
+from spacegrasp_jax.records import RecordError, RunRecord, Variant, make_record
 from spacegrasp_jax.robot_files import load_robot
-from spacegrasp_jax.scenario import Scenario, scenario_from_dict, scenario_to_dict
+from spacegrasp_jax.scenario import Scenario, scenario_from_dict
 from spacegrasp_jax.simulate import Log, RunSpec
 
 PERCENTILES = (5, 50, 95)
@@ -160,27 +160,6 @@ _CRITERIA_SETTINGS_OF_OLDER_RECORDS = (
 )
 
 
-@dataclasses.dataclass(frozen=True)
-class Variant:
-    """One arm of the comparison: a controller with a set of gains, ``label`` naming the
-    gains (``"paper"`` or a file's stem)."""
-
-    controller: str
-    gains: Gains
-    label: str = "paper"
-
-    def __post_init__(self):
-        if self.controller not in CONTROLLERS:
-            raise CampaignError(f"controller: expected one of {CONTROLLERS}, got {self.controller!r}")
-        if not self.label or not all(c.isalnum() or c in "-_." for c in self.label):
-            raise CampaignError(f"gains label {self.label!r}: use letters, digits, '-', '_' or '.'")
-
-    @property
-    def key(self) -> str:
-        """``"<controller>/<label>"``, the prefix of this variant's arrays in samples.npz."""
-        return f"{self.controller}/{self.label}"
-
-
 @dataclasses.dataclass
 class CampaignResult:
     """What a campaign returns.
@@ -274,19 +253,93 @@ def _chunk_path(out: Path, variant: Variant, first: int) -> Path:
     return out / "chunks" / variant.controller / variant.label / f"{first:09d}.npz"
 
 
-def _record(config: CampaignConfig, variants, robot_source: str, scenario: Scenario) -> dict:
-    return {
-        "config": config.to_dict(),
-        "variants": [
-            {"controller": v.controller, "gains_label": v.label, "gains": v.gains.to_dict()} for v in variants
-        ],
-        "robot": robot_source,
-        "robot_file": None if robot_source == "paper_robot()" else runfiles.ROBOT_FILE,
-        "scenario": scenario_to_dict(scenario),
+#: The campaign's settings its run record holds (``campaign.json``'s ``record``), not its ``config``.
+_RECORDED_SETTINGS = ("realism", "criteria", "pinv_damping")
+
+
+def campaign_document(
+    robot: Robot,
+    scenario: Scenario,
+    variants,
+    config: CampaignConfig,
+    *,
+    sources: dict | None = None,
+    command=None,
+) -> dict:
+    """What ``campaign.json`` holds: the nominal run's record
+    ([`RunRecord`][spacegrasp_jax.records.RunRecord]: robot, scenario, variants, realism,
+    criteria, pinv_damping, command, versions) and the campaign's own settings (``config``:
+    size, seed, chunks, ranges, the model the controller believes)."""
+    record = make_record(
+        robot,
+        scenario,
+        variants,
+        realism=config.realism,
+        criteria=config.criteria,
+        pinv_damping=config.pinv_damping,
+        command=command,
+        sources=sources,
+    )
+    settings = {name: value for name, value in config.to_dict().items() if name not in _RECORDED_SETTINGS}
+    return {"record": record.to_dict(), "config": settings}
+
+
+def _older_campaign_document(document: dict, out: Path, source: str) -> dict:
+    """A ``campaign.json`` of an older version (the robot by its file, the variants, the
+    scenario and every setting side by side) in today's form."""
+    robot_source = document["robot"]
+    if document.get("robot_file"):  # the robot as it ran, kept in the folder
+        robot_source = str(out / document["robot_file"])
+    try:
+        robot = paper_robot() if robot_source == "paper_robot()" else load_robot(robot_source)
+    except (OSError, ValueError) as error:
+        raise CampaignError(f"{source}: its robot {robot_source}: {error}") from None
+    config = CampaignConfig.from_dict(document["config"], source=source)
+    variants = [
+        Variant(item["controller"], gain_set_from_dict(item["gains"], n_joints(robot)), item["gains_label"])
+        for item in document["variants"]
+    ]
+    sources = {"robot": document["robot"], "robot_links": document.get("robot_links")}
+    return campaign_document(robot, scenario_from_dict(document["scenario"]), variants, config, sources=sources)
+
+
+def campaign_record(out: Path) -> tuple[RunRecord, CampaignConfig]:
+    """The campaign that ``out`` holds (its ``campaign.json``; one of an older version too):
+    its nominal run's record and its settings.
+
+    Raises:
+        CampaignError: no readable campaign there.
+    """
+    path = Path(out) / "campaign.json"
+    try:
+        document = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise CampaignError(f"{out}: holds no readable campaign ({path.name}: {error})") from None
+    if "record" not in document:
+        document = _older_campaign_document(document, Path(out), str(path))
+    try:
+        record = RunRecord.from_dict(document["record"], source=f"{path}: record")
+    except RecordError as error:
+        raise CampaignError(str(error)) from None
+    config = CampaignConfig.from_dict(document["config"], source=str(path))
+    config = dataclasses.replace(
+        config, realism=record.realism, criteria=record.criteria, pinv_damping=record.pinv_damping
+    )
+    return record, config
+
+
+def _same_run(a: dict, b: dict) -> bool:
+    """Whether two documents of ``campaign_document()`` describe the same campaign: their
+    records but for when, how and from where they were made, and their settings."""
+    made = ("command", "versions", "sources")
+    strip = lambda document: {
+        "record": {key: value for key, value in document["record"].items() if key not in made},
+        "config": document["config"],
     }
+    return json.dumps(runfiles.plain(strip(a)), sort_keys=True) == json.dumps(runfiles.plain(strip(b)), sort_keys=True)
 
 
-def _check_resume(out: Path, record: dict, resume: bool, robot: Robot) -> None:
+def _check_resume(out: Path, document: dict, resume: bool) -> None:
     path = out / "campaign.json"
     if not path.exists():
         return
@@ -294,25 +347,28 @@ def _check_resume(out: Path, record: dict, resume: bool, robot: Robot) -> None:
         raise CampaignError(
             f"{out} already holds a campaign: pass --resume (resume=True) to continue it, or choose another output folder"
         )
-    previous = json.loads(path.read_text())
-    # A campaign of an older version: its settings as this version records them.
-    previous["config"] = CampaignConfig.from_dict(previous.get("config", {})).to_dict()
-    # The robot by what it is, not by the path it was read from (a resume from elsewhere
-    # names the same file another way); a campaign of an older version, by its path.
-    if previous.get("robot_file"):
-        kept = load_robot(out / previous["robot_file"])
-        if robot_to_toml(robot) != robot_to_toml(kept):
-            raise CampaignError(f"{out}: cannot resume, the robot differs from the interrupted campaign's")
-        keys = ("config", "variants", "scenario")
-    else:
-        keys = ("config", "variants", "robot", "scenario")
-    for key in keys:
-        if json.dumps(previous.get(key), sort_keys=True) != json.dumps(record[key], sort_keys=True):
-            detail = ""
-            if key == "config":
-                changed = sorted(k for k in record[key] if previous[key].get(k) != record[key][k])
-                detail = f" ({', '.join(changed)})"
-            raise CampaignError(f"{out}: cannot resume, the {key} differs from the interrupted campaign's{detail}")
+    previous, config = campaign_record(out)
+    previous = {"record": previous.to_dict(), "config": {**config.to_dict()}}
+    previous["config"] = {k: v for k, v in previous["config"].items() if k not in _RECORDED_SETTINGS}
+    if _same_run(previous, document):
+        return
+    # The first part that differs, named: the robot by what it is, never by the path it was read from.
+    for part, key in (("record", "robot"), ("record", "variants"), ("record", "scenario"), ("record", None)):
+        old, new = previous[part], document[part]
+        if key is not None and json.dumps(runfiles.plain(old[key])) != json.dumps(runfiles.plain(new[key])):
+            raise CampaignError(f"{out}: cannot resume, the {key} differs from the interrupted campaign's")
+    changed = sorted(
+        {k for k in document["config"] if previous["config"].get(k) != document["config"][k]}
+        | {
+            k
+            for k in ("realism", "criteria", "pinv_damping", "model_robot")
+            if json.dumps(runfiles.plain(previous["record"].get(k)))
+            != json.dumps(runfiles.plain(document["record"][k]))
+        }
+    )
+    raise CampaignError(
+        f"{out}: cannot resume, the config differs from the interrupted campaign's ({', '.join(changed)})"
+    )
 
 
 def _load_chunk(path: Path) -> dict[str, np.ndarray] | None:
@@ -498,6 +554,7 @@ def run_campaign(
     resume: bool = False,
     robot_source: str = "paper_robot()",
     robot_links: dict | None = None,
+    command=None,
     progress=sys.stderr,
     stop: runfiles.StopRequest | None = None,
     on_chunk: Callable[[Variant, int], None] | None = None,
@@ -513,6 +570,8 @@ def run_campaign(
         robot_source, robot_links: where ``robot`` was read from and, for a URDF arm, its
             mount and links (``load_robot``'s keywords), as the record says them; the robot
             itself is kept in ``out`` (``runfiles.ROBOT_FILE``) when it came from a file.
+        command: the command line that runs the campaign, for its record (``None``: a call
+            from Python).
         progress: stream for the progress bar (``None``: silent).
         stop: checked after each chunk; when set, the run stops with status "interrupted".
         on_chunk: called after each finished chunk with the variant and its first index.
@@ -534,21 +593,22 @@ def run_campaign(
     if config.timeseries_every is not None and scenario.n_steps % config.timeseries_every:
         raise CampaignError(f"timeseries_every: {config.timeseries_every} does not divide the {scenario.n_steps} steps")
     writer = out is not None and jax.process_index() == 0
-    record = _record(config, variants, robot_source, scenario) | {"robot_links": robot_links or None}
+    sources = {"robot": robot_source, "robot_links": robot_links or None}
+    document = campaign_document(robot, scenario, variants, config, sources=sources, command=command)
     if out is not None:
-        _check_resume(out, record, resume, robot)
+        _check_resume(out, document, resume)
         if jax.process_count() > 1:  # every process checks the folder before process 0 writes in it
             multihost_utils.sync_global_devices("spacegrasp campaign: folder checked")
         if writer:
-            if record["robot_file"]:
+            if robot_source != "paper_robot()":  # the robot as it ran, for --robot
                 runfiles.write_robot(
                     out,
                     robot,
                     robot_source,
                     robot_links,
-                    rate_limits_stated=config.joint_rate_limits_radps is not None,
+                    rate_limits_stated=config.criteria.joint_rate_limits_radps is not None,
                 )
-            runfiles.write_json(out / "campaign.json", record)
+            runfiles.write_json(out / "campaign.json", document)
 
     starts = list(range(0, config.n, config.chunk))
     total_chunks = len(starts) * len(variants)
@@ -711,31 +771,35 @@ def load_samples(path: Path) -> tuple[dict[str, np.ndarray], dict[str, dict[str,
 
 
 def load_campaign(out: Path) -> tuple[Robot, Scenario, list[Variant], CampaignConfig]:
-    """The campaign that ``out`` holds, from its ``campaign.json``: ``(robot, scenario,
-    variants, config)``, what [`replay()`][spacegrasp_jax.campaign.replay] takes. The robot
-    is the paper's or read again from the file the campaign names.
+    """The campaign that ``out`` holds (``campaign_record()``) as ``(robot, scenario, variants,
+    config)``, what [`replay()`][spacegrasp_jax.campaign.replay] takes.
 
     Raises:
-        CampaignError: no campaign there, or its robot file is gone or changed shape.
+        CampaignError: no readable campaign there.
     """
-    path = Path(out) / "campaign.json"
-    try:
-        record = json.loads(path.read_text())
-    except (OSError, ValueError) as error:
-        raise CampaignError(f"{out}: holds no readable campaign ({path.name}: {error})") from None
-    source = record["robot"]
-    if record.get("robot_file"):  # the robot as it ran, kept in the folder
-        source = str(Path(out) / record["robot_file"])
-    try:
-        robot = paper_robot() if source == "paper_robot()" else load_robot(source)
-    except (OSError, ValueError) as error:
-        raise CampaignError(f"{path}: its robot {source}: {error}") from None
-    config = CampaignConfig.from_dict(record["config"], source=str(path))
-    variants = [
-        Variant(item["controller"], gain_set_from_dict(item["gains"], n_joints(robot)), item["gains_label"])
-        for item in record["variants"]
-    ]
-    return robot, scenario_from_dict(record["scenario"]), variants, config
+    record, config = campaign_record(out)
+    return record.robot, record.scenario, list(record.variants), config
+
+
+def sample_record(record: RunRecord, config: CampaignConfig, index: int, variants=None) -> RunRecord:
+    """The record of sample ``index`` of the campaign of ``record`` and ``config``: its
+    perturbed plant and scenario, its realism and noise key, the robot its controller
+    believes, for ``variants`` (default: the campaign's). A
+    [`replay()`][spacegrasp_jax.records.replay] of it runs the sample as the campaign did."""
+    loops = sample_loops(
+        record.robot, record.scenario, config.seed, [index], config.ranges, config.realism, config.identified
+    )
+    first = lambda tree: None if tree is None else jax.tree.map(lambda x: x[0], tree)
+    return dataclasses.replace(
+        record,
+        robot=first(loops.robots),
+        scenario=first(loops.scenarios),
+        variants=tuple(record.variants if variants is None else variants),
+        realism=first(loops.realisms),
+        model_robot=loops.model_robot,
+        noise_key=None if loops.keys is None else tuple(int(word) for word in np.asarray(first(loops.keys))),
+        versions=runfiles.provenance(),
+    )
 
 
 def replay_sample(robot: Robot, scenario: Scenario, config: CampaignConfig, index: int) -> tuple[Robot, Scenario]:
@@ -746,15 +810,21 @@ def replay_sample(robot: Robot, scenario: Scenario, config: CampaignConfig, inde
 
 
 def robot_and_scenario_of_run(folder, config: dict) -> tuple[Robot, Scenario]:
-    """The robot and scenario a run folder's ``config.json`` (``config``, read) ran: the robot
-    kept in the folder (``robot_file``; a run of an older version: its robot file as named,
-    or the paper's robot) and its scenario; for a replay of a campaign sample,
-    the sample's perturbed plant and scenario, from the campaign's folder
-    ([`replay_sample()`][spacegrasp_jax.campaign.replay_sample]).
+    """The robot and scenario a run folder's ``config.json`` (``config``, read) ran: its
+    record's ([`RunRecord`][spacegrasp_jax.records.RunRecord]). A folder of an older version:
+    the robot kept in it (``robot_file``) or named (or the paper's) and its scenario; for a
+    replay of a campaign sample, the sample's perturbed plant and scenario, from the
+    campaign's folder ([`replay_sample()`][spacegrasp_jax.campaign.replay_sample]).
 
     Raises:
-        experiment.RunFolderError: the robot file or the campaign cannot be read.
+        experiment.RunFolderError: the record, the robot file or the campaign cannot be read.
     """
+    if "record" in config:
+        try:
+            record = RunRecord.from_dict(config["record"], source=f"{folder}: config.json's record")
+        except RecordError as error:
+            raise experiment.RunFolderError(str(error)) from None
+        return record.robot, record.scenario
     if "campaign_record" in config:
         try:
             robot, scenario, _, campaign_config = load_campaign(Path(config["campaign"]))
@@ -776,16 +846,8 @@ def robot_and_scenario_of_run(folder, config: dict) -> tuple[Robot, Scenario]:
 def replay(robot: Robot, scenario: Scenario, variant: Variant, config: CampaignConfig, index: int, check: bool = False):
     """Sample ``index`` of the campaign run again with its full log, as the campaign ran it
     (same plant, scenario, loop, model and noise): a [`RunResult`][spacegrasp_jax.experiment.RunResult]."""
-    loops = sample_loops(robot, scenario, config.seed, [index], config.ranges, config.realism, config.identified)
-    first = lambda tree: None if tree is None else jax.tree.map(lambda x: x[0], tree)
-    spec = RunSpec(
-        first(loops.robots),
-        first(loops.scenarios),
-        variant_law(variant, config),
-        realism=first(loops.realisms),
-        model_robot=loops.model_robot,
-    )
-    return experiment.run(spec, variant.gains, key=first(loops.keys), check=check)
+    nominal = make_record(robot, scenario, [variant], realism=config.realism, pinv_damping=config.pinv_damping)
+    return records.replay(sample_record(nominal, config, index), check=check)[variant.key]
 
 
 __all__ = [
@@ -793,6 +855,9 @@ __all__ = [
     "CampaignError",
     "CampaignResult",
     "Variant",
+    "campaign_document",
+    "campaign_record",
+    "sample_record",
     "classify",
     "compiled_chunk",
     "evaluate_indices",

@@ -14,11 +14,11 @@ import time
 import jax
 import numpy as np
 
-from spacegrasp_jax import anatomy, compilation, joint_limits, metrics, paper, runfiles
+from spacegrasp_jax import anatomy, compilation, joint_limits, metrics, paper
 from spacegrasp_jax.control.gains import Gains
 from spacegrasp_jax.model import Robot
-from spacegrasp_jax.realism import Realism, ideal
-from spacegrasp_jax.scenario import Scenario, scenario_to_dict
+from spacegrasp_jax.realism import Realism
+from spacegrasp_jax.scenario import Scenario
 from spacegrasp_jax.simulate import (
     FullLog,
     Log,
@@ -249,25 +249,3 @@ def summary_markdown(results: dict) -> str:
             + "".join(" never |" if v is None or math.isnan(v) else f" {number.format(scale * v)} |" for v in values)
         )
     return "\n".join(lines)
-
-
-def run_config(
-    robot_source: str,
-    scenario: Scenario,
-    gains: Gains,
-    controllers,
-    pinv_damping: float,
-    realism: Realism | None = None,
-) -> dict:
-    """What ``config.json`` records: enough to trace every number back to how it was made.
-    The gains are those the controllers use ([`Gains.to_dict()`][spacegrasp_jax.control.gains.Gains.to_dict])."""
-    controllers = list(controllers)
-    return {
-        "controllers": controllers,
-        "robot": robot_source,
-        "gains": gains.to_dict(controllers[0] if len(controllers) == 1 else None),
-        "scenario": scenario_to_dict(scenario),
-        "pinv_damping": pinv_damping,
-        "realism": (realism if realism is not None else ideal()).to_dict(),
-        **runfiles.provenance(),
-    }

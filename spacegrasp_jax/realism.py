@@ -461,8 +461,9 @@ PRESETS = {"ideal": ideal, "flight": flight}
 def load_realism(name_or_path: str | Path, robot=None) -> Realism:
     """A preset (``"ideal"``, ``"flight"``: with a ``robot``, [`flight(robot)`][spacegrasp_jax.realism.flight],
     its actuators the robot's motors) or a TOML file of the module docstring's tables.
-    A JSON file with the same tables is read too, and so is a ``config.json`` that holds
-    them under ``"realism"`` (``null`` torque limits meaning none)."""
+    A JSON file with the same tables is read too, and so is a run's ``config.json`` or a
+    campaign's ``campaign.json`` that holds them in its record (``"record"``'s
+    ``"realism"``; an older version's: ``"realism"``; ``null`` torque limits meaning none)."""
     if str(name_or_path) == "flight":
         return flight(robot)
     if str(name_or_path) in PRESETS:
@@ -476,6 +477,8 @@ def load_realism(name_or_path: str | Path, robot=None) -> Realism:
         if path.exists():
             raise
         raise RealismError(f"{error}; expected ideal, flight or a TOML file") from None
+    if isinstance(document.get("record"), dict) and path.suffix.lower() == ".json":
+        document = document["record"]
     if isinstance(document.get("realism"), dict) and path.suffix.lower() == ".json":
         document = document["realism"]
     return make_realism(document, source=str(path))

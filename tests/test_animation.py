@@ -86,7 +86,8 @@ def test_animate_films_a_run_folder_and_refuses_what_it_cannot_do(robot, tmp_pat
     assert (out / "capture_admittance.gif").is_file() and (out / "capture_admittance_poster.png").is_file()
     with Image.open(out / "capture_admittance.gif") as film:
         assert film.n_frames == 10
-    assert json.loads((out / "config.json").read_text())["controllers"] == ["admittance"]
+    record = json.loads((out / "config.json").read_text())["record"]
+    assert [variant["controller"] for variant in record["variants"]] == ["admittance"]
     capsys.readouterr()
     refused = {
         ("animate", str(out)): "capture_admittance.gif: exists; pass --overwrite",

@@ -155,9 +155,12 @@ def test_reproduce_writes_every_file_and_field_and_is_deterministic(tmp_path, fu
         full_runs["admittance"].summary["max_abs_torque_Nm"],
         rtol=1e-12,
     )
-    config = json.loads((first / "config.json").read_text())
-    assert {"gains", "scenario", "spacegrasp_jax_version", "jax_version", "git_revision"} <= set(config)
-    assert config["gains"]["kp"] == [140.0, 210.0, 140.0, 105.0, 105.0, 21.0, 21.0]
+    record = json.loads((first / "config.json").read_text())["record"]
+    assert {"robot", "scenario", "realism", "variants", "criteria", "command", "versions"} <= set(record)
+    assert {"spacegrasp_jax_version", "jax_version", "git_revision"} <= set(record["versions"])
+    assert [variant["controller"] for variant in record["variants"]] == ["admittance", "cartesian"]
+    assert record["variants"][0]["gains"]["kp"] == [140.0, 210.0, 140.0, 105.0, 105.0, 21.0, 21.0]
+    assert record["command"][:2] == ["spacegrasp", "reproduce"] and record["robot"] is None
 
 
 def test_simulate_one_controller_with_gains_and_scenario_files(tmp_path, gains):
@@ -183,8 +186,9 @@ def test_simulate_one_controller_with_gains_and_scenario_files(tmp_path, gains):
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary) == {"admittance"} and set(summary["admittance"]) >= SUMMARY_KEYS
     assert (out / "timeseries_admittance.npz").exists() and all((out / name).exists() for name in FIGURES)
-    config = json.loads((out / "config.json").read_text())
-    assert config["gains"]["Kd"] == [300.0] * 6 and config["gains_filled"] is None
+    record = json.loads((out / "config.json").read_text())["record"]
+    assert record["variants"][0]["gains"]["Kd"] == [300.0] * 6 and record["sources"]["gains_filled"] is None
+    assert record["variants"][0]["label"] == "gains" and record["sources"]["gains"] == str(gains_file)
 
 
 def test_a_gains_file_runs_with_what_fill_from_gives_and_says_so(tmp_path, capsys):
@@ -200,14 +204,16 @@ def test_a_gains_file_runs_with_what_fill_from_gives_and_says_so(tmp_path, capsy
     assert "no_Kd.json: Kd: missing" in capsys.readouterr().err
     assert cli.main([*args, "--fill-from", "paper"]) == 0
     assert f"spacegrasp: notice: {gains_file}: Kd from paper (--fill-from)" in capsys.readouterr().err
-    config = json.loads((tmp_path / "sim" / "config.json").read_text())
-    assert config["gains_filled"] == {"groups": ["Kd"], "from": "paper"}
-    assert config["gains"]["Kd"] == [600.0] * 6 and config["gains"]["Md"] == [900.0] * 6
+    record = json.loads((tmp_path / "sim" / "config.json").read_text())["record"]
+    assert record["sources"]["gains_filled"] == {"groups": ["Kd"], "from": "paper"}
+    gains = record["variants"][0]["gains"]
+    assert gains["Kd"] == [600.0] * 6 and gains["Md"] == [900.0] * 6
     # a shipped set by name
     args = ["simulate", "--compile-cache", "none", "--controller", "admittance", "--gains", "flight"]
     assert cli.main([*args, "--scenario", str(scenario_file), "--out", str(tmp_path / "flight")]) == 0
-    config = json.loads((tmp_path / "flight" / "config.json").read_text())
-    assert config["gains_source"] == "flight" and config["gains"] == tuned_gains("flight").to_dict("admittance")
+    record = json.loads((tmp_path / "flight" / "config.json").read_text())["record"]
+    assert record["sources"]["gains"] == "flight" and record["variants"][0]["label"] == "flight"
+    assert record["variants"][0]["gains"] == tuned_gains("flight").to_dict()
 
 
 @pytest.mark.slow

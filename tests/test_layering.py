@@ -18,6 +18,7 @@ HOST = {
     "spacegrasp_jax.campaign",
     "spacegrasp_jax.experiment",
     "spacegrasp_jax.margins",
+    "spacegrasp_jax.records",
     "spacegrasp_jax.runfiles",
     "spacegrasp_jax.stability",
     "spacegrasp_jax.sweep",

@@ -250,7 +250,7 @@ def test_the_margins_command_writes_its_files_and_prints_the_margins(flight_capt
     _, _, _, prober = flight_capture
     assert delay["fails_periods"] == margins.delay_margin(prober, 0.01)["fails_periods"]
     assert document["rollouts"] == len(document["probes"]) * SAMPLES
-    assert document["settings"]["campaign"]["criteria"]["position_tolerance_m"] == pytest.approx(0.025)
+    assert document["settings"]["record"]["criteria"]["position_tolerance_m"] == pytest.approx(0.025)
     assert set(document["gain_margins"]) == {"pid", "law"}
     # The linear analysis (tests/test_stability.py checks it): its margins, modes and figure.
     linear = document["linear"]

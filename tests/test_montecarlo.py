@@ -341,7 +341,7 @@ def test_bad_campaign_setups_fail_before_compiling(robot, short_scenario, gains,
         run_campaign(robot, short_scenario, [variant], CampaignConfig(n=2, chunk=2, timeseries_every=3), progress=None)
     with pytest.raises(CampaignError, match="variants must differ"):
         run_campaign(robot, short_scenario, [variant, Variant("admittance", gains)], CampaignConfig(n=2), progress=None)
-    with pytest.raises(CampaignError, match="controller: expected one of"):
+    with pytest.raises(ValueError, match="controller: expected one of"):
         Variant("pid", gains)
 
 

@@ -274,11 +274,13 @@ def test_settings_files_are_validated_and_read_back(tmp_path):
     )
     realism = load_realism(path)
     assert realism.control_period == 0.01 and realism.stages == Stage.ACTUATORS
-    # config.json's form reads back to the same settings.
+    # A run record's form (config.json, campaign.json) reads back to the same settings, and so
+    # does an older version's config.json.
     config = tmp_path / "config.json"
-    config.write_text(json.dumps({"realism": realism.to_dict()}))
-    again = load_realism(config)
-    assert again.to_dict() == realism.to_dict() and again.stages == realism.stages
+    for document in ({"record": {"realism": realism.to_dict()}}, {"realism": realism.to_dict()}):
+        config.write_text(json.dumps(document))
+        again = load_realism(config)
+        assert again.to_dict() == realism.to_dict() and again.stages == realism.stages
     assert load_realism("flight").to_dict() == flight().to_dict()
     bad = {
         "[timing]\ncontrol_perod = 0.01\n": "unknown key timing.control_perod",

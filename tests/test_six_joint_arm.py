@@ -129,7 +129,7 @@ def test_a_flight_like_run_takes_a_realism_with_one_torque_limit_a_joint(short, 
     assert cli.main([*common, "--realism", "flight", "--out", str(tmp_path / "preset")]) == 0
     config = json.loads((tmp_path / "preset" / "config.json").read_text())
     assert (
-        config["realism"]["actuators"]["torque_limit_Nm"]
+        config["record"]["realism"]["actuators"]["torque_limit_Nm"]
         == np.asarray(sg.load_robot(ROBOT).joint_torque_limit).tolist()
     )
     realism = tmp_path / "ur5_flight.toml"

@@ -116,7 +116,8 @@ def test_a_ur10_runs_from_its_stock_urdf_and_its_run_folder_moves(tmp_path, caps
     args += ["--tip-link", "tool0", "--scenario", "short.toml", "--gains", str(CONFIGS / "ur5_gains.json")]
     assert cli.main([*args, "--out", "runs/ur10"]) == 0, capsys.readouterr().err
     config = json.loads((work / "runs" / "ur10" / "config.json").read_text())
-    assert config["robot"] == "ur10_robot.urdf" and config["robot_links"] == {"tip_link": "tool0"}
+    sources = config["record"]["sources"]
+    assert sources["robot"] == "ur10_robot.urdf" and sources["robot_links"] == {"tip_link": "tool0"}
     assert config["robot_file"] == "robot.toml"
     ran = load_robot(work / "ur10_robot.urdf", tip_link="tool0")
     assert n_joints(ran) == 6 and robots_equal(load_robot(work / "runs" / "ur10" / "robot.toml"), ran)
@@ -286,7 +287,7 @@ def test_a_campaign_and_a_tuning_run_of_an_arm_move_and_go_on(tmp_path, capsys, 
     assert cli.main([*tune_args, "--out", "tune"]) == 0, capsys.readouterr().err
     limits = np.asarray(load_robot(work / "ur5.toml").joint_rate_limit).tolist()  # a mounting file states them
     assert (
-        json.loads((work / "campaign" / "campaign.json").read_text())["config"]["criteria"]["joint_rate_limits_radps"]
+        json.loads((work / "campaign" / "campaign.json").read_text())["record"]["criteria"]["joint_rate_limits_radps"]
         == limits
     )
     assert json.loads((work / "tune" / "run.json").read_text())["config"]["joint_rate_limits_radps"] == limits

@@ -51,8 +51,9 @@ from spacegrasp_jax.model import n_joints, robot_to_toml
 from spacegrasp_jax.montecarlo import SampleLoops, success
 from spacegrasp_jax.perturbations import sample_scenarios
 from spacegrasp_jax.realism import make_realism
+from spacegrasp_jax.records import RecordError, RunRecord, Variant, make_record
 from spacegrasp_jax.robot_files import load_robot, robot_from_text, robot_from_toml
-from spacegrasp_jax.scenario import paper_scenario, scenario_from_mapping
+from spacegrasp_jax.scenario import load_scenario, paper_scenario, scenario_from_mapping, scenario_to_dict
 from spacegrasp_jax.simulate import LoopOptions, RunSpec
 from spacegrasp_jax.tuning import cmaes
 from spacegrasp_jax.tuning.objective import Objective, objective_spec, scenario_parts
@@ -105,65 +106,104 @@ def _same(a, b) -> bool:
 
 
 def resume_differences(
-    record: dict,
+    document: dict,
     config: TuneConfig | None,
     gains_file: str | None,
     scenario_file: str | None,
     robot_file: str | None,
     robot_links: dict | None = None,
 ) -> list[tuple[str, object, object]]:
-    """What a resume asks for that differs from the recorded run: every field of ``config``
-    (None: nothing asked) and the contents of the files given. More ``steps`` for CMA-ES is
-    not a difference (the run continues); for gradient descent it is, as its learning-rate
-    schedule decays over the steps it was started with."""
+    """What a resume asks for that differs from the recorded run (``document``, its
+    ``run.json``): every field of ``config`` (None: nothing asked), and the gains, scenario
+    and robot of the files given, each by what it is (not by its file's path or text). More
+    ``steps`` for CMA-ES is not a difference (the run continues); for gradient descent it is,
+    as its learning-rate schedule decays over the steps it was started with."""
     differences = []
     if config is not None:
-        recorded = TuneConfig.from_dict(record["config"]).to_dict()
+        recorded = TuneConfig.from_dict(document["config"]).to_dict()
         for field, asked in config.to_dict().items():
             if _same(asked, recorded.get(field)):
                 continue
             if field == "steps" and recorded["method"] == "cmaes" and asked > recorded["steps"]:
                 continue
             differences.append((field, asked, recorded.get(field)))
-    if gains_file is not None:
-        n = n_joints(record_robot(record))
-        asked = start_gains(gains_file, record["config"]["controller"], n, record.get("gains_fill_from")).to_dict()
-        if not _same(asked, record["base_gains"]):
-            differences.append(("gains", gains_file, record["gains_source"]))
-    if scenario_file is not None and _read_optional(scenario_file) != record["scenario_text"]:
-        differences.append(("scenario", scenario_file, record["scenario_source"]))
+    if robot_file is None and gains_file is None and scenario_file is None:
+        return differences
+    record = run_record(document)
+    robot = record.robot
     if robot_file is not None:
-        if record.get("robot_frames") is not None:  # the robot by what it is, wherever its file now lies
-            different = robot_to_toml(load_robot(robot_file, **(robot_links or {}))) != record["robot_frames"]
-        else:
-            different = _read_optional(robot_file) != record["robot_toml"]
-        if different:
-            differences.append(("robot", robot_file, record["robot_source"]))
+        robot = load_robot(robot_file, **(robot_links or {}))
+        if robot_to_toml(robot) != robot_to_toml(record.robot):
+            differences.append(("robot", robot_file, record.sources.get("robot")))
+    if gains_file is not None:
+        n = n_joints(record.robot)
+        fill_from = (record.sources.get("gains_filled") or {}).get("from")
+        asked = start_gains(gains_file, document["config"]["controller"], n, fill_from).to_dict()
+        if not _same(asked, record.variants[0].gains.to_dict()):
+            differences.append(("gains", gains_file, record.sources.get("gains")))
+    if scenario_file is not None:
+        asked = scenario_to_dict(load_scenario(robot, scenario_file))
+        if not _same(asked, scenario_to_dict(record.scenario)):
+            differences.append(("scenario", scenario_file, record.sources.get("scenario")))
     return differences
 
 
-def _read_optional(path: str | None) -> str | None:
-    return None if path is None else Path(path).read_text()
+def _older_run_record(document: dict) -> RunRecord:
+    """The record of a tuning run of an older version, from its ``run.json``'s sources: the
+    robot as recorded (``robot_frames``; older still, its file's text, a mounting TOML's URDF
+    read from beside its file again), the scenario file's text, the starting gains."""
+    if document["robot_toml"] is None:
+        robot = sg.paper_robot()
+    elif document.get("robot_frames") is not None:
+        robot = robot_from_toml(document["robot_frames"], source=f"{document['robot_source']} (as recorded)")
+    else:
+        robot = robot_from_text(document["robot_toml"], source=document["robot_source"])
+    if document["scenario_text"] is None:
+        scenario = paper_scenario(robot)
+    else:
+        text = document["scenario_text"]
+        mapping = json.loads(text) if document["scenario_is_json"] else tomllib.loads(text)
+        scenario = scenario_from_mapping(robot, mapping)
+    config = TuneConfig.from_dict(document["config"])
+    base = gain_set_from_dict(document["base_gains"], n_joints(robot))
+    sources = {
+        "robot": document["robot_source"],
+        "robot_links": document.get("robot_links"),
+        "scenario": document["scenario_source"],
+        "gains": document["gains_source"],
+        "gains_filled": (
+            {"groups": document["gains_filled"], "from": document["gains_fill_from"]}
+            if document.get("gains_filled")
+            else None
+        ),
+    }
+    return _record_of(robot, scenario, base, config, sources)
 
 
-def record_robot(record: dict):
-    """The robot of a tuning run's record (``run.json``): the paper's, or the robot as recorded
-    (``robot_frames``; a run of an older version: its file's text, a mounting TOML's URDF read
-    from beside its file again)."""
-    if record["robot_toml"] is None:
-        return sg.paper_robot()
-    if record.get("robot_frames") is not None:
-        return robot_from_toml(record["robot_frames"], source=f"{record['robot_source']} (as recorded)")
-    return robot_from_text(record["robot_toml"], source=record["robot_source"])
+def run_record(document: dict) -> RunRecord:
+    """The [`RunRecord`][spacegrasp_jax.records.RunRecord] of a tuning run's ``run.json``
+    (``document``, read; one of an older version too): the robot, the nominal scenario, the
+    starting gains (its one variant), the loop, the criteria, where they came from."""
+    if "record" not in document:
+        return _older_run_record(document)
+    try:
+        return RunRecord.from_dict(document["record"], source="run.json: record")
+    except RecordError as error:
+        raise TuneSetupError(str(error)) from None
 
 
-def record_scenario(robot, record: dict):
-    """The nominal scenario of a tuning run's record (``run.json``), as recorded."""
-    if record["scenario_text"] is None:
-        return paper_scenario(robot)
-    text = record["scenario_text"]
-    document = json.loads(text) if record["scenario_is_json"] else tomllib.loads(text)
-    return scenario_from_mapping(robot, document)
+def _record_of(robot, scenario, base, config: TuneConfig, sources: dict, command=None) -> RunRecord:
+    realism = make_realism(config.realism) if config.realism is not None else None
+    return make_record(
+        robot,
+        scenario,
+        [Variant(config.controller, base, "start")],
+        realism=realism,
+        criteria=CaptureCriteria(joint_rate_limits_radps=config.joint_rate_limits_radps),
+        key=jax.random.PRNGKey(config.seed) if realism is not None else None,
+        command=command,
+        sources=sources,
+    )
 
 
 def start_gains(gains_file: str, controller: str, n: int, fill_from: str | None = None):
@@ -199,9 +239,11 @@ def new_record(
     holdout: int,
     fill_from: str | None = None,
     robot_links: dict | None = None,
+    command=None,
 ) -> dict:
-    """The run's definition, with the sources' contents so the run can be redone anywhere
-    (the robot as it runs, ``robot_frames``, besides its file's text)."""
+    """The run's ``run.json``: its [`RunRecord`][spacegrasp_jax.records.RunRecord] (the robot
+    and scenario as they run, the starting gains, the loop, the criteria, the sources and the
+    command), its settings (``config``) and the held-out samples."""
     robot = load_robot(robot_file, **(robot_links or {})) if robot_file else sg.paper_robot()
     filled = []
     if gains_file:
@@ -214,21 +256,16 @@ def new_record(
         except GainsError as error:
             raise TuneSetupError(f"--gains: required: {error}") from None
         base = paper_gains()
-    return {
-        "config": config.to_dict(),
-        "base_gains": base.to_dict(),
-        "gains_source": gains_file or "paper_gains()",
-        "gains_fill_from": fill_from if filled else None,
-        "gains_filled": filled,
-        "scenario_source": scenario_file or "paper_scenario()",
-        "scenario_text": _read_optional(scenario_file),
-        "scenario_is_json": bool(scenario_file and scenario_file.endswith(".json")),
-        "robot_source": robot_file or "paper_robot()",
-        "robot_toml": _read_optional(robot_file),
+    scenario = load_scenario(robot, scenario_file) if scenario_file else paper_scenario(robot)
+    sources = {
+        "robot": robot_file or "paper_robot()",
         "robot_links": robot_links or None,
-        "robot_frames": robot_to_toml(robot) if robot_file else None,
-        "holdout": holdout,
+        "scenario": scenario_file or "paper_scenario()",
+        "gains": gains_file or "paper_gains()",
+        "gains_filled": {"groups": filled, "from": fill_from} if filled else None,
     }
+    record = _record_of(robot, scenario, base, config, sources, command)
+    return {"record": record.to_dict(), "config": config.to_dict(), "holdout": holdout}
 
 
 def _scenarios_parts(robot, gains, objective: Objective, scenarios, *, controller: str, options: LoopOptions):
@@ -508,6 +545,7 @@ def tune(
     fill_from: str | None = None,
     robot_links: dict | None = None,
     resume: bool = False,
+    command=None,
     progress=None,
     stop: runfiles.StopRequest | None = None,
 ) -> TuneResult:
@@ -521,6 +559,7 @@ def tune(
     ([`resume_differences()`][tuning.run.resume_differences], else [`ResumeMismatchError`][tuning.run.ResumeMismatchError]); what may change is
     ``holdout`` and, for CMA-ES, more ``config.steps``: the run then continues.
 
+    ``command``: the command line that runs it, for its record (``None``: a call from Python).
     ``progress``: where progress lines go (default: ``sys.stderr`` at the call).
     ``stop``: the signal guard of the caller (the command line's); by default the job
     installs its own for the optimisation (SIGINT/SIGTERM stop it after the current step)."""
@@ -553,23 +592,24 @@ def tune(
         if holdout < 0:
             raise TuneSetupError(f"--holdout: must be >= 0, got {holdout}")
         record = new_record(
-            config or TuneConfig(), gains_file, scenario_file, robot_file, holdout, fill_from, robot_links
+            config or TuneConfig(), gains_file, scenario_file, robot_file, holdout, fill_from, robot_links, command
         )
         config = TuneConfig.from_dict(record["config"])
         try:
-            config.weights.check_target(record_scenario(record_robot(record), record).free_target)
+            config.weights.check_target(run_record(record).scenario.free_target)
         except ValueError as error:
             raise TuneSetupError(str(error)) from None
         out.mkdir(parents=True, exist_ok=True)
         runfiles.write_json(record_path, record)
 
-    robot = record_robot(record)
-    base = tuned_base(gain_set_from_dict(record["base_gains"], n_joints(robot)), config)
-    exact = dataclasses.replace(record_scenario(robot, record), contact_law="exact")
+    ran = run_record(record)
+    robot, gains_source = ran.robot, ran.sources["gains"]
+    base = tuned_base(ran.variants[0].gains, config)
+    exact = dataclasses.replace(ran.scenario, contact_law="exact")
     smooth = dataclasses.replace(exact, contact_law="smooth")  # gradients need the smooth law
 
     print(
-        f"evaluating the starting gains ({record['gains_source']}) on the nominal scenario...",
+        f"evaluating the starting gains ({gains_source}) on the nominal scenario...",
         file=progress,
         flush=True,
     )
@@ -605,7 +645,7 @@ def tune(
         "objective_kind": config.objective,
         "evaluated_with": "exact contact law (eq 20), nominal scenario"
         + (", the run's realism, noise key of --seed" if realism is not None else ""),
-        "paper_gains" if record["gains_source"] == "paper_gains()" else "starting_gains": _comparison(before),
+        "paper_gains" if gains_source == "paper_gains()" else "starting_gains": _comparison(before),
         "tuned_gains": _comparison(after),
         "rejected_steps": events,
         "objective": dataclasses.asdict(objective),

@@ -94,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exit:  # --help, --version (0) or a rejected option (2, one line printed)
         return exit.code
     args.given = _given_options(parser, argv)
+    args.command_line = ["spacegrasp", *argv]  # what the run's record says made it
     # The command owns its process: float64 and loops compiled whole, before anything runs,
     # and compiled programs kept on disk for the next run.
     compilation.enable_float64()

@@ -52,6 +52,7 @@ from spacegrasp_jax.perturbations import (
     load_ranges,
 )
 from spacegrasp_jax.realism import Realism, RealismError, load_realism
+from spacegrasp_jax.records import RunRecord
 from spacegrasp_jax.robot_files import rate_limits_stated
 from spacegrasp_jax.scenario import load_scenario, paper_scenario
 
@@ -198,14 +199,26 @@ def _save_schedule_figure(
 
 
 def _gains_record(value: str | None, args, controller) -> dict:
-    """What a run's record says of its gains: where they came from and, for a file that left
+    """What a run's record says of its gains (``sources``): where they came from
+    (``"paper_gains()"``, a shipped set's name or the file as given) and, for a file that left
     groups out, which ones ``--fill-from`` gave and from where."""
     fill_from = getattr(args, "fill_from", None)
     filled = [] if value is None or value in NAMED_GAIN_SETS else missing_groups(value, controller)
     return {
-        "gains_source": value,
+        "gains": value or "paper_gains()",
         "gains_filled": {"groups": filled, "from": fill_from} if filled else None,
     }
+
+
+def gains_label(value: str | None) -> str:
+    """The label a run's record gives the gains ``--gains value`` names: ``"paper"``, a
+    shipped set's name, or the file's stem (letters, digits, ``-``, ``_`` and ``.``; any other
+    character as ``_``)."""
+    if value is None:
+        return "paper"
+    if value in NAMED_GAIN_SETS:
+        return value
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(value).stem) or "gains"
 
 
 def _paper_gains_for(robot, controller: str | None = None) -> sg.control.Gains:
@@ -488,6 +501,11 @@ def _write_results(
 def _run_schedule(folder: Path, config: dict, law: str, n: int) -> GainSchedule | None:
     """The gain schedule a run folder's run ran with (its kept ``gains.json``, or a shipped
     schedule it names), ``None`` for constant gains; ``n`` the arm's joints."""
+    if "record" in config:
+        for variant in RunRecord.from_dict(config["record"], f"{folder}: config.json's record").variants:
+            if variant.controller == law and isinstance(variant.gains, GainSchedule):
+                return variant.gains
+        return None
     if config.get("gains_file"):
         kept = folder / config["gains_file"]
         return load_schedule(kept, law, n) if is_schedule_file(kept) else None

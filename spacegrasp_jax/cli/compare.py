@@ -21,7 +21,18 @@ def _run_descriptors(folder: Path, key: str, config: dict) -> dict:
     """What one run of a run folder (``key``: a law, or a campaign variant ``law/gains``)
     was: its law, robot, loop, gains, target and folder, for ``compare`` to label runs by
     what differs between them."""
-    if "campaign_record" in config:  # a replay: the campaign's settings
+    if "record" in config:
+        record = config["record"]
+        scenario, sources = record["scenario"], record["sources"]
+        realism = "ideal" if record["realism"] == ideal().to_dict() else "custom"
+        loop = sources.get("realism") or realism
+        law, _, label = key.partition("/")
+        labels = [v["label"] for v in record["variants"] if v["controller"] == law and label in ("", v["label"])]
+        gains = labels[0] if labels else "?"
+        if "sample" in sources:  # a replay of a campaign's sample
+            loop = ("ideal" if realism == "ideal" else "flight-like") + f" (sample {sources['sample']})"
+        robot_source = sources.get("robot")
+    elif "campaign_record" in config:  # a replay of an older version: the campaign's settings
         record = config["campaign_record"]
         realism, scenario = record["config"]["realism"], record["scenario"]
         robot_source = record.get("robot")

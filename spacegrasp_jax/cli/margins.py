@@ -10,6 +10,7 @@ import jax
 
 from spacegrasp_jax import (
     batching,
+    campaign,
     margins,
     plausibility,
     runfiles,
@@ -26,6 +27,7 @@ from spacegrasp_jax.cli.common import (
     _realism,
     _robot_links,
     _warn,
+    gains_label,
 )
 from spacegrasp_jax.cli.options import (
     UsageError,
@@ -42,6 +44,7 @@ from spacegrasp_jax.perturbations import (
     PerturbationError,
     PerturbationRanges,
 )
+from spacegrasp_jax.records import Variant
 from spacegrasp_jax.simulate import RunSpec
 
 
@@ -75,14 +78,17 @@ def _margins(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
-    record = {
-        **_gains_record(args.gains, args, args.controller),
+    sources = {
         "robot": args.robot or "paper_robot()",
         "robot_links": _robot_links(args) or None,
-        "campaign": config.to_dict(),
-        "scenario_duration_s": scenario.duration,
-        **runfiles.provenance(),
+        "scenario": args.scenario or "paper_scenario()",
+        **_gains_record(args.gains, args, args.controller),
     }
+    variant = Variant(args.controller, gains, gains_label(args.gains))
+    nominal = campaign.campaign_document(
+        robot, scenario, [variant], config, sources=sources, command=getattr(args, "command_line", None)
+    )
+    record = {"record": nominal["record"], "campaign": nominal["config"], "scenario_duration_s": scenario.duration}
     title = f"{args.controller}, {args.gains or 'paper gains'}, {args.samples} samples" + (
         f", realism {args.realism}" if args.realism else ""
     )

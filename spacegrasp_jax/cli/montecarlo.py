@@ -105,7 +105,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
             else (128 if jax.default_backend() == "cpu" else None),
             realism=load_realism(args.realism, robot) if args.realism else None,
         )
-    except (PerturbationError, campaign.CampaignError) as error:
+    except (PerturbationError, ValueError) as error:  # a CampaignError is one
         raise UsageError(str(error)) from None
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
     _check_joint_ranges(args, robot, scenario)
@@ -131,6 +131,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
             resume=args.resume,
             robot_source=args.robot or "paper_robot()",
             robot_links=_robot_links(args) or None,
+            command=args.command_line,
             stop=args.stop,
         )
     except campaign.CampaignError as error:

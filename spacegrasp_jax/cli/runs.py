@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from spacegrasp_jax import (
     campaign,
     experiment,
     plausibility,
+    records,
     runfiles,
 )
 from spacegrasp_jax.cli.common import (
@@ -37,6 +37,7 @@ from spacegrasp_jax.cli.common import (
     _save_schedule_figure,
     _warn,
     _write_results,
+    gains_label,
 )
 from spacegrasp_jax.cli.options import (
     _SEED,
@@ -59,6 +60,7 @@ from spacegrasp_jax.control import (
 )
 from spacegrasp_jax.control.schedule import GainSchedule
 from spacegrasp_jax.criteria import CaptureCriteria
+from spacegrasp_jax.records import Variant, make_record
 from spacegrasp_jax.simulate import RunSpec
 
 
@@ -92,16 +94,29 @@ def _run_controllers(args, controllers) -> int:
     failed_captures = _print_capture_verdicts(results, criteria)
     for controller, result in results.items():
         _warn(plausibility.result_warnings(result.summary), f"{controller}: ")
-    config = experiment.run_config(
-        args.robot or "paper_robot()", scenario, gains, controllers, args.pinv_damping, realism
-    ) | {
-        **_gains_record(getattr(args, "gains", None), args, list(controllers)),
-        "realism_source": args.realism if "realism" in args else None,
-        "perturbation_source": getattr(args, "perturbation", None),
+    gains_value = getattr(args, "gains", None)
+    sources = {
+        "robot": args.robot or "paper_robot()",
         "robot_links": _robot_links(args) or None,
-        "robot_file": None,
+        "scenario": getattr(args, "scenario", None) or "paper_scenario()",
+        **_gains_record(gains_value, args, list(controllers)),
+        "realism": args.realism if "realism" in args else None,
+        "perturbation": getattr(args, "perturbation", None),
     }
-    if args.robot or getattr(args, "perturbation", None):  # the robot as it ran, kept in the folder
+    record = make_record(
+        robot,
+        scenario,
+        [Variant(controller, gains, gains_label(gains_value)) for controller in controllers],
+        realism=realism,
+        criteria=criteria,
+        pinv_damping=args.pinv_damping,
+        model_robot=nominal.model_robot,
+        key=key,
+        command=getattr(args, "command_line", None),
+        sources=sources,
+    )
+    config = {"record": record.to_dict(), "robot_file": None}
+    if args.robot or getattr(args, "perturbation", None):  # the robot as it ran, for --robot
         source = args.robot or "paper_robot()"
         if getattr(args, "perturbation", None):
             source += f", perturbed as {args.perturbation} says"
@@ -115,8 +130,8 @@ def _run_controllers(args, controllers) -> int:
         config,
         beside_paper=_is_papers_run(args),
         caption=_run_caption(
-            _loop_words(config["realism_source"]),
-            "the paper's gains" if config["gains_source"] is None else f"gains {Path(config['gains_source']).name}",
+            _loop_words(sources["realism"]),
+            "the paper's gains" if gains_value is None else f"gains {Path(gains_value).name}",
             scenario,
         ),
         torque_limit_Nm=np.asarray(robot.joint_torque_limit),
@@ -157,45 +172,41 @@ def _simulate(args: argparse.Namespace) -> int:
     return _run_controllers(args, [args.controller])
 
 
-def _campaign_record(folder: Path) -> dict:
-    return json.loads((folder / "campaign.json").read_text())
-
-
 def _replay(args: argparse.Namespace) -> int:
     """``spacegrasp replay CAMPAIGN --sample K``: one sample of a campaign again, with its
     full log, as the campaign ran it (plant, scenario, loop, noise), for each variant."""
     folder = Path(args.campaign)
     try:
-        robot, scenario, variants, config = campaign.load_campaign(folder)
+        nominal, config = campaign.campaign_record(folder)
     except campaign.CampaignError as error:
         raise UsageError(str(error)) from None
     if args.sample >= config.n:
         raise UsageError(f"--sample: {args.sample} is beyond the campaign's {config.n} samples (0 to {config.n - 1})")
+    variants = nominal.variants
     if args.variant is not None:
         variants = [variant for variant in variants if variant.key == args.variant]
         if not variants:
-            keys = ", ".join(
-                item["controller"] + "/" + item["gains_label"] for item in _campaign_record(folder)["variants"]
-            )
+            keys = ", ".join(variant.key for variant in nominal.variants)
             raise UsageError(f"--variant: {folder} has no variant {args.variant!r}; it has {keys}")
     out = Path(args.out)
     _claim(args, out)
+    sample = campaign.sample_record(nominal, config, args.sample, variants)
+    sample = dataclasses.replace(
+        sample,
+        command=getattr(args, "command_line", None),
+        sources=nominal.sources | {"campaign": str(folder), "sample": args.sample},
+    )
     results = {}
     for variant in variants:
         print(f"replaying sample {args.sample} of {folder} with {variant.key}...", flush=True)
-        results[variant.key] = campaign.replay(robot, scenario, variant, config, args.sample)
+        results |= records.replay(dataclasses.replace(sample, variants=(variant,)), check=False)
     _print_table(results, beside_paper=False)
     failed = _print_capture_verdicts(results, config.criteria)
     for key, result in results.items():
         _warn(plausibility.result_warnings(result.summary), f"{key}: ")
     loop = "ideal loop" if config.realism is None else "flight-like loop"
-    record = {
-        "campaign": str(folder),
-        "sample": args.sample,
-        "variants": [variant.key for variant in variants],
-        "campaign_record": _campaign_record(folder),
-        **runfiles.provenance(),
-    }
+    record = {"record": sample.to_dict(), "campaign": str(folder), "sample": args.sample}
+    robot, scenario = nominal.robot, nominal.scenario
     _write_results(
         out,
         results,

@@ -51,7 +51,7 @@ from spacegrasp_jax.control import (
 )
 from spacegrasp_jax.control.schedule import NAMED_GAIN_SETS, VARIABLES, load_schedule
 from spacegrasp_jax.model import n_joints
-from spacegrasp_jax.realism import ideal, load_realism
+from spacegrasp_jax.realism import load_realism
 from spacegrasp_jax.scenario import load_scenario, paper_scenario
 from spacegrasp_jax.tuning.estimators import AGGREGATES
 from spacegrasp_jax.tuning.objective import Weights
@@ -59,8 +59,7 @@ from spacegrasp_jax.tuning.run import (
     OTHER_GAINS_FILES,
     ResumeMismatchError,
     TuneSetupError,
-    record_robot,
-    record_scenario,
+    run_record,
     start_gains,
     tune,
     tuned_base,
@@ -117,6 +116,7 @@ def _tune(args: argparse.Namespace) -> int:
             holdout=args.holdout,
             fill_from=args.fill_from,
             robot_links=_robot_links(args),
+            command=getattr(args, "command_line", None),
             stop=args.stop,
         )
     except TuneSetupError as error:
@@ -158,7 +158,7 @@ def _resume_tune(args: argparse.Namespace):
     if record is not None and given:
         # The options given replace the record's (checked together, as the run would be):
         # the command line's defaults of the others (CMA-ES's, say) are not the run's.
-        fresh = _tune_fields(args, record_robot(record))
+        fresh = _tune_fields(args, run_record(record).robot)
         asked = {_TUNE_FIELDS.get(dest, dest) for dest in given} & set(fresh)
         config = TuneConfig.from_dict(record["config"] | {field: runfiles.plain(fresh[field]) for field in asked})
     return tune(
@@ -240,14 +240,10 @@ def _tune_finished(out: Path, result) -> int:
         return 130
     _print_tune_report(out, result.history)
     record = json.loads((out / "run.json").read_text())
-    robot = record_robot(record)
-    realism = record["config"]["realism"]
-    loop = "ideal loop (the paper's)" if realism is None or realism == ideal().to_dict() else "flight-like loop"
-    start = (
-        "from the paper's gains"
-        if record["gains_source"] == "paper_gains()"
-        else f"from {Path(record['gains_source']).name}"
-    )
+    ran = run_record(record)
+    robot, gains_source = ran.robot, ran.sources["gains"]
+    loop = "ideal loop (the paper's)" if ran.realism is None else "flight-like loop"
+    start = "from the paper's gains" if gains_source == "paper_gains()" else f"from {Path(gains_source).name}"
     from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
 
     plots.save_tuning_figures(
@@ -256,7 +252,7 @@ def _tune_finished(out: Path, result) -> int:
         result.log_after,
         out,
         runfiles.write_atomically,
-        caption=_run_caption(loop, start, record_scenario(robot, record)),
+        caption=_run_caption(loop, start, ran.scenario),
         torque_limit_Nm=np.asarray(robot.joint_torque_limit),
     )
     holds = json.loads((out / "summary.json").read_text()).get("gains_file", "tuned")

@@ -33,6 +33,7 @@ from spacegrasp_jax.cli.common import (
     _run_caption,
     _warn,
     _write_results,
+    gains_label,
 )
 from spacegrasp_jax.cli.options import (
     UsageError,
@@ -50,6 +51,7 @@ from spacegrasp_jax.perturbations import (
     PerturbationRanges,
     from_units,
 )
+from spacegrasp_jax.records import Variant, make_record
 from spacegrasp_jax.simulate import RunSpec
 
 
@@ -117,6 +119,14 @@ def _worstcase(args: argparse.Namespace) -> int:
         out / "campaign_worst_perturbation.json",
         worstcase.perturbation_document(campaign_units, ranges, campaign_key, config.identified),
     )
+    sources = {
+        "robot": args.robot or "paper_robot()",
+        "robot_links": _robot_links(args) or None,
+        "scenario": args.scenario or "paper_scenario()",
+        **_gains_record(args.gains, args, args.controller),
+    }
+    variant, command = Variant(args.controller, gains, gains_label(args.gains)), getattr(args, "command_line", None)
+    nominal_document = campaign.campaign_document(robot, scenario, [variant], config, sources=sources, command=command)
     say("the worst capture again, with its whole log...")
     nominal = RunSpec(robot, scenario, _law(args.controller, args), realism=realism)
     spec = perturbed_run(nominal, from_units(units, ranges), ranges, config.identified)
@@ -169,23 +179,27 @@ def _worstcase(args: argparse.Namespace) -> int:
         "history": found.history,
         "replay": shlex.join(replay_command),
         "settings": dataclasses.asdict(settings)
-        | {
-            "controller": args.controller,
-            "gains": gains.to_dict(args.controller),
-            **_gains_record(args.gains, args, args.controller),
-            "robot": args.robot or "paper_robot()",
-            "robot_links": _robot_links(args) or None,
-            "campaign": config.to_dict(),
-            "scenario_duration_s": scenario.duration,
-            **runfiles.provenance(),
-        },
+        | {"record": nominal_document["record"], "campaign": nominal_document["config"]}
+        | {"scenario_duration_s": scenario.duration},
     }
     runfiles.write_json(out / "worstcase.json", document)
     loop = "ideal loop" if realism is None else "flight-like loop"
+    found_record = make_record(
+        spec.robot,
+        spec.scenario,
+        [variant],
+        realism=spec.realism,
+        criteria=config.criteria,
+        pinv_damping=config.pinv_damping,
+        model_robot=spec.model_robot,
+        key=found.key,
+        command=command,
+        sources=sources | {"worstcase": str(out / "worstcase.json")},
+    )
     _write_results(
         out,
         {args.controller: result},
-        {"worstcase": str(out / "worstcase.json")},
+        {"record": found_record.to_dict(), "worstcase": str(out / "worstcase.json")},
         beside_paper=False,
         caption=_run_caption(f"the worst capture found ({args.measure}): {loop}", "its gains", scenario),
         torque_limit_Nm=np.asarray(robot.joint_torque_limit),
