@@ -32,13 +32,13 @@ import jax
 import jax.numpy as jnp
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import metrics
-from spacegrasp_jax.compilation import configure
-from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples
-from spacegrasp_jax.perturbations import PerturbationRanges
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import RunSpec, rollout
+from spacegrasp_jax.envelope import metrics
+from spacegrasp_jax.envelope.perturbations import PerturbationRanges
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.jobs.compilation import configure
+from spacegrasp_jax.jobs.montecarlo import FoldedMetrics, evaluate_samples
+from spacegrasp_jax.loop.control import paper_gains
+from spacegrasp_jax.loop.simulate import RunSpec, rollout
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -90,7 +90,8 @@ def bench_arm(robot, scenario, short, gains, repeats: int) -> dict:
 
 def bench_film(robot, scenario, gains) -> dict:
     """``spacegrasp animate``'s drawing of a 17 s capture at 30 frames a second."""
-    from spacegrasp_jax import animation, experiment
+    from spacegrasp_jax.analysis import animation
+    from spacegrasp_jax.jobs import experiment
 
     log = experiment.run(RunSpec(robot, scenario, "admittance"), gains).log
     start = time.perf_counter()
@@ -116,9 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(json.dumps({"paper": report["paper"]}, indent=1), flush=True)
     if not args.paper_only:
-        from spacegrasp_jax.control import load_gains
-        from spacegrasp_jax.model import n_joints
-        from spacegrasp_jax.scenario import load_scenario
+        from spacegrasp_jax.core.model import n_joints
+        from spacegrasp_jax.envelope.scenario import load_scenario
+        from spacegrasp_jax.loop.control import load_gains
 
         for name in ("ur5", "panda"):
             arm = sg.load_robot(CONFIGS / f"{name}_on_satellite.toml")

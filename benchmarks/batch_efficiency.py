@@ -6,7 +6,7 @@ The Monte-Carlo target (documentation, Performance) is a batch of 1,024 rollouts
 throughput of single rollouts run one after another. On a CPU that can only come from the
 cores and from each core computing several samples at once (SIMD lanes). This measures the
 second factor where it is decided: each part of one closed-loop step runs ``--iterations``
-times in a ``fori_loop`` compiled whole (``spacegrasp_jax.compilation``), once for a single
+times in a ``fori_loop`` compiled whole (``spacegrasp_jax.jobs.compilation``), once for a single
 sample and once ``vmap``-ped over ``--batch`` samples of the default campaign, both pinned to
 one core. It reports the time per sample and their ratio: 1 means the batch computes no
 faster per sample than a single rollout; the SIMD width of a float64 vector (4 or 8 lanes)
@@ -38,21 +38,21 @@ import sys
 from pathlib import Path
 
 from spacegrasp_jax.benchmarks.dynamics import chosen_parts, machine, pin_to_one_core
-from spacegrasp_jax.compilation import configure
+from spacegrasp_jax.jobs.compilation import configure
 
 PARTS = ("kinematics", "kinematics_by_component", "mass_matrix", "plant_kinematics", "plant_rate", "controller", "step")
 
 
 def forward_kinematics_by_component(robot, p_base, R_base, q):
-    """[`spacegrasp_jax.kinematics.forward_kinematics()`][spacegrasp_jax.kinematics.forward_kinematics] written component by component:
+    """[`spacegrasp_jax.core.kinematics.forward_kinematics()`][spacegrasp_jax.core.kinematics.forward_kinematics] written component by component:
     every vector a list of 3 arrays, every rotation a 3x3 list, ``R Rz(theta) Rx(alpha)``
-    column by column, stacked into the same [`Frames`][spacegrasp_jax.kinematics.Frames] only
+    column by column, stacked into the same [`Frames`][spacegrasp_jax.core.kinematics.Frames] only
     at the end. Under ``vmap`` each component is an array of the batch's shape, so the chain's
     arithmetic runs across the batch (the last axis). The probe for a batch-last rewrite of the
     step (documentation, Performance); not used by the package."""
     import jax.numpy as jnp
 
-    from spacegrasp_jax.kinematics import Frames
+    from spacegrasp_jax.core.kinematics import Frames
 
     theta = q + robot.joint_offset
     ct, st = jnp.cos(theta), jnp.sin(theta)
@@ -91,9 +91,9 @@ def _part_functions(gains):
     output is the next ``LoopState``."""
     import jax.numpy as jnp
 
-    from spacegrasp_jax import simulate
-    from spacegrasp_jax.control import as_controller
-    from spacegrasp_jax.dynamics import frames_at_base, mass_matrix_parts_from_frames
+    from spacegrasp_jax.core.dynamics import frames_at_base, mass_matrix_parts_from_frames
+    from spacegrasp_jax.loop import simulate
+    from spacegrasp_jax.loop.control import as_controller
 
     def kinematics(robot, scenario, state):
         return frames_at_base(robot, state.plant.R_base, state.plant.q)
@@ -158,11 +158,11 @@ def measure(parts: list[str], batch: int, iterations: int, repeats: int) -> list
     import jax
 
     import spacegrasp_jax as sg
-    from spacegrasp_jax import simulate
     from spacegrasp_jax.benchmarks.dynamics import timed_program
-    from spacegrasp_jax.control import paper_gains
-    from spacegrasp_jax.perturbations import PerturbationRanges, sample
-    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.envelope.perturbations import PerturbationRanges, sample
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.loop import simulate
+    from spacegrasp_jax.loop.control import paper_gains
 
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, duration=1.0)

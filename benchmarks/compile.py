@@ -82,11 +82,11 @@ def _build(name: str, duration: float):
     import numpy as np
 
     import spacegrasp_jax as sg
-    from spacegrasp_jax import campaign, experiment
-    from spacegrasp_jax.control import paper_gains
-    from spacegrasp_jax.realism import flight
-    from spacegrasp_jax.scenario import paper_scenario
-    from spacegrasp_jax.simulate import RunSpec
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.jobs import campaign, experiment
+    from spacegrasp_jax.loop.control import paper_gains
+    from spacegrasp_jax.loop.realism import flight
+    from spacegrasp_jax.loop.simulate import RunSpec
     from spacegrasp_jax.tuning import gradients, tune
     from spacegrasp_jax.tuning.objective import Objective
 
@@ -140,7 +140,7 @@ def measure(name: str, duration: float, repeats: int, warmup: int = WARMUP) -> d
     """Build and run ``name`` once, cold, then time it (module docstring)."""
     import jax
 
-    from spacegrasp_jax import compilation
+    from spacegrasp_jax.jobs import compilation
 
     totals = collections.Counter()
     counts = collections.Counter()
@@ -211,8 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.one:
-        from spacegrasp_jax.batching import use_all_cpu_cores
-        from spacegrasp_jax.compilation import configure
+        from spacegrasp_jax.jobs.batching import use_all_cpu_cores
+        from spacegrasp_jax.jobs.compilation import configure
 
         use_all_cpu_cores()
         configure(compile_cache=False)  # cold: float64, loops compiled whole, no persistent cache

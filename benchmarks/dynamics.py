@@ -27,8 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import compilation
-from spacegrasp_jax.compilation import configure
+from spacegrasp_jax.jobs import compilation
+from spacegrasp_jax.jobs.compilation import configure
 
 
 def machine() -> dict:

@@ -4,8 +4,9 @@ package, compared with another's.
     python -m spacegrasp_jax.benchmarks.equivalence --save reference.npz
     python -m spacegrasp_jax.benchmarks.equivalence --against reference.npz [--tolerance 1e-9]
 
-The script imports only names that older versions of the package have too, so it also runs as
-a plain file (``python benchmarks/equivalence.py --save ...``) with an older version installed.
+The script imports only names that older versions of the package have too (by their paths
+before the layer folders where it must), so it also runs as a plain file
+(``python benchmarks/equivalence.py --save ...``) with an older version installed.
 What it saves (float64):
 
 * ``reproduction/<law>/<field>``: the paper's 17 s capture by each law in the ideal loop (the
@@ -34,12 +35,21 @@ import jax.numpy as jnp
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax.campaign import CampaignConfig, Variant, run_campaign
-from spacegrasp_jax.control import PAPER_CONTROLLERS
-from spacegrasp_jax.control.gains import paper_gains, tuned_gains
-from spacegrasp_jax.realism import flight
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import rollout
+
+try:
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.jobs.campaign import CampaignConfig, Variant, run_campaign
+    from spacegrasp_jax.loop.control import PAPER_CONTROLLERS
+    from spacegrasp_jax.loop.control.gains import paper_gains, tuned_gains
+    from spacegrasp_jax.loop.realism import flight
+    from spacegrasp_jax.loop.simulate import rollout
+except ImportError:  # a version from before the layer folders
+    from spacegrasp_jax.campaign import CampaignConfig, Variant, run_campaign
+    from spacegrasp_jax.control import PAPER_CONTROLLERS
+    from spacegrasp_jax.control.gains import paper_gains, tuned_gains
+    from spacegrasp_jax.realism import flight
+    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.simulate import rollout
 
 
 def _log_arrays(log, every: int) -> dict[str, np.ndarray]:

@@ -50,12 +50,12 @@ def _problem(gains_name: str):
     """``(spec, gains, objective, ranges)``: the shipped flight gains' tuning problem at the
     gains ``gains_name`` (paper, flight or a gains file)."""
     import spacegrasp_jax as sg
-    from spacegrasp_jax import paper
-    from spacegrasp_jax.control import load_gains, paper_gains, tuned_gains
-    from spacegrasp_jax.perturbations import PerturbationRanges
-    from spacegrasp_jax.realism import flight
-    from spacegrasp_jax.scenario import paper_scenario
-    from spacegrasp_jax.simulate import RunSpec
+    from spacegrasp_jax.envelope.perturbations import PerturbationRanges
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.jobs import paper
+    from spacegrasp_jax.loop.control import load_gains, paper_gains, tuned_gains
+    from spacegrasp_jax.loop.realism import flight
+    from spacegrasp_jax.loop.simulate import RunSpec
     from spacegrasp_jax.tuning.tune import TuneConfig, make_objective
 
     robot = sg.paper_robot()
@@ -180,7 +180,7 @@ def measure(gains_name: str, *, first: int, pairs: int, guided: int, sigma: floa
     zeroth (M, P), guided tuple or None, timings)``, non-finite samples dropped."""
     import jax
 
-    from spacegrasp_jax.montecarlo import sample_loops
+    from spacegrasp_jax.jobs.montecarlo import sample_loops
     from spacegrasp_jax.tuning import cmaes, estimators
     from spacegrasp_jax.tuning.gradients import envelope_gradients
     from spacegrasp_jax.tuning.parameters import initial_params, make_mask
@@ -250,8 +250,8 @@ def main(argv=None) -> int:
         parser.error(f"--gains: {args.gains}: no such file; expected paper, flight or a gains file")
     if not (math.isfinite(args.sigma) and 0.0 < args.sigma <= 1.0):
         parser.error(f"--sigma: must be in (0, 1], got {args.sigma}")
-    from spacegrasp_jax import batching
-    from spacegrasp_jax.compilation import configure
+    from spacegrasp_jax.jobs import batching
+    from spacegrasp_jax.jobs.compilation import configure
 
     batching.use_all_cpu_cores()  # before anything touches a device: the pools shard over the cores
     configure()

@@ -27,7 +27,7 @@ import sys
 import time
 from pathlib import Path
 
-from spacegrasp_jax.compilation import configure
+from spacegrasp_jax.jobs.compilation import configure
 
 MODES = ("forward", "reverse_checkpointed", "reverse_plain", "forward_mode")
 
@@ -36,10 +36,10 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
     import jax
 
     import spacegrasp_jax as sg
-    from spacegrasp_jax import compilation
     from spacegrasp_jax.benchmarks.dynamics import timed
-    from spacegrasp_jax.control import paper_gains
-    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.jobs import compilation
+    from spacegrasp_jax.loop.control import paper_gains
     from spacegrasp_jax.tuning.objective import Objective, Weights
     from spacegrasp_jax.tuning.parameters import initial_params, make_mask
     from spacegrasp_jax.tuning.tune import (

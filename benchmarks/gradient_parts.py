@@ -12,7 +12,7 @@ cotangent. The forward pass, a part alone, is what a forward rollout pays for it
 
 Each part runs on ``--states`` loop states of the paper's 17 s capture (smooth contact, as
 the tuning gradient's; one state every 8 steps, so the approach and the contact are in the
-sample), in one ``lax.scan`` over them compiled whole (``spacegrasp_jax.compilation``), on
+sample), in one ``lax.scan`` over them compiled whole (``spacegrasp_jax.jobs.compilation``), on
 one core. Every output (forward) or every input's cotangent (reverse) is summed into the
 scan's carry, so that nothing is left out.
 
@@ -42,7 +42,7 @@ import sys
 from pathlib import Path
 
 from spacegrasp_jax.benchmarks.dynamics import chosen_parts, machine, pin_to_one_core
-from spacegrasp_jax.compilation import configure
+from spacegrasp_jax.jobs.compilation import configure
 
 PARTS = ("plant_kinematics", "plant_rate", "stage", "controller", "period")
 
@@ -56,8 +56,9 @@ def _part_functions(robot, scenario):
     reverse mode differentiates, and those inputs; ``function(*inputs)`` is its forward pass."""
     import jax.numpy as jnp
 
-    from spacegrasp_jax import experiment, simulate
-    from spacegrasp_jax.control import as_controller
+    from spacegrasp_jax.jobs import experiment
+    from spacegrasp_jax.loop import simulate
+    from spacegrasp_jax.loop.control import as_controller
 
     spec = simulate.RunSpec(robot, scenario, "admittance", options=experiment.loop_options(checkpoint=True))
     control = as_controller("admittance")
@@ -119,7 +120,7 @@ def sampled_states(robot, scenario, gains, count: int):
     import jax
     import jax.numpy as jnp
 
-    from spacegrasp_jax import simulate
+    from spacegrasp_jax.loop import simulate
 
     body = simulate.loop_body(simulate.RunSpec(robot, scenario, "admittance"), gains)
     dtype = scenario.initial.q.dtype
@@ -144,8 +145,8 @@ def measure(parts: list[str], count: int, repeats: int) -> list[dict]:
 
     import spacegrasp_jax as sg
     from spacegrasp_jax.benchmarks.dynamics import timed_program
-    from spacegrasp_jax.control import paper_gains
-    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.loop.control import paper_gains
 
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, contact_law="smooth", duration=17.0)

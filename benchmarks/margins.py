@@ -4,8 +4,8 @@
 
 Runs what the command runs on its defaults (the paper's admittance gains, the paper's 17 s
 scenario, 8 envelope samples a probe, the campaign's criteria) over every CPU core, with the
-compilation cache off: every search of ``spacegrasp_jax.margins.find_margins()``, then the
-linear analysis of ``spacegrasp_jax.stability.linear_analysis()``. Reports each part's
+compilation cache off: every search of ``spacegrasp_jax.analysis.margins.find_margins()``, then the
+linear analysis of ``spacegrasp_jax.analysis.stability.linear_analysis()``. Reports each part's
 compile time and search time, the probes, rollouts and linearisations, and the process's
 peak memory. Writes ``margins.json``.
 """
@@ -21,13 +21,14 @@ from pathlib import Path
 import jax
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import batching, margins, stability
+from spacegrasp_jax.analysis import margins, stability
 from spacegrasp_jax.benchmarks.dynamics import machine
-from spacegrasp_jax.campaign import CampaignConfig
-from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.realism import load_realism
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.jobs import batching
+from spacegrasp_jax.jobs.campaign import CampaignConfig
+from spacegrasp_jax.loop.control import paper_gains
+from spacegrasp_jax.loop.realism import load_realism
+from spacegrasp_jax.loop.simulate import RunSpec
 
 
 def main(argv: list[str] | None = None) -> dict:

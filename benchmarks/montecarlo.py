@@ -32,26 +32,26 @@ from pathlib import Path
 
 import numpy as np
 
-from spacegrasp_jax.compilation import configure
+from spacegrasp_jax.jobs.compilation import configure
 
 
 def measure(kind: str, size: int, duration: float, repeats: int) -> dict:
     import jax
 
-    from spacegrasp_jax import batching, campaign
+    from spacegrasp_jax.jobs import batching, campaign
 
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     if kind in ("batch", "flight") and size % cores == 0:
         batching.use_all_cpu_cores()  # as `spacegrasp montecarlo` does; before any device use
     import spacegrasp_jax as sg
-    from spacegrasp_jax import compilation
     from spacegrasp_jax.benchmarks.dynamics import timed
-    from spacegrasp_jax.control import paper_gains
-    from spacegrasp_jax.montecarlo import FoldedMetrics
-    from spacegrasp_jax.perturbations import PerturbationRanges, sample
-    from spacegrasp_jax.realism import flight
-    from spacegrasp_jax.scenario import paper_scenario
-    from spacegrasp_jax.simulate import RunSpec, closed_loop
+    from spacegrasp_jax.envelope.perturbations import PerturbationRanges, sample
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.jobs import compilation
+    from spacegrasp_jax.jobs.montecarlo import FoldedMetrics
+    from spacegrasp_jax.loop.control import paper_gains
+    from spacegrasp_jax.loop.realism import flight
+    from spacegrasp_jax.loop.simulate import RunSpec, closed_loop
 
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, duration=duration)

@@ -1,6 +1,6 @@
 """The tools a user would otherwise pick, timed on the same robot and the same 1 ms RK4 steps.
 
-* MuJoCo (``mujoco`` on PyPI) with the MJCF that [`spacegrasp_jax.mjcf`][spacegrasp_jax.mjcf] generates from the
+* MuJoCo (``mujoco`` on PyPI) with the MJCF that [`spacegrasp_jax.core.mjcf`][spacegrasp_jax.core.mjcf] generates from the
   package's ``Robot``: free-joint base, no gravity, no contacts, RK4 at 1 ms, zero joint
   torques (open loop: MuJoCo has no controller here). ``mj_step`` in a Python loop on one
   thread, and ``mujoco.rollout`` over a batch of initial states with a thread per core.
@@ -24,7 +24,7 @@ def _cores() -> int:
 def _mujoco_model(robot, dt: float):
     import mujoco
 
-    from spacegrasp_jax import mjcf
+    from spacegrasp_jax.core import mjcf
 
     model = mujoco.MjModel.from_xml_string(mjcf.robot_to_mjcf(robot, dt))
     return model, mujoco.MjData(model)
@@ -33,7 +33,7 @@ def _mujoco_model(robot, dt: float):
 def _initial_state(model, data, scenario):
     import mujoco
 
-    from spacegrasp_jax import mjcf
+    from spacegrasp_jax.core import mjcf
 
     initial = scenario.initial
     data.qpos[:] = mjcf.qpos_from_state(initial.p_base, initial.R_base, initial.q)

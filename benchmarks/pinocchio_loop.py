@@ -1,7 +1,7 @@
 """The peer a user would write without this package: the paper's closed loop as a Python
 loop over NumPy, with Pinocchio for the rigid-body dynamics.
 
-Same robot (built here in Pinocchio from a [`Robot`][spacegrasp_jax.model.Robot]), same
+Same robot (built here in Pinocchio from a [`Robot`][spacegrasp_jax.core.model.Robot]), same
 scenario, same controllers (admittance eqs 9-17 and Cartesian eqs 21-22, joint PID with the
 t^2 ramp), same exact contact law and the same RK4 with the torques held over each 1 ms step.
 The state is kept in our convention (inertial base twist, satellite quaternion) and converted
@@ -22,10 +22,10 @@ import time
 import numpy as np
 import pinocchio as pin
 
-from spacegrasp_jax.compilation import configure
-from spacegrasp_jax.control.registry import PAPER_CONTROLLERS
-from spacegrasp_jax.model import Robot, body_inertials, n_joints
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.core.model import Robot, body_inertials, n_joints
+from spacegrasp_jax.jobs.compilation import configure
+from spacegrasp_jax.loop.control.registry import PAPER_CONTROLLERS
+from spacegrasp_jax.loop.simulate import RunSpec
 
 
 def build_model(robot: Robot) -> tuple[pin.Model, int]:
@@ -240,9 +240,9 @@ def main(argv=None) -> int:
     parser.add_argument("--controller", choices=PAPER_CONTROLLERS, default="admittance")
     args = parser.parse_args(argv)
     import spacegrasp_jax as sg
-    from spacegrasp_jax import experiment
-    from spacegrasp_jax.control import paper_gains
-    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.jobs import experiment
+    from spacegrasp_jax.loop.control import paper_gains
 
     robot = sg.paper_robot()
     scenario = paper_scenario(robot, duration=args.duration)

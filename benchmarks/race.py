@@ -139,7 +139,7 @@ def snapshot_work(path: Path) -> dict:
 
 def snapshot_gains(method: str, path: Path, run_folder: Path) -> dict:
     """The gains (a gains.json document) a checkpoint copy stands for."""
-    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.loop.control import paper_gains
     from spacegrasp_jax.tuning import cmaes
     from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
     from spacegrasp_jax.tuning.run import tuned_base
@@ -192,7 +192,7 @@ def main(argv=None) -> int:
     if args.heldout < 1 or args.seed < 0 or args.heldout_seed < 0:
         parser.error("--heldout must be positive, the seeds non-negative")
 
-    from spacegrasp_jax.compilation import configure
+    from spacegrasp_jax.jobs.compilation import configure
 
     configure()  # float64, for the gains this process reads back from the checkpoints
     folder = Path(args.out)
@@ -225,7 +225,7 @@ def main(argv=None) -> int:
                 path.write_text(json.dumps(document, indent=1) + "\n")
             gain_files.append(path)
     import spacegrasp_jax
-    from spacegrasp_jax.control.gains import TUNED_GAINS_FILES
+    from spacegrasp_jax.loop.control.gains import TUNED_GAINS_FILES
 
     shipped = folder / "shipped_flight.json"
     shutil.copyfile(Path(spacegrasp_jax.__file__).resolve().parent / "data" / TUNED_GAINS_FILES["flight"], shipped)
@@ -246,8 +246,8 @@ def main(argv=None) -> int:
 def summarise(samples: Path, methods: list[str]) -> dict:
     """Held-out success with its interval per gain set, and McNemar against CMA-ES at the
     same mark and against the shipped gains."""
-    from spacegrasp_jax import statistics
-    from spacegrasp_jax.campaign import load_samples
+    from spacegrasp_jax.envelope import statistics
+    from spacegrasp_jax.jobs.campaign import load_samples
 
     _, by_variant = load_samples(samples)
     success = {key.split("/", 1)[1]: np.asarray(value["success"], dtype=bool) for key, value in by_variant.items()}

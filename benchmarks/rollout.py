@@ -21,14 +21,14 @@ from pathlib import Path
 import jax
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import compilation
 from spacegrasp_jax.benchmarks.dynamics import machine, timed
-from spacegrasp_jax.compilation import configure
-from spacegrasp_jax.control import PAPER_CONTROLLERS, paper_gains
-from spacegrasp_jax.control.schedule import tuned_schedule
-from spacegrasp_jax.realism import flight
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import rollout
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.jobs import compilation
+from spacegrasp_jax.jobs.compilation import configure
+from spacegrasp_jax.loop.control import PAPER_CONTROLLERS, paper_gains
+from spacegrasp_jax.loop.control.schedule import tuned_schedule
+from spacegrasp_jax.loop.realism import flight
+from spacegrasp_jax.loop.simulate import rollout
 
 #: The free-floating target of ``configs/free_target.toml``: 400 kg, tumbling at 0.5 deg/s.
 FREE_TARGET = dict(

@@ -21,10 +21,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from spacegrasp_jax import cli, runfiles
-from spacegrasp_jax.compilation import configure
-from spacegrasp_jax.control.schedule import NAMED_GAIN_SETS, load_schedule, named_gain_set
-from spacegrasp_jax.margins import frozen_gains, schedule_knots
+from spacegrasp_jax import cli
+from spacegrasp_jax.analysis.margins import frozen_gains, schedule_knots
+from spacegrasp_jax.jobs import runfiles
+from spacegrasp_jax.jobs.compilation import configure
+from spacegrasp_jax.loop.control.schedule import NAMED_GAIN_SETS, load_schedule, named_gain_set
 
 
 def frozen_files(schedule, folder: Path, law: str = "admittance") -> list[Path]:

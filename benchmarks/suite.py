@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from spacegrasp_jax.benchmarks import compile as compile_benchmark
-from spacegrasp_jax.compilation import configure
-from spacegrasp_jax.control import PAPER_CONTROLLERS
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.jobs.compilation import configure
+from spacegrasp_jax.loop.control import PAPER_CONTROLLERS
+from spacegrasp_jax.loop.simulate import RunSpec
 
 #: Keys of benchmark.json (seconds unless the name says otherwise).
 KEYS = (
@@ -104,10 +104,10 @@ def flops_per_step(controller: str = "admittance") -> float:
     import jax
 
     import spacegrasp_jax as sg
-    from spacegrasp_jax import compilation
-    from spacegrasp_jax.control import paper_gains
-    from spacegrasp_jax.scenario import paper_scenario
-    from spacegrasp_jax.simulate import loop_body, plant_derivative
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.jobs import compilation
+    from spacegrasp_jax.loop.control import paper_gains
+    from spacegrasp_jax.loop.simulate import loop_body, plant_derivative
 
     def flops(function, *arguments) -> float:
         analysis = compilation.jit(function).lower(*arguments).compile().cost_analysis()
@@ -132,11 +132,11 @@ def run(out: Path, quick: bool, repeats: int) -> dict:
 def _measure(parts: Path, quick: bool, repeats: int, duration: float, batches: list[int]) -> dict:
     """Every measurement; the parts' own JSON files go to ``parts`` (removed afterwards)."""
     import spacegrasp_jax as sg
-    from spacegrasp_jax import experiment
     from spacegrasp_jax.benchmarks import peers
     from spacegrasp_jax.benchmarks.dynamics import machine
-    from spacegrasp_jax.control import paper_gains
-    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.jobs import experiment
+    from spacegrasp_jax.loop.control import paper_gains
 
     report = {"machine": machine(), "quick": quick, "duration_s": duration}
 

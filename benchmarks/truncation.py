@@ -34,7 +34,7 @@ import numpy as np
 import spacegrasp_jax as sg
 from spacegrasp_jax.benchmarks.dynamics import machine
 from spacegrasp_jax.benchmarks.estimators import _problem
-from spacegrasp_jax.control.schedule import schedule_of
+from spacegrasp_jax.loop.control.schedule import schedule_of
 from spacegrasp_jax.tuning import estimators
 from spacegrasp_jax.tuning.gradients import envelope_gradients
 from spacegrasp_jax.tuning.parameters import make_mask

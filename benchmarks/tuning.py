@@ -123,7 +123,7 @@ def shipped_difference(gains: dict) -> float:
     """The largest relative difference between ``gains`` (a gains.json document) and the
     shipped ``tuned_gains("flight")``: 0 when the run reproduces them."""
     import spacegrasp_jax
-    from spacegrasp_jax.control.gains import TUNED_GAINS_FILES
+    from spacegrasp_jax.loop.control.gains import TUNED_GAINS_FILES
 
     data = Path(spacegrasp_jax.__file__).resolve().parent / "data"
     shipped = json.loads((data / TUNED_GAINS_FILES["flight"]).read_text())

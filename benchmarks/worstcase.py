@@ -5,7 +5,7 @@
         [--methods cem,ascent]
 
 For every approach duration (s; 17 is the paper's scenario, a shorter one ends its approach
-then), realism, budget, seed and method, runs ``spacegrasp_jax.worstcase.search()`` on the
+then), realism, budget, seed and method, runs ``spacegrasp_jax.analysis.worstcase.search()`` on the
 paper's admittance gains over the default envelope (measure ``final_error``) and the
 campaign of the same number of rollouts and seed (``compare_with_campaign()``; the
 screening's samples are its first). Appends one row a run to ``rows.jsonl`` as it goes (an
@@ -25,12 +25,13 @@ from pathlib import Path
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import batching, worstcase
+from spacegrasp_jax.analysis import worstcase
 from spacegrasp_jax.benchmarks.dynamics import machine
-from spacegrasp_jax.campaign import CampaignConfig
-from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.realism import load_realism
-from spacegrasp_jax.scenario import paper_scenario, scenario_from_mapping
+from spacegrasp_jax.envelope.scenario import paper_scenario, scenario_from_mapping
+from spacegrasp_jax.jobs import batching
+from spacegrasp_jax.jobs.campaign import CampaignConfig
+from spacegrasp_jax.loop.control import paper_gains
+from spacegrasp_jax.loop.realism import load_realism
 
 #: A search is counted as clearly worse when its worst exceeds the campaign's by this share.
 CLEAR_MARGIN = 0.10

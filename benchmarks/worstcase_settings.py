@@ -9,7 +9,7 @@ how far the gradient's direction climbs, against the campaign of the same rollou
 For each seed, runs the campaign of ``--budget`` samples (the paper's admittance gains on the
 default envelope, measure ``final_error``) and prints one JSON line with its worst and:
 
-* each of ``SETTINGS``' search of the same budget (``spacegrasp_jax.worstcase.search()``,
+* each of ``SETTINGS``' search of the same budget (``spacegrasp_jax.analysis.worstcase.search()``,
   method ``cem``), its worst over the campaign's. A setting is the screening's samples, the
   generation's, the elites, the spread and its shrink; the defaults are ``base``.
 * with ``--lines``, for each of the three worst of the campaign's first 16 samples (the
@@ -30,16 +30,17 @@ import jax
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import metrics, worstcase
+from spacegrasp_jax.analysis import worstcase
 from spacegrasp_jax.benchmarks.worstcase import _numbers, scenario_of
-from spacegrasp_jax.campaign import CampaignConfig
-from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.control.registry import law_named
-from spacegrasp_jax.model import paper_robot
-from spacegrasp_jax.montecarlo import perturbed_run
-from spacegrasp_jax.perturbations import from_units, project_units
-from spacegrasp_jax.realism import load_realism
-from spacegrasp_jax.simulate import closed_loop
+from spacegrasp_jax.core.model import paper_robot
+from spacegrasp_jax.envelope import metrics
+from spacegrasp_jax.envelope.perturbations import from_units, project_units
+from spacegrasp_jax.jobs.campaign import CampaignConfig
+from spacegrasp_jax.jobs.montecarlo import perturbed_run
+from spacegrasp_jax.loop.control import paper_gains
+from spacegrasp_jax.loop.control.registry import law_named
+from spacegrasp_jax.loop.realism import load_realism
+from spacegrasp_jax.loop.simulate import closed_loop
 
 
 @dataclasses.dataclass(frozen=True)

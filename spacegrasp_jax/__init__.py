@@ -2,22 +2,17 @@
 a satellite (Basmadji et al., active 6-DoF force/torque control on the Dynamic Jacobian).
 
 Importing the package changes no process-wide setting. The package computes in float64 and
-runs fastest on a CPU with loops compiled whole: call [`configure()`][spacegrasp_jax.compilation.configure] once, before JAX runs
-anything (``spacegrasp_jax.compilation`` says what each setting does)::
+runs fastest on a CPU with loops compiled whole: call [`configure()`][spacegrasp_jax.jobs.compilation.configure] once, before JAX runs
+anything (``spacegrasp_jax.jobs.compilation`` says what each setting does)::
 
     import spacegrasp_jax as sg
     sg.configure()
 """
 
-from spacegrasp_jax.compilation import (
-    CacheFolderError,
-    Float64Required,
-    compile_loops_whole,
-    configure,
-    enable_float64,
-    use_compile_cache,
-)
-from spacegrasp_jax.dynamics import (
+import importlib
+import warnings
+
+from spacegrasp_jax.core.dynamics import (
     bias_forces,
     dynamic_jacobian,
     dynamic_jacobian_ee,
@@ -31,17 +26,55 @@ from spacegrasp_jax.dynamics import (
     system_com,
     system_momentum,
 )
-from spacegrasp_jax.kinematics import ee_jacobians, ee_pose, forward_kinematics
-from spacegrasp_jax.model import (
+from spacegrasp_jax.core.kinematics import ee_jacobians, ee_pose, forward_kinematics
+from spacegrasp_jax.core.model import (
     PAPER_Q_INIT,
     Robot,
     RobotConfigError,
     make_robot,
     paper_robot,
 )
-from spacegrasp_jax.robot_files import load_robot
+from spacegrasp_jax.core.precision import Float64Required, enable_float64
+from spacegrasp_jax.core.robot_files import load_robot
+from spacegrasp_jax.jobs.compilation import (
+    CacheFolderError,
+    compile_loops_whole,
+    configure,
+    use_compile_cache,
+)
 
 __version__ = "0.1.0"
+
+#: The modules that moved into the layer folders, and their folder: ``spacegrasp_jax.simulate``
+#: is now ``spacegrasp_jax.loop.simulate``.
+MOVED_MODULES = {
+    **dict.fromkeys(
+        (
+            "spatial linalg tangents precision inputs model robot_files urdf mjcf kinematics dynamics contact "
+            "target integrator trajectory joint_limits"
+        ).split(),
+        "core",
+    ),
+    **dict.fromkeys("scenario perturbations metrics statistics criteria plausibility".split(), "envelope"),
+    **dict.fromkeys("simulate stages realism control".split(), "loop"),
+    **dict.fromkeys(
+        ("compilation executable_store runfiles batching paper anatomy experiment montecarlo records campaign").split(),
+        "jobs",
+    ),
+    **dict.fromkeys("margins stability worstcase sweep plots animation export".split(), "analysis"),
+}
+
+
+def __getattr__(name: str):
+    """A module by the name it had before the layer folders (``spacegrasp_jax.campaign``, or
+    ``from spacegrasp_jax import campaign``): the module, with a ``DeprecationWarning`` naming
+    where it lives now. ``import spacegrasp_jax.campaign`` itself no longer works."""
+    if name not in MOVED_MODULES:
+        raise AttributeError(f"module 'spacegrasp_jax' has no attribute {name!r}")
+    where = f"spacegrasp_jax.{MOVED_MODULES[name]}.{name}"
+    warnings.warn(f"spacegrasp_jax.{name} is now {where}", DeprecationWarning, stacklevel=2)
+    return importlib.import_module(where)
+
 
 __all__ = [
     "CacheFolderError",

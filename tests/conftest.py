@@ -10,7 +10,7 @@ import pytest
 from random_states import RandomState, make_random_states
 
 import spacegrasp_jax as sg
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.loop.simulate import RunSpec
 
 #: The test run's own persistent compilation cache: a program compiled by one process of the
 #: run (a worker, a command run as a subprocess, a notebook's kernel, which all inherit this
@@ -67,7 +67,7 @@ def random_states() -> list[RandomState]:
 def pinocchio_model(request, robot):
     """``(model, data, ee_frame_id)`` of the paper robot in Pinocchio, two ways: built from the
     paper's tables independently of this package (``tests/pinocchio_reference.py``), and read
-    by Pinocchio's URDF parser from the URDF ``spacegrasp_jax.urdf`` writes, with a free-flyer
+    by Pinocchio's URDF parser from the URDF ``spacegrasp_jax.core.urdf`` writes, with a free-flyer
     root and no gravity (a URDF gives none; Pinocchio's default is the Earth's)."""
     import pinocchio as pin
     import pinocchio_reference
@@ -75,7 +75,7 @@ def pinocchio_model(request, robot):
     if request.param == "tables":
         model, ee_frame = pinocchio_reference.build_model()
     else:
-        from spacegrasp_jax.urdf import robot_to_urdf
+        from spacegrasp_jax.core.urdf import robot_to_urdf
 
         model = pin.buildModelFromXML(robot_to_urdf(robot), pin.JointModelFreeFlyer())
         model.gravity = pin.Motion.Zero()
@@ -88,7 +88,7 @@ def pinocchio_model(request, robot):
 
 @pytest.fixture(scope="session")
 def gains():
-    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.loop.control import paper_gains
 
     return paper_gains()
 
@@ -96,8 +96,8 @@ def gains():
 @pytest.fixture(scope="session")
 def full_runs(robot, gains):
     """The paper's 17 s scenario with both controllers (exact contact law)."""
-    from spacegrasp_jax import experiment
-    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.jobs import experiment
 
     scenario = paper_scenario(robot)
     return {
@@ -109,7 +109,7 @@ def full_runs(robot, gains):
 @pytest.fixture(scope="session")
 def short_scenario(robot):
     """2 s with the whole approach compressed into it: contact starts at about 0.9 s."""
-    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.envelope.scenario import paper_scenario
 
     return paper_scenario(robot, duration=2.0, move_duration=2.0, contact_law="smooth")
 

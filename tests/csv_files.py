@@ -6,7 +6,7 @@ import csv
 
 import numpy as np
 
-from spacegrasp_jax import runfiles
+from spacegrasp_jax.jobs import runfiles
 
 
 def assert_csv_holds(path, arrays: dict, rows: int) -> None:

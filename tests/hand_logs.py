@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from spacegrasp_jax.simulate import Log
+from spacegrasp_jax.loop.simulate import Log
 
 #: The widths of a log's required fields (``t`` aside).
 WIDTHS = dict(

@@ -13,12 +13,13 @@ from hand_logs import log_of
 from scipy.spatial.transform import Rotation
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import anatomy, metrics
-from spacegrasp_jax.contact import contact_force_exact
-from spacegrasp_jax.criteria import CaptureCriteria
-from spacegrasp_jax.realism import make_realism
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import Log
+from spacegrasp_jax.core.contact import contact_force_exact
+from spacegrasp_jax.envelope import metrics
+from spacegrasp_jax.envelope.criteria import CaptureCriteria
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.jobs import anatomy
+from spacegrasp_jax.loop.realism import make_realism
+from spacegrasp_jax.loop.simulate import Log
 
 CRITERIA = CaptureCriteria(
     position_tolerance_m=0.005, orientation_tolerance_rad=math.radians(1.0), torque_threshold_Nm=100.0
@@ -188,7 +189,7 @@ def test_a_position_failure_is_said_in_one_line_with_its_parts(scenario):
 def test_one_runs_capture_verdict_is_its_margins_over_the_campaigns_tolerances():
     # A run's summary.json verdict, from the library: each margin is the value over its
     # tolerance (defaults: 5 mm, 1 deg, 100 N m), the first missed criterion names the class.
-    from spacegrasp_jax import campaign
+    from spacegrasp_jax.jobs import campaign
 
     summary = {
         "final_position_error_m": 0.003,

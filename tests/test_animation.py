@@ -9,8 +9,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from spacegrasp_jax import animation, cli, experiment
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax import cli
+from spacegrasp_jax.analysis import animation
+from spacegrasp_jax.jobs import experiment
+from spacegrasp_jax.loop.simulate import RunSpec
 
 pytestmark = pytest.mark.slow
 
@@ -106,7 +108,7 @@ def test_animate_films_a_run_folder_and_refuses_what_it_cannot_do(robot, tmp_pat
 def test_a_schedules_film_says_the_regime_of_each_frame(robot, gains, short_scenario, run, scene):
     """A time schedule's knots at 0, 0.5 and 1.5 s: each frame's words name the interval of
     the knots that holds its time, and only a schedule's frames carry them (the purple line)."""
-    from spacegrasp_jax.control.schedule import regime_labels, schedule_of, variable_series
+    from spacegrasp_jax.loop.control.schedule import regime_labels, schedule_of, variable_series
 
     schedule = schedule_of(gains, "time", [0.0, 0.5, 1.5], ["Kd"])
     labels = regime_labels(schedule, variable_series("time", run.log))
@@ -132,8 +134,8 @@ def test_a_schedules_film_says_the_regime_of_each_frame(robot, gains, short_scen
 def test_the_film_finds_the_schedule_a_run_folder_ran_with(tmp_path):
     """A kept schedule file, a shipped schedule by name, constant gains: the film's schedule."""
     from spacegrasp_jax.cli.common import _run_schedule
-    from spacegrasp_jax.control import paper_gains
-    from spacegrasp_jax.control.schedule import GainSchedule, schedule_of
+    from spacegrasp_jax.loop.control import paper_gains
+    from spacegrasp_jax.loop.control.schedule import GainSchedule, schedule_of
 
     schedule = schedule_of(paper_gains(), "time", [0.0, 5.0], ["Kd"])
     (tmp_path / "gains.json").write_text(json.dumps(schedule.to_dict("admittance")))

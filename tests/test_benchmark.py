@@ -98,8 +98,8 @@ def test_kinematics_by_component_equals_the_package_kinematics():
 
     import spacegrasp_jax as sg
     from spacegrasp_jax.benchmarks.batch_efficiency import forward_kinematics_by_component
-    from spacegrasp_jax.kinematics import forward_kinematics
-    from spacegrasp_jax.spatial import rotation_exp
+    from spacegrasp_jax.core.kinematics import forward_kinematics
+    from spacegrasp_jax.core.spatial import rotation_exp
 
     robot, rng = sg.paper_robot(), np.random.default_rng(3)
     q, p_base = rng.uniform(-np.pi, np.pi, (5, 7)), rng.normal(size=(5, 3))

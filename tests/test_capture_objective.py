@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from hand_logs import log_of
 
-from spacegrasp_jax import anatomy
-from spacegrasp_jax.criteria import CaptureCriteria
-from spacegrasp_jax.simulate import Log
+from spacegrasp_jax.envelope.criteria import CaptureCriteria
+from spacegrasp_jax.jobs import anatomy
+from spacegrasp_jax.loop.simulate import Log
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts
 
 LIMITS = (10.0, 10.0, 10.0, 5.0, 5.0, 2.0, 2.0)

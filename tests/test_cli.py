@@ -79,8 +79,9 @@ from pathlib import Path  # noqa: E402
 
 from csv_files import assert_csv_holds  # noqa: E402
 
-from spacegrasp_jax import cli, executable_store  # noqa: E402
-from spacegrasp_jax.control import tuned_gains  # noqa: E402
+from spacegrasp_jax import cli  # noqa: E402
+from spacegrasp_jax.jobs import executable_store  # noqa: E402
+from spacegrasp_jax.loop.control import tuned_gains  # noqa: E402
 
 SUMMARY_KEYS = {
     "max_abs_torque_Nm",

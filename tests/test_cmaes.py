@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.runfiles import write_atomically
+from spacegrasp_jax.jobs.runfiles import write_atomically
+from spacegrasp_jax.loop.control import paper_gains
 from spacegrasp_jax.tuning import cmaes
 from spacegrasp_jax.tuning.parameters import initial_params, make_mask
 

@@ -14,9 +14,9 @@ import jax
 import numpy as np
 import pytest
 
-from spacegrasp_jax import compilation
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import rollout
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.jobs import compilation
+from spacegrasp_jax.loop.simulate import rollout
 
 
 def test_the_installed_xla_accepts_the_cpu_options():
@@ -50,14 +50,14 @@ def test_a_rollout_compiled_with_the_options_matches_the_default_compile(robot, 
 @pytest.mark.slow
 def test_loops_compiled_whole_give_the_results_of_loops_run_kernel_by_kernel(robot, gains, tmp_path):
     # The same rollout in a process where XLA runs loops kernel by kernel (the user's opt-out,
-    # spacegrasp_jax.compilation): same log to rounding.
+    # spacegrasp_jax.jobs.compilation): same log to rounding.
     script = (
         "import sys, numpy as np, spacegrasp_jax as sg\n"
         "from spacegrasp_jax import compilation\n"
         "sg.configure()  # XLA_FLAGS already sets backend options: the user's choice stands\n"
-        "from spacegrasp_jax.control import paper_gains\n"
-        "from spacegrasp_jax.scenario import paper_scenario\n"
-        "from spacegrasp_jax.simulate import rollout\n"
+        "from spacegrasp_jax.loop.control import paper_gains\n"
+        "from spacegrasp_jax.envelope.scenario import paper_scenario\n"
+        "from spacegrasp_jax.loop.simulate import rollout\n"
         "assert not compilation.loops_compile_whole()\n"
         "robot = sg.paper_robot()\n"
         "function = compilation.jit(rollout, static_argnames=('controller',))\n"
@@ -324,9 +324,9 @@ import spacegrasp_jax as sg
 sg.configure(compile_cache=os.environ.get("JAX_COMPILATION_CACHE_DIR") or False)
 from jax.flatten_util import ravel_pytree
 from spacegrasp_jax import experiment
-from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import RunSpec, loop_body, rollout
+from spacegrasp_jax.loop.control import paper_gains
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.loop.simulate import RunSpec, loop_body, rollout
 robot, gains = sg.paper_robot(), paper_gains()
 out = {"xla_flags": np.asarray(os.environ.get("XLA_FLAGS", ""))}
 for law in ("admittance", "cartesian"):

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax.contact import (
+from spacegrasp_jax.core.contact import (
     contact_force_exact,
     contact_force_smooth,
     rotate_wrench,

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax.control import (
+from spacegrasp_jax.loop.control import (
     Admittance,
     AdmittanceState,
     ControlInputs,
@@ -26,9 +26,9 @@ from spacegrasp_jax.control import (
     paper_gains,
     required_groups,
 )
-from spacegrasp_jax.control.gains import tuned_gains_file
-from spacegrasp_jax.control.pid import pid_init, pid_torque
-from spacegrasp_jax.control.pseudoinverse import pseudoinverse_apply
+from spacegrasp_jax.loop.control.gains import tuned_gains_file
+from spacegrasp_jax.loop.control.pid import pid_init, pid_torque
+from spacegrasp_jax.loop.control.pseudoinverse import pseudoinverse_apply
 
 
 def test_paper_gains_match_the_paper():

@@ -64,7 +64,7 @@ def test_the_raw_role_check_sees_a_role_in_each_form_it_renders_to():
     assert raw_roles("<p>A CSV file (:func:<code>csv_columns</code>), one row</p>") == [":func:<code>"]
     assert raw_roles("<p>see :py:class:`Frames`</p>") == [":py:class:`"]
     assert raw_roles("<p>:data:&lt;code&gt;STYLES&lt;/code&gt;</p>") == [":data:<code>"]
-    link = '<a class="autorefs" href="#spacegrasp_jax.runfiles.csv_columns"><code>csv_columns</code></a>'
+    link = '<a class="autorefs" href="#spacegrasp_jax.jobs.runfiles.csv_columns"><code>csv_columns</code></a>'
     assert raw_roles(f"<p>A CSV file ({link}), ratio 1:2, time 12:30</p>") == []
 
 
@@ -85,7 +85,7 @@ def test_the_site_builds_strictly(tmp_path):
         assert not raw_roles(text), f"raw roles {raw_roles(text)} in {page}"
         assert "<p>Attributes:" not in text, f"an Attributes: section rendered as a paragraph in {page}"
     reference = (tmp_path / "site" / "reference" / "simulation" / "index.html").read_text()
-    assert 'href="../dynamics/#spacegrasp_jax.kinematics.Frames"' in reference  # a role became a link
+    assert 'href="../dynamics/#spacegrasp_jax.core.kinematics.Frames"' in reference  # a role became a link
 
 
 def test_the_pages_with_examples_are_the_ones_expected():
@@ -110,13 +110,13 @@ def test_the_pages_with_examples_are_the_ones_expected():
 def test_the_docstrings_examples_are_the_ones_expected():
     assert set(docstring_examples()) == {
         "spacegrasp_jax/__init__.py:module",
-        "spacegrasp_jax/compilation.py:configure",
-        "spacegrasp_jax/sweep.py:module",
+        "spacegrasp_jax/jobs/compilation.py:configure",
+        "spacegrasp_jax/analysis/sweep.py:module",
     }
 
 
 #: Examples that compile a whole program (the sweep's batch of rollouts): the slow tier.
-SLOW_EXAMPLES = {"spacegrasp_jax/sweep.py:module"}
+SLOW_EXAMPLES = {"spacegrasp_jax/analysis/sweep.py:module"}
 
 
 @pytest.mark.parametrize(

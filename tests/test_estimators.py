@@ -191,7 +191,7 @@ def test_the_race_report_reads_each_mark_off_the_committed_campaigns_and_the_run
     from pathlib import Path
 
     from spacegrasp_jax.benchmarks import tuning
-    from spacegrasp_jax.campaign import load_samples
+    from spacegrasp_jax.jobs.campaign import load_samples
 
     data = Path(__file__).parent.parent / "notebooks" / "data"
     assert tuning.main(["--races", str(data), "--out", str(tmp_path)]) == 0

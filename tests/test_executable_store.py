@@ -13,9 +13,9 @@ import sys
 import numpy as np
 import pytest
 
-from spacegrasp_jax import compilation, executable_store
-from spacegrasp_jax.simulate import FullLog, closed_loop
-from spacegrasp_jax.stages import Stage
+from spacegrasp_jax.jobs import compilation, executable_store
+from spacegrasp_jax.loop.simulate import FullLog, closed_loop
+from spacegrasp_jax.loop.stages import Stage
 
 
 @pytest.fixture
@@ -79,9 +79,9 @@ import sys
 import numpy as np
 import spacegrasp_jax as sg
 from spacegrasp_jax import compilation, experiment
-from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.loop.control import paper_gains
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.loop.simulate import RunSpec
 
 sg.configure(compile_cache=sys.argv[1])
 if sys.argv[2] == "load":  # a later process: the program must come from the store, untraced

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import yaml
 
-from spacegrasp_jax.control import make_gains, paper_gains, tuned_gains
-from spacegrasp_jax.control.gains import GAINS_USED
-from spacegrasp_jax.export import FORMATS, GROUPS, export_text, loop_settings
-from spacegrasp_jax.realism import flight
+from spacegrasp_jax.analysis.export import FORMATS, GROUPS, export_text, loop_settings
+from spacegrasp_jax.loop.control import make_gains, paper_gains, tuned_gains
+from spacegrasp_jax.loop.control.gains import GAINS_USED
+from spacegrasp_jax.loop.realism import flight
 
 #: Gains whose numbers need every digit (tuned), and the paper's for the Cartesian law.
 CASES = {"admittance": tuned_gains("flight"), "cartesian": paper_gains()}

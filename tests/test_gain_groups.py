@@ -1,4 +1,4 @@
-"""Each law owns its gains (``spacegrasp_jax.control.groups``): the gain set is every law's
+"""Each law owns its gains (``spacegrasp_jax.loop.control.groups``): the gain set is every law's
 and the joint servo's declared groups, each law reads its own and nothing else, and a law
 with a gain group of its own joins the set with no other change (checked on a joint-space
 spring-damper law written here, against its analytic torques in a closed loop)."""
@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 from random_states import random_rotation
 
-from spacegrasp_jax import simulate
-from spacegrasp_jax.control import (
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.loop import simulate
+from spacegrasp_jax.loop.control import (
     GAIN_GROUPS,
     GAINS_USED,
     LAWS,
@@ -29,10 +30,9 @@ from spacegrasp_jax.control import (
     group,
     paper_gains,
 )
-from spacegrasp_jax.control.groups import PER_JOINT, fields_of_groups, groups_of
-from spacegrasp_jax.control.registry import collect_gain_groups
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.loop.control.groups import PER_JOINT, fields_of_groups, groups_of
+from spacegrasp_jax.loop.control.registry import collect_gain_groups
+from spacegrasp_jax.loop.simulate import RunSpec
 
 N_JOINTS = 7
 

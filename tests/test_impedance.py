@@ -1,4 +1,4 @@
-"""The impedance law (``spacegrasp_jax.control.impedance``), the law that commands joint
+"""The impedance law (``spacegrasp_jax.loop.control.impedance``), the law that commands joint
 torques with no joint servo after it: its torques against Pinocchio's generalised Jacobian
 transpose, its gradient against central differences, its flight-like loop against its ideal
 one, and a whole capture with its shipped gains."""
@@ -15,8 +15,11 @@ import pinocchio_reference as ref
 import pytest
 from random_states import random_rotation
 
-from spacegrasp_jax import experiment, simulate
-from spacegrasp_jax.control import (
+from spacegrasp_jax.core.dynamics import dynamic_jacobian
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.jobs import experiment
+from spacegrasp_jax.loop import simulate
+from spacegrasp_jax.loop.control import (
     PID,
     ControlInputs,
     Controller,
@@ -28,11 +31,9 @@ from spacegrasp_jax.control import (
     load_gains,
     paper_gains,
 )
-from spacegrasp_jax.control.admittance import Admittance
-from spacegrasp_jax.dynamics import dynamic_jacobian
-from spacegrasp_jax.realism import Stage, ideal, make_realism
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.loop.control.admittance import Admittance
+from spacegrasp_jax.loop.realism import Stage, ideal, make_realism
+from spacegrasp_jax.loop.simulate import RunSpec
 
 GAINS_FILE = Path(__file__).resolve().parents[1] / "configs" / "impedance_gains.json"
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import spatial
-from spacegrasp_jax.integrator import (
+from spacegrasp_jax.core import spatial
+from spacegrasp_jax.core.integrator import (
     free_floating_derivative,
     plant_state,
     rk4_step,
@@ -127,7 +127,7 @@ def test_quaternion_stays_unit_and_matches_rotation(robot, random_states):
 
 
 def test_the_projection_renormalises_a_free_targets_quaternion_only():
-    from spacegrasp_jax.target import TargetState
+    from spacegrasp_jax.core.target import TargetState
 
     off = jnp.array([1.0, 0.1, -0.2, 0.05]) * 1.001  # a quaternion a step of RK4 left off the unit sphere
     state = plant_state(jnp.zeros(3), jnp.eye(3), jnp.zeros(7), jnp.zeros(6), jnp.zeros(7))

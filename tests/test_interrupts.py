@@ -75,7 +75,7 @@ def test_in_a_library_call_the_second_signal_raises_keyboard_interrupt():
     and the previous handlers come back."""
     import os
 
-    from spacegrasp_jax.runfiles import StopRequest
+    from spacegrasp_jax.jobs.runfiles import StopRequest
 
     before = signal.getsignal(signal.SIGINT)
     with StopRequest("step") as stop:

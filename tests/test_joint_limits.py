@@ -14,8 +14,11 @@ import pytest
 from hand_logs import log_of
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import anatomy, campaign, joint_limits, metrics, worstcase
-from spacegrasp_jax.criteria import CaptureCriteria
+from spacegrasp_jax.analysis import worstcase
+from spacegrasp_jax.core import joint_limits
+from spacegrasp_jax.envelope import metrics
+from spacegrasp_jax.envelope.criteria import CaptureCriteria
+from spacegrasp_jax.jobs import anatomy, campaign
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts
 
 LIMITS = (10.0, 10.0, 10.0, 5.0, 5.0, 2.0, 2.0)

@@ -8,7 +8,7 @@ import pinocchio as pin
 import pinocchio_reference as ref
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import spatial
+from spacegrasp_jax.core import spatial
 
 RTOL = 1e-9
 

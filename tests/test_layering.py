@@ -1,5 +1,5 @@
-"""The package's layers, read from its source: the core imports no host module, nothing
-below the faces imports a face, the plots run nothing of the package, the laws are listed
+"""The package's layers, read from its folders: no module imports one of a higher layer, only
+the command line, the tuning and the benchmarks draw figures, the plots run nothing of the package, the laws are listed
 once and dispatched on nowhere else, each gain group is declared by its law alone, only
 the loop dispatches on the realism, and loops over whole runs go through one helper."""
 
@@ -10,28 +10,20 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: The command line, the figures and the benchmarks: they may import anything.
-FACES = {"spacegrasp_jax.cli", "spacegrasp_jax.plots", "spacegrasp_jax.benchmarks"}
-#: The host side: runs, batches, files, campaigns, sweeps, margins, tuning.
-HOST = {
-    "spacegrasp_jax.batching",
-    "spacegrasp_jax.campaign",
-    "spacegrasp_jax.experiment",
-    "spacegrasp_jax.margins",
-    "spacegrasp_jax.records",
-    "spacegrasp_jax.runfiles",
-    "spacegrasp_jax.stability",
-    "spacegrasp_jax.sweep",
-    "spacegrasp_jax.tuning",
-    "spacegrasp_jax.worstcase",
-}
+#: The package's layers, lowest first, each a folder: a module imports modules of its own
+#: layer and of the layers below, never above. ``tuning`` (the repository's ``tuning/``) sits
+#: above the analysis; on top, the faces: the command line (whose ``benchmark`` runs the
+#: benchmarks) and the benchmarks (which run commands).
+LAYERS = ("core", "envelope", "loop", "jobs", "analysis", "tuning", "cli benchmarks")
+#: The figures: only the command line, the tuning's figures and the benchmarks draw them.
+FIGURES = {"spacegrasp_jax.analysis.plots", "spacegrasp_jax.analysis.animation"}
 
 
-def module_files():
-    for path in sorted((ROOT / "spacegrasp_jax").rglob("*.py")):
-        yield ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__"), path
+def module_files(root: Path = ROOT):
+    for path in sorted((root / "spacegrasp_jax").rglob("*.py")):
+        yield ".".join(path.relative_to(root).with_suffix("").parts).removesuffix(".__init__"), path
     for folder in ("tuning", "benchmarks"):
-        for path in sorted((ROOT / folder).glob("*.py")):
+        for path in sorted((root / folder).glob("*.py")):
             yield f"spacegrasp_jax.{folder}.{path.stem}".removesuffix(".__init__"), path
 
 
@@ -50,27 +42,80 @@ def within(name: str, groups: set[str]) -> bool:
     return any(name == group or name.startswith(group + ".") for group in groups)
 
 
-def test_the_core_imports_no_host_module_and_no_face():
-    for module, path in module_files():
-        if within(module, FACES | HOST) or module == "spacegrasp_jax":
-            continue
-        wrong = {name for name in imported(path) if within(name, FACES | HOST)}
-        assert not wrong, f"{module} imports {sorted(wrong)}"
+def layer(name: str) -> int | None:
+    """The layer of a module or of a name in one (its folder's place in ``LAYERS``); ``None``
+    for the package's root and the names it exports."""
+    parts = name.split(".")
+    folders = [folder for layer in LAYERS for folder in layer.split()]
+    if len(parts) < 2 or parts[1] not in folders:
+        return None
+    return next(index for index, layer in enumerate(LAYERS) if parts[1] in layer.split())
 
 
-def test_nothing_below_the_faces_imports_a_face():
-    for module, path in module_files():
-        if within(module, FACES):
+def import_targets(path: Path) -> set[str]:
+    """What each import statement of the package imports: ``import a.b`` -> ``a.b``, ``from m
+    import x`` -> ``m.x`` (a module, a folder or a name in ``m``; ``from spacegrasp_jax import
+    __version__`` is the root's)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            names |= {f"{node.module}.{alias.name}" for alias in node.names}
+    return {name for name in names if name == "spacegrasp_jax" or name.startswith("spacegrasp_jax.")}
+
+
+def layer_violations(root: Path = ROOT) -> list[str]:
+    """Each module outside a layer folder, and each import from a higher layer (the package's
+    root, which exports from ``core`` and ``jobs``, counts as ``jobs``)."""
+    found = []
+    for module, path in module_files(root):
+        if module == "spacegrasp_jax":
             continue
-        wrong = {name for name in imported(path) if within(name, FACES)}
+        own = layer(module)
+        if own is None:
+            found.append(f"{module}: in no layer folder ({', '.join(' '.join(LAYERS).split())})")
+            continue
+        for name in sorted(import_targets(path)):
+            theirs = layer(name)
+            theirs = LAYERS.index("jobs") if theirs is None else theirs  # the root
+            if theirs > own:
+                found.append(f"{module} ({LAYERS[own]}) imports {name} ({LAYERS[theirs]})")
+    return sorted(found)
+
+
+def test_every_module_sits_in_a_layer_folder_and_imports_nothing_above_it():
+    assert layer_violations() == []
+
+
+def test_a_module_left_beside_the_folders_or_importing_upward_is_found(tmp_path):
+    """The test of the test: a module at the package's top and a core module that imports a
+    job are both named."""
+    for folder in ("spacegrasp_jax/core", "spacegrasp_jax/jobs", "tuning", "benchmarks"):
+        (tmp_path / folder).mkdir(parents=True)
+    (tmp_path / "spacegrasp_jax" / "__init__.py").write_text("")
+    (tmp_path / "spacegrasp_jax" / "loose.py").write_text("")
+    (tmp_path / "spacegrasp_jax" / "jobs" / "campaign.py").write_text("")
+    (tmp_path / "spacegrasp_jax" / "core" / "model.py").write_text("from spacegrasp_jax.jobs import campaign\n")
+    assert layer_violations(tmp_path) == [
+        "spacegrasp_jax.core.model (core) imports spacegrasp_jax.jobs.campaign (jobs)",
+        "spacegrasp_jax.loose: in no layer folder (core, envelope, loop, jobs, analysis, tuning, cli, benchmarks)",
+    ]
+
+
+def test_only_the_command_line_the_tuning_and_the_benchmarks_draw_figures():
+    for module, path in module_files():
+        if within(module, FIGURES | {"spacegrasp_jax.cli", "spacegrasp_jax.benchmarks", "spacegrasp_jax.tuning"}):
+            continue
+        wrong = {name for name in imported(path) if within(name, FIGURES)}
         assert not wrong, f"{module} imports {sorted(wrong)}"
 
 
 def test_the_plots_draw_data_and_run_nothing_of_the_package():
     # The one import: the laws' registry, for each law's line style.
-    assert imported(ROOT / "spacegrasp_jax" / "plots.py") == {
-        "spacegrasp_jax.control.registry",
-        "spacegrasp_jax.control.registry.LAWS",
+    assert imported(ROOT / "spacegrasp_jax" / "analysis" / "plots.py") == {
+        "spacegrasp_jax.loop.control.registry",
+        "spacegrasp_jax.loop.control.registry.LAWS",
     }
 
 
@@ -80,7 +125,7 @@ INDEPENDENT_REFERENCES = {"spacegrasp_jax.benchmarks.pinocchio_loop"}
 
 
 def law_names() -> set[str]:
-    from spacegrasp_jax.control.registry import LAWS
+    from spacegrasp_jax.loop.control.registry import LAWS
 
     return set(LAWS)
 
@@ -113,17 +158,17 @@ def test_each_gain_group_is_declared_by_its_law_and_listed_nowhere_else():
     no module outside ``control`` writes two groups' names in one tuple, list, set or dict:
     the gain set, the files, tuning and export read the groups from the registry's
     collection (a law lists its own in its class: its loop gain's direction per group)."""
-    from spacegrasp_jax.control.registry import GAIN_GROUPS
+    from spacegrasp_jax.loop.control.registry import GAIN_GROUPS
 
     for module, path in module_files():
         if module in INDEPENDENT_REFERENCES:
             continue
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "GainGroup":
-                assert within(module, {"spacegrasp_jax.control"}), (
+                assert within(module, {"spacegrasp_jax.loop.control"}), (
                     f"{module}, line {node.lineno}: declares a gain group"
                 )
-            if within(module, {"spacegrasp_jax.control"}):
+            if within(module, {"spacegrasp_jax.loop.control"}):
                 continue
             listed = listed_names(node, set(GAIN_GROUPS))
             assert len(listed) < 2, f"{module}, line {node.lineno}: lists the gain groups {sorted(listed)}"
@@ -134,7 +179,7 @@ def test_no_module_outside_the_laws_dispatches_on_a_laws_name():
     law's name belongs in the law (its class attributes), not beside it."""
     names = law_names()
     for module, path in module_files():
-        if within(module, {"spacegrasp_jax.control"}) or module in INDEPENDENT_REFERENCES:
+        if within(module, {"spacegrasp_jax.loop.control"}) or module in INDEPENDENT_REFERENCES:
             continue
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Compare):
@@ -145,10 +190,10 @@ def test_no_module_outside_the_laws_dispatches_on_a_laws_name():
 
 
 #: The loop: the modules that decide, from the realism, what runs in a control period.
-THE_LOOP = {"spacegrasp_jax.simulate", "spacegrasp_jax.stages", "spacegrasp_jax.realism"}
+THE_LOOP = {"spacegrasp_jax.loop.simulate", "spacegrasp_jax.loop.stages", "spacegrasp_jax.loop.realism"}
 #: Modules that read one stage's flag for what it means to a result, not to run a loop:
 #: the part of the final error the LAR estimate's error explains.
-READS_A_STAGES_VALUE = {"spacegrasp_jax.anatomy"}
+READS_A_STAGES_VALUE = {"spacegrasp_jax.jobs.anatomy"}
 
 
 def test_no_module_outside_the_loop_dispatches_on_the_realism():
@@ -192,7 +237,7 @@ def test_every_compiled_program_is_looked_up_by_a_key_derived_from_its_arguments
     use), never from a tuple of settings written by hand, which a new setting could miss."""
     calls = 0
     for module, path in module_files():
-        if module == "spacegrasp_jax.compilation":
+        if module == "spacegrasp_jax.jobs.compilation":
             continue  # where it is defined
         tree = ast.parse(path.read_text())
         for function in ast.walk(tree):
@@ -220,7 +265,7 @@ def test_every_loop_over_runs_goes_through_map_one_at_a_time():
     program's compile (``compilation.map_one_at_a_time``): the package maps only through
     that helper."""
     for module, path in module_files():
-        if module == "spacegrasp_jax.compilation":
+        if module == "spacegrasp_jax.jobs.compilation":
             continue  # where it is defined
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Attribute) and node.attr == "map":
@@ -230,7 +275,7 @@ def test_every_loop_over_runs_goes_through_map_one_at_a_time():
 
 
 #: The modules a control period is written in.
-LOOP_MODULES = {"spacegrasp_jax.simulate", "spacegrasp_jax.stages", "spacegrasp_jax.integrator"}
+LOOP_MODULES = {"spacegrasp_jax.loop.simulate", "spacegrasp_jax.loop.stages", "spacegrasp_jax.core.integrator"}
 
 
 def test_the_loop_asks_the_process_nothing_while_it_is_traced():
@@ -239,7 +284,7 @@ def test_the_loop_asks_the_process_nothing_while_it_is_traced():
     for module, path in module_files():
         if module not in LOOP_MODULES:
             continue
-        assert "spacegrasp_jax.compilation" not in imported(path), f"{module} imports compilation"
+        assert "spacegrasp_jax.jobs.compilation" not in imported(path), f"{module} imports compilation"
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Attribute):
                 assert node.attr not in {"default_backend", "devices"}, (
@@ -261,7 +306,7 @@ def test_no_function_of_the_loop_is_over_100_lines():
 def import_graph(modules: dict[str, Path]) -> dict[str, set[str]]:
     """Which of ``modules`` (name -> file) each imports, by every import statement in its
     file: at the top, in a function body or under ``TYPE_CHECKING`` alike. An imported name
-    counts as the module that holds it (``spacegrasp_jax.model.Robot``: the model)."""
+    counts as the module that holds it (``spacegrasp_jax.core.model.Robot``: the model)."""
 
     def module_of(name: str) -> str | None:
         while name and name not in modules:
@@ -338,3 +383,32 @@ def test_an_import_circle_hidden_in_a_function_body_is_found(tmp_path):
     typing_only = "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from spacegrasp_jax.top import T\n"
     modules["spacegrasp_jax.low"].write_text(typing_only)
     assert len(import_circles(import_graph(modules))) == 2
+
+
+def test_a_module_by_its_name_before_the_folders_comes_with_a_warning_naming_its_folder():
+    """``spacegrasp_jax.MOVED_MODULES`` names every module of the layer folders below the
+    tuning with its folder (read from the folders), and ``from spacegrasp_jax import campaign``
+    gives ``spacegrasp_jax.jobs.campaign`` with a ``DeprecationWarning`` saying so."""
+    import importlib
+    import warnings
+
+    import pytest
+
+    import spacegrasp_jax
+
+    on_disk = {}
+    for folder in LAYERS[: LAYERS.index("tuning")]:
+        for path in (ROOT / "spacegrasp_jax" / folder).iterdir():
+            if path.suffix == ".py" and path.stem != "__init__":
+                on_disk[path.stem] = folder
+            elif path.is_dir() and (path / "__init__.py").exists():
+                on_disk[path.name] = folder
+    assert spacegrasp_jax.MOVED_MODULES == on_disk
+    with pytest.warns(DeprecationWarning, match=r"spacegrasp_jax.campaign is now spacegrasp_jax.jobs.campaign"):
+        from spacegrasp_jax import campaign
+    assert campaign is importlib.import_module("spacegrasp_jax.jobs.campaign")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        from spacegrasp_jax import configure  # noqa: F401  (a name at the top: no warning)
+    with pytest.raises(AttributeError, match="has no attribute 'nowhere'"):
+        spacegrasp_jax.nowhere

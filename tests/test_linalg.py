@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax import linalg
+from spacegrasp_jax.core import linalg
 
 
 def random_spd(rng, n):

@@ -2,7 +2,7 @@
 of the single-rollout programs and of the one-scenario tuning gradient.
 
 1. **Compiled whole.** Importing the package asks XLA:CPU to compile a small loop that calls
-   no library into one kernel (``spacegrasp_jax.compilation``): the step loops, and RK4's
+   no library into one kernel (``spacegrasp_jax.jobs.compilation``): the step loops, and RK4's
    stage loops inside them, must lie in the computations XLA marks ``xla_cpu_small_call``,
    and the programs must hold no custom call (a LAPACK solve, a YNNPACK fusion), which
    would keep a loop kernel by kernel. These tests fail when such a call creeps back or
@@ -28,10 +28,10 @@ import re
 import jax
 import pytest
 
-from spacegrasp_jax import compilation
-from spacegrasp_jax.montecarlo import FoldedMetrics
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import RunSpec, closed_loop, rollout
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.jobs import compilation
+from spacegrasp_jax.jobs.montecarlo import FoldedMetrics
+from spacegrasp_jax.loop.simulate import RunSpec, closed_loop, rollout
 
 SEQUENTIAL_LIMIT_BYTES = 512
 BYTES = {"f64": 8, "s64": 8, "u64": 8, "f32": 4, "s32": 4, "u32": 4, "pred": 1, "s8": 1, "u8": 1}

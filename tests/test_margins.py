@@ -1,4 +1,4 @@
-"""Time-domain stability margins (``spacegrasp_jax.margins``, ``spacegrasp margins``).
+"""Time-domain stability margins (``spacegrasp_jax.analysis.margins``, ``spacegrasp margins``).
 
 The searches are checked on stand-in probes whose answer is known, then on the flight-like
 loop of a 2 s capture: the extra delay at the controller's output against the realism's own
@@ -19,11 +19,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax import campaign, cli, margins, simulate, stability
-from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.criteria import CaptureCriteria
-from spacegrasp_jax.montecarlo import success
-from spacegrasp_jax.realism import flight
+from spacegrasp_jax import cli
+from spacegrasp_jax.analysis import margins, stability
+from spacegrasp_jax.envelope.criteria import CaptureCriteria
+from spacegrasp_jax.jobs import campaign
+from spacegrasp_jax.jobs.montecarlo import success
+from spacegrasp_jax.loop import simulate
+from spacegrasp_jax.loop.control import paper_gains
+from spacegrasp_jax.loop.realism import flight
 
 # ---- the searches, on stand-in probes ----------------------------------------------------------
 

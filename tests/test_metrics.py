@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax import metrics
-from spacegrasp_jax.simulate import Log
+from spacegrasp_jax.envelope import metrics
+from spacegrasp_jax.loop.simulate import Log
 
 
 def hand_log():
@@ -88,7 +88,7 @@ def test_the_summary_is_the_whole_log_metrics_in_the_declared_order(free_target)
 
 
 def test_missing_values_are_nan_in_both_paths_and_null_in_json(tmp_path):
-    from spacegrasp_jax import runfiles
+    from spacegrasp_jax.jobs import runfiles
 
     log = dataclasses.replace(hand_log(), contact_force=np.zeros((4, 3)))
     assert np.isnan(float(metrics.first_contact_time(log)))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import mjcf
+from spacegrasp_jax.core import mjcf
 
 
 @pytest.fixture(scope="module")

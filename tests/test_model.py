@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import spacegrasp_jax as sg
-from spacegrasp_jax.model import body_inertials, inertia_from_table, make_robot
+from spacegrasp_jax.core.model import body_inertials, inertia_from_table, make_robot
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "paper_robot.toml"
 

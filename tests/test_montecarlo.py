@@ -20,14 +20,14 @@ import numpy as np
 import pytest
 from csv_files import assert_csv_holds
 
-from spacegrasp_jax import campaign, experiment, runfiles
-from spacegrasp_jax.campaign import CampaignConfig, CampaignError, Variant, run_campaign, variant_summary
-from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.criteria import CaptureCriteria
-from spacegrasp_jax.metrics import METRICS
-from spacegrasp_jax.montecarlo import success
-from spacegrasp_jax.perturbations import PerturbationRanges
-from spacegrasp_jax.simulate import LoopOptions, RunSpec
+from spacegrasp_jax.envelope.criteria import CaptureCriteria
+from spacegrasp_jax.envelope.metrics import METRICS
+from spacegrasp_jax.envelope.perturbations import PerturbationRanges
+from spacegrasp_jax.jobs import campaign, experiment, runfiles
+from spacegrasp_jax.jobs.campaign import CampaignConfig, CampaignError, Variant, run_campaign, variant_summary
+from spacegrasp_jax.jobs.montecarlo import success
+from spacegrasp_jax.loop.control import paper_gains
+from spacegrasp_jax.loop.simulate import LoopOptions, RunSpec
 
 SHORT_SCENARIO_TOML = """
 duration = 2.0
@@ -423,8 +423,8 @@ def test_unstable_samples_are_counted_and_are_not_successes(five_samples, varian
 
 
 def test_gain_sets_are_compared_pairwise_against_the_first_of_their_controller(capsys):
-    from spacegrasp_jax import statistics
     from spacegrasp_jax.cli.montecarlo import _print_campaign
+    from spacegrasp_jax.envelope import statistics
 
     rng = np.random.default_rng(9)
     gains = paper_gains()
@@ -482,8 +482,8 @@ def test_a_perturbed_run_is_the_nominal_run_with_the_samples_plant_loop_and_beli
     believing the nominal robot, the target estimate error the drawn one."""
     import jax
 
-    from spacegrasp_jax.montecarlo import FoldedMetrics, perturbed_run
-    from spacegrasp_jax.perturbations import draw
+    from spacegrasp_jax.envelope.perturbations import draw
+    from spacegrasp_jax.jobs.montecarlo import FoldedMetrics, perturbed_run
 
     ranges = PerturbationRanges()
     perturbation = draw(jax.random.PRNGKey(4), ranges, short_scenario.initial.q.dtype, 7)
@@ -506,9 +506,9 @@ def test_a_spec_holding_what_a_run_would_ignore_is_refused_before_compiling(robo
     overridden in silence; each check comes before anything is traced or compiled."""
     import jax.numpy as jnp
 
-    from spacegrasp_jax import stability
-    from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples
-    from spacegrasp_jax.stages import DelayLine
+    from spacegrasp_jax.analysis import stability
+    from spacegrasp_jax.jobs.montecarlo import FoldedMetrics, evaluate_samples
+    from spacegrasp_jax.loop.stages import DelayLine
     from spacegrasp_jax.tuning.gradients import envelope_gradients
     from spacegrasp_jax.tuning.objective import Objective, Weights
 

@@ -9,14 +9,14 @@ import jax
 import numpy as np
 import pytest
 
-from spacegrasp_jax.perturbations import (
+from spacegrasp_jax.envelope.perturbations import (
     PerturbationError,
     PerturbationRanges,
     load_ranges,
     sample,
     sample_scenarios,
 )
-from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.envelope.scenario import paper_scenario
 
 
 @pytest.fixture(scope="module")
@@ -122,9 +122,9 @@ def test_ranges_from_a_file(tmp_path):
 
 @pytest.mark.slow
 def test_the_free_target_envelope_stays_within_its_bounds_and_fills_them(robot):
-    from spacegrasp_jax.perturbations import FREE_TARGET_RANGES, sample
-    from spacegrasp_jax.scenario import load_scenario
-    from spacegrasp_jax.target import lar_frame
+    from spacegrasp_jax.core.target import lar_frame
+    from spacegrasp_jax.envelope.perturbations import FREE_TARGET_RANGES, sample
+    from spacegrasp_jax.envelope.scenario import load_scenario
 
     nominal = load_scenario(robot, "configs/free_target_envelope.toml")
     _, scenarios, _ = sample(robot, nominal, 4242, np.arange(3000), FREE_TARGET_RANGES)
@@ -151,7 +151,7 @@ def test_the_free_target_envelope_stays_within_its_bounds_and_fills_them(robot):
 
 
 def test_the_envelope_draws_leave_the_other_samples_as_they_were(robot, nominal):
-    from spacegrasp_jax.perturbations import FREE_TARGET_RANGES, PerturbationRanges, sample
+    from spacegrasp_jax.envelope.perturbations import FREE_TARGET_RANGES, PerturbationRanges, sample
 
     _, plain, _ = sample(robot, nominal, 7, np.arange(8), PerturbationRanges())
     _, with_envelope, _ = sample(robot, nominal, 7, np.arange(8), FREE_TARGET_RANGES)

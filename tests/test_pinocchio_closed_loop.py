@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spacegrasp_jax import experiment
 from spacegrasp_jax.benchmarks.pinocchio_loop import PinocchioClosedLoop
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.jobs import experiment
+from spacegrasp_jax.loop.simulate import RunSpec
 
 
 @pytest.mark.parametrize("controller", ["admittance", "cartesian"])

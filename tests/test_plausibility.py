@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from spacegrasp_jax import cli
-from spacegrasp_jax.plausibility import input_warnings, result_warnings
-from spacegrasp_jax.scenario import PAPER_Q_INIT, paper_scenario
+from spacegrasp_jax.envelope.plausibility import input_warnings, result_warnings
+from spacegrasp_jax.envelope.scenario import PAPER_Q_INIT, paper_scenario
 
 TARGET = {"mass": 300.0, "inertia": [60.0, 50.0, 40.0], "com_in_lar": [0.0, 0.0, 0.5]}
 

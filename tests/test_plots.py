@@ -15,8 +15,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from spacegrasp_jax import plots  # noqa: E402
-from spacegrasp_jax.simulate import Log  # noqa: E402
+from spacegrasp_jax.analysis import plots
+from spacegrasp_jax.loop.simulate import Log  # noqa: E402
 
 N, DT = 200, 0.01
 

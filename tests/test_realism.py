@@ -1,4 +1,4 @@
-"""The flight-like loop (spacegrasp_jax.realism): neutral settings give the paper's loop,
+"""The flight-like loop (spacegrasp_jax.loop.realism): neutral settings give the paper's loop,
 sensor statistics, saturation with anti-windup, control period and delay, the controller's
 own model, gradients, and the settings' files."""
 
@@ -13,13 +13,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax import metrics
-from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.integrator import rk4_step
-from spacegrasp_jax.realism import FLIGHT, RealismError, Stage, flight, ideal, load_realism, make_realism
-from spacegrasp_jax.robot_files import load_robot
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import RunSpec, loop_body, plant_derivative, rollout
+from spacegrasp_jax.core.integrator import rk4_step
+from spacegrasp_jax.core.robot_files import load_robot
+from spacegrasp_jax.envelope import metrics
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.loop.control import paper_gains
+from spacegrasp_jax.loop.realism import FLIGHT, RealismError, Stage, flight, ideal, load_realism, make_realism
+from spacegrasp_jax.loop.simulate import RunSpec, loop_body, plant_derivative, rollout
 
 ROLLOUT = jax.jit(rollout, static_argnames=("controller",))
 

@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import campaign, cli, experiment, records
-from spacegrasp_jax.control import tuned_gains
-from spacegrasp_jax.criteria import CaptureCriteria
-from spacegrasp_jax.perturbations import PerturbationRanges
-from spacegrasp_jax.realism import flight
-from spacegrasp_jax.records import RecordError, RunRecord, Variant
-from spacegrasp_jax.scenario import load_scenario, paper_scenario, scenario_to_dict
+from spacegrasp_jax import cli
+from spacegrasp_jax.envelope.criteria import CaptureCriteria
+from spacegrasp_jax.envelope.perturbations import PerturbationRanges
+from spacegrasp_jax.envelope.scenario import load_scenario, paper_scenario, scenario_to_dict
+from spacegrasp_jax.jobs import campaign, experiment, records
+from spacegrasp_jax.jobs.records import RecordError, RunRecord, Variant
+from spacegrasp_jax.loop.control import tuned_gains
+from spacegrasp_jax.loop.realism import flight
 
 SHORT = "duration = 0.2\n[trajectory]\nduration = 0.2\n"
 

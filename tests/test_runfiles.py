@@ -9,8 +9,8 @@ import json
 
 import pytest
 
-from spacegrasp_jax import runfiles
-from spacegrasp_jax.runfiles import OutputFolderError, claim_output_folder, read_run_marker
+from spacegrasp_jax.jobs import runfiles
+from spacegrasp_jax.jobs.runfiles import OutputFolderError, claim_output_folder, read_run_marker
 
 
 def test_a_new_or_empty_folder_is_claimed_with_a_marker(tmp_path):
@@ -88,7 +88,7 @@ def test_a_log_is_written_and_read_back_field_for_field(tmp_path):
     import numpy as np
     from hand_logs import log_of
 
-    from spacegrasp_jax.experiment import read_log
+    from spacegrasp_jax.jobs.experiment import read_log
 
     rng = np.random.default_rng(3)
     log = log_of(np.arange(5) * 1e-3, u=rng.normal(size=(5, 7)), target_position=rng.normal(size=(5, 3)))
@@ -109,9 +109,9 @@ def test_a_run_folders_robot_and_scenario_are_read_back_or_the_cause_is_named(tm
     import numpy as np
 
     import spacegrasp_jax as sg
-    from spacegrasp_jax.campaign import robot_and_scenario_of_run
-    from spacegrasp_jax.experiment import RunFolderError
-    from spacegrasp_jax.scenario import paper_scenario, scenario_to_dict
+    from spacegrasp_jax.envelope.scenario import paper_scenario, scenario_to_dict
+    from spacegrasp_jax.jobs.campaign import robot_and_scenario_of_run
+    from spacegrasp_jax.jobs.experiment import RunFolderError
 
     robot = sg.paper_robot()
     scenario = paper_scenario(robot, duration=0.5, move_duration=0.5, contact_law="smooth")

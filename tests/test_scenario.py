@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import spacegrasp_jax as sg
-from spacegrasp_jax.scenario import ScenarioError, load_scenario, paper_scenario
+from spacegrasp_jax.envelope.scenario import ScenarioError, load_scenario, paper_scenario
 
 
 def test_paper_scenario_lar_frame(robot):
@@ -65,7 +65,7 @@ BITS_OF_THE_BUILD = """
 import sys
 import jax, numpy as np
 import spacegrasp_jax as sg
-from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.envelope.scenario import paper_scenario
 sg.configure(compile_cache=False)
 robot = sg.paper_robot()
 settings = {

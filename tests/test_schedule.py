@@ -1,4 +1,4 @@
-"""Gain schedules (``spacegrasp_jax.control.schedule``): the interpolation against its
+"""Gain schedules (``spacegrasp_jax.loop.control.schedule``): the interpolation against its
 analytic properties, the one-knot schedule bit for bit as the constant gains (the paper's
 loop, the flight-like loop, a campaign's samples and the 17 s reproduction), each variable
 switching the gains where it should, the gradient through the knots against central
@@ -14,9 +14,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax import cli, simulate
-from spacegrasp_jax.control import GainsError, paper_gains
-from spacegrasp_jax.control.schedule import (
+from spacegrasp_jax import cli
+from spacegrasp_jax.envelope.perturbations import PerturbationRanges
+from spacegrasp_jax.jobs.montecarlo import FoldedMetrics, evaluate_samples
+from spacegrasp_jax.loop import simulate
+from spacegrasp_jax.loop.control import GainsError, paper_gains
+from spacegrasp_jax.loop.control.schedule import (
     GainSchedule,
     constant_schedule,
     gain_set_from_dict,
@@ -24,10 +27,8 @@ from spacegrasp_jax.control.schedule import (
     load_schedule,
     make_schedule,
 )
-from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples
-from spacegrasp_jax.perturbations import PerturbationRanges
-from spacegrasp_jax.realism import flight
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.loop.realism import flight
+from spacegrasp_jax.loop.simulate import RunSpec
 
 RNG = np.random.default_rng(59)
 KNOTS = np.array([0.0, 2.0, 5.0, 9.0])
@@ -89,8 +90,8 @@ def test_the_one_knot_schedule_gives_a_campaigns_samples_bit_for_bit(robot, shor
 @pytest.mark.slow
 def test_the_reproduction_does_not_move_under_a_one_knot_schedule(robot, full_runs):
     """The paper's 17 s capture with both laws (the stored reproduction's runs)."""
-    from spacegrasp_jax import experiment
-    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.jobs import experiment
 
     for controller, result in full_runs.items():
         spec = RunSpec(robot, paper_scenario(robot), controller)
@@ -284,7 +285,7 @@ def test_a_campaign_runs_schedules_beside_constant_gains_and_reloads_them(robot,
     """Paired on the same samples: the one-knot schedule ties the constant gains sample for
     sample (no discordant pair), a real schedule differs; the campaign's record reloads each
     gain set as it ran."""
-    from spacegrasp_jax import campaign
+    from spacegrasp_jax.jobs import campaign
 
     gains = paper_gains()
     softer = make_schedule(gains, "time", {"Kd": ([0.5, 1.0], [gains.Kd, 0.5 * gains.Kd])})
@@ -348,8 +349,8 @@ def test_the_c_header_of_a_schedule_computes_the_simulators_gains(tmp_path):
     import shutil
     import subprocess
 
-    from spacegrasp_jax.control.gains import GAINS_USED
-    from spacegrasp_jax.export import export_text, loop_settings
+    from spacegrasp_jax.analysis.export import export_text, loop_settings
+    from spacegrasp_jax.loop.control.gains import GAINS_USED
 
     compiler = shutil.which("cc") or shutil.which("gcc")
     assert compiler is not None, "the export's C test needs a C compiler (the CI image has one)"
@@ -394,8 +395,8 @@ def test_the_c_header_of_a_schedule_computes_the_simulators_gains(tmp_path):
 
 
 def test_the_schedule_figure_draws_each_scheduled_group_over_its_first_knot():
-    from spacegrasp_jax import plots
-    from spacegrasp_jax.control.schedule import schedule_curves
+    from spacegrasp_jax.analysis import plots
+    from spacegrasp_jax.loop.control.schedule import schedule_curves
 
     gains = paper_gains()
     schedule = make_schedule(gains, "force", {"Kd": ([2.0, 6.0], [gains.Kd, gains.Kd / 3.0])})
@@ -416,7 +417,7 @@ def test_the_schedule_figure_draws_each_scheduled_group_over_its_first_knot():
     # Along a run: the variable from the log (the force the controller read) and the gains it gives.
     from types import SimpleNamespace
 
-    from spacegrasp_jax.control.schedule import gains_along, variable_series
+    from spacegrasp_jax.loop.control.schedule import gains_along, variable_series
 
     t = np.linspace(0.0, 1.0, 11)
     force = np.stack([np.zeros(11), 8.0 * t, np.zeros(11)], axis=1)
@@ -509,9 +510,9 @@ def test_a_shipped_schedule_is_the_one_held_out_and_its_settings_say_what_the_da
     for the 17 s window: fewer than the paper's gains on the same captures)."""
     from pathlib import Path
 
-    from spacegrasp_jax import statistics
-    from spacegrasp_jax.campaign import load_samples
-    from spacegrasp_jax.control.schedule import tuned_schedule, tuned_schedule_file
+    from spacegrasp_jax.envelope import statistics
+    from spacegrasp_jax.jobs.campaign import load_samples
+    from spacegrasp_jax.loop.control.schedule import tuned_schedule, tuned_schedule_file
 
     case = SHIPPED_SCHEDULES[name]
     data = Path(__file__).resolve().parents[1] / "notebooks" / "data" / case["folder"]

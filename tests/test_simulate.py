@@ -11,10 +11,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax import experiment, metrics, plots
-from spacegrasp_jax.control import PID, Admittance, Cartesian, chain, law_named, make_gains
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import RunSpec, first_nonfinite_time, initial_state, rollout
+from spacegrasp_jax.analysis import plots
+from spacegrasp_jax.envelope import metrics
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.jobs import experiment
+from spacegrasp_jax.loop.control import PID, Admittance, Cartesian, chain, law_named, make_gains
+from spacegrasp_jax.loop.simulate import RunSpec, first_nonfinite_time, initial_state, rollout
 
 # Table 5 of the paper, N m.
 PAPER_TABLE5 = {
@@ -136,7 +138,7 @@ def test_gradient_of_final_position_error_wrt_gains(robot, gains, short_scenario
 
 def test_rollout_rejects_a_checkpoint_segment_that_does_not_divide_the_steps(robot, gains):
     # The same rule in the paper's loop and in the flight-like loop, before anything is traced.
-    from spacegrasp_jax.realism import flight
+    from spacegrasp_jax.loop.realism import flight
 
     scenario = paper_scenario(robot, duration=0.1)  # 100 steps
     loops = {"ideal": {}, "flight": dict(realism=flight(), key=jax.random.PRNGKey(0))}
@@ -178,7 +180,7 @@ def test_the_checkpointed_steps_of_rollout_change_nothing_in_a_forward_run(robot
     compiled as other code, so the two logs agree to rounding (measured: 1.2e-13 of a
     field's largest magnitude here, 3.3e-12 over the paper's 17 s), and the paper's
     reproduction does not depend on checkpointing."""
-    from spacegrasp_jax.simulate import LOG_BLOCK, FullLog, RunSpec, closed_loop
+    from spacegrasp_jax.loop.simulate import LOG_BLOCK, FullLog, RunSpec, closed_loop
 
     def plain_rollout(robot, scenario, gains):  # the arguments as rollout's: nothing folded in
         spec = RunSpec(robot, scenario, "admittance", observer=FullLog(LOG_BLOCK))
@@ -227,7 +229,7 @@ def test_a_diverging_run_writes_what_it_has(robot, gains, tmp_path, capsys):
 def test_a_run_spec_refuses_a_setting_that_cannot_be_part_of_a_programs_structure(robot, gains, short_scenario):
     """The controller and the observer are the spec's structure (static): one that is not
     hashable is refused when the host looks its program up, naming it, before any compile."""
-    from spacegrasp_jax.simulate import FullLog
+    from spacegrasp_jax.loop.simulate import FullLog
 
     @dataclasses.dataclass
     class Unhashable:  # a dataclass that is not frozen has no hash

@@ -16,13 +16,14 @@ import pytest
 from central_differences import check_each_group
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import cli, experiment
-from spacegrasp_jax.control import load_gains
-from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
-from spacegrasp_jax.perturbations import PerturbationRanges
-from spacegrasp_jax.realism import load_realism
-from spacegrasp_jax.scenario import load_scenario
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax import cli
+from spacegrasp_jax.envelope.perturbations import PerturbationRanges
+from spacegrasp_jax.envelope.scenario import load_scenario
+from spacegrasp_jax.jobs import experiment
+from spacegrasp_jax.jobs.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
+from spacegrasp_jax.loop.control import load_gains
+from spacegrasp_jax.loop.realism import load_realism
+from spacegrasp_jax.loop.simulate import RunSpec
 from spacegrasp_jax.tuning.objective import Objective, Weights
 from spacegrasp_jax.tuning.parameters import GROUPS, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import (

@@ -8,7 +8,7 @@ import jax.test_util
 import numpy as np
 from random_states import random_rotation
 
-from spacegrasp_jax import spatial
+from spacegrasp_jax.core import spatial
 
 
 def test_quaternion_round_trip():

@@ -1,4 +1,4 @@
-"""Linear stability of the closed loop (``spacegrasp_jax.stability``).
+"""Linear stability of the closed loop (``spacegrasp_jax.analysis.stability``).
 
 The eigen-analysis is checked on loops whose poles are known in closed form (a sampled
 oscillator; a velocity PID, the project's own, on a rigid inertia), then on the paper's
@@ -20,12 +20,13 @@ import pytest
 import scipy.linalg
 from compile_labels import CompileLabels
 
-from spacegrasp_jax import compilation, margins, stability
-from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.control.pid import PIDState, pid_torque
-from spacegrasp_jax.realism import flight
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.analysis import margins, stability
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.jobs import compilation
+from spacegrasp_jax.loop.control import paper_gains
+from spacegrasp_jax.loop.control.pid import PIDState, pid_torque
+from spacegrasp_jax.loop.realism import flight
+from spacegrasp_jax.loop.simulate import RunSpec
 
 
 def _linearisation(jacobian, sensitivity=None, period_s=1e-3):

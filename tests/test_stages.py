@@ -1,4 +1,4 @@
-"""The closed loop's stages (``spacegrasp_jax.stages``): each of the realism's one by one, in
+"""The closed loop's stages (``spacegrasp_jax.loop.stages``): each of the realism's one by one, in
 milliseconds, against its definition worked by hand; and a stage written here, in the test
 file, run in the loop, a campaign's samples and a tuning gradient without a change to the
 package (against its own recursion, a full-log run and central differences)."""
@@ -13,13 +13,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax import experiment, simulate, stability, stages
-from spacegrasp_jax.control import paper_gains
-from spacegrasp_jax.model import paper_robot
-from spacegrasp_jax.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
-from spacegrasp_jax.perturbations import PerturbationRanges
-from spacegrasp_jax.realism import flight, ideal, make_realism
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.analysis import stability
+from spacegrasp_jax.core.model import paper_robot
+from spacegrasp_jax.envelope.perturbations import PerturbationRanges
+from spacegrasp_jax.jobs import experiment
+from spacegrasp_jax.jobs.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
+from spacegrasp_jax.loop import simulate, stages
+from spacegrasp_jax.loop.control import paper_gains
+from spacegrasp_jax.loop.realism import flight, ideal, make_realism
+from spacegrasp_jax.loop.simulate import RunSpec
 
 RNG = np.random.default_rng(8)
 

@@ -9,7 +9,7 @@ import pytest
 from scipy.special import comb
 from scipy.stats import beta
 
-from spacegrasp_jax import statistics
+from spacegrasp_jax.envelope import statistics
 
 Z95 = 1.959963984540054  # the standard normal's 97.5th percentile
 

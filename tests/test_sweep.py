@@ -9,9 +9,10 @@ import itertools
 import numpy as np
 import pytest
 
-from spacegrasp_jax import experiment, sweep
-from spacegrasp_jax.simulate import RunSpec
-from spacegrasp_jax.sweep import SweepError
+from spacegrasp_jax.analysis import sweep
+from spacegrasp_jax.analysis.sweep import SweepError
+from spacegrasp_jax.jobs import experiment
+from spacegrasp_jax.loop.simulate import RunSpec
 
 
 def test_scale_grid_is_the_cartesian_product_first_axis_slowest():

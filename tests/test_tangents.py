@@ -1,5 +1,5 @@
 """The closed loop tells reverse mode up front which parts of its carry carry a derivative
-(``spacegrasp_jax.tangents``): the derivative is the one JAX finds by itself, and each of the
+(``spacegrasp_jax.core.tangents``): the derivative is the one JAX finds by itself, and each of the
 closed loop's scan bodies (RK4's stages apart) is linearised once where JAX would linearise
 it until the set stopped growing.
 
@@ -18,11 +18,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax import simulate
-from spacegrasp_jax.realism import flight
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import FullLog, LoopOptions, RunSpec, closed_loop
-from spacegrasp_jax.tangents import with_derivative_of
+from spacegrasp_jax.core.tangents import with_derivative_of
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.loop import simulate
+from spacegrasp_jax.loop.realism import flight
+from spacegrasp_jax.loop.simulate import FullLog, LoopOptions, RunSpec, closed_loop
 
 
 def test_the_value_is_unchanged_and_its_derivative_is_zero():

@@ -1,4 +1,4 @@
-"""The free-floating target (spacegrasp_jax.target): the stationary limit, momentum shared
+"""The free-floating target (spacegrasp_jax.core.target): the stationary limit, momentum shared
 with the chaser, torque-free motion against invariants and the analytic precession, the
 contact's impulse, the relative twist against finite differences, gradients, and the
 scenario's [target] table."""
@@ -12,9 +12,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spacegrasp_jax import metrics, spatial
-from spacegrasp_jax.scenario import ScenarioError, paper_scenario, scenario_from_mapping
-from spacegrasp_jax.simulate import rollout
+from spacegrasp_jax.core import spatial
+from spacegrasp_jax.envelope import metrics
+from spacegrasp_jax.envelope.scenario import ScenarioError, paper_scenario, scenario_from_mapping
+from spacegrasp_jax.loop.simulate import rollout
 
 ROLLOUT = jax.jit(rollout, static_argnames=("controller",))
 
@@ -199,8 +200,8 @@ def test_the_summary_reports_what_the_contact_did_to_the_target(pushed):
 
 
 def test_samples_move_and_vary_the_target_with_its_frame(robot):
-    from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
-    from spacegrasp_jax.target import lar_frame
+    from spacegrasp_jax.core.target import lar_frame
+    from spacegrasp_jax.envelope.perturbations import PerturbationRanges, sample_scenarios
 
     nominal = free(None, robot, velocity=[0.001, 0.0, 0.0])
     ranges = dataclasses.replace(PerturbationRanges(), satellite_mass_fraction=0.0, satellite_inertia_fraction=0.0)
@@ -224,9 +225,9 @@ def test_samples_move_and_vary_the_target_with_its_frame(robot):
 
 @pytest.mark.slow
 def test_a_campaign_counts_a_pushed_away_target_as_a_failed_capture(robot, gains):
-    from spacegrasp_jax import campaign
-    from spacegrasp_jax.criteria import CaptureCriteria
-    from spacegrasp_jax.perturbations import PerturbationRanges
+    from spacegrasp_jax.envelope.criteria import CaptureCriteria
+    from spacegrasp_jax.envelope.perturbations import PerturbationRanges
+    from spacegrasp_jax.jobs import campaign
 
     scenario = free(None, robot)
     config = campaign.CampaignConfig(n=2, chunk=2, ranges=PerturbationRanges.nominal())
@@ -277,8 +278,8 @@ def test_the_tuning_objective_can_weigh_the_targets_final_speed(pushed, tmp_path
 def test_the_flight_like_loop_carries_the_target_as_the_ideal_loop_does(robot, gains):
     # Every realism stage on at neutral values: the sensed loop's plant, controller view and
     # log with a drifting, tumbling target are the paper's loop's.
-    from spacegrasp_jax.realism import Stage, ideal
-    from spacegrasp_jax.simulate import rollout
+    from spacegrasp_jax.loop.realism import Stage, ideal
+    from spacegrasp_jax.loop.simulate import rollout
 
     scenario = free(None, robot, velocity=[0.002, 0.0, -0.001], angular_velocity=[0.0, 0.01, 0.02])
     reference = ROLLOUT(robot, scenario, gains, "admittance")[1]
@@ -323,7 +324,7 @@ def test_a_scenario_is_written_and_read_back_leaf_for_leaf(robot, kind):
     # written before the target was always a body hold), a free one as its numbers.
     import json
 
-    from spacegrasp_jax.scenario import scenario_from_dict, scenario_to_dict
+    from spacegrasp_jax.envelope.scenario import scenario_from_dict, scenario_to_dict
 
     scenario = paper_scenario(robot, duration=2.0) if kind == "fixed" else free(None, robot, velocity=[0.001, 0, 0])
     document = json.loads(json.dumps(scenario_to_dict(scenario)))

@@ -6,8 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from spacegrasp_jax import spatial
-from spacegrasp_jax.trajectory import Trajectory, desired_state, minimum_jerk
+from spacegrasp_jax.core import spatial
+from spacegrasp_jax.core.trajectory import Trajectory, desired_state, minimum_jerk
 
 PAPER = Trajectory(
     start_pose=jnp.array([0.0, 0.0, -0.08, 0.0, 0.0, 0.0]),

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from spacegrasp_jax.control import load_gains
-from spacegrasp_jax.realism import load_realism
+from spacegrasp_jax.loop.control import load_gains
+from spacegrasp_jax.loop.realism import load_realism
 
 #: Optimiser steps of the tune runs below: the interrupted run gets SIGINT after step 2, and
 #: the steps left after it absorb the delay before the signal is handled on a loaded machine.
@@ -212,7 +212,7 @@ def test_tune_refuses_to_overwrite_and_rejects_bad_options(uninterrupted, tmp_pa
 def test_tune_draws_from_the_envelope_it_is_given(tmp_path):
     from spacegrasp_jax.cli import build_parser
     from spacegrasp_jax.cli.tune import _tune_config
-    from spacegrasp_jax.perturbations import PerturbationRanges
+    from spacegrasp_jax.envelope.perturbations import PerturbationRanges
     from spacegrasp_jax.tuning.tune import TUNING_RANGES
 
     def config(*options):
@@ -348,7 +348,7 @@ def test_a_run_that_ends_worse_than_it_started_hands_back_the_start_and_says_so(
     the summary records it. With ``--keep best`` (the default) the run hands back the least
     training objective it saw."""
     from spacegrasp_jax import cli
-    from spacegrasp_jax.control import paper_gains
+    from spacegrasp_jax.loop.control import paper_gains
 
     scenario = tmp_path / "short.toml"
     scenario.write_text("duration = 1.0\n[trajectory]\nduration = 1.0\n")

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from central_differences import check_each_group
 
-from spacegrasp_jax.scenario import paper_scenario
-from spacegrasp_jax.simulate import RunSpec, rollout
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.loop.simulate import RunSpec, rollout
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts, smooth_max
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import (
@@ -234,8 +234,8 @@ def test_shipped_tuned_gains_capture_with_less_torque_on_the_nominal_scenario(ro
     law: a capture by the campaigns' criteria, a largest peak torque below the paper's gains',
     every joint within a quarter of its motor's limit, no runaway (documentation, "Tuning the
     gains")."""
-    from spacegrasp_jax import experiment
-    from spacegrasp_jax.control import tuned_gains
+    from spacegrasp_jax.jobs import experiment
+    from spacegrasp_jax.loop.control import tuned_gains
 
     paper = full_runs["admittance"].summary
     tuned = experiment.run(RunSpec(robot, paper_scenario(robot), "admittance"), tuned_gains()).summary
@@ -253,9 +253,9 @@ def test_shipped_flight_tuned_gains_capture_closer_than_the_paper_under_flight(r
     ending closer to the ring than the paper's gains under the same loop and key, with every
     joint's peak within its motor's limit (the robot's ``joint_torque_limit``) and no runaway
     (documentation, "Tuning the gains")."""
-    from spacegrasp_jax import experiment
-    from spacegrasp_jax.control import paper_gains, tuned_gains
-    from spacegrasp_jax.realism import flight
+    from spacegrasp_jax.jobs import experiment
+    from spacegrasp_jax.loop.control import paper_gains, tuned_gains
+    from spacegrasp_jax.loop.realism import flight
 
     scenario, key = paper_scenario(robot), jax.random.PRNGKey(0)
     paper, tuned = (
@@ -279,10 +279,10 @@ def test_shipped_free_target_gains_capture_the_envelopes_nominal_target_without_
     runaway (documentation, "Tuning the gains")."""
     from pathlib import Path
 
-    from spacegrasp_jax import experiment
-    from spacegrasp_jax.control import tuned_gains
-    from spacegrasp_jax.realism import flight
-    from spacegrasp_jax.scenario import load_scenario
+    from spacegrasp_jax.envelope.scenario import load_scenario
+    from spacegrasp_jax.jobs import experiment
+    from spacegrasp_jax.loop.control import tuned_gains
+    from spacegrasp_jax.loop.realism import flight
 
     scenario = load_scenario(robot, Path(__file__).resolve().parents[1] / "configs" / "free_target_envelope.toml")
     summary = experiment.run(
@@ -390,7 +390,7 @@ def test_a_resume_checks_the_options_given_against_the_recorded_run(tmp_path, ca
     import json
 
     from spacegrasp_jax import cli
-    from spacegrasp_jax.realism import flight
+    from spacegrasp_jax.loop.realism import flight
     from spacegrasp_jax.tuning.run import new_record
 
     runs = {

@@ -8,8 +8,8 @@ import jax
 import numpy as np
 import pytest
 
-from spacegrasp_jax import compilation, paper
-from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.jobs import compilation, paper
 from spacegrasp_jax.tuning import tune
 from spacegrasp_jax.tuning.objective import Objective, Weights
 from spacegrasp_jax.tuning.parameters import initial_params, make_mask

@@ -1,4 +1,4 @@
-"""The robot written as URDF (``spacegrasp_jax.urdf``) read by Pinocchio's own URDF parser:
+"""The robot written as URDF (``spacegrasp_jax.core.urdf``) read by Pinocchio's own URDF parser:
 the same rigid-body system as the model ``tests/pinocchio_reference.py`` builds from the
 paper's tables, and the robot's numbers read back from the XML. (``tests/test_dynamics.py``
 and ``tests/test_kinematics.py`` check ours against both Pinocchio models.)"""
@@ -13,7 +13,7 @@ import pinocchio_reference as ref
 import pytest
 
 from spacegrasp_jax import cli
-from spacegrasp_jax.urdf import robot_to_urdf
+from spacegrasp_jax.core.urdf import robot_to_urdf
 
 RTOL = 1e-12
 

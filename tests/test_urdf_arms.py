@@ -20,8 +20,8 @@ import pytest
 from random_states import make_random_states
 
 import spacegrasp_jax as sg
-from spacegrasp_jax.simulate import RunSpec
-from spacegrasp_jax.urdf import robot_from_urdf, robot_to_urdf
+from spacegrasp_jax.core.urdf import robot_from_urdf, robot_to_urdf
+from spacegrasp_jax.loop.simulate import RunSpec
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -199,9 +199,9 @@ def test_the_papers_arm_from_its_urdf_is_the_arm_of_its_tables():
 def test_the_shipped_scenario_and_gains_capture_with_each_arm(name):
     """The 17 s approach of configs/<arm>_scenario.toml with configs/<arm>_gains.json: within
     the campaigns' capture tolerances (5 mm, 1 degree) and the arm's motors' limits."""
-    from spacegrasp_jax import experiment
-    from spacegrasp_jax.control import load_gains
-    from spacegrasp_jax.scenario import load_scenario
+    from spacegrasp_jax.envelope.scenario import load_scenario
+    from spacegrasp_jax.jobs import experiment
+    from spacegrasp_jax.loop.control import load_gains
 
     arm = ARMS[name]
     robot = sg.load_robot(CONFIGS / arm.mounting)

@@ -11,7 +11,7 @@ import pytest
 
 import spacegrasp_jax as sg
 from spacegrasp_jax import cli
-from spacegrasp_jax.urdf import Mounting, URDFError, robot_from_urdf
+from spacegrasp_jax.core.urdf import Mounting, URDFError, robot_from_urdf
 
 INERTIAL = '<inertial><origin xyz="0 0 0.05"/><mass value="{mass}"/><inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.005"/></inertial>'
 

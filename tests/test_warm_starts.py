@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from compile_labels import CompileLabels
 
-from spacegrasp_jax import campaign, compilation
-from spacegrasp_jax.criteria import CaptureCriteria
-from spacegrasp_jax.perturbations import PerturbationRanges
-from spacegrasp_jax.scenario import paper_scenario
+from spacegrasp_jax.envelope.criteria import CaptureCriteria
+from spacegrasp_jax.envelope.perturbations import PerturbationRanges
+from spacegrasp_jax.envelope.scenario import paper_scenario
+from spacegrasp_jax.jobs import campaign, compilation
 from spacegrasp_jax.tuning import run as tuning_run
 from spacegrasp_jax.tuning.objective import Objective, Weights
 from spacegrasp_jax.tuning.parameters import initial_params, make_mask
@@ -116,7 +116,7 @@ def test_a_programs_settings_are_its_key_so_another_setting_is_another_program()
     them makes a new one (a key written by hand that forgot one would run the old program)."""
     import functools
 
-    from spacegrasp_jax import batching
+    from spacegrasp_jax.jobs import batching
 
     block = np.arange(4.0)
     listener = CompileLabels()
@@ -144,12 +144,12 @@ def test_a_runs_program_is_looked_up_by_its_spec_structure_and_shapes(robot, gai
     as it is; every setting that shapes the program (the law's damping, the observer, the
     checkpointing, a realism stage, the scenario's steps, a believed robot, a delay line's
     length) makes another."""
-    from spacegrasp_jax.control import Admittance
-    from spacegrasp_jax.experiment import program_key
-    from spacegrasp_jax.montecarlo import FoldedMetrics
-    from spacegrasp_jax.realism import Stage, flight
-    from spacegrasp_jax.simulate import FullLog, LoopOptions, RunSpec
-    from spacegrasp_jax.stages import DelayLine
+    from spacegrasp_jax.jobs.experiment import program_key
+    from spacegrasp_jax.jobs.montecarlo import FoldedMetrics
+    from spacegrasp_jax.loop.control import Admittance
+    from spacegrasp_jax.loop.realism import Stage, flight
+    from spacegrasp_jax.loop.simulate import FullLog, LoopOptions, RunSpec
+    from spacegrasp_jax.loop.stages import DelayLine
 
     def servo_delay(capacity, ticks):
         return (DelayLine(capacity, jnp.int32(ticks), "servo_joints"),)
@@ -202,9 +202,9 @@ def test_a_runs_program_is_looked_up_by_its_spec_structure_and_shapes(robot, gai
 def test_runs_that_differ_in_numbers_compile_one_program(robot, gains):
     """Two ``experiment.run`` calls whose specs differ only in numbers (the realism's noise,
     the gains, the noise key) compile once, and the second used its numbers."""
-    from spacegrasp_jax import experiment
-    from spacegrasp_jax.realism import flight
-    from spacegrasp_jax.simulate import RunSpec
+    from spacegrasp_jax.jobs import experiment
+    from spacegrasp_jax.loop.realism import flight
+    from spacegrasp_jax.loop.simulate import RunSpec
 
     scenario = paper_scenario(robot, duration=0.02, move_duration=2.0)
     quiet = dataclasses.replace(flight(), force_noise_std=0.1 * np.asarray(flight().force_noise_std))

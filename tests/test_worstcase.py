@@ -1,4 +1,4 @@
-"""The worst capture of the envelope (``spacegrasp_jax.worstcase``, ``spacegrasp worstcase``).
+"""The worst capture of the envelope (``spacegrasp_jax.analysis.worstcase``, ``spacegrasp worstcase``).
 
 The ascent is checked on constructed measures whose worst point is known (a bowl whose
 farthest corner is the answer, and one with no usable gradient). The search on the closed
@@ -15,8 +15,10 @@ import jax
 import numpy as np
 import pytest
 
-from spacegrasp_jax import cli, perturbations, worstcase
-from spacegrasp_jax.perturbations import PerturbationRanges, draw, draw_units, from_units
+from spacegrasp_jax import cli
+from spacegrasp_jax.analysis import worstcase
+from spacegrasp_jax.envelope import perturbations
+from spacegrasp_jax.envelope.perturbations import PerturbationRanges, draw, draw_units, from_units
 
 
 def _like(n: int):
@@ -261,10 +263,10 @@ def test_the_ascents_gradient_matches_central_differences(robot):
     it, so it is the program the test above compiled (the same shapes and settings)."""
     import functools
 
-    from spacegrasp_jax import batching
-    from spacegrasp_jax.campaign import CampaignConfig
-    from spacegrasp_jax.control import law_named, paper_gains
-    from spacegrasp_jax.scenario import paper_scenario
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.jobs import batching
+    from spacegrasp_jax.jobs.campaign import CampaignConfig
+    from spacegrasp_jax.loop.control import law_named, paper_gains
 
     scenario = paper_scenario(robot, duration=2.0, move_duration=2.0)
     config, controller = CampaignConfig(n=4), "admittance"

@@ -18,13 +18,13 @@ import pytest
 
 import spacegrasp_jax as sg
 from spacegrasp_jax import cli
-from spacegrasp_jax.control import load_gains, paper_gains
-from spacegrasp_jax.control.gains import effective_joint_inertia, starting_gains
-from spacegrasp_jax.joint_limits import first_crossings, outside_ranges
-from spacegrasp_jax.model import n_joints, robot_to_toml
-from spacegrasp_jax.robot_files import load_robot, robot_from_toml
-from spacegrasp_jax.scenario import load_scenario
-from spacegrasp_jax.urdf import URDFError
+from spacegrasp_jax.core.joint_limits import first_crossings, outside_ranges
+from spacegrasp_jax.core.model import n_joints, robot_to_toml
+from spacegrasp_jax.core.robot_files import load_robot, robot_from_toml
+from spacegrasp_jax.core.urdf import URDFError
+from spacegrasp_jax.envelope.scenario import load_scenario
+from spacegrasp_jax.loop.control import load_gains, paper_gains
+from spacegrasp_jax.loop.control.gains import effective_joint_inertia, starting_gains
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -325,7 +325,7 @@ def test_rate_limits_are_criteria_where_a_robot_file_states_them(tmp_path):
     robot TOML when it gives limits.joint_rate; the paper's robot TOML gives none, and reads
     back as the paper's robot with its assumed limits. A run folder keeps a robot without
     stated limits without them, bit for bit."""
-    from spacegrasp_jax.robot_files import rate_limits_stated
+    from spacegrasp_jax.core.robot_files import rate_limits_stated
 
     assert rate_limits_stated(ARMS / "xarm7.urdf") and rate_limits_stated(CONFIGS / "ur5_on_satellite.toml")
     assert not rate_limits_stated(CONFIGS / "paper_robot.toml")

@@ -4,7 +4,7 @@ batch as the gradient loop, forward rollouts only.
 The parameters are the tuned entries of the log-gains ([`spacegrasp_jax.tuning.parameters`][tuning.parameters],
 frozen groups left out), one flat vector. A generation asks ``population`` candidates of
 CMA-ES, adds the distribution's mean, and evaluates all of them on the batch in one sharded,
-chunked program ([`spacegrasp_jax.batching.map_in_chunks()`][spacegrasp_jax.batching.map_in_chunks]: ``(population + 1) x batch``
+chunked program ([`spacegrasp_jax.jobs.batching.map_in_chunks()`][spacegrasp_jax.jobs.batching.map_in_chunks]: ``(population + 1) x batch``
 forward rollouts, no reverse-mode compile), then tells CMA-ES the candidates' objectives.
 The run's gains are the mean after the last generation (the best candidate of a fixed batch
 is the one most fitted to it).
@@ -28,13 +28,13 @@ from typing import TYPE_CHECKING
 import jax
 import numpy as np
 
-from spacegrasp_jax import batching
-from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.experiment import loop_options
-from spacegrasp_jax.model import Robot
-from spacegrasp_jax.montecarlo import SampleLoops
-from spacegrasp_jax.runfiles import StopRequest
-from spacegrasp_jax.simulate import LoopOptions
+from spacegrasp_jax.core.model import Robot
+from spacegrasp_jax.jobs import batching
+from spacegrasp_jax.jobs.experiment import loop_options
+from spacegrasp_jax.jobs.montecarlo import SampleLoops
+from spacegrasp_jax.jobs.runfiles import StopRequest
+from spacegrasp_jax.loop.control.gains import Gains
+from spacegrasp_jax.loop.simulate import LoopOptions
 from spacegrasp_jax.tuning.objective import Objective, objective_spec, scenario_parts
 from spacegrasp_jax.tuning.parameters import gains_from_params
 

@@ -35,15 +35,15 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from spacegrasp_jax import batching, compilation
-from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.experiment import loop_options
-from spacegrasp_jax.model import Robot
-from spacegrasp_jax.montecarlo import sample_loops
-from spacegrasp_jax.perturbations import PerturbationRanges
-from spacegrasp_jax.realism import ideal
-from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import RunSpec, closed_loop
+from spacegrasp_jax.core.model import Robot
+from spacegrasp_jax.envelope.perturbations import PerturbationRanges
+from spacegrasp_jax.envelope.scenario import Scenario
+from spacegrasp_jax.jobs import batching, compilation
+from spacegrasp_jax.jobs.experiment import loop_options
+from spacegrasp_jax.jobs.montecarlo import sample_loops
+from spacegrasp_jax.loop.control.gains import Gains
+from spacegrasp_jax.loop.realism import ideal
+from spacegrasp_jax.loop.simulate import RunSpec, closed_loop
 from spacegrasp_jax.tuning.objective import Objective, objective_parts, objective_spec
 from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import checkpoint_segment

@@ -2,7 +2,7 @@
 
 **capture**: how far a run is from failing its capture. Each success criterion gives a
 margin, the value over its tolerance (above 1: the capture fails; the campaigns' criteria,
-[`spacegrasp_jax.anatomy`][spacegrasp_jax.anatomy]): ``m_p = e_p / 5 mm``, ``m_o = e_o / 1 deg``, the torque
+[`spacegrasp_jax.jobs.anatomy`][spacegrasp_jax.jobs.anatomy]): ``m_p = e_p / 5 mm``, ``m_o = e_o / 1 deg``, the torque
 ``m_u = smoothmax_{t, i} |u_i(t)| / limit_i`` against the motors' limits (the robot's
 ``joint_torque_limit``: torque is a constraint, not a cost), with a free-floating
 target ``m_v = |v_target(T)| / 5 mm/s``, for a robot with joint ranges their margin, and
@@ -50,13 +50,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from spacegrasp_jax import joint_limits, metrics
-from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.criteria import CaptureCriteria
-from spacegrasp_jax.model import Robot
-from spacegrasp_jax.realism import Realism
-from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import FullLog, LoopOptions, RunSpec, closed_loop
+from spacegrasp_jax.core import joint_limits
+from spacegrasp_jax.core.model import Robot
+from spacegrasp_jax.envelope import metrics
+from spacegrasp_jax.envelope.criteria import CaptureCriteria
+from spacegrasp_jax.envelope.scenario import Scenario
+from spacegrasp_jax.loop.control.gains import Gains
+from spacegrasp_jax.loop.realism import Realism
+from spacegrasp_jax.loop.simulate import FullLog, LoopOptions, RunSpec, closed_loop
 
 #: The objectives by name (``--objective``).
 OBJECTIVES = ("capture", "weighted")
@@ -131,7 +132,7 @@ class Objective:
             torque_cap_Nm)`` of the robot's torque limits; by default the paper's arm's
             limits).
         criteria: the ``capture`` objective's success criteria
-            ([`CaptureCriteria`][spacegrasp_jax.criteria.CaptureCriteria], the campaigns'
+            ([`CaptureCriteria`][spacegrasp_jax.envelope.criteria.CaptureCriteria], the campaigns'
             defaults): its tolerances, its target speed limit and, where they are criteria,
             its rate limits (``joint_rate_margin``, the smooth largest |qd_i| over its limit,
             as the torque margin); its torque threshold is not the objective's, whose torque
@@ -141,8 +142,8 @@ class Objective:
         hinge_width: ``tau``, the softplus hinge's width in log-margin units.
         margin_temperature: ``S``, the smooth maximum's temperature over the log margins.
         joint_ranges: the robot's joint ranges, static
-            ([`finite_ranges()`][spacegrasp_jax.joint_limits.finite_ranges]): each is a margin of
-            the ``capture`` objective ([`range_margin()`][spacegrasp_jax.joint_limits.range_margin]);
+            ([`finite_ranges()`][spacegrasp_jax.core.joint_limits.finite_ranges]): each is a margin of
+            the ``capture`` objective ([`range_margin()`][spacegrasp_jax.core.joint_limits.range_margin]);
             empty (the paper's arm): none.
     """
 
@@ -300,9 +301,9 @@ def objective_spec(
     options: LoopOptions = LoopOptions(checkpoint=True),
 ) -> RunSpec:
     """The run the objective reads: the whole log, each control period checkpointed for
-    reverse mode ([`rollout()`][spacegrasp_jax.simulate.rollout]'s loop); ``segment``: its
+    reverse mode ([`rollout()`][spacegrasp_jax.loop.simulate.rollout]'s loop); ``segment``: its
     ``checkpoint_segment``; ``options``: the loop's (checkpointed; the host's choice,
-    [`experiment.loop_options()`][spacegrasp_jax.experiment.loop_options])."""
+    [`experiment.loop_options()`][spacegrasp_jax.jobs.experiment.loop_options])."""
     return RunSpec(
         robot,
         scenario,

@@ -1,7 +1,7 @@
 """Tunable parameters: the logarithms of the gain diagonals and of the pseudoinverse's
 damping, with a mask that freezes any subset. ``exp`` keeps every tuned gain positive; frozen
 entries keep their base value and get a zero gradient. For a gain schedule
-([`GainSchedule`][spacegrasp_jax.control.schedule.GainSchedule]) the parameters are the
+([`GainSchedule`][spacegrasp_jax.loop.control.schedule.GainSchedule]) the parameters are the
 log-gains at every knot of every group: a group of K knots has K times its entries.
 
 A damping of 0 (the paper's exact pseudoinverse) has no logarithm: a tuned damping starts at
@@ -15,8 +15,8 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from spacegrasp_jax.control.gains import GAIN_SHAPES, GAINS_USED, Gains
-from spacegrasp_jax.control.schedule import GainSchedule
+from spacegrasp_jax.loop.control.gains import GAIN_SHAPES, GAINS_USED, Gains
+from spacegrasp_jax.loop.control.schedule import GainSchedule
 
 #: Gain groups tuned for each controller: every group it uses (40 numbers for the admittance law).
 GROUPS = GAINS_USED

@@ -30,14 +30,23 @@ import jax
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import batching, experiment, runfiles, statistics
-from spacegrasp_jax.control import (
+from spacegrasp_jax.core.model import n_joints, robot_to_toml
+from spacegrasp_jax.core.robot_files import load_robot, robot_from_text, robot_from_toml
+from spacegrasp_jax.envelope import statistics
+from spacegrasp_jax.envelope.criteria import CaptureCriteria
+from spacegrasp_jax.envelope.perturbations import sample_scenarios
+from spacegrasp_jax.envelope.scenario import load_scenario, paper_scenario, scenario_from_mapping, scenario_to_dict
+from spacegrasp_jax.jobs import batching, experiment, runfiles
+from spacegrasp_jax.jobs.experiment import loop_options
+from spacegrasp_jax.jobs.montecarlo import SampleLoops, success
+from spacegrasp_jax.jobs.records import RecordError, RunRecord, Variant, make_record
+from spacegrasp_jax.loop.control import (
     GainsError,
     missing_groups,
     paper_gains,
     require_joints,
 )
-from spacegrasp_jax.control.schedule import (
+from spacegrasp_jax.loop.control.schedule import (
     NAMED_GAIN_SETS,
     GainSchedule,
     gain_set_from_dict,
@@ -45,16 +54,8 @@ from spacegrasp_jax.control.schedule import (
     named_gain_set,
     schedule_of,
 )
-from spacegrasp_jax.criteria import CaptureCriteria
-from spacegrasp_jax.experiment import loop_options
-from spacegrasp_jax.model import n_joints, robot_to_toml
-from spacegrasp_jax.montecarlo import SampleLoops, success
-from spacegrasp_jax.perturbations import sample_scenarios
-from spacegrasp_jax.realism import make_realism
-from spacegrasp_jax.records import RecordError, RunRecord, Variant, make_record
-from spacegrasp_jax.robot_files import load_robot, robot_from_text, robot_from_toml
-from spacegrasp_jax.scenario import load_scenario, paper_scenario, scenario_from_mapping, scenario_to_dict
-from spacegrasp_jax.simulate import LoopOptions, RunSpec
+from spacegrasp_jax.loop.realism import make_realism
+from spacegrasp_jax.loop.simulate import LoopOptions, RunSpec
 from spacegrasp_jax.tuning import cmaes
 from spacegrasp_jax.tuning.objective import Objective, objective_spec, scenario_parts
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
@@ -181,7 +182,7 @@ def _older_run_record(document: dict) -> RunRecord:
 
 
 def run_record(document: dict) -> RunRecord:
-    """The [`RunRecord`][spacegrasp_jax.records.RunRecord] of a tuning run's ``run.json``
+    """The [`RunRecord`][spacegrasp_jax.jobs.records.RunRecord] of a tuning run's ``run.json``
     (``document``, read; one of an older version too): the robot, the nominal scenario, the
     starting gains (its one variant), the loop, the criteria, where they came from."""
     if "record" not in document:
@@ -241,7 +242,7 @@ def new_record(
     robot_links: dict | None = None,
     command=None,
 ) -> dict:
-    """The run's ``run.json``: its [`RunRecord`][spacegrasp_jax.records.RunRecord] (the robot
+    """The run's ``run.json``: its [`RunRecord`][spacegrasp_jax.jobs.records.RunRecord] (the robot
     and scenario as they run, the starting gains, the loop, the criteria, the sources and the
     command), its settings (``config``) and the held-out samples."""
     robot = load_robot(robot_file, **(robot_links or {})) if robot_file else sg.paper_robot()
@@ -302,7 +303,7 @@ def evaluate_flight(model_robot, batch: SampleLoops, gains, controller: str, obj
 
 def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chunk: int = 10) -> dict[str, np.ndarray]:
     """Objective parts for each scenario of a batch (exact or smooth per the scenarios),
-    by vmapped rollouts in chunks of ``chunk`` ([`spacegrasp_jax.batching.map_in_chunks()`][spacegrasp_jax.batching.map_in_chunks]);
+    by vmapped rollouts in chunks of ``chunk`` ([`spacegrasp_jax.jobs.batching.map_in_chunks()`][spacegrasp_jax.jobs.batching.map_in_chunks]);
     NaN marks a diverged sample. The gains and the objective are arguments of the compiled
     program, so evaluating another gain set or objective reuses it."""
     function = functools.partial(_scenarios_parts, controller=controller, options=loop_options(checkpoint=True))
@@ -321,8 +322,8 @@ def _write_history(path: Path, history: list) -> None:
 
 def captured(parts: dict) -> np.ndarray:
     """(n,) bool: each held-out sample's capture by the campaigns' default criteria
-    ([`success()`][spacegrasp_jax.montecarlo.success] with a default
-    [`CaptureCriteria`][spacegrasp_jax.criteria.CaptureCriteria], and the rate limits where the
+    ([`success()`][spacegrasp_jax.jobs.montecarlo.success] with a default
+    [`CaptureCriteria`][spacegrasp_jax.envelope.criteria.CaptureCriteria], and the rate limits where the
     objective has them), from the objective's parts; a sample whose objective is not finite
     diverged."""
     sample_metrics = {

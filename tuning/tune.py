@@ -27,19 +27,20 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
-from spacegrasp_jax import batching, compilation, joint_limits
-from spacegrasp_jax.control.gains import Gains
-from spacegrasp_jax.control.registry import CONTROLLERS
-from spacegrasp_jax.control.schedule import VARIABLES
-from spacegrasp_jax.criteria import CaptureCriteria
-from spacegrasp_jax.experiment import loop_options
-from spacegrasp_jax.model import Robot
-from spacegrasp_jax.montecarlo import SampleLoops, sample_loops
-from spacegrasp_jax.perturbations import PerturbationRanges, sample_scenarios
-from spacegrasp_jax.realism import ideal, make_realism
-from spacegrasp_jax.runfiles import StopRequest, progress_bar
-from spacegrasp_jax.scenario import Scenario
-from spacegrasp_jax.simulate import LoopOptions, largest_divisor
+from spacegrasp_jax.core import joint_limits
+from spacegrasp_jax.core.model import Robot
+from spacegrasp_jax.envelope.criteria import CaptureCriteria
+from spacegrasp_jax.envelope.perturbations import PerturbationRanges, sample_scenarios
+from spacegrasp_jax.envelope.scenario import Scenario
+from spacegrasp_jax.jobs import batching, compilation
+from spacegrasp_jax.jobs.experiment import loop_options
+from spacegrasp_jax.jobs.montecarlo import SampleLoops, sample_loops
+from spacegrasp_jax.jobs.runfiles import StopRequest, progress_bar
+from spacegrasp_jax.loop.control.gains import Gains
+from spacegrasp_jax.loop.control.registry import CONTROLLERS
+from spacegrasp_jax.loop.control.schedule import VARIABLES
+from spacegrasp_jax.loop.realism import ideal, make_realism
+from spacegrasp_jax.loop.simulate import LoopOptions, largest_divisor
 from spacegrasp_jax.tuning import cmaes, estimators
 from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights, objective_spec, scenario_parts
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
@@ -115,7 +116,7 @@ class TuneConfig:
         loss_guard: a candidate whose loss exceeds this many times the starting loss is
             rejected too.
         ranges: perturbation half-widths for the robust batch (``TUNING_RANGES``).
-        realism: the tables of a [`Realism`][spacegrasp_jax.realism.Realism] to train under
+        realism: the tables of a [`Realism`][spacegrasp_jax.loop.realism.Realism] to train under
             (``None``: the paper's loop). Then every sample of the batch draws its noise key
             and a perturbed satellite (10% mass and inertia unless ``ranges`` sets them) that
             the controller does not know: it believes the nominal robot.
@@ -385,7 +386,7 @@ def make_optimizer(config: TuneConfig):
 
 #: Steps per inner scan of a one-scenario reverse-mode gradient (``simulate.rollout``'s
 #: ``checkpoint_segment``). The tape holds each step's state and RK4's stage rates, (3, N)
-#: numbers a field per step. With loops compiled whole (``spacegrasp_jax.compilation``) the
+#: numbers a field per step. With loops compiled whole (``spacegrasp_jax.jobs.compilation``) the
 #: length does not matter; where XLA runs loops kernel by kernel, 2 steps keep the inner
 #: loops within 64 numbers an array, in XLA's faster sequential mode (documentation,
 #: changelog).
@@ -504,14 +505,14 @@ class BoundProgram:
     """A jitted ``program(params, values)`` called as ``program(params)``: the values are
     arguments of the compiled program, not constants in it, so a loss over other scenarios,
     gains or weights of the same shapes runs the same program (compiled once per process by
-    [`compile_once()`][spacegrasp_jax.compilation.compile_once], which announces it, and loaded
+    [`compile_once()`][spacegrasp_jax.jobs.compilation.compile_once], which announces it, and loaded
     from the persistent cache by later processes).
 
     Attributes:
         program: the jitted function.
         values: its second argument.
         settings: what shapes the program besides its arguments' shapes (its name and the
-            loss's static settings); with [`argument_signature()`][spacegrasp_jax.compilation.argument_signature]
+            loss's static settings); with [`argument_signature()`][spacegrasp_jax.jobs.compilation.argument_signature]
             of the arguments, the program's key. No default: two programs given the same
             settings would share one executable.
         label: the program's name for people (the compile line).
@@ -645,7 +646,7 @@ def make_flight_value_and_grad(
 ):
     """``(params, step=0) -> ((loss, aux), gradient)`` under ``config.realism``: the samples'
     gradients (``_per_sample_gradients()``) as one program sharded over every device
-    ([`spacegrasp_jax.batching.map_in_chunks()`][spacegrasp_jax.batching.map_in_chunks]: a share of the batch per core or GPU),
+    ([`spacegrasp_jax.jobs.batching.map_in_chunks()`][spacegrasp_jax.jobs.batching.map_in_chunks]: a share of the batch per core or GPU),
     then [`aggregate_gradients()`][tuning.tune.aggregate_gradients] on the host. ``aux`` has the batch-mean parts, the worst
     hard peak torque and ``clipped_samples``. The samples are ``batch``, or at a step above
     0 ``fresh(step)`` where given (``config.fresh_batches``: the same program, other samples)."""
@@ -885,7 +886,7 @@ def torque_constraint_Nm(robot: Robot, config: TuneConfig) -> tuple[float, ...]:
 
 def training_batch(robot: Robot, nominal: Scenario, config: TuneConfig):
     """The batch every step (or generation) is evaluated on: under a realism, the
-    [`SampleLoops`][spacegrasp_jax.montecarlo.SampleLoops] of [`flight_batch()`][tuning.tune.flight_batch]; else the
+    [`SampleLoops`][spacegrasp_jax.jobs.montecarlo.SampleLoops] of [`flight_batch()`][tuning.tune.flight_batch]; else the
     stacked scenarios of [`training_scenarios()`][tuning.tune.training_scenarios]."""
     if config.realism is not None:
         return flight_batch(robot, nominal, config, config.seed, config.batch)

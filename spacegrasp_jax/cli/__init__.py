@@ -15,7 +15,7 @@ import matplotlib
 matplotlib.use("Agg")  # the command line only writes figures to files; before pyplot is imported
 
 import spacegrasp_jax as sg  # noqa: E402
-from spacegrasp_jax import animation, compilation, experiment, runfiles  # noqa: E402
+from spacegrasp_jax.analysis import animation
 from spacegrasp_jax.cli import (  # noqa: E402  (the commands, in the order --help lists them)
     animate,
     benchmark,
@@ -31,10 +31,11 @@ from spacegrasp_jax.cli import (  # noqa: E402  (the commands, in the order --he
     worstcase,
 )
 from spacegrasp_jax.cli.options import UsageError, _Parser  # noqa: E402
-from spacegrasp_jax.control import GainsError, UnusedGainsWarning  # noqa: E402
-from spacegrasp_jax.perturbations import PerturbationError  # noqa: E402
-from spacegrasp_jax.realism import RealismError  # noqa: E402
-from spacegrasp_jax.scenario import ScenarioError  # noqa: E402
+from spacegrasp_jax.envelope.perturbations import PerturbationError  # noqa: E402
+from spacegrasp_jax.envelope.scenario import ScenarioError  # noqa: E402
+from spacegrasp_jax.jobs import compilation, experiment, runfiles
+from spacegrasp_jax.loop.control import GainsError, UnusedGainsWarning  # noqa: E402
+from spacegrasp_jax.loop.realism import RealismError  # noqa: E402
 
 #: The file in the compile cache's folder that keeps each program's last compile time, for
 #: the line printed before the program compiles again (``compilation.CompileAnnouncer``).

@@ -6,10 +6,10 @@ import argparse
 import json
 from pathlib import Path
 
-from spacegrasp_jax import campaign, experiment
 from spacegrasp_jax.cli.common import _file_name, _films, _run_schedule
 from spacegrasp_jax.cli.options import UsageError, _add_command, _add_film_options, _add_overwrite_option
-from spacegrasp_jax.model import n_joints
+from spacegrasp_jax.core.model import n_joints
+from spacegrasp_jax.jobs import campaign, experiment
 
 
 def _animate(args: argparse.Namespace) -> int:

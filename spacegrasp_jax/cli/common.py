@@ -14,17 +14,20 @@ import numpy as np
 from jax.experimental import multihost_utils
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import (
-    anatomy,
-    animation,
-    campaign,
-    joint_limits,
-    paper,
-    runfiles,
-    worstcase,
-)
+from spacegrasp_jax.analysis import animation, worstcase
 from spacegrasp_jax.cli.options import NAMED_RANGES, UsageError
-from spacegrasp_jax.control import (
+from spacegrasp_jax.core import joint_limits
+from spacegrasp_jax.core.model import n_joints
+from spacegrasp_jax.core.robot_files import rate_limits_stated
+from spacegrasp_jax.envelope.criteria import CaptureCriteria
+from spacegrasp_jax.envelope.perturbations import (
+    PerturbationRanges,
+    load_ranges,
+)
+from spacegrasp_jax.envelope.scenario import load_scenario, paper_scenario
+from spacegrasp_jax.jobs import anatomy, campaign, paper, runfiles
+from spacegrasp_jax.jobs.records import RunRecord
+from spacegrasp_jax.loop.control import (
     GAINS_USED,
     PAPER_CONTROLLERS,
     law_named,
@@ -32,7 +35,7 @@ from spacegrasp_jax.control import (
     missing_groups,
     paper_gains,
 )
-from spacegrasp_jax.control.schedule import (
+from spacegrasp_jax.loop.control.schedule import (
     NAMED_GAIN_SETS,
     TUNED_SCHEDULE_FILES,
     VARIABLES,
@@ -45,16 +48,7 @@ from spacegrasp_jax.control.schedule import (
     schedule_curves,
     variable_series,
 )
-from spacegrasp_jax.criteria import CaptureCriteria
-from spacegrasp_jax.model import n_joints
-from spacegrasp_jax.perturbations import (
-    PerturbationRanges,
-    load_ranges,
-)
-from spacegrasp_jax.realism import Realism, RealismError, load_realism
-from spacegrasp_jax.records import RunRecord
-from spacegrasp_jax.robot_files import rate_limits_stated
-from spacegrasp_jax.scenario import load_scenario, paper_scenario
+from spacegrasp_jax.loop.realism import Realism, RealismError, load_realism
 
 
 def _robot_links(args) -> dict:
@@ -142,7 +136,7 @@ def _gains_option(value: str | None, args, robot, controller, schedules: bool = 
     """The gains ``--gains value`` names for ``controller`` (a law, several, or ``None``):
     the paper's by default, a shipped set by name, or a file whose missing groups come from
     ``--fill-from``; with ``schedules``, a schedule file's ``GainSchedule``
-    ([`control.schedule`][spacegrasp_jax.control.schedule]), which other commands refuse."""
+    ([`control.schedule`][spacegrasp_jax.loop.control.schedule]), which other commands refuse."""
     if getattr(args, "fill_from", None) is not None and (value is None or value in NAMED_GAIN_SETS):
         raise UsageError(
             f"--fill-from: completes a gains file given with --gains; {value or 'the paper'}'s gains are whole"
@@ -183,7 +177,7 @@ def _save_schedule_figure(
     """``gain_schedule.png`` in ``out`` (with ``with_curves``): each scheduled group against
     its variable; with ``logs`` (a run's name -> its log), ``regime_<name>.png``: the variable
     along each run and the gains it ran with. Returns the files' names."""
-    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+    from spacegrasp_jax.analysis import plots
 
     unit = VARIABLES[schedule.variable]
     figures = {}
@@ -261,7 +255,7 @@ def _realism(args, scenario, robot=None) -> Realism | None:
 
 def _perturbed(path: str, spec):
     """``--perturbation FILE``: the nominal run ``spec`` perturbed as the file says and its
-    noise key ([`worstcase.perturbed_spec()`][spacegrasp_jax.worstcase.perturbed_spec])."""
+    noise key ([`worstcase.perturbed_spec()`][spacegrasp_jax.analysis.worstcase.perturbed_spec])."""
     try:
         return worstcase.perturbed_spec(spec, path)
     except worstcase.WorstCaseError as error:
@@ -332,7 +326,7 @@ def _criteria(args: argparse.Namespace, robot, **fields) -> campaign.CampaignCon
 def _claim(args: argparse.Namespace, out: Path) -> None:
     """The command's output folder, refused if it holds anything (another run, or files
     this tool did not write) unless ``--overwrite`` or ``--resume`` says what to do
-    (``spacegrasp_jax.runfiles.claim_output_folder()``). Several processes: every one
+    (``spacegrasp_jax.jobs.runfiles.claim_output_folder()``). Several processes: every one
     checks the folder, then the first claims it."""
     claim = functools.partial(
         runfiles.claim_output_folder,
@@ -352,7 +346,7 @@ def _claim(args: argparse.Namespace, out: Path) -> None:
 
 
 def _warn(lines: list[str], prefix: str = "") -> None:
-    """Each line as ``spacegrasp: warning: ...`` on stderr (``spacegrasp_jax.plausibility``)."""
+    """Each line as ``spacegrasp: warning: ...`` on stderr (``spacegrasp_jax.envelope.plausibility``)."""
     for line in lines:
         print(f"spacegrasp: warning: {prefix}{line}", file=sys.stderr, flush=True)
 
@@ -486,7 +480,7 @@ def _write_results(
         runfiles.write_timeseries(out / f"timeseries_{_file_name(c)}.npz", result.log)
         if csv:
             runfiles.write_timeseries_csv(out / f"timeseries_{_file_name(c)}.csv", result.log)
-    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+    from spacegrasp_jax.analysis import plots
 
     plots.save_figures(
         {c: result.log for c, result in results.items()},

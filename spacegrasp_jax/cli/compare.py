@@ -8,13 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from spacegrasp_jax import (
-    experiment,
-    runfiles,
-)
 from spacegrasp_jax.cli.common import _claim, _file_name, _run_schedule, _save_schedule_figure
 from spacegrasp_jax.cli.options import UsageError, _add_command, _add_overwrite_option
-from spacegrasp_jax.realism import ideal
+from spacegrasp_jax.jobs import experiment, runfiles
+from spacegrasp_jax.loop.realism import ideal
 
 
 def _run_descriptors(folder: Path, key: str, config: dict) -> dict:
@@ -116,7 +113,7 @@ def _compare(args: argparse.Namespace) -> int:
         verdict = {True: "yes", False: "no", None: "-"}[numbers["capture_success"]]
         print(f"{label[:40]:40} {' '.join(cells)}  {verdict}")
     caption = f"compared: {common}" if common else "compared"
-    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+    from spacegrasp_jax.analysis import plots
 
     plots.save_figures(logs, out, runfiles.write_atomically, caption=caption)
     regimes = []  # the runs of a gain schedule: the regime each was in

@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from spacegrasp_jax import (
-    export,
-)
+from spacegrasp_jax.analysis import export
 from spacegrasp_jax.cli.common import _load_inputs, _realism, _write_out_file
 from spacegrasp_jax.cli.options import (
     UsageError,
@@ -15,12 +13,12 @@ from spacegrasp_jax.cli.options import (
     add_gains_arguments,
     add_robot_arguments,
 )
-from spacegrasp_jax.control import (
+from spacegrasp_jax.core.model import n_joints
+from spacegrasp_jax.loop.control import (
     CONTROLLERS,
     NAMED_GAINS,
 )
-from spacegrasp_jax.control.schedule import TUNED_SCHEDULE_FILES
-from spacegrasp_jax.model import n_joints
+from spacegrasp_jax.loop.control.schedule import TUNED_SCHEDULE_FILES
 
 
 def _c_identifier(text: str) -> str:

@@ -10,11 +10,11 @@ import numpy as np
 
 from spacegrasp_jax.cli.common import _load_robot, _write_out_file
 from spacegrasp_jax.cli.options import UsageError, _add_command, add_robot_arguments
-from spacegrasp_jax.control import CONTROLLERS
-from spacegrasp_jax.control.gains import PAPER_JOINTS, START_RATE_PER_S, effective_joint_inertia, starting_gains
-from spacegrasp_jax.dynamics import mass_matrix
-from spacegrasp_jax.model import n_joints
-from spacegrasp_jax.scenario import load_scenario, paper_scenario
+from spacegrasp_jax.core.dynamics import mass_matrix
+from spacegrasp_jax.core.model import n_joints
+from spacegrasp_jax.envelope.scenario import load_scenario, paper_scenario
+from spacegrasp_jax.loop.control import CONTROLLERS
+from spacegrasp_jax.loop.control.gains import PAPER_JOINTS, START_RATE_PER_S, effective_joint_inertia, starting_gains
 
 
 def _gains(args: argparse.Namespace) -> int:

@@ -10,12 +10,6 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from spacegrasp_jax import (
-    batching,
-    paper,
-    plausibility,
-    runfiles,
-)
 from spacegrasp_jax.cli.common import (
     _check_envelope,
     _claim,
@@ -40,14 +34,16 @@ from spacegrasp_jax.cli.options import (
     add_ranges_arguments,
     tune_setting_error,
 )
-from spacegrasp_jax.control import (
-    CONTROLLERS,
-)
-from spacegrasp_jax.model import n_joints
-from spacegrasp_jax.perturbations import (
+from spacegrasp_jax.core.model import n_joints
+from spacegrasp_jax.envelope import plausibility
+from spacegrasp_jax.envelope.perturbations import (
     PerturbationRanges,
 )
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.jobs import batching, paper, runfiles
+from spacegrasp_jax.loop.control import (
+    CONTROLLERS,
+)
+from spacegrasp_jax.loop.simulate import RunSpec
 from spacegrasp_jax.tuning.gradients import HORIZONS as GRADIENT_HORIZONS
 from spacegrasp_jax.tuning.gradients import central_differences, envelope_gradients, finite_rows
 from spacegrasp_jax.tuning.gradients import report as gradient_report
@@ -133,7 +129,7 @@ def _gradients(args: argparse.Namespace) -> int:
         | {f"gradient.{name}": value for name, value in result.gradients.items()},
     )
     title = f"{args.controller}, {args.n} samples" + (f", realism {args.realism}" if args.realism else "")
-    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+    from spacegrasp_jax.analysis import plots
 
     plots.save_gradient_figures(
         out,

@@ -10,15 +10,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import spacegrasp_jax as sg
-from spacegrasp_jax import (
-    joint_limits,
-    spatial,
-    urdf,
-)
 from spacegrasp_jax.cli.common import _load_robot, _rate_criterion, _warn
 from spacegrasp_jax.cli.options import UsageError, _add_command, add_robot_arguments
-from spacegrasp_jax.model import body_inertials, n_joints
-from spacegrasp_jax.scenario import load_scenario
+from spacegrasp_jax.core import joint_limits, spatial, urdf
+from spacegrasp_jax.core.model import body_inertials, n_joints
+from spacegrasp_jax.envelope.scenario import load_scenario
 
 
 def _info(args: argparse.Namespace) -> int:

@@ -8,14 +8,7 @@ from pathlib import Path
 
 import jax
 
-from spacegrasp_jax import (
-    batching,
-    campaign,
-    margins,
-    plausibility,
-    runfiles,
-    stability,
-)
+from spacegrasp_jax.analysis import margins, stability
 from spacegrasp_jax.cli.common import (
     _check_envelope,
     _claim,
@@ -39,18 +32,20 @@ from spacegrasp_jax.cli.options import (
     _real,
     _whole,
 )
-from spacegrasp_jax.control.schedule import VARIABLES, GainSchedule
-from spacegrasp_jax.perturbations import (
+from spacegrasp_jax.envelope import plausibility
+from spacegrasp_jax.envelope.perturbations import (
     PerturbationError,
     PerturbationRanges,
 )
-from spacegrasp_jax.records import Variant
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.jobs import batching, campaign, runfiles
+from spacegrasp_jax.jobs.records import Variant
+from spacegrasp_jax.loop.control.schedule import VARIABLES, GainSchedule
+from spacegrasp_jax.loop.simulate import RunSpec
 
 
 def _margins(args: argparse.Namespace) -> int:
     """``spacegrasp margins``: the gain and delay margins of one gain set, by bisection on
-    batched rollouts over envelope samples (``spacegrasp_jax.margins``)."""
+    batched rollouts over envelope samples (``spacegrasp_jax.analysis.margins``)."""
     batching.use_all_cpu_cores()  # before anything touches a device
     try:
         margins.require_joint_servo(args.controller)
@@ -92,7 +87,7 @@ def _margins(args: argparse.Namespace) -> int:
     title = f"{args.controller}, {args.gains or 'paper gains'}, {args.samples} samples" + (
         f", realism {args.realism}" if args.realism else ""
     )
-    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+    from spacegrasp_jax.analysis import plots
 
     tolerance_mm = 1e3 * config.criteria.position_tolerance_m
     if not isinstance(gains, GainSchedule):

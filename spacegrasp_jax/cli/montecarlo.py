@@ -10,13 +10,6 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from spacegrasp_jax import (
-    batching,
-    campaign,
-    plausibility,
-    runfiles,
-    statistics,
-)
 from spacegrasp_jax.cli.common import (
     _check_envelope,
     _check_joint_ranges,
@@ -45,19 +38,21 @@ from spacegrasp_jax.cli.options import (
     add_ranges_arguments,
     add_robot_arguments,
 )
-from spacegrasp_jax.control import (
+from spacegrasp_jax.core.model import n_joints
+from spacegrasp_jax.envelope import plausibility, statistics
+from spacegrasp_jax.envelope.perturbations import (
+    PerturbationError,
+    PerturbationRanges,
+)
+from spacegrasp_jax.envelope.scenario import load_scenario, paper_scenario
+from spacegrasp_jax.jobs import batching, campaign, runfiles
+from spacegrasp_jax.loop.control import (
     CONTROLLERS,
     PAPER_CONTROLLERS,
     paper_gains,
 )
-from spacegrasp_jax.control.schedule import NAMED_GAIN_SETS
-from spacegrasp_jax.model import n_joints
-from spacegrasp_jax.perturbations import (
-    PerturbationError,
-    PerturbationRanges,
-)
-from spacegrasp_jax.realism import load_realism
-from spacegrasp_jax.scenario import load_scenario, paper_scenario
+from spacegrasp_jax.loop.control.schedule import NAMED_GAIN_SETS
+from spacegrasp_jax.loop.realism import load_realism
 
 
 def _montecarlo_variants(args: argparse.Namespace, robot) -> list[campaign.Variant]:
@@ -146,7 +141,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     _print_campaign(result)
     if jax.process_index() == 0:
         tolerance_mm = 1e3 * config.criteria.position_tolerance_m
-        from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+        from spacegrasp_jax.analysis import plots
 
         plots.save_campaign_figures(
             out,

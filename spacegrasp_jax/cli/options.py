@@ -6,14 +6,14 @@ import argparse
 import math
 import sys
 
-from spacegrasp_jax.control import (
-    CONTROLLERS,
-)
-from spacegrasp_jax.control.schedule import NAMED_GAIN_SETS
-from spacegrasp_jax.perturbations import (
+from spacegrasp_jax.envelope.perturbations import (
     FREE_TARGET_RANGES,
     PerturbationRanges,
 )
+from spacegrasp_jax.loop.control import (
+    CONTROLLERS,
+)
+from spacegrasp_jax.loop.control.schedule import NAMED_GAIN_SETS
 from spacegrasp_jax.tuning.objective import OBJECTIVES
 from spacegrasp_jax.tuning.tune import TUNING_RANGES, TuneConfig
 

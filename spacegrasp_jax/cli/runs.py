@@ -11,13 +11,6 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from spacegrasp_jax import (
-    campaign,
-    experiment,
-    plausibility,
-    records,
-    runfiles,
-)
 from spacegrasp_jax.cli.common import (
     _claim,
     _films,
@@ -54,14 +47,16 @@ from spacegrasp_jax.cli.options import (
     _whole,
     add_gains_arguments,
 )
-from spacegrasp_jax.control import (
+from spacegrasp_jax.envelope import plausibility
+from spacegrasp_jax.envelope.criteria import CaptureCriteria
+from spacegrasp_jax.jobs import campaign, experiment, records, runfiles
+from spacegrasp_jax.jobs.records import Variant, make_record
+from spacegrasp_jax.loop.control import (
     CONTROLLERS,
     PAPER_CONTROLLERS,
 )
-from spacegrasp_jax.control.schedule import GainSchedule
-from spacegrasp_jax.criteria import CaptureCriteria
-from spacegrasp_jax.records import Variant, make_record
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.loop.control.schedule import GainSchedule
+from spacegrasp_jax.loop.simulate import RunSpec
 
 
 def _run_controllers(args, controllers) -> int:

@@ -10,12 +10,6 @@ from pathlib import Path
 
 import numpy as np
 
-from spacegrasp_jax import (
-    batching,
-    plausibility,
-    runfiles,
-    statistics,
-)
 from spacegrasp_jax.cli.common import (
     _check_envelope,
     _check_joint_ranges,
@@ -46,13 +40,15 @@ from spacegrasp_jax.cli.options import (
     add_robot_arguments,
     tune_setting_error,
 )
-from spacegrasp_jax.control import (
+from spacegrasp_jax.core.model import n_joints
+from spacegrasp_jax.envelope import plausibility, statistics
+from spacegrasp_jax.envelope.scenario import load_scenario, paper_scenario
+from spacegrasp_jax.jobs import batching, runfiles
+from spacegrasp_jax.loop.control import (
     CONTROLLERS,
 )
-from spacegrasp_jax.control.schedule import NAMED_GAIN_SETS, VARIABLES, load_schedule
-from spacegrasp_jax.model import n_joints
-from spacegrasp_jax.realism import load_realism
-from spacegrasp_jax.scenario import load_scenario, paper_scenario
+from spacegrasp_jax.loop.control.schedule import NAMED_GAIN_SETS, VARIABLES, load_schedule
+from spacegrasp_jax.loop.realism import load_realism
 from spacegrasp_jax.tuning.estimators import AGGREGATES
 from spacegrasp_jax.tuning.objective import Weights
 from spacegrasp_jax.tuning.run import (
@@ -244,7 +240,7 @@ def _tune_finished(out: Path, result) -> int:
     robot, gains_source = ran.robot, ran.sources["gains"]
     loop = "ideal loop (the paper's)" if ran.realism is None else "flight-like loop"
     start = "from the paper's gains" if gains_source == "paper_gains()" else f"from {Path(gains_source).name}"
-    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+    from spacegrasp_jax.analysis import plots
 
     plots.save_tuning_figures(
         result.history,

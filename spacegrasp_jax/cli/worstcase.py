@@ -12,14 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from spacegrasp_jax import (
-    batching,
-    campaign,
-    experiment,
-    plausibility,
-    runfiles,
-    worstcase,
-)
+from spacegrasp_jax.analysis import worstcase
 from spacegrasp_jax.cli.common import (
     _check_envelope,
     _claim,
@@ -44,20 +37,22 @@ from spacegrasp_jax.cli.options import (
     _add_run_options,
     _whole,
 )
-from spacegrasp_jax.model import n_joints
-from spacegrasp_jax.montecarlo import perturbed_run
-from spacegrasp_jax.perturbations import (
+from spacegrasp_jax.core.model import n_joints
+from spacegrasp_jax.envelope import plausibility
+from spacegrasp_jax.envelope.perturbations import (
     PerturbationError,
     PerturbationRanges,
     from_units,
 )
-from spacegrasp_jax.records import Variant, make_record
-from spacegrasp_jax.simulate import RunSpec
+from spacegrasp_jax.jobs import batching, campaign, experiment, runfiles
+from spacegrasp_jax.jobs.montecarlo import perturbed_run
+from spacegrasp_jax.jobs.records import Variant, make_record
+from spacegrasp_jax.loop.simulate import RunSpec
 
 
 def _worstcase(args: argparse.Namespace) -> int:
     """``spacegrasp worstcase``: the worst capture of the envelope by gradient ascent, against
-    a campaign of the same rollouts (``spacegrasp_jax.worstcase``)."""
+    a campaign of the same rollouts (``spacegrasp_jax.analysis.worstcase``)."""
     batching.use_all_cpu_cores()  # before anything touches a device
     try:
         ranges = _ranges(args, PerturbationRanges())
@@ -209,7 +204,7 @@ def _worstcase(args: argparse.Namespace) -> int:
     title = f"worst case, {args.controller}, {args.gains or 'paper gains'}" + (
         f", realism {args.realism}" if args.realism else ""
     )
-    from spacegrasp_jax import plots  # matplotlib: imported where figures are drawn
+    from spacegrasp_jax.analysis import plots
 
     plots.save(
         {
