@@ -89,7 +89,7 @@ def random_inputs(count: int, seed: int = 0) -> dict[str, np.ndarray]:
     quat = rng.normal(size=(count, 4))
     quat /= np.linalg.norm(quat, axis=1, keepdims=True)
     return {
-        "R_base": np.asarray(jax.vmap(sg.spatial.quat_to_rotation)(quat)),
+        "R_base": np.asarray(jax.vmap(sg.core.spatial.quat_to_rotation)(quat)),
         "q": rng.uniform(-np.pi, np.pi, size=(count, 7)),
         "V_base": rng.normal(scale=0.2, size=(count, 6)),
         "qd": rng.normal(size=(count, 7)),

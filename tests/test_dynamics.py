@@ -192,7 +192,7 @@ def test_power_balance_of_bias(robot, random_states):
     from a jvp of M along the motion (dR/dt = [w_s]x R, dq/dt = qd)."""
     for state in random_states[:5]:
         x_v = np.concatenate([state.V_base, state.qd])
-        R_rate = sg.spatial.skew(state.V_base[3:]) @ state.R_base
+        R_rate = sg.core.spatial.skew(state.V_base[3:]) @ state.R_base
         _, M_rate = jax.jvp(lambda R, q: sg.mass_matrix(robot, R, q), (state.R_base, state.q), (R_rate, state.qd))
         bias = sg.bias_forces(robot, state.R_base, state.q, state.V_base, state.qd)
         lhs, rhs = x_v @ bias, 0.5 * x_v @ M_rate @ x_v
@@ -256,7 +256,7 @@ def test_gradients_match_central_differences(robot, random_states, name):
     def scalar(eps):
         moved = {key: value + eps * directions[key] if key in directions else value for key, value in arguments.items()}
         if "R_base" in arguments:
-            moved["R_base"] = sg.spatial.euler_zyx_to_rotation(eps * rotation_direction) @ arguments["R_base"]
+            moved["R_base"] = sg.core.spatial.euler_zyx_to_rotation(eps * rotation_direction) @ arguments["R_base"]
         leaves = jax.tree.leaves(function(robot, *[moved[key] for key in names]))
         return sum(jnp.sum(w * leaf) for w, leaf in zip(weights, leaves))
 
@@ -329,7 +329,7 @@ _bias = jax.jit(sg.bias_forces)
 @given(q=st.lists(angles, min_size=7, max_size=7), euler=st.lists(angles, min_size=3, max_size=3))
 def test_property_mass_matrix_spd_and_matches_pinocchio(robot, pinocchio_model, q, euler):
     model, data, _ = pinocchio_model
-    R_base = np.asarray(sg.spatial.euler_zyx_to_rotation(jnp.asarray(euler)))
+    R_base = np.asarray(sg.core.spatial.euler_zyx_to_rotation(jnp.asarray(euler)))
     M = np.asarray(_mass_matrix(robot, R_base, np.asarray(q)))
     assert np.linalg.eigvalsh(M)[0] > 0.0
     T = ref.velocity_map(R_base)

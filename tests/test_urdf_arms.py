@@ -101,14 +101,14 @@ def relative_error(actual, expected) -> float:
 
 
 def states(robot):
-    return make_random_states(seed=20261203, count=N_STATES, n_joints=sg.model.n_joints(robot))
+    return make_random_states(seed=20261203, count=N_STATES, n_joints=sg.core.model.n_joints(robot))
 
 
 def test_the_mounting_files_read_the_arms_as_their_urdfs_give_them():
     for name, arm in ARMS.items():
         robot = sg.load_robot(CONFIGS / arm.mounting)
-        assert sg.model.n_joints(robot) == arm.joints, name
-        mass, _, _ = sg.model.body_inertials(robot)
+        assert sg.core.model.n_joints(robot) == arm.joints, name
+        mass, _, _ = sg.core.model.body_inertials(robot)
         np.testing.assert_allclose(float(np.sum(mass)), arm.mass, rtol=1e-12, err_msg=name)
 
 
@@ -179,7 +179,9 @@ def test_the_papers_arm_from_its_urdf_is_the_arm_of_its_tables():
         "joint_torque_limit",
     ):
         np.testing.assert_allclose(getattr(urdf, field), getattr(tables, field), rtol=0, atol=1e-12, err_msg=field)
-    np.testing.assert_allclose(sg.model.body_inertials(urdf)[0], sg.model.body_inertials(tables)[0], rtol=1e-12)
+    np.testing.assert_allclose(
+        sg.core.model.body_inertials(urdf)[0], sg.core.model.body_inertials(tables)[0], rtol=1e-12
+    )
     for s in make_random_states(seed=5, count=N_STATES):
         for name in ("mass_matrix", "dynamic_jacobian"):
             f = getattr(sg, name)

@@ -47,7 +47,7 @@ def test_a_hand_written_arm_is_read_as_written():
     """Ten kilograms of base, six 2 kg links 0.3 m apart: at q = 0 the tool sits 6 x 0.3 + 0.1 m
     above the base origin, turned a quarter about z; the limits are the <limit> tags'."""
     robot = robot_from_urdf(arm_urdf())
-    assert sg.model.n_joints(robot) == 6
+    assert sg.core.model.n_joints(robot) == 6
     assert float(robot.satellite_mass) == 10.0
     np.testing.assert_allclose(robot.link_mass, 2.0)
     np.testing.assert_allclose(robot.joint_torque_limit, 20.0)

@@ -30,6 +30,7 @@ from spacegrasp_jax.jobs.records import RunRecord
 from spacegrasp_jax.loop.control import (
     GAINS_USED,
     PAPER_CONTROLLERS,
+    Gains,
     law_named,
     load_gains,
     missing_groups,
@@ -215,7 +216,7 @@ def gains_label(value: str | None) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(value).stem) or "gains"
 
 
-def _paper_gains_for(robot, controller: str | None = None) -> sg.control.Gains:
+def _paper_gains_for(robot, controller: str | None = None) -> Gains:
     """The paper's gains, when the arm is the paper's 7-joint one (Table 4 is for it) and the
     law one of the paper's (``None``: any)."""
     if controller is not None and controller not in PAPER_CONTROLLERS:
