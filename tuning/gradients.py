@@ -165,9 +165,8 @@ def envelope_gradients(
         raise ValueError("envelope_gradients: the spec's model_robot must be None (each sample's is decided here)")
     robot, scenario, law, realism = spec.robot, spec.scenario, spec.controller, spec.realism
     ranges = PerturbationRanges() if ranges is None else ranges
-    name = law.name
-    mask = make_mask(gains, name)
-    params = initial_params(gains, name)
+    mask = make_mask(gains, law.law)  # the law object: a law of your own's groups too
+    params = initial_params(gains, law.law)
     items, model_robot, perturbations = _nominal_first(robot, scenario, seed, n, ranges, realism)
     steps = horizon_steps(scenario.n_steps, horizons)
     segment = 1 if items[2] is not None else checkpoint_segment(scenario.n_steps)
@@ -221,11 +220,12 @@ def _perturbation(result: EnvelopeGradients, sample: int) -> dict:
 
 
 def central_differences(
-    result: EnvelopeGradients, evaluate, gains: Gains, controller: str, *, samples, step=1e-4, seed=0
+    result: EnvelopeGradients, evaluate, gains: Gains, controller, *, samples, step=1e-4, seed=0
 ):
     """The gradient's directional derivative against ``(loss(+h) - loss(-h)) / 2h`` on the
     items ``samples`` (0: nominal), each along a random unit direction of the tuned
-    log-gains, at the whole horizon. Returns one dict per sample."""
+    log-gains (``controller``'s groups: a law's name or a law object), at the whole horizon.
+    Returns one dict per sample."""
     if not len(samples):
         return []
     params = initial_params(gains, controller)

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from spacegrasp_jax.loop.control.gains import GAIN_SHAPES, GAINS_USED, Gains
+from spacegrasp_jax.loop.control.registry import gains_used
 from spacegrasp_jax.loop.control.schedule import GainSchedule
 
 #: Gain groups tuned for each controller: every group it uses (40 numbers for the admittance law).
@@ -30,10 +31,11 @@ def group_values(gains: Gains | GainSchedule, name: str) -> jax.Array:
     return gains.values[name] if isinstance(gains, GainSchedule) else getattr(gains, name)
 
 
-def make_mask(base: Gains | GainSchedule, controller: str, frozen: tuple[str, ...] = ()) -> dict[str, jax.Array]:
-    """Boolean arrays, True where an entry is tuned: the controller's groups minus the
-    ``frozen`` groups, and never a gain whose base value is 0 (it has no logarithm; the
-    damping starts at ``DAMPING_START`` instead)."""
+def make_mask(base: Gains | GainSchedule, controller, frozen: tuple[str, ...] = ()) -> dict[str, jax.Array]:
+    """Boolean arrays, True where an entry is tuned: the controller's groups (``controller``: a
+    law's name or a law object, [`gains_used()`][spacegrasp_jax.loop.control.registry.gains_used])
+    minus the ``frozen`` groups, and never a gain whose base value is 0 (it has no logarithm;
+    the damping starts at ``DAMPING_START`` instead)."""
     unknown = sorted(set(frozen) - set(GAIN_SHAPES))
     if unknown:
         raise ValueError(f"--freeze: unknown gain group(s) {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")
@@ -43,30 +45,31 @@ def make_mask(base: Gains | GainSchedule, controller: str, frozen: tuple[str, ..
         else jnp.ones(jnp.shape(group_values(base, name)), dtype=bool)
         if name == "pinv_damping"
         else jnp.asarray(group_values(base, name)) > 0.0
-        for name in GROUPS[controller]
+        for name in gains_used(controller)
     }
 
 
-def initial_params(base: Gains | GainSchedule, controller: str) -> dict[str, jax.Array]:
-    """``log`` of the tuned groups' gains (a zero stands in where the base gain is 0, and
-    ``DAMPING_START`` where the base damping is)."""
+def initial_params(base: Gains | GainSchedule, controller) -> dict[str, jax.Array]:
+    """``log`` of the tuned groups' gains (``controller``: a law's name or a law object; a zero
+    stands in where the base gain is 0, and ``DAMPING_START`` where the base damping is)."""
 
     def start(name):
         value = jnp.asarray(group_values(base, name))
         fill = DAMPING_START if name == "pinv_damping" else 1.0
         return jnp.log(jnp.where(value > 0.0, value, fill))
 
-    return {name: start(name) for name in GROUPS[controller]}
+    return {name: start(name) for name in gains_used(controller)}
 
 
 def gains_from_params(
     params: dict[str, jax.Array], base: Gains | GainSchedule, mask: dict[str, jax.Array]
 ) -> Gains | GainSchedule:
     """The gains (or the schedule, for a schedule ``base``) that ``params`` (log values)
-    stand for; masked-out entries keep ``base``."""
-    values = {name: group_values(base, name) for name in GAIN_SHAPES}
-    for name, log_value in params.items():
-        values[name] = jnp.where(mask[name], jnp.exp(log_value), values[name])
+    stand for; masked-out entries keep ``base``. ``base`` may be any dataclass gain set that
+    holds the tuned groups as fields (a law of your own's)."""
+    tuned = {
+        name: jnp.where(mask[name], jnp.exp(log_value), group_values(base, name)) for name, log_value in params.items()
+    }
     if isinstance(base, GainSchedule):
-        return dataclasses.replace(base, values=values)
-    return Gains(**values)
+        return dataclasses.replace(base, values=base.values | tuned)
+    return dataclasses.replace(base, **tuned)

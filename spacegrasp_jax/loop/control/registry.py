@@ -87,10 +87,12 @@ def as_controller(controller: str | ControlLaw | Controller) -> Controller:
     return chain(controller, PID() if controller.output is Output.JOINT_RATES else None)
 
 
-def gains_used(name: str) -> tuple[str, ...]:
-    """The gain groups the controller ``name`` reads: its law's, then the joint servo's."""
-    law = _law_class(name)
-    return law.gain_groups + (PID.gain_groups if law.output is Output.JOINT_RATES else ())
+def gains_used(law: str | ControlLaw) -> tuple[str, ...]:
+    """The gain groups a controller reads: its law's (``law``: a name of the registry, or any
+    law object, a law of your own too), then the joint servo's for a law that commands joint
+    rates."""
+    law = _law_class(law) if isinstance(law, str) else law
+    return tuple(law.gain_groups) + (PID.gain_groups if law.output is Output.JOINT_RATES else ())
 
 
 __all__ = [
