@@ -5,7 +5,7 @@
 Modes, each in its own process so that peak memory is its own:
 * ``forward``: the objective alone (one rollout of the 17 s paper scenario, smooth contact);
 * ``reverse_checkpointed``: ``jax.value_and_grad`` with each step's parts under
-  ``jax.checkpoint``, in inner scans of 2 steps (``spacegrasp_jax.tuning.tune.checkpoint_segment``, the
+  ``jax.checkpoint``, in inner scans of 2 steps (``spacegrasp_jax.tuning.tune.block_steps``, the
   tuning default);
 * ``reverse_plain``: ``jax.value_and_grad`` of ``rollout`` as a user writes it (inner scans of
   ``LOG_BLOCK`` steps, the parts of each step still under ``jax.checkpoint``: ``rollout`` always puts them there);
@@ -44,7 +44,7 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
     from spacegrasp_jax.tuning.parameters import initial_params, make_mask
     from spacegrasp_jax.tuning.tune import (
         TuneConfig,
-        checkpoint_segment,
+        block_steps,
         make_loss,
         make_value_and_grad,
         training_scenarios,
@@ -57,7 +57,7 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
     )  # one scenario: the cost of one gradient against one rollout
     objective = Objective(weights=Weights(), torque_scale_Nm=(0.80, 2.71, 1.82, 0.77, 1.11, 0.24, 0.028))
     params = initial_params(gains, "admittance")
-    segment = checkpoint_segment(scenario.n_steps) if mode == "reverse_checkpointed" else None
+    segment = block_steps(scenario.n_steps) if mode == "reverse_checkpointed" else None
     loss = make_loss(
         robot, training_scenarios(scenario, config), gains, make_mask(gains, "admittance"), config, objective, segment
     )
@@ -75,7 +75,7 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
     run = timed(lambda: jax.block_until_ready(compiled(params)), repeats)
     return {
         "mode": mode,
-        "checkpoint_segment": segment,
+        "block_steps": segment,
         "compile_s": compile_s,
         "run_s": run["median_s"],
         "run_spread_s": [run["min_s"], run["max_s"]],

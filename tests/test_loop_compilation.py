@@ -147,7 +147,7 @@ def _gradient_hlo(robot, gains, loops_whole: bool = True) -> str:
     from spacegrasp_jax.tuning.parameters import initial_params, make_mask
     from spacegrasp_jax.tuning.tune import (
         TuneConfig,
-        checkpoint_segment,
+        block_steps,
         make_loss,
         make_value_and_grad,
         training_scenarios,
@@ -168,7 +168,7 @@ def _gradient_hlo(robot, gains, loops_whole: bool = True) -> str:
             make_mask(gains, "admittance"),
             config,
             objective,
-            checkpoint_segment(scenario.n_steps),
+            block_steps(scenario.n_steps),
         )
     params = initial_params(gains, "admittance")
     if loops_whole:

@@ -110,7 +110,7 @@ def test_vmap_over_scenarios_equals_loop(robot, gains):
 
 @pytest.mark.slow
 def test_gradient_of_final_position_error_wrt_gains(robot, gains, short_scenario):
-    """jax.grad through the whole rollout (smooth contact, no checkpoint_segment: the plain path
+    """jax.grad through the whole rollout (smooth contact, no block_steps: the plain path
     a user differentiates): finite, non-zero, and along a random direction in log-gain space
     equal to a central difference. Both laws' gradients, gain group by gain group, are checked
     the same way through the tuning loss (tests/test_tuning.py)."""
@@ -136,7 +136,7 @@ def test_gradient_of_final_position_error_wrt_gains(robot, gains, short_scenario
     np.testing.assert_allclose(slope, (plus - minus) / (2 * h), rtol=1e-4, atol=1e-12 * abs(float(value)))
 
 
-def test_rollout_rejects_a_checkpoint_segment_that_does_not_divide_the_steps(robot, gains):
+def test_rollout_rejects_a_log_block_that_does_not_divide_the_steps(robot, gains):
     # The same rule in the paper's loop and in the flight-like loop, before anything is traced.
     from spacegrasp_jax.loop.realism import flight
 
@@ -144,8 +144,12 @@ def test_rollout_rejects_a_checkpoint_segment_that_does_not_divide_the_steps(rob
     loops = {"ideal": {}, "flight": dict(realism=flight(), key=jax.random.PRNGKey(0))}
     for segment in (0, 3):
         for loop, settings in loops.items():
-            with pytest.raises(ValueError, match="checkpoint_segment: .* the 100 steps"):
-                rollout(robot, scenario, gains, "admittance", checkpoint_segment=segment, **settings)
+            with pytest.raises(ValueError, match="block_steps: .* the 100 steps"):
+                rollout(robot, scenario, gains, "admittance", block_steps=segment, **settings)
+    # Its name before, with a warning that names the new one: the same check.
+    with pytest.warns(DeprecationWarning, match="checkpoint_segment is now block_steps"):
+        with pytest.raises(ValueError, match="block_steps: 3 must be a positive divisor of the 100 steps"):
+            rollout(robot, scenario, gains, "admittance", checkpoint_segment=3)
 
 
 @pytest.mark.parametrize(

@@ -27,7 +27,7 @@ from spacegrasp_jax.loop.simulate import RunSpec
 from spacegrasp_jax.tuning.objective import Objective, Weights
 from spacegrasp_jax.tuning.parameters import GROUPS, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import (
-    CHECKPOINT_SEGMENT,
+    BLOCK_STEPS,
     TuneConfig,
     make_loss,
     make_value_and_grad,
@@ -80,7 +80,7 @@ def loss_and_gradient(ur5, short):
     )
     params = initial_params(gains, "admittance")
     mask = make_mask(gains, "admittance")
-    loss = make_loss(ur5, training_scenarios(scenario, config), gains, mask, config, objective, CHECKPOINT_SEGMENT)
+    loss = make_loss(ur5, training_scenarios(scenario, config), gains, mask, config, objective, BLOCK_STEPS)
     return loss, params, make_value_and_grad(loss, params, "reverse")
 
 

@@ -18,7 +18,7 @@ from spacegrasp_jax.loop.simulate import RunSpec, rollout
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts, smooth_max
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 from spacegrasp_jax.tuning.tune import (
-    CHECKPOINT_SEGMENT,
+    BLOCK_STEPS,
     TuneConfig,
     make_loss,
     make_objective,
@@ -146,14 +146,14 @@ def test_objective_parts_on_a_synthetic_log(full_runs):
 
 @pytest.fixture(scope="module")
 def short_problem(robot, gains, full_runs):
-    """``build(controller, scenario=None, segment=CHECKPOINT_SEGMENT) -> (loss, params,
+    """``build(controller, scenario=None, segment=BLOCK_STEPS) -> (loss, params,
     value_and_grad)``: the loss of a law on a scenario (by default 1 s with smooth contact),
     its initial parameters and its jitted reverse-mode gradient. The default scenario's are
     built once per law, so the tests share one compiled gradient."""
     built = {}
 
-    def build(controller, scenario=None, segment=CHECKPOINT_SEGMENT):  # the tuning default (1,000 steps)
-        shared = scenario is None and segment == CHECKPOINT_SEGMENT
+    def build(controller, scenario=None, segment=BLOCK_STEPS):  # the tuning default (1,000 steps)
+        shared = scenario is None and segment == BLOCK_STEPS
         if shared and controller in built:
             return built[controller]
         scenario = scenario or paper_scenario(robot, contact_law="smooth", **SHORT)
@@ -527,3 +527,35 @@ def test_early_stopping_ends_a_cmaes_run_and_its_checkpoint_keeps_the_validation
     calls.clear()
     again, status = cmaes.optimise(evaluate, np.zeros(3), resume=resumed, **common)
     assert status == "stopped_early" and calls == [] and again.validation == state.validation
+
+
+def test_the_settings_walk_counts_modules_and_climbs_to_a_higher_layer():
+    """The walk's summary on a walk written by hand: three modules, one climb (jobs back up to
+    the tuning); a step within a layer is no climb."""
+    from spacegrasp_jax.benchmarks.config_walk import summary
+
+    walk = [
+        ("spacegrasp_jax.tuning.run", "tune", "config"),
+        ("spacegrasp_jax.tuning.tune", "to_dict", "self"),
+        ("spacegrasp_jax.jobs.montecarlo", "sample_loops", "ranges"),
+        ("spacegrasp_jax.jobs.montecarlo", "perturbed_loop", "ranges"),
+        ("spacegrasp_jax.tuning.run", "evaluate", "config"),
+    ]
+    found = summary(walk)
+    assert found["modules"] == [
+        "spacegrasp_jax.tuning.run",
+        "spacegrasp_jax.tuning.tune",
+        "spacegrasp_jax.jobs.montecarlo",
+    ]
+    assert found["climbs"] == 1 and len(found["calls"]) == 5
+
+
+@pytest.mark.slow
+def test_a_tuning_runs_settings_visit_few_modules_and_climb_back_rarely(tmp_path):
+    """Followed through the calls of a one-step CMA-ES run (``benchmarks.config_walk``), the
+    run's settings visit at most 8 modules and climb back to a higher layer at most 3 times."""
+    from spacegrasp_jax.benchmarks.config_walk import summary, walk_of_tune
+
+    found = summary(walk_of_tune("cmaes", "ideal", tmp_path))
+    assert found["modules"][0] == "spacegrasp_jax.tuning.run"
+    assert found["module_count"] <= 8 and found["climbs"] <= 3, found

@@ -29,7 +29,7 @@ def batch_problem(robot, gains):
     objective = Objective(weights=Weights(contact_force=0.1), torque_scale_Nm=scale)
     mask, params = make_mask(gains, "cartesian"), initial_params(gains, "cartesian")
     single = TuneConfig(controller="cartesian", batch=1, objective="weighted", method="gradient")
-    segment = tune.checkpoint_segment(nominal.n_steps)
+    segment = tune.block_steps(nominal.n_steps)
 
     # One program for both scenarios: the scenario is an argument, not a constant of the loss.
     @compilation.jit
@@ -61,7 +61,7 @@ def test_batch_gradient_is_the_mean_of_the_scenarios_gradients(robot, gains, bat
     monkeypatch.setattr(tune, "SEQUENTIAL_BATCH", 8 if in_sequence else 1)
     b = batch_problem
     assert tune.batch_in_sequence(2) == in_sequence
-    segment = tune.checkpoint_segment(b["scenarios"].n_steps, 2)
+    segment = tune.block_steps(b["scenarios"].n_steps, 2)
     assert segment == (b["one_scenario_segment"] if in_sequence else 1)
     loss = make_loss(robot, b["scenarios"], gains, b["mask"], b["config"], b["objective"], segment)
     (value, _), gradient = make_value_and_grad(loss, b["params"], "reverse")(b["params"])

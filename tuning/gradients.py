@@ -46,7 +46,7 @@ from spacegrasp_jax.loop.realism import ideal
 from spacegrasp_jax.loop.simulate import RunSpec, closed_loop
 from spacegrasp_jax.tuning.objective import Objective, objective_parts, objective_spec
 from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
-from spacegrasp_jax.tuning.tune import checkpoint_segment
+from spacegrasp_jax.tuning.tune import block_steps
 
 #: Horizons, as fractions of the scenario's duration, at which the gradient is taken.
 HORIZONS = (0.125, 0.25, 0.5, 1.0)
@@ -169,7 +169,7 @@ def envelope_gradients(
     params = initial_params(gains, law.law)
     items, model_robot, perturbations = _nominal_first(robot, scenario, seed, n, ranges, realism)
     steps = horizon_steps(scenario.n_steps, horizons)
-    segment = 1 if items[2] is not None else checkpoint_segment(scenario.n_steps)
+    segment = 1 if items[2] is not None else block_steps(scenario.n_steps)
     block = functools.partial(_block, steps=steps)
     options = loop_options(checkpoint=True)
     nominal = dataclasses.replace(
@@ -219,9 +219,7 @@ def _perturbation(result: EnvelopeGradients, sample: int) -> dict:
     return {name: np.asarray(value[sample - 1]).tolist() for name, value in result.perturbations.items()}
 
 
-def central_differences(
-    result: EnvelopeGradients, evaluate, gains: Gains, controller, *, samples, step=1e-4, seed=0
-):
+def central_differences(result: EnvelopeGradients, evaluate, gains: Gains, controller, *, samples, step=1e-4, seed=0):
     """The gradient's directional derivative against ``(loss(+h) - loss(-h)) / 2h`` on the
     items ``samples`` (0: nominal), each along a random unit direction of the tuned
     log-gains (``controller``'s groups: a law's name or a law object), at the whole horizon.

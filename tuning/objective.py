@@ -302,7 +302,7 @@ def objective_spec(
 ) -> RunSpec:
     """The run the objective reads: the whole log, each control period checkpointed for
     reverse mode ([`rollout()`][spacegrasp_jax.loop.simulate.rollout]'s loop); ``segment``: its
-    ``checkpoint_segment``; ``options``: the loop's (checkpointed; the host's choice,
+    ``block_steps``; ``options``: the loop's (checkpointed; the host's choice,
     [`experiment.loop_options()`][spacegrasp_jax.jobs.experiment.loop_options])."""
     return RunSpec(
         robot,

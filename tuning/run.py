@@ -54,7 +54,6 @@ from spacegrasp_jax.loop.control.schedule import (
     named_gain_set,
     schedule_of,
 )
-from spacegrasp_jax.loop.realism import make_realism
 from spacegrasp_jax.loop.simulate import LoopOptions, RunSpec
 from spacegrasp_jax.tuning import cmaes
 from spacegrasp_jax.tuning.objective import Objective, objective_spec, scenario_parts
@@ -194,7 +193,7 @@ def run_record(document: dict) -> RunRecord:
 
 
 def _record_of(robot, scenario, base, config: TuneConfig, sources: dict, command=None) -> RunRecord:
-    realism = make_realism(config.realism) if config.realism is not None else None
+    realism = config.loop_realism
     return make_record(
         robot,
         scenario,
@@ -592,10 +591,8 @@ def tune(
             )
         if holdout < 0:
             raise TuneSetupError(f"--holdout: must be >= 0, got {holdout}")
-        record = new_record(
-            config or TuneConfig(), gains_file, scenario_file, robot_file, holdout, fill_from, robot_links, command
-        )
-        config = TuneConfig.from_dict(record["config"])
+        config = config or TuneConfig()
+        record = new_record(config, gains_file, scenario_file, robot_file, holdout, fill_from, robot_links, command)
         try:
             config.weights.check_target(run_record(record).scenario.free_target)
         except ValueError as error:
@@ -614,7 +611,7 @@ def tune(
         file=progress,
         flush=True,
     )
-    realism = make_realism(config.realism) if config.realism is not None else None
+    realism = config.loop_realism
     key = jax.random.PRNGKey(config.seed) if realism is not None else None
     before = experiment.run(RunSpec(robot, exact, config.controller, realism=realism), base, key=key)
     with runfiles.StopRequest() if stop is None else contextlib.nullcontext(stop) as stop:

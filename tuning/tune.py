@@ -39,7 +39,7 @@ from spacegrasp_jax.jobs.runfiles import StopRequest, progress_bar
 from spacegrasp_jax.loop.control.gains import Gains
 from spacegrasp_jax.loop.control.registry import CONTROLLERS
 from spacegrasp_jax.loop.control.schedule import VARIABLES
-from spacegrasp_jax.loop.realism import ideal, make_realism
+from spacegrasp_jax.loop.realism import Realism, ideal, make_realism
 from spacegrasp_jax.loop.simulate import LoopOptions, largest_divisor
 from spacegrasp_jax.tuning import cmaes, estimators
 from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights, objective_spec, scenario_parts
@@ -257,8 +257,9 @@ class TuneConfig:
             raise ValueError(
                 f"aggregate: {self.aggregate} estimates the batch mean's gradient; CVaR weighs the worst samples"
             )
-        if self.realism is not None:
-            make_realism(self.realism, source="realism")  # checked now, before anything compiles
+        # Made (and so checked) now, before anything compiles, and once: ``loop_realism``.
+        loop = None if self.realism is None else make_realism(self.realism, source="realism")
+        object.__setattr__(self, "_loop_realism", loop)
         unknown = sorted(set(self.frozen) - set(GROUPS[self.controller]))
         if unknown:
             raise ValueError(
@@ -318,6 +319,12 @@ class TuneConfig:
         knots = np.asarray(self.schedule_knots)
         if knots.size < 2 or not np.all(np.isfinite(knots)) or np.any(np.diff(knots) <= 0.0):
             raise ValueError(f"schedule_knots: need two or more finite values, increasing; got {knots.tolist()}")
+
+    @property
+    def loop_realism(self) -> Realism | None:
+        """The loop's [`Realism`][spacegrasp_jax.loop.realism.Realism] made from ``realism``
+        when the settings were made (``None``: the paper's ideal loop)."""
+        return self._loop_realism
 
     def to_dict(self) -> dict:
         document = dataclasses.asdict(self)
@@ -385,12 +392,12 @@ def make_optimizer(config: TuneConfig):
 
 
 #: Steps per inner scan of a one-scenario reverse-mode gradient (``simulate.rollout``'s
-#: ``checkpoint_segment``). The tape holds each step's state and RK4's stage rates, (3, N)
+#: ``block_steps``). The tape holds each step's state and RK4's stage rates, (3, N)
 #: numbers a field per step. With loops compiled whole (``spacegrasp_jax.jobs.compilation``) the
 #: length does not matter; where XLA runs loops kernel by kernel, 2 steps keep the inner
 #: loops within 64 numbers an array, in XLA's faster sequential mode (documentation,
 #: changelog).
-CHECKPOINT_SEGMENT = 2
+BLOCK_STEPS = 2
 
 
 #: The largest batch whose scenarios a gradient on a CPU runs one after another
@@ -405,14 +412,14 @@ def batch_in_sequence(batch: int) -> bool:
     return batch == 1 or (batch <= SEQUENTIAL_BATCH and jax.default_backend() == "cpu")
 
 
-def checkpoint_segment(n_steps: int, batch: int = 1) -> int:
+def block_steps(n_steps: int, batch: int = 1) -> int:
     """Steps per inner scan for a gradient over ``batch`` scenarios: the largest divisor of
-    ``n_steps`` up to ``CHECKPOINT_SEGMENT`` when the scenarios run one after another
+    ``n_steps`` up to ``BLOCK_STEPS`` when the scenarios run one after another
     ([`batch_in_sequence()`][tuning.tune.batch_in_sequence]); 1 for a vmapped batch, whose arrays are too large for XLA's
     sequential mode anyway."""
     if not batch_in_sequence(batch):
         return 1
-    return largest_divisor(n_steps, CHECKPOINT_SEGMENT)
+    return largest_divisor(n_steps, BLOCK_STEPS)
 
 
 def training_scenarios(nominal: Scenario, config: TuneConfig) -> Scenario:
@@ -578,7 +585,7 @@ def flight_batch(robot: Robot, nominal: Scenario, config: TuneConfig, seed: int,
     ranges = config.ranges
     if ranges.satellite_mass_fraction == 0.0 and ranges.satellite_inertia_fraction == 0.0:
         ranges = dataclasses.replace(ranges, satellite_mass_fraction=0.1, satellite_inertia_fraction=0.1)
-    return sample_loops(robot, nominal, seed, range(count), ranges, make_realism(config.realism))
+    return sample_loops(robot, nominal, seed, range(count), ranges, config.loop_realism)
 
 
 def aggregate_gradients(losses, gradients, config: TuneConfig):
@@ -907,6 +914,6 @@ def setup(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torq
             )
         return objective, mask, params, make_flight_value_and_grad(robot, batch, base, mask, config, objective, fresh)
     scenarios = training_batch(robot, nominal, config)
-    segment = checkpoint_segment(nominal.n_steps, config.batch) if config.gradient == "reverse" else None
+    segment = block_steps(nominal.n_steps, config.batch) if config.gradient == "reverse" else None
     loss = make_loss(robot, scenarios, base, mask, config, objective, segment)
     return objective, mask, params, make_value_and_grad(loss, params, config.gradient)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -948,15 +949,17 @@ def rollout(
     scenario: Scenario,
     gains: Gains,
     controller,
-    checkpoint_segment: int | None = None,
+    block_steps: int | None = None,
     realism: Realism | None = None,
     key: jax.Array | None = None,
     model_robot: Robot | None = None,
     options: LoopOptions | None = None,
+    *,
+    checkpoint_segment: int | None = None,
 ) -> tuple[LoopState, Log]:
     """Simulate the closed loop over ``scenario.duration`` and keep its whole log: in one
     call, [`closed_loop()`][spacegrasp_jax.loop.simulate.closed_loop] of ``RunSpec(robot, scenario, controller, realism=realism,
-    model_robot=model_robot, observer=FullLog(checkpoint_segment), options=options)``
+    model_robot=model_robot, observer=FullLog(block_steps), options=options)``
     ([`RunSpec`][spacegrasp_jax.loop.simulate.RunSpec]).
 
     Args:
@@ -967,9 +970,9 @@ def rollout(
             ([`as_controller()`][spacegrasp_jax.loop.control.registry.as_controller]); a law
             object carries its settings (``control.Admittance(pinv_damping=0.01)``: damped
             least squares; a name: the paper's exact pseudoinverse).
-        checkpoint_segment: the log's block: steps per inner scan of the loop (static;
-            must divide ``n_steps``; ``None``: ``LOG_BLOCK`` or the largest divisor below
-            it; a loop whose control period spans several steps runs whole periods;
+        block_steps: the log's block: steps per inner scan of the loop (static; must divide
+            ``n_steps``; ``None``: ``LOG_BLOCK`` or the largest divisor below it; a loop
+            whose control period spans several steps runs whole periods;
             [`FullLog`][spacegrasp_jax.loop.simulate.FullLog]'s ``block_steps``). Where XLA runs
             loops kernel by kernel, an inner scan whose arrays stay within 64 numbers runs
             as a sequence: a checkpointed step's three RK4 rates are (3, 7), so inner scans
@@ -982,22 +985,26 @@ def rollout(
             (``None``: ``LoopOptions(checkpoint=True)``;
             [`experiment.loop_options(checkpoint=True)`][spacegrasp_jax.jobs.experiment.loop_options]
             gives the one this process compiles best).
+        checkpoint_segment: ``block_steps``' name before, with a ``DeprecationWarning``.
 
     Returns:
         ``(final_state, log)``: the [`LoopState`][spacegrasp_jax.loop.simulate.LoopState] after
         ``scenario.n_steps`` steps and the [`Log`][spacegrasp_jax.loop.simulate.Log]. A diverging rollout carries non-finite
         values from the first bad step on; [`first_nonfinite_time()`][spacegrasp_jax.loop.simulate.first_nonfinite_time] finds it (``experiment.run`` reports it).
     """
+    if checkpoint_segment is not None:
+        warnings.warn("rollout: checkpoint_segment is now block_steps", DeprecationWarning, stacklevel=2)
+        block_steps = checkpoint_segment if block_steps is None else block_steps
     n_steps = scenario.n_steps
-    if checkpoint_segment is not None and (checkpoint_segment < 1 or n_steps % checkpoint_segment):
-        raise ValueError(f"checkpoint_segment: {checkpoint_segment} must be a positive divisor of the {n_steps} steps")
+    if block_steps is not None and (block_steps < 1 or n_steps % block_steps):
+        raise ValueError(f"block_steps: {block_steps} must be a positive divisor of the {n_steps} steps")
     spec = RunSpec(
         robot,
         scenario,
         controller,
         realism=realism,
         model_robot=model_robot,
-        observer=FullLog(checkpoint_segment),
+        observer=FullLog(block_steps),
         options=LoopOptions(checkpoint=True) if options is None else options,
     )
     return closed_loop(spec, gains, key)
