@@ -175,3 +175,27 @@ def test_the_gradient_probes_refuse_bad_options_before_anything_runs(module, arg
     with pytest.raises(SystemExit) as exit_info:
         main(argv)
     assert exit_info.value.code == 2 and f"error: {named}:" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "module, argv, said",
+    [
+        ("equivalence", ["--save", "a.npz", "--tolerance", "-1"], "--tolerance: must be a non-negative number"),
+        ("equivalence", ["--against", "nowhere.npz"], "--against: no such file: nowhere.npz"),
+        ("equivalence", [], "one of the arguments --save --against is required"),
+        ("version_timings", ["--out", "t.json", "--repeats", "0"], "--repeats: must be at least 1"),
+        ("config_walk", ["--method", "nelder-mead"], "argument --method: invalid choice"),
+        ("config_walk", ["--realism", "mars"], "argument --realism: invalid choice"),
+    ],
+)
+def test_the_version_checks_refuse_bad_options_before_anything_runs(module, argv, said, capsys, tmp_path, monkeypatch):
+    """``benchmarks.equivalence``, ``version_timings`` and ``config_walk``: a bad option exits 2
+    naming it, before the package is configured or anything runs."""
+    import importlib
+
+    monkeypatch.chdir(tmp_path)
+    main = importlib.import_module(f"spacegrasp_jax.benchmarks.{module}").main
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2 and said in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []

@@ -87,6 +87,12 @@ def test_every_key_present_and_finite_at_the_papers_gains(reports):
     nominal = np.concatenate([arrays[f"gradient.{name}"][0, -1] for name in document["groups"]])
     assert np.linalg.norm(nominal) == pytest.approx(document["nominal"]["gradient_norm"], rel=1e-12)
     assert (out / "gradients.png").stat().st_size > 0
+    # the run's record: what it ran, read back
+    from spacegrasp_jax.jobs.records import RunRecord
+
+    record = RunRecord.from_dict(document["settings"]["record"])
+    assert [variant.key for variant in record.variants] == ["admittance/paper"]
+    assert record.scenario.contact_law == "smooth" and record.command[:2] == ("spacegrasp", "gradients")
 
 
 def test_a_diverging_envelope_is_reported_not_hidden(reports, capsys):

@@ -13,12 +13,15 @@ import numpy as np
 from spacegrasp_jax.cli.common import (
     _check_envelope,
     _claim,
+    _gains_record,
     _law,
     _load_inputs,
     _ranges,
     _rate_criterion,
     _realism,
+    _robot_links,
     _warn,
+    gains_label,
 )
 from spacegrasp_jax.cli.options import (
     _SEED,
@@ -40,6 +43,7 @@ from spacegrasp_jax.envelope.perturbations import (
     PerturbationRanges,
 )
 from spacegrasp_jax.jobs import batching, paper, runfiles
+from spacegrasp_jax.jobs.records import Variant, make_record
 from spacegrasp_jax.loop.control import (
     CONTROLLERS,
 )
@@ -107,20 +111,32 @@ def _gradients(args: argparse.Namespace) -> int:
     document["central_differences"] = central_differences(
         result, evaluate, gains, args.controller, samples=checked, seed=args.seed
     )
+    sources = {
+        "robot": getattr(args, "robot", None) or "paper_robot()",
+        "robot_links": _robot_links(args) or None,
+        "scenario": getattr(args, "scenario", None) or "paper_scenario()",
+        **_gains_record(args.gains, args, args.controller),
+    }
+    record = make_record(
+        robot,
+        smooth,
+        [Variant(args.controller, gains, gains_label(args.gains))],
+        realism=realism,
+        criteria=objective.criteria,
+        pinv_damping=args.pinv_damping,
+        command=getattr(args, "command_line", None),
+        sources=sources,
+    )
     document["settings"] = {
-        "controller": args.controller,
-        "gains": gains.to_dict(args.controller),
+        "record": record.to_dict(),
         "seed": args.seed,
         "ranges": ranges.to_dict(),
-        "realism": realism.to_dict() if realism is not None else None,
         "objective": config.objective,
         "weights": dataclasses.asdict(config.weights),
         "torque_scale_Nm": objective.torque_scale_Nm,
         "torque_constraint_Nm": objective.torque_constraint_Nm if config.objective == "capture" else None,
         "scenario_duration_s": scenario.duration,
-        "pinv_damping": args.pinv_damping,
         "contact_law": "smooth",
-        **runfiles.provenance(),
     }
     runfiles.write_json(out / "gradients.json", document)
     runfiles.write_arrays(

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from spacegrasp_jax.core.model import Robot, RobotConfigError, n_joints, paper_robot, robot_to_toml
@@ -104,7 +105,7 @@ class RunRecord:
 
     def key(self) -> jax.Array | None:
         """The sensors' noise key (``None`` where the record has none)."""
-        return None if self.noise_key is None else jax.numpy.asarray(self.noise_key, dtype=jax.numpy.uint32)
+        return None if self.noise_key is None else jnp.asarray(self.noise_key, dtype=jnp.uint32)
 
     def spec(self, variant: Variant) -> RunSpec:
         """The [`RunSpec`][spacegrasp_jax.loop.simulate.RunSpec] of ``variant``'s run."""
