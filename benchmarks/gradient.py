@@ -1,12 +1,16 @@
 """Cost of one gradient of the tuning objective against one forward rollout.
 
     python -m spacegrasp_jax.benchmarks.gradient [--out results/benchmarks] [--duration 17] [--repeats 3]
+        [--modes ...] [--gradient-from S]
 
 Modes, each in its own process so that peak memory is its own:
 * ``forward``: the objective alone (one rollout of the 17 s paper scenario, smooth contact);
 * ``reverse_checkpointed``: ``jax.value_and_grad`` with each step's parts under
   ``jax.checkpoint``, in inner scans of 2 steps (``spacegrasp_jax.tuning.tune.block_steps``, the
   tuning default);
+* ``reverse_truncated``: ``reverse_checkpointed`` with truncated backpropagation from
+  ``--gradient-from`` s (default: half the duration; ``LoopOptions.gradient_from_s``): the
+  loop before the cut runs forward only;
 * ``reverse_plain``: ``jax.value_and_grad`` of ``rollout`` as a user writes it (inner scans of
   ``LOG_BLOCK`` steps, the parts of each step still under ``jax.checkpoint``: ``rollout`` always puts them there);
 * ``forward_mode``: ``jax.jacfwd`` over the 39 admittance log-gains.
@@ -29,10 +33,10 @@ from pathlib import Path
 
 from spacegrasp_jax.jobs.compilation import configure
 
-MODES = ("forward", "reverse_checkpointed", "reverse_plain", "forward_mode")
+MODES = ("forward", "reverse_checkpointed", "reverse_truncated", "reverse_plain", "forward_mode")
 
 
-def measure(mode: str, duration: float, repeats: int) -> dict:
+def measure(mode: str, duration: float, repeats: int, gradient_from_s: float | None = None) -> dict:
     import jax
 
     import spacegrasp_jax as sg
@@ -52,12 +56,13 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
 
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, contact_law="smooth", duration=duration)
+    cut = (duration / 2 if gradient_from_s is None else gradient_from_s) if mode == "reverse_truncated" else None
     config = TuneConfig(
-        batch=1, objective="weighted", method="gradient"
+        batch=1, objective="weighted", method="gradient", gradient_from_s=cut
     )  # one scenario: the cost of one gradient against one rollout
     objective = Objective(weights=Weights(), torque_scale_Nm=(0.80, 2.71, 1.82, 0.77, 1.11, 0.24, 0.028))
     params = initial_params(gains, "admittance")
-    segment = block_steps(scenario.n_steps) if mode == "reverse_checkpointed" else None
+    segment = block_steps(scenario.n_steps) if mode in ("reverse_checkpointed", "reverse_truncated") else None
     loss = make_loss(
         robot, training_scenarios(scenario, config), gains, make_mask(gains, "admittance"), config, objective, segment
     )
@@ -76,6 +81,7 @@ def measure(mode: str, duration: float, repeats: int) -> dict:
     return {
         "mode": mode,
         "block_steps": segment,
+        "gradient_from_s": cut,
         "compile_s": compile_s,
         "run_s": run["median_s"],
         "run_spread_s": [run["min_s"], run["max_s"]],
@@ -99,15 +105,23 @@ def main(argv: list[str] | None = None) -> int:
         help="JAX persistent compilation cache for the children: run twice with the same DIR and the "
         "second run loads the programs instead of compiling them ('compile' is then the load time)",
     )
+    parser.add_argument(
+        "--gradient-from",
+        type=float,
+        metavar="S",
+        help="reverse_truncated's cut: backpropagate from this time on only (default: half the duration)",
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        print(json.dumps(measure(args.child, args.duration, args.repeats)))
+        print(json.dumps(measure(args.child, args.duration, args.repeats, args.gradient_from)))
         return 0
     modes = [mode for mode in args.modes.split(",") if mode]
     unknown = set(modes) - set(MODES)
     if unknown:
         parser.error(f"unknown mode(s): {', '.join(sorted(unknown))}")
+    if args.gradient_from is not None and not 0.0 <= args.gradient_from < args.duration:
+        parser.error(f"--gradient-from: must be a time in [0, {args.duration:g}) s, got {args.gradient_from:g}")
     environment = dict(os.environ)
     if args.compile_cache:
         environment |= {
@@ -126,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
             str(args.duration),
             "--repeats",
             str(args.repeats),
-        ]
+        ] + ([] if args.gradient_from is None else ["--gradient-from", str(args.gradient_from)])
         output = subprocess.run(command, capture_output=True, text=True, check=True, env=environment).stdout
         results[mode] = json.loads(output.strip().splitlines()[-1])
         print(f"measured {mode}", flush=True)

@@ -327,6 +327,14 @@ def cases(paths, out):
             [*TUNE, "--realism", "flight", "--step-size", "0.1", "--out", out],
             "--step-size: a setting of CMA-ES",
         ),
+        "tune gradient cut under CMA-ES": (
+            [*TUNE, "--method", "cmaes", "--gradient-from", "3", "--out", out],
+            "--gradient-from: a setting of the gradient method; CMA-ES does not use it",
+        ),
+        "tune gradient cut past the capture": (
+            [*TUNE, "--method", "gradient", "--gradient-from", "30", "--out", out],
+            "--gradient-from: 30 s is at or past the run's end (17 s): nothing would be differentiated",
+        ),
         "tune lr under CMA-ES": ([*TUNE, "--lr", "0.3", "--out", out], "--lr: a setting of the gradient method"),
         "tune torque guard under CMA-ES": (
             [*TUNE, "--torque-guard", "50", "--out", out],

@@ -27,7 +27,7 @@ def test_quick_benchmark_writes_every_key(tmp_path):
     assert set(KEYS) <= set(report), set(KEYS) - set(report)
     assert set(report["rollout_s"]) == {"admittance", "cartesian"}
     assert set(report["batch_steps_per_s"]) == {"1", "4"}
-    assert set(report["gradient_over_forward"]) == {"reverse", "forward"}
+    assert set(report["gradient_over_forward"]) == {"reverse", "truncated", "forward"}
     numbers = [
         *report["rollout_s"].values(),
         *report["compile_s"].values(),

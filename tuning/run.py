@@ -62,6 +62,7 @@ from spacegrasp_jax.tuning.tune import (
     CHECKPOINT,
     VALIDATION_SEED_OFFSET,
     TuneConfig,
+    check_gradient_cut,
     flight_batch,
     load_checkpoint,
     make_objective,
@@ -594,7 +595,9 @@ def tune(
         config = config or TuneConfig()
         record = new_record(config, gains_file, scenario_file, robot_file, holdout, fill_from, robot_links, command)
         try:
-            config.weights.check_target(run_record(record).scenario.free_target)
+            scenario = run_record(record).scenario
+            config.weights.check_target(scenario.free_target)
+            check_gradient_cut(config, scenario)
         except ValueError as error:
             raise TuneSetupError(str(error)) from None
         out.mkdir(parents=True, exist_ok=True)

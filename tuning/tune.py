@@ -40,7 +40,7 @@ from spacegrasp_jax.loop.control.gains import Gains
 from spacegrasp_jax.loop.control.registry import CONTROLLERS
 from spacegrasp_jax.loop.control.schedule import VARIABLES
 from spacegrasp_jax.loop.realism import Realism, ideal, make_realism
-from spacegrasp_jax.loop.simulate import LoopOptions, largest_divisor
+from spacegrasp_jax.loop.simulate import LoopOptions, gradient_cut, largest_divisor
 from spacegrasp_jax.tuning import cmaes, estimators
 from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights, objective_spec, scenario_parts
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
@@ -175,6 +175,10 @@ class TuneConfig:
             log-gains at every knot (``None``: constant gains, or the starting file's
             schedule as it is).
         schedule_knots: the knots (increasing, at least two) on ``schedule_variable``.
+        gradient_from_s: truncated backpropagation (s; ``None``: the whole capture): the
+            gradient method differentiates each capture from this time on only, the state
+            there held ([`LoopOptions`][spacegrasp_jax.loop.simulate.LoopOptions]' ``gradient_from_s``):
+            the loss is the same, the gradient cheaper and biased (documentation, Tuning).
     """
 
     controller: str = "admittance"
@@ -207,6 +211,7 @@ class TuneConfig:
     joint_rate_limits_radps: tuple[float, ...] | None = None
     schedule_variable: str | None = None
     schedule_knots: tuple[float, ...] = ()
+    gradient_from_s: float | None = None
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
@@ -283,6 +288,10 @@ class TuneConfig:
                 f"aggregate: {self.aggregate} combines the samples' separate gradients of a run under a realism; "
                 "the ideal loop's batch has one gradient of the mean (choose --realism, or mean)"
             )
+        if self.gradient_from_s is not None and not (
+            isinstance(self.gradient_from_s, int | float) and 0.0 <= self.gradient_from_s < math.inf
+        ):
+            raise ValueError(f"gradient_from_s: must be a time of 0 s or more, got {self.gradient_from_s!r}")
         if self.patience is not None and self.patience < 1:
             raise ValueError(f"patience: must be at least 1 step, got {self.patience}")
         if self.validation_size < 1:
@@ -362,6 +371,7 @@ GRADIENT_METHOD_FIELDS = (
     "loss_guard",
     "aggregate",
     "fresh_batches",
+    "gradient_from_s",
 )
 
 _DEFAULTS = {field.name: field.default for field in dataclasses.fields(TuneConfig)}
@@ -483,12 +493,29 @@ class BoundLoss:
         return self.function(params, self.values)
 
 
+def tuning_loop_options(config: TuneConfig) -> LoopOptions:
+    """The loop options of a tuning run's gradient programs: checkpointed as this process
+    compiles best ([`experiment.loop_options()`][spacegrasp_jax.jobs.experiment.loop_options]),
+    truncated at ``config.gradient_from_s``."""
+    return dataclasses.replace(loop_options(checkpoint=True), gradient_from_s=config.gradient_from_s)
+
+
+def check_gradient_cut(config: TuneConfig, scenario: Scenario) -> None:
+    """Refuse a ``gradient_from_s`` that leaves nothing of ``scenario`` to differentiate,
+    before anything compiles (``ValueError`` naming the field)."""
+    if config.gradient_from_s is None:
+        return
+    realism = config.loop_realism
+    steps = 1 if realism is None else realism.steps_per_period(scenario.dt)
+    gradient_cut(config.gradient_from_s, steps * scenario.dt, 1, scenario.n_steps // steps)
+
+
 def make_loss(
     robot: Robot, scenarios: Scenario, base: Gains, mask, config: TuneConfig, objective: Objective, segment: int | None
 ) -> BoundLoss:
     """The tuning loss over ``scenarios`` (stacked), [`batch_loss()`][tuning.tune.batch_loss] with these values."""
     in_sequence = batch_in_sequence(jax.tree.leaves(scenarios)[0].shape[0])
-    options = loop_options(checkpoint=True)
+    options = tuning_loop_options(config)
     function = _batch_loss_function(config.controller, config.cvar_alpha, segment, in_sequence, options)
     return BoundLoss(function, (robot, scenarios, base, mask, objective))
 
@@ -658,7 +685,7 @@ def make_flight_value_and_grad(
     hard peak torque and ``clipped_samples``. The samples are ``batch``, or at a step above
     0 ``fresh(step)`` where given (``config.fresh_batches``: the same program, other samples)."""
     function = functools.partial(
-        _per_sample_gradients, controller=config.controller, options=loop_options(checkpoint=True)
+        _per_sample_gradients, controller=config.controller, options=tuning_loop_options(config)
     )
     count = int(batch.keys.shape[0])
 

@@ -343,6 +343,7 @@ TUNE_OPTIONS = {
     "objective": "--objective",
     "weights": "--weights",
     "fresh_batches": "--fresh-batches",
+    "gradient_from_s": "--gradient-from",
     "keep": "--keep",
     "patience": "--patience",
     "validation_size": "--validation-size",

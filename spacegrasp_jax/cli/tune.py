@@ -60,7 +60,15 @@ from spacegrasp_jax.tuning.run import (
     tune,
     tuned_base,
 )
-from spacegrasp_jax.tuning.tune import KEEPS, METHODS, RECIPES, TUNING_RANGES, TuneConfig, default_recipe
+from spacegrasp_jax.tuning.tune import (
+    KEEPS,
+    METHODS,
+    RECIPES,
+    TUNING_RANGES,
+    TuneConfig,
+    check_gradient_cut,
+    default_recipe,
+)
 
 
 def _tune(args: argparse.Namespace) -> int:
@@ -83,8 +91,9 @@ def _tune(args: argparse.Namespace) -> int:
     _check_joint_ranges(args, robot, scenario)
     try:
         config.weights.check_target(scenario.free_target)
+        check_gradient_cut(config, scenario)
     except ValueError as error:
-        raise UsageError(str(error)) from None
+        raise tune_setting_error(error) from None
     _realism(args, scenario, robot)
     _warn(plausibility.input_warnings(scenario))
     _check_envelope(args, scenario)
@@ -315,6 +324,7 @@ def _tune_fields(args: argparse.Namespace, robot) -> dict:
         patience=args.patience,
         validation_size=args.validation_size,
         joint_rate_limits_radps=_rate_criterion(args, robot),
+        gradient_from_s=args.gradient_from,
         **(_schedule(args.schedule) if args.schedule else {}),
     )
 
@@ -424,6 +434,14 @@ def add_parsers(commands) -> None:
         default=None,
         help="the gradient method under --realism: a new batch of the envelope for every step (default: without "
         "--method, a new batch; with --method gradient, one batch)",
+    )
+    tune.add_argument(
+        "--gradient-from",
+        type=_real(0.0, 1e6),
+        default=None,
+        metavar="SECONDS",
+        help="the gradient method: truncated backpropagation, differentiating each capture from this time on "
+        "only, the state there held: a cheaper, biased gradient of the same loss (default: the whole capture)",
     )
     tune.add_argument(
         "--patience",

@@ -415,10 +415,25 @@ class LoopOptions:
             where it runs them kernel by kernel (a gradient 35% slower than recomputing
             them). Where loops compile whole it runs as fast and compiles in 56-71% of the
             time (documentation, Performance): the host sets it where they do.
+        gradient_from_s: truncated backpropagation (s; ``None``: the whole run). The loop
+            runs in two scans: the control periods before the cut with the gains and the
+            spec held (``jax.lax.stop_gradient``), then the rest. Reverse mode differentiates
+            only the second: the gains' effect from the cut on, the state at the cut held,
+            so it neither records nor recomputes the first. The cut is the first block
+            boundary of the observer at or after ``gradient_from_s``
+            ([`gradient_cut()`][spacegrasp_jax.loop.simulate.gradient_cut]). What the loop computes is
+            unchanged; its derivatives are those of the run after the cut.
     """
 
     checkpoint: bool = False
     reuse_start_kinematics: bool = False
+    gradient_from_s: float | None = None
+
+    def __post_init__(self):
+        if self.gradient_from_s is not None and not (
+            isinstance(self.gradient_from_s, int | float) and 0.0 <= self.gradient_from_s < float("inf")
+        ):
+            raise ValueError(f"gradient_from_s: must be a time >= 0 s, got {self.gradient_from_s!r}")
 
 
 def loop_stages(spec: RunSpec) -> tuple:
@@ -914,7 +929,47 @@ def closed_loop(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> tu
     block = observer.periods_per_block(body)
     if block < 1 or body.periods % block:
         raise ValueError(f"the observer's block of {block} periods does not divide the {body.periods} control periods")
+    cut = gradient_cut(spec.options.gradient_from_s, body.steps_per_period * scenario.dt, block, body.periods)
     dtype = scenario.initial.q.dtype
+    carry = (body.start, observer.init(robot, scenario), jnp.zeros((), dtype))
+    if cut:
+        held = loop_body(jax.lax.stop_gradient(spec), jax.lax.stop_gradient(gains), key)
+        carry, kept_before = _scan_periods(held, observer, block, carry, cut)
+        carry = jax.lax.stop_gradient(carry)
+    start = carry[0]
+    if spec.options.checkpoint:
+        # The gains drive every part of the loop's state but a fixed target's: those parts
+        # carry their derivative from the start, so reverse mode linearises the period once.
+        start = with_derivative_of(start, gains)
+        if not scenario.free_target:
+            start = dataclasses.replace(start, plant=dataclasses.replace(start.plant, target=carry[0].plant.target))
+    (final, memory, _), kept = _scan_periods(body, observer, block, (start, *carry[1:]), body.periods - cut)
+    if cut:
+        kept = jax.tree.map(lambda before, after: jnp.concatenate([before, after]), kept_before, kept)
+    return final, observer.finish(memory, kept, final, scenario, spec.realism)
+
+
+def gradient_cut(gradient_from_s: float | None, period_s: float, block: int, periods: int) -> int:
+    """The control periods before a truncated backpropagation's cut
+    ([`LoopOptions`][spacegrasp_jax.loop.simulate.LoopOptions]' ``gradient_from_s``): the first
+    multiple of ``block`` periods of ``period_s`` seconds at or after ``gradient_from_s``; 0
+    for ``None``. A cut at or past the run's ``periods`` is an error: nothing would be
+    differentiated."""
+    if gradient_from_s is None:
+        return 0
+    periods_before = int(np.ceil(round(gradient_from_s / period_s, 9)))
+    cut = -(-periods_before // block) * block
+    if cut >= periods:
+        raise ValueError(
+            f"gradient_from_s: {gradient_from_s:g} s is at or past the run's end ({periods * period_s:g} s): "
+            "nothing would be differentiated"
+        )
+    return cut
+
+
+def _scan_periods(body: LoopBody, observer, block: int, carry: tuple, periods: int):
+    """``periods`` control periods of ``body`` from ``carry = (state, memory, k)``, in
+    blocks of ``block``: ``(carry, kept)``."""
 
     # The period number rides in the carry rather than being scanned over: the loop then
     # reads no array longer than 64 numbers, and XLA's CPU runtime runs its body as a sequence.
@@ -924,24 +979,14 @@ def closed_loop(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> tu
         memory, output = observer.fold(memory, rows)
         return (state, memory, k + 1), output
 
-    start = body.start
-    if spec.options.checkpoint:
-        # The gains drive every part of the loop's state but a fixed target's: those parts
-        # carry their derivative from the start, so reverse mode linearises the period once.
-        start = with_derivative_of(start, gains)
-        if not scenario.free_target:
-            start = dataclasses.replace(start, plant=dataclasses.replace(start.plant, target=body.start.plant.target))
-    carry = (start, observer.init(robot, scenario), jnp.zeros((), dtype))
     if block == 1:
-        (final, memory, _), kept = jax.lax.scan(period_and_fold, carry, None, length=body.periods)
-    else:
+        return jax.lax.scan(period_and_fold, carry, None, length=periods)
 
-        def run_block(carry, _):
-            carry, outputs = jax.lax.scan(period_and_fold, carry, None, length=block)
-            return carry, observer.keep(outputs)
+    def run_block(carry, _):
+        carry, outputs = jax.lax.scan(period_and_fold, carry, None, length=block)
+        return carry, observer.keep(outputs)
 
-        (final, memory, _), kept = jax.lax.scan(run_block, carry, None, length=body.periods // block)
-    return final, observer.finish(memory, kept, final, scenario, spec.realism)
+    return jax.lax.scan(run_block, carry, None, length=periods // block)
 
 
 def rollout(
