@@ -13,7 +13,12 @@ Modes, each in its own process so that peak memory is its own:
   loop before the cut runs forward only;
 * ``reverse_plain``: ``jax.value_and_grad`` of ``rollout`` as a user writes it (inner scans of
   ``LOG_BLOCK`` steps, the parts of each step still under ``jax.checkpoint``: ``rollout`` always puts them there);
-* ``forward_mode``: ``jax.jacfwd`` over the 39 admittance log-gains.
+* ``forward_mode``: ``jax.jacfwd`` over the 39 admittance log-gains;
+* ``flight_forward``, ``flight_reverse``, ``flight_truncated``: the flight-like tuner's
+  program for one capture (``tuning.tune._per_sample_gradients``: the capture objective
+  with a 4 N m budget, the campaigns' first sample of seed 0, one control period a
+  checkpoint): its loss alone, its gradient, and its gradient cut at ``--gradient-from``
+  (default: half the duration). Their ratios are to ``flight_forward``.
 Reports wall time after compilation (median of ``--repeats``), its ratio to ``forward``,
 XLA's ``memory_analysis`` (temporary and argument/output buffers) and the process's peak RSS.
 With ``--compile-cache DIR``, run twice: the second run loads the compiled programs from
@@ -33,7 +38,82 @@ from pathlib import Path
 
 from spacegrasp_jax.jobs.compilation import configure
 
-MODES = ("forward", "reverse_checkpointed", "reverse_truncated", "reverse_plain", "forward_mode")
+MODES = (
+    "forward",
+    "reverse_checkpointed",
+    "reverse_truncated",
+    "reverse_plain",
+    "forward_mode",
+    "flight_forward",
+    "flight_reverse",
+    "flight_truncated",
+)
+
+
+def measure_flight(mode: str, duration: float, repeats: int, gradient_from_s: float | None = None) -> dict:
+    """One of the ``flight_*`` modes (module docstring)."""
+    import jax
+    import numpy as np
+
+    import spacegrasp_jax as sg
+    from spacegrasp_jax.benchmarks.dynamics import timed
+    from spacegrasp_jax.envelope.scenario import paper_scenario
+    from spacegrasp_jax.jobs import compilation
+    from spacegrasp_jax.loop.control import paper_gains
+    from spacegrasp_jax.loop.realism import flight
+    from spacegrasp_jax.tuning.objective import objective_spec, scenario_parts
+    from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
+    from spacegrasp_jax.tuning.tune import (
+        TuneConfig,
+        _per_sample_gradients,
+        flight_batch,
+        make_objective,
+        tuning_loop_options,
+    )
+
+    robot, gains = sg.paper_robot(), paper_gains()
+    scenario = paper_scenario(robot, contact_law="smooth", duration=duration)
+    cut = (duration / 2 if gradient_from_s is None else gradient_from_s) if mode == "flight_truncated" else None
+    config = TuneConfig(
+        method="gradient", batch=1, realism=flight(robot).to_dict(), torque_cap_Nm=4.0, gradient_from_s=cut
+    )
+    objective = make_objective(robot, config, np.ones(7))
+    mask, params = make_mask(gains, "admittance"), initial_params(gains, "admittance")
+    batch = flight_batch(robot, scenario, config, seed=0, count=1)
+    samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
+    options = tuning_loop_options(config)
+
+    if mode == "flight_forward":
+
+        def program(params, samples):
+            r, s, realism, key = jax.tree.map(lambda x: x[0], samples)
+            spec = objective_spec(r, s, "admittance", 1, realism, batch.model_robot, options)
+            return scenario_parts(spec, gains_from_params(params, gains, mask), objective, key)["loss"]
+    else:
+
+        def program(params, samples):
+            return _per_sample_gradients(
+                params, gains, mask, batch.model_robot, objective, samples, controller="admittance", options=options
+            )
+
+    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    start = time.perf_counter()
+    executable = compilation.jit(program).lower(params, samples).compile()
+    compile_s = time.perf_counter() - start
+    memory = executable.memory_analysis()
+    jax.block_until_ready(executable(params, samples))
+    run = timed(lambda: jax.block_until_ready(executable(params, samples)), repeats)
+    return {
+        "mode": mode,
+        "gradient_from_s": cut,
+        "compile_s": compile_s,
+        "run_s": run["median_s"],
+        "run_spread_s": [run["min_s"], run["max_s"]],
+        "xla_temp_mb": memory.temp_size_in_bytes / 1e6,
+        "xla_argument_output_mb": (memory.argument_size_in_bytes + memory.output_size_in_bytes) / 1e6,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3,
+        "rss_before_compile_mb": rss_before / 1e3,
+    }
 
 
 def measure(mode: str, duration: float, repeats: int, gradient_from_s: float | None = None) -> dict:
@@ -114,7 +194,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        print(json.dumps(measure(args.child, args.duration, args.repeats, args.gradient_from)))
+        measured = measure_flight if args.child.startswith("flight") else measure
+        print(json.dumps(measured(args.child, args.duration, args.repeats, args.gradient_from)))
         return 0
     modes = [mode for mode in args.modes.split(",") if mode]
     unknown = set(modes) - set(MODES)
@@ -144,11 +225,12 @@ def main(argv: list[str] | None = None) -> int:
         output = subprocess.run(command, capture_output=True, text=True, check=True, env=environment).stdout
         results[mode] = json.loads(output.strip().splitlines()[-1])
         print(f"measured {mode}", flush=True)
-    forward = results.get("forward", {}).get("run_s")
+    forwards = {"": results.get("forward", {}).get("run_s"), "flight": results.get("flight_forward", {}).get("run_s")}
     print(
         f"\n{'mode':22} {'compile [s]':>11} {'run [s]':>9} {'/ forward':>9} {'XLA temp [MB]':>13} {'peak RSS [MB]':>13}"
     )
     for mode, r in results.items():
+        forward = forwards["flight" if mode.startswith("flight") else ""]
         ratio = r["run_s"] / forward if forward else float("nan")
         r["over_forward"] = ratio
         print(

@@ -3,7 +3,7 @@ out on fresh captures.
 
     python -m spacegrasp_jax.benchmarks.race [--methods cmaes,gradient_fresh] [--minutes 15] [--marks 5,10,15]
         [--seed 0] [--heldout 1000] [--heldout-seed 20261202] [--schedule time:0,4,8,12,17]
-        [--out notebooks/data/race]
+        [--out notebooks/data/race] [--against FOLDER]
 
 Every method tunes the 39 constant admittance and PID gains from the paper's (with
 ``--schedule VARIABLE:X1,X2,...``, a gain schedule: those gains at every knot, ``spacegrasp
@@ -28,6 +28,10 @@ agreed best with itself in ``benchmarks.estimators``); ``gradient_fresh_truncate
 (``gradient_fresh`` with truncated backpropagation from 8.5 s, ``--gradient-from 8.5``: a
 cheaper gradient, so more steps in the time).
 
+A method added to a finished race runs in a folder of its own with ``--against`` the
+race's: its held-out campaign draws the same captures (same settings), so its gains are
+compared, paired, with the race's.
+
 Resumable: ``race.json`` records each finished method's snapshots; a method cut short by an
 interruption runs again from its start (its wall time must be one run's), and the held-out
 campaign resumes chunk by chunk. Writes ``race.json`` and ``heldout/`` (the campaign).
@@ -38,6 +42,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import shutil
 import signal
 import subprocess
@@ -71,9 +76,9 @@ METHODS = {
 #: gradients takes about 11 s): their cosine schedule ends when the time does.
 GRADIENT_STEPS_PER_MINUTE = 5
 
-#: Steps a minute of the methods whose gradient costs less (``benchmarks.gradient``'s
-#: ``reverse_truncated``: cut at half the capture, 2.4 forward rollouts against 3.8).
-STEPS_PER_MINUTE = {"gradient_fresh_truncated": 8}
+#: Steps a minute of the methods whose gradient costs less: a step of 32 flight-like
+#: gradients cut at 8.5 s took 4.7 s on 2 cores (a first run of the race, stopped after 25 steps).
+STEPS_PER_MINUTE = {"gradient_fresh_truncated": 12}
 
 
 def common_options(seed: int) -> list[str]:
@@ -184,6 +189,12 @@ def main(argv=None) -> int:
         help="race on a gain schedule (tune --schedule; default: constant gains)",
     )
     parser.add_argument("--out", default="results/race", help="folder (default results/race)")
+    parser.add_argument(
+        "--against",
+        metavar="FOLDER",
+        help="a finished race of the same settings whose held-out captures this one's are paired with: "
+        "its gain sets join the comparisons (McNemar against its CMA-ES and gradient_fresh at the same mark)",
+    )
     args = parser.parse_args(argv)
     if not (math.isfinite(args.minutes) and args.minutes > 0):
         parser.error(f"--minutes: must be a positive number, got {args.minutes}")
@@ -202,17 +213,26 @@ def main(argv=None) -> int:
 
     from spacegrasp_jax.jobs.compilation import configure
 
-    configure()  # float64, for the gains this process reads back from the checkpoints
-    folder = Path(args.out)
-    folder.mkdir(parents=True, exist_ok=True)
-    record_path = folder / "race.json"
-    record = json.loads(record_path.read_text()) if record_path.exists() else {"settings": {}, "methods": {}}
     settings = {"minutes": args.minutes, "marks": marks, "seed": args.seed, "heldout": args.heldout}
     settings["heldout_seed"] = args.heldout_seed
     if args.schedule:  # a race of constant gains keeps the settings it was recorded with
         settings["schedule"] = args.schedule
+    folder = Path(args.out)
+    record_path = folder / "race.json"
+    record = json.loads(record_path.read_text()) if record_path.exists() else {"settings": {}, "methods": {}}
     if record["settings"] and record["settings"] != settings:
         parser.error(f"{record_path} holds a race of other settings {record['settings']}; choose another --out")
+    against = None
+    if args.against:
+        against = Path(args.against)
+        try:
+            other = json.loads((against / "race.json").read_text())
+        except (OSError, ValueError) as error:
+            parser.error(f"--against: {against}: no finished race ({error})")
+        if "heldout" not in other or other["settings"] != settings:
+            parser.error(f"--against: {against} holds no finished race of these settings {settings}")
+    configure()  # float64, for the gains this process reads back from the checkpoints
+    folder.mkdir(parents=True, exist_ok=True)
     record["settings"] = settings
     for method in methods:
         if method in record["methods"]:
@@ -245,29 +265,49 @@ def main(argv=None) -> int:
         campaign.append("--resume")
     print(f"held out: {len(gain_files) + 2} gain sets on {args.heldout} captures...", file=sys.stderr, flush=True)
     subprocess.run(campaign, check=True)
-    record["heldout"] = summarise(folder / "heldout" / "samples.npz", methods)
+    paired = None if against is None else against / "heldout" / "samples.npz"
+    record["heldout"] = summarise(folder / "heldout" / "samples.npz", methods, paired)
+    if against is not None:  # where the paired race lies, from this one's folder
+        record["against"] = os.path.relpath(against, folder)
     record_path.write_text(json.dumps(record, indent=1) + "\n")
     print(json.dumps(record["heldout"], indent=1))
     return 0
 
 
-def summarise(samples: Path, methods: list[str]) -> dict:
+def summarise(samples: Path, methods: list[str], paired: Path | None = None) -> dict:
     """Held-out success with its interval per gain set, and McNemar against CMA-ES at the
-    same mark and against the shipped gains."""
+    same mark and against the shipped gains. With ``paired``, another race's held-out
+    ``samples.npz`` on the same captures: its CMA-ES and ``gradient_fresh`` join the
+    comparisons of this race's methods (the shipped gains' successes must agree capture by
+    capture, else the captures are not the same and nothing is paired)."""
     from spacegrasp_jax.envelope import statistics
-    from spacegrasp_jax.jobs.campaign import load_samples
 
-    _, by_variant = load_samples(samples)
-    success = {key.split("/", 1)[1]: np.asarray(value["success"], dtype=bool) for key, value in by_variant.items()}
+    success = _successes(samples)
+    others = {}
+    if paired is not None:
+        others = _successes(paired)
+        if not np.array_equal(others["shipped_flight"], success["shipped_flight"]):
+            raise ValueError(f"{paired}: the shipped gains' held-out successes differ: not the same captures")
     table = {}
     for label, hits in success.items():
         row = {"success": statistics.success_interval(int(hits.sum()), int(hits.size))}
         row["vs_shipped"] = statistics.compare_success(success["shipped_flight"], hits)
         method, _, mark = label.rpartition("_")
-        if method in methods and method != "cmaes" and f"cmaes_{mark}" in success:
-            row["vs_cmaes_same_mark"] = statistics.compare_success(success[f"cmaes_{mark}"], hits)
+        if method in methods and method != "cmaes":
+            for rival in ("cmaes", "gradient_fresh"):
+                rivals = success if f"{rival}_{mark}" in success else others
+                if rival != method and f"{rival}_{mark}" in rivals:
+                    row[f"vs_{rival}_same_mark"] = statistics.compare_success(rivals[f"{rival}_{mark}"], hits)
         table[label] = row
     return table
+
+
+def _successes(samples: Path) -> dict[str, np.ndarray]:
+    """Each gain set's held-out successes (label -> (n,) bool) in a campaign's ``samples.npz``."""
+    from spacegrasp_jax.jobs.campaign import load_samples
+
+    _, by_variant = load_samples(samples)
+    return {key.split("/", 1)[1]: np.asarray(value["success"], dtype=bool) for key, value in by_variant.items()}
 
 
 if __name__ == "__main__":

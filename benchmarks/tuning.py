@@ -162,6 +162,9 @@ def race_rows(root: Path) -> list[dict]:
                 rows.append(
                     {
                         "race": record_path.parent.name,
+                        "paired_with": (record_path.parent / record["against"]).resolve().name
+                        if "against" in record
+                        else None,
                         "problem": f"schedule {settings['schedule']}" if "schedule" in settings else "constant gains",
                         "training_seed": settings["seed"],
                         "heldout_seed": settings["heldout_seed"],

@@ -139,6 +139,7 @@ LONGEST_FIRST = (
     "tests/test_six_joint_arm.py",
     "tests/test_tuning_batch.py",
     "tests/test_gradients_cli.py",
+    "tests/test_truncation.py",
     "notebooks/03_tuning.ipynb",
     "notebooks/06_free_target.ipynb",
     "tests/test_loop_compilation.py",

@@ -176,7 +176,35 @@ def test_the_race_pairs_each_method_with_cmaes_at_the_same_mark_and_refuses_bad_
     versus = table["gradient_fresh_5min"]["vs_cmaes_same_mark"]
     assert (versus["only_candidate"], versus["only_reference"], versus["both"]) == (3, 0, 2)
     assert table["cmaes_5min"]["vs_shipped"]["only_reference"] == 2 and "vs_cmaes_same_mark" not in table["cmaes_5min"]
-    for argv in (["--methods", "nope"], ["--minutes", "15", "--marks", "20"], ["--marks", "x"], ["--heldout", "0"]):
+    # A method raced later, on the same captures: paired with the first race's gain sets.
+    added = {"shipped_flight": flags["shipped_flight"], "gradient_fresh_truncated_5min": [0, 1, 1, 1, 1, 1]}
+    (tmp_path / "added").mkdir()
+    np.savez(
+        tmp_path / "added" / "samples.npz", **{f"admittance/{k}/success": np.array(v, bool) for k, v in added.items()}
+    )
+    table = race.summarise(tmp_path / "added" / "samples.npz", ["gradient_fresh_truncated"], tmp_path / "samples.npz")
+    row = table["gradient_fresh_truncated_5min"]
+    assert (row["vs_cmaes_same_mark"]["only_candidate"], row["vs_cmaes_same_mark"]["only_reference"]) == (4, 1)
+    assert (
+        row["vs_gradient_fresh_same_mark"]["only_candidate"],
+        row["vs_gradient_fresh_same_mark"]["only_reference"],
+    ) == (
+        1,
+        1,
+    )
+    added["shipped_flight"] = [0, 1, 1, 0, 1, 0]  # other captures
+    np.savez(
+        tmp_path / "added" / "samples.npz", **{f"admittance/{k}/success": np.array(v, bool) for k, v in added.items()}
+    )
+    with pytest.raises(ValueError, match="not the same captures"):
+        race.summarise(tmp_path / "added" / "samples.npz", ["gradient_fresh_truncated"], tmp_path / "samples.npz")
+    for argv in (
+        ["--methods", "nope"],
+        ["--minutes", "15", "--marks", "20"],
+        ["--marks", "x"],
+        ["--heldout", "0"],
+        ["--against", str(tmp_path / "nowhere")],
+    ):
         with pytest.raises(SystemExit) as refused:
             race.main([*argv, "--out", str(tmp_path / "race")])
         assert refused.value.code == 2, argv
@@ -202,6 +230,9 @@ def test_the_race_report_reads_each_mark_off_the_committed_campaigns_and_the_run
         flags = {key.split("/", 1)[1]: np.asarray(value["success"], bool) for key, value in by_variant.items()}
         hits = flags[f"{row['method']}_{row['minutes']:g}min"]
         assert (row["success"]["successes"], row["success"]["samples"]) == (hits.sum(), hits.size)
+        if row["paired_with"] is not None:  # a method raced later on the same captures
+            _, by_variant = load_samples(data / row["paired_with"] / "heldout" / "samples.npz")
+            flags |= {key.split("/", 1)[1]: np.asarray(value["success"], bool) for key, value in by_variant.items()}
         if row["method"] != "cmaes":
             cmaes = flags[f"cmaes_{row['minutes']:g}min"]
             versus = row["vs_cmaes_same_mark"]

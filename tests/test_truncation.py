@@ -32,11 +32,8 @@ def _tuner_gradient(robot, scenario, config):
     return value_and_grad(params)
 
 
-@pytest.mark.parametrize(
-    "realism",
-    [None, pytest.param(flight().to_dict(), marks=pytest.mark.slow)],
-    ids=["ideal", "flight"],
-)
+@pytest.mark.slow
+@pytest.mark.parametrize("realism", [None, flight().to_dict()], ids=["ideal", "flight"])
 def test_the_truncated_gradient_is_the_schedules_after_the_cut_and_the_loss_is_unchanged(realism):
     robot = sg.paper_robot()
     scenario = _short_approach(robot)

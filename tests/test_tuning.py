@@ -371,6 +371,26 @@ def test_a_candidate_whose_loss_runs_away_is_rejected_even_within_the_torque_gua
     assert float(state.params["kp"][0]) == 1.0
 
 
+def test_a_run_that_can_take_no_further_step_ends_diverged_keeping_its_best_step():
+    """A toy loss whose candidates past ``p = 1.2`` blow up: the first step (to p = 1) is
+    accepted, every candidate of the second (p = 2, 1.5, 1.25, 1.125, ...) is rejected until
+    the step scale falls below 1e-6: the run ends ``"diverged"`` at step 1, its best step
+    being step 1, instead of raising."""
+
+    def value_and_grad(params):
+        p = float(params["kp"][0])
+        loss = 1.0 - p if p <= 1.0 + 1e-9 else 1e3
+        return (jnp.asarray(loss), {"largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": -jnp.ones(1)}
+
+    config = TuneConfig(
+        steps=5, learning_rate=1.0, optimizer="sgd", clip_norm=10.0, objective="weighted", method="gradient"
+    )
+    state, status = optimise(value_and_grad, {"kp": jnp.zeros(1)}, config)
+    assert status == "diverged"
+    assert state.step == 1 and state.best_step == 1 and float(state.best_params["kp"][0]) == 1.0
+    assert len(state.events) == 20 and state.scale < 1e-6  # 2^-20 < 1e-6 <= 2^-19
+
+
 def test_a_cmaes_record_that_wrote_the_unused_clip_still_resumes():
     """Records written before the gradient method's settings were refused under CMA-ES hold
     ``aggregate = "clip"`` for flight-like CMA-ES runs, which never read it: such a record

@@ -371,7 +371,8 @@ class TuneResult:
     """What a tuning run leaves besides its files.
 
     Attributes:
-        status: ``"done"`` or ``"interrupted"``.
+        status: ``"done"``, ``"stopped_early"``, ``"diverged"`` (the gradient method could
+            take no further step) or ``"interrupted"``.
         history: one dict per step (the rows of ``history.csv``).
         log_before, log_after: the nominal rollouts (exact contact law) with the starting and
             the tuned gains (``log_after`` is ``None`` when interrupted).
@@ -448,6 +449,14 @@ def _optimise_gradient(robot, smooth, base, config, before, out, resume, progres
     )
     if status == "stopped_early":
         _say_stopped_early(progress, config, state.best_step, "step")
+    if status == "diverged":
+        print(
+            f"stopped after step {state.step}: every candidate of step {state.step + 1} was rejected "
+            f"(non-finite, over the torque guard or over {config.loss_guard:g} times the starting objective) down to "
+            f"1e-6 of the step size; the run hands back its {config.keep} step",
+            file=progress,
+            flush=True,
+        )
     best = config.keep == "best" and state.best_params is not None
     tuned = gains_from_params(state.best_params if best else state.params, base, mask)
     kept = {"rule": config.keep, "step": state.best_step if best else state.step}

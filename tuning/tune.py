@@ -821,8 +821,9 @@ def optimise(
     validate: Callable[[dict], float] | None = None,
 ) -> tuple[RunState, str]:
     """Run (or continue) the optimisation loop. Returns the final state and its status,
-    ``"done"``, ``"stopped_early"`` or ``"interrupted"``; raises RuntimeError if no step can
-    be taken.
+    ``"done"``, ``"stopped_early"``, ``"interrupted"`` or ``"diverged"`` (every candidate of a
+    step was rejected down to 1e-6 of the step size: the state is the last accepted step's,
+    its best step kept); raises RuntimeError if the initial gains already diverge.
 
     ``validate``: early stopping (``config.patience``): the validation objective of
     parameters, recorded in each history row (``validation_loss``); the best step is then the
@@ -872,7 +873,7 @@ def optimise(
             )
             state.scale /= 2.0
             if state.scale < 1e-6:
-                raise RuntimeError("every candidate step diverges even at 1e-6 of the step size")
+                return state, "diverged"
         step_size = float(schedule(state.step)) * state.scale
         state = dataclasses.replace(
             state,
