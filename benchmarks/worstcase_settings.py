@@ -5,6 +5,8 @@ how far the gradient's direction climbs, against the campaign of the same rollou
         --budget 64 --duration 3 >> notebooks/data/worstcase/settings_budget64.jsonl
     python -m spacegrasp_jax.benchmarks.worstcase_settings --lines --realism ideal --seeds 0-9 \\
         >> notebooks/data/worstcase/gradient_lines_budget64.jsonl
+    python -m spacegrasp_jax.benchmarks.worstcase_settings --coordinates --realism ideal --seeds 0-9 \\
+        >> notebooks/data/worstcase/gradient_coordinates_budget64.jsonl
 
 For each seed, runs the campaign of ``--budget`` samples (the paper's admittance gains on the
 default envelope, measure ``final_error``) and prints one JSON line with its worst and:
@@ -15,6 +17,13 @@ default envelope, measure ``final_error``) and prints one JSON line with its wor
 * with ``--lines``, for each of the three worst of the campaign's first 16 samples (the
   screening of a budget of 64), the measure along the sign of its gradient in ``U`` at the
   steps ``LINE_STEPS``, with the sample's noise key (``line0``: from the worst).
+* with ``--coordinates``, a search of the same budget that lets the gradient choose where
+  to look (``gradient_coordinates()``): from the worst of the screening (the campaign's
+  first quarter), rounds of one gradient (``worstcase.GRADIENT_COST`` rollouts) and a scan
+  of the coordinate of ``U`` with the largest derivative not yet scanned, at
+  ``COORDINATE_FRACTIONS`` of the way to its bound on the side the derivative points to
+  (forward, in one batch), moving to the scan's best point where it is worse than the
+  current. Its worst over the campaign's and its worst after each round.
 
 The seeds are design seeds (0-9), not the benchmark's (100-109).
 """
@@ -28,6 +37,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from jax.flatten_util import ravel_pytree
 
 import spacegrasp_jax as sg
 from spacegrasp_jax.analysis import worstcase
@@ -110,6 +120,44 @@ def gradient_lines(programs, seed: int, values, starts: int = 3) -> dict:
     return lines
 
 
+#: Where ``--coordinates`` scans a coordinate: these fractions of the way to its bound.
+COORDINATE_FRACTIONS = (0.05, 0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0)
+
+
+def gradient_coordinates(programs, seed: int, values, budget: int) -> dict:
+    """``--coordinates``' search (module docstring) from the campaign's measures ``values``
+    (its first quarter is the screening), by ``line_programs()``' ``programs``."""
+    value_and_gradient, values_at = programs
+    screen = budget // 4
+    start = int(np.argmax(values[:screen]))
+    key = worstcase.noise_keys(seed, [start])[0]
+    flat, unravel = ravel_pytree(jax.tree.map(lambda x: x[0], worstcase.units_of_samples(seed, [start])))
+    flat, best = np.asarray(flat), float(values[start])
+    fractions = np.asarray(COORDINATE_FRACTIONS)
+    spent, scanned, history = screen, [], [best]
+    while spent + worstcase.GRADIENT_COST + fractions.size <= budget:
+        _, gradient = value_and_gradient(unravel(flat), key)
+        spent += worstcase.GRADIENT_COST
+        slope = np.asarray(ravel_pytree(gradient)[0])
+        if not np.all(np.isfinite(slope)):
+            break
+        size = np.abs(slope)
+        size[scanned] = 0.0
+        i = int(np.argmax(size))
+        scanned.append(i)
+        side = np.sign(slope[i])
+        points = np.repeat(flat[None], fractions.size, axis=0)
+        points[:, i] = flat[i] + side * (1.0 - side * flat[i]) * fractions
+        found = np.asarray(
+            values_at(project_units(jax.vmap(unravel)(points)), np.repeat(key[None], fractions.size, axis=0))
+        )
+        spent += fractions.size
+        if np.nanmax(found) > best:
+            best, flat = float(np.nanmax(found)), points[int(np.nanargmax(found))]
+        history.append(best)
+    return {"coordinates": best, "coordinates_rounds": history, "coordinates_rollouts": spent}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--realism", default="ideal")
@@ -117,6 +165,9 @@ def main(argv=None) -> None:
     parser.add_argument("--budget", type=int, default=64)
     parser.add_argument("--duration", type=float, default=3.0)
     parser.add_argument("--lines", action="store_true", help="the gradient's lines instead of the settings")
+    parser.add_argument(
+        "--coordinates", action="store_true", help="the gradient-chosen coordinate search instead of the settings"
+    )
     args = parser.parse_args(argv)
     if args.realism not in ("ideal", "flight") and not Path(args.realism).is_file():
         parser.error(f"--realism: expected ideal, flight or a realism file, got {args.realism!r}")
@@ -141,6 +192,11 @@ def main(argv=None) -> None:
         )
         row = {"realism": args.realism, "duration_s": args.duration, "budget": args.budget, "seed": seed}
         row["campaign"] = campaign["value"]
+        if args.coordinates:
+            programs = programs or line_programs(robot, scenario, gains, config)
+            found = gradient_coordinates(programs, seed, np.asarray(campaign["values"]), args.budget)
+            print(json.dumps(row | found | {"ratio": found["coordinates"] / campaign["value"]}), flush=True)
+            continue
         if args.lines:
             row["screen16"] = float(np.max(campaign["values"][:16]))
             programs = programs or line_programs(robot, scenario, gains, config)

@@ -9,6 +9,8 @@ import math
 import subprocess
 import sys
 
+import jax
+import numpy as np
 import pytest
 
 from spacegrasp_jax.benchmarks.suite import KEYS
@@ -175,6 +177,38 @@ def test_the_gradient_probes_refuse_bad_options_before_anything_runs(module, arg
     with pytest.raises(SystemExit) as exit_info:
         main(argv)
     assert exit_info.value.code == 2 and f"error: {named}:" in capsys.readouterr().err
+
+
+def test_the_gradient_chosen_coordinate_search_scans_the_steepest_coordinate_and_keeps_the_best():
+    """``worstcase_settings --coordinates`` on a measure of known shape: a hump in the first
+    joint's initial angle (``U`` 0.5, width 0.1) and a gentle slope in the second's. From the
+    best screened sample (near the hump) the first round scans the first joint's coordinate
+    towards the hump and keeps the scan's best point (computed here); the second scans the
+    second joint's up to its bound."""
+    import jax.numpy as jnp
+    from jax.flatten_util import ravel_pytree
+
+    from spacegrasp_jax.analysis import worstcase
+    from spacegrasp_jax.benchmarks.worstcase_settings import COORDINATE_FRACTIONS, gradient_coordinates
+
+    def measure(units, key):
+        return jnp.exp(-(((units.dq_init[0] - 0.5) / 0.1) ** 2)) + 0.01 * units.dq_init[1]
+
+    programs = (jax.value_and_grad(measure), jax.vmap(measure))
+    seed, budget = 3, 64
+    units = worstcase.units_of_samples(seed, range(budget // 4))
+    values = np.asarray(jax.vmap(measure)(units, None)).copy()
+    start = int(np.argmax(values))
+    flat = np.asarray(ravel_pytree(jax.tree.map(lambda x: x[start], units))[0])
+    u0, u1 = flat[0], flat[1]
+    side = np.sign(0.5 - u0)  # the hump's side: where the first coordinate's derivative points
+    scanned = u0 + side * (1.0 - side * u0) * np.asarray(COORDINATE_FRACTIONS)
+    best_first = max(float(values[start]), *(float(np.exp(-(((x - 0.5) / 0.1) ** 2)) + 0.01 * u1) for x in scanned))
+    found = gradient_coordinates(programs, seed, values, budget)
+    assert found["coordinates_rollouts"] == budget // 4 + 4 * (4 + len(COORDINATE_FRACTIONS))
+    np.testing.assert_allclose(found["coordinates_rounds"][1], best_first, rtol=1e-12)
+    assert found["coordinates_rounds"][2] == pytest.approx(best_first + 0.01 * (1.0 - u1), rel=1e-12)
+    assert found["coordinates"] == max(found["coordinates_rounds"])
 
 
 @pytest.mark.parametrize(
