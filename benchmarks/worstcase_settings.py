@@ -7,6 +7,8 @@ how far the gradient's direction climbs, against the campaign of the same rollou
         >> notebooks/data/worstcase/gradient_lines_budget64.jsonl
     python -m spacegrasp_jax.benchmarks.worstcase_settings --coordinates --realism ideal --seeds 0-9 \\
         >> notebooks/data/worstcase/gradient_coordinates_budget64.jsonl
+    python -m spacegrasp_jax.benchmarks.worstcase_settings --subspace --realism ideal --seeds 0-9 \\
+        >> notebooks/data/worstcase/gradient_subspace_budget64.jsonl
 
 For each seed, runs the campaign of ``--budget`` samples (the paper's admittance gains on the
 default envelope, measure ``final_error``) and prints one JSON line with its worst and:
@@ -24,6 +26,11 @@ default envelope, measure ``final_error``) and prints one JSON line with its wor
   ``COORDINATE_FRACTIONS`` of the way to its bound on the side the derivative points to
   (forward, in one batch), moving to the scan's best point where it is worse than the
   current. Its worst over the campaign's and its worst after each round.
+* with ``--subspace``, a cross-entropy search of the same budget in the ``SUBSPACE``
+  coordinates of ``U`` with the largest derivatives at the worst of the screening
+  (``gradient_subspace()``): one gradient there, then generations of an eighth of the
+  budget drawn around the 2 worst points of its lineage, moving those coordinates only
+  (spread 0.3, shrink 0.8, the worst point's noise key). Its worst over the campaign's.
 
 The seeds are design seeds (0-9), not the benchmark's (100-109).
 """
@@ -158,6 +165,37 @@ def gradient_coordinates(programs, seed: int, values, budget: int) -> dict:
     return {"coordinates": best, "coordinates_rounds": history, "coordinates_rollouts": spent}
 
 
+#: ``--subspace``'s coordinates: the largest derivatives (about three quarters of the
+#: gradient's absolute sum at the screened worst of the 3 s approach).
+SUBSPACE = 8
+
+
+def gradient_subspace(programs, seed: int, values, budget: int) -> dict:
+    """``--subspace``' search (module docstring) from the campaign's measures ``values`` (its
+    first quarter is the screening), by ``line_programs()``' ``programs``."""
+    value_and_gradient, values_at = programs
+    screen = budget // 4
+    start = int(np.argmax(values[:screen]))
+    key = worstcase.noise_keys(seed, [start])[0]
+    flat, unravel = ravel_pytree(jax.tree.map(lambda x: x[0], worstcase.units_of_samples(seed, [start])))
+    _, gradient = value_and_gradient(unravel(flat), key)
+    coordinates = np.argsort(-np.abs(np.asarray(ravel_pytree(gradient)[0])))[:SUBSPACE]
+    rng = np.random.default_rng(seed)
+    points, measured = [np.asarray(flat)], [float(values[start])]
+    spent, spread, generation = screen + worstcase.GRADIENT_COST, 0.3, max(8, budget // 8)
+    while spent < budget:
+        count = min(generation, budget - spent)
+        parents = rng.choice(np.argsort(-np.asarray(measured))[:2], size=count)
+        children = np.stack([points[i] for i in parents])
+        children[:, coordinates] += spread * rng.standard_normal((count, coordinates.size))
+        children = np.clip(children, -1.0, 1.0)
+        found = values_at(project_units(jax.vmap(unravel)(children)), np.repeat(key[None], count, axis=0))
+        points += list(children)
+        measured += [float(x) for x in np.asarray(found)]
+        spent, spread = spent + count, 0.8 * spread
+    return {"subspace": float(np.nanmax(measured)), "subspace_start": float(values[start]), "subspace_rollouts": spent}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--realism", default="ideal")
@@ -167,6 +205,9 @@ def main(argv=None) -> None:
     parser.add_argument("--lines", action="store_true", help="the gradient's lines instead of the settings")
     parser.add_argument(
         "--coordinates", action="store_true", help="the gradient-chosen coordinate search instead of the settings"
+    )
+    parser.add_argument(
+        "--subspace", action="store_true", help="the cross-entropy search in the gradient's largest coordinates"
     )
     args = parser.parse_args(argv)
     if args.realism not in ("ideal", "flight") and not Path(args.realism).is_file():
@@ -192,6 +233,11 @@ def main(argv=None) -> None:
         )
         row = {"realism": args.realism, "duration_s": args.duration, "budget": args.budget, "seed": seed}
         row["campaign"] = campaign["value"]
+        if args.subspace:
+            programs = programs or line_programs(robot, scenario, gains, config)
+            found = gradient_subspace(programs, seed, np.asarray(campaign["values"]), args.budget)
+            print(json.dumps(row | found | {"ratio": found["subspace"] / campaign["value"]}), flush=True)
+            continue
         if args.coordinates:
             programs = programs or line_programs(robot, scenario, gains, config)
             found = gradient_coordinates(programs, seed, np.asarray(campaign["values"]), args.budget)

@@ -211,6 +211,27 @@ def test_the_gradient_chosen_coordinate_search_scans_the_steepest_coordinate_and
     assert found["coordinates"] == max(found["coordinates_rounds"])
 
 
+def test_the_gradient_subspace_search_spends_its_budget_moving_the_steepest_coordinates():
+    """``worstcase_settings --subspace`` on a bowl upside down in the first joint's initial
+    angle (top 0 at ``U`` 0.3) plus a ramp in the radius, which is outside the bowl's
+    coordinates but among the 8 steepest: the search climbs from its start, never above the
+    top the two reach together, and spends exactly the budget."""
+
+    from spacegrasp_jax.analysis import worstcase
+    from spacegrasp_jax.benchmarks.worstcase_settings import gradient_subspace
+
+    def measure(units, key):
+        return -((units.dq_init[0] - 0.3) ** 2) + 0.1 * units.radius_scale
+
+    programs = (jax.value_and_grad(measure), jax.vmap(measure))
+    seed, budget = 5, 64
+    values = np.asarray(jax.vmap(measure)(worstcase.units_of_samples(seed, range(budget // 4)), None)).copy()
+    found = gradient_subspace(programs, seed, values, budget)
+    assert found["subspace_rollouts"] == budget
+    assert found["subspace_start"] == values.max()
+    assert found["subspace_start"] + 0.02 < found["subspace"] <= 0.1
+
+
 @pytest.mark.parametrize(
     "module, argv, said",
     [
