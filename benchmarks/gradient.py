@@ -56,7 +56,6 @@ def measure_flight(mode: str, duration: float, repeats: int, gradient_from_s: fl
     import numpy as np
 
     import spacegrasp_jax as sg
-    from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax.envelope.scenario import paper_scenario
     from spacegrasp_jax.jobs import compilation
     from spacegrasp_jax.loop.control import paper_gains
@@ -96,16 +95,27 @@ def measure_flight(mode: str, duration: float, repeats: int, gradient_from_s: fl
                 params, gains, mask, batch.model_robot, objective, samples, controller="admittance", options=options
             )
 
+    return {"mode": mode, "gradient_from_s": cut} | _compiled_and_timed(
+        compilation.jit(program), (params, samples), repeats
+    )
+
+
+def _compiled_and_timed(program, arguments: tuple, repeats: int) -> dict:
+    """Compile the jitted ``program`` for ``arguments``, run it once, then time it
+    (median of ``repeats``): its compile and run times, XLA's memory analysis and the
+    process's peak RSS."""
+    import jax
+
+    from spacegrasp_jax.benchmarks.dynamics import timed
+
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     start = time.perf_counter()
-    executable = compilation.jit(program).lower(params, samples).compile()
+    executable = program.lower(*arguments).compile()
     compile_s = time.perf_counter() - start
     memory = executable.memory_analysis()
-    jax.block_until_ready(executable(params, samples))
-    run = timed(lambda: jax.block_until_ready(executable(params, samples)), repeats)
+    jax.block_until_ready(executable(*arguments))
+    run = timed(lambda: jax.block_until_ready(executable(*arguments)), repeats)
     return {
-        "mode": mode,
-        "gradient_from_s": cut,
         "compile_s": compile_s,
         "run_s": run["median_s"],
         "run_spread_s": [run["min_s"], run["max_s"]],
@@ -117,10 +127,8 @@ def measure_flight(mode: str, duration: float, repeats: int, gradient_from_s: fl
 
 
 def measure(mode: str, duration: float, repeats: int, gradient_from_s: float | None = None) -> dict:
-    import jax
 
     import spacegrasp_jax as sg
-    from spacegrasp_jax.benchmarks.dynamics import timed
     from spacegrasp_jax.envelope.scenario import paper_scenario
     from spacegrasp_jax.jobs import compilation
     from spacegrasp_jax.loop.control import paper_gains
@@ -150,26 +158,8 @@ def measure(mode: str, duration: float, repeats: int, gradient_from_s: float | N
         program = compilation.jit(lambda p, values: loss.function(p, values)[0])
     else:
         program = make_value_and_grad(loss, params, "forward" if mode == "forward_mode" else "reverse").program
-    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    start = time.perf_counter()
-    executable = program.lower(params, loss.values).compile()
-    compile_s = time.perf_counter() - start
-    compiled = lambda p: executable(p, loss.values)  # noqa: E731
-    memory = executable.memory_analysis()
-    jax.block_until_ready(compiled(params))
-    run = timed(lambda: jax.block_until_ready(compiled(params)), repeats)
-    return {
-        "mode": mode,
-        "block_steps": segment,
-        "gradient_from_s": cut,
-        "compile_s": compile_s,
-        "run_s": run["median_s"],
-        "run_spread_s": [run["min_s"], run["max_s"]],
-        "xla_temp_mb": memory.temp_size_in_bytes / 1e6,
-        "xla_argument_output_mb": (memory.argument_size_in_bytes + memory.output_size_in_bytes) / 1e6,
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3,
-        "rss_before_compile_mb": rss_before / 1e3,
-    }
+    timing = _compiled_and_timed(program, (params, loss.values), repeats)
+    return {"mode": mode, "block_steps": segment, "gradient_from_s": cut} | timing
 
 
 def main(argv: list[str] | None = None) -> int:
