@@ -422,7 +422,7 @@ class LoopOptions:
             so it neither records nor recomputes the first. The cut is the first block
             boundary of the observer at or after ``gradient_from_s``
             ([`gradient_cut()`][spacegrasp_jax.loop.simulate.gradient_cut]). What the loop computes is
-            unchanged; its derivatives are those of the run after the cut.
+            unchanged (to rounding); its derivatives are those of the run after the cut.
     """
 
     checkpoint: bool = False
