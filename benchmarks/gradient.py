@@ -163,7 +163,6 @@ def measure(mode: str, duration: float, repeats: int, gradient_from_s: float | N
 
 
 def main(argv: list[str] | None = None) -> int:
-    configure(compile_cache=False)  # this process is the benchmark's: float64, loops compiled whole, no cache
     parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="results/benchmarks")
     parser.add_argument("--duration", type=float, default=17.0)
@@ -183,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    configure(compile_cache=False)  # this process is the benchmark's: float64, loops compiled whole, no cache
     if args.child:
         measured = measure_flight if args.child.startswith("flight") else measure
         print(json.dumps(measured(args.child, args.duration, args.repeats, args.gradient_from)))

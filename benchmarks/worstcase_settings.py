@@ -202,11 +202,12 @@ def main(argv=None) -> None:
     parser.add_argument("--seeds", default="0-9")
     parser.add_argument("--budget", type=int, default=64)
     parser.add_argument("--duration", type=float, default=3.0)
-    parser.add_argument("--lines", action="store_true", help="the gradient's lines instead of the settings")
-    parser.add_argument(
+    modes = parser.add_mutually_exclusive_group()
+    modes.add_argument("--lines", action="store_true", help="the gradient's lines instead of the settings")
+    modes.add_argument(
         "--coordinates", action="store_true", help="the gradient-chosen coordinate search instead of the settings"
     )
-    parser.add_argument(
+    modes.add_argument(
         "--subspace", action="store_true", help="the cross-entropy search in the gradient's largest coordinates"
     )
     args = parser.parse_args(argv)

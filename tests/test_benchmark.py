@@ -166,11 +166,14 @@ def test_worstcase_benchmark_writes_its_rows_resumes_and_refuses_bad_options(tmp
         ("worstcase_settings", ["--realism", "nope"], "--realism"),
         ("worstcase_settings", ["--seeds", "a-b"], "--seeds"),
         ("worstcase_settings", ["--duration", "0"], "--duration"),
+        ("worstcase_settings", ["--lines", "--subspace"], "argument --subspace"),
+        ("gradient", ["--gradient-from", "20"], "--gradient-from"),
+        ("gradient", ["--modes", "forward,nope"], "unknown mode(s)"),
     ],
 )
 def test_the_gradient_probes_refuse_bad_options_before_anything_runs(module, argv, named, capsys):
-    """``benchmarks.truncation`` and ``benchmarks.worstcase_settings``: a bad option exits 2
-    naming it, before the package is configured or anything compiles."""
+    """``benchmarks.truncation``, ``benchmarks.worstcase_settings`` and ``benchmarks.gradient``:
+    a bad option exits 2 naming it, before the package is configured or anything compiles."""
     import importlib
 
     main = importlib.import_module(f"spacegrasp_jax.benchmarks.{module}").main
