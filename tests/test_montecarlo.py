@@ -556,3 +556,105 @@ def test_a_flight_campaign_at_a_fixed_seed_does_not_move(tmp_path):
             compared += 1
         assert compared >= 15
         assert np.array_equal(fresh["admittance/paper/success"], stored["admittance/paper/success"][:16])
+
+
+def _exact_mcnemar(only_reference: int, only_candidate: int) -> float:
+    """The two-sided exact McNemar p-value, summed by hand from the binomial law."""
+    discordant = only_reference + only_candidate
+    tail = sum(math.comb(discordant, k) for k in range(min(only_reference, only_candidate) + 1)) / 2**discordant
+    return min(1.0, 2.0 * tail)
+
+
+@pytest.mark.slow
+def test_a_schedule_is_tested_against_the_baseline_it_names_and_the_paper_runs_only_if_asked(tmp_path, capsys):
+    """``montecarlo --gains flight_schedule --baseline flight``: the paper's gains do not run,
+    and the printed and summarised McNemar test of the schedule against the constant gains is
+    the one computed by hand from samples.npz's success flags (a 40 mm tolerance on the 2 s
+    approach, where both sets end 17-64 mm away, so that the two disagree on some captures)."""
+    from spacegrasp_jax.cli import main
+
+    scenario_file = tmp_path / "short.toml"
+    scenario_file.write_text(SHORT_SCENARIO_TOML)
+    out = tmp_path / "mc"
+    command = ["montecarlo", "--n", "16", "--chunk", "16", "--controller", "admittance", "--realism", "flight"]
+    command += ["--gains", "flight_schedule", "--baseline", "flight", "--tolerance-mm", "40", "--tolerance-deg", "10"]
+    command += ["--scenario", str(scenario_file), "--compile-cache", "none", "--out", str(out)]
+    assert main(command) == 0
+    printed = capsys.readouterr().out
+    _, by_variant = campaign.load_samples(out / "samples.npz")
+    assert set(by_variant) == {"admittance/flight", "admittance/flight_schedule"}  # no paper
+    constant, schedule = by_variant["admittance/flight"]["success"], by_variant["admittance/flight_schedule"]["success"]
+    only_constant, only_schedule = int(np.sum(constant & ~schedule)), int(np.sum(schedule & ~constant))
+    assert only_constant + only_schedule > 0, "the check needs captures on which the two disagree"
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["comparisons"]) == ["admittance/flight_schedule vs admittance/flight"]
+    tested = summary["comparisons"]["admittance/flight_schedule vs admittance/flight"]["success"]
+    assert (tested["only_reference"], tested["only_candidate"]) == (only_constant, only_schedule)
+    assert tested["p_value"] == pytest.approx(_exact_mcnemar(only_constant, only_schedule), rel=1e-9)
+    line = next(line for line in printed.splitlines() if line.startswith("admittance/flight_schedule vs"))
+    assert f"captured by one only: {only_schedule} vs {only_constant}" in line
+    assert f"McNemar p = {_exact_mcnemar(only_constant, only_schedule):.2g}" in line
+
+
+def _variant_keys(robot, *options: str) -> list[str]:
+    from spacegrasp_jax.cli import build_parser
+    from spacegrasp_jax.cli.montecarlo import _montecarlo_variants
+
+    args = build_parser().parse_args(["montecarlo", "--n", "4", *options])
+    return [variant.key for variant in _montecarlo_variants(args, robot)]
+
+
+def test_the_baseline_comes_first_and_the_papers_gains_run_only_as_baseline_or_when_named(robot, tmp_path):
+    from spacegrasp_jax.cli.montecarlo import gain_set_labels
+    from spacegrasp_jax.cli.options import UsageError
+
+    law = ["--controller", "admittance"]
+    assert _variant_keys(robot, *law) == ["admittance/paper"]
+    assert _variant_keys(robot, *law, "--gains", "flight") == ["admittance/paper", "admittance/flight"]  # as before
+    assert _variant_keys(robot, *law, "--gains", "flight_schedule", "--baseline", "flight") == [
+        "admittance/flight",
+        "admittance/flight_schedule",
+    ]
+    assert _variant_keys(robot, *law, "--gains", "flight", "--baseline", "paper") == [
+        "admittance/paper",
+        "admittance/flight",
+    ]
+    with pytest.raises(UsageError, match="--baseline flight: also given with --gains"):
+        _variant_keys(robot, *law, "--gains", "flight", "--baseline", "flight")
+    # two files of one name are told apart by their folders; a file given twice is refused
+    assert gain_set_labels(["results/a/gains.json", "results/b/gains.json", "flight"]) == [
+        "a-gains",
+        "b-gains",
+        "flight",
+    ]
+    assert gain_set_labels(["x/run 1/gains.json", "y/run 1/gains.json"]) == ["x-run_1-gains", "y-run_1-gains"]
+    assert gain_set_labels(["tuned.json", "other/tuned.json"]) == ["tuned", "other-tuned"]
+    with pytest.raises(UsageError, match="--gains a/gains.json: given twice"):
+        gain_set_labels(["a/gains.json", "a/gains.json"])
+
+
+def test_every_pair_is_tested_when_asked():
+    rng = np.random.default_rng(3)
+    gains = paper_gains()
+    variants = [Variant("admittance", gains, label) for label in ("base", "one", "two")]
+    metrics = {
+        variant.key: {name: rng.random(50) for name in campaign.COMPARED_METRICS} | {"success": rng.random(50) < 0.5}
+        for variant in variants
+    }
+    assert list(campaign.comparisons(metrics, variants)) == [
+        "admittance/one vs admittance/base",
+        "admittance/two vs admittance/base",
+    ]
+    every = campaign.comparisons(metrics, variants, "all")
+    assert list(every) == [
+        "admittance/one vs admittance/base",
+        "admittance/two vs admittance/base",
+        "admittance/two vs admittance/one",
+    ]
+    flags = metrics["admittance/one"]["success"], metrics["admittance/two"]["success"]
+    only_one, only_two = int(np.sum(flags[0] & ~flags[1])), int(np.sum(flags[1] & ~flags[0]))
+    assert every["admittance/two vs admittance/one"]["success"]["p_value"] == pytest.approx(
+        _exact_mcnemar(only_one, only_two), rel=1e-9
+    )
+    with pytest.raises(ValueError, match="pairs: expected one of"):
+        campaign.comparisons(metrics, variants, "some")

@@ -149,6 +149,13 @@ def test_interrupted_run_resumes_to_the_same_result(uninterrupted):
     history = list(csv.DictReader((out / "history.csv").open()))
     reference = list(csv.DictReader((full / "history.csv").open()))
     assert [row["loss"] for row in history] == [row["loss"] for row in reference]
+    # A finished gradient run given more steps continues: its steps so far stay as they were
+    result = subprocess.run([*resume, "--steps", str(TUNE_STEPS + 2)], capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr
+    assert f"resuming after step {TUNE_STEPS}/{TUNE_STEPS + 2}" in result.stderr
+    extended = [row["loss"] for row in csv.DictReader((out / "history.csv").open())]
+    assert len(extended) == TUNE_STEPS + 3 and extended[: TUNE_STEPS + 1] == [row["loss"] for row in reference]
+    assert json.loads((out / "run.json").read_text())["config"]["steps"] == TUNE_STEPS + 2
 
 
 @pytest.mark.slow
@@ -303,10 +310,14 @@ def test_without_method_tune_runs_the_recipe_that_won_the_race_on_its_problem(ra
 
 
 @pytest.mark.slow
-def test_a_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tmp_path):
-    """A CMA-ES run interrupted after its first generation resumes to the means of an
-    uninterrupted run, and a finished run given more generations continues to exactly the
-    run of that many from the start: its history and its gains."""
+def test_a_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tmp_path, capsys):
+    """A CMA-ES run interrupted after its first generation: its check (``--check``) writes the
+    summary, held-out captures included, of an uninterrupted run of as many generations; it
+    then resumes to the means of an uninterrupted run, and a finished run given more
+    generations continues to exactly the run of that many from the start: its history and
+    its gains."""
+    from spacegrasp_jax import cli
+
     six = tmp_path / "cmaes_six"
     result = subprocess.run(cmaes_command(tmp_path, six, 6), capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr
@@ -320,6 +331,24 @@ def test_a_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tmp_path):
     out = tmp_path / "cmaes_interrupted"
     code, err = run_until_step(cmaes_command(tmp_path, out, 4), out / "history.csv", step=1)
     assert code == 130, err
+    assert f"check the gains so far with: spacegrasp tune --out {out} --check" in err
+    # Its check: the summary that a run of as many generations writes, held-out captures and all
+    steps_done = json.loads((out / "run.json").read_text())["config"]["steps"]
+    done = len(list(csv.DictReader((out / "history.csv").open()))) - 1
+    assert 1 <= done < steps_done
+    assert cli.main(["tune", "--out", str(out), "--check", "--compile-cache", "none"]) == 0
+    assert f"checked the run as it stands after step {done} of 4" in capsys.readouterr().err
+    stopped_there = tmp_path / "cmaes_as_many"
+    assert cli.main([*cmaes_command(tmp_path, stopped_there, done)[3:], "--compile-cache", "none"]) == 0
+    checked, uninterrupted = (json.loads((folder / "summary.json").read_text()) for folder in (out, stopped_there))
+    assert checked["checked_after"] == {"step": done, "of": 4} and checked["status"] == "interrupted"
+    assert checked["holdout"] == uninterrupted["holdout"] and checked["holdout"]["scenarios"] == 3
+    assert checked["tuned_gains"] == uninterrupted["tuned_gains"]  # the nominal run's numbers
+    assert json.loads((out / "gains.json").read_text()) == json.loads((stopped_there / "gains.json").read_text())
+    assert cli.main(["tune", "--out", str(out), "--check", "--steps", "9"]) == 2
+    assert "--check: checks the run in --out as it was set up; it takes --holdout only, not --steps" in (
+        capsys.readouterr().err
+    )
     resume = [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), "--resume"]
     result = subprocess.run(resume, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr

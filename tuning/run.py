@@ -117,15 +117,16 @@ def resume_differences(
     """What a resume asks for that differs from the recorded run (``document``, its
     ``run.json``): every field of ``config`` (None: nothing asked), and the gains, scenario
     and robot of the files given, each by what it is (not by its file's path or text). More
-    ``steps`` for CMA-ES is not a difference (the run continues); for gradient descent it is,
-    as its learning-rate schedule decays over the steps it was started with."""
+    ``steps`` is not a difference: the run continues. A CMA-ES run then continues to exactly
+    the run of that many generations from the start; a gradient run's learning rate from then
+    on follows its cosine schedule over the new number of steps (the steps taken keep theirs)."""
     differences = []
     if config is not None:
         recorded = TuneConfig.from_dict(document["config"]).to_dict()
         for field, asked in config.to_dict().items():
             if _same(asked, recorded.get(field)):
                 continue
-            if field == "steps" and recorded["method"] == "cmaes" and asked > recorded["steps"]:
+            if field == "steps" and asked > recorded["steps"]:
                 continue
             differences.append((field, asked, recorded.get(field)))
     if robot_file is None and gains_file is None and scenario_file is None:
@@ -372,7 +373,8 @@ class TuneResult:
 
     Attributes:
         status: ``"done"``, ``"stopped_early"``, ``"diverged"`` (the gradient method could
-            take no further step) or ``"interrupted"``.
+            take no further step), ``"interrupted"`` or ``"checked"`` (``tune(check=True)``:
+            no step taken, the run checked as it stood; its summary says how it stood).
         history: one dict per step (the rows of ``history.csv``).
         log_before, log_after: the nominal rollouts (exact contact law) with the starting and
             the tuned gains (``log_after`` is ``None`` when interrupted).
@@ -555,6 +557,7 @@ def tune(
     fill_from: str | None = None,
     robot_links: dict | None = None,
     resume: bool = False,
+    check: bool = False,
     command=None,
     progress=None,
     stop: runfiles.StopRequest | None = None,
@@ -567,7 +570,13 @@ def tune(
     ``holdout``: held-out scenarios of the final evaluation (default 100). With
     ``resume``, ``config`` and the files, where given, must be the recorded run's
     ([`resume_differences()`][tuning.run.resume_differences], else [`ResumeMismatchError`][tuning.run.ResumeMismatchError]); what may change is
-    ``holdout`` and, for CMA-ES, more ``config.steps``: the run then continues.
+    ``holdout`` and more ``config.steps``: the run then continues.
+
+    ``check``: take no step, but check the run in ``out`` as it stands, finished or not: its
+    gains after its last completed step (the ones ``config.keep`` keeps) on the nominal
+    scenario and on ``holdout`` held-out captures (default the run's), written as a finished
+    run writes them (``summary.json`` with ``"checked_after"``, ``gains.json``); a later
+    ``resume`` continues the run as if no check had happened.
 
     ``command``: the command line that runs it, for its record (``None``: a call from Python).
     ``progress``: where progress lines go (default: ``sys.stderr`` at the call).
@@ -576,7 +585,20 @@ def tune(
     out = Path(out)
     progress = sys.stderr if progress is None else progress  # the stream of the moment, not of the import
     record_path = out / "run.json"
-    if resume:
+    if check:
+        if not record_path.exists():
+            raise TuneSetupError(f"--check: {out} holds no tuning run (no run.json)")
+        if not (out / CHECKPOINT).exists():
+            raise TuneSetupError(f"--check: {out} holds no completed step yet (no {CHECKPOINT}); nothing to check")
+        if holdout is not None and holdout < 0:
+            raise TuneSetupError(f"--holdout: must be >= 0, got {holdout}")
+        record = json.loads(record_path.read_text())
+        config = TuneConfig.from_dict(record["config"])
+        holdout = record["holdout"] if holdout is None else holdout
+        resume = True
+        stop = runfiles.StopRequest()
+        stop.requested = True  # the optimiser loads its checkpoint and stops before a step
+    elif resume:
         if not record_path.exists():
             raise TuneSetupError(f"--resume: {out} holds no tuning run (no run.json)")
         record = json.loads(record_path.read_text())
@@ -638,9 +660,10 @@ def tune(
     runfiles.end_progress(progress)
     _write_history(out / "history.csv", history)
     runfiles.write_json(out / "gains.json", tuned.to_dict(config.controller))
-    if status == "interrupted":
+    if status == "interrupted" and not check:
         print(
-            f"interrupted after step {steps_done}/{config.steps}; continue with: spacegrasp tune --out {out} --resume",
+            f"interrupted after step {steps_done}/{config.steps}; continue with: spacegrasp tune --out {out} --resume "
+            f"(more steps: --steps N); check the gains so far with: spacegrasp tune --out {out} --check",
             file=progress,
         )
         return TuneResult(status, history, before.log)
@@ -662,6 +685,8 @@ def tune(
         "kept": kept,
         "gains_file": "tuned",
     }
+    if check:
+        summary["checked_after"] = {"step": steps_done, "of": config.steps}
     start_key = next(key for key in summary if key in ("paper_gains", "starting_gains"))
     summary["largest_peak_torque_change"] = (
         summary["tuned_gains"]["largest_peak_torque_Nm"] / summary[start_key]["largest_peak_torque_Nm"] - 1.0
@@ -710,7 +735,7 @@ def tune(
         runfiles.write_arrays(out / "holdout.npz", samples)
         summary["gains_file"] = _keep_the_better(out, summary["holdout"], base, tuned, config.controller, progress)
     runfiles.write_json(out / "summary.json", summary)
-    return TuneResult(status, history, before.log, after.log)
+    return TuneResult("checked" if check else status, history, before.log, after.log)
 
 
 #: Beside ``gains.json``, the gain set of the two it does not hold.

@@ -142,6 +142,11 @@ def _gains_option(value: str | None, args, robot, controller, schedules: bool = 
         raise UsageError(
             f"--fill-from: completes a gains file given with --gains; {value or 'the paper'}'s gains are whole"
         )
+    if value == "paper" and n_joints(robot) != len(paper_gains().kp):
+        raise UsageError(
+            f"--gains paper: the paper's Table 4 gains are for its {len(paper_gains().kp)}-joint arm, not this "
+            f"{n_joints(robot)}-joint one; give a gains file (spacegrasp gains --start writes a start)"
+        )
     if value is None or value == "paper":
         return _paper_gains_for(robot, controller if isinstance(controller, str) else None)
     if value in NAMED_GAIN_SETS:

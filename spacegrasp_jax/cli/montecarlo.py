@@ -55,22 +55,49 @@ from spacegrasp_jax.loop.control.schedule import NAMED_GAIN_SETS
 from spacegrasp_jax.loop.realism import load_realism
 
 
+def gain_set_labels(names: list[str]) -> list[str]:
+    """A label for each ``--gains`` value, unique among them: a shipped set's name, else the
+    file's stem, with as many of its parent folders (joined by ``-``) as it takes to tell two
+    files apart (``results/a/gains.json`` and ``results/b/gains.json``: ``a-gains`` and ``b-gains``)."""
+    parts = [[name] if name in NAMED_GAIN_SETS else [*Path(name).parent.parts, Path(name).stem] for name in names]
+    depth = [1] * len(names)
+    while True:
+        labels = ["-".join(part for part in p[-d:] if part not in ("", ".", "..", "/")) for p, d in zip(parts, depth)]
+        clashes = {label for label in labels if labels.count(label) > 1}
+        grown = False
+        for i, label in enumerate(labels):
+            if label in clashes and depth[i] < len(parts[i]):
+                depth[i] += 1
+                grown = True
+        if not clashes:
+            return ["".join(c if c.isalnum() or c in "-_." else "_" for c in label) for label in labels]
+        if not grown:
+            first = next(name for name, label in zip(names, labels) if label in clashes)
+            raise UsageError(f"--gains {first}: given twice")
+
+
 def _montecarlo_variants(args: argparse.Namespace, robot) -> list[campaign.Variant]:
-    """The paper's gains for each selected controller (for the paper's 7-joint arm), plus each
-    ``--gains`` file."""
+    """The baseline (``--baseline``: the paper's gains by default, for the paper's 7-joint arm
+    and laws) first, then each ``--gains`` set: a campaign tests each against the first."""
     controllers = PAPER_CONTROLLERS if args.controller == "both" else (args.controller,)
     n = n_joints(robot)
     papers = all(controller in PAPER_CONTROLLERS for controller in controllers)
     if args.fill_from is not None and all(path in NAMED_GAIN_SETS for path in args.gains):
         raise UsageError("--fill-from: completes a gains file given with --gains; the campaign's gain sets are whole")
-    if not args.gains:
+    named = list(args.gains)
+    if args.baseline is not None:
+        if args.baseline in named:
+            raise UsageError(f"--baseline {args.baseline}: also given with --gains; give it once, as the baseline")
+        named.insert(0, args.baseline)
+    elif not args.gains:
         _paper_gains_for(robot, None if papers else args.controller)
-    gain_sets = [("paper", paper_gains())] if n == len(paper_gains().kp) and papers else []
-    for path in args.gains:
-        label = path if path in NAMED_GAIN_SETS else Path(path).stem
-        if label in {existing for existing, _ in gain_sets}:
-            raise UsageError(f"--gains {path}: two gain sets would both be called {label!r}; rename one file")
-        gain_sets.append((label, _gains_option(path, args, robot, controllers, schedules=True)))
+        named.insert(0, "paper")
+    elif n == len(paper_gains().kp) and papers and "paper" not in named:
+        named.insert(0, "paper")  # the default baseline, where the paper's gains fit the arm and laws
+    labels = gain_set_labels(named)
+    gain_sets = [
+        (label, _gains_option(name, args, robot, controllers, schedules=True)) for name, label in zip(named, labels)
+    ]
     return [campaign.Variant(controller, gains, label) for controller in controllers for label, gains in gain_sets]
 
 
@@ -128,6 +155,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
             robot_links=_robot_links(args) or None,
             command=args.command_line,
             stop=args.stop,
+            pairs=args.pairs,
         )
     except campaign.CampaignError as error:
         raise UsageError(str(error)) from None
@@ -204,6 +232,19 @@ def add_parsers(commands) -> None:
         "--controller", choices=(*CONTROLLERS, "both"), default="both", help="a law, or both of the paper's (default)"
     )
     add_gains_arguments(montecarlo, repeatable=True)
+    montecarlo.add_argument(
+        "--baseline",
+        metavar="NAME|FILE",
+        help="the gain set every other is tested against, paired on the same captures: a shipped set by name "
+        "or a gains file (default: the paper's gains, where they fit the arm; they run only as the baseline or "
+        "when named with --gains)",
+    )
+    montecarlo.add_argument(
+        "--pairs",
+        choices=campaign.PAIRS,
+        default="baseline",
+        help="which gain sets are tested against one another: each against the baseline (default), or every pair",
+    )
     montecarlo.add_argument("--seed", type=_SEED, default=0, help="campaign seed (default 0)")
     montecarlo.add_argument(
         "--chunk",

@@ -223,7 +223,7 @@ def add_gains_arguments(parser: argparse.ArgumentParser, repeatable: bool = Fals
             action="append",
             default=[],
             metavar=f"{names}|FILE",
-            help="a gain set to compare with the paper's: a shipped set by name or a gains JSON file "
+            help="a gain set to compare with the baseline (the paper's gains unless --baseline): a shipped set by name or a gains JSON file "
             "(repeatable; labelled by name or file name)",
         )
     else:

@@ -74,6 +74,8 @@ from spacegrasp_jax.tuning.tune import (
 def _tune(args: argparse.Namespace) -> int:
     batching.use_all_cpu_cores()  # before anything touches a device: the batch shards over the cores
     try:
+        if args.check:
+            return _tune_finished(Path(args.out), _check_tune(args))
         if args.resume:
             _claim(args, Path(args.out))
             return _tune_finished(Path(args.out), _resume_tune(args))
@@ -82,7 +84,7 @@ def _tune(args: argparse.Namespace) -> int:
     except ResumeMismatchError as error:
         raise UsageError(
             f"--resume: {args.out} holds another run: {error.listed(_tune_option)}. Resume with the run's options "
-            f"(more --steps may continue a CMA-ES run, --holdout may change), or start a new run in another --out"
+            f"(more --steps continue it, --holdout may change), or start a new run in another --out"
         ) from None
     except (TuneSetupError, ValueError) as error:
         raise tune_setting_error(error) from None
@@ -139,6 +141,22 @@ def _say_recipe(config: TuneConfig) -> None:
     else:
         chosen = "CMA-ES, the ideal loop's default (not raced)"
     print(f"no --method: {chosen} (--method gradient or cmaes to choose)", file=sys.stderr, flush=True)
+
+
+#: The options ``tune --check`` takes besides itself.
+_CHECK_OPTIONS = {"out", "check", "holdout", "compile_cache"}
+
+
+def _check_tune(args: argparse.Namespace):
+    """``tune --check``: the run in ``--out`` checked as it stands, on ``--holdout`` captures
+    (default the run's), no step taken."""
+    others = sorted(args.given - _CHECK_OPTIONS)
+    if others:
+        listed = ", ".join("--" + name.replace("_", "-") for name in others)
+        raise UsageError(f"--check: checks the run in --out as it was set up; it takes --holdout only, not {listed}")
+    if not (Path(args.out) / "run.json").exists():
+        raise UsageError(f"--check: {args.out} holds no tuning run (no run.json)")
+    return tune(Path(args.out), check=True, holdout=args.holdout if "holdout" in args.given else None)
 
 
 def _resume_tune(args: argparse.Namespace):
@@ -270,6 +288,13 @@ def _tune_finished(out: Path, result) -> int:
         _save_schedule_figure(out, load_schedule(out / "gains.json", record["config"]["controller"], n_joints(robot)))
         figures += ", gain_schedule.png"
     print(f"wrote {out}/: {gains_files}, history.csv, summary.json, {figures}", file=sys.stderr)
+    checked = json.loads((out / "summary.json").read_text()).get("checked_after")
+    if checked and checked["step"] < checked["of"]:
+        print(
+            f"checked the run as it stands after step {checked['step']} of {checked['of']}; "
+            f"spacegrasp tune --out {out} --resume continues it",
+            file=sys.stderr,
+        )
     return 0
 
 
@@ -418,7 +443,17 @@ def add_parsers(commands) -> None:
     add_gains_arguments(tune)
     tune.add_argument("--scenario", help="scenario TOML/JSON (default: the paper's)")
     add_robot_arguments(tune)
-    tune.add_argument("--resume", action="store_true", help="continue the run in --out from its last completed step")
+    tune.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out from its last completed step (--steps N: to N steps in all)",
+    )
+    tune.add_argument(
+        "--check",
+        action="store_true",
+        help="take no step: check the run in --out as it stands, finished or interrupted (its kept gains on the "
+        "nominal scenario and on the held-out captures; --holdout N: on N of them), written as a finished run's files",
+    )
     add_ranges_arguments(tune, "tuning")
     _add_realism_option(tune)
     tune.add_argument(

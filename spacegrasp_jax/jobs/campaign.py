@@ -498,19 +498,33 @@ def variant_summary(sample_metrics: dict[str, np.ndarray], config: CampaignConfi
 COMPARED_METRICS = ("final_position_error_m", "final_orientation_error_rad", "largest_peak_torque_Nm")
 
 
-def comparisons(metrics_by_variant: dict[str, dict[str, np.ndarray]], variants: list[Variant]) -> dict:
-    """Each gain set against the first gain set of the same controller, on the same samples:
-    the exact McNemar test of their success flags and the paired tests of
-    ``COMPARED_METRICS`` ([`spacegrasp_jax.envelope.statistics`][spacegrasp_jax.envelope.statistics]). Keyed
-    ``"<candidate key> vs <reference key>"``."""
-    first = {}
-    for variant in variants:
-        first.setdefault(variant.controller, variant)
+#: Which pairs of a campaign's gain sets it tests: each against the first of its law (the
+#: baseline), or every pair of the same law.
+PAIRS = ("baseline", "all")
+
+
+def comparisons(
+    metrics_by_variant: dict[str, dict[str, np.ndarray]], variants: list[Variant], pairs: str = "baseline"
+) -> dict:
+    """Gain sets of the same controller against one another, on the same samples: the exact
+    McNemar test of their success flags and the paired tests of ``COMPARED_METRICS``
+    ([`spacegrasp_jax.envelope.statistics`][spacegrasp_jax.envelope.statistics]).
+
+    ``pairs="baseline"`` tests each gain set against the first of its controller (the
+    baseline); ``"all"`` tests every pair, each against the one listed before it. Keyed
+    ``"<candidate key> vs <reference key>"``, the baseline's pairs first."""
+    if pairs not in PAIRS:
+        raise ValueError(f"pairs: expected one of {PAIRS}, got {pairs!r}")
+    tested = []
+    for i, reference in enumerate(variants):
+        for variant in variants[i + 1 :]:
+            if variant.controller != reference.controller:
+                continue
+            is_baseline = reference is next(v for v in variants if v.controller == reference.controller)
+            if is_baseline or pairs == "all":
+                tested.append((not is_baseline, reference, variant))
     result = {}
-    for variant in variants:
-        reference = first[variant.controller]
-        if variant is reference:
-            continue
+    for _, reference, variant in sorted(tested, key=lambda pair: pair[0]):
         a, b = metrics_by_variant[reference.key], metrics_by_variant[variant.key]
         result[f"{variant.key} vs {reference.key}"] = {
             "reference": reference.key,
@@ -559,6 +573,7 @@ def run_campaign(
     progress=sys.stderr,
     stop: runfiles.StopRequest | None = None,
     on_chunk: Callable[[Variant, int], None] | None = None,
+    pairs: str = "baseline",
 ) -> CampaignResult:
     """Run (or, with ``resume``, continue) a campaign; write its files to ``out`` if given.
 
@@ -576,6 +591,9 @@ def run_campaign(
         progress: stream for the progress bar (``None``: silent).
         stop: checked after each chunk; when set, the run stops with status "interrupted".
         on_chunk: called after each finished chunk with the variant and its first index.
+        pairs: the gain sets the summary tests against one another
+            ([`comparisons()`][spacegrasp_jax.jobs.campaign.comparisons]): each against the
+            first of its law (``"baseline"``) or every pair (``"all"``).
 
     Raises:
         CampaignError: invalid variants, a chunk size that is not a multiple of the device
@@ -583,6 +601,8 @@ def run_campaign(
     """
     if not variants:
         raise CampaignError("no variants to evaluate")
+    if pairs not in PAIRS:
+        raise CampaignError(f"pairs: expected one of {PAIRS}, got {pairs!r}")
     keys = [variant.key for variant in variants]
     if len(set(keys)) != len(keys):
         raise CampaignError(f"variants must differ in controller or gains label, got {keys}")
@@ -717,7 +737,7 @@ def run_campaign(
         "controller_believes": "each sample's perturbed robot" if config.identified else "the nominal robot",
         "throughput": throughput,
         "variants": summaries,
-        "comparisons": comparisons(all_metrics, variants),
+        "comparisons": comparisons(all_metrics, variants, pairs),
     }
     result = CampaignResult(perturbations, all_metrics, timeseries, summary, status)
     if writer:
