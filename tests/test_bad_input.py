@@ -72,6 +72,7 @@ def files(folder):
         "null.json": b"null",
         "kp_string.json": b'{"kp": "140"}',
         "kp_true.json": b'{"kp": true}',
+        "Kp.json": b'{"Kp": [1, 1, 1, 1, 1, 1, 1]}',
         "no_Kd.json": json.dumps({k: v for k, v in PAPER_ADMITTANCE.items() if k != "Kd"}).encode(),
         "Md_nested_string.json": b'{"Md": [800, 800, "800", 800, 800, 800]}',
         "duration_string.toml": b'duration = "17"',
@@ -228,6 +229,26 @@ def cases(paths, out):
             ]
             + ["--gains", "flight", "--out", out],
             "--gains flight: the shipped tuned sets are for the paper's 7-joint arm, not this 6-joint one",
+        ),
+        "the paper's gains on another arm": (
+            [
+                *SIMULATE,
+                "--robot",
+                str(CONFIGS / "ur5_on_satellite.toml"),
+                "--scenario",
+                str(CONFIGS / "ur5_scenario.toml"),
+            ]
+            + ["--gains", "paper", "--out", out],
+            "--gains paper: the paper's Table 4 gains are for its 7-joint arm, not this 6-joint one",
+        ),
+        # a misspelt name: the name meant, suggested
+        "gain key in another case": (
+            [*SIMULATE, "--gains", p["Kp.json"], "--fill-from", "paper", "--out", out],
+            "Kp.json: unknown gain(s): Kp (did you mean kp?)",
+        ),
+        "misspelt option": (
+            [*MONTECARLO, "--basline", "flight", "--out", out],
+            "--basline flight (did you mean --baseline?)",
         ),
         # a stock URDF arm: a chain with several leaves, a start outside its ranges
         "urdf with several leaves": (
@@ -587,7 +608,7 @@ def rejected(tmp_path_factory):
 
 
 _FILE_NAMES = (
-    "binary.json binary.toml deep.json deep.toml list.json number.json null.json kp_string.json kp_true.json no_Kd.json "
+    "binary.json binary.toml deep.json deep.toml list.json number.json null.json kp_string.json kp_true.json Kp.json no_Kd.json "
     "Md_nested_string.json duration_string.toml duration_true.toml dt_string.json target_mass_true.toml "
     "duration_huge.toml dt_tiny.toml ragged.json lar_not_table.toml noise_huge_int.toml period_huge_int.toml "
     "range_huge_int.toml servo_below_dt.toml servo_denormal.toml target_null.json satellite_mass_string.toml a_folder missing "

@@ -162,6 +162,13 @@ def test_reproduce_writes_every_file_and_field_and_is_deterministic(tmp_path, fu
     assert [variant["controller"] for variant in record["variants"]] == ["admittance", "cartesian"]
     assert record["variants"][0]["gains"]["kp"] == [140.0, 210.0, 140.0, 105.0, 105.0, 21.0, 21.0]
     assert record["command"][:2] == ["spacegrasp", "reproduce"] and record["robot"] is None
+    # The same command again replaces its own reproduction (the README's warm rerun); any
+    # other command is refused there as everywhere
+    assert cli.main(["reproduce", "--compile-cache", "none", "--out", str(first)]) == 0
+    assert f"replacing the reproduction in {first} (the same command's" in capsys.readouterr().out
+    assert (first / "table5.csv").read_text() == (second / "table5.csv").read_text()
+    assert cli.main(["reproduce", "--compile-cache", "none", "--out", str(first), "--csv"]) == 2
+    assert "already holds a reproduce run" in capsys.readouterr().err
 
 
 def test_simulate_one_controller_with_gains_and_scenario_files(tmp_path, gains):
@@ -272,6 +279,30 @@ def test_compare_overlays_runs_of_different_realisms(tmp_path, capsys):
         assert_csv_holds(tmp_path / "ideal" / "timeseries_admittance.csv", dict(data), rows=200)
     assert cli.main(["compare", str(tmp_path / "ideal"), "--out", str(tmp_path / "one")]) == 2
     assert "compare: needs at least two runs, found 1" in capsys.readouterr().err
+
+
+def test_compare_tells_apart_two_gains_files_of_one_name(tmp_path, capsys, gains):
+    """Two tuning runs' ``gains.json`` (the same name in two folders): ``compare`` labels the
+    runs by their folders, whole on the console (no default ``--controller``: the admittance law)."""
+    scenario = tmp_path / "short.toml"
+    scenario.write_text("duration = 0.2\n[trajectory]\nduration = 0.2\n")
+    base = ["simulate", "--compile-cache", "none", "--scenario", str(scenario)]
+    for name, Kd in (("first_tuning_run_of_the_week", 600.0), ("second_tuning_run_of_the_week", 300.0)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "gains.json").write_text(json.dumps({**gains.to_dict("admittance"), "Kd": Kd}))
+        assert (
+            cli.main([*base, "--gains", str(tmp_path / name / "gains.json"), "--out", str(tmp_path / f"run_{Kd:g}")])
+            == 0
+        )
+    capsys.readouterr()
+    runs = [str(tmp_path / "run_600"), str(tmp_path / "run_300")]
+    assert cli.main(["compare", *runs, "--out", str(tmp_path / "both")]) == 0
+    record = json.loads((tmp_path / "both" / "compare.json").read_text())
+    labels = ["gains first_tuning_run_of_the_week-gains", "gains second_tuning_run_of_the_week-gains"]
+    assert record["differing"] == ["gains"] and [run["label"] for run in record["runs"]] == labels
+    assert record["runs"][0]["law"] == "admittance"
+    printed = capsys.readouterr().out
+    assert all(f"{label} " in printed for label in labels)  # whole, not cut at 40 characters
 
 
 @pytest.mark.slow

@@ -610,7 +610,7 @@ def _variant_keys(robot, *options: str) -> list[str]:
 
 
 def test_the_baseline_comes_first_and_the_papers_gains_run_only_as_baseline_or_when_named(robot, tmp_path):
-    from spacegrasp_jax.cli.montecarlo import gain_set_labels
+    from spacegrasp_jax.cli.common import gain_set_labels
     from spacegrasp_jax.cli.options import UsageError
 
     law = ["--controller", "admittance"]

@@ -224,7 +224,7 @@ def test_divergence_guard_rejects_and_shrinks_the_step(short_problem):
     assert status == "done" and state.step == 2
     assert len(state.events) >= 1 and all(event["event"] == "rejected" for event in state.events)
     assert state.scale < 1.0
-    assert np.isfinite(state.loss) and state.aux["largest_peak_torque_Nm"] <= 20.0
+    assert np.isfinite(state.loss) and state.aux["max_largest_peak_torque_Nm"] <= 20.0
     assert sum(row["rejected_candidates"] for row in state.history) == len(state.events)
 
 

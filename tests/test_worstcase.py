@@ -234,7 +234,7 @@ def test_the_search_and_its_campaign_write_files_that_replay_their_captures(tmp_
     assert document["worse_than_the_campaign"] is (found >= campaign_worst)
     assert document["rollouts"] <= 96 and document["screening"] == 24
     assert max(document["history"][0]["best"]) <= found  # never below where it started
-    assert f"worst final_error found: {found:.6g}" in printed
+    assert f"worst final_error found: {1e3 * found:.4g} mm" in printed  # millimetres, as every console line
     summary = json.loads((out / "summary.json").read_text())["admittance"]
     np.testing.assert_allclose(summary["final_position_error_m"], found, rtol=1e-10)
     for name in ("search.png", "worst_perturbation.json", "campaign_worst_perturbation.json", "fig4_ee_pose.png"):
@@ -303,3 +303,12 @@ def test_the_ascents_gradient_matches_central_differences(robot):
     )
     assert np.all(np.isfinite(values)) and np.all(np.abs(slopes) > 0)
     np.testing.assert_allclose(slopes, (plus - minus) / (2 * h), rtol=1e-4, atol=1e-12)
+
+
+def test_the_console_shows_each_measure_in_its_console_unit():
+    from spacegrasp_jax.analysis.worstcase import MEASURES, SHOWN, shown
+
+    assert set(SHOWN) == set(MEASURES)
+    assert shown("final_error", 0.00488829) == "4.888 mm"
+    assert shown("peak_torque", 3.0061) == "3.006 N m"
+    assert shown("criteria", 1.25) == "1.25"

@@ -35,7 +35,13 @@ from spacegrasp_jax.jobs.montecarlo import SampleLoops
 from spacegrasp_jax.jobs.runfiles import StopRequest
 from spacegrasp_jax.loop.control.gains import Gains
 from spacegrasp_jax.loop.simulate import LoopOptions
-from spacegrasp_jax.tuning.objective import Objective, objective_spec, scenario_parts
+from spacegrasp_jax.tuning.objective import (
+    BATCH_MAX_PEAK_TORQUE,
+    Objective,
+    history_of_older_version,
+    objective_spec,
+    scenario_parts,
+)
 from spacegrasp_jax.tuning.parameters import gains_from_params
 
 if TYPE_CHECKING:
@@ -222,7 +228,7 @@ def load_checkpoint(path: Path) -> tuple[list, list, list, list]:
         return (
             [data[f"asked_{k}"] for k in range(count)],
             [data[f"told_{k}"] for k in range(count)],
-            meta["history"],
+            history_of_older_version(meta["history"]),
             meta.get("validation", []),
         )
 
@@ -344,6 +350,6 @@ def _row(generation, parts, which, objective, best, sigma, wall) -> dict:
     its parts, the best candidate's objective, CMA-ES's step size, the wall time (s)."""
     row = {"step": generation, "loss": float(objective)}
     row |= {name: float(np.nanmean(value[which])) for name, value in parts.items() if name != "loss"}
-    row["largest_peak_torque_Nm"] = float(np.nanmax(parts["largest_peak_torque_Nm"][which]))
+    row[BATCH_MAX_PEAK_TORQUE] = float(np.nanmax(parts["largest_peak_torque_Nm"][which]))
     row |= {"best_candidate_loss": best, "sigma": float(sigma), "wall_s": wall}
     return row

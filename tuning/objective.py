@@ -313,3 +313,22 @@ def objective_spec(
         observer=FullLog(segment),
         options=options,
     )
+
+
+#: The history column (``history.csv``, a step's aux) of the largest peak torque over the
+#: whole batch: the largest of the captures' largest peaks (N m), the torque guard's measure.
+#: Every other part in the history is its batch mean.
+BATCH_MAX_PEAK_TORQUE = "max_largest_peak_torque_Nm"
+
+
+def history_of_older_version(rows: list[dict]) -> list[dict]:
+    """A checkpoint's history rows with today's column names: before the batch maximum's
+    column said what it holds, it was ``largest_peak_torque_Nm`` (a row of today has both,
+    that one the batch mean)."""
+
+    def renamed(row: dict) -> dict:
+        if BATCH_MAX_PEAK_TORQUE in row:
+            return row
+        return {(BATCH_MAX_PEAK_TORQUE if name == "largest_peak_torque_Nm" else name): v for name, v in row.items()}
+
+    return [renamed(row) for row in rows]

@@ -315,7 +315,8 @@ def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chu
 
 def _write_history(path: Path, history: list) -> None:
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(history[0]))
+    columns = list(dict.fromkeys(name for row in history for name in row))  # a resumed older run adds some
+    writer = csv.DictWriter(buffer, fieldnames=columns, restval="")
     writer.writeheader()
     writer.writerows(history)
     runfiles.write_text(path, buffer.getvalue())

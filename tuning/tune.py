@@ -42,7 +42,15 @@ from spacegrasp_jax.loop.control.schedule import VARIABLES
 from spacegrasp_jax.loop.realism import Realism, ideal, make_realism
 from spacegrasp_jax.loop.simulate import LoopOptions, gradient_cut, largest_divisor
 from spacegrasp_jax.tuning import cmaes, estimators
-from spacegrasp_jax.tuning.objective import OBJECTIVES, Objective, Weights, objective_spec, scenario_parts
+from spacegrasp_jax.tuning.objective import (
+    BATCH_MAX_PEAK_TORQUE,
+    OBJECTIVES,
+    Objective,
+    Weights,
+    history_of_older_version,
+    objective_spec,
+    scenario_parts,
+)
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 
 CHECKPOINT = "checkpoint.npz"
@@ -477,7 +485,7 @@ def batch_loss(
         worst = max(1, math.ceil((1.0 - cvar_alpha) * losses.shape[0]))
         total = jnp.mean(jnp.sort(losses)[-worst:])
     aux = {name: jnp.mean(value) for name, value in parts.items()}
-    aux["largest_peak_torque_Nm"] = jnp.max(parts["largest_peak_torque_Nm"])
+    aux[BATCH_MAX_PEAK_TORQUE] = jnp.max(parts["largest_peak_torque_Nm"])
     return total, aux
 
 
@@ -702,7 +710,7 @@ def make_flight_value_and_grad(
         losses, gradients = jnp.asarray(losses), jax.tree.map(jnp.asarray, gradients)
         total, gradient, clipped = aggregate_gradients(losses, gradients, config)
         aux = {name: jnp.mean(value) for name, value in parts.items()}
-        aux["largest_peak_torque_Nm"] = jnp.max(parts["largest_peak_torque_Nm"])
+        aux[BATCH_MAX_PEAK_TORQUE] = jnp.max(parts["largest_peak_torque_Nm"])
         aux["clipped_samples"] = clipped.astype(losses.dtype)
         return (total, aux), gradient
 
@@ -733,7 +741,7 @@ class RunState:
 
 def _is_acceptable(loss, aux, gradient, guard_Nm: float, loss_ceiling: float = math.inf) -> bool:
     finite = math.isfinite(float(loss)) and all(bool(np.all(np.isfinite(g))) for g in jax.tree.leaves(gradient))
-    return finite and float(aux["largest_peak_torque_Nm"]) <= guard_Nm and float(loss) <= loss_ceiling
+    return finite and float(aux[BATCH_MAX_PEAK_TORQUE]) <= guard_Nm and float(loss) <= loss_ceiling
 
 
 def save_checkpoint(path: Path, state: RunState, config: TuneConfig, write_atomically) -> None:
@@ -775,7 +783,7 @@ def load_checkpoint(path: Path, params_template, opt_state_template) -> tuple[Ru
             loss=meta["loss"],
             aux=meta["aux"],
             gradient=restore("gradient", params_template),
-            history=meta["history"],
+            history=history_of_older_version(meta["history"]),
             events=meta["events"],
             # a checkpoint of an older version kept no best step: the last one stands for it
             best_step=meta.get("best_step", meta["step"]),
@@ -803,8 +811,9 @@ def progress_line(state: RunState, total: int) -> str:
         state.step,
         total,
         f"step {state.step}/{total} loss {state.loss:.4f} | "
-        f"final pos {1e3 * aux['final_position_m']:.3f} mm | peak torque {aux['peak_torque_smooth']:.3f} "
-        f"(hard {aux['peak_torque_hard']:.3f}, gap {aux['peak_torque_gap']:.3f}) | rms {1e3 * aux['rms_tracking_m']:.2f} mm",
+        f"final pos {1e3 * aux['final_position_m']:.3f} mm | peak torque / constraint {aux['peak_torque_smooth']:.3f} "
+        f"(hard {aux['peak_torque_hard']:.3f}, gap {aux['peak_torque_gap']:.3f}) | rms {1e3 * aux['rms_tracking_m']:.2f} mm "
+        f"(batch means) | largest peak {aux[BATCH_MAX_PEAK_TORQUE]:.2f} N m (batch max)",
     )
 
 
@@ -867,7 +876,7 @@ def optimise(
                     "step": state.step + 1,
                     "event": "rejected",
                     "loss": float(loss),
-                    "largest_peak_torque_Nm": float(aux["largest_peak_torque_Nm"]),
+                    BATCH_MAX_PEAK_TORQUE: float(aux[BATCH_MAX_PEAK_TORQUE]),
                     "new_scale": state.scale / 2,
                 }
             )

@@ -92,6 +92,17 @@ MEASURES = {
     ),
 }
 
+#: How the console shows each measure: a scale from its SI unit, and the unit shown
+#: (millimetres for a position, as every other console line).
+SHOWN = {"final_error": (1e3, "mm"), "peak_torque": (1.0, "N m"), "criteria": (1.0, "")}
+
+
+def shown(measure: str, value: float) -> str:
+    """``value`` of ``measure`` (in ``MEASURES``' unit) as the console writes it: ``4.888 mm``."""
+    scale, unit = SHOWN[measure]
+    return f"{scale * value:.4g} {unit}".rstrip()
+
+
 #: Rollouts one point of the ascent is counted as: its value and reverse-mode gradient.
 GRADIENT_COST = 4
 
@@ -351,7 +362,7 @@ def search(
     values, compile_s = campaign_measures(
         robot, scenario, gains, controller, config, settings.measure, 0, screening, chunk
     )
-    say(f"screening: {screening} samples, worst {settings.measure} {np.max(values):.6g}")
+    say(f"screening: {screening} samples, worst {settings.measure} {shown(settings.measure, np.max(values))}")
     if settings.method == "cem":
         return _cross_entropy(robot, scenario, gains, controller, config, settings, values, compile_s, started, say)
     return _ascent(robot, scenario, gains, controller, config, settings, values, compile_s, started, say)
@@ -539,7 +550,8 @@ def cross_entropy(evaluate, population: Population, settings: SearchSettings, rn
         history.append({"rollouts": rollouts, "best": [float(np.max(population.values))], "modes": ["sample"]})
         if say is not None:
             say(
-                f"generation {generation}/{settings.generations}: worst {settings.measure} {np.max(population.values):.6g}"
+                f"generation {generation}/{settings.generations}: worst {settings.measure} "
+                f"{shown(settings.measure, np.max(population.values))}"
             )
     return population, history
 
@@ -615,7 +627,7 @@ def ascend(evaluate, units: Perturbation, settings: SearchSettings, rng, rollout
         if say is not None:
             say(
                 f"ascent step {step_number + 2}/{settings.ascent_steps}: best {settings.measure} "
-                + ", ".join(f"{v:.6g} ({m[0]})" for v, m in zip(best_values, modes))
+                + ", ".join(f"{shown(settings.measure, v)} ({m[0]})" for v, m in zip(best_values, modes))
             )
     return best_values, best_units, history
 
@@ -770,6 +782,8 @@ __all__ = [
     "perturbed_spec",
     "GRADIENT_COST",
     "MEASURES",
+    "SHOWN",
+    "shown",
     "SearchResult",
     "SearchSettings",
     "WorstCaseError",

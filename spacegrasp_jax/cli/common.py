@@ -221,6 +221,27 @@ def gains_label(value: str | None) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(value).stem) or "gains"
 
 
+def gain_set_labels(names: list[str]) -> list[str]:
+    """A label for each ``--gains`` value, unique among them: a shipped set's name, else the
+    file's stem, with as many of its parent folders (joined by ``-``) as it takes to tell two
+    files apart (``results/a/gains.json`` and ``results/b/gains.json``: ``a-gains`` and ``b-gains``)."""
+    parts = [[name] if name in NAMED_GAIN_SETS else [*Path(name).parent.parts, Path(name).stem] for name in names]
+    depth = [1] * len(names)
+    while True:
+        labels = ["-".join(part for part in p[-d:] if part not in ("", ".", "..", "/")) for p, d in zip(parts, depth)]
+        clashes = {label for label in labels if labels.count(label) > 1}
+        grown = False
+        for i, label in enumerate(labels):
+            if label in clashes and depth[i] < len(parts[i]):
+                depth[i] += 1
+                grown = True
+        if not clashes:
+            return ["".join(c if c.isalnum() or c in "-_." else "_" for c in label) for label in labels]
+        if not grown:
+            first = next(name for name, label in zip(names, labels) if label in clashes)
+            raise UsageError(f"--gains {first}: given twice")
+
+
 def _paper_gains_for(robot, controller: str | None = None) -> Gains:
     """The paper's gains, when the arm is the paper's 7-joint one (Table 4 is for it) and the
     law one of the paper's (``None``: any)."""

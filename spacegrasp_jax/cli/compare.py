@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from spacegrasp_jax.cli.common import _claim, _file_name, _run_schedule, _save_schedule_figure
+from spacegrasp_jax.cli.common import _claim, _file_name, _run_schedule, _save_schedule_figure, gain_set_labels
 from spacegrasp_jax.cli.options import UsageError, _add_command, _add_overwrite_option
 from spacegrasp_jax.jobs import experiment, runfiles
 from spacegrasp_jax.loop.realism import ideal
@@ -26,6 +26,7 @@ def _run_descriptors(folder: Path, key: str, config: dict) -> dict:
         law, _, label = key.partition("/")
         labels = [v["label"] for v in record["variants"] if v["controller"] == law and label in ("", v["label"])]
         gains = labels[0] if labels else "?"
+        gains_source = sources.get("gains")
         if "sample" in sources:  # a replay of a campaign's sample
             loop = ("ideal" if realism == "ideal" else "flight-like") + f" (sample {sources['sample']})"
         robot_source = sources.get("robot")
@@ -34,13 +35,14 @@ def _run_descriptors(folder: Path, key: str, config: dict) -> dict:
         realism, scenario = record["config"]["realism"], record["scenario"]
         robot_source = record.get("robot")
         loop = "ideal" if realism == ideal().to_dict() else "flight-like"
-        gains = key.split("/", 1)[1]
+        gains = gains_source = key.split("/", 1)[1]
         loop += f" (sample {config['sample']})"
     else:
         scenario = config["scenario"]
         source = config.get("realism_source")
         loop = source if source else ("ideal" if config["realism"] == ideal().to_dict() else "custom")
         gains = Path(config["gains_source"]).stem if config.get("gains_source") else "paper"
+        gains_source = config.get("gains_source")
         robot_source = config.get("robot")
     target = "fixed" if scenario.get("target") is None else f"free {scenario['target']['mass']:g} kg"
     robot = "paper" if robot_source in (None, "paper_robot()") else Path(robot_source).stem
@@ -51,7 +53,20 @@ def _run_descriptors(folder: Path, key: str, config: dict) -> dict:
         "gains": gains,
         "target": target,
         "run": folder.name,
+        "gains_source": gains_source or gains,
     }
+
+
+def _tell_gains_apart(descriptors: list[dict]) -> None:
+    """Gains of one label read from different files (two tuning runs' ``gains.json``) are
+    labelled by as many of their folders as it takes to tell them apart."""
+    for label in {d["gains"] for d in descriptors}:
+        same = [d for d in descriptors if d["gains"] == label]
+        sources = list(dict.fromkeys(d["gains_source"] for d in same))
+        if len(sources) > 1:
+            told = dict(zip(sources, gain_set_labels(sources)))
+            for d in same:
+                d["gains"] = told[d["gains_source"]]
 
 
 def _compare(args: argparse.Namespace) -> int:
@@ -76,6 +91,9 @@ def _compare(args: argparse.Namespace) -> int:
     out = Path(args.out)
     _claim(args, out)
     descriptors = [_run_descriptors(folder, key, config) for folder, key, config, _, _ in runs]
+    _tell_gains_apart(descriptors)
+    for d in descriptors:
+        del d["gains_source"]
     differing = [name for name in descriptors[0] if len({d[name] for d in descriptors}) > 1 and name != "run"]
     if not differing or len({tuple(d[name] for name in differing) for d in descriptors}) < len(runs):
         differing.append("run")
@@ -85,8 +103,9 @@ def _compare(args: argparse.Namespace) -> int:
     )
     logs = {label: experiment.read_log(path) for label, (_, _, _, _, path) in zip(labels, runs)}
     table = {}
+    width = max(40, *(len(label) for label in labels))
     print(
-        f"\n{'run':40} {'final pos [mm]':>15} {'orient [deg]':>13} {'peak |u| [N m]':>15} {'contact [N]':>12}  capture"
+        f"\n{'run':{width}} {'final pos [mm]':>15} {'orient [deg]':>13} {'peak |u| [N m]':>15} {'contact [N]':>12}  capture"
     )
     for label, (_, _, _, summary, _) in zip(labels, runs):
         numbers = {
@@ -111,7 +130,7 @@ def _compare(args: argparse.Namespace) -> int:
             f"{numbers['max_contact_force_N']:>12.2f}" if numbers["max_contact_force_N"] is not None else f"{'-':>12}",
         ]
         verdict = {True: "yes", False: "no", None: "-"}[numbers["capture_success"]]
-        print(f"{label[:40]:40} {' '.join(cells)}  {verdict}")
+        print(f"{label:{width}} {' '.join(cells)}  {verdict}")
     caption = f"compared: {common}" if common else "compared"
     from spacegrasp_jax.analysis import plots
 

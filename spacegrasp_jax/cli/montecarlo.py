@@ -22,6 +22,7 @@ from spacegrasp_jax.cli.common import (
     _realism,
     _robot_links,
     _warn,
+    gain_set_labels,
 )
 from spacegrasp_jax.cli.options import (
     _SEED,
@@ -53,27 +54,6 @@ from spacegrasp_jax.loop.control import (
 )
 from spacegrasp_jax.loop.control.schedule import NAMED_GAIN_SETS
 from spacegrasp_jax.loop.realism import load_realism
-
-
-def gain_set_labels(names: list[str]) -> list[str]:
-    """A label for each ``--gains`` value, unique among them: a shipped set's name, else the
-    file's stem, with as many of its parent folders (joined by ``-``) as it takes to tell two
-    files apart (``results/a/gains.json`` and ``results/b/gains.json``: ``a-gains`` and ``b-gains``)."""
-    parts = [[name] if name in NAMED_GAIN_SETS else [*Path(name).parent.parts, Path(name).stem] for name in names]
-    depth = [1] * len(names)
-    while True:
-        labels = ["-".join(part for part in p[-d:] if part not in ("", ".", "..", "/")) for p, d in zip(parts, depth)]
-        clashes = {label for label in labels if labels.count(label) > 1}
-        grown = False
-        for i, label in enumerate(labels):
-            if label in clashes and depth[i] < len(parts[i]):
-                depth[i] += 1
-                grown = True
-        if not clashes:
-            return ["".join(c if c.isalnum() or c in "-_." else "_" for c in label) for label in labels]
-        if not grown:
-            first = next(name for name, label in zip(names, labels) if label in clashes)
-            raise UsageError(f"--gains {first}: given twice")
 
 
 def _montecarlo_variants(args: argparse.Namespace, robot) -> list[campaign.Variant]:

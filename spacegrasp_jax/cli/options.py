@@ -6,6 +6,7 @@ import argparse
 import math
 import sys
 
+from spacegrasp_jax.core.inputs import did_you_mean
 from spacegrasp_jax.envelope.perturbations import (
     FREE_TARGET_RANGES,
     PerturbationRanges,
@@ -31,8 +32,27 @@ class _Parser(argparse.ArgumentParser):
         keywords.setdefault("allow_abbrev", False)
         super().__init__(*args, **keywords)
 
+    def parse_known_args(self, args=None, namespace=None):
+        self._argv = list(sys.argv[1:] if args is None else args)  # for error()'s suggestions
+        return super().parse_known_args(args, namespace)
+
     def error(self, message: str):
+        if message.startswith("unrecognized arguments: "):
+            message += self._suggestions(message.removeprefix("unrecognized arguments: ").split())
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+    def _suggestions(self, unrecognized: list[str]) -> str:
+        """`` (did you mean --gains?)`` for each mistyped option, among the options of the
+        command the line runs (this parser's own without a command)."""
+        parser = self
+        commands = getattr(self, "commands", {})
+        for token in getattr(self, "_argv", []):
+            if token in commands:
+                parser = commands[token]
+                break
+        known = [option for action in parser._actions for option in action.option_strings]
+        options = [token.split("=")[0] for token in unrecognized if token.startswith("--")]
+        return "".join(did_you_mean(option, known) for option in options)
 
     def _get_value(self, action: argparse.Action, arg_string: str):
         # Every value typed on the command line is converted here (argparse's one conversion

@@ -216,8 +216,8 @@ def _worstcase(args: argparse.Namespace) -> int:
         runfiles.write_atomically,
     )
     print(
-        f"worst {args.measure} found: {found.value:.6g} {unit} ({found.found_by}); worst of a campaign of {args.budget}: "
-        f"{baseline['value']:.6g} {unit} (sample {baseline['sample']})"
+        f"worst {args.measure} found: {worstcase.shown(args.measure, found.value)} ({found.found_by}); worst of a "
+        f"campaign of {args.budget}: {worstcase.shown(args.measure, baseline['value'])} (sample {baseline['sample']})"
     )
     print(f"{found.rollouts} rollouts in {found.search_s:.1f} s, after {found.compile_s:.1f} s compiling")
     print(f"replay it: {shlex.join(replay_command)}")

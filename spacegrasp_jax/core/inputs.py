@@ -12,6 +12,7 @@ rather than read as 1 and 1.5.
 
 from __future__ import annotations
 
+import difflib
 import json
 import sys
 import tomllib
@@ -115,3 +116,13 @@ def short(value, limit: int = 80) -> str:
 
 
 __all__ = ["is_real", "numbers", "parse_document", "read_document", "read_text", "short"]
+
+
+def did_you_mean(name: str, known) -> str:
+    """`` (did you mean X?)`` for the known name closest to a mistyped ``name`` (the same
+    letters in another case first, then by ``difflib``'s similarity), or ``""`` when none is
+    close."""
+    known = list(known)
+    same_letters = [candidate for candidate in known if candidate.lower() == name.lower()]
+    close = same_letters or difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+    return f" (did you mean {close[0]}?)" if close else ""

@@ -41,7 +41,7 @@ import numpy as np
 
 from spacegrasp_jax.core import model
 from spacegrasp_jax.core.dynamics import mass_matrix
-from spacegrasp_jax.core.inputs import numbers, read_document
+from spacegrasp_jax.core.inputs import did_you_mean, numbers, read_document
 from spacegrasp_jax.core.precision import require_float64
 from spacegrasp_jax.loop.control.groups import PER_JOINT, fields_of_groups
 from spacegrasp_jax.loop.control.registry import CONTROLLERS, GAIN_GROUPS, gains_used
@@ -81,6 +81,11 @@ class Gains(fields_of_groups(GAIN_GROUPS)):
         return {name: np.asarray(getattr(self, name)).tolist() for name in names}
 
 
+def _unknown(names: list[str]) -> str:
+    """Unknown gain names, each with the known one it likely meant (``Kp (did you mean kp?)``)."""
+    return ", ".join(name + did_you_mean(name, GAIN_SHAPES) for name in names)
+
+
 def make_gains(*, n_joints: int = PAPER_JOINTS, **fields) -> Gains:
     """Validate and build [`Gains`][spacegrasp_jax.loop.control.gains.Gains] for an arm of ``n_joints``
     joints (the paper's 7 by default); a scalar is broadcast to the field's length, and
@@ -94,7 +99,7 @@ def make_gains(*, n_joints: int = PAPER_JOINTS, **fields) -> Gains:
     require_float64("Gains")
     unknown = sorted(set(fields) - set(GAIN_SHAPES))
     if unknown:
-        raise GainsError(f"unknown gain(s): {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")
+        raise GainsError(f"unknown gain(s): {_unknown(unknown)}; expected {', '.join(GAIN_SHAPES)}")
     optional = {name: declaration.default for name, declaration in GAIN_GROUPS.items() if declaration.optional}
     fields = optional | fields
     missing = [name for name in GAIN_SHAPES if name not in fields]
@@ -299,7 +304,7 @@ def gains_from_document(
     (its JSON object), ``path`` naming the file in messages."""
     unknown = sorted(set(document) - set(GAIN_SHAPES))
     if unknown:
-        raise GainsError(f"{path}: unknown gain(s): {', '.join(unknown)}; expected {', '.join(GAIN_SHAPES)}")
+        raise GainsError(f"{path}: unknown gain(s): {_unknown(unknown)}; expected {', '.join(GAIN_SHAPES)}")
     missing = [name for name in required_groups(controller) if name not in document]
     fill = _fill_values(path, missing, fill_from, n_joints, controller)
     defaults = paper_gains().to_dict()  # for the groups no law of the run uses (every law uses the joint groups)
