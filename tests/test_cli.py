@@ -237,16 +237,21 @@ def test_compare_names_the_robots_of_runs_of_different_arms(tmp_path, capsys):
         )
         folders.append(str(tmp_path / arm))
         args = ["simulate", "--compile-cache", "none", "--controller", "admittance"]
-        args += ["--robot", str(configs / f"{arm}_on_satellite.toml"), "--gains", str(configs / f"{arm}_gains.json")]
+        args += [
+            "--robot",
+            str(configs / f"{arm}_on_satellite.toml"),
+            "--gains",
+            str(configs / f"{arm}_ideal_gains.json"),
+        ]
         assert cli.main([*args, "--scenario", str(scenario), "--out", folders[-1]]) == 0
     assert cli.main(["compare", *folders, "--out", str(tmp_path / "both")]) == 0
     record = json.loads((tmp_path / "both" / "compare.json").read_text())
     assert record["differing"] == ["robot", "gains"]
     assert [run["label"] for run in record["runs"]] == [
-        "robot ur5_on_satellite, gains ur5_gains",
-        "robot panda_on_satellite, gains panda_gains",
+        "robot ur5_on_satellite, gains ur5_ideal_gains",
+        "robot panda_on_satellite, gains panda_ideal_gains",
     ]
-    assert "robot ur5_on_satellite, gains ur5_gains" in capsys.readouterr().out
+    assert "robot ur5_on_satellite, gains ur5_ideal_gains" in capsys.readouterr().out
 
 
 @pytest.mark.slow

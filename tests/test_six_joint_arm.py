@@ -36,7 +36,9 @@ from spacegrasp_jax.tuning.tune import (
 )
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-ROBOT, SCENARIO, GAINS = (CONFIGS / name for name in ("ur5_on_satellite.toml", "ur5_scenario.toml", "ur5_gains.json"))
+ROBOT, SCENARIO, GAINS = (
+    CONFIGS / name for name in ("ur5_on_satellite.toml", "ur5_scenario.toml", "ur5_ideal_gains.json")
+)
 SHORT = '[trajectory]\nduration = 1.0\n[contact]\nlaw = "smooth"\n'  # contact from about 0.45 s
 
 pytestmark = pytest.mark.slow

@@ -50,6 +50,7 @@ import numpy as np
 from spacegrasp_jax.core.model import Robot
 from spacegrasp_jax.envelope.scenario import Scenario
 from spacegrasp_jax.jobs import batching
+from spacegrasp_jax.jobs.anatomy import FAILURE_CLASSES, failure_classes
 from spacegrasp_jax.jobs.campaign import CampaignConfig, CampaignError
 from spacegrasp_jax.jobs.montecarlo import FoldedMetrics, evaluate_samples, lost, success
 from spacegrasp_jax.loop.control.gains import Gains
@@ -269,12 +270,29 @@ class Prober:
         self._record(loop, value, result, held)
         return held
 
+    def limited_by(self, result: dict) -> dict:
+        """What made a probe fail: ``"stability"`` where a sample that stays bounded at the
+        nominal gains ran away or diverged, else ``"capture criteria"``; ``criteria``, the
+        criteria the samples that captured at the nominal gains missed, with their counts
+        (``anatomy.FAILURE_CLASSES``)."""
+        nominal = self.nominal
+        lost_now = nominal["bounded"] & ~result["bounded"]
+        missed_now = nominal["success"] & ~result["success"]
+        classes = failure_classes(result, self.config.criteria)
+        counts = {
+            name: int(np.sum(classes[f"failed_{name}"] & (missed_now | lost_now)))
+            for name in FAILURE_CLASSES
+            if np.any(classes[f"failed_{name}"] & (missed_now | lost_now))
+        }
+        return {"kind": "stability" if np.any(lost_now) else "capture criteria", "criteria": counts}
+
     def _record(self, loop, value, result, held):
         self.probes.append(
             {
                 "loop": loop,
                 "value": int(value) if loop in ("delay", "servo_delay") else float(value),
                 "holds": held,
+                "limited_by": None if held else self.limited_by(result),
                 "success": result["success"].tolist(),
                 "bounded": result["bounded"].tolist(),
                 "final_position_error_m": [_finite_or_none(x) for x in result["final_position_error_m"]],
@@ -333,12 +351,34 @@ def gain_margin(prober: Prober, loop: str, direction: str) -> dict:
             else:
                 failed = middle
     holds = 2.0 ** (sign * held)
+    fails = None if failed is None else 2.0 ** (sign * failed)
     return {
         "holds": holds,
-        "fails": None if failed is None else 2.0 ** (sign * failed),
+        "fails": fails,
         "margin_db": 20.0 * math.log10(holds),
         "probes": len(prober.probes) - start,
+        "limited_by": _limit_at(prober.probes[start:], loop, fails),
     }
+
+
+def _limit_at(probes: list[dict], loop: str, value) -> dict | None:
+    """What made the probe of ``loop`` at ``value`` fail (``Prober.limited_by()``); ``None``
+    where nothing failed (the search's limit holds)."""
+    if value is None:
+        return None
+    failing = [probe for probe in probes if probe["loop"] == loop and probe["value"] == value and not probe["holds"]]
+    return failing[-1].get("limited_by") if failing else None
+
+
+def limit_words(limit: dict | None) -> str:
+    """``limit`` in words: ``limited by stability (a capture ran away)`` or ``limited by
+    accuracy, not stability (captures missed: position 3)``."""
+    if limit is None:
+        return "not limited within the search"
+    missed = ", ".join(f"{name} {count}" for name, count in limit["criteria"].items())
+    if limit["kind"] == "stability":
+        return f"limited by stability (a capture ran away or diverged; missed: {missed})"
+    return f"limited by the capture criteria, not stability (captures missed: {missed})"
 
 
 def delay_margin(prober: Prober, period_s: float, loop: str = "delay") -> dict:
@@ -374,6 +414,7 @@ def delay_margin(prober: Prober, period_s: float, loop: str = "delay") -> dict:
         "holds_s": held * period_s,
         "fails_s": None if failed is None else failed * period_s,
         "probes": len(prober.probes) - start,
+        "limited_by": _limit_at(prober.probes[start:], loop, failed),
     }
 
 
@@ -486,12 +527,17 @@ def margin_lines(result: dict) -> list[str]:
     def factor(entry):
         if entry["fails"] is None:
             return f"holds to x{entry['holds']:.3g} (the search's limit)"
-        return f"x{entry['holds']:.3g} ({entry['margin_db']:+.1f} dB; fails at x{entry['fails']:.3g})"
+        limit = f"; {limit_words(entry['limited_by'])}" if "limited_by" in entry else ""
+        return f"x{entry['holds']:.3g} ({entry['margin_db']:+.1f} dB; fails at x{entry['fails']:.3g}{limit})"
+
+    def delay_limit(entry):
+        return f"; {limit_words(entry['limited_by'])}" if entry.get("limited_by") else ""
 
     lines = []
     for loop, title in (("pid", "joint PID gain"), ("law", f"{result['controller']} law gain")):
         margins = result["gain_margins"][loop]
-        lines.append(f"{title}: increase {factor(margins['increase'])}, decrease {factor(margins['decrease'])}")
+        lines.append(f"{title}: increase {factor(margins['increase'])}")
+        lines.append(f"{' ' * len(title)}  decrease {factor(margins['decrease'])}")
     delay = result["delay_margin"]
     if delay["fails_periods"] is None:
         lines.append(
@@ -501,7 +547,7 @@ def margin_lines(result: dict) -> list[str]:
     else:
         lines.append(
             f"extra delay at the controller's output: {delay['holds_periods']} control periods "
-            f"({delay['holds_s']:.4g} s) holds, {delay['fails_periods']} ({delay['fails_s']:.4g} s) fails"
+            f"({delay['holds_s']:.4g} s) holds, {delay['fails_periods']} ({delay['fails_s']:.4g} s) fails{delay_limit(delay)}"
         )
     servo = result.get("servo_delay_margin")
     if servo is None:
@@ -514,7 +560,7 @@ def margin_lines(result: dict) -> list[str]:
     elif servo is not None:
         lines.append(
             f"extra delay at the servo's input: {servo['holds_periods']} servo ticks ({servo['holds_s']:.4g} s) holds, "
-            f"{servo['fails_periods']} ({servo['fails_s']:.4g} s) fails"
+            f"{servo['fails_periods']} ({servo['fails_s']:.4g} s) fails{delay_limit(servo)}"
         )
     lines.append(
         f"{len(result['probes'])} probes of {result['samples']} samples ({result['rollouts']} rollouts) in "
@@ -541,6 +587,7 @@ __all__ = [
     "find_margins",
     "gain_margin",
     "margin_lines",
+    "limit_words",
     "scaled_loop",
     "servo_runs_at_its_own_rate",
     "sweep_delays",

@@ -685,13 +685,89 @@ def figure_eigenvalues(linear: dict, title: str):
     return fig
 
 
-def save_margin_figures(out_dir, result: dict, tolerance_mm: float, title: str, write_atomically) -> None:
+def save_margin_figures(
+    out_dir, result: dict, tolerance_mm: float, title: str, write_atomically, bode: dict | None = None
+) -> None:
     """``margins.png`` of ``spacegrasp margins`` ([`figure_margins()`][spacegrasp_jax.analysis.plots.figure_margins]) and, with a
-    linear analysis in ``result["linear"]``, ``eigenvalues.png`` ([`figure_eigenvalues()`][spacegrasp_jax.analysis.plots.figure_eigenvalues])."""
+    linear analysis in ``result["linear"]``, ``eigenvalues.png`` ([`figure_eigenvalues()`][spacegrasp_jax.analysis.plots.figure_eigenvalues]);
+    with its loops' ``bode`` data, ``bode.png`` and ``nichols.png`` ([`figure_bode()`][spacegrasp_jax.analysis.plots.figure_bode],
+    [`figure_nichols()`][spacegrasp_jax.analysis.plots.figure_nichols])."""
     figures = {"margins.png": figure_margins(result, tolerance_mm, title)}
     if result.get("linear"):
         figures["eigenvalues.png"] = figure_eigenvalues(result["linear"], title)
+    if bode:
+        margins_by_loop = result["linear"].get("frequency_response", {}) if result.get("linear") else {}
+        figures["bode.png"] = figure_bode(bode, margins_by_loop, title)
+        figures["nichols.png"] = figure_nichols(bode, title)
     save(figures, out_dir, write_atomically)
+
+
+#: The loops' names on the frequency-response figures.
+_LOOP_TITLES = {"pid": "broken at the joint PID", "law": "broken at the law"}
+
+
+def figure_bode(bode: dict, margins_by_loop: dict, title: str):
+    """The Bode plot of each loop broken at its gain (``spacegrasp_jax.analysis.frequency.bode()``'s
+    data a loop): each characteristic locus' magnitude (dB) and phase (deg) of the open loop
+    ``L = -g`` against frequency, the 0 dB and -180 deg lines, and the gain margins' and the
+    phase margin's frequencies (``loop_margins()``) marked."""
+    loops = list(bode)
+    fig, axes = plt.subplots(2, len(loops), figsize=(6.5 * len(loops), 7.5), sharex="col", squeeze=False)
+    fig.suptitle(f"Frequency response of the linearised loop\n{title}", fontsize=11)
+    for column, loop in enumerate(loops):
+        data, magnitude_ax, phase_ax = bode[loop], axes[0, column], axes[1, column]
+        f = data["frequency_hz"]
+        for i in range(data["magnitude_db"].shape[1]):
+            magnitude_ax.semilogx(f, data["magnitude_db"][:, i], color=f"C{i % 10}", lw=1.0)
+            phase_ax.semilogx(f, data["phase_deg"][:, i], color=f"C{i % 10}", lw=1.0)
+        magnitude_ax.axhline(0.0, color="0.3", lw=0.8, ls="--")
+        for k in range(-4, 2):
+            phase_ax.axhline(-180.0 + 360.0 * k, color="0.3", lw=0.8, ls="--")
+        found = margins_by_loop.get(loop, {})
+        notes = []
+        for direction, entry in (found.get("gain_margins") or {}).items():
+            if entry is not None and entry["frequency_hz"] > 0.0:
+                magnitude_ax.axvline(entry["frequency_hz"], color="tab:red", lw=0.8, ls=":")
+                notes.append(f"gain margin ({direction}) x{entry['factor']:.3g} at {entry['frequency_hz']:.3g} Hz")
+        phase = found.get("phase_margin")
+        if phase is not None:
+            phase_ax.axvline(phase["frequency_hz"], color="tab:blue", lw=0.8, ls=":")
+            notes.append(f"phase margin {phase['phase_margin_deg']:.1f} deg at {phase['frequency_hz']:.3g} Hz")
+        magnitude_ax.set(
+            ylabel="|L| [dB]", title=f"{_LOOP_TITLES.get(loop, loop)}: {data['magnitude_db'].shape[1]} loci"
+        )
+        phase_ax.set(xlabel="frequency [Hz]", ylabel="phase of L [deg]")
+        phase_ax.set_ylim(
+            max(-900.0, float(np.nanmin(data["phase_deg"])) - 30.0), float(np.nanmax(data["phase_deg"])) + 30.0
+        )
+        if notes:
+            magnitude_ax.text(0.02, 0.03, "\n".join(notes), transform=magnitude_ax.transAxes, fontsize=7, va="bottom")
+        for ax in (magnitude_ax, phase_ax):
+            ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def figure_nichols(bode: dict, title: str):
+    """The Nichols chart of each loop broken at its gain: each locus' open-loop magnitude (dB)
+    against its phase (deg), the critical points (-180 deg + k 360 deg, 0 dB) marked."""
+    loops = list(bode)
+    fig, axes = plt.subplots(1, len(loops), figsize=(6.5 * len(loops), 5.5), squeeze=False)
+    fig.suptitle(f"Nichols chart of the linearised loop\n{title}", fontsize=11)
+    for ax, loop in zip(axes[0], loops):
+        data = bode[loop]
+        for i in range(data["magnitude_db"].shape[1]):
+            ax.plot(data["phase_deg"][:, i], data["magnitude_db"][:, i], color=f"C{i % 10}", lw=1.0)
+        low, high = ax.get_xlim()
+        for k in range(-4, 2):
+            critical = -180.0 + 360.0 * k
+            if low <= critical <= high:
+                ax.plot(critical, 0.0, "r+", ms=12, mew=2)
+        ax.axhline(0.0, color="0.3", lw=0.8, ls="--")
+        ax.set(xlabel="phase of L [deg]", ylabel="|L| [dB]", title=_LOOP_TITLES.get(loop, loop))
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    return fig
 
 
 # ---- the EE path around the contact sphere, and gain sweeps ----------------------------

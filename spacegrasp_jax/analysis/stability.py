@@ -56,6 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from spacegrasp_jax.analysis import frequency
 from spacegrasp_jax.analysis.margins import (
     LOOPS,
     MarginSettings,
@@ -432,6 +433,33 @@ class Modes:
         return float(np.max(self.growth_rate_per_s))
 
 
+def kept_subspace(linearisation: Linearisation) -> np.ndarray:
+    """(n, k) an orthonormal basis of the perturbations that keep the momentum and the centre
+    of mass where no external force acts (``linearisation.free``: k = n - 9), else of all
+    (k = n): the loop's map restricted to it has no neutral mode (module docstring)."""
+    import scipy.linalg  # imported on first use: a fifth of a second at every command's start
+
+    n = linearisation.jacobian.shape[0]
+    return scipy.linalg.null_space(linearisation.invariant_rows) if linearisation.free else np.eye(n)
+
+
+def broken_loops(linearisation: Linearisation, growth_limit_per_s: float) -> dict:
+    """Each loop (``margins.LOOPS``) of the linearised loop broken at its gain, on the
+    perturbations that keep the momentum and the centre of mass
+    ([`kept_subspace()`][spacegrasp_jax.analysis.stability.kept_subspace]), its response to be
+    taken on ``|z| = e^{sigma T}``, ``sigma = growth_limit_per_s``
+    ([`spacegrasp_jax.analysis.frequency`][spacegrasp_jax.analysis.frequency])."""
+    basis = kept_subspace(linearisation)
+    restricted = basis.T @ linearisation.jacobian @ basis
+    radius = math.exp(growth_limit_per_s * linearisation.period_s)
+    return {
+        loop: frequency.break_loop(
+            restricted, basis.T @ linearisation.sensitivity[i] @ basis, loop, linearisation.period_s, radius
+        )
+        for i, loop in enumerate(LOOPS)
+    }
+
+
 def modes(linearisation: Linearisation) -> Modes:
     """The [`Modes`][spacegrasp_jax.analysis.stability.Modes] of a linearisation, with the 9 neutral
     modes of the momentum and the centre of mass removed where no external force acts
@@ -446,7 +474,7 @@ def modes(linearisation: Linearisation) -> Modes:
     # invariant subspace of A; its eigenvalues are A's less the 9 neutral ones.
     import scipy.linalg  # imported on first use: a fifth of a second at every command's start
 
-    basis = scipy.linalg.null_space(W) if linearisation.free else np.eye(A.shape[0])
+    basis = kept_subspace(linearisation)
     restricted = basis.T @ A @ basis
     eigenvalues, left, right = scipy.linalg.eig(restricted, left=True, right=True)
     order = np.argsort(-np.abs(eigenvalues), kind="stable")
@@ -610,7 +638,11 @@ def linear_analysis(
         ``fastest_growth_per_s`` of the nominal loop, ``modes`` (``mode_table()``),
         ``gain_margins`` (loop -> direction -> ``gain_margin()``'s result),
         ``eigenvalues_at_margins`` (loop -> direction -> the eigenvalues at the first
-        failing factor, or ``None``), ``probes``, ``compile_s``, ``search_s``.
+        failing factor, or ``None``), ``verdict`` ([`verdict()`][spacegrasp_jax.analysis.stability.verdict]),
+        ``frequency_response`` (loop -> ``frequency.loop_margins()`` of the loop broken at
+        its gain: the gain and phase margins from its frequency response) and ``bode``
+        (loop -> ``frequency.bode()``'s arrays, not JSON: a caller writes them apart),
+        ``probes``, ``compile_s``, ``search_s``.
     """
     if not (math.isfinite(growth_limit_per_s) and growth_limit_per_s >= 0.0):
         raise StabilityError(f"growth_limit_per_s: must be finite and at least 0, got {growth_limit_per_s!r}")
@@ -640,6 +672,9 @@ def linear_analysis(
         }
         for name, directions in gain_margins.items()
     }
+    table = mode_table(nominal, linearisation.names)
+    broken = broken_loops(linearisation, growth_limit_per_s)
+    responses = {name: frequency.loop_margins(loop) for name, loop in broken.items()}
     return {
         "operating_point": {
             "time_s": linearizer.time_s,
@@ -655,13 +690,39 @@ def linear_analysis(
         "growth_limit_per_s": growth_limit_per_s,
         "spectral_radius": nominal.spectral_radius,
         "fastest_growth_per_s": nominal.fastest_growth_per_s,
-        "modes": mode_table(nominal, linearisation.names),
+        "modes": table,
+        "verdict": verdict(nominal.fastest_growth_per_s, growth_limit_per_s, table[0]),
         "gain_margins": gain_margins,
         "eigenvalues_at_margins": at_margins,
+        "frequency_response": responses,
+        "bode": {name: frequency.bode(loop) for name, loop in broken.items()},
         "probes": prober.probes,
         "compile_s": compile_s,
         "search_s": time.perf_counter() - started - compile_s,
     }
+
+
+def verdict(fastest_growth_per_s: float, growth_limit_per_s: float, slowest: dict) -> dict:
+    """The linearised loop's verdict: ``"stable"`` (every mode decays), ``"stable within the
+    growth limit"`` (the fastest mode grows, but more slowly than ``growth_limit_per_s``: a
+    drift such as the redundant arm's self-motion, doubling in ``doubling_s``, not a loop
+    going unstable) or ``"unstable"``; with ``words``, one line for the console."""
+    growth = fastest_growth_per_s
+    mostly = ", ".join(slowest["largest_coordinates"])
+    if growth < 0.0:
+        kind, words = "stable", f"stable: every mode decays (the slowest at {growth:+.3g} 1/s, mostly {mostly})"
+    elif growth <= growth_limit_per_s:
+        doubling = math.log(2.0) / growth if growth > 0.0 else math.inf
+        kind = "stable within the growth limit"
+        words = (
+            f"stable within the growth limit: no mode grows faster than {growth_limit_per_s:g}/s; the slowest, "
+            f"mostly {mostly}, grows at {growth:+.3g} 1/s (doubling in {doubling:.3g} s), a drift rather than "
+            "a loop going unstable"
+        )
+    else:
+        kind = "unstable"
+        words = f"unstable: a mode grows at {growth:+.3g} 1/s, above the growth limit {growth_limit_per_s:g}/s (mostly {mostly})"
+    return {"kind": kind, "words": words, "fastest_growth_per_s": growth}
 
 
 def linear_lines(result: dict) -> list[str]:
@@ -689,6 +750,27 @@ def linear_lines(result: dict) -> list[str]:
         lines.append(
             f"linear {title} margin (a mode growing faster than {result['growth_limit_per_s']:g}/s): {', '.join(parts)}"
         )
+    if "verdict" in result:
+        lines.insert(1, f"linearised loop: {result['verdict']['words']}")
+    for name, title in (("pid", "joint PID"), ("law", "law")):
+        response = result.get("frequency_response", {}).get(name)
+        if response is None:
+            continue
+        parts = []
+        for direction in ("increase", "decrease"):
+            entry = response["gain_margins"][direction]
+            parts.append(
+                f"{direction}: none"
+                if entry is None
+                else f"{direction} x{entry['factor']:.3g} ({entry['margin_db']:+.1f} dB at {entry['frequency_hz']:.3g} Hz)"
+            )
+        phase = response["phase_margin"]
+        parts.append(
+            "phase margin: no 0 dB crossing"
+            if phase is None
+            else f"phase margin {phase['phase_margin_deg']:.1f} deg at {phase['frequency_hz']:.3g} Hz"
+        )
+        lines.append(f"frequency response broken at the {title} ({response['channels']} channels): {', '.join(parts)}")
     lines.append(
         f"linear analysis: {len(result['probes'])} linearisations in {result['search_s']:.1f} s, after {result['compile_s']:.1f} s compiling"
     )
@@ -708,6 +790,9 @@ __all__ = [
     "invariants",
     "linear_analysis",
     "linear_lines",
+    "kept_subspace",
+    "broken_loops",
+    "verdict",
     "mode_table",
     "modes",
     "quiet",

@@ -87,17 +87,17 @@ def _margins(args: argparse.Namespace) -> int:
     title = f"{args.controller}, {args.gains or 'paper gains'}, {args.samples} samples" + (
         f", realism {args.realism}" if args.realism else ""
     )
-    from spacegrasp_jax.analysis import plots
 
     tolerance_mm = 1e3 * config.criteria.position_tolerance_m
     if not isinstance(gains, GainSchedule):
         result = _margins_of(args, robot, scenario, gains, config, settings, realism)
         result["settings"] |= {"gains": gains.to_dict(args.controller), **record}
+        _save_margins(out, result, tolerance_mm, title)
         runfiles.write_json(out / "margins.json", result)
-        plots.save_margin_figures(out, result, tolerance_mm, title, runfiles.write_atomically)
         for line in _result_lines(result):
             print(line)
-        print(f"wrote {out}/: margins.json, margins.png" + (", eigenvalues.png" if result["linear"] else ""))
+        linear_files = ", eigenvalues.png, bode.png, nichols.png, frequency_response.npz" if result["linear"] else ""
+        print(f"wrote {out}/: margins.json, margins.png{linear_files}")
         return 0
     # A schedule: the frozen gains at each knot, each checked as a constant gain set.
     per_knot = []
@@ -110,7 +110,7 @@ def _margins(args: argparse.Namespace) -> int:
         knot_title = f"{title}, {gains.variable} = {x:g} {VARIABLES[gains.variable]}"
         folder = out / f"knot_{number + 1}"
         folder.mkdir(parents=True, exist_ok=True)
-        plots.save_margin_figures(folder, result, tolerance_mm, knot_title, runfiles.write_atomically)
+        _save_margins(folder, result, tolerance_mm, knot_title)
         for line in _result_lines(result):
             print(f"  {line}")
     worst = margins.worst_knots(per_knot)
@@ -164,6 +164,19 @@ def _margins_of(args, robot, scenario, gains, config, settings, realism) -> dict
             growth_limit_per_s=args.growth_limit,
         )
     return result
+
+
+def _save_margins(folder: Path, result: dict, tolerance_mm: float, title: str) -> None:
+    """The figures of one gain set's margins in ``folder`` and, with a linear analysis, its
+    loops' frequency response (``frequency_response.npz``: per loop its frequencies (Hz), the
+    loci's magnitude (dB) and phase (deg)), taken out of ``result`` (left JSON-ready)."""
+    from spacegrasp_jax.analysis import plots
+
+    bode = result["linear"].pop("bode") if result.get("linear") else None
+    if bode is not None:
+        arrays = {f"{loop}/{name}": value for loop, data in bode.items() for name, value in data.items()}
+        runfiles.write_arrays(folder / "frequency_response.npz", arrays)
+    plots.save_margin_figures(folder, result, tolerance_mm, title, runfiles.write_atomically, bode=bode)
 
 
 def _result_lines(result: dict) -> list[str]:
