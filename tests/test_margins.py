@@ -260,6 +260,27 @@ def test_the_margins_command_writes_its_files_and_prints_the_margins(flight_capt
     assert (out / "eigenvalues.png").stat().st_size > 10_000
     assert "linear joint PID gain margin" in printed and "least stable mode" in printed
     assert linear["control_period_s"] == pytest.approx(0.01)
+    # What limits each margin, the linear verdict, the frequency response and its figures
+    for loop in ("pid", "law"):
+        for direction in ("increase", "decrease"):
+            entry = document["gain_margins"][loop][direction]
+            if entry["fails"] is not None:
+                assert entry["limited_by"]["kind"] in ("stability", "capture criteria")
+                assert margins.limit_words(entry["limited_by"]) in printed
+    assert linear["verdict"]["kind"] in ("stable", "stable within the growth limit", "unstable")
+    assert f"linearised loop: {linear['verdict']['words']}" in printed
+    assert set(linear["frequency_response"]) == {"pid", "law"} and "bode" not in linear
+    # The flight-like loop's servo ticks ten times a control period: its gain enters the
+    # period's map as a polynomial, and that loop is not broken at one gain; the law is
+    pid, law = linear["frequency_response"]["pid"], linear["frequency_response"]["law"]
+    assert pid["affine_residual"] > 1e-2 and "gain_margins" not in pid
+    assert "frequency response broken at the joint PID: not available" in printed
+    assert law["affine_residual"] < 1e-8 and "frequency response broken at the law (6 channels)" in printed
+    for name in ("bode.png", "nichols.png"):
+        assert (out / name).stat().st_size > 10_000
+    with np.load(out / "frequency_response.npz") as response:
+        assert {"law/frequency_hz", "law/magnitude_db", "law/phase_deg"} == set(response.files)
+        assert response["law/frequency_hz"][-1] == pytest.approx(50.0)  # the control period's Nyquist frequency
     assert (
         len(linear["modes"])
         == len(linear["operating_point"]["coordinates"]) - linear["operating_point"]["neutral_modes_removed"]

@@ -14,8 +14,10 @@ This is exact where the gain enters the period map affinely: a PID or law that a
 control period (the paper's loop; any realism whose servos run at the control period) and
 whose output at the operating point does not change the plant's Jacobian. Where the
 servos tick several times a period the gain enters as a polynomial in ``c`` and the break
-is first order (exact at ``c = 1``, approximate away from it): the eigenvalue margins,
-which linearise the loop again at each factor, remain the reference there.
+is first order (exact at ``c = 1``, wrong away from it): the loop is then not broken.
+[`affine_residual()`][spacegrasp_jax.analysis.frequency.affine_residual] measures which case
+holds by linearising the loop again at ``c = 2``; the eigenvalue margins, which linearise it
+at each factor, are the reference either way.
 
 **The response.** ``G`` is evaluated on the circle ``z = r e^{j w T}``, ``r = e^{sigma T}``,
 ``sigma`` the linear analysis' growth limit (1/s): the response of the loop shifted by
@@ -45,6 +47,11 @@ import numpy as np
 
 #: Singular values of ``M`` below this fraction of its largest are not channels of the loop.
 RANK_TOLERANCE = 1e-9
+
+#: The largest ``affine_residual()`` at which a loop counts as broken exactly at its gain
+#: (measured: 1e-8 for the paper's joint PID, 1e-12 for the law under the flight-like loop;
+#: 0.36 for the flight-like loop's PID, whose servo ticks ten times a control period).
+AFFINE_TOLERANCE = 1e-4
 
 #: Critical factors beyond this ratio from 1 (either way) are not margins: a loop whose gain
 #: must change a millionfold to go unstable has none worth stating (and a locus that small
@@ -105,6 +112,15 @@ def break_loop(jacobian: np.ndarray, sensitivity: np.ndarray, loop: str, period_
         raise FrequencyError(f"the {loop} loop's gain does not change the loop: there is no loop to break")
     rank = int(np.sum(s > RANK_TOLERANCE * s[0]))
     return BrokenLoop(loop, jacobian - sensitivity, U[:, :rank] * s[:rank], Vt[:rank], period_s, radius)
+
+
+def affine_residual(broken: BrokenLoop, jacobian_at: np.ndarray, factor: float) -> float:
+    """How far the loop's Jacobian at gain ``factor`` (``jacobian_at``, linearised again
+    there) is from the broken loop closed at that factor, relative to ``M = B C``:
+    ``||A(c) - A0 - c M|| / ||M||``; 0 where the gain enters the period map affinely
+    (module docstring)."""
+    M = broken.B @ broken.C
+    return float(np.linalg.norm(jacobian_at - broken.closed(factor)) / np.linalg.norm(M))
 
 
 def frequencies(period_s: float, count: int = 1500) -> np.ndarray:
@@ -260,7 +276,9 @@ def bode(broken: BrokenLoop, frequencies_hz: np.ndarray | None = None) -> dict[s
 
 __all__ = [
     "BrokenLoop",
+    "AFFINE_TOLERANCE",
     "FACTOR_LIMIT",
+    "affine_residual",
     "FrequencyError",
     "RANK_TOLERANCE",
     "bode",

@@ -640,8 +640,10 @@ def linear_analysis(
         ``eigenvalues_at_margins`` (loop -> direction -> the eigenvalues at the first
         failing factor, or ``None``), ``verdict`` ([`verdict()`][spacegrasp_jax.analysis.stability.verdict]),
         ``frequency_response`` (loop -> ``frequency.loop_margins()`` of the loop broken at
-        its gain: the gain and phase margins from its frequency response) and ``bode``
-        (loop -> ``frequency.bode()``'s arrays, not JSON: a caller writes them apart),
+        its gain: the gain and phase margins from its frequency response, with its
+        ``affine_residual``; where that is above ``frequency.AFFINE_TOLERANCE`` the loop
+        cannot be broken at one gain and only the residual is given) and ``bode`` (loop ->
+        ``frequency.bode()``'s arrays, for the loops broken; not JSON: a caller writes them apart),
         ``probes``, ``compile_s``, ``search_s``.
     """
     if not (math.isfinite(growth_limit_per_s) and growth_limit_per_s >= 0.0):
@@ -674,7 +676,16 @@ def linear_analysis(
     }
     table = mode_table(nominal, linearisation.names)
     broken = broken_loops(linearisation, growth_limit_per_s)
-    responses = {name: frequency.loop_margins(loop) for name, loop in broken.items()}
+    basis = kept_subspace(linearisation)
+    responses, bodes = {}, {}
+    for name, loop in broken.items():
+        doubled = linearizer(scaled_gains(gains, controller, factors(name, 2.0))).jacobian
+        residual = frequency.affine_residual(loop, basis.T @ doubled @ basis, 2.0)
+        if residual <= frequency.AFFINE_TOLERANCE:
+            responses[name] = frequency.loop_margins(loop) | {"affine_residual": residual}
+            bodes[name] = frequency.bode(loop)
+        else:
+            responses[name] = {"loop": name, "channels": loop.channels, "affine_residual": residual}
     return {
         "operating_point": {
             "time_s": linearizer.time_s,
@@ -695,7 +706,7 @@ def linear_analysis(
         "gain_margins": gain_margins,
         "eigenvalues_at_margins": at_margins,
         "frequency_response": responses,
-        "bode": {name: frequency.bode(loop) for name, loop in broken.items()},
+        "bode": bodes,
         "probes": prober.probes,
         "compile_s": compile_s,
         "search_s": time.perf_counter() - started - compile_s,
@@ -755,6 +766,14 @@ def linear_lines(result: dict) -> list[str]:
     for name, title in (("pid", "joint PID"), ("law", "law")):
         response = result.get("frequency_response", {}).get(name)
         if response is None:
+            continue
+        if "gain_margins" not in response:
+            lines.append(
+                f"frequency response broken at the {title}: not available: its gain does not enter the control "
+                f"period's map linearly (||A(2) - A0 - 2 M|| / ||M|| = {response['affine_residual']:.2g}; "
+                "a servo that ticks several times a period, or a loop the gain barely reaches); "
+                "the eigenvalue margins above are the reference"
+            )
             continue
         parts = []
         for direction in ("increase", "decrease"):
