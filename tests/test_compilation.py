@@ -253,7 +253,12 @@ def test_compiles_are_announced_once_each_with_a_history_across_processes(tmp_pa
     compilation.CompileAnnouncer(first, history).before("the square", key)
     compilation.CompileAnnouncer(first, history).after("the square", key, 12.34)
     compilation.CompileAnnouncer(second, history).before("the square", key)  # a later process, same program
-    assert first.getvalue() == "compiling the square (first time on this machine)...\n"
+    # a program with no build documented: the range of the package's programs
+    assert first.getvalue() == (
+        "compiling the square (first time on this machine: 4 to 90 s on a quiet 2-core VM, longer on a busy one)...\n"
+    )
+    assert compilation.documented_build_s("program:test.square") == (3.5, 90.0)
+    assert compilation.documented_build_s("program:tuning.flight_gradient") == (20.0, 70.0)
     assert second.getvalue() == "compiling the square (last time 12.3 s on this machine)...\n"
     other_settings = io.StringIO()  # the same program for another static setting: not the same compile
     compilation.CompileAnnouncer(other_settings, history).before("the square", ("test.square", 4))

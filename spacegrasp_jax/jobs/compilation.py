@@ -303,6 +303,15 @@ def listening(listener):
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 
 
+def documented_build_s(program: str) -> tuple[float, float]:
+    """The documented range of cold builds (s) of ``program`` (``CompileAnnouncer.program()``'s
+    name) on a quiet 2-core VM, or of any program of the package where that one has none
+    (``data/compile_times.json``): the estimate the first time a machine builds it."""
+    table = json.loads((Path(__file__).resolve().parents[1] / "data" / "compile_times.json").read_text())
+    low, high = table["range_s"].get(program, table["any_program_s"])
+    return float(low), float(high)
+
+
 class CompileAnnouncer:
     """A [`listening()`][spacegrasp_jax.jobs.compilation.listening] listener that writes one line before each compile, naming the
     program and, when the same program was compiled before on this machine, how long that
@@ -382,8 +391,11 @@ class CompileAnnouncer:
         elif similar:
             typical = float(np.median(similar)) * (pace if scaled else 1.0)
             expected = f" (first time for these settings, about {typical:.0f} s)"
+        elif self.history_path is not None:
+            low, high = documented_build_s(self.program(key))
+            expected = f" (first time on this machine: {low:.0f} to {high:.0f} s on a quiet 2-core VM, longer on a busy one)"
         else:
-            expected = " (first time on this machine)" if self.history_path is not None else ""
+            expected = ""
         print(f"compiling {label}{expected}...", file=self.stream, flush=True)
 
     def after(self, label: str, key, seconds: float) -> None:
