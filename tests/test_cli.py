@@ -487,7 +487,10 @@ def test_a_command_keeps_its_programs_in_the_compile_cache_and_loads_them_for_ot
 
     first, printed, first_summary = simulate("a", "--scenario", str(first_scenario))
     assert any(name.startswith("jit_closed_loop") for name in first)  # the closed loop, compiled once
-    assert "compiling the cartesian law's ideal rollout (first time on this machine: 4 to 12 s on a quiet 2-core VM" in printed
+    assert (
+        "compiling the cartesian law's ideal rollout (first time on this machine: 4 to 12 s on a quiet 2-core VM"
+        in printed
+    )
     stored = sorted((cache / executable_store.FOLDER).iterdir())
     assert len(stored) == 1  # the closed loop, under the package's own key
     second, printed, second_summary = simulate("b", "--scenario", str(second_scenario), "--gains", str(other_gains))

@@ -387,7 +387,7 @@ def test_an_import_circle_hidden_in_a_function_body_is_found(tmp_path):
 
 def test_a_module_by_its_name_before_the_folders_comes_with_a_warning_naming_its_folder():
     """``spacegrasp_jax.MOVED_MODULES`` names every module of the layer folders below the
-    tuning with its folder (read from the folders), and ``from spacegrasp_jax import campaign``
+    tuning with its folder (read from the folders), but those written there after the move, and ``from spacegrasp_jax import campaign``
     gives ``spacegrasp_jax.jobs.campaign`` with a ``DeprecationWarning`` saying so."""
     import importlib
     import warnings
@@ -403,7 +403,9 @@ def test_a_module_by_its_name_before_the_folders_comes_with_a_warning_naming_its
                 on_disk[path.stem] = folder
             elif path.is_dir() and (path / "__init__.py").exists():
                 on_disk[path.name] = folder
-    assert spacegrasp_jax.MOVED_MODULES == on_disk
+    added_since = {"frequency": "analysis"}  # modules written in their folder, never at the old place
+    assert spacegrasp_jax.MOVED_MODULES == {name: folder for name, folder in on_disk.items() if name not in added_since}
+    assert {name: on_disk[name] for name in added_since} == added_since
     with pytest.warns(DeprecationWarning, match=r"spacegrasp_jax.campaign is now spacegrasp_jax.jobs.campaign"):
         from spacegrasp_jax import campaign
     assert campaign is importlib.import_module("spacegrasp_jax.jobs.campaign")

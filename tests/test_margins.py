@@ -64,7 +64,7 @@ def test_the_gain_margin_brackets_a_known_threshold_downward():
 def test_a_loop_that_never_fails_reports_the_searchs_limit():
     probes = ThresholdProbes(1e9)
     found = margins.gain_margin(probes, "pid", "increase")
-    assert found == {"holds": 64.0, "fails": None, "margin_db": 20 * math.log10(64.0), "probes": 3}
+    assert found == {"holds": 64.0, "fails": None, "margin_db": 20 * math.log10(64.0), "probes": 3, "limited_by": None}
     assert probes.probes == [2.0, 8.0, 64.0]  # doubling the step in log2: 2^1, 2^3, then the limit 2^6
 
 
@@ -300,3 +300,37 @@ def test_the_margins_command_writes_its_files_and_prints_the_margins(flight_capt
     assert again["linear"] is None and again["linear_skipped"] == "--no-linear"
     assert not (skipped / "eigenvalues.png").exists()
     assert (skipped / "margins.png").stat().st_size > 10_000
+
+
+def test_a_failing_probe_says_whether_stability_or_a_capture_criterion_ended_it():
+    """``Prober.limited_by``: a sample bounded at the nominal gains that runs away makes it
+    stability; samples that captured and now miss a tolerance, the capture criteria, named
+    with their counts."""
+    from types import SimpleNamespace
+
+    nominal = {"success": np.array([True, True, False]), "bounded": np.array([True, True, True])}
+    prober = SimpleNamespace(nominal=nominal, config=campaign.CampaignConfig(n=3, chunk=3))
+
+    def result(position_m, runaway_s, success, bounded):
+        return {
+            "final_position_error_m": np.asarray(position_m),
+            "final_orientation_error_rad": np.zeros(3),
+            "largest_peak_torque_Nm": np.ones(3),
+            "first_nonfinite_s": np.full(3, np.nan),
+            "first_runaway_s": np.asarray(runaway_s),
+            "success": np.asarray(success),
+            "bounded": np.asarray(bounded),
+        }
+
+    accuracy = margins.Prober.limited_by(
+        prober, result([0.001, 0.009, 0.02], [np.nan] * 3, [True, False, False], [True] * 3)
+    )
+    assert accuracy == {"kind": "capture criteria", "criteria": {"position": 1}}
+    assert (
+        margins.limit_words(accuracy) == "limited by the capture criteria, not stability (captures missed: position 1)"
+    )
+    unstable = margins.Prober.limited_by(
+        prober, result([0.001, 0.001, 0.5], [np.nan, np.nan, 3.0], [True, True, False], [True, True, False])
+    )
+    assert unstable["kind"] == "stability" and unstable["criteria"]["runaway"] == 1
+    assert margins.limit_words(None) == "not limited within the search"

@@ -354,7 +354,7 @@ def test_a_candidate_whose_loss_runs_away_is_rejected_even_within_the_torque_gua
         p = float(params["kp"][0])
         calls.append(p)
         loss = 1.0 - p if p <= 1.5 else 1e3
-        return (jnp.asarray(loss), {"largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": -jnp.ones(1)}
+        return (jnp.asarray(loss), {"max_largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": -jnp.ones(1)}
 
     config = TuneConfig(
         steps=1,
@@ -380,7 +380,7 @@ def test_a_run_that_can_take_no_further_step_ends_diverged_keeping_its_best_step
     def value_and_grad(params):
         p = float(params["kp"][0])
         loss = 1.0 - p if p <= 1.0 + 1e-9 else 1e3
-        return (jnp.asarray(loss), {"largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": -jnp.ones(1)}
+        return (jnp.asarray(loss), {"max_largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": -jnp.ones(1)}
 
     config = TuneConfig(
         steps=5, learning_rate=1.0, optimizer="sgd", clip_norm=10.0, objective="weighted", method="gradient"
@@ -441,7 +441,7 @@ def test_the_gradient_method_keeps_its_best_step_and_a_checkpoint_keeps_it_too(t
     def value_and_grad(params):
         p = params["kp"][0]
         loss = (p - 1.0) ** 2 + jnp.where((p > 0.9) & (p < 1.1), 5.0, 0.0)
-        return (loss, {"largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": jnp.atleast_1d(2.0 * (p - 1.0))}
+        return (loss, {"max_largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": jnp.atleast_1d(2.0 * (p - 1.0))}
 
     config = TuneConfig(
         steps=3,
@@ -493,7 +493,9 @@ def test_early_stopping_ends_a_gradient_run_when_the_validation_objective_stalls
 
     def value_and_grad(params):
         p = params["kp"][0]
-        return ((p - 1.0) ** 2, {"largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": jnp.atleast_1d(2.0 * (p - 1.0))}
+        return ((p - 1.0) ** 2, {"max_largest_peak_torque_Nm": jnp.asarray(1.0)}), {
+            "kp": jnp.atleast_1d(2.0 * (p - 1.0))
+        }
 
     config = TuneConfig(
         steps=10,

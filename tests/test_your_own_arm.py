@@ -372,7 +372,7 @@ def test_a_simulate_run_fails_a_joint_faster_than_its_files_rate_limit(tmp_path,
     assert summary["capture_margins"]["joint_rate_margin"] is None
 
 
-@pytest.mark.parametrize("arm", ["ur5"])
+@pytest.mark.parametrize("arm", ["ur5", "panda"])
 def test_a_shipped_arms_flight_gains_are_the_ones_checked_and_capture_more_than_their_start(arm):
     """``configs/<arm>_flight_gains.json`` (tuned in the flight-like loop) are bit for bit the
     gains its check campaign ran (``notebooks/data/arms/<arm>_flight_check``: flight-like

@@ -270,6 +270,11 @@ class Prober:
         self._record(loop, value, result, held)
         return held
 
+    def limit_at(self, loop: str, value) -> dict | None:
+        """What made the last probe of ``loop`` at ``value`` fail (``limited_by()``), or ``None``."""
+        failing = [p for p in self.probes if p["loop"] == loop and p["value"] == value and not p["holds"]]
+        return failing[-1]["limited_by"] if failing else None
+
     def limited_by(self, result: dict) -> dict:
         """What made a probe fail: ``"stability"`` where a sample that stays bounded at the
         nominal gains ran away or diverged, else ``"capture criteria"``; ``criteria``, the
@@ -357,17 +362,16 @@ def gain_margin(prober: Prober, loop: str, direction: str) -> dict:
         "fails": fails,
         "margin_db": 20.0 * math.log10(holds),
         "probes": len(prober.probes) - start,
-        "limited_by": _limit_at(prober.probes[start:], loop, fails),
+        "limited_by": _limit_at(prober, loop, fails),
     }
 
 
-def _limit_at(probes: list[dict], loop: str, value) -> dict | None:
-    """What made the probe of ``loop`` at ``value`` fail (``Prober.limited_by()``); ``None``
-    where nothing failed (the search's limit holds)."""
-    if value is None:
-        return None
-    failing = [probe for probe in probes if probe["loop"] == loop and probe["value"] == value and not probe["holds"]]
-    return failing[-1].get("limited_by") if failing else None
+def _limit_at(prober, loop: str, value) -> dict | None:
+    """What made the probe of ``loop`` at ``value`` fail (``Prober.limit_at()``); ``None``
+    where nothing failed (the search's limit holds) or the prober does not say (the linear
+    probers' probes fail by a growing mode: stability)."""
+    limit_at = getattr(prober, "limit_at", None)
+    return None if value is None or limit_at is None else limit_at(loop, value)
 
 
 def limit_words(limit: dict | None) -> str:
@@ -414,7 +418,7 @@ def delay_margin(prober: Prober, period_s: float, loop: str = "delay") -> dict:
         "holds_s": held * period_s,
         "fails_s": None if failed is None else failed * period_s,
         "probes": len(prober.probes) - start,
-        "limited_by": _limit_at(prober.probes[start:], loop, failed),
+        "limited_by": _limit_at(prober, loop, failed),
     }
 
 

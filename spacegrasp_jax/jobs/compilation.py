@@ -393,7 +393,9 @@ class CompileAnnouncer:
             expected = f" (first time for these settings, about {typical:.0f} s)"
         elif self.history_path is not None:
             low, high = documented_build_s(self.program(key))
-            expected = f" (first time on this machine: {low:.0f} to {high:.0f} s on a quiet 2-core VM, longer on a busy one)"
+            expected = (
+                f" (first time on this machine: {low:.0f} to {high:.0f} s on a quiet 2-core VM, longer on a busy one)"
+            )
         else:
             expected = ""
         print(f"compiling {label}{expected}...", file=self.stream, flush=True)
