@@ -581,3 +581,22 @@ def test_a_tuning_runs_settings_visit_few_modules_and_climb_back_rarely(tmp_path
     found = summary(walk_of_tune("cmaes", "ideal", tmp_path))
     assert found["modules"][0] == "spacegrasp_jax.tuning.run"
     assert found["module_count"] <= 8 and found["climbs"] <= 3, found
+
+
+def test_the_progress_line_says_which_statistic_each_number_is():
+    """The torque on a tuning step's line is the objective's peak over its constraint (a
+    ratio, batch mean); the largest peak in N m is the batch's largest (the torque guard's)."""
+    from spacegrasp_jax.tuning.tune import RunState, progress_line
+
+    aux = {
+        "final_position_m": 0.003,
+        "peak_torque_smooth": 1.31,
+        "peak_torque_hard": 1.29,
+        "peak_torque_gap": 0.02,
+        "rms_tracking_m": 0.0135,
+        "max_largest_peak_torque_Nm": 0.73,
+    }
+    state = RunState(step=9, scale=1.0, params={}, opt_state=(), loss=0.0886, aux=aux, gradient={}, history=[], events=[])
+    line = progress_line(state, 75)
+    assert "peak torque / constraint 1.310 (hard 1.290, gap 0.020)" in line
+    assert "(batch means) | largest peak 0.73 N m (batch max)" in line
