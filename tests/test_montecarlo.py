@@ -620,6 +620,10 @@ def test_the_baseline_comes_first_and_the_papers_gains_run_only_as_baseline_or_w
         "admittance/flight",
         "admittance/flight_schedule",
     ]
+    assert _variant_keys(robot, *law, "--gains", "flight", "--gains", "paper") == [  # the paper's first: the baseline
+        "admittance/paper",
+        "admittance/flight",
+    ]
     assert _variant_keys(robot, *law, "--gains", "flight", "--baseline", "paper") == [
         "admittance/paper",
         "admittance/flight",

@@ -596,7 +596,9 @@ def test_the_progress_line_says_which_statistic_each_number_is():
         "rms_tracking_m": 0.0135,
         "max_largest_peak_torque_Nm": 0.73,
     }
-    state = RunState(step=9, scale=1.0, params={}, opt_state=(), loss=0.0886, aux=aux, gradient={}, history=[], events=[])
+    state = RunState(
+        step=9, scale=1.0, params={}, opt_state=(), loss=0.0886, aux=aux, gradient={}, history=[], events=[]
+    )
     line = progress_line(state, 75)
     assert "peak torque / constraint 1.310 (hard 1.290, gap 0.020)" in line
     assert "(batch means) | largest peak 0.73 N m (batch max)" in line

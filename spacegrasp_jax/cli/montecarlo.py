@@ -72,8 +72,8 @@ def _montecarlo_variants(args: argparse.Namespace, robot) -> list[campaign.Varia
     elif not args.gains:
         _paper_gains_for(robot, None if papers else args.controller)
         named.insert(0, "paper")
-    elif n == len(paper_gains().kp) and papers and "paper" not in named:
-        named.insert(0, "paper")  # the default baseline, where the paper's gains fit the arm and laws
+    elif n == len(paper_gains().kp) and papers:  # the default baseline, where the paper's gains fit
+        named.insert(0, named.pop(named.index("paper")) if "paper" in named else "paper")
     labels = gain_set_labels(named)
     gain_sets = [
         (label, _gains_option(name, args, robot, controllers, schedules=True)) for name, label in zip(named, labels)
