@@ -142,3 +142,67 @@ def test_a_tuning_runs_held_out_success_is_the_campaigns():
     paired = report["success_tuned_vs_start"]
     assert (paired["only_candidate"], paired["only_reference"]) == (3, 0)
     assert paired["p_value"] == pytest.approx(0.25)  # all 3 discordant samples one way: 2 * 0.5**3
+
+
+def test_a_capture_that_a_campaign_calls_a_runaway_fails_the_held_out_verdict():
+    """Within both tolerances and under the torque threshold at the end, a sample whose joint
+    rate or torque passed ten times its limit on the way (the campaign's ``first_runaway_s``)
+    is a failure for the tuner's held-out verdict as for a campaign."""
+    from spacegrasp_jax.jobs.montecarlo import success
+    from spacegrasp_jax.tuning.run import captured
+
+    parts = {
+        "final_position_m": np.array([0.001, 0.001, 0.001]),
+        "final_orientation_rad": np.array([0.001, 0.001, 0.001]),
+        "largest_peak_torque_Nm": np.array([2.0, 2.0, 2.0]),
+        "loss": np.array([0.1, 0.1, 0.1]),
+        "first_runaway_s": np.array([np.nan, 4.2, np.nan]),
+        "first_nonfinite_s": np.array([np.nan, np.nan, 9.5]),
+    }
+    campaign = {
+        "final_position_error_m": parts["final_position_m"],
+        "final_orientation_error_rad": parts["final_orientation_rad"],
+        "largest_peak_torque_Nm": parts["largest_peak_torque_Nm"],
+        "first_runaway_s": parts["first_runaway_s"],
+        "first_nonfinite_s": parts["first_nonfinite_s"],
+    }
+    assert success(campaign, CaptureCriteria()).tolist() == [True, False, False]
+    assert captured(parts).tolist() == [True, False, False]
+
+
+@pytest.mark.slow
+def test_the_held_out_evaluation_holds_the_campaigns_runaway_metric(robot, short_scenario):
+    """The held-out evaluation's parts (``tuning.run.evaluate``) carry the campaign's own
+    ``first_runaway_s`` and ``first_nonfinite_s``: on the 2 s approach with the paper's gains
+    and with their PID gains times 30 (past the PID's gain margin), each equals the same
+    run's metric as a campaign computes it, folded step by step (``montecarlo.FoldedMetrics``),
+    to a few steps."""
+    import dataclasses
+
+    from spacegrasp_jax.jobs import experiment
+    from spacegrasp_jax.jobs.montecarlo import FoldedMetrics
+    from spacegrasp_jax.loop.control import paper_gains
+    from spacegrasp_jax.loop.simulate import RunSpec, closed_loop
+    from spacegrasp_jax.tuning.run import captured, evaluate
+    from spacegrasp_jax.tuning.tune import TuneConfig, make_objective
+
+    gains = paper_gains()
+    wild = dataclasses.replace(gains, kp=30.0 * gains.kp, ki=30.0 * gains.ki, kd=30.0 * gains.kd)
+    scenarios = jax.tree.map(lambda x: jnp.stack([x, x]), short_scenario)
+    objective = make_objective(
+        robot, TuneConfig(), experiment.run(RunSpec(robot, short_scenario), gains).summary["max_abs_torque_Nm"]
+    )
+    folded = jax.jit(closed_loop)
+    for candidate, runs_away in ((gains, False), (wild, True)):
+        parts = evaluate(robot, scenarios, candidate, "admittance", objective)
+        _, (observed, _) = folded(
+            RunSpec(robot, short_scenario, "admittance", observer=FoldedMetrics()), candidate, None
+        )
+        for name in ("first_runaway_s", "first_nonfinite_s"):
+            # A run that blows up doubles its error every few steps: the batched program's
+            # rounding moves the crossings by a few steps (0.705 s against 0.704 s, 0.729 s
+            # against 0.727 s here).
+            np.testing.assert_allclose(parts[name], np.full(2, float(observed[name])), rtol=0, atol=5e-3, err_msg=name)
+        assert np.isfinite(parts["first_runaway_s"][0]) == runs_away
+        if runs_away:
+            assert not np.any(captured(parts))

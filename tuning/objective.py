@@ -273,13 +273,17 @@ def objective_parts(log, objective: Objective, *, free_target: bool) -> dict[str
 # ---- the objective of one run ----------------------------------------------------------------
 
 
-def scenario_parts(spec: RunSpec, gains: Gains, objective: Objective, key: jax.Array | None = None) -> dict:
+def scenario_parts(
+    spec: RunSpec, gains: Gains, objective: Objective, key: jax.Array | None = None, *, verdict: bool = False
+) -> dict:
     """Every part of the objective on the run ``spec`` ([`objective_parts()`][tuning.objective.objective_parts]),
     plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m), for a robot with
     joint ranges ``range_excess_rad``, the furthest a joint went beyond one, and where rate
     limits are criteria ``joint_rate_ratio``, the largest peak |qd_i| over its limit. ``spec`` keeps the
     whole log ([`objective_spec()`][tuning.objective.objective_spec]); ``key``: the sensors' noise key of a
-    flight-like loop."""
+    flight-like loop. With ``verdict`` (static), the campaign's own ``first_runaway_s`` and
+    ``first_nonfinite_s`` of the run too ([`metrics.log_metrics()`][spacegrasp_jax.envelope.metrics.log_metrics]),
+    for a held-out verdict that is a campaign's ([`captured()`][tuning.run.captured])."""
     _, log = closed_loop(spec, gains, key)
     parts = objective_parts(log, objective, free_target=spec.scenario.free_target)
     parts["largest_peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
@@ -288,6 +292,9 @@ def scenario_parts(spec: RunSpec, gains: Gains, objective: Objective, key: jax.A
     rates = objective.criteria.joint_rate_limits_radps
     if rates is not None:  # the hard peak rate over its limit, for the held-out verdict
         parts["joint_rate_ratio"] = jnp.max(jnp.abs(log.qd) / jnp.asarray(rates))
+    if verdict:
+        run = metrics.log_metrics(log, spec.robot, free_target=spec.scenario.free_target)
+        parts |= {name: run[name] for name in ("first_runaway_s", "first_nonfinite_s")}
     return parts
 
 

@@ -271,19 +271,23 @@ def new_record(
 
 
 def _scenarios_parts(robot, gains, objective: Objective, scenarios, *, controller: str, options: LoopOptions):
-    """[`scenario_parts()`][tuning.objective.scenario_parts] of each scenario of a batch (vmapped)."""
+    """[`scenario_parts()`][tuning.objective.scenario_parts] of each scenario of a batch (vmapped), with the
+    campaign's verdict metrics."""
     return jax.vmap(
-        lambda scenario: scenario_parts(objective_spec(robot, scenario, controller, options=options), gains, objective)
+        lambda scenario: scenario_parts(
+            objective_spec(robot, scenario, controller, options=options), gains, objective, verdict=True
+        )
     )(scenarios)
 
 
 def _samples_parts(model_robot, gains, objective: Objective, samples, *, controller: str, options: LoopOptions):
     """[`scenario_parts()`][tuning.objective.scenario_parts] of each sample of a flight-like
-    batch ``samples = (robots, scenarios, realisms, keys)`` (vmapped)."""
+    batch ``samples = (robots, scenarios, realisms, keys)`` (vmapped), with the campaign's
+    verdict metrics."""
 
     def one(robot, scenario, realism, key):
         spec = objective_spec(robot, scenario, controller, realism=realism, model_robot=model_robot, options=options)
-        return scenario_parts(spec, gains, objective, key)
+        return scenario_parts(spec, gains, objective, key, verdict=True)
 
     return jax.vmap(one)(*samples)
 
@@ -326,14 +330,19 @@ def captured(parts: dict) -> np.ndarray:
     """(n,) bool: each held-out sample's capture by the campaigns' default criteria
     ([`success()`][spacegrasp_jax.jobs.montecarlo.success] with a default
     [`CaptureCriteria`][spacegrasp_jax.envelope.criteria.CaptureCriteria], and the rate limits where the
-    objective has them), from the objective's parts; a sample whose objective is not finite
-    diverged."""
+    objective has them), from the objective's parts: a sample that ran away
+    (``first_runaway_s``, the campaign's own metric, where the parts hold it: the held-out
+    evaluation's do) or diverged (``first_nonfinite_s``, else an objective that is not
+    finite) fails, as in a campaign."""
+    diverged = np.where(np.isfinite(parts["loss"]), np.nan, 0.0)
     sample_metrics = {
         "final_position_error_m": parts["final_position_m"],
         "final_orientation_error_rad": parts["final_orientation_rad"],
         "largest_peak_torque_Nm": parts["largest_peak_torque_Nm"],
-        "first_nonfinite_s": np.where(np.isfinite(parts["loss"]), np.nan, 0.0),
+        "first_nonfinite_s": np.fmin(np.asarray(parts.get("first_nonfinite_s", diverged), dtype=float), diverged),
     }
+    if "first_runaway_s" in parts:
+        sample_metrics["first_runaway_s"] = parts["first_runaway_s"]
     if "final_target_speed_mps" in parts:
         sample_metrics["final_target_speed_mps"] = parts["final_target_speed_mps"]
     if "range_excess_rad" in parts:
