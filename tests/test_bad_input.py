@@ -246,6 +246,9 @@ def cases(paths, out):
             [*SIMULATE, "--gains", p["Kp.json"], "--fill-from", "paper", "--out", out],
             "Kp.json: unknown gain(s): Kp (did you mean kp?)",
         ),
+        "baseline missing": ([*MONTECARLO, "--baseline", p["missing"], "--out", out], "missing.toml"),
+        "check without a run": (["tune", "--check", "--out", p["a_folder"]], "--check: "),
+        "check with a setting": (["tune", "--check", "--batch", "4", "--out", p["a_folder"]], "not --batch"),
         "misspelt option": (
             [*MONTECARLO, "--basline", "flight", "--out", out],
             "--basline flight (did you mean --baseline?)",
