@@ -337,7 +337,9 @@ def test_a_cmaes_run_writes_its_files_and_resumes_to_the_same_gains(tmp_path, ca
     done = len(list(csv.DictReader((out / "history.csv").open()))) - 1
     assert 1 <= done < steps_done
     assert cli.main(["tune", "--out", str(out), "--check", "--compile-cache", "none"]) == 0
-    assert f"checked the run as it stands after step {done} of 4" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"checking the run as it stands after generation {done}/4" in err and "resuming" not in err
+    assert f"checked the run as it stands after step {done} of 4" in err
     stopped_there = tmp_path / "cmaes_as_many"
     assert cli.main([*cmaes_command(tmp_path, stopped_there, done)[3:], "--compile-cache", "none"]) == 0
     checked, uninterrupted = (json.loads((folder / "summary.json").read_text()) for folder in (out, stopped_there))

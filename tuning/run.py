@@ -428,7 +428,7 @@ def _say_stopped_early(progress, config: TuneConfig, best: int, unit: str) -> No
     )
 
 
-def _optimise_gradient(robot, smooth, base, config, before, out, resume, progress, stop):
+def _optimise_gradient(robot, smooth, base, config, before, out, resume, progress, stop, checking=False):
     """The optax loop ([`optimise()`][tuning.tune.optimise]): ``(objective, tuned
     gains, history, events, steps done, status)``."""
     checkpoint_path = out / CHECKPOINT
@@ -436,7 +436,8 @@ def _optimise_gradient(robot, smooth, base, config, before, out, resume, progres
     resume_state = None
     if resume and checkpoint_path.exists():
         resume_state, _ = load_checkpoint(checkpoint_path, params, make_optimizer(config)[0].init(params))
-        print(f"resuming after step {resume_state.step}/{config.steps}", file=progress, flush=True)
+        verb = "checking the run as it stands" if checking else "resuming"
+        print(f"{verb} after step {resume_state.step}/{config.steps}", file=progress, flush=True)
 
     def on_step(state):
         runfiles.show_progress(progress, progress_line(state, config.steps))
@@ -479,7 +480,7 @@ def _optimise_gradient(robot, smooth, base, config, before, out, resume, progres
     return objective, tuned, state.history, state.events, state.step, status, kept
 
 
-def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, stop):
+def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, stop, checking=False):
     """CMA-ES ([`cmaes`][tuning.cmaes]): as [`_optimise_gradient()`][tuning.run._optimise_gradient]."""
     checkpoint_path = out / CHECKPOINT
     objective = make_objective(robot, config, before.summary["max_abs_torque_Nm"])
@@ -499,7 +500,8 @@ def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, 
     previous = None
     if resume and checkpoint_path.exists():
         previous = cmaes.load_checkpoint(checkpoint_path)
-        print(f"resuming after generation {len(previous[0])}/{config.steps}", file=progress, flush=True)
+        verb = "checking the run as it stands" if checking else "resuming"
+        print(f"{verb} after generation {len(previous[0])}/{config.steps}", file=progress, flush=True)
 
     def on_generation(state):
         row = state.history[-1]
@@ -661,11 +663,11 @@ def tune(
     with runfiles.StopRequest() if stop is None else contextlib.nullcontext(stop) as stop:
         if config.method == "cmaes":
             objective, tuned, history, events, steps_done, status, kept = _optimise_cmaes(
-                robot, smooth, base, config, before, out, resume, progress, stop
+                robot, smooth, base, config, before, out, resume, progress, stop, checking=check
             )
         else:
             objective, tuned, history, events, steps_done, status, kept = _optimise_gradient(
-                robot, smooth, base, config, before, out, resume, progress, stop
+                robot, smooth, base, config, before, out, resume, progress, stop, checking=check
             )
     runfiles.end_progress(progress)
     _write_history(out / "history.csv", history)
