@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
                 arm,
                 scenario,
                 paper_scenario(arm, q_init=q_init, **short),
-                load_gains(CONFIGS / f"{name}_gains.json", "admittance", n_joints(arm)),
+                load_gains(CONFIGS / f"{name}_ideal_gains.json", "admittance", n_joints(arm)),
                 args.repeats,
             )
             print(json.dumps({name: report[name]}, indent=1), flush=True)
