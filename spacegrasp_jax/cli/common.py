@@ -218,7 +218,13 @@ def gains_label(value: str | None) -> str:
         return "paper"
     if value in NAMED_GAIN_SETS:
         return value
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(value).stem) or "gains"
+    return _label_characters(Path(value).stem) or "gains"
+
+
+def _label_characters(text: str) -> str:
+    """``text`` as a label may hold it: letters, digits, ``-``, ``_`` and ``.``; any other
+    character as ``_``."""
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in text)
 
 
 def gain_set_labels(names: list[str]) -> list[str]:
@@ -236,7 +242,7 @@ def gain_set_labels(names: list[str]) -> list[str]:
                 depth[i] += 1
                 grown = True
         if not clashes:
-            return ["".join(c if c.isalnum() or c in "-_." else "_" for c in label) for label in labels]
+            return [_label_characters(label) for label in labels]
         if not grown:
             first = next(name for name, label in zip(names, labels) if label in clashes)
             raise UsageError(f"--gains {first}: given twice")
