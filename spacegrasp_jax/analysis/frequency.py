@@ -145,33 +145,33 @@ def loci(broken: BrokenLoop, frequencies_hz: np.ndarray) -> np.ndarray:
     return out
 
 
-def _refined_crossing(broken: BrokenLoop, f0: float, f1: float, g0: complex, g1: complex, steps: int = 40):
-    """The locus' crossing of the real axis between two frequencies (``Im g`` changes sign),
-    by bisection, following the eigenvalue nearest the locus: ``(frequency, g)``."""
+def _bisect_locus(broken: BrokenLoop, f0: float, f1: float, g0: complex, g1: complex, side, steps: int = 40):
+    """The locus between two frequencies where ``side(g)`` (a bool) changes, by bisection on
+    a log scale, following the eigenvalue of ``G`` nearest the locus: the last bracket
+    ``(f0, g0, f1, g1)``."""
+    start = side(g0)
     for _ in range(steps):
         middle = math.sqrt(f0 * f1)
         values = np.linalg.eigvals(broken.transfer(middle))
         g = values[np.argmin(np.abs(values - 0.5 * (g0 + g1)))]
-        if np.sign(g.imag) == np.sign(g0.imag):
+        if side(g) == start:
             f0, g0 = middle, g
         else:
             f1, g1 = middle, g
-    # the real axis between the last two: linear in Im
+    return f0, g0, f1, g1
+
+
+def _refined_crossing(broken: BrokenLoop, f0: float, f1: float, g0: complex, g1: complex):
+    """The locus' crossing of the real axis between two frequencies (``Im g`` changes sign):
+    ``(frequency, g)``, ``g`` interpolated onto the axis."""
+    f0, g0, f1, g1 = _bisect_locus(broken, f0, f1, g0, g1, lambda g: g.imag > 0.0)
     share = g0.imag / (g0.imag - g1.imag) if g0.imag != g1.imag else 0.5
     return math.sqrt(f0 * f1), complex(g0.real + share * (g1.real - g0.real), 0.0)
 
 
-def _unity_crossing(broken: BrokenLoop, f0: float, f1: float, g0: complex, g1: complex, steps: int = 40):
-    """Where the locus' magnitude passes 1 between two frequencies, by bisection: ``(frequency, g)``."""
-    above0 = abs(g0) > 1.0
-    for _ in range(steps):
-        middle = math.sqrt(f0 * f1)
-        values = np.linalg.eigvals(broken.transfer(middle))
-        g = values[np.argmin(np.abs(values - 0.5 * (g0 + g1)))]
-        if (abs(g) > 1.0) == above0:
-            f0, g0 = middle, g
-        else:
-            f1, g1 = middle, g
+def _unity_crossing(broken: BrokenLoop, f0: float, f1: float, g0: complex, g1: complex):
+    """Where the locus' magnitude passes 1 between two frequencies: ``(frequency, g)``."""
+    f0, g0, f1, g1 = _bisect_locus(broken, f0, f1, g0, g1, lambda g: abs(g) > 1.0)
     return math.sqrt(f0 * f1), 0.5 * (g0 + g1)
 
 
