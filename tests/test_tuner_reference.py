@@ -1,0 +1,25 @@
+"""The tuner's code may change, not what it computes: four short runs at fixed seeds (the
+gradient method and CMA-ES, the ideal and the flight-like loop) give the stored reference's
+steps, tuned gains and held-out parts, to 1e-12 on a machine that reproduced them so and to
+the measured cross-machine tolerance elsewhere (``tests/stored_results.py``). The reference
+was written by ``tests/tuner_reference.py`` with the version before the tuner's methods
+shared one driver."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import stored_results
+import tuner_reference
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(tuner_reference.RUNS))
+def test_a_tuning_run_gives_the_stored_reference(tmp_path, name):
+    rtol, kind = stored_results.tolerance(tuner_reference.FOLDER)
+    got = tuner_reference.run(name, tmp_path)
+    with np.load(tuner_reference.FOLDER / f"{name}.npz") as stored:
+        expected = {key: stored[key] for key in stored.files}
+    assert set(expected) <= set(got), sorted(set(expected) - set(got))  # new columns may come, none may go
+    for key, value in expected.items():
+        np.testing.assert_allclose(got[key], value, rtol=rtol, atol=1e-300, err_msg=f"{name}: {key} ({kind})")
