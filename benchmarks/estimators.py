@@ -201,9 +201,13 @@ def measure(gains_name: str, *, first: int, pairs: int, guided: int, sigma: floa
 
     rng = np.random.default_rng(seed + 1)
     samples = sample_loops(spec.robot, spec.scenario, seed + 1, range(pairs + guided), ranges, spec.realism)
-    evaluate = cmaes.make_item_evaluator(
-        spec.robot, samples, gains, mask, params, "admittance", objective, chunk=min(64, 2 * (pairs + guided))
-    )
+    items = cmaes.make_item_evaluator(spec.robot, samples, "admittance", objective, chunk=min(64, 2 * (pairs + guided)))
+    start_params = {name: np.asarray(value) for name, value in params.items()}
+
+    def evaluate(vectors, rows):
+        sets = [cmaes.gains_of(vector, start_params, gains, mask) for vector in vectors]
+        return items(jax.tree.map(lambda *leaves: np.stack([np.asarray(leaf) for leaf in leaves]), *sets), rows)
+
     directions = rng.standard_normal((pairs, theta.size))
     estimation_guide = estimators.aggregate(np.array_split(first_pool, 2)[0], "clip")
     guided_directions = estimators.guided_directions(rng, estimation_guide[None], guided) if guided else None

@@ -143,34 +143,31 @@ def snapshot_work(path: Path) -> dict:
     with np.load(path, allow_pickle=False) as stored:
         meta = json.loads(str(stored["meta"]))
     batch = meta["config"]["batch"]
-    if "generation" in meta:  # a CMA-ES checkpoint
+    if "format" in meta:  # the driver's checkpoint: it counts the rollouts
+        kind = "gradients" if meta["method"] == "gradient" else "rollouts"
+        return {"steps": meta["step"], kind: meta["rollouts"]}
+    if "generation" in meta:  # a CMA-ES checkpoint of an older version
         generations = meta["generation"]
         return {"steps": generations, "rollouts": (1 + generations * (meta["config"]["population"] + 1)) * batch}
     rejected = sum(int(row.get("rejected_candidates", 0)) for row in meta["history"])
     return {"steps": meta["step"], "gradients": (1 + meta["step"] + rejected) * batch}
 
 
-def snapshot_gains(method: str, path: Path, run_folder: Path) -> dict:
+def snapshot_gains(path: Path, run_folder: Path) -> dict:
     """The gains (a gains.json document) a checkpoint copy stands for."""
     from spacegrasp_jax.loop.control import paper_gains
-    from spacegrasp_jax.tuning import cmaes
+    from spacegrasp_jax.tuning import driver
     from spacegrasp_jax.tuning.parameters import gains_from_params, initial_params, make_mask
     from spacegrasp_jax.tuning.run import tuned_base
-    from spacegrasp_jax.tuning.tune import TuneConfig, load_checkpoint, make_optimizer
+    from spacegrasp_jax.tuning.tune import TuneConfig, make_method
 
     config = TuneConfig.from_dict(json.loads((run_folder / "run.json").read_text())["config"])
     base = tuned_base(paper_gains(), config)  # the paper's gains, or their schedule
     mask = make_mask(base, "admittance")
     params = initial_params(base, "admittance")
-    if method == "cmaes":
-        asked, told, *_ = cmaes.load_checkpoint(path)
-        strategy = cmaes.new_strategy(cmaes.flatten(params, mask), config.population, config.seed, config.step_size)
-        cmaes.replay(strategy, asked, told)
-        gains = cmaes.gains_of(np.asarray(strategy.mean), {k: np.asarray(v) for k, v in params.items()}, base, mask)
-    else:
-        state, _ = load_checkpoint(path, params, make_optimizer(config)[0].init(params))
-        gains = gains_from_params(state.params, base, mask)
-    return gains.to_dict("admittance")
+    tuner = make_method(config)
+    state = driver.load_checkpoint(path, tuner, params, mask, config.seed)
+    return gains_from_params(tuner.point(state.method_state), base, mask).to_dict("admittance")
 
 
 def main(argv=None) -> int:
@@ -249,7 +246,7 @@ def main(argv=None) -> int:
         for mark, snapshot in record["methods"][method]["snapshots"].items():
             path = folder / f"{method}_{mark}min.json"
             if not path.exists():
-                document = snapshot_gains(method, folder / snapshot["path"], folder / method)
+                document = snapshot_gains(folder / snapshot["path"], folder / method)
                 path.write_text(json.dumps(document, indent=1) + "\n")
             gain_files.append(path)
     import spacegrasp_jax

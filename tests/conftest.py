@@ -128,6 +128,7 @@ LONGEST_FIRST = (
     "tests/test_docs_examples.py",
     "tests/test_compilation.py",
     "tests/test_tuning.py",
+    "tests/test_tuner_reference.py",
     "tests/test_realism.py",
     "tests/test_target.py",
     "tests/test_simulate.py",

@@ -1,14 +1,15 @@
-"""CMA-ES on problems with a known optimum, its resume by replay, and the parameter vector's
-round trip through the log-gains."""
+"""CMA-ES on problems with a known optimum, run by the tuning driver; its resume by replay;
+the parameter vector's round trip through the log-gains."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from toy_problems import StopAfter, ToyProblem, start
 
 from spacegrasp_jax.jobs.runfiles import write_atomically
 from spacegrasp_jax.loop.control import paper_gains
-from spacegrasp_jax.tuning import cmaes
+from spacegrasp_jax.tuning import cmaes, driver
 from spacegrasp_jax.tuning.parameters import initial_params, make_mask
 
 OPTIMUM = np.array([0.7, -1.3, 0.2, 2.0, -0.4])
@@ -23,15 +24,23 @@ def quadratic_batch(vectors: np.ndarray) -> dict:
     return {"loss": losses, "final_position_m": losses * 1e-3, "largest_peak_torque_Nm": peak}
 
 
+def run_cmaes(batch_parts, x0, generations, population, seed, **options):
+    point, mask = start(len(x0))
+    point["x"] = np.asarray(x0, dtype=float)
+    method = cmaes.CMAES(population=population)
+    return driver.optimise(ToyProblem(batch_parts), method, point, mask, steps=generations, seed=seed, **options)
+
+
 def test_cmaes_finds_the_optimum_of_a_quadratic():
-    state, status = cmaes.optimise(
-        quadratic_batch, np.zeros(5), generations=120, population=10, seed=3, cvar_alpha=None
-    )
-    assert status == "done"
-    np.testing.assert_allclose(state.strategy.mean, OPTIMUM, atol=1e-4)
+    result = run_cmaes(quadratic_batch, np.zeros(5), generations=120, population=10, seed=3)
+    state = result.state
+    assert result.status == "done"
+    np.testing.assert_allclose(state.method_state.strategy.mean, OPTIMUM, atol=1e-4)
     # At the optimum each scenario still costs its shift: 5 mean(s^2) = 0.03125.
     assert state.history[-1]["loss"] == pytest.approx(5 * np.mean(np.array([0.1, 0.1, 0.05, 0.05]) ** 2), abs=1e-8)
-    assert state.history[0]["step"] == 0 and state.history[-1]["step"] == 120
+    assert state.history[0]["step"] == 0 and state.history[-1]["step"] == 120 == len(state.history) - 1
+    # a generation's candidates and its mean: population + 1 points a step, 4 samples each
+    assert state.rollouts == 4 + 120 * (10 + 1) * 4
 
 
 def test_cmaes_on_a_rosenbrock_valley():
@@ -40,8 +49,8 @@ def test_cmaes_on_a_rosenbrock_valley():
         loss = (1 - x) ** 2 + 100 * (y - x**2) ** 2
         return {"loss": loss[:, None], "largest_peak_torque_Nm": np.zeros((len(vectors), 1))}
 
-    state, _ = cmaes.optimise(rosenbrock, np.array([-1.0, 1.5]), generations=250, population=8, seed=0, cvar_alpha=None)
-    np.testing.assert_allclose(state.strategy.mean, [1.0, 1.0], atol=1e-3)
+    result = run_cmaes(rosenbrock, np.array([-1.0, 1.5]), generations=250, population=8, seed=0)
+    np.testing.assert_allclose(result.state.method_state.strategy.mean, [1.0, 1.0], atol=1e-3)
 
 
 def test_the_initial_step_size_sets_the_first_generations_spread():
@@ -61,65 +70,27 @@ def test_a_non_finite_candidate_is_ranked_last():
 
 def test_resume_replays_to_the_same_run(tmp_path):
     path = tmp_path / "checkpoint.npz"
-    whole, _ = cmaes.optimise(quadratic_batch, np.zeros(5), generations=12, population=6, seed=1, cvar_alpha=None)
-
-    class StopAfter:
-        def __init__(self, count):
-            self.count = count
-
-        @property
-        def requested(self):
-            self.count -= 1
-            return self.count < 0
-
-    first, status = cmaes.optimise(
-        quadratic_batch,
-        np.zeros(5),
-        generations=12,
-        population=6,
-        seed=1,
-        cvar_alpha=None,
-        checkpoint_path=path,
-        write_atomically=write_atomically,
-        stop=StopAfter(5),
-    )
-    assert status == "interrupted" and first.generation == 5
-    resumed, status = cmaes.optimise(
-        quadratic_batch,
-        np.zeros(5),
-        generations=12,
-        population=6,
-        seed=1,
-        cvar_alpha=None,
-        resume=cmaes.load_checkpoint(path),
-    )
-    assert status == "done"
-    np.testing.assert_array_equal(resumed.strategy.mean, whole.strategy.mean)
-    assert [row["loss"] for row in resumed.history] == [row["loss"] for row in whole.history]
+    whole = run_cmaes(quadratic_batch, np.zeros(5), generations=12, population=6, seed=1)
+    checkpointed = dict(checkpoint_path=path, write_atomically=write_atomically)
+    first = run_cmaes(quadratic_batch, np.zeros(5), 12, 6, 1, stop=StopAfter(5), **checkpointed)
+    assert first.status == "interrupted" and first.state.step == 5 == first.state.method_state.generation
+    point, mask = start(5)
+    resume = driver.load_checkpoint(path, cmaes.CMAES(population=6), point, mask, seed=1)
+    resumed = run_cmaes(quadratic_batch, np.zeros(5), 12, 6, 1, resume=resume)
+    assert resumed.status == "done"
+    np.testing.assert_array_equal(resumed.state.method_state.strategy.mean, whole.state.method_state.strategy.mean)
+    drop_wall = lambda history: [{k: v for k, v in row.items() if k != "wall_s"} for row in history]
+    np.testing.assert_equal(drop_wall(resumed.state.history), drop_wall(whole.state.history))  # NaN as NaN
+    np.testing.assert_array_equal(resumed.point["x"], whole.point["x"])
+    assert resumed.kept == whole.kept and resumed.state.rollouts == whole.state.rollouts
 
 
 def test_a_checkpoint_of_another_run_does_not_replay(tmp_path):
     path = tmp_path / "checkpoint.npz"
-    cmaes.optimise(
-        quadratic_batch,
-        np.zeros(5),
-        generations=2,
-        population=6,
-        seed=1,
-        cvar_alpha=None,
-        checkpoint_path=path,
-        write_atomically=write_atomically,
-    )
+    run_cmaes(quadratic_batch, np.zeros(5), 2, 6, 1, checkpoint_path=path, write_atomically=write_atomically)
+    point, mask = start(5)
     with pytest.raises(RuntimeError, match="do not replay"):
-        cmaes.optimise(
-            quadratic_batch,
-            np.zeros(5),
-            generations=3,
-            population=6,
-            seed=2,
-            cvar_alpha=None,
-            resume=cmaes.load_checkpoint(path),
-        )
+        driver.load_checkpoint(path, cmaes.CMAES(population=6), point, mask, seed=2)
 
 
 def test_the_vector_round_trip_leaves_frozen_and_zero_gains_alone():

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from central_differences import check_each_group
+from toy_problems import descend
 
 import spacegrasp_jax as sg
 from spacegrasp_jax import cli
@@ -31,7 +32,6 @@ from spacegrasp_jax.tuning.tune import (
     TuneConfig,
     make_loss,
     make_value_and_grad,
-    optimise,
     training_scenarios,
 )
 
@@ -96,9 +96,10 @@ def test_the_tuning_gradient_matches_central_differences(loss_and_gradient):
 
 def test_a_few_tuning_steps_run_and_keep_the_gains_finite(loss_and_gradient):
     _, params, value_and_grad = loss_and_gradient
-    state, status = optimise(value_and_grad, params, TuneConfig(steps=2, objective="weighted", method="gradient"))
-    assert status == "done" and state.step == 2
-    assert np.isfinite(state.loss) and all(np.all(np.isfinite(v)) for v in jax.tree.leaves(state.params))
+    result = descend(value_and_grad, params, TuneConfig(steps=2, objective="weighted", method="gradient"))
+    assert result.status == "done" and result.state.step == 2
+    method_state = result.state.method_state
+    assert np.isfinite(method_state.loss) and all(np.all(np.isfinite(v)) for v in jax.tree.leaves(method_state.params))
 
 
 def test_a_monte_carlo_chunk_of_16_equals_single_rollouts(ur5, short):

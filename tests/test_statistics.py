@@ -92,3 +92,29 @@ def test_compare_metric_interval_covers_a_known_shift():
     result = statistics.compare_metric(reference, candidate)
     assert result["low"] < 0.5 < result["high"] and result["high"] - result["low"] < 0.05
     assert result["p_value"] < 1e-10
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 8, 13])
+def test_the_interquartile_mean_is_scipys_trimmed_mean(n):
+    from scipy import stats
+
+    values = np.random.default_rng(n).normal(size=n)
+    assert statistics.interquartile_mean(values) == pytest.approx(stats.trim_mean(values, 0.25), rel=1e-14)
+
+
+def test_the_interval_across_runs_is_the_bootstrap_distributions_quantiles():
+    """Four runs: every resample of 4 with replacement is one of 4^4 = 256 equally likely
+    draws, so the bootstrap distribution of the IQM is known exactly; the interval's ends are
+    its 2.5% and 97.5% quantiles, to the resampling's precision."""
+    import itertools
+
+    values = np.array([0.02, 0.05, -0.01, 0.09])
+    exact = np.sort(
+        [statistics.interquartile_mean(values[list(draw)]) for draw in itertools.product(range(4), repeat=4)]
+    )
+    result = statistics.across_runs(values, resamples=200_000)
+    assert result["iqm"] == pytest.approx(0.035) and result["runs"] == 4  # (0.02 + 0.05) / 2
+    # the 2.5% quantile of 256 equally likely values lies between the 6th and the 7th
+    assert exact[5] - 1e-12 <= result["low"] <= exact[6] + 1e-12
+    assert exact[-7] - 1e-12 <= result["high"] <= exact[-6] + 1e-12
+    assert statistics.across_runs([0.1] * 5)["low"] == statistics.across_runs([0.1] * 5)["high"] == pytest.approx(0.1)

@@ -390,7 +390,7 @@ def test_a_run_that_ends_worse_than_it_started_hands_back_the_start_and_says_so(
     summary = json.loads((out / "summary.json").read_text())
     holdout = summary["holdout"]
     assert holdout["mean_objective_tuned"] > holdout["mean_objective_start"]  # the case: a worse result
-    assert summary["gains_file"] == "start" and summary["kept"]["what"] == "the final mean"
+    assert summary["gains_file"] == "start" and summary["kept"]["what"] == "the mean after generation 1"
     assert json.loads((out / "gains.json").read_text()) == paper_gains().to_dict("admittance")
     assert json.loads((out / "gains_tuned.json").read_text()) != paper_gains().to_dict("admittance")
     err = capsys.readouterr().err
@@ -418,12 +418,12 @@ def test_early_stopping_from_the_command_line(tmp_path, capsys):
     assert cli.main([*base, "--steps", "8", "--patience", "1", "--validation-size", "2", "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
     kept = summary["kept"]
-    assert kept["rule"] == "best by validation" and kept["what"] == f"the mean after generation {kept['generation']}"
+    assert kept["rule"] == "best by validation" and kept["what"] == f"the mean after generation {kept['step']}"
     record = np.load(out / "checkpoint.npz")
-    validation = json.loads(str(record["meta"]))["validation"]
-    assert kept["validation_objective"] == min(item["objective"] for item in validation)
+    validation = [row["validation_loss"] for row in json.loads(str(record["meta"]))["history"]]
+    assert kept["validation_objective"] == min(validation)
     # this run's validation objective stalls after generation 4 of 8 (seed 0)
-    assert summary["status"] == "stopped_early" and len(validation) - 1 == kept["generation"] + 1 < 8
+    assert summary["status"] == "stopped_early" and len(validation) - 1 == kept["step"] + 1 < 8
     assert "stopped early: the validation objective has not improved for 1 generations" in capsys.readouterr().err
     assert cli.main([*base, "--validation-size", "4", "--out", str(tmp_path / "refused")]) == 2
     assert "--validation-size: the validation set of early stopping (choose --patience)" in capsys.readouterr().err

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from central_differences import check_each_group
+from toy_problems import descend
 
 from spacegrasp_jax.envelope.scenario import paper_scenario
 from spacegrasp_jax.loop.simulate import RunSpec, rollout
@@ -23,7 +24,6 @@ from spacegrasp_jax.tuning.tune import (
     make_loss,
     make_objective,
     make_value_and_grad,
-    optimise,
     torque_constraint_Nm,
     training_scenarios,
 )
@@ -73,7 +73,7 @@ def test_config_validation():
         (dict(torque_cap_Nm=float("nan")), "torque_cap_Nm: must be positive and finite"),
         (dict(objective="weighted", torque_cap_Nm=4.0), "the weighted objective has none"),
         (dict(step_size=0.0), "step_size: must be positive"),
-        (dict(method="gradient", step_size=0.1), "the gradient method's is the learning rate"),
+        (dict(method="gradient", step_size=0.1), "step_size: a setting of CMA-ES; the gradient method does not use it"),
         (dict(learning_rate=0.3), "learning_rate: a setting of the gradient method"),  # CMA-ES: the default method
         (dict(optimizer="sgd"), "optimizer: a setting of the gradient method"),
         (dict(gradient="forward"), "gradient: a setting of the gradient method"),
@@ -82,11 +82,11 @@ def test_config_validation():
         (dict(method="gradient", aggregate="clip"), "aggregate: clip combines the samples' separate gradients"),
         (dict(method="gradient", realism={}, gradient="forward"), "gradient: tuning under a realism"),
         (dict(method="gradient", fresh_batches=True), "fresh_batches: draws each step's samples"),
-        (dict(realism={}, fresh_batches=True), "fresh_batches: a setting of the gradient method"),
         (dict(method="gradient", aggregate="trimmed"), "aggregate: trimmed combines the samples' separate"),
     ]:
         with pytest.raises(ValueError, match=message):
             TuneConfig(**change)
+    assert TuneConfig(realism={}, fresh_batches=True).method == "cmaes"  # a new batch every generation
 
 
 def test_torque_constraint_is_the_lower_of_the_fraction_and_the_cap(robot):
@@ -220,11 +220,12 @@ def test_divergence_guard_rejects_and_shrinks_the_step(short_problem):
     the run goes on from finite gains."""
     _, params, value_and_grad = short_problem("admittance")  # shared with the central-differences test
     config = TuneConfig(steps=2, learning_rate=3.0, torque_guard_Nm=20.0, objective="weighted", method="gradient")
-    state, status = optimise(value_and_grad, params, config)
-    assert status == "done" and state.step == 2
+    result = descend(value_and_grad, params, config)
+    state, method_state = result.state, result.state.method_state
+    assert result.status == "done" and state.step == 2
     assert len(state.events) >= 1 and all(event["event"] == "rejected" for event in state.events)
-    assert state.scale < 1.0
-    assert np.isfinite(state.loss) and state.aux["max_largest_peak_torque_Nm"] <= 20.0
+    assert method_state.scale < 1.0
+    assert np.isfinite(method_state.loss) and method_state.aux["max_largest_peak_torque_Nm"] <= 20.0
     assert sum(row["rejected_candidates"] for row in state.history) == len(state.events)
 
 
@@ -365,10 +366,10 @@ def test_a_candidate_whose_loss_runs_away_is_rejected_even_within_the_torque_gua
         objective="weighted",
         method="gradient",
     )
-    state, status = optimise(value_and_grad, {"kp": jnp.zeros(1)}, config)
-    assert status == "done" and calls == [0.0, 2.0, 1.0]
-    assert len(state.events) == 1 and state.events[0]["loss"] == 1e3
-    assert float(state.params["kp"][0]) == 1.0
+    result = descend(value_and_grad, {"kp": jnp.zeros(1)}, config)
+    assert result.status == "done" and calls == [0.0, 2.0, 1.0]
+    assert len(result.state.events) == 1 and result.state.events[0]["loss"] == 1e3
+    assert float(result.state.method_state.params["kp"][0]) == 1.0
 
 
 def test_a_run_that_can_take_no_further_step_ends_diverged_keeping_its_best_step():
@@ -385,10 +386,12 @@ def test_a_run_that_can_take_no_further_step_ends_diverged_keeping_its_best_step
     config = TuneConfig(
         steps=5, learning_rate=1.0, optimizer="sgd", clip_norm=10.0, objective="weighted", method="gradient"
     )
-    state, status = optimise(value_and_grad, {"kp": jnp.zeros(1)}, config)
-    assert status == "diverged"
-    assert state.step == 1 and state.best_step == 1 and float(state.best_params["kp"][0]) == 1.0
-    assert len(state.events) == 20 and state.scale < 1e-6  # 2^-20 < 1e-6 <= 2^-19
+    result = descend(value_and_grad, {"kp": jnp.zeros(1)}, config)
+    state = result.state
+    assert result.status == "diverged"
+    assert state.step == 1 and state.best_step == 1 and float(state.best_point["kp"][0]) == 1.0
+    assert float(result.point["kp"][0]) == 1.0 and result.kept["step"] == 1
+    assert len(state.events) == 20 and state.method_state.scale < 1e-6  # 2^-20 < 1e-6 <= 2^-19
 
 
 def test_a_cmaes_record_that_wrote_the_unused_clip_still_resumes():
@@ -436,7 +439,8 @@ def test_the_gradient_method_keeps_its_best_step_and_a_checkpoint_keeps_it_too(t
     0.08 + 0.72 (1 + cos(pi k / 3)) / 2): p goes 0, 1.6, 0.856, 0.93088, the losses 1, 0.36,
     0.020736, 5.0047775744. The last step is worse than step 2: step 2's parameters are kept, and
     a checkpoint keeps them too."""
-    from spacegrasp_jax.tuning.tune import load_checkpoint, make_optimizer
+    from spacegrasp_jax.tuning import driver
+    from spacegrasp_jax.tuning.tune import make_method
 
     def value_and_grad(params):
         p = params["kp"][0]
@@ -453,36 +457,38 @@ def test_the_gradient_method_keeps_its_best_step_and_a_checkpoint_keeps_it_too(t
         method="gradient",
     )
     path = tmp_path / "checkpoint.npz"
-    state, status = optimise(
-        value_and_grad, {"kp": jnp.zeros(1)}, config, checkpoint_path=path, write_atomically=_write
-    )
+    result = descend(value_and_grad, {"kp": jnp.zeros(1)}, config, checkpoint_path=path, write_atomically=_write)
+    state = result.state
     np.testing.assert_allclose([row["loss"] for row in state.history], [1.0, 0.36, 0.020736, 5.0047775744], rtol=1e-12)
-    assert status == "done" and state.step == 3 and state.best_step == 2
-    assert float(state.best_params["kp"][0]) == pytest.approx(0.856, rel=1e-12)
-    assert float(state.params["kp"][0]) == pytest.approx(0.93088, rel=1e-12)
+    assert result.status == "done" and state.step == 3 and state.best_step == 2
+    assert float(state.best_point["kp"][0]) == pytest.approx(0.856, rel=1e-12)
+    assert float(result.point["kp"][0]) == float(state.best_point["kp"][0]) and result.kept["step"] == 2
+    assert float(state.method_state.params["kp"][0]) == pytest.approx(0.93088, rel=1e-12)
     template = {"kp": jnp.zeros(1)}
-    restored, _ = load_checkpoint(path, template, make_optimizer(config)[0].init(template))
-    assert restored.best_step == 2 and float(restored.best_params["kp"][0]) == float(state.best_params["kp"][0])
+    restored = driver.load_checkpoint(path, make_method(config), template, {"kp": np.ones(1, bool)}, seed=0)
+    assert restored.best_step == 2 and float(restored.best_point["kp"][0]) == float(state.best_point["kp"][0])
 
 
 def _write(path, write):
     write(path)
 
 
-def test_cmaes_best_ever_is_the_least_objective_it_told_or_the_final_mean():
-    from spacegrasp_jax.tuning.cmaes import CmaState, best_ever
+def test_cmaes_best_is_the_least_objective_it_told_or_the_final_mean():
+    from spacegrasp_jax.tuning.cmaes import CMAES, CMAESState
 
     class Strategy:
         mean = np.array([9.0, 9.0])
 
     asked = [np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([[2.0, 2.0], [3.0, 3.0]])]
     told = [np.array([5.0, 4.0]), np.array([3.0, 6.0])]
-    state = CmaState(2, Strategy(), asked, told, [{"loss": 7.0}, {"loss": 6.5}, {"loss": 3.5}])
-    x, value, generation = best_ever(state)
-    assert x.tolist() == [2.0, 2.0] and value == 3.0 and generation == 2
-    state.history[-1]["loss"] = 3.0  # the final mean as good: it is kept
-    x, value, generation = best_ever(state)
-    assert x.tolist() == [9.0, 9.0] and value == 3.0 and generation is None
+    state = CMAESState(Strategy(), {"x": np.zeros(2)}, {"x": np.ones(2, bool)}, asked, told, 2, "candidates")
+    history = [{"loss": 7.0}, {"loss": 6.5}, {"loss": 3.5}]
+    point, step, what, value = CMAES().best(state, history, 2, None)
+    assert point["x"].tolist() == [2.0, 2.0] and value == 3.0 and step is None
+    assert what == "the best candidate of generation 2"
+    history[-1]["loss"] = 3.0  # the final mean as good: it is kept
+    point, step, what, value = CMAES().best(state, history, 2, None)
+    assert point["x"].tolist() == [9.0, 9.0] and value == 3.0 and step == 2 and what == "the mean after generation 2"
 
 
 def test_early_stopping_ends_a_gradient_run_when_the_validation_objective_stalls():
@@ -512,10 +518,12 @@ def test_early_stopping_ends_a_gradient_run_when_the_validation_objective_stalls
         validated.append(float(params["kp"][0]))
         return (float(params["kp"][0]) - 0.5) ** 2
 
-    state, status = optimise(value_and_grad, {"kp": jnp.zeros(1)}, config, validate=validate)
+    result = descend(value_and_grad, {"kp": jnp.zeros(1)}, config, validate=validate)
+    state = result.state
     losses = [row["validation_loss"] for row in state.history]
-    assert status == "stopped_early" and state.best_step == 1 and state.step == 3
-    assert state.best_step == int(np.argmin(losses)) and float(state.best_params["kp"][0]) == validated[state.best_step]
+    assert result.status == "stopped_early" and state.best_step == 1 and state.step == 3
+    assert state.best_step == int(np.argmin(losses)) and float(state.best_point["kp"][0]) == validated[state.best_step]
+    assert result.kept["rule"] == "best by validation" and float(result.point["kp"][0]) == validated[1]
     assert [row["loss"] for row in state.history] == sorted([row["loss"] for row in state.history], reverse=True)
     with pytest.raises(ValueError, match="patience: must be at least 1"):
         dataclasses.replace(config, patience=0)
@@ -524,31 +532,39 @@ def test_early_stopping_ends_a_gradient_run_when_the_validation_objective_stalls
 
 
 def test_early_stopping_ends_a_cmaes_run_and_its_checkpoint_keeps_the_validations(tmp_path):
-    from spacegrasp_jax.tuning import cmaes
+    from toy_problems import ToyProblem, start
 
-    def evaluate(vectors):
+    from spacegrasp_jax.tuning import cmaes, driver
+
+    def batch_parts(vectors):
         losses = np.sum((vectors - 1.0) ** 2, axis=1, keepdims=True)
         return {"loss": losses, "final_position_m": losses, "largest_peak_torque_Nm": losses}
 
     calls = []
 
     def validate(mean):  # least at the start: every later mean is worse, so the run stops at once
-        calls.append(np.asarray(mean))
-        return float(np.sum(np.asarray(mean) ** 2))
+        calls.append(np.asarray(mean["x"]))
+        return float(np.sum(np.asarray(mean["x"]) ** 2))
 
     path = tmp_path / "cmaes.npz"
-    common = dict(generations=30, population=6, seed=1, cvar_alpha=None, validate=validate, patience=3)
-    state, status = cmaes.optimise(
-        evaluate, np.zeros(3), checkpoint_path=path, write_atomically=lambda p, w: w(p), **common
+    point, mask = start(3)
+    method = cmaes.CMAES(population=6)
+    common = dict(steps=30, seed=1, validate=validate, patience=3)
+    result = driver.optimise(
+        ToyProblem(batch_parts), method, point, mask, checkpoint_path=path, write_atomically=lambda p, w: w(p), **common
     )
-    assert status == "stopped_early" and state.generation == 3 and len(state.validation) == 4
-    x, value, generation = cmaes.best_validated(state)
-    assert generation == 0 and value == 0.0 and x.tolist() == [0.0, 0.0, 0.0]
-    resumed = cmaes.load_checkpoint(path)
-    assert resumed[3] == state.validation
+    state = result.state
+    assert result.status == "stopped_early" and state.step == 3 and len(calls) == 4
+    assert (
+        result.kept["step"] == 0
+        and result.kept["validation_objective"] == 0.0
+        and result.point["x"].tolist() == [0.0] * 3
+    )
+    resumed = driver.load_checkpoint(path, method, point, mask, seed=1)
+    assert [row["validation_loss"] for row in resumed.history] == [row["validation_loss"] for row in state.history]
     calls.clear()
-    again, status = cmaes.optimise(evaluate, np.zeros(3), resume=resumed, **common)
-    assert status == "stopped_early" and calls == [] and again.validation == state.validation
+    again = driver.optimise(ToyProblem(batch_parts), method, point, mask, resume=resumed, **common)
+    assert again.status == "stopped_early" and calls == [] and again.kept == result.kept
 
 
 def test_the_settings_walk_counts_modules_and_climbs_to_a_higher_layer():
@@ -586,7 +602,7 @@ def test_a_tuning_runs_settings_visit_few_modules_and_climb_back_rarely(tmp_path
 def test_the_progress_line_says_which_statistic_each_number_is():
     """The torque on a tuning step's line is the objective's peak over its constraint (a
     ratio, batch mean); the largest peak in N m is the batch's largest (the torque guard's)."""
-    from spacegrasp_jax.tuning.tune import RunState, progress_line
+    from spacegrasp_jax.tuning.tune import progress_line
 
     aux = {
         "final_position_m": 0.003,
@@ -596,9 +612,6 @@ def test_the_progress_line_says_which_statistic_each_number_is():
         "rms_tracking_m": 0.0135,
         "max_largest_peak_torque_Nm": 0.73,
     }
-    state = RunState(
-        step=9, scale=1.0, params={}, opt_state=(), loss=0.0886, aux=aux, gradient={}, history=[], events=[]
-    )
-    line = progress_line(state, 75)
+    line = progress_line(9, 0.0886, aux, 75)
     assert "peak torque / constraint 1.310 (hard 1.290, gap 0.020)" in line
     assert "(batch means) | largest peak 0.73 N m (batch max)" in line

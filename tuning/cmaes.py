@@ -1,13 +1,14 @@
 """Gradient-free tuning: CMA-ES (the ``cma`` package) on the same parameters, objective and
-batch as the gradient loop, forward rollouts only.
+batch as the gradient method, forward rollouts only ([`tuning.protocol`][tuning.protocol]: one
+driver runs both).
 
 The parameters are the tuned entries of the log-gains ([`spacegrasp_jax.tuning.parameters`][tuning.parameters],
 frozen groups left out), one flat vector. A generation asks ``population`` candidates of
-CMA-ES, adds the distribution's mean, and evaluates all of them on the batch in one sharded,
-chunked program ([`spacegrasp_jax.jobs.batching.map_in_chunks()`][spacegrasp_jax.jobs.batching.map_in_chunks]: ``(population + 1) x batch``
-forward rollouts, no reverse-mode compile), then tells CMA-ES the candidates' objectives.
-The run's gains are the mean after the last generation (the best candidate of a fixed batch
-is the one most fitted to it).
+CMA-ES and evaluates them on the batch in one sharded, chunked program
+([`spacegrasp_jax.jobs.batching.map_in_chunks()`][spacegrasp_jax.jobs.batching.map_in_chunks]: ``population x batch``
+forward rollouts, no reverse-mode compile), tells CMA-ES their objectives, then evaluates the
+distribution's new mean on the same batch: the history row of the step. The run's gains are
+the best point it evaluated, or the mean after the last generation (``keep``).
 
 Resume without pickles: CMA-ES draws its candidates from its own seeded generator, so the
 checkpoint keeps each generation's candidates and objectives, and a resumed run replays the
@@ -18,12 +19,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import math
-import time
 from collections.abc import Callable
-from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import jax
 import numpy as np
@@ -32,17 +30,12 @@ from spacegrasp_jax.core.model import Robot
 from spacegrasp_jax.jobs import batching
 from spacegrasp_jax.jobs.experiment import loop_options
 from spacegrasp_jax.jobs.montecarlo import SampleLoops
-from spacegrasp_jax.jobs.runfiles import StopRequest
+from spacegrasp_jax.jobs.runfiles import progress_bar
 from spacegrasp_jax.loop.control.gains import Gains
 from spacegrasp_jax.loop.simulate import LoopOptions
-from spacegrasp_jax.tuning.objective import (
-    BATCH_MAX_PEAK_TORQUE,
-    Objective,
-    history_of_older_version,
-    objective_spec,
-    scenario_parts,
-)
+from spacegrasp_jax.tuning.objective import Objective, objective_spec, scenario_parts
 from spacegrasp_jax.tuning.parameters import gains_from_params
+from spacegrasp_jax.tuning.protocol import Answers, Outcome, Request
 
 if TYPE_CHECKING:
     import cma
@@ -97,8 +90,8 @@ MAX_CHUNK = 64
 
 def population_chunk(batch: int) -> int:
     """Rollouts per call of the population's program for a training ``batch``: the batch
-    itself up to ``MAX_CHUNK`` (each candidate one call, no padding, and the final
-    mean's evaluation reuses the program); a larger batch, its largest divisor up to it
+    itself up to ``MAX_CHUNK`` (each candidate one call, no padding, and the mean's
+    evaluation reuses the program); a larger batch, its largest divisor up to it
     where that is at least half of it, else ``MAX_CHUNK`` (the last call padded)."""
     if batch <= MAX_CHUNK:
         return batch
@@ -107,10 +100,10 @@ def population_chunk(batch: int) -> int:
 
 
 def make_item_evaluator(
-    robot: Robot, samples, base: Gains, mask: dict, params: dict, controller: str, objective: Objective, chunk: int
-) -> Callable[[np.ndarray, np.ndarray], dict]:
-    """``evaluate(vectors (M, n), rows (M,)) -> parts``, every part of the objective shaped
-    (M,): parameter vector ``k`` on sample ``rows[k]`` of ``samples``, a ``SampleLoops`` of the
+    robot: Robot, samples, controller: str, objective: Objective, chunk: int
+) -> Callable[[Gains, np.ndarray], dict]:
+    """``evaluate(gains (M stacked), rows (M,)) -> parts``, every part of the objective shaped
+    (M,): gain set ``k`` on sample ``rows[k]`` of ``samples``, a ``SampleLoops`` of the
     flight-like loop (robots, scenarios, realisms, keys) or stacked scenarios of the paper's
     loop; forward rollouts in one sharded, chunked program."""
     realism_loop = isinstance(samples, SampleLoops)
@@ -124,11 +117,8 @@ def make_item_evaluator(
         _candidate_parts, controller=controller, realism_loop=realism_loop, options=loop_options(checkpoint=True)
     )
 
-    def evaluate(vectors: np.ndarray, rows: np.ndarray) -> dict:
-        unique, inverse = np.unique(np.asarray(vectors, dtype=float), axis=0, return_inverse=True)
-        gains = [gains_of(v, params, base, mask) for v in unique]
-        stacked = jax.tree.map(lambda *g: np.stack([np.asarray(x) for x in g])[inverse.ravel()], *gains)
-        items = (stacked, *batching.take(per_sample, np.asarray(rows)))
+    def evaluate(gains: Gains, rows: np.ndarray) -> dict:
+        items = (gains, *batching.take(per_sample, np.asarray(rows)))
         return batching.map_in_chunks(
             "tuning.cmaes",
             function,
@@ -137,24 +127,6 @@ def make_item_evaluator(
             chunk=chunk,
             progress=None,
         )
-
-    return evaluate
-
-
-def make_population_evaluator(
-    robot: Robot, samples, base: Gains, mask: dict, params: dict, controller: str, objective: Objective, chunk: int
-) -> Callable[[np.ndarray], dict]:
-    """``evaluate(vectors (P, n)) -> parts`` with every part of the objective shaped
-    (P, batch), for P parameter vectors on every sample of the batch ``samples``
-    ([`make_item_evaluator()`][tuning.cmaes.make_item_evaluator])."""
-    per_sample = (samples.robots,) if isinstance(samples, SampleLoops) else (samples,)
-    batch = batching.batch_size(per_sample)
-    items = make_item_evaluator(robot, samples, base, mask, params, controller, objective, chunk)
-
-    def evaluate(vectors: np.ndarray) -> dict:
-        count = len(vectors)
-        parts = items(np.repeat(np.asarray(vectors), batch, axis=0), np.tile(np.arange(batch), count))
-        return {name: value.reshape(count, batch) for name, value in parts.items()}
 
     return evaluate
 
@@ -170,21 +142,6 @@ def batch_objective(losses: np.ndarray, cvar_alpha: float | None) -> np.ndarray:
         worst = max(1, math.ceil((1.0 - cvar_alpha) * losses.shape[1]))
         total = np.sort(losses, axis=1)[:, -worst:].mean(axis=1)
     return np.where(np.isfinite(total), total, np.inf)
-
-
-@dataclasses.dataclass
-class CmaState:
-    """A CMA-ES run after ``generation`` generations: the strategy, every generation's
-    candidates and objectives (what a resume replays), the mean's history rows."""
-
-    generation: int
-    strategy: cma.CMAEvolutionStrategy
-    asked: list
-    told: list
-    history: list
-    #: early stopping's evaluations: ``{"generation", "objective", "mean"}`` of the mean after
-    #: each generation (generation 0: ``x0``) on the validation set
-    validation: list = dataclasses.field(default_factory=list)
 
 
 def new_strategy(
@@ -210,146 +167,115 @@ def replay(strategy: cma.CMAEvolutionStrategy, asked: list, told: list) -> None:
         strategy.tell(list(candidates), list(objectives))
 
 
-def save_checkpoint(path: Path, state: CmaState, config_dict: dict, write_atomically) -> None:
-    arrays = {f"asked_{k}": np.asarray(a) for k, a in enumerate(state.asked)}
-    arrays |= {f"told_{k}": np.asarray(t) for k, t in enumerate(state.told)}
-    meta = {"config": config_dict, "generation": state.generation, "history": state.history}
-    meta["validation"] = state.validation
-    arrays["meta"] = np.array(json.dumps(meta))
-    write_atomically(path, lambda target: np.savez(target, **arrays))
+@dataclasses.dataclass
+class CMAESState:
+    """A CMA-ES run after ``generation`` generations: the strategy, every generation's
+    candidates and objectives (what a checkpoint keeps and a resume replays), the start
+    (``params``: the point whose tuned entries the vectors are, ``mask``: which they are) and
+    what the next ask asks: ``"mean"`` (the distribution's mean, whose row completes a step)
+    or ``"candidates"`` (a generation)."""
+
+    strategy: cma.CMAEvolutionStrategy
+    params: dict
+    mask: dict
+    asked: list = dataclasses.field(default_factory=list)
+    told: list = dataclasses.field(default_factory=list)
+    generation: int = 0
+    phase: str = "mean"
+
+    def point_of(self, vector: np.ndarray) -> dict:
+        """The point whose tuned entries are ``vector``."""
+        return unflatten(np.asarray(vector, dtype=float), self.params, self.mask)
 
 
-def load_checkpoint(path: Path) -> tuple[list, list, list, list]:
-    """``(asked, told, history, validation)`` of a CMA-ES checkpoint (``validation``: early
-    stopping's evaluations, ``CmaState.validation``; empty without, or from an older version)."""
-    with np.load(path, allow_pickle=False) as data:
-        meta = json.loads(str(data["meta"]))
+@dataclasses.dataclass(frozen=True)
+class CMAES:
+    """CMA-ES ([`tuning.protocol.TuningMethod`][tuning.protocol.TuningMethod]): a step is a
+    generation of ``population`` candidates (``None``: pycma's default, ``4 + 3 ln n`` for n
+    tuned numbers) on the step's batch, then the new mean on the same batch.
+
+    Attributes:
+        population: candidates per generation.
+        step_size: the initial step in log-gain units.
+    """
+
+    population: int | None = None
+    step_size: float = SIGMA
+    name: ClassVar[str] = "cmaes"
+    title: ClassVar[str] = "CMA-ES"
+    unit: ClassVar[str] = "generation"
+    point_words: ClassVar[str] = "the mean"
+    #: the ``TuneConfig`` fields it reads
+    settings: ClassVar[tuple[str, ...]] = ("population", "step_size")
+
+    @classmethod
+    def from_config(cls, config) -> CMAES:
+        return cls(config.population, config.step_size)
+
+    def describe(self) -> str:
+        return "forward rollouts only"
+
+    def init(self, point, mask, seed: int) -> CMAESState:
+        params = {name: np.asarray(value) for name, value in point.items()}
+        return CMAESState(new_strategy(flatten(params, mask), self.population, seed, self.step_size), params, mask)
+
+    def ask(self, state: CMAESState) -> tuple[Request, CMAESState]:
+        if state.phase == "mean":
+            return Request((state.point_of(state.strategy.mean),), batch=state.generation), state
+        candidates = np.asarray(state.strategy.ask())
+        state = dataclasses.replace(state, asked=[*state.asked, candidates])
+        return Request(tuple(state.point_of(x) for x in candidates), batch=state.generation), state
+
+    def tell(self, state: CMAESState, request: Request, answers: Answers) -> tuple[CMAESState, Outcome]:
+        if state.phase == "mean":
+            best = float(np.min(state.told[-1])) if state.told else math.nan
+            row = {"step": state.generation, "loss": float(answers.objectives[0]), **answers.summaries[0]}
+            row |= {"best_candidate_loss": best, "sigma": float(state.strategy.sigma)}
+            return dataclasses.replace(state, phase="candidates"), Outcome(row=row)
+        objectives = np.asarray(answers.objectives)
+        state.strategy.tell(list(state.asked[-1]), list(objectives))
+        state = dataclasses.replace(
+            state, told=[*state.told, objectives], generation=state.generation + 1, phase="mean"
+        )
+        return state, Outcome()
+
+    def point(self, state: CMAESState) -> dict:
+        return state.point_of(state.strategy.mean)
+
+    def point_of_vector(self, state: CMAESState, vector: np.ndarray) -> dict:
+        """The point whose tuned entries are ``vector`` (an older checkpoint's validated mean)."""
+        return state.point_of(vector)
+
+    def best(self, state: CMAESState, history: list[dict], best_step: int, best_point):
+        """The candidate with the least objective ever told, or the final mean where it is no
+        worse (its objective the last history row's)."""
+        x, objective, generation = np.asarray(state.strategy.mean), float(history[-1]["loss"]), None
+        for index, (candidates, objectives) in enumerate(zip(state.asked, state.told)):
+            which = int(np.argmin(objectives))
+            if float(objectives[which]) < objective:
+                x, objective, generation = np.asarray(candidates[which]), float(objectives[which]), index + 1
+        if generation is None:
+            return state.point_of(x), len(history) - 1, f"the mean after generation {len(history) - 1}", objective
+        return state.point_of(x), None, f"the best candidate of generation {generation}", objective
+
+    def state_arrays(self, state: CMAESState) -> tuple[dict, dict]:
+        arrays = {f"asked_{k}": np.asarray(a) for k, a in enumerate(state.asked)}
+        arrays |= {f"told_{k}": np.asarray(t) for k, t in enumerate(state.told)}
+        return arrays, {"generation": state.generation, "phase": state.phase}
+
+    def restore(self, point, mask, seed: int, arrays: dict, meta: dict, steps: int) -> CMAESState:
+        state = self.init(point, mask, seed)
         count = meta["generation"]
-        return (
-            [data[f"asked_{k}"] for k in range(count)],
-            [data[f"told_{k}"] for k in range(count)],
-            history_of_older_version(meta["history"]),
-            meta.get("validation", []),
-        )
+        asked = [arrays[f"asked_{k}"] for k in range(count)]
+        told = [arrays[f"told_{k}"] for k in range(count)]
+        replay(state.strategy, asked, told)
+        return dataclasses.replace(state, asked=asked, told=told, generation=count, phase=meta["phase"])
 
-
-def optimise(
-    evaluate: Callable[[np.ndarray], dict],
-    x0: np.ndarray,
-    *,
-    generations: int,
-    population: int | None,
-    seed: int,
-    cvar_alpha: float | None,
-    step_size: float = SIGMA,
-    checkpoint_path: Path | None = None,
-    config_dict: dict | None = None,
-    write_atomically=None,
-    resume: tuple | None = None,
-    on_generation: Callable[[CmaState], None] | None = None,
-    stop: StopRequest | None = None,
-    validate: Callable[[np.ndarray], float] | None = None,
-    patience: int | None = None,
-) -> tuple[CmaState, str]:
-    """Run (or, from ``resume = (asked, told, history[, validation])``, continue) CMA-ES for
-    ``generations``. History row k is the distribution's mean after k generations (row 0:
-    ``x0``): its objective and parts (batch means), the best candidate of generation k, the
-    step size and generation k's wall time. The mean after generation k is evaluated with
-    generation k + 1's candidates, in the same program call; the last mean on its own.
-
-    ``validate`` and ``patience``: early stopping. The mean after each generation (and ``x0``)
-    is evaluated by ``validate`` (``CmaState.validation``); the run stops once the best of
-    those has not improved for ``patience`` generations.
-    Returns the state and ``"done"``, ``"stopped_early"`` or ``"interrupted"``."""
-    strategy = new_strategy(x0, population, seed, step_size)
-    asked, told, history = ([], [], []) if resume is None else (list(resume[0]), list(resume[1]), list(resume[2]))
-    validation = list(resume[3]) if resume is not None and len(resume) > 3 else []
-    if len(asked) < generations:  # a finished run given more generations: its last row comes again
-        history = history[: len(asked)]
-    replay(strategy, asked, told)
-    state = CmaState(len(asked), strategy, asked, told, history, validation)
-
-    def validated() -> None:  # the current mean on the validation set, once per generation
-        if validate is not None and len(state.validation) == state.generation:
-            mean = np.asarray(strategy.mean)
-            state.validation.append(
-                {"generation": state.generation, "objective": float(validate(mean)), "mean": mean.tolist()}
-            )
-
-    def stalled() -> bool:
-        if validate is None or not state.validation:
-            return False
-        best = min(state.validation, key=lambda item: item["objective"])
-        return state.generation - best["generation"] >= patience
-
-    validated()
-    wall = math.nan  # the wall time of the generation whose mean has no row yet
-
-    def mean_row(parts, which):
-        best = float(np.min(told[-1])) if told else math.nan
-        return _row(
+    def progress(self, state: CMAESState, row: dict, steps: int) -> str:
+        return progress_bar(
             state.generation,
-            parts,
-            which,
-            batch_objective(parts["loss"], cvar_alpha)[which],
-            best,
-            strategy.sigma,
-            wall,
+            steps,
+            f"generation {state.generation}/{steps}: best candidate {row['best_candidate_loss']:.4f} | "
+            f"the mean after it {row['loss']:.4f}, final pos {1e3 * row['final_position_m']:.3f} mm | "
+            f"step size {state.strategy.sigma:.3f}",
         )
-
-    status = "done"
-    while state.generation < generations:
-        if stop is not None and stop.requested:
-            status = "interrupted"
-            break
-        if stalled():
-            status = "stopped_early"
-            break
-        start = time.perf_counter()
-        candidates = np.asarray(strategy.ask())
-        parts = evaluate(np.concatenate([candidates, strategy.mean[None]]))
-        history.append(mean_row(parts, -1))
-        objectives = batch_objective(parts["loss"][:-1], cvar_alpha)
-        strategy.tell(list(candidates), list(objectives))
-        asked.append(candidates)
-        told.append(objectives)
-        state.generation += 1
-        wall = time.perf_counter() - start
-        validated()
-        if checkpoint_path is not None:
-            save_checkpoint(checkpoint_path, state, config_dict or {}, write_atomically)
-        if on_generation is not None:
-            on_generation(state)
-    if len(history) == state.generation:  # the last mean, on its own
-        history.append(mean_row(evaluate(strategy.mean[None]), 0))
-    return state, status
-
-
-def best_validated(state: CmaState) -> tuple[np.ndarray, float, int]:
-    """Early stopping's choice: the mean with the least validation objective,
-    ``(x, objective, generation)`` (generation 0: ``x0``)."""
-    best = min(state.validation, key=lambda item: item["objective"])
-    return np.asarray(best["mean"]), best["objective"], best["generation"]
-
-
-def best_ever(state: CmaState) -> tuple[np.ndarray, float, int | None]:
-    """The best point the run evaluated on its training batch: the candidate with the least
-    objective ever told, or the final mean where it is no worse (its objective is the last
-    history row's). Returns ``(x, objective, generation)``, ``generation`` the candidate's
-    (1-based, as the history counts them), ``None`` for the final mean."""
-    x, objective, generation = np.asarray(state.strategy.mean), float(state.history[-1]["loss"]), None
-    for index, (candidates, objectives) in enumerate(zip(state.asked, state.told)):
-        best = int(np.argmin(objectives))
-        if float(objectives[best]) < objective:
-            x, objective, generation = np.asarray(candidates[best]), float(objectives[best]), index + 1
-    return x, objective, generation
-
-
-def _row(generation, parts, which, objective, best, sigma, wall) -> dict:
-    """A history row: the objective of candidate ``which`` (the mean) and the batch means of
-    its parts, the best candidate's objective, CMA-ES's step size, the wall time (s)."""
-    row = {"step": generation, "loss": float(objective)}
-    row |= {name: float(np.nanmean(value[which])) for name, value in parts.items() if name != "loss"}
-    row[BATCH_MAX_PEAK_TORQUE] = float(np.nanmax(parts["largest_peak_torque_Nm"][which]))
-    row |= {"best_candidate_loss": best, "sigma": float(sigma), "wall_s": wall}
-    return row

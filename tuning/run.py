@@ -55,22 +55,17 @@ from spacegrasp_jax.loop.control.schedule import (
     schedule_of,
 )
 from spacegrasp_jax.loop.simulate import LoopOptions, RunSpec
-from spacegrasp_jax.tuning import cmaes
+from spacegrasp_jax.tuning import cmaes, driver
 from spacegrasp_jax.tuning.objective import Objective, objective_spec, scenario_parts
-from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
+from spacegrasp_jax.tuning.parameters import GROUPS
 from spacegrasp_jax.tuning.tune import (
     CHECKPOINT,
     VALIDATION_SEED_OFFSET,
     TuneConfig,
     check_gradient_cut,
     flight_batch,
-    load_checkpoint,
-    make_objective,
-    make_optimizer,
-    optimise,
-    progress_line,
-    setup,
-    training_batch,
+    make_method,
+    make_problem,
 )
 
 HOLDOUT_SEED_OFFSET = 1_000_003  # held-out samples never coincide with training samples
@@ -397,10 +392,9 @@ class TuneResult:
 
 
 def _validator(robot, smooth, config: TuneConfig, objective: Objective, to_gains):
-    """Early stopping's validation objective of a point (gradient parameters or a CMA-ES
-    vector; ``to_gains`` makes it gains): the batch objective over ``config.validation_size``
-    captures of their own seed, with the exact contact law as the held-out set; ``None``
-    without ``config.patience``."""
+    """Early stopping's validation objective of a point (``to_gains`` makes it gains): the
+    batch objective over ``config.validation_size`` captures of their own seed, with the
+    exact contact law as the held-out set; ``None`` without ``config.patience``."""
     if config.patience is None:
         return None
     exact = dataclasses.replace(smooth, contact_law="exact")
@@ -419,49 +413,59 @@ def _validator(robot, smooth, config: TuneConfig, objective: Objective, to_gains
     return validate
 
 
-def _say_stopped_early(progress, config: TuneConfig, best: int, unit: str) -> None:
-    print(
-        f"stopped early: the validation objective has not improved for {config.patience} {unit}s "
-        f"(its best after {unit} {best})",
-        file=progress,
-        flush=True,
-    )
-
-
-def _optimise_gradient(robot, smooth, base, config, before, out, resume, progress, stop, checking=False):
-    """The optax loop ([`optimise()`][tuning.tune.optimise]): ``(objective, tuned
-    gains, history, events, steps done, status)``."""
+def _optimise(robot, smooth, base, config, before, out, resume, progress, stop, checking=False):
+    """The run's method ([`make_method()`][tuning.tune.make_method]) on its problem
+    ([`make_problem()`][tuning.tune.make_problem]), by the one driver
+    ([`tuning.driver.optimise()`][tuning.driver.optimise]): ``(objective, kept gains,
+    history, events, steps done, status, kept)``."""
     checkpoint_path = out / CHECKPOINT
-    objective, mask, params, value_and_grad = setup(robot, smooth, base, config, before.summary["max_abs_torque_Nm"])
+    problem = make_problem(robot, smooth, base, config, before.summary["max_abs_torque_Nm"])
+    method = make_method(config)
     resume_state = None
     if resume and checkpoint_path.exists():
-        resume_state, _ = load_checkpoint(checkpoint_path, params, make_optimizer(config)[0].init(params))
+        try:
+            resume_state = driver.load_checkpoint(checkpoint_path, method, problem.start, problem.mask, config.seed)
+        except ValueError as error:
+            raise TuneSetupError(str(error)) from None
         verb = "checking the run as it stands" if checking else "resuming"
-        print(f"{verb} after step {resume_state.step}/{config.steps}", file=progress, flush=True)
+        print(f"{verb} after {method.unit} {resume_state.step}/{config.steps}", file=progress, flush=True)
 
-    def on_step(state):
-        runfiles.show_progress(progress, progress_line(state, config.steps))
+    def on_step(state, row):
+        runfiles.show_progress(progress, method.progress(state.method_state, row, config.steps))
         _write_history(out / "history.csv", state.history)
 
+    numbers = sum(int(np.sum(entries)) for entries in jax.tree.leaves(problem.mask))
     print(
-        f"optimising the {config.controller} {config.objective} objective over {config.batch} scenario(s) "
-        f"by its {config.gradient}-mode gradient...",
+        f"{method.title[:1].upper() + method.title[1:]} on the {config.controller} {config.objective} objective over {config.batch} scenario(s), "
+        f"{numbers} numbers, {method.describe()}{', a new batch every ' + method.unit if config.fresh_batches else ''}...",
         file=progress,
         flush=True,
     )
-    state, status = optimise(
-        value_and_grad,
-        params,
-        config,
+    result = driver.optimise(
+        problem,
+        method,
+        problem.start,
+        problem.mask,
+        steps=config.steps,
+        seed=config.seed,
+        keep=config.keep,
+        patience=config.patience,
+        validate=_validator(robot, smooth, config, problem.objective, problem.gains),
         checkpoint_path=checkpoint_path,
-        resume_state=resume_state,
+        settings=config.to_dict(),
         write_atomically=runfiles.write_atomically,
+        resume=resume_state,
         on_step=on_step,
         stop=stop,
-        validate=_validator(robot, smooth, config, objective, lambda point: gains_from_params(point, base, mask)),
     )
+    state, status = result.state, result.status
     if status == "stopped_early":
-        _say_stopped_early(progress, config, state.best_step, "step")
+        print(
+            f"stopped early: the validation objective has not improved for {config.patience} {method.unit}s "
+            f"(its best after {method.unit} {state.best_step})",
+            file=progress,
+            flush=True,
+        )
     if status == "diverged":
         print(
             f"stopped after step {state.step}: every candidate of step {state.step + 1} was rejected "
@@ -470,92 +474,7 @@ def _optimise_gradient(robot, smooth, base, config, before, out, resume, progres
             file=progress,
             flush=True,
         )
-    best = config.keep == "best" and state.best_params is not None
-    tuned = gains_from_params(state.best_params if best else state.params, base, mask)
-    kept = {"rule": config.keep, "step": state.best_step if best else state.step}
-    kept["training_objective"] = state.history[kept["step"]]["loss"]
-    if config.patience is not None:
-        kept["rule"] += " by validation" if best else ""
-        kept["validation_objective"] = state.history[kept["step"]]["validation_loss"]
-    return objective, tuned, state.history, state.events, state.step, status, kept
-
-
-def _optimise_cmaes(robot, smooth, base, config, before, out, resume, progress, stop, checking=False):
-    """CMA-ES ([`cmaes`][tuning.cmaes]): as [`_optimise_gradient()`][tuning.run._optimise_gradient]."""
-    checkpoint_path = out / CHECKPOINT
-    objective = make_objective(robot, config, before.summary["max_abs_torque_Nm"])
-    mask = make_mask(base, config.controller, config.frozen)
-    params = {name: np.asarray(value) for name, value in initial_params(base, config.controller).items()}
-    x0 = cmaes.flatten(params, mask)
-    evaluate = cmaes.make_population_evaluator(
-        robot,
-        training_batch(robot, smooth, config),
-        base,
-        mask,
-        params,
-        config.controller,
-        objective,
-        chunk=cmaes.population_chunk(config.batch),
-    )
-    previous = None
-    if resume and checkpoint_path.exists():
-        previous = cmaes.load_checkpoint(checkpoint_path)
-        verb = "checking the run as it stands" if checking else "resuming"
-        print(f"{verb} after generation {len(previous[0])}/{config.steps}", file=progress, flush=True)
-
-    def on_generation(state):
-        row = state.history[-1]
-        runfiles.show_progress(
-            progress,
-            runfiles.progress_bar(
-                state.generation,
-                config.steps,
-                f"generation {state.generation}/{config.steps}: best candidate {float(np.min(state.told[-1])):.4f} | "
-                f"the mean before it {row['loss']:.4f}, final pos {1e3 * row['final_position_m']:.3f} mm | "
-                f"step size {state.strategy.sigma:.3f}",
-            ),
-        )
-        _write_history(out / "history.csv", state.history)
-
-    print(
-        f"CMA-ES on the {config.controller} {config.objective} objective over {config.batch} scenario(s), "
-        f"{x0.size} numbers; compiling the population's forward rollouts...",
-        file=progress,
-        flush=True,
-    )
-    state, status = cmaes.optimise(
-        evaluate,
-        x0,
-        generations=config.steps,
-        population=config.population,
-        seed=config.seed,
-        cvar_alpha=config.cvar_alpha,
-        step_size=config.step_size,
-        checkpoint_path=checkpoint_path,
-        config_dict=config.to_dict(),
-        write_atomically=runfiles.write_atomically,
-        resume=previous,
-        on_generation=on_generation,
-        stop=stop,
-        validate=_validator(robot, smooth, config, objective, lambda x: cmaes.gains_of(x, params, base, mask)),
-        patience=config.patience,
-    )
-    if status == "stopped_early":
-        _say_stopped_early(progress, config, cmaes.best_validated(state)[2], "generation")
-    if config.keep == "best" and config.patience is not None:
-        x, value, generation = cmaes.best_validated(state)
-        kept = {"rule": "best by validation", "generation": generation, "validation_objective": value}
-        kept["training_objective"] = state.history[generation]["loss"]
-        kept["what"] = f"the mean after generation {generation}"
-    else:
-        if config.keep == "best":
-            x, value, generation = cmaes.best_ever(state)
-        else:
-            x, value, generation = state.strategy.mean, state.history[-1]["loss"], None
-        kept = {"rule": config.keep, "generation": generation, "training_objective": float(value)}
-        kept["what"] = "the final mean" if generation is None else f"the best candidate of generation {generation}"
-    tuned = cmaes.gains_of(x, params, base, mask)
-    return objective, tuned, state.history, [], state.generation, status, kept
+    return problem.objective, problem.gains(result.point), state.history, state.events, state.step, status, result.kept
 
 
 def tune(
@@ -661,14 +580,9 @@ def tune(
     key = jax.random.PRNGKey(config.seed) if realism is not None else None
     before = experiment.run(RunSpec(robot, exact, config.controller, realism=realism), base, key=key)
     with runfiles.StopRequest() if stop is None else contextlib.nullcontext(stop) as stop:
-        if config.method == "cmaes":
-            objective, tuned, history, events, steps_done, status, kept = _optimise_cmaes(
-                robot, smooth, base, config, before, out, resume, progress, stop, checking=check
-            )
-        else:
-            objective, tuned, history, events, steps_done, status, kept = _optimise_gradient(
-                robot, smooth, base, config, before, out, resume, progress, stop, checking=check
-            )
+        objective, tuned, history, events, steps_done, status, kept = _optimise(
+            robot, smooth, base, config, before, out, resume, progress, stop, checking=check
+        )
     runfiles.end_progress(progress)
     _write_history(out / "history.csv", history)
     runfiles.write_json(out / "gains.json", tuned.to_dict(config.controller))

@@ -1,12 +1,15 @@
-"""Gradient-based gain tuning: the loss over a batch of scenarios, its gradient, and a
-resumable optax loop that rejects diverging steps.
+"""The settings of a tuning run ([`TuneConfig`][tuning.tune.TuneConfig]), its problem
+([`make_problem()`][tuning.tune.make_problem]: the loss over a batch of scenarios and its
+gradient programs), the gradient method ([`GradientMethod`][tuning.tune.GradientMethod]: an
+optax transformation with a divergence guard) and the methods' registry (``METHODS``).
 
-One step: ``updates = optimiser(gradient)``; the candidate ``params + scale * updates`` is
+One gradient step: ``updates = optimiser(gradient)``; the candidate ``params + scale * updates`` is
 evaluated (loss and gradient together); if its rollout diverged (non-finite values, or a peak
-torque above ``torque_guard_Nm``, or a loss above ``loss_guard`` times the starting loss) it is rejected, ``scale`` is halved and the event logged,
-else it is accepted together with the optimiser's new state. After every accepted step the
-whole run state is written atomically to ``checkpoint.npz``, so an interrupted run resumes
-from its last completed step and ends exactly where an uninterrupted one would.
+torque above ``torque_guard_Nm``, or a loss above ``loss_guard`` times the starting loss) it is
+rejected, ``scale`` is halved and the event logged, else it is accepted together with the
+optimiser's new state. The driver ([`tuning.driver`][tuning.driver]) writes the whole run
+state atomically to ``checkpoint.npz`` after every accepted step, so an interrupted run
+resumes from its last completed step and ends exactly where an uninterrupted one would.
 """
 
 from __future__ import annotations
@@ -14,12 +17,10 @@ from __future__ import annotations
 import dataclasses
 import functools
 import inspect
-import json
 import math
-import time
 import warnings
 from collections.abc import Callable
-from pathlib import Path
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -35,7 +36,7 @@ from spacegrasp_jax.envelope.scenario import Scenario
 from spacegrasp_jax.jobs import batching, compilation
 from spacegrasp_jax.jobs.experiment import loop_options
 from spacegrasp_jax.jobs.montecarlo import SampleLoops, sample_loops
-from spacegrasp_jax.jobs.runfiles import StopRequest, progress_bar
+from spacegrasp_jax.jobs.runfiles import progress_bar
 from spacegrasp_jax.loop.control.gains import Gains
 from spacegrasp_jax.loop.control.registry import CONTROLLERS
 from spacegrasp_jax.loop.control.schedule import VARIABLES
@@ -47,16 +48,15 @@ from spacegrasp_jax.tuning.objective import (
     OBJECTIVES,
     Objective,
     Weights,
-    history_of_older_version,
     objective_spec,
     scenario_parts,
 )
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
+from spacegrasp_jax.tuning.problem import TuningProblem
+from spacegrasp_jax.tuning.protocol import Answers, Outcome, Request
 
 CHECKPOINT = "checkpoint.npz"
 
-#: The tuning methods (``--method``).
-METHODS = ("gradient", "cmaes")
 
 #: What ``spacegrasp tune`` runs when ``--method`` is not given, by problem: the recipe that
 #: won the race at equal wall time on that problem (documentation, Tuning the gains, "Which
@@ -130,11 +130,12 @@ class TuneConfig:
             the controller does not know: it believes the nominal robot.
         objective: ``"capture"`` (the default) or ``"weighted"``
             ([`spacegrasp_jax.tuning.objective`][tuning.objective]); ``weights`` apply to the weighted one.
-        method: ``"cmaes"`` (the default; [`spacegrasp_jax.tuning.cmaes`][tuning.cmaes]: ``steps``
-            generations of ``population`` candidates, forward rollouts only) or
-            ``"gradient"`` (optax on the reverse- or forward-mode gradient; [`setup()`][tuning.tune.setup]
-            and [`optimise()`][tuning.tune.optimise]). ``spacegrasp tune`` without ``--method``
-            runs the problem's measured winner ([`default_recipe()`][tuning.tune.default_recipe]).
+        method: a name in ``METHODS``: ``"cmaes"`` (the default; [`CMAES`][tuning.cmaes.CMAES]:
+            ``steps`` generations of ``population`` candidates, forward rollouts only) or
+            ``"gradient"`` ([`GradientMethod`][tuning.tune.GradientMethod]: optax on the
+            reverse- or forward-mode gradient), each run by the one driver
+            ([`tuning.driver.optimise()`][tuning.driver.optimise]). ``spacegrasp tune`` without
+            ``--method`` runs the problem's measured winner ([`default_recipe()`][tuning.tune.default_recipe]).
         population: CMA-ES's candidates per generation (``None``: its default,
             ``4 + 3 ln n`` for n tuned numbers).
         step_size: CMA-ES's initial step in log-gain units (0.3: about +-30% on every
@@ -153,11 +154,13 @@ class TuneConfig:
             ([`estimators.aggregate()`][tuning.estimators.aggregate]: per gain, the mean
             without the extreme tenths, or the median of four group means, of fewer in a
             batch of fewer than four).
-        fresh_batches: the gradient method under a realism draws a new batch of the
-            envelope for every step (step k's seed ``seed + FRESH_SEED_STRIDE * k``; step 0
-            and the held-out evaluation as without): stochastic gradient descent on the
-            envelope rather than on one batch of it. Each step's loss is then on its own
-            batch.
+        fresh_batches: a run under a realism draws a new batch of the envelope for every
+            step (step k's seed ``seed + FRESH_SEED_STRIDE * k``; step 0 and the held-out
+            evaluation as without): the gradient method becomes stochastic gradient descent
+            on the envelope rather than on one batch of it; CMA-ES ranks each generation's
+            candidates, and evaluates the mean after it, on a new batch (generation k + 1's
+            candidates and the mean after generation k share step k's batch). Each step's
+            objective is then on its own batch.
         keep: which gains the run hands back: ``"best"``, those with the least training
             objective it evaluated (CMA-ES: the best candidate ever told, or the final mean
             where no worse; gradient descent: its best step, the start included; with fresh
@@ -260,8 +263,6 @@ class TuneConfig:
                 )
         if self.method not in METHODS:
             raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
-        if self.method != "cmaes" and self.step_size != cmaes.SIGMA:
-            raise ValueError("step_size: CMA-ES's initial step; the gradient method's is the learning rate (--lr)")
         if self.population is not None and not (isinstance(self.population, int) and 2 <= self.population <= 10_000):
             raise ValueError(f"population: must be a whole number from 2 to 10000, got {self.population!r}")
         if self.aggregate not in estimators.AGGREGATES:
@@ -285,13 +286,8 @@ class TuneConfig:
             raise ValueError(
                 f"optimizer: {self.optimizer!r} is not an optax optimiser taking a learning rate (e.g. adam, sgd, lamb)"
             )
-        if self.method == "cmaes":
-            for name in GRADIENT_METHOD_FIELDS:
-                if getattr(self, name) != _DEFAULTS[name]:
-                    raise ValueError(
-                        f"{name}: a setting of the gradient method; CMA-ES does not use it (choose --method gradient)"
-                    )
-        elif self.realism is None and self.aggregate != "mean":
+        self._check_method_settings()
+        if self.method == "gradient" and self.realism is None and self.aggregate != "mean":
             raise ValueError(
                 f"aggregate: {self.aggregate} combines the samples' separate gradients of a run under a realism; "
                 "the ideal loop's batch has one gradient of the mean (choose --realism, or mean)"
@@ -315,13 +311,24 @@ class TuneConfig:
         if self.keep not in KEEPS:
             raise ValueError(f"keep: expected one of {', '.join(KEEPS)}, got {self.keep!r}")
         if self.fresh_batches and self.realism is None:
-            raise ValueError(
-                "fresh_batches: draws each step's samples of a gradient run under a realism (choose --realism)"
-            )
+            raise ValueError("fresh_batches: draws each step's samples of a run under a realism (choose --realism)")
         if self.realism is not None and self.gradient != "reverse":
             raise ValueError(
                 "gradient: tuning under a realism takes each sample's reverse-mode gradient; forward mode runs the ideal loop only"
             )
+
+    def _check_method_settings(self) -> None:
+        """A field only other methods read (their ``settings``) keeps its default."""
+        chosen = METHODS[self.method]
+        for field in dataclasses.fields(self):
+            if field.name in chosen.settings or getattr(self, field.name) == field.default:
+                continue
+            owners = [method for method in METHODS.values() if field.name in method.settings]
+            if owners:
+                raise ValueError(
+                    f"{field.name}: a setting of {' and '.join(method.title for method in owners)}; "
+                    f"{chosen.title} does not use it (choose --method {owners[0].name})"
+                )
 
     def _check_schedule(self) -> None:
         object.__setattr__(self, "schedule_knots", tuple(float(x) for x in self.schedule_knots))
@@ -368,21 +375,6 @@ VALIDATION_SEED_OFFSET = 2_000_003
 
 #: The gains a tuning run can hand back (``TuneConfig.keep``).
 KEEPS = ("best", "last")
-
-#: TuneConfig's fields that only the gradient method reads: under CMA-ES they must keep their defaults.
-GRADIENT_METHOD_FIELDS = (
-    "learning_rate",
-    "optimizer",
-    "clip_norm",
-    "gradient",
-    "torque_guard_Nm",
-    "loss_guard",
-    "aggregate",
-    "fresh_batches",
-    "gradient_from_s",
-)
-
-_DEFAULTS = {field.name: field.default for field in dataclasses.fields(TuneConfig)}
 
 
 def is_optimizer(name: str) -> bool:
@@ -723,20 +715,22 @@ FRESH_SEED_STRIDE = 7_919
 
 
 @dataclasses.dataclass
-class RunState:
-    """What a checkpoint holds: the loop's whole state after ``step`` accepted steps."""
+class GradientState:
+    """The gradient method's state after ``step`` accepted steps (``-1``: the start not yet
+    evaluated): the point, the optimiser's state, the point's objective, batch statistics
+    and gradient, the step-size factor the divergence guard has left (``scale``), and, inside
+    a step, the optimiser's pending update and the candidates rejected so far."""
 
     step: int
     scale: float
     params: dict
     opt_state: object
-    loss: float
-    aux: dict
-    gradient: dict
-    history: list
-    events: list
-    best_step: int = 0  #: the accepted step with the least training objective (0: the start)
-    best_params: dict | None = None  #: its parameters (``None``: those of ``step``)
+    loss: float = math.nan
+    aux: dict = dataclasses.field(default_factory=dict)
+    gradient: dict | None = None
+    start_loss: float = math.nan  #: the starting point's objective (the loss guard's reference)
+    pending: tuple | None = None  #: ``(updates, new_opt_state)`` of the step under way
+    rejected: int = 0  #: candidates of the step under way rejected so far
 
 
 def _is_acceptable(loss, aux, gradient, guard_Nm: float, loss_ceiling: float = math.inf) -> bool:
@@ -744,55 +738,8 @@ def _is_acceptable(loss, aux, gradient, guard_Nm: float, loss_ceiling: float = m
     return finite and float(aux[BATCH_MAX_PEAK_TORQUE]) <= guard_Nm and float(loss) <= loss_ceiling
 
 
-def save_checkpoint(path: Path, state: RunState, config: TuneConfig, write_atomically) -> None:
-    leaves = {
-        "params": jax.tree.leaves(state.params),
-        "opt_state": jax.tree.leaves(state.opt_state),
-        "gradient": jax.tree.leaves(state.gradient),
-        "best_params": jax.tree.leaves(state.params if state.best_params is None else state.best_params),
-    }
-    meta = {
-        "config": config.to_dict(),
-        "step": state.step,
-        "best_step": state.best_step,
-        "scale": state.scale,
-        "loss": state.loss,
-        "aux": {k: float(v) for k, v in state.aux.items()},
-        "history": state.history,
-        "events": state.events,
-    }
-    arrays = {f"{group}_{i}": np.asarray(leaf) for group, values in leaves.items() for i, leaf in enumerate(values)}
-    arrays["meta"] = np.array(json.dumps(meta))
-    write_atomically(path, lambda target: np.savez(target, **arrays))
-
-
-def load_checkpoint(path: Path, params_template, opt_state_template) -> tuple[RunState, TuneConfig]:
-    with np.load(path, allow_pickle=False) as data:
-        meta = json.loads(str(data["meta"]))
-
-        def restore(group, template):
-            leaves = [jnp.asarray(data[f"{group}_{i}"]) for i in range(len(jax.tree.leaves(template)))]
-            return jax.tree.unflatten(jax.tree.structure(template), leaves)
-
-        params = restore("params", params_template)
-        state = RunState(
-            step=meta["step"],
-            scale=meta["scale"],
-            params=params,
-            opt_state=restore("opt_state", opt_state_template),
-            loss=meta["loss"],
-            aux=meta["aux"],
-            gradient=restore("gradient", params_template),
-            history=history_of_older_version(meta["history"]),
-            events=meta["events"],
-            # a checkpoint of an older version kept no best step: the last one stands for it
-            best_step=meta.get("best_step", meta["step"]),
-            best_params=restore("best_params", params_template) if "best_params_0" in data.files else params,
-        )
-    return state, TuneConfig.from_dict(meta["config"])
-
-
-def history_row(step: int, loss: float, aux: dict, gradient, step_size: float, rejected: int, seconds: float) -> dict:
+def history_row(step: int, loss: float, aux: dict, gradient, step_size: float, rejected: int) -> dict:
+    """A gradient step's history row (the driver adds its wall time)."""
     flat, _ = ravel_pytree(gradient)
     return {
         "step": step,
@@ -801,110 +748,168 @@ def history_row(step: int, loss: float, aux: dict, gradient, step_size: float, r
         "gradient_norm": float(jnp.linalg.norm(flat)),
         "step_size": step_size,
         "rejected_candidates": rejected,
-        "wall_s": seconds,
     }
 
 
-def progress_line(state: RunState, total: int) -> str:
-    aux = state.aux
+def progress_line(step: int, loss: float, aux: dict, total: int) -> str:
+    """The progress line after step ``step`` of ``total``: its objective and batch statistics."""
     return progress_bar(
-        state.step,
+        step,
         total,
-        f"step {state.step}/{total} loss {state.loss:.4f} | "
+        f"step {step}/{total} loss {loss:.4f} | "
         f"final pos {1e3 * aux['final_position_m']:.3f} mm | peak torque / constraint {aux['peak_torque_smooth']:.3f} "
         f"(hard {aux['peak_torque_hard']:.3f}, gap {aux['peak_torque_gap']:.3f}) | rms {1e3 * aux['rms_tracking_m']:.2f} mm "
         f"(batch means) | largest peak {aux[BATCH_MAX_PEAK_TORQUE]:.2f} N m (batch max)",
     )
 
 
-def optimise(
-    value_and_grad,
-    params,
-    config: TuneConfig,
-    *,
-    checkpoint_path: Path | None = None,
-    resume_state: RunState | None = None,
-    write_atomically=None,
-    on_step: Callable[[RunState], None] | None = None,
-    stop: StopRequest | None = None,
-    validate: Callable[[dict], float] | None = None,
-) -> tuple[RunState, str]:
-    """Run (or continue) the optimisation loop. Returns the final state and its status,
-    ``"done"``, ``"stopped_early"``, ``"interrupted"`` or ``"diverged"`` (every candidate of a
-    step was rejected down to 1e-6 of the step size: the state is the last accepted step's,
-    its best step kept); raises RuntimeError if the initial gains already diverge.
+@dataclasses.dataclass(frozen=True)
+class GradientMethod:
+    """Gradient descent by an optax transformation on the batch objective's gradient, with a
+    divergence guard ([`tuning.protocol.TuningMethod`][tuning.protocol.TuningMethod]).
 
-    ``validate``: early stopping (``config.patience``): the validation objective of
-    parameters, recorded in each history row (``validation_loss``); the best step is then the
-    best by it, and the loop ends once it has not improved for ``config.patience`` steps."""
-    optimizer, schedule = make_optimizer(config)
-    if resume_state is None:
-        start = time.perf_counter()
-        (loss, aux), gradient = value_and_grad(params)
-        if not _is_acceptable(loss, aux, gradient, config.torque_guard_Nm):
-            raise RuntimeError(f"the initial gains already diverge or exceed the torque guard (loss {float(loss)})")
-        state = RunState(0, 1.0, params, optimizer.init(params), float(loss), aux, gradient, [], [], 0, params)
-        state.history.append(history_row(0, loss, aux, gradient, 0.0, 0, time.perf_counter() - start))
-        if validate is not None:
-            state.history[0]["validation_loss"] = validate(params)
-    else:
-        state = resume_state
-    criterion = "loss" if validate is None else "validation_loss"
-    while state.step < config.steps:
-        if validate is not None and state.step - state.best_step >= config.patience:
-            return state, "stopped_early"
-        if stop is not None and stop.requested:
-            return state, "interrupted"
-        start = time.perf_counter()
-        updates, new_opt_state = optimizer.update(state.gradient, state.opt_state, state.params)
-        rejected = 0
-        while True:
-            candidate = jax.tree.map(lambda p, u: p + state.scale * u, state.params, updates)
-            # fresh batches: the candidate's loss and gradient on step k's batch
-            (loss, aux), gradient = (
-                value_and_grad(candidate, state.step + 1) if config.fresh_batches else value_and_grad(candidate)
+    A step: ``updates = optimiser(gradient)``; the candidate ``params + scale * updates`` is
+    evaluated (objective and gradient together, on the step's batch); if it diverged
+    (non-finite, a peak torque above ``torque_guard_Nm``, or an objective above ``loss_guard``
+    times the start's) it is rejected, ``scale`` halved and the event logged, else accepted
+    with the optimiser's new state. Below ``1e-6`` of the step size the run ends ``"diverged"``.
+
+    Attributes:
+        optimizer: the optax transformation ([`make_optimizer()`][tuning.tune.make_optimizer]).
+        schedule: its learning rate by step (the history's ``step_size``).
+        torque_guard_Nm: a candidate whose batch's largest peak torque exceeds this is rejected.
+        loss_guard: a candidate whose objective exceeds this many times the start's is rejected.
+        mode: ``"reverse"`` or ``"forward"`` (for the start line).
+    """
+
+    optimizer: optax.GradientTransformation
+    schedule: Callable
+    torque_guard_Nm: float = 100.0
+    loss_guard: float = 10.0
+    mode: str = "reverse"
+    name: ClassVar[str] = "gradient"
+    title: ClassVar[str] = "the gradient method"
+    unit: ClassVar[str] = "step"
+    point_words: ClassVar[str] = "the gains"
+    #: the ``TuneConfig`` fields it reads (``from_config``; other methods leave them at their defaults)
+    settings: ClassVar[tuple[str, ...]] = (
+        "learning_rate",
+        "optimizer",
+        "clip_norm",
+        "gradient",
+        "torque_guard_Nm",
+        "loss_guard",
+        "aggregate",
+        "gradient_from_s",
+    )
+
+    @classmethod
+    def from_config(cls, config: TuneConfig) -> GradientMethod:
+        optimizer, schedule = make_optimizer(config)
+        return cls(optimizer, schedule, config.torque_guard_Nm, config.loss_guard, config.gradient)
+
+    def describe(self) -> str:
+        return f"by its {self.mode}-mode gradient"
+
+    def init(self, point, mask, seed: int) -> GradientState:
+        return GradientState(-1, 1.0, point, self.optimizer.init(point))
+
+    def ask(self, state: GradientState) -> tuple[Request, GradientState]:
+        if state.step < 0:
+            return Request((state.params,), gradient=True, batch=0), state
+        if state.pending is None:
+            pending = self.optimizer.update(state.gradient, state.opt_state, state.params)
+            state = dataclasses.replace(state, pending=pending)
+        updates = state.pending[0]
+        candidate = jax.tree.map(lambda p, u: p + state.scale * u, state.params, updates)
+        return Request((candidate,), gradient=True, batch=state.step + 1), state
+
+    def tell(self, state: GradientState, request: Request, answers: Answers) -> tuple[GradientState, Outcome]:
+        (point,), (aux,), (gradient,) = request.points, answers.summaries, answers.gradients
+        loss = answers.objectives[0]
+        if state.step < 0:
+            if not _is_acceptable(loss, aux, gradient, self.torque_guard_Nm):
+                raise RuntimeError(f"the initial gains already diverge or exceed the torque guard (loss {float(loss)})")
+            state = dataclasses.replace(
+                state, step=0, loss=float(loss), aux=aux, gradient=gradient, start_loss=float(loss)
             )
-            # With saturating motors an unstable candidate need not raise the torque: the EE
-            # drifts away instead, which the loss sees.
-            if _is_acceptable(
-                loss, aux, gradient, config.torque_guard_Nm, config.loss_guard * state.history[0]["loss"]
-            ):
-                break
-            rejected += 1
-            state.events.append(
-                {
-                    "step": state.step + 1,
-                    "event": "rejected",
-                    "loss": float(loss),
-                    BATCH_MAX_PEAK_TORQUE: float(aux[BATCH_MAX_PEAK_TORQUE]),
-                    "new_scale": state.scale / 2,
-                }
-            )
-            state.scale /= 2.0
-            if state.scale < 1e-6:
-                return state, "diverged"
-        step_size = float(schedule(state.step)) * state.scale
+            return state, Outcome(row=history_row(0, loss, aux, gradient, 0.0, 0))
+        # With saturating motors an unstable candidate need not raise the torque: the EE
+        # drifts away instead, which the loss sees.
+        if not _is_acceptable(loss, aux, gradient, self.torque_guard_Nm, self.loss_guard * state.start_loss):
+            event = {
+                "step": state.step + 1,
+                "event": "rejected",
+                "loss": float(loss),
+                BATCH_MAX_PEAK_TORQUE: float(aux[BATCH_MAX_PEAK_TORQUE]),
+                "new_scale": state.scale / 2,
+            }
+            state = dataclasses.replace(state, scale=state.scale / 2.0, rejected=state.rejected + 1)
+            return state, Outcome(events=(event,), status="diverged" if state.scale < 1e-6 else None)
+        step_size = float(self.schedule(state.step)) * state.scale
+        row = history_row(state.step + 1, loss, aux, gradient, step_size, state.rejected)
         state = dataclasses.replace(
             state,
             step=state.step + 1,
-            params=candidate,
-            opt_state=new_opt_state,
+            params=point,
+            opt_state=state.pending[1],
             loss=float(loss),
             aux=aux,
             gradient=gradient,
+            pending=None,
+            rejected=0,
         )
-        state.history.append(
-            history_row(state.step, loss, aux, gradient, step_size, rejected, time.perf_counter() - start)
+        return state, Outcome(row=row)
+
+    def point(self, state: GradientState):
+        return state.params
+
+    def best(self, state: GradientState, history: list[dict], best_step: int, best_point):
+        return best_point, best_step, f"the gains after step {best_step}", history[best_step]["loss"]
+
+    def state_arrays(self, state: GradientState) -> tuple[dict, dict]:
+        leaves = {
+            "params": jax.tree.leaves(state.params),
+            "opt_state": jax.tree.leaves(state.opt_state),
+            "gradient": jax.tree.leaves(state.gradient),
+        }
+        arrays = {f"{group}_{i}": np.asarray(leaf) for group, values in leaves.items() for i, leaf in enumerate(values)}
+        meta = {
+            "scale": state.scale,
+            "loss": state.loss,
+            "aux": {name: float(value) for name, value in state.aux.items()},
+            "start_loss": state.start_loss,
+        }
+        return arrays, meta
+
+    def restore(self, point, mask, seed: int, arrays: dict, meta: dict, steps: int) -> GradientState:
+        def restored(group, template):
+            leaves = [jnp.asarray(arrays[f"{group}_{i}"]) for i in range(len(jax.tree.leaves(template)))]
+            return jax.tree.unflatten(jax.tree.structure(template), leaves)
+
+        return GradientState(
+            step=steps,
+            scale=meta["scale"],
+            params=restored("params", point),
+            opt_state=restored("opt_state", self.optimizer.init(point)),
+            loss=meta["loss"],
+            aux=meta["aux"],
+            gradient=restored("gradient", point),
+            start_loss=meta["start_loss"],
         )
-        if validate is not None:
-            state.history[-1]["validation_loss"] = validate(candidate)
-        if state.history[-1][criterion] < state.history[state.best_step][criterion]:
-            state = dataclasses.replace(state, best_step=state.step, best_params=candidate)
-        if checkpoint_path is not None:
-            save_checkpoint(checkpoint_path, state, config, write_atomically)
-        if on_step is not None:
-            on_step(state)
-    return state, "done"
+
+    def progress(self, state: GradientState, row: dict, steps: int) -> str:
+        return progress_line(state.step, state.loss, state.aux, steps)
+
+
+#: The tuning methods ``--method`` names: each a class of the tuning interface
+#: ([`tuning.protocol.TuningMethod`][tuning.protocol.TuningMethod]) with ``from_config(TuneConfig)``.
+METHODS = {"gradient": GradientMethod, "cmaes": cmaes.CMAES}
+
+
+def make_method(config: TuneConfig):
+    """The tuning method ``config.method`` names, with ``config``'s settings for it."""
+    return METHODS[config.method].from_config(config)
 
 
 def make_objective(robot: Robot, config: TuneConfig, torque_scale_Nm) -> Objective:
@@ -937,20 +942,31 @@ def training_batch(robot: Robot, nominal: Scenario, config: TuneConfig):
     return training_scenarios(nominal, config)
 
 
-def setup(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torque_scale_Nm):
-    """Objective, initial parameters, mask and the jitted loss gradient for a run."""
+def make_problem(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torque_scale_Nm) -> TuningProblem:
+    """The run's [`TuningProblem`][tuning.problem.TuningProblem]: its objective, starting point
+    and mask, training batch (fresh batches where ``config.fresh_batches``: step k's of seed
+    ``seed + FRESH_SEED_STRIDE * k``) and the batch objective's gradient program (compiled
+    on its first call only)."""
     objective = make_objective(robot, config, torque_scale_Nm)
     mask = make_mask(base, config.controller, config.frozen)
     params = initial_params(base, config.controller)
+    batch = training_batch(robot, nominal, config)
+    fresh = None
+    if config.fresh_batches:
+        fresh = lambda step: flight_batch(robot, nominal, config, config.seed + FRESH_SEED_STRIDE * step, config.batch)
     if config.realism is not None:
-        batch = training_batch(robot, nominal, config)
-        fresh = None
-        if config.fresh_batches:
-            fresh = lambda step: flight_batch(
-                robot, nominal, config, config.seed + FRESH_SEED_STRIDE * step, config.batch
-            )
-        return objective, mask, params, make_flight_value_and_grad(robot, batch, base, mask, config, objective, fresh)
-    scenarios = training_batch(robot, nominal, config)
-    segment = block_steps(nominal.n_steps, config.batch) if config.gradient == "reverse" else None
-    loss = make_loss(robot, scenarios, base, mask, config, objective, segment)
-    return objective, mask, params, make_value_and_grad(loss, params, config.gradient)
+        value_and_grad = make_flight_value_and_grad(robot, batch, base, mask, config, objective, fresh)
+    else:
+        segment = block_steps(nominal.n_steps, config.batch) if config.gradient == "reverse" else None
+        loss = make_loss(robot, batch, base, mask, config, objective, segment)
+        value_and_grad = make_value_and_grad(loss, params, config.gradient)
+    return TuningProblem(
+        robot, base, mask, params, objective, config.controller, config.cvar_alpha, batch, fresh, value_and_grad
+    )
+
+
+def setup(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torque_scale_Nm):
+    """Objective, initial parameters, mask and the jitted loss gradient for a run
+    ([`make_problem()`][tuning.tune.make_problem]'s)."""
+    problem = make_problem(robot, nominal, base, config, torque_scale_Nm)
+    return problem.objective, problem.mask, problem.start, problem.value_and_grad

@@ -7,6 +7,11 @@ and paired tests, on the host (NumPy and ``scipy.stats``).
 * [`compare_metric()`][spacegrasp_jax.envelope.statistics.compare_metric] - two gain sets' values of one metric on the same samples: the
   median of the paired differences with a bootstrap 95% interval, the Wilcoxon signed-rank
   p-value, and the counts of samples each set wins.
+* [`interquartile_mean()`][spacegrasp_jax.envelope.statistics.interquartile_mean] and
+  [`across_runs()`][spacegrasp_jax.envelope.statistics.across_runs] - a statistic over a few
+  runs of a method (training seeds): the interquartile mean with a bootstrap 95% interval
+  over the runs, as Agarwal et al. (NeurIPS 2021, "Deep reinforcement learning at the edge of
+  the statistical precipice") report few-run results.
 
 Every function returns plain floats and ints (``summary.json`` takes them as they are).
 """
@@ -141,11 +146,41 @@ def compare_metric(reference, candidate) -> dict:
     }
 
 
+def interquartile_mean(values) -> float:
+    """The mean of the middle half of ``values`` (a quarter, rounded down, cut from each end
+    of the sorted values: ``scipy.stats.trim_mean(values, 0.25)``); NaN for none."""
+    values = np.sort(np.asarray(values, dtype=float).ravel())
+    cut = int(0.25 * values.size)
+    kept = values[cut : values.size - cut]
+    return float(np.mean(kept)) if kept.size else float("nan")
+
+
+def across_runs(values, resamples: int = BOOTSTRAP_RESAMPLES) -> dict:
+    """A statistic of a few runs (one value a run, e.g. each training seed's held-out success,
+    or each seed's difference between two methods): their interquartile mean with a
+    percentile bootstrap 95% interval over the runs (runs drawn with replacement, the IQM of
+    each resample), the runs' values and how many."""
+    values = np.asarray(values, dtype=float).ravel()
+    n = int(values.size)
+    result = {"runs": n, "values": values.tolist(), "iqm": interquartile_mean(values)}
+    result["test"] = "interquartile mean over runs; percentile bootstrap over runs"
+    if n == 0:
+        return result | {"low": float("nan"), "high": float("nan")}
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    resampled = np.sort(values[rng.integers(0, n, size=(resamples, n))], axis=1)
+    cut = int(0.25 * n)
+    means = resampled[:, cut : n - cut].mean(axis=1)
+    low, high = np.percentile(means, [50 * (1 - CONFIDENCE), 50 * (1 + CONFIDENCE)])
+    return result | {"low": float(low), "high": float(high)}
+
+
 __all__ = [
     "BOOTSTRAP_RESAMPLES",
     "CONFIDENCE",
+    "across_runs",
     "compare_metric",
     "compare_success",
     "format_interval",
+    "interquartile_mean",
     "success_interval",
 ]
