@@ -171,3 +171,49 @@ def test_a_method_named_in_the_registry_runs_as_a_tuning_job_and_resumes_bit_for
     with np.load(tmp_path / "whole" / "holdout.npz") as a, np.load(tmp_path / "parts" / "holdout.npz") as b:
         for part in a.files:
             np.testing.assert_array_equal(a[part], b[part])
+
+
+def _older_layout(path, method):
+    """Rewrite a checkpoint as the version before the driver wrote it: CMA-ES's own layout
+    (its generations, the rows before the last mean's, the validations) or the gradient
+    method's (its leaves, the rest in ``meta``)."""
+    arrays, meta = driver.read_checkpoint(path)
+    arrays = {name: value for name, value in arrays.items() if method == "gradient" or not name.startswith("best_")}
+    if method == "cmaes":
+        history = [{k: v for k, v in row.items() if k != "validation_loss"} for row in meta["history"]]
+        older = {"config": meta["config"], "generation": meta["method_state"]["generation"], "history": history[:-1]}
+        older["validation"] = []
+    else:
+        older = {"config": meta["config"], "step": meta["step"], "best_step": meta["best_step"]}
+        older |= {"history": meta["history"], "events": meta["events"]}
+        older |= {key: meta["method_state"][key] for key in ("scale", "loss", "aux")}
+    np.savez(path, **arrays, meta=np.array(json.dumps(older)))
+
+
+@pytest.mark.parametrize("method", ["cmaes", "gradient"])
+def test_a_checkpoint_of_the_older_layout_resumes_to_the_uninterrupted_run(tmp_path, method):
+    import jax.numpy as jnp
+
+    from spacegrasp_jax.tuning.tune import TuneConfig, make_method
+
+    point, mask = start(3)
+    if method == "cmaes":
+        problem = lambda: ToyProblem(quadratic)
+        tuner = cmaes.CMAES(population=5)
+    else:
+        problem = lambda: ToyProblem(
+            value_and_grad=lambda p: (
+                (jnp.sum((p["x"] - 0.5) ** 2), {"max_largest_peak_torque_Nm": jnp.asarray(1.0)}),
+                {"x": 2.0 * (p["x"] - 0.5)},
+            )
+        )
+        tuner = make_method(TuneConfig(method="gradient", steps=9, optimizer="sgd", learning_rate=0.1))
+    run = lambda **options: driver.optimise(problem(), tuner, point, mask, steps=9, seed=1, **options)
+    whole = run()
+    path = tmp_path / "checkpoint.npz"
+    assert run(checkpoint_path=path, write_atomically=write_atomically, stop=StopAfter(4)).status == "interrupted"
+    _older_layout(path, method)
+    resumed = run(resume=driver.load_checkpoint(path, tuner, point, mask, seed=1))
+    drop_wall = lambda history: [{k: v for k, v in row.items() if k != "wall_s"} for row in history]
+    np.testing.assert_equal(drop_wall(resumed.state.history), drop_wall(whole.state.history))
+    np.testing.assert_array_equal(resumed.point["x"], whole.point["x"])
