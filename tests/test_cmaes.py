@@ -21,7 +21,7 @@ def quadratic_batch(vectors: np.ndarray) -> dict:
     shifts = np.array([-0.1, 0.1, -0.05, 0.05])[None, :, None]
     losses = np.sum((vectors[:, None, :] - OPTIMUM - shifts) ** 2, axis=-1)
     peak = np.abs(vectors).max(axis=1, keepdims=True) * np.ones((1, 4))
-    return {"loss": losses, "final_position_m": losses * 1e-3, "largest_peak_torque_Nm": peak}
+    return {"loss": losses, "final_position_error_m": losses * 1e-3, "largest_peak_torque_Nm": peak}
 
 
 def run_cmaes(batch_parts, x0, generations, population, seed, **options):

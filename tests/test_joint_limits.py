@@ -208,13 +208,15 @@ def test_a_tuning_run_judges_its_held_out_captures_by_the_stated_rate_limits():
     from spacegrasp_jax.tuning.tune import TuneConfig, make_objective
 
     parts = {
-        "final_position_m": np.array([0.001, 0.001]),
-        "final_orientation_rad": np.array([0.001, 0.001]),
+        "final_position_error_m": np.array([0.001, 0.001]),
+        "final_orientation_error_rad": np.array([0.001, 0.001]),
         "largest_peak_torque_Nm": np.array([1.0, 1.0]),
         "loss": np.array([0.0, 0.0]),
+        "first_nonfinite_s": np.full(2, np.nan),
+        "max_joint_rate_radps": np.array([[0.1] * 6 + [0.45], [0.1] * 6 + [0.6]]),  # the second passes 0.5 rad/s
     }
-    assert captured(parts).tolist() == [True, True]
-    assert captured(parts | {"joint_rate_ratio": np.array([0.9, 1.2])}).tolist() == [True, False]
+    assert captured(parts, CaptureCriteria()).tolist() == [True, True]  # no rate limits: rates are no criterion
+    assert captured(parts, CaptureCriteria(joint_rate_limits_radps=(0.5,) * 7)).tolist() == [True, False]
     config = TuneConfig(joint_rate_limits_radps=[0.5] * 7)
     assert config.joint_rate_limits_radps == RATES
     assert make_objective(sg.paper_robot(), config, (1.0,) * 7).criteria.joint_rate_limits_radps == RATES

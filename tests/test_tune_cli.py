@@ -96,7 +96,7 @@ def test_tune_writes_every_file(uninterrupted):
     assert [int(row["step"]) for row in rows] == list(range(TUNE_STEPS + 1))
     assert {
         "loss",
-        "final_position_m",
+        "final_position_error_m",
         "peak_torque_smooth",
         "peak_torque_hard",
         "peak_torque_gap",
@@ -114,7 +114,7 @@ def test_tune_writes_every_file(uninterrupted):
         } <= set(summary[key])
     assert summary["holdout"]["scenarios"] == 3
     with np.load(out / "holdout.npz") as samples:
-        assert samples["start_loss"].shape == (3,) and samples["tuned_final_position_m"].shape == (3,)
+        assert samples["start_loss"].shape == (3,) and samples["tuned_final_position_error_m"].shape == (3,)
     assert summary["evaluated_with"].startswith("exact contact law")
 
 

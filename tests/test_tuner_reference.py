@@ -13,13 +13,24 @@ import stored_results
 import tuner_reference
 
 
+def renamed(key: str) -> str:
+    """A stored array's key with today's names of the objective's parts (the reference was
+    written before the final errors took the campaign's names: a name, not a result)."""
+    from spacegrasp_jax.tuning.objective import OLDER_PART_NAMES
+
+    group, _, name = key.partition("/")
+    prefix = next((p for p in ("start_", "tuned_") if group == "holdout" and name.startswith(p)), "")
+    name = name[len(prefix) :]
+    return f"{group}/{prefix}{OLDER_PART_NAMES.get(name, name)}"
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(tuner_reference.RUNS))
 def test_a_tuning_run_gives_the_stored_reference(tmp_path, name):
     rtol, kind = stored_results.tolerance(tuner_reference.FOLDER)
     got = tuner_reference.run(name, tmp_path)
     with np.load(tuner_reference.FOLDER / f"{name}.npz") as stored:
-        expected = {key: stored[key] for key in stored.files}
+        expected = {renamed(key): stored[key] for key in stored.files}
     assert set(expected) <= set(got), sorted(set(expected) - set(got))  # new columns may come, none may go
     for key, value in expected.items():
         np.testing.assert_allclose(got[key], value, rtol=rtol, atol=1e-300, err_msg=f"{name}: {key} ({kind})")

@@ -135,8 +135,8 @@ def test_objective_parts_on_a_synthetic_log(full_runs):
     assert float(parts["peak_torque_hard"]) == pytest.approx(1.0)  # the log's own peaks
     assert 0.0 <= float(parts["peak_torque_gap"]) <= 0.02 * math.log(log.u.size)
     expected = (
-        float(parts["final_position_m"]) / 1e-3
-        + 0.1 * float(parts["final_orientation_rad"]) / 1e-2
+        float(parts["final_position_error_m"]) / 1e-3
+        + 0.1 * float(parts["final_orientation_error_rad"]) / 1e-2
         + 0.1 * float(parts["rms_tracking_m"]) / 1e-2
         + 10.0 * float(parts["peak_torque_smooth"])
         + 0.5 * float(parts["peak_contact_smooth_N"]) / 10.0
@@ -538,7 +538,7 @@ def test_early_stopping_ends_a_cmaes_run_and_its_checkpoint_keeps_the_validation
 
     def batch_parts(vectors):
         losses = np.sum((vectors - 1.0) ** 2, axis=1, keepdims=True)
-        return {"loss": losses, "final_position_m": losses, "largest_peak_torque_Nm": losses}
+        return {"loss": losses, "final_position_error_m": losses, "largest_peak_torque_Nm": losses}
 
     calls = []
 
@@ -605,7 +605,7 @@ def test_the_progress_line_says_which_statistic_each_number_is():
     from spacegrasp_jax.tuning.tune import progress_line
 
     aux = {
-        "final_position_m": 0.003,
+        "final_position_error_m": 0.003,
         "peak_torque_smooth": 1.31,
         "peak_torque_hard": 1.29,
         "peak_torque_gap": 0.02,

@@ -64,7 +64,7 @@ def test_an_objective_with_other_weights_and_tolerances_reuses_the_evaluation(ro
         compiled_for_the_first = len(heard.labels)
         b = tuning_run.evaluate(robot, scenarios, gains, "admittance", second, chunk=2)
         assert len(heard.labels) == compiled_for_the_first
-    np.testing.assert_allclose(b["final_position_m"], a["final_position_m"], rtol=0, atol=0)
+    np.testing.assert_allclose(b["final_position_error_m"], a["final_position_error_m"], rtol=0, atol=0)
     assert not np.allclose(b["weighted_loss"], a["weighted_loss"])  # the new weights were used
     np.testing.assert_allclose(b["position_margin"], a["position_margin"] / 2.0, rtol=1e-12)
 

@@ -276,6 +276,6 @@ class CMAES:
             state.generation,
             steps,
             f"generation {state.generation}/{steps}: best candidate {row['best_candidate_loss']:.4f} | "
-            f"the mean after it {row['loss']:.4f}, final pos {1e3 * row['final_position_m']:.3f} mm | "
+            f"the mean after it {row['loss']:.4f}, final pos {1e3 * row['final_position_error_m']:.3f} mm | "
             f"step size {state.strategy.sigma:.3f}",
         )

@@ -209,8 +209,8 @@ def capture_margins(
     criteria = objective.criteria
     torque_ratio = jnp.abs(log.u) / jnp.asarray(objective.torque_constraint_Nm)
     margins = {
-        "position_margin": (parts["final_position_m"] + _LOG_FLOOR) / criteria.position_tolerance_m,
-        "orientation_margin": (parts["final_orientation_rad"] + _LOG_FLOOR) / criteria.orientation_tolerance_rad,
+        "position_margin": (parts["final_position_error_m"] + _LOG_FLOOR) / criteria.position_tolerance_m,
+        "orientation_margin": (parts["final_orientation_error_rad"] + _LOG_FLOOR) / criteria.orientation_tolerance_rad,
         "torque_margin": smooth_max(torque_ratio, objective.temperature),
     }
     if free_target:
@@ -241,8 +241,8 @@ def objective_parts(log, objective: Objective, *, free_target: bool) -> dict[str
     torque_ratio = jnp.abs(log.u) / jnp.asarray(objective.torque_scale_Nm)
     contact = metrics.contact_force_norm(log)
     parts = {
-        "final_position_m": metrics.final_position_error(log),
-        "final_orientation_rad": metrics.final_orientation_error(log),
+        "final_position_error_m": metrics.final_position_error(log),
+        "final_orientation_error_rad": metrics.final_orientation_error(log),
         "rms_tracking_m": metrics.rms_position_error(log),
         "peak_torque_smooth": smooth_max(torque_ratio, objective.temperature),
         "peak_torque_hard": jnp.max(torque_ratio),
@@ -251,8 +251,8 @@ def objective_parts(log, objective: Objective, *, free_target: bool) -> dict[str
     }
     parts["peak_torque_gap"] = parts["peak_torque_smooth"] - parts["peak_torque_hard"]
     parts["loss"] = (
-        w.final_position * parts["final_position_m"] / objective.position_scale_m
-        + w.final_orientation * parts["final_orientation_rad"] / objective.orientation_scale_rad
+        w.final_position * parts["final_position_error_m"] / objective.position_scale_m
+        + w.final_orientation * parts["final_orientation_error_rad"] / objective.orientation_scale_rad
         + w.rms_tracking * parts["rms_tracking_m"] / objective.rms_scale_m
         + w.peak_torque * parts["peak_torque_smooth"]
         + w.contact_force * parts["peak_contact_smooth_N"] / objective.contact_scale_N
@@ -273,28 +273,29 @@ def objective_parts(log, objective: Objective, *, free_target: bool) -> dict[str
 # ---- the objective of one run ----------------------------------------------------------------
 
 
+#: The campaign's metrics ([`metrics.METRICS`][spacegrasp_jax.envelope.metrics.METRICS]) a held-out
+#: evaluation adds to the objective's parts (``scenario_parts(verdict=True)``) so that its
+#: verdict is a campaign's ([`captured()`][tuning.run.captured]): the final errors, the largest
+#: peak torque and a free target's final speed are parts of the objective already, by the
+#: same names.
+VERDICT_METRICS = ("first_runaway_s", "first_nonfinite_s", "max_joint_rate_radps", "max_range_excess_rad")
+
+
 def scenario_parts(
     spec: RunSpec, gains: Gains, objective: Objective, key: jax.Array | None = None, *, verdict: bool = False
 ) -> dict:
     """Every part of the objective on the run ``spec`` ([`objective_parts()`][tuning.objective.objective_parts]),
-    plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m), for a robot with
-    joint ranges ``range_excess_rad``, the furthest a joint went beyond one, and where rate
-    limits are criteria ``joint_rate_ratio``, the largest peak |qd_i| over its limit. ``spec`` keeps the
+    plus ``largest_peak_torque_Nm``, the hard largest peak |u_i| (N m). ``spec`` keeps the
     whole log ([`objective_spec()`][tuning.objective.objective_spec]); ``key``: the sensors' noise key of a
-    flight-like loop. With ``verdict`` (static), the campaign's own ``first_runaway_s`` and
-    ``first_nonfinite_s`` of the run too ([`metrics.log_metrics()`][spacegrasp_jax.envelope.metrics.log_metrics]),
-    for a held-out verdict that is a campaign's ([`captured()`][tuning.run.captured])."""
+    flight-like loop. With ``verdict`` (static), the campaign's own ``VERDICT_METRICS`` of the
+    run too ([`metrics.log_metrics()`][spacegrasp_jax.envelope.metrics.log_metrics]; the per-joint
+    ones shaped (N,)), for a held-out verdict that is a campaign's ([`captured()`][tuning.run.captured])."""
     _, log = closed_loop(spec, gains, key)
     parts = objective_parts(log, objective, free_target=spec.scenario.free_target)
     parts["largest_peak_torque_Nm"] = jnp.max(jnp.abs(log.u))
-    if objective.joint_ranges:  # the hard excess beyond the ranges (rad), for the held-out verdict
-        parts["range_excess_rad"] = jnp.max(joint_limits.range_excess(log.q, objective.joint_ranges))
-    rates = objective.criteria.joint_rate_limits_radps
-    if rates is not None:  # the hard peak rate over its limit, for the held-out verdict
-        parts["joint_rate_ratio"] = jnp.max(jnp.abs(log.qd) / jnp.asarray(rates))
     if verdict:
         run = metrics.log_metrics(log, spec.robot, free_target=spec.scenario.free_target)
-        parts |= {name: run[name] for name in ("first_runaway_s", "first_nonfinite_s")}
+        parts |= {name: run[name] for name in VERDICT_METRICS}
     return parts
 
 
@@ -328,12 +329,22 @@ def objective_spec(
 BATCH_MAX_PEAK_TORQUE = "max_largest_peak_torque_Nm"
 
 
+#: The objective's parts that older versions named otherwise (their name -> today's, the
+#: campaign's): history rows, checkpoints and held-out files of older runs are read with
+#: today's names.
+OLDER_PART_NAMES = {
+    "final_position_m": "final_position_error_m",
+    "final_orientation_rad": "final_orientation_error_rad",
+}
+
+
 def history_of_older_version(rows: list[dict]) -> list[dict]:
     """A checkpoint's history rows with today's column names: before the batch maximum's
     column said what it holds, it was ``largest_peak_torque_Nm`` (a row of today has both,
-    that one the batch mean)."""
+    that one the batch mean); the final errors had names of their own (``OLDER_PART_NAMES``)."""
 
     def renamed(row: dict) -> dict:
+        row = {OLDER_PART_NAMES.get(name, name): value for name, value in row.items()}
         if BATCH_MAX_PEAK_TORQUE in row:
             return row
         return {(BATCH_MAX_PEAK_TORQUE if name == "largest_peak_torque_Nm" else name): v for name, v in row.items()}

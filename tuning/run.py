@@ -56,7 +56,7 @@ from spacegrasp_jax.loop.control.schedule import (
 )
 from spacegrasp_jax.loop.simulate import LoopOptions, RunSpec
 from spacegrasp_jax.tuning import cmaes, driver
-from spacegrasp_jax.tuning.objective import Objective, objective_spec, scenario_parts
+from spacegrasp_jax.tuning.objective import VERDICT_METRICS, Objective, objective_spec, scenario_parts
 from spacegrasp_jax.tuning.parameters import GROUPS
 from spacegrasp_jax.tuning.tune import (
     CHECKPOINT,
@@ -321,38 +321,38 @@ def _write_history(path: Path, history: list) -> None:
     runfiles.write_text(path, buffer.getvalue())
 
 
-def captured(parts: dict) -> np.ndarray:
-    """(n,) bool: each held-out sample's capture by the campaigns' default criteria
-    ([`success()`][spacegrasp_jax.jobs.montecarlo.success] with a default
-    [`CaptureCriteria`][spacegrasp_jax.envelope.criteria.CaptureCriteria], and the rate limits where the
-    objective has them), from the objective's parts: a sample that ran away
-    (``first_runaway_s``, the campaign's own metric, where the parts hold it: the held-out
-    evaluation's do) or diverged (``first_nonfinite_s``, else an objective that is not
-    finite) fails, as in a campaign."""
+#: The parts a held-out verdict reads: the campaign's metrics by the campaign's names (the
+#: objective's own, and ``objective.VERDICT_METRICS``), a free target's final speed where
+#: the run has one.
+VERDICT_PARTS = (
+    "final_position_error_m",
+    "final_orientation_error_rad",
+    "largest_peak_torque_Nm",
+    "final_target_speed_mps",
+    *VERDICT_METRICS,
+)
+
+
+def captured(parts: dict, criteria: CaptureCriteria) -> np.ndarray:
+    """(n,) bool: each held-out sample's capture by ``criteria`` (the run's, a campaign's
+    [`CaptureCriteria`][spacegrasp_jax.envelope.criteria.CaptureCriteria]), judged by the campaign's own
+    [`success()`][spacegrasp_jax.jobs.montecarlo.success] on the campaign's metrics of each sample
+    (``VERDICT_PARTS``; [`scenario_parts(verdict=True)`][tuning.objective.scenario_parts] computes
+    them as a campaign does): a sample that ran away or diverged fails, and so does one whose
+    objective is not finite."""
+    sample_metrics = {name: np.asarray(parts[name]) for name in VERDICT_PARTS if name in parts}
     diverged = np.where(np.isfinite(parts["loss"]), np.nan, 0.0)
-    sample_metrics = {
-        "final_position_error_m": parts["final_position_m"],
-        "final_orientation_error_rad": parts["final_orientation_rad"],
-        "largest_peak_torque_Nm": parts["largest_peak_torque_Nm"],
-        "first_nonfinite_s": np.fmin(np.asarray(parts.get("first_nonfinite_s", diverged), dtype=float), diverged),
-    }
-    if "first_runaway_s" in parts:
-        sample_metrics["first_runaway_s"] = parts["first_runaway_s"]
-    if "final_target_speed_mps" in parts:
-        sample_metrics["final_target_speed_mps"] = parts["final_target_speed_mps"]
-    if "range_excess_rad" in parts:
-        sample_metrics["max_range_excess_rad"] = np.asarray(parts["range_excess_rad"])[:, None]
-    criteria = CaptureCriteria()
-    if "joint_rate_ratio" in parts:  # the peak rate over its limit: judged against a limit of 1
-        sample_metrics["max_joint_rate_radps"] = np.asarray(parts["joint_rate_ratio"])[:, None]
-        criteria = CaptureCriteria(joint_rate_limits_radps=(1.0,))
+    sample_metrics["first_nonfinite_s"] = np.fmin(
+        np.asarray(sample_metrics["first_nonfinite_s"], dtype=float), diverged
+    )
     return np.asarray(success(sample_metrics, criteria), dtype=bool)
 
 
-def holdout_success(before_parts: dict, after_parts: dict) -> dict:
-    """The held-out success rates of the starting and tuned gains with their 95% Wilson
-    intervals, and the exact McNemar test of tuned against starting on the same samples."""
-    start, tuned = captured(before_parts), captured(after_parts)
+def holdout_success(before_parts: dict, after_parts: dict, criteria: CaptureCriteria) -> dict:
+    """The held-out success rates of the starting and tuned gains by ``criteria`` with their
+    95% Wilson intervals, and the exact McNemar test of tuned against starting on the same
+    samples."""
+    start, tuned = captured(before_parts, criteria), captured(after_parts, criteria)
     return {
         "success_start": statistics.success_interval(start.sum(), start.size),
         "success_tuned": statistics.success_interval(tuned.sum(), tuned.size),
@@ -647,15 +647,15 @@ def tune(
             "mean_largest_peak_torque_Nm_tuned": float(np.nanmean(after_parts["largest_peak_torque_Nm"])),
             "median_largest_peak_torque_Nm_start": float(np.nanmedian(before_parts["largest_peak_torque_Nm"])),
             "median_largest_peak_torque_Nm_tuned": float(np.nanmedian(after_parts["largest_peak_torque_Nm"])),
-            "mean_final_position_error_m_start": float(np.nanmean(before_parts["final_position_m"])),
-            "mean_final_position_error_m_tuned": float(np.nanmean(after_parts["final_position_m"])),
-            "median_final_position_error_m_start": float(np.nanmedian(before_parts["final_position_m"])),
-            "median_final_position_error_m_tuned": float(np.nanmedian(after_parts["final_position_m"])),
+            "mean_final_position_error_m_start": float(np.nanmean(before_parts["final_position_error_m"])),
+            "mean_final_position_error_m_tuned": float(np.nanmean(after_parts["final_position_error_m"])),
+            "median_final_position_error_m_start": float(np.nanmedian(before_parts["final_position_error_m"])),
+            "median_final_position_error_m_tuned": float(np.nanmedian(after_parts["final_position_error_m"])),
             "diverged_start": int(np.sum(~np.isfinite(before_parts["loss"]))),
             "diverged_tuned": int(np.sum(~np.isfinite(after_parts["loss"]))),
             "per_sample": "holdout.npz",
         }
-        summary["holdout"] |= holdout_success(before_parts, after_parts)
+        summary["holdout"] |= holdout_success(before_parts, after_parts, ran.criteria)
         samples = {f"start_{name}": value for name, value in before_parts.items()}
         samples.update({f"tuned_{name}": value for name, value in after_parts.items()})
         runfiles.write_arrays(out / "holdout.npz", samples)

@@ -757,7 +757,7 @@ def progress_line(step: int, loss: float, aux: dict, total: int) -> str:
         step,
         total,
         f"step {step}/{total} loss {loss:.4f} | "
-        f"final pos {1e3 * aux['final_position_m']:.3f} mm | peak torque / constraint {aux['peak_torque_smooth']:.3f} "
+        f"final pos {1e3 * aux['final_position_error_m']:.3f} mm | peak torque / constraint {aux['peak_torque_smooth']:.3f} "
         f"(hard {aux['peak_torque_hard']:.3f}, gap {aux['peak_torque_gap']:.3f}) | rms {1e3 * aux['rms_tracking_m']:.2f} mm "
         f"(batch means) | largest peak {aux[BATCH_MAX_PEAK_TORQUE]:.2f} N m (batch max)",
     )

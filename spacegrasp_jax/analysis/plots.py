@@ -245,7 +245,7 @@ def figure_loss_curve(history: list[dict], caption: str | None = None):
     axes[0].set_ylabel("loss [-]")
     axes[1].plot(
         steps,
-        [1e3 * row["final_position_m"] for row in history],
+        [1e3 * row["final_position_error_m"] for row in history],
         color="tab:blue",
         marker=".",
         label="final position error",

@@ -209,8 +209,8 @@ def _tune_option(name: str) -> str:
 #: The objective's parts ``tune`` prints before and after (history.csv's names -> label, scale, unit).
 _TUNE_PARTS = {
     "loss": ("objective", 1.0, ""),
-    "final_position_m": ("final position error", 1e3, "mm"),
-    "final_orientation_rad": ("final orientation error", 180.0 / math.pi, "deg"),
+    "final_position_error_m": ("final position error", 1e3, "mm"),
+    "final_orientation_error_rad": ("final orientation error", 180.0 / math.pi, "deg"),
     "rms_tracking_m": ("rms tracking error", 1e3, "mm"),
     "position_margin": ("position margin (error / tolerance)", 1.0, ""),
     "orientation_margin": ("orientation margin", 1.0, ""),
