@@ -180,7 +180,7 @@ def test_the_held_out_evaluation_holds_the_campaigns_runaway_metric(robot, short
     from spacegrasp_jax.loop.control import paper_gains
     from spacegrasp_jax.loop.simulate import RunSpec, closed_loop
     from spacegrasp_jax.tuning.run import captured, evaluate
-    from spacegrasp_jax.tuning.tune import TuneConfig, make_objective
+    from spacegrasp_jax.tuning.tune import TuneConfig, ideal_batch, make_objective
 
     gains = paper_gains()
     wild = dataclasses.replace(gains, kp=30.0 * gains.kp, ki=30.0 * gains.ki, kd=30.0 * gains.kd)
@@ -190,7 +190,7 @@ def test_the_held_out_evaluation_holds_the_campaigns_runaway_metric(robot, short
     )
     folded = jax.jit(closed_loop)
     for candidate, runs_away in ((gains, False), (wild, True)):
-        parts = evaluate(robot, scenarios, candidate, "admittance", objective)
+        parts = evaluate(ideal_batch(robot, scenarios), candidate, "admittance", objective)
         _, (observed, _) = folded(
             RunSpec(robot, short_scenario, "admittance", observer=FoldedMetrics()), candidate, None
         )

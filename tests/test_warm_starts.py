@@ -21,7 +21,7 @@ from spacegrasp_jax.jobs import campaign, compilation
 from spacegrasp_jax.tuning import run as tuning_run
 from spacegrasp_jax.tuning.objective import Objective, Weights
 from spacegrasp_jax.tuning.parameters import initial_params, make_mask
-from spacegrasp_jax.tuning.tune import TuneConfig, make_loss, make_value_and_grad, training_scenarios
+from spacegrasp_jax.tuning.tune import TuneConfig, ideal_batch, make_loss, make_value_and_grad, training_scenarios
 
 
 @pytest.mark.slow
@@ -60,9 +60,9 @@ def test_an_objective_with_other_weights_and_tolerances_reuses_the_evaluation(ro
     )
     heard = CompileLabels()
     with compilation.listening(heard):
-        a = tuning_run.evaluate(robot, scenarios, gains, "admittance", first, chunk=2)
+        a = tuning_run.evaluate(ideal_batch(robot, scenarios), gains, "admittance", first, chunk=2)
         compiled_for_the_first = len(heard.labels)
-        b = tuning_run.evaluate(robot, scenarios, gains, "admittance", second, chunk=2)
+        b = tuning_run.evaluate(ideal_batch(robot, scenarios), gains, "admittance", second, chunk=2)
         assert len(heard.labels) == compiled_for_the_first
     np.testing.assert_allclose(b["final_position_error_m"], a["final_position_error_m"], rtol=0, atol=0)
     assert not np.allclose(b["weighted_loss"], a["weighted_loss"])  # the new weights were used

@@ -33,7 +33,7 @@ from spacegrasp_jax.jobs.montecarlo import SampleLoops
 from spacegrasp_jax.jobs.runfiles import progress_bar
 from spacegrasp_jax.loop.control.gains import Gains
 from spacegrasp_jax.loop.simulate import LoopOptions
-from spacegrasp_jax.tuning.objective import Objective, objective_spec, scenario_parts
+from spacegrasp_jax.tuning.objective import Objective, objective_spec, scenario_parts, tail_count
 from spacegrasp_jax.tuning.parameters import gains_from_params
 from spacegrasp_jax.tuning.protocol import Answers, Outcome, Request
 
@@ -68,19 +68,15 @@ def gains_of(vector: np.ndarray, params: dict, base: Gains, mask: dict) -> Gains
     return gains_from_params(unflatten(vector, params, mask), base, mask)
 
 
-def _candidate_parts(
-    model_robot, objective: Objective, items, *, controller: str, realism_loop: bool, options: LoopOptions
-):
-    """The objective's parts of each (gains, sample) item (vmapped)."""
-    if realism_loop:
-        gains, robot, scenario, realism, key = items
-        one = lambda g, r, s, re, k: scenario_parts(
-            objective_spec(r, s, controller, realism=re, model_robot=model_robot, options=options), g, objective, k
-        )
-        return jax.vmap(one)(gains, robot, scenario, realism, key)
-    gains, scenario = items
-    one = lambda g, s: scenario_parts(objective_spec(model_robot, s, controller, options=options), g, objective)
-    return jax.vmap(one)(gains, scenario)
+def _candidate_parts(model_robot, objective: Objective, items, *, controller: str, options: LoopOptions):
+    """The objective's parts of each (gains, robot, scenario, realism, key) item (vmapped;
+    realism and key ``None`` in the paper's ideal loop)."""
+
+    def one(gains, robot, scenario, realism, key):
+        spec = objective_spec(robot, scenario, controller, realism=realism, model_robot=model_robot, options=options)
+        return scenario_parts(spec, gains, objective, key)
+
+    return jax.vmap(one)(*items)
 
 
 #: The most rollouts one call of the population's program runs (measured on 2 cores: a
@@ -100,22 +96,18 @@ def population_chunk(batch: int) -> int:
 
 
 def make_item_evaluator(
-    robot: Robot, samples, controller: str, objective: Objective, chunk: int
+    robot: Robot, samples: SampleLoops, controller: str, objective: Objective, chunk: int
 ) -> Callable[[Gains, np.ndarray], dict]:
     """``evaluate(gains (M stacked), rows (M,)) -> parts``, every part of the objective shaped
-    (M,): gain set ``k`` on sample ``rows[k]`` of ``samples``, a ``SampleLoops`` of the
-    flight-like loop (robots, scenarios, realisms, keys) or stacked scenarios of the paper's
-    loop; forward rollouts in one sharded, chunked program."""
-    realism_loop = isinstance(samples, SampleLoops)
-    if realism_loop:
-        per_sample = (samples.robots, samples.scenarios, samples.realisms, samples.keys)
-        model_robot = samples.model_robot if samples.model_robot is not None else robot
-    else:
-        per_sample = (samples,)
+    (M,): gain set ``k`` on sample ``rows[k]`` of ``samples`` (the flight-like loop's, or the
+    ideal loop's, [`ideal_batch()`][tuning.tune.ideal_batch]); forward rollouts in one sharded,
+    chunked program. The controllers believe ``samples.model_robot``, else under a realism
+    ``robot``, else each sample its own robot."""
+    per_sample = (samples.robots, samples.scenarios, samples.realisms, samples.keys)
+    model_robot = samples.model_robot
+    if model_robot is None and samples.realisms is not None:
         model_robot = robot
-    function = functools.partial(
-        _candidate_parts, controller=controller, realism_loop=realism_loop, options=loop_options(checkpoint=True)
-    )
+    function = functools.partial(_candidate_parts, controller=controller, options=loop_options(checkpoint=True))
 
     def evaluate(gains: Gains, rows: np.ndarray) -> dict:
         items = (gains, *batching.take(per_sample, np.asarray(rows)))
@@ -139,7 +131,7 @@ def batch_objective(losses: np.ndarray, cvar_alpha: float | None) -> np.ndarray:
     if cvar_alpha is None:
         total = losses.mean(axis=1)
     else:
-        worst = max(1, math.ceil((1.0 - cvar_alpha) * losses.shape[1]))
+        worst = tail_count(cvar_alpha, losses.shape[1])
         total = np.sort(losses, axis=1)[:, -worst:].mean(axis=1)
     return np.where(np.isfinite(total), total, np.inf)
 
@@ -272,10 +264,14 @@ class CMAES:
         return dataclasses.replace(state, asked=asked, told=told, generation=count, phase=meta["phase"])
 
     def progress(self, state: CMAESState, row: dict, steps: int) -> str:
+        candidates = (
+            "no candidates yet" if state.generation == 0 else f"best candidate {row['best_candidate_loss']:.4f}"
+        )
+        mean = "the start" if state.generation == 0 else "the mean after it"
         return progress_bar(
             state.generation,
             steps,
-            f"generation {state.generation}/{steps}: best candidate {row['best_candidate_loss']:.4f} | "
-            f"the mean after it {row['loss']:.4f}, final pos {1e3 * row['final_position_error_m']:.3f} mm | "
+            f"generation {state.generation}/{steps}: {candidates} | "
+            f"{mean} {row['loss']:.4f}, final pos {1e3 * row['final_position_error_m']:.3f} mm | "
             f"step size {state.strategy.sigma:.3f}",
         )

@@ -45,6 +45,7 @@ push it away"); its weight is 0 by default.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -185,6 +186,12 @@ class Objective:
             raise ValueError(f"safety: must be in [0, 1), got {self.safety}")
         if not (self.hinge_width > 0.0 and self.margin_temperature > 0.0):
             raise ValueError("hinge_width and margin_temperature: must be positive")
+
+
+def tail_count(cvar_alpha: float, count: int) -> int:
+    """How many samples of a batch of ``count`` the batch objective's CVaR at ``cvar_alpha``
+    averages: the worst ``ceil((1 - cvar_alpha) * count)``, at least one."""
+    return max(1, math.ceil((1.0 - cvar_alpha) * count))
 
 
 def smooth_max(values: jax.Array, temperature: float) -> jax.Array:

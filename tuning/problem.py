@@ -17,7 +17,6 @@ import jax
 import numpy as np
 
 from spacegrasp_jax.core.model import Robot
-from spacegrasp_jax.envelope.scenario import Scenario
 from spacegrasp_jax.jobs import batching
 from spacegrasp_jax.jobs.montecarlo import SampleLoops
 from spacegrasp_jax.loop.control.gains import Gains
@@ -48,8 +47,8 @@ class TuningProblem:
         controller: the law's name.
         cvar_alpha: the batch objective: ``None`` the mean, else the mean over the worst
             ``1 - cvar_alpha`` of the batch.
-        batch: the run's training batch: stacked scenarios (the paper's ideal loop) or
-            [`SampleLoops`][spacegrasp_jax.jobs.montecarlo.SampleLoops] (a realism).
+        batch: the run's training batch ([`SampleLoops`][spacegrasp_jax.jobs.montecarlo.SampleLoops];
+            without realisms: the paper's ideal loop).
         fresh: step k's batch where the run draws a new one every step (``None``: one batch).
         value_and_grad: ``(point, step) -> ((loss, aux), gradient)`` on step ``step``'s batch
             (``None``: the problem evaluates forward only).
@@ -62,15 +61,14 @@ class TuningProblem:
     objective: Objective
     controller: str
     cvar_alpha: float | None
-    batch: Scenario | SampleLoops
-    fresh: Callable[[int], Scenario | SampleLoops] | None = None
+    batch: SampleLoops
+    fresh: Callable[[int], SampleLoops] | None = None
     value_and_grad: Callable | None = None
     _forward: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def batch_size(self) -> int:
-        per_sample = self.batch.keys if isinstance(self.batch, SampleLoops) else self.batch
-        return batching.batch_size(per_sample)
+        return batching.batch_size(self.batch.scenarios)
 
     def gains(self, point) -> Gains:
         """The gains a point stands for."""
@@ -120,13 +118,11 @@ class TuningProblem:
         return Answers(objectives, summaries, parts=parts, rollouts=len(request.points) * self.batch_size)
 
 
-def make_population_evaluator(robot: Robot, samples, controller: str, objective: Objective, chunk: int):
+def make_population_evaluator(robot: Robot, samples: SampleLoops, controller: str, objective: Objective, chunk: int):
     """``evaluate(gains: list of P gain sets) -> parts``, every part of the objective shaped
-    (P, batch): each gain set on every sample of ``samples`` (stacked scenarios, or a
-    ``SampleLoops``), forward rollouts in one sharded, chunked program
-    ([`cmaes.make_item_evaluator()`][tuning.cmaes.make_item_evaluator])."""
-    per_sample = (samples.robots,) if isinstance(samples, SampleLoops) else (samples,)
-    size = batching.batch_size(per_sample)
+    (P, batch): each gain set on every sample of ``samples``, forward rollouts in one
+    sharded, chunked program ([`cmaes.make_item_evaluator()`][tuning.cmaes.make_item_evaluator])."""
+    size = batching.batch_size(samples.scenarios)
     items = cmaes.make_item_evaluator(robot, samples, controller, objective, chunk)
 
     def evaluate(gains: list) -> dict:

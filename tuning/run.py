@@ -34,7 +34,6 @@ from spacegrasp_jax.core.model import n_joints, robot_to_toml
 from spacegrasp_jax.core.robot_files import load_robot, robot_from_text, robot_from_toml
 from spacegrasp_jax.envelope import statistics
 from spacegrasp_jax.envelope.criteria import CaptureCriteria
-from spacegrasp_jax.envelope.perturbations import sample_scenarios
 from spacegrasp_jax.envelope.scenario import load_scenario, paper_scenario, scenario_from_mapping, scenario_to_dict
 from spacegrasp_jax.jobs import batching, experiment, runfiles
 from spacegrasp_jax.jobs.experiment import loop_options
@@ -63,7 +62,7 @@ from spacegrasp_jax.tuning.tune import (
     VALIDATION_SEED_OFFSET,
     TuneConfig,
     check_gradient_cut,
-    flight_batch,
+    envelope_batch,
     make_method,
     make_problem,
 )
@@ -265,20 +264,10 @@ def new_record(
     return {"record": record.to_dict(), "config": config.to_dict(), "holdout": holdout}
 
 
-def _scenarios_parts(robot, gains, objective: Objective, scenarios, *, controller: str, options: LoopOptions):
-    """[`scenario_parts()`][tuning.objective.scenario_parts] of each scenario of a batch (vmapped), with the
-    campaign's verdict metrics."""
-    return jax.vmap(
-        lambda scenario: scenario_parts(
-            objective_spec(robot, scenario, controller, options=options), gains, objective, verdict=True
-        )
-    )(scenarios)
-
-
 def _samples_parts(model_robot, gains, objective: Objective, samples, *, controller: str, options: LoopOptions):
-    """[`scenario_parts()`][tuning.objective.scenario_parts] of each sample of a flight-like
-    batch ``samples = (robots, scenarios, realisms, keys)`` (vmapped), with the campaign's
-    verdict metrics."""
+    """[`scenario_parts()`][tuning.objective.scenario_parts] of each sample of a batch
+    ``samples = (robots, scenarios, realisms, keys)`` (vmapped; realisms and keys ``None`` in
+    the ideal loop), with the campaign's verdict metrics."""
 
     def one(robot, scenario, realism, key):
         spec = objective_spec(robot, scenario, controller, realism=realism, model_robot=model_robot, options=options)
@@ -287,28 +276,19 @@ def _samples_parts(model_robot, gains, objective: Objective, samples, *, control
     return jax.vmap(one)(*samples)
 
 
-def evaluate_flight(model_robot, batch: SampleLoops, gains, controller: str, objective: Objective, chunk: int = 10):
-    """[`evaluate()`][tuning.run.evaluate] for samples of the flight-like loop ([`flight_batch()`][tuning.tune.flight_batch])."""
-    function = functools.partial(_samples_parts, controller=controller, options=loop_options(checkpoint=True))
-    samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
-    return batching.map_in_chunks(
-        "tuning.evaluate_flight",
-        function,
-        (model_robot, gains, objective),
-        samples,
-        chunk=chunk,
-        progress=None,
-    )
-
-
-def evaluate(robot, scenarios, gains, controller: str, objective: Objective, chunk: int = 10) -> dict[str, np.ndarray]:
-    """Objective parts for each scenario of a batch (exact or smooth per the scenarios),
+def evaluate(
+    batch: SampleLoops, gains, controller: str, objective: Objective, chunk: int = 10
+) -> dict[str, np.ndarray]:
+    """Objective parts, with the campaign's verdict metrics, for each sample of a batch (a
+    [`SampleLoops`][spacegrasp_jax.jobs.montecarlo.SampleLoops] of the flight-like or the ideal loop,
+    [`envelope_batch()`][tuning.tune.envelope_batch]; exact or smooth contact per its scenarios),
     by vmapped rollouts in chunks of ``chunk`` ([`spacegrasp_jax.jobs.batching.map_in_chunks()`][spacegrasp_jax.jobs.batching.map_in_chunks]);
     NaN marks a diverged sample. The gains and the objective are arguments of the compiled
     program, so evaluating another gain set or objective reuses it."""
-    function = functools.partial(_scenarios_parts, controller=controller, options=loop_options(checkpoint=True))
+    function = functools.partial(_samples_parts, controller=controller, options=loop_options(checkpoint=True))
+    samples = (batch.robots, batch.scenarios, batch.realisms, batch.keys)
     return batching.map_in_chunks(
-        "tuning.evaluate", function, (robot, gains, objective), scenarios, chunk=chunk, progress=None
+        "tuning.evaluate", function, (batch.model_robot, gains, objective), samples, chunk=chunk, progress=None
     )
 
 
@@ -398,16 +378,10 @@ def _validator(robot, smooth, config: TuneConfig, objective: Objective, to_gains
     if config.patience is None:
         return None
     exact = dataclasses.replace(smooth, contact_law="exact")
-    seed = config.seed + VALIDATION_SEED_OFFSET
-    if config.realism is None:
-        scenarios = sample_scenarios(exact, seed, range(config.validation_size), config.ranges)
-        parts = lambda gains: evaluate(robot, scenarios, gains, config.controller, objective)
-    else:
-        samples = flight_batch(robot, exact, config, seed, config.validation_size)
-        parts = lambda gains: evaluate_flight(robot, samples, gains, config.controller, objective)
+    samples = envelope_batch(robot, exact, config, config.seed + VALIDATION_SEED_OFFSET, config.validation_size)
 
     def validate(point) -> float:
-        losses = np.asarray(parts(to_gains(point))["loss"])
+        losses = np.asarray(evaluate(samples, to_gains(point), config.controller, objective)["loss"])
         return float(cmaes.batch_objective(losses[None], config.cvar_alpha)[0])
 
     return validate
@@ -626,14 +600,10 @@ def tune(
     ]
     if holdout:
         print(f"evaluating both on {holdout} held-out perturbed scenarios...", file=progress, flush=True)
-        if realism is None:
-            scenarios = sample_scenarios(exact, config.seed + HOLDOUT_SEED_OFFSET, range(holdout), config.ranges)
-            before_parts = evaluate(robot, scenarios, base, config.controller, objective)
-            after_parts = evaluate(robot, scenarios, tuned, config.controller, objective)
-        else:  # the same realism, new noise keys and satellites
-            samples = flight_batch(robot, exact, config, config.seed + HOLDOUT_SEED_OFFSET, holdout)
-            before_parts = evaluate_flight(robot, samples, base, config.controller, objective)
-            after_parts = evaluate_flight(robot, samples, tuned, config.controller, objective)
+        # under a realism: the same realism, new noise keys and satellites
+        samples = envelope_batch(robot, exact, config, config.seed + HOLDOUT_SEED_OFFSET, holdout)
+        before_parts = evaluate(samples, base, config.controller, objective)
+        after_parts = evaluate(samples, tuned, config.controller, objective)
         summary["holdout"] = {
             "scenarios": holdout,
             "seed": config.seed + HOLDOUT_SEED_OFFSET,

@@ -50,6 +50,7 @@ from spacegrasp_jax.tuning.objective import (
     Weights,
     objective_spec,
     scenario_parts,
+    tail_count,
 )
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 from spacegrasp_jax.tuning.problem import TuningProblem
@@ -474,7 +475,7 @@ def batch_loss(
     if cvar_alpha is None:
         total = jnp.mean(losses)
     else:
-        worst = max(1, math.ceil((1.0 - cvar_alpha) * losses.shape[0]))
+        worst = tail_count(cvar_alpha, losses.shape[0])
         total = jnp.mean(jnp.sort(losses)[-worst:])
     aux = {name: jnp.mean(value) for name, value in parts.items()}
     aux[BATCH_MAX_PEAK_TORQUE] = jnp.max(parts["largest_peak_torque_Nm"])
@@ -640,7 +641,7 @@ def aggregate_gradients(losses, gradients, config: TuneConfig):
     if config.cvar_alpha is None:
         weights = jnp.full(count, 1.0 / count)
     else:
-        worst = max(1, math.ceil((1.0 - config.cvar_alpha) * count))
+        worst = tail_count(config.cvar_alpha, count)
         weights = jnp.zeros(count).at[jnp.argsort(losses)[-worst:]].set(1.0 / worst)
     total = jnp.sum(weights * losses)
     gradient = jax.tree.map(lambda g: jnp.tensordot(weights * scale, g, axes=1), gradients)
@@ -933,13 +934,31 @@ def torque_constraint_Nm(robot: Robot, config: TuneConfig) -> tuple[float, ...]:
     return tuple(min(config.torque_fraction * float(x), cap) for x in robot.joint_torque_limit)
 
 
-def training_batch(robot: Robot, nominal: Scenario, config: TuneConfig):
-    """The batch every step (or generation) is evaluated on: under a realism, the
-    [`SampleLoops`][spacegrasp_jax.jobs.montecarlo.SampleLoops] of [`flight_batch()`][tuning.tune.flight_batch]; else the
-    stacked scenarios of [`training_scenarios()`][tuning.tune.training_scenarios]."""
+def ideal_batch(robot: Robot, scenarios: Scenario) -> SampleLoops:
+    """Stacked scenarios of the paper's ideal loop as a batch of samples (the one batch type
+    of tuning, as of the campaigns): each runs ``robot`` (plant and model), no realism, no
+    noise key."""
+    count = jax.tree.leaves(scenarios)[0].shape[0]
+    robots = jax.tree.map(lambda leaf: jnp.broadcast_to(jnp.asarray(leaf), (count, *jnp.shape(leaf))), robot)
+    return SampleLoops(robots, scenarios, None, None, None, None)
+
+
+def envelope_batch(robot: Robot, nominal: Scenario, config: TuneConfig, seed: int, count: int) -> SampleLoops:
+    """``count`` samples of the run's envelope drawn with ``seed`` (held-out and validation
+    captures): under ``config.realism`` [`flight_batch()`][tuning.tune.flight_batch]'s, else
+    perturbed scenarios of the ideal loop ([`ideal_batch()`][tuning.tune.ideal_batch])."""
+    if config.realism is not None:
+        return flight_batch(robot, nominal, config, seed, count)
+    return ideal_batch(robot, sample_scenarios(nominal, seed, range(count), config.ranges))
+
+
+def training_batch(robot: Robot, nominal: Scenario, config: TuneConfig) -> SampleLoops:
+    """The batch every step (or generation) is evaluated on: under a realism, the samples of
+    [`flight_batch()`][tuning.tune.flight_batch]; else the nominal scenario and ``batch - 1``
+    perturbed ones ([`training_scenarios()`][tuning.tune.training_scenarios]) in the ideal loop."""
     if config.realism is not None:
         return flight_batch(robot, nominal, config, config.seed, config.batch)
-    return training_scenarios(nominal, config)
+    return ideal_batch(robot, training_scenarios(nominal, config))
 
 
 def make_problem(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torque_scale_Nm) -> TuningProblem:
@@ -958,7 +977,7 @@ def make_problem(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfi
         value_and_grad = make_flight_value_and_grad(robot, batch, base, mask, config, objective, fresh)
     else:
         segment = block_steps(nominal.n_steps, config.batch) if config.gradient == "reverse" else None
-        loss = make_loss(robot, batch, base, mask, config, objective, segment)
+        loss = make_loss(robot, batch.scenarios, base, mask, config, objective, segment)
         value_and_grad = make_value_and_grad(loss, params, config.gradient)
     return TuningProblem(
         robot, base, mask, params, objective, config.controller, config.cvar_alpha, batch, fresh, value_and_grad
