@@ -235,6 +235,8 @@ def test_tune_draws_from_the_envelope_it_is_given(tmp_path):
     for options, message in (
         (["--range", "q_init=0.1"], "unknown perturbation range 'q_init'"),
         (["--ranges", str(tmp_path / "missing.toml")], "missing.toml: no such file"),
+        (["--method", "cmaes", "--realism", "flight", "--noise-handling"], "--noise-handling: measures the noise"),
+        (["--realism", "flight", "--separable"], "--separable: a setting of CMA-ES"),
     ):
         result = subprocess.run(
             [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(tmp_path / "y"), *options],

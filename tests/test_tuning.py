@@ -83,10 +83,14 @@ def test_config_validation():
         (dict(method="gradient", realism={}, gradient="forward"), "gradient: tuning under a realism"),
         (dict(method="gradient", fresh_batches=True), "fresh_batches: draws each step's samples"),
         (dict(method="gradient", aggregate="trimmed"), "aggregate: trimmed combines the samples' separate"),
+        (dict(method="gradient", separable=True), "separable: a setting of CMA-ES"),
+        (dict(realism={}, noise_handling=True), "noise_handling: measures the noise .* \\(choose --fresh-batches\\)"),
+        (dict(separable=1), "separable: must be true or false"),
     ]:
         with pytest.raises(ValueError, match=message):
             TuneConfig(**change)
     assert TuneConfig(realism={}, fresh_batches=True).method == "cmaes"  # a new batch every generation
+    assert TuneConfig(realism={}, fresh_batches=True, noise_handling=True, separable=True).noise_handling
 
 
 def test_torque_constraint_is_the_lower_of_the_fraction_and_the_cap(robot):

@@ -137,26 +137,68 @@ def batch_objective(losses: np.ndarray, cvar_alpha: float | None) -> np.ndarray:
 
 
 def new_strategy(
-    x0: np.ndarray, population: int | None, seed: int, step_size: float = SIGMA
+    x0: np.ndarray, population: int | None, seed: int, step_size: float = SIGMA, separable: bool = False
 ) -> cma.CMAEvolutionStrategy:
     """CMA-ES from ``x0`` with initial step ``step_size`` (log-gain units), seeded (its
-    ``seed`` must not be 0, which ``cma`` reads as "draw one"), silent."""
+    ``seed`` must not be 0, which ``cma`` reads as "draw one"), silent; ``separable``: a
+    diagonal covariance throughout (sep-CMA-ES, pycma's ``CMA_diagonal``)."""
     import cma  # imported on first use: with scipy.stats, most of a second at every command's start
 
     options = {"seed": seed + 1, "verbose": -9, "verb_log": 0, "verb_disp": 0}
     if population is not None:
         options["popsize"] = population
+    if separable:
+        options["CMA_diagonal"] = True
     return cma.CMAEvolutionStrategy(np.asarray(x0, dtype=float), step_size, options)
 
 
-def replay(strategy: cma.CMAEvolutionStrategy, asked: list, told: list) -> None:
-    """Rebuild ``strategy`` by asking and telling the recorded generations again; raises
-    RuntimeError if an ask does not give back the recorded candidates (another ``cma``)."""
-    for candidates, objectives in zip(asked, told):
+def reevaluated(population: int, objectives: np.ndarray, seed: int, generation: int) -> np.ndarray:
+    """The candidates of a generation that the noise measurement evaluates again (UH-CMA-ES,
+    Hansen et al., IEEE TEC 2009, as ``cma.NoiseHandler.indices``): ``2 + population / 20``
+    of them (the fraction drawn), the first half in the order asked, the rest the best of the
+    others. Drawn from a generator of ``(seed, generation)``, so a resumed run chooses alike."""
+    wanted = 2.0 + population / 20.0
+    draw = np.random.default_rng([seed, generation]).random()
+    count = min(population, int(wanted) + int(wanted % 1 > draw))
+    first = count - count // 2
+    rest = np.argsort(np.asarray(objectives)[first:], kind="stable") + first
+    return np.concatenate([np.arange(first), rest[: count - first]]).astype(int)
+
+
+def new_noise_handler(dimension: int):
+    """pycma's noise measurement and treatment for ``dimension`` numbers, each objective one
+    batch (``maxevals=1``): where the re-evaluated candidates' ranks move more than chance
+    allows, the step size grows (``treat()``)."""
+    import cma
+
+    return cma.NoiseHandler(dimension, maxevals=1, epsilon=0.0)
+
+
+def measure_noise(handler, objectives: np.ndarray, indices: np.ndarray, again: np.ndarray) -> float:
+    """Feed ``handler`` a generation's objectives and the re-evaluations ``again`` of the
+    candidates ``indices``; the factor the step size is multiplied by."""
+    handler.fit = [float(x) for x in objectives]
+    handler.fitre = list(handler.fit)
+    for index, value in zip(indices, again, strict=True):
+        handler.fitre[int(index)] = float(value)
+    handler.idx = np.asarray(indices, dtype=int)
+    handler.update_measure()
+    return float(handler.treat())
+
+
+def replay(strategy: cma.CMAEvolutionStrategy, asked: list, told: list, noise=None) -> None:
+    """Rebuild ``strategy`` by asking and telling the recorded generations again (with
+    ``noise = (handler, [(indices, again), ...])``, the noise treatment after each generation
+    whose re-evaluations are recorded); raises RuntimeError if an ask does not give back the
+    recorded candidates (another ``cma``)."""
+    for generation, (candidates, objectives) in enumerate(zip(asked, told)):
         again = np.asarray(strategy.ask())
         if not np.allclose(again, candidates, rtol=0.0, atol=1e-12):
             raise RuntimeError("the checkpoint's CMA-ES generations do not replay (was it written by another cma?)")
         strategy.tell(list(candidates), list(objectives))
+        if noise is not None and generation < len(noise[1]):
+            indices, values = noise[1][generation]
+            strategy.sigma *= measure_noise(noise[0], objectives, indices, values)
 
 
 @dataclasses.dataclass
@@ -165,7 +207,9 @@ class CMAESState:
     candidates and objectives (what a checkpoint keeps and a resume replays), the start
     (``params``: the point whose tuned entries the vectors are, ``mask``: which they are) and
     what the next ask asks: ``"mean"`` (the distribution's mean, whose row completes a step)
-    or ``"candidates"`` (a generation)."""
+    or ``"candidates"`` (a generation). Under noise handling, ``noise`` is pycma's
+    ``NoiseHandler`` and ``reevaluations`` each generation's re-evaluated candidates
+    ``(indices, objectives)``; ``seed`` chooses them."""
 
     strategy: cma.CMAEvolutionStrategy
     params: dict
@@ -174,55 +218,92 @@ class CMAESState:
     told: list = dataclasses.field(default_factory=list)
     generation: int = 0
     phase: str = "mean"
+    seed: int = 0
+    noise: object = None
+    reevaluations: list = dataclasses.field(default_factory=list)
 
     def point_of(self, vector: np.ndarray) -> dict:
         """The point whose tuned entries are ``vector``."""
         return unflatten(np.asarray(vector, dtype=float), self.params, self.mask)
+
+    def to_reevaluate(self) -> np.ndarray:
+        """The last generation's candidates the noise measurement evaluates again (none before
+        the first generation or without noise handling)."""
+        if self.noise is None or not self.told:
+            return np.zeros(0, dtype=int)
+        return reevaluated(len(self.told[-1]), self.told[-1], self.seed, self.generation)
 
 
 @dataclasses.dataclass(frozen=True)
 class CMAES:
     """CMA-ES ([`tuning.protocol.TuningMethod`][tuning.protocol.TuningMethod]): a step is a
     generation of ``population`` candidates (``None``: pycma's default, ``4 + 3 ln n`` for n
-    tuned numbers) on the step's batch, then the new mean on the same batch.
+    tuned numbers) on the step's batch, then the new mean on the next step's batch (the same
+    one without fresh batches).
 
     Attributes:
         population: candidates per generation.
         step_size: the initial step in log-gain units.
+        separable: a diagonal covariance (sep-CMA-ES, Ros and Hansen, PPSN 2008): ``n``
+            variances learnt instead of ``n (n + 1) / 2`` covariances, so faster learning
+            on hundreds of numbers.
+        noise_handling: UH-CMA-ES (Hansen et al., IEEE TEC 2009; ``cma.NoiseHandler``): after
+            every generation ``2 + population / 20`` candidates are evaluated again on the
+            next batch (with the mean), and where their ranks move more than chance allows
+            the step size grows. Needs fresh batches.
+        fresh: the problem draws a new batch every generation: the candidates of different
+            generations were ranked on different batches, so ``best()`` hands back the final
+            mean (pycma's ``xfavorite``), never a lucky candidate.
     """
 
     population: int | None = None
     step_size: float = SIGMA
+    separable: bool = False
+    noise_handling: bool = False
+    fresh: bool = False
     name: ClassVar[str] = "cmaes"
     title: ClassVar[str] = "CMA-ES"
     unit: ClassVar[str] = "generation"
     point_words: ClassVar[str] = "the mean"
     #: the ``TuneConfig`` fields it reads
-    settings: ClassVar[tuple[str, ...]] = ("population", "step_size")
+    settings: ClassVar[tuple[str, ...]] = ("population", "step_size", "separable", "noise_handling")
 
     @classmethod
     def from_config(cls, config) -> CMAES:
-        return cls(config.population, config.step_size)
+        return cls(config.population, config.step_size, config.separable, config.noise_handling, config.fresh_batches)
 
     def describe(self) -> str:
-        return "forward rollouts only"
+        variant = ["separable"] if self.separable else []
+        variant += ["noise handling (UH-CMA-ES)"] if self.noise_handling else []
+        return "forward rollouts only" + (f", {' and '.join(variant)}" if variant else "")
 
     def init(self, point, mask, seed: int) -> CMAESState:
         params = {name: np.asarray(value) for name, value in point.items()}
-        return CMAESState(new_strategy(flatten(params, mask), self.population, seed, self.step_size), params, mask)
+        x0 = flatten(params, mask)
+        strategy = new_strategy(x0, self.population, seed, self.step_size, self.separable)
+        noise = new_noise_handler(x0.size) if self.noise_handling else None
+        return CMAESState(strategy, params, mask, seed=seed, noise=noise)
 
     def ask(self, state: CMAESState) -> tuple[Request, CMAESState]:
         if state.phase == "mean":
-            return Request((state.point_of(state.strategy.mean),), batch=state.generation), state
+            again = tuple(state.point_of(state.asked[-1][i]) for i in state.to_reevaluate())
+            return Request((state.point_of(state.strategy.mean), *again), batch=state.generation), state
         candidates = np.asarray(state.strategy.ask())
         state = dataclasses.replace(state, asked=[*state.asked, candidates])
         return Request(tuple(state.point_of(x) for x in candidates), batch=state.generation), state
 
     def tell(self, state: CMAESState, request: Request, answers: Answers) -> tuple[CMAESState, Outcome]:
         if state.phase == "mean":
+            indices = state.to_reevaluate()
+            if indices.size:
+                again = np.asarray(answers.objectives[1:], dtype=float)
+                state.strategy.sigma *= measure_noise(state.noise, state.told[-1], indices, again)
+                state = dataclasses.replace(state, reevaluations=[*state.reevaluations, (indices, again)])
             best = float(np.min(state.told[-1])) if state.told else math.nan
             row = {"step": state.generation, "loss": float(answers.objectives[0]), **answers.summaries[0]}
             row |= {"best_candidate_loss": best, "sigma": float(state.strategy.sigma)}
+            if state.noise is not None:
+                row["noise_measure"] = float(state.noise.noiseS)
             return dataclasses.replace(state, phase="candidates"), Outcome(row=row)
         objectives = np.asarray(answers.objectives)
         state.strategy.tell(list(state.asked[-1]), list(objectives))
@@ -240,11 +321,11 @@ class CMAES:
 
     def best(self, state: CMAESState, history: list[dict], best_step: int, best_point):
         """The candidate with the least objective ever told, or the final mean where it is no
-        worse (its objective the last history row's)."""
+        worse (its objective the last history row's); under fresh batches, the final mean."""
         x, objective, generation = np.asarray(state.strategy.mean), float(history[-1]["loss"]), None
         for index, (candidates, objectives) in enumerate(zip(state.asked, state.told)):
             which = int(np.argmin(objectives))
-            if float(objectives[which]) < objective:
+            if not self.fresh and float(objectives[which]) < objective:
                 x, objective, generation = np.asarray(candidates[which]), float(objectives[which]), index + 1
         if generation is None:
             return state.point_of(x), len(history) - 1, f"the mean after generation {len(history) - 1}", objective
@@ -253,6 +334,8 @@ class CMAES:
     def state_arrays(self, state: CMAESState) -> tuple[dict, dict]:
         arrays = {f"asked_{k}": np.asarray(a) for k, a in enumerate(state.asked)}
         arrays |= {f"told_{k}": np.asarray(t) for k, t in enumerate(state.told)}
+        for k, (indices, again) in enumerate(state.reevaluations):
+            arrays |= {f"reevaluated_{k}": np.asarray(indices), f"again_{k}": np.asarray(again)}
         return arrays, {"generation": state.generation, "phase": state.phase}
 
     def restore(self, point, mask, seed: int, arrays: dict, meta: dict, steps: int) -> CMAESState:
@@ -260,8 +343,14 @@ class CMAES:
         count = meta["generation"]
         asked = [arrays[f"asked_{k}"] for k in range(count)]
         told = [arrays[f"told_{k}"] for k in range(count)]
-        replay(state.strategy, asked, told)
-        return dataclasses.replace(state, asked=asked, told=told, generation=count, phase=meta["phase"])
+        reevaluations = [
+            (arrays[f"reevaluated_{k}"], arrays[f"again_{k}"]) for k in range(count) if f"reevaluated_{k}" in arrays
+        ]
+        noise = None if state.noise is None else (state.noise, reevaluations)
+        replay(state.strategy, asked, told, noise)
+        return dataclasses.replace(
+            state, asked=asked, told=told, generation=count, phase=meta["phase"], reevaluations=reevaluations
+        )
 
     def progress(self, state: CMAESState, row: dict, steps: int) -> str:
         candidates = (

@@ -141,6 +141,10 @@ class TuneConfig:
             ``4 + 3 ln n`` for n tuned numbers).
         step_size: CMA-ES's initial step in log-gain units (0.3: about +-30% on every
             gain; smaller to refine gains already tuned).
+        separable: CMA-ES with a diagonal covariance (sep-CMA-ES; [`CMAES`][tuning.cmaes.CMAES]).
+        noise_handling: CMA-ES with pycma's noise handling (UH-CMA-ES; needs
+            ``fresh_batches``): a few candidates of each generation evaluated again on the
+            next batch, the step size raised where their ranks move more than chance allows.
         torque_fraction: the capture objective's torque constraint, as a fraction of the
             motors' limits (the robot's ``joint_torque_limit``; 1: the limits themselves).
         torque_cap_Nm: a torque budget in N m for every joint (``None``: none): the
@@ -164,7 +168,7 @@ class TuneConfig:
             objective is then on its own batch.
         keep: which gains the run hands back: ``"best"``, those with the least training
             objective it evaluated (CMA-ES: the best candidate ever told, or the final mean
-            where no worse; gradient descent: its best step, the start included; with fresh
+            where no worse, and under fresh batches the final mean, pycma's ``xfavorite``; gradient descent: its best step, the start included; with fresh
             batches each step's objective is on its own batch), or ``"last"`` (the final
             mean, the final step). Either way the held-out evaluation then compares them
             with the starting gains, and ``gains.json`` holds the better
@@ -214,6 +218,8 @@ class TuneConfig:
     method: str = "cmaes"
     population: int | None = None
     step_size: float = cmaes.SIGMA
+    separable: bool = False
+    noise_handling: bool = False
     torque_fraction: float = 1.0
     torque_cap_Nm: float | None = None
     fresh_batches: bool = False
@@ -313,6 +319,13 @@ class TuneConfig:
             raise ValueError(f"keep: expected one of {', '.join(KEEPS)}, got {self.keep!r}")
         if self.fresh_batches and self.realism is None:
             raise ValueError("fresh_batches: draws each step's samples of a run under a realism (choose --realism)")
+        for name in ("separable", "noise_handling"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: must be true or false, got {getattr(self, name)!r}")
+        if self.noise_handling and not self.fresh_batches:
+            raise ValueError(
+                "noise_handling: measures the noise by evaluating candidates again on a new batch (choose --fresh-batches)"
+            )
         if self.realism is not None and self.gradient != "reverse":
             raise ValueError(
                 "gradient: tuning under a realism takes each sample's reverse-mode gradient; forward mode runs the ideal loop only"

@@ -358,6 +358,8 @@ TUNE_OPTIONS = {
     "torque_cap_Nm": "--torque-cap",
     "population": "--population",
     "step_size": "--step-size",
+    "separable": "--separable",
+    "noise_handling": "--noise-handling",
     "method": "--method",
     "gradient": "--gradient",
     "objective": "--objective",

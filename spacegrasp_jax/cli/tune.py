@@ -311,7 +311,13 @@ def _tune_fields(args: argparse.Namespace, robot) -> dict:
     realism = load_realism(args.realism, robot).to_dict() if args.realism else None
     recipe = default_recipe(realism) if args.method is None else {}
     if recipe.get("method") == "gradient":
-        for option, value in (("--population", args.population), ("--step-size", args.step_size)):
+        cmaes_options = (
+            ("--population", args.population),
+            ("--step-size", args.step_size),
+            ("--separable", args.separable or None),
+            ("--noise-handling", args.noise_handling or None),
+        )
+        for option, value in cmaes_options:
             if value is not None:
                 raise UsageError(
                     f"{option}: a setting of CMA-ES; without --method, tune in a flight-like loop runs the "
@@ -343,6 +349,8 @@ def _tune_fields(args: argparse.Namespace, robot) -> dict:
         method=method,
         population=args.population,
         step_size=given_or(args.step_size, "step_size"),
+        separable=args.separable,
+        noise_handling=args.noise_handling,
         torque_fraction=args.torque_fraction,
         torque_cap_Nm=args.torque_cap,
         fresh_batches=given_or(args.fresh_batches, "fresh_batches"),
@@ -411,6 +419,17 @@ def add_parsers(commands) -> None:
         default=None,
         help=f"CMA-ES's initial step in log-gain units (default {TuneConfig.step_size}: about +-30%% on every gain)",
     )
+    tune.add_argument(
+        "--separable",
+        action="store_true",
+        help="CMA-ES with a diagonal covariance (sep-CMA-ES): faster learning on hundreds of gains",
+    )
+    tune.add_argument(
+        "--noise-handling",
+        action="store_true",
+        help="CMA-ES with pycma's noise handling (UH-CMA-ES, with --fresh-batches): a few candidates a "
+        "generation evaluated again on the next batch, the step size raised where their ranks move by chance",
+    )
     add_objective_arguments(tune)
     tune.add_argument(
         "--batch",
@@ -468,8 +487,8 @@ def add_parsers(commands) -> None:
         "--fresh-batches",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="the gradient method under --realism: a new batch of the envelope for every step (default: without "
-        "--method, a new batch; with --method gradient, one batch)",
+        help="under --realism: a new batch of the envelope for every step or CMA-ES generation (default: without "
+        "--method, a new batch; with --method, one batch)",
     )
     tune.add_argument(
         "--gradient-from",
