@@ -211,6 +211,44 @@ def test_the_race_pairs_each_method_with_cmaes_at_the_same_mark_and_refuses_bad_
     assert not (tmp_path / "race").exists()
 
 
+def test_the_race_over_seeds_pairs_each_run_with_the_reference_on_its_seed_and_refuses_bad_settings(tmp_path):
+    from spacegrasp_jax.benchmarks import race_seeds
+    from spacegrasp_jax.envelope import statistics
+
+    flags = {"shipped_flight": [1, 1, 1, 0, 1, 0]}
+    for seed, (ours, theirs) in enumerate(
+        [([1, 1, 1, 1, 1, 0], [1, 0, 0, 0, 1, 0]), ([1, 1, 0, 1, 1, 1], [1, 1, 0, 1, 1, 0])]
+    ):
+        flags[f"gradient_fresh_seed{seed}_10min"] = ours
+        flags[f"cmaes_fresh_seed{seed}_10min"] = theirs
+    np.savez(tmp_path / "samples.npz", **{f"admittance/{key}/success": np.array(v, bool) for key, v in flags.items()})
+    summary = race_seeds.summarise(
+        tmp_path / "samples.npz", ["gradient_fresh", "cmaes_fresh"], [0, 1], [10.0], "gradient_fresh"
+    )
+    versus = summary["runs"]["cmaes_fresh_seed0_10min"]["vs_gradient_fresh"]
+    assert (versus["only_reference"], versus["only_candidate"]) == (3, 0)
+    assert "vs_gradient_fresh" not in summary["runs"]["gradient_fresh_seed1_10min"]
+    entry = summary["methods"]["cmaes_fresh"]["10"]
+    assert entry["success"]["values"] == [2 / 6, 4 / 6]
+    # paired by seed: cmaes - gradient = -3/6 on seed 0, -1/6 on seed 1
+    np.testing.assert_allclose(entry["difference_to_gradient_fresh"]["values"], [-3 / 6, -1 / 6])
+    assert entry["difference_to_gradient_fresh"]["iqm"] == statistics.interquartile_mean([-3 / 6, -1 / 6])
+    assert summary["shipped_flight"]["successes"] == 4
+    for argv in (
+        ["--methods", "nope"],
+        ["--methods", "cmaes_fresh", "--reference", "gradient_fresh"],
+        ["--seeds", "0,0"],
+        ["--seeds", "x"],
+        ["--minutes", "15", "--marks", "20"],
+        ["--range", "lar_position_m"],
+        ["--clock", "sundial"],
+    ):
+        with pytest.raises(SystemExit) as refused:
+            race_seeds.main([*argv, "--out", str(tmp_path / "race")])
+        assert refused.value.code == 2, argv
+    assert not (tmp_path / "race").exists()
+
+
 def test_the_race_report_reads_each_mark_off_the_committed_campaigns_and_the_runs(tmp_path, capsys):
     """``benchmarks.tuning --races``: every row's success and McNemar counts recounted from the
     held-out campaign's per-sample flags, its steps from the run's history."""
