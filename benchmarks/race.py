@@ -77,11 +77,6 @@ METHODS = {
     "sep_cmaes_fresh": ["--method", "cmaes", "--separable", "--fresh-batches", "--steps", "100000"],
 }
 
-#: How a run's time is counted: ``"wall"`` (seconds since its process started) or ``"cpu"``
-#: (the CPU seconds of its process, every thread: the compute it used, which other work
-#: on the machine does not eat into).
-CLOCKS = ("wall", "cpu")
-
 #: The gradient methods' steps a minute of wall time on 2 cores (a batch of 32 flight-like
 #: gradients takes about 11 s): their cosine schedule ends when the time does.
 GRADIENT_STEPS_PER_MINUTE = 5
@@ -90,27 +85,12 @@ GRADIENT_STEPS_PER_MINUTE = 5
 #: gradients cut at 8.5 s took 4.7 s on 2 cores (a first run of the race, stopped after 25 steps).
 STEPS_PER_MINUTE = {"gradient_fresh_truncated": 12}
 
-#: The gradient methods' steps a CPU minute (``--clock cpu``): a run of 6 steps of 32 flight-like
-#: gradients took 157 CPU seconds on the 2-core AMD EPYC VM, its compile and start included (161%
-#: CPU, 8.2 s of wall time a step): about 15 CPU seconds a step once compiled.
-GRADIENT_STEPS_PER_CPU_MINUTE = 3.5
 
-
-def steps_for(method: str, minutes: float, clock: str) -> int:
-    """The steps a gradient method's cosine schedule spans in ``minutes`` of ``clock``."""
-    if clock == "cpu":
-        return max(1, round(GRADIENT_STEPS_PER_CPU_MINUTE * minutes))
-    return max(1, round(STEPS_PER_MINUTE.get(method, GRADIENT_STEPS_PER_MINUTE) * minutes))
-
-
-def cpu_seconds(pid: int) -> float:
-    """The CPU seconds (user and system, every thread) process ``pid`` has used (Linux's
-    ``/proc``); NaN once it is gone."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
-        return math.nan
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
+def steps_for(method: str, minutes: float, steps_per_minute: float | None = None) -> int:
+    """The steps a gradient method's cosine schedule spans in ``minutes`` (``steps_per_minute``:
+    this machine's rate, else the first race's)."""
+    rate = steps_per_minute or STEPS_PER_MINUTE.get(method, GRADIENT_STEPS_PER_MINUTE)
+    return max(1, round(rate * minutes))
 
 
 def common_options(seed: int) -> list[str]:
@@ -134,39 +114,35 @@ def run_method(
     marks: list[float],
     seed: int,
     schedule: str | None = None,
-    clock: str = "wall",
+    steps_per_minute: float | None = None,
     problem: tuple[str, ...] = (),
 ) -> dict:
-    """One method's run: ``{mark: snapshot path}`` and the run's facts. ``clock``: how its
-    minutes are counted (``CLOCKS``); ``problem``: options of ``spacegrasp tune`` added to the
-    common ones (another envelope: ``--range NAME=HALF_WIDTH``)."""
+    """One method's run: ``{mark: snapshot path}`` and the run's facts. ``steps_per_minute``:
+    the gradient methods' steps a minute on this machine ([`steps_for()`][spacegrasp_jax.benchmarks.race.steps_for]);
+    ``problem``: options of ``spacegrasp tune`` added to the common ones (another envelope:
+    ``--range NAME=HALF_WIDTH``)."""
     out = folder / method
     if out.exists():
         shutil.rmtree(out)
     snapshots = folder / f"{method}_snapshots"
     snapshots.mkdir(parents=True, exist_ok=True)
-    steps = str(steps_for(method, minutes, clock))
+    steps = str(steps_for(method, minutes, steps_per_minute))
     options = [option.replace("{steps}", steps) for option in METHODS[method]]
     command = [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(out), *common_options(seed), *options]
     command += ["--schedule", schedule] if schedule else []
     command += list(problem)
     start = time.monotonic()
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    used = {"wall": lambda: time.monotonic() - start, "cpu": lambda: cpu_seconds(process.pid)}[clock]
-    taken, cpu_s = {}, 0.0
+    taken = {}
     for mark in marks:
-        while process.poll() is None:
-            spent = used()
-            cpu_s = max(cpu_s, cpu_seconds(process.pid) if clock == "wall" else spent)
-            if not spent < 60.0 * mark:  # NaN: the process has just ended
-                break
+        while time.monotonic() - start < 60.0 * mark and process.poll() is None:
             time.sleep(0.5)
         checkpoint = out / "checkpoint.npz"
         if checkpoint.exists():  # written atomically after every step
             target = snapshots / f"{mark:g}min.npz"
             shutil.copyfile(checkpoint, target)
             taken[f"{mark:g}"] = {"path": str(target.relative_to(folder)), "at_s": time.monotonic() - start}
-            taken[f"{mark:g}"] |= {"cpu_s": cpu_s} | snapshot_work(target)
+            taken[f"{mark:g}"] |= snapshot_work(target)
     if process.poll() is None:
         process.send_signal(signal.SIGINT)  # stops after the step under way; a second one at once
         try:

@@ -2,16 +2,18 @@
 held out together on one campaign of fresh captures, summarised as a skeptic asks.
 
     python -m spacegrasp_jax.benchmarks.race_seeds --out DIR [--seeds 0,1,2,3,4]
-        [--methods gradient_fresh,cmaes_fresh,cmaes_noise,sep_cmaes_fresh] [--clock cpu]
-        [--minutes 20] [--marks 10,20] [--heldout 1000] [--heldout-seed 730001]
+        [--methods gradient_fresh,cmaes_fresh,cmaes_noise,sep_cmaes_fresh] [--minutes 15]
+        [--marks 5,10,15] [--gradient-steps-per-minute 6.5] [--heldout 1000] [--heldout-seed 730001]
         [--schedule VARIABLE:X1,...] [--range NAME=HALF_WIDTH ...]
 
 Every run is one method on one training seed, as ``benchmarks.race`` runs it: ``spacegrasp
 tune`` in its own process, no compilation cache, on the flight-like loop, the campaigns'
 envelope (widened by ``--range``), the capture objective with a 4 N m torque budget and
-batches of 32 drawn from the seed; its checkpoint copied at each mark of ``--clock``
-(``cpu``: the CPU seconds of the run's process, every thread, so that other work on the
-machine does not shorten a run's budget; ``wall``: wall time on an otherwise idle machine).
+batches of 32 drawn from the seed; its checkpoint copied at each mark (minutes of wall time
+since its process started, compiling included: the machine must do nothing else meanwhile).
+The gradient method's cosine schedule spans ``--gradient-steps-per-minute`` times
+``--minutes`` steps: measure the rate on the machine (a step of 32 flight-like gradients
+took 8.2 s on the 2-core AMD EPYC VM, so 6.5 a minute leaves the compile its time).
 Runs go seed by seed, every method of a seed before the next seed, so that a race cut short
 still pairs methods on the same seeds. Each run's record names the machine and a hash of
 the code it ran (``code``): a race is one code.
@@ -46,7 +48,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from spacegrasp_jax.benchmarks.race import CLOCKS, METHODS, run_method, snapshot_gains
+from spacegrasp_jax.benchmarks.race import METHODS, run_method, snapshot_gains
 
 #: The methods raced by default, the reference first: the gradient method on a fresh batch
 #: a step, CMA-ES of pycma's default population on a fresh batch a generation, with noise
@@ -103,9 +105,14 @@ def main(argv=None) -> int:
         help=f"comma-separated, of {', '.join(METHODS)} (default {','.join(DEFAULT_METHODS)})",
     )
     parser.add_argument("--reference", help="the method every other is paired with (default: the first)")
-    parser.add_argument("--clock", choices=CLOCKS, default="cpu", help="how a run's minutes count (default cpu)")
-    parser.add_argument("--minutes", type=float, default=20.0, help="each run's budget (default 20)")
-    parser.add_argument("--marks", default="10,20", help="minutes at which the gains are taken (default 10,20)")
+    parser.add_argument("--minutes", type=float, default=15.0, help="each run's wall time (default 15)")
+    parser.add_argument("--marks", default="5,10,15", help="minutes at which the gains are taken (default 5,10,15)")
+    parser.add_argument(
+        "--gradient-steps-per-minute",
+        type=float,
+        default=6.5,
+        help="the gradient method's steps a minute on this machine: its cosine schedule's length (default 6.5)",
+    )
     parser.add_argument("--heldout", type=int, default=1000, help="held-out captures (default 1000)")
     parser.add_argument("--heldout-seed", type=int, default=HELDOUT_SEED, help=f"(default {HELDOUT_SEED})")
     parser.add_argument("--schedule", metavar="VARIABLE:X1,X2,...", help="race on a gain schedule (tune --schedule)")
@@ -132,6 +139,8 @@ def main(argv=None) -> int:
         parser.error(f"--reference: {reference} is not one of --methods")
     if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
         parser.error(f"--seeds: distinct non-negative whole numbers, got {args.seeds!r}")
+    if not (math.isfinite(args.gradient_steps_per_minute) and args.gradient_steps_per_minute > 0):
+        parser.error(f"--gradient-steps-per-minute: must be a positive number, got {args.gradient_steps_per_minute}")
     if not (math.isfinite(args.minutes) and args.minutes > 0):
         parser.error(f"--minutes: must be a positive number, got {args.minutes}")
     if not marks or marks[0] <= 0 or marks[-1] > args.minutes:
@@ -148,7 +157,13 @@ def main(argv=None) -> int:
             parser.error(f"--range: expected NAME=HALF_WIDTH, got {text!r}")
     problem = tuple(option for text in args.range for option in ("--range", text))
 
-    settings = {"clock": args.clock, "minutes": args.minutes, "marks": marks, "seeds": seeds, "methods": methods}
+    settings = {
+        "minutes": args.minutes,
+        "gradient_steps_per_minute": args.gradient_steps_per_minute,
+        "marks": marks,
+        "seeds": seeds,
+        "methods": methods,
+    }
     settings |= {"reference": reference, "heldout": args.heldout, "heldout_seed": args.heldout_seed}
     settings |= {"schedule": args.schedule, "ranges": args.range}
     folder = Path(args.out).resolve()
@@ -167,7 +182,7 @@ def main(argv=None) -> int:
             label = run_label(method, seed)
             if label in record["runs"]:
                 continue
-            print(f"{label}: {args.minutes:g} {args.clock} minutes of tuning...", file=sys.stderr, flush=True)
+            print(f"{label}: {args.minutes:g} minutes of tuning...", file=sys.stderr, flush=True)
             run = run_method(
                 method,
                 folder / f"seed{seed}",
@@ -175,7 +190,7 @@ def main(argv=None) -> int:
                 marks=marks,
                 seed=seed,
                 schedule=args.schedule,
-                clock=args.clock,
+                steps_per_minute=args.gradient_steps_per_minute,
                 problem=problem,
             )
             record["runs"][label] = run | {"code": code, "machine": host}

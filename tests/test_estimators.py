@@ -241,7 +241,7 @@ def test_the_race_over_seeds_pairs_each_run_with_the_reference_on_its_seed_and_r
         ["--seeds", "x"],
         ["--minutes", "15", "--marks", "20"],
         ["--range", "lar_position_m"],
-        ["--clock", "sundial"],
+        ["--gradient-steps-per-minute", "0"],
     ):
         with pytest.raises(SystemExit) as refused:
             race_seeds.main([*argv, "--out", str(tmp_path / "race")])
