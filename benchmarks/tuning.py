@@ -25,7 +25,11 @@ schedule), training seed, method and wall-time mark: the held-out success with i
 interval, the steps (CMA-ES: generations), forward rollouts or gradients of one capture used
 by the mark, the compile (the first step's wall time less the median of the others), and the
 gradient method's margin over CMA-ES at the same mark (exact McNemar on the same held-out
-captures). Writes ``races.json`` and prints the table.
+captures). A race over seeds (``benchmarks.race_seeds``) gives one row per run and mark,
+its McNemar test against the race's reference method on the same seed, and a second table:
+per method and mark, the interquartile mean of the seeds' held-out success and of their
+paired differences to the reference, each with its bootstrap interval over the seeds.
+Writes ``races.json`` and prints the tables.
 """
 
 from __future__ import annotations
@@ -146,11 +150,80 @@ def compile_estimate(history: Path) -> float:
     return first - statistics.median(later) if later else float("nan")
 
 
+def race_problem(settings: dict) -> str:
+    """A race's problem in words: constant gains or a schedule, on the campaigns' envelope or
+    one widened by ``--range``."""
+    problem = f"schedule {settings['schedule']}" if settings.get("schedule") else "constant gains"
+    return problem + (f", {' '.join(settings['ranges'])}" if settings.get("ranges") else "")
+
+
+def seeds_race_rows(record_path: Path) -> list[dict]:
+    """The rows of a finished race over seeds (``benchmarks.race_seeds``): one per run and mark,
+    its McNemar test against the reference method on the same seed and mark as ``versus``."""
+    record = json.loads(record_path.read_text())
+    settings, summary, rows = record["settings"], record["summary"], []
+    for label, run in record["runs"].items():
+        method, seed = label.rsplit("_seed", 1)
+        history = record_path.parent / f"seed{seed}" / method / "history.csv"
+        compile_s = compile_estimate(history) if history.exists() else float("nan")
+        for mark, snapshot in run["snapshots"].items():
+            held_out = summary["runs"][f"{label}_{mark}min"]
+            versus = held_out.get(f"vs_{summary['reference']}")
+            rows.append(
+                {
+                    "race": record_path.parent.name,
+                    "paired_with": None,
+                    "problem": race_problem(settings),
+                    "training_seed": int(seed),
+                    "heldout_seed": settings["heldout_seed"],
+                    "method": method,
+                    "minutes": float(mark),
+                    "success": held_out["success"],
+                    "versus": None if versus is None else {"method": summary["reference"], **versus},
+                    "vs_cmaes_same_mark": None,
+                    "steps": snapshot.get("steps"),
+                    "rollouts": snapshot.get("rollouts"),
+                    "gradients": snapshot.get("gradients"),
+                    "compile_s": compile_s,
+                }
+            )
+    return rows
+
+
+def seeds_race_summaries(root: Path) -> list[dict]:
+    """Per finished race over seeds under ``root``, method and mark: the interquartile mean
+    of the seeds' held-out success and of their paired differences to the reference method,
+    each with its bootstrap interval over the seeds."""
+    summaries = []
+    for record_path in sorted(root.glob("*/race.json")):
+        record = json.loads(record_path.read_text())
+        if "runs" not in record or "summary" not in record:
+            continue
+        reference = record["summary"]["reference"]
+        for method, marks in record["summary"]["methods"].items():
+            for mark, entry in marks.items():
+                summaries.append(
+                    {
+                        "race": record_path.parent.name,
+                        "problem": race_problem(record["settings"]),
+                        "method": method,
+                        "minutes": float(mark),
+                        "success": entry["success"],
+                        "reference": reference,
+                        "difference_to_reference": entry.get(f"difference_to_{reference}"),
+                    }
+                )
+    return summaries
+
+
 def race_rows(root: Path) -> list[dict]:
     """One row per finished race under ``root``, method and mark (module docstring)."""
     rows = []
     for record_path in sorted(root.glob("*/race.json")):
         record = json.loads(record_path.read_text())
+        if "runs" in record:  # a race over seeds
+            rows += seeds_race_rows(record_path) if "summary" in record else []
+            continue
         if "heldout" not in record:
             continue
         settings = record["settings"]
@@ -211,14 +284,15 @@ def race_table(rows: list[dict]) -> str:
     """The rows as a markdown table."""
     lines = [
         "| problem | training seed | minutes | method | held-out success [95% CI] | steps | rollouts or gradients "
-        "| compile, s | vs CMA-ES at the same mark (McNemar) |",
+        "| compile, s | against the reference at the same mark (McNemar) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for row in rows:
-        success, versus = row["success"], row["vs_cmaes_same_mark"]
+        success = row["success"]
+        versus = row.get("versus") or (row["vs_cmaes_same_mark"] and {"method": "cmaes", **row["vs_cmaes_same_mark"]})
         used = f"{row['rollouts']} rollouts" if row["rollouts"] is not None else f"{row['gradients']} gradients"
         margin = (
-            f"{100 * versus['rate_difference']:+.1f} points, {versus['only_candidate']} vs "
+            f"{100 * versus['rate_difference']:+.1f} points against {versus['method']}, {versus['only_candidate']} vs "
             f"{versus['only_reference']}, p = {versus['p_value']:.2g}"
             if versus
             else ""
@@ -227,6 +301,28 @@ def race_table(rows: list[dict]) -> str:
             f"| {row['problem']} | {row['training_seed']} | {row['minutes']:g} | {row['method']} | "
             f"{100 * success['rate']:.1f}% [{100 * success['low']:.1f}, {100 * success['high']:.1f}] | "
             f"{row['steps']} | {used} | {row['compile_s']:.0f} | {margin} |"
+        )
+    return "\n".join(lines)
+
+
+def seeds_summary_table(summaries: list[dict]) -> str:
+    """The races over seeds as a markdown table: interquartile means over the seeds."""
+    lines = [
+        "| problem | minutes | method | held-out success, IQM over seeds [95% CI] | seeds | "
+        "difference to the reference, IQM [95% CI] |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for row in sorted(summaries, key=lambda row: (row["problem"], row["minutes"], row["method"])):
+        success, difference = row["success"], row["difference_to_reference"]
+        versus = (
+            f"{100 * difference['iqm']:+.1f} points [{100 * difference['low']:+.1f}, {100 * difference['high']:+.1f}] "
+            f"against {row['reference']}"
+            if difference
+            else "(the reference)"
+        )
+        lines.append(
+            f"| {row['problem']} | {row['minutes']:g} | {row['method']} | {100 * success['iqm']:.1f}% "
+            f"[{100 * success['low']:.1f}, {100 * success['high']:.1f}] | {success['runs']} | {versus} |"
         )
     return "\n".join(lines)
 
@@ -248,8 +344,13 @@ def main(argv: list[str] | None = None) -> int:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         verdicts = race_verdicts(rows)
-        (out / "races.json").write_text(json.dumps({"rows": rows, "verdicts": verdicts}, indent=1) + "\n")
+        report = {"rows": rows, "verdicts": verdicts, "across_seeds": seeds_race_summaries(Path(args.races))}
+        (out / "races.json").write_text(json.dumps(report, indent=1) + "\n")
         print(race_table(rows))
+        summaries = seeds_race_summaries(Path(args.races))
+        if summaries:
+            print()
+            print(seeds_summary_table(summaries))
         for verdict in verdicts:
             print(
                 f"{verdict['problem']}, {verdict['minutes']:g} min: the gradient method beats CMA-ES by "

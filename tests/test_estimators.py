@@ -249,6 +249,39 @@ def test_the_race_over_seeds_pairs_each_run_with_the_reference_on_its_seed_and_r
     assert not (tmp_path / "race").exists()
 
 
+def test_the_race_report_gives_a_race_over_seeds_run_by_run_and_across_seeds(tmp_path, capsys):
+    import json
+
+    from spacegrasp_jax.benchmarks import race_seeds, tuning
+
+    folder = tmp_path / "races" / "race_seeds_constant"
+    (folder / "heldout").mkdir(parents=True)
+    flags = {"shipped_flight": [1, 1, 1, 0, 1, 0, 1, 1]}
+    runs = {}
+    for seed, (ours, theirs) in enumerate(
+        [([1, 1, 1, 1, 1, 0, 1, 1], [1, 0, 0, 0, 1, 0, 1, 1]), ([1, 1, 0, 1, 1, 1, 1, 1], [1, 1, 0, 1, 1, 0, 0, 1])]
+    ):
+        for method, hits in (("gradient_fresh", ours), ("cmaes_fresh", theirs)):
+            flags[f"{method}_seed{seed}_15min"] = hits
+            used = {"gradients": 32 * 90} if method == "gradient_fresh" else {"rollouts": 16 * 32 * 60}
+            runs[f"{method}_seed{seed}"] = {"snapshots": {"15": {"path": "x", "steps": 90, **used}}}
+    samples = folder / "heldout" / "samples.npz"
+    np.savez(samples, **{f"admittance/{key}/success": np.array(v, bool) for key, v in flags.items()})
+    summary = race_seeds.summarise(samples, ["gradient_fresh", "cmaes_fresh"], [0, 1], [15.0], "gradient_fresh")
+    settings = {"schedule": None, "ranges": ["lar_position_m=0.01"], "heldout_seed": 730001}
+    (folder / "race.json").write_text(json.dumps({"settings": settings, "runs": runs, "summary": summary}))
+    assert tuning.main(["--races", str(tmp_path / "races"), "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "races.json").read_text())
+    row = next(r for r in report["rows"] if r["method"] == "cmaes_fresh" and r["training_seed"] == 0)
+    assert row["problem"] == "constant gains, lar_position_m=0.01" and row["success"]["successes"] == 4
+    assert (row["versus"]["only_reference"], row["versus"]["only_candidate"]) == (3, 0)
+    across = next(r for r in report["across_seeds"] if r["method"] == "cmaes_fresh")
+    np.testing.assert_allclose(across["difference_to_reference"]["values"], [-3 / 8, -2 / 8])
+    printed = capsys.readouterr().out
+    assert "| constant gains, lar_position_m=0.01 | 15 | cmaes_fresh | 56.2% [50.0, 62.5] | 2 |" in printed
+    assert "-31.2 points [-37.5, -25.0] against gradient_fresh |" in printed
+
+
 def test_the_race_report_reads_each_mark_off_the_committed_campaigns_and_the_runs(tmp_path, capsys):
     """``benchmarks.tuning --races``: every row's success and McNemar counts recounted from the
     held-out campaign's per-sample flags, its steps from the run's history."""
