@@ -12,6 +12,7 @@ import pytest
 from spacegrasp_jax.envelope.perturbations import (
     PerturbationError,
     PerturbationRanges,
+    draw,
     load_ranges,
     sample,
     sample_scenarios,
@@ -118,6 +119,28 @@ def test_ranges_from_a_file(tmp_path):
     path.write_text("q_init_rad = [0.05\n")
     with pytest.raises(PerturbationError, match="not valid TOML"):
         load_ranges(path)
+
+
+def test_an_envelope_scaled_by_k_draws_each_sample_k_times_as_far():
+    # The same keys draw the same units: every additive draw is k times the base envelope's,
+    # a fraction's deviation from 1 k times, and the stiffness's factor (drawn in its
+    # logarithm) the base's to the power k.
+    base = PerturbationRanges(target_mass_log_range=0.3, target_com_offset_m=0.1)
+    wide = base.scaled(2.5)
+    key = jax.random.PRNGKey(11)
+    drawn, scaled = draw(key, base), draw(key, wide)
+    for name in ("dq_init", "dp_lar", "dr_lar", "V_base_init", "dp_lar_estimate", "target_com_offset"):
+        np.testing.assert_allclose(getattr(scaled, name), 2.5 * getattr(drawn, name), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(scaled.satellite_mass_scale - 1.0, 2.5 * (drawn.satellite_mass_scale - 1.0), rtol=1e-12)
+    np.testing.assert_allclose(scaled.target_mass_log_scale, 2.5 * drawn.target_mass_log_scale, rtol=1e-12)
+    np.testing.assert_allclose(scaled.stiffness_scale, drawn.stiffness_scale**2.5, rtol=1e-12)
+    assert base.scaled(1.0) == base
+    assert base.scaled(0.0) == dataclasses.replace(PerturbationRanges.nominal(), stiffness_factor=1.0)
+    # the default envelope's 10% fractions reach 1 at k = 10: refused, naming the first
+    with pytest.raises(PerturbationError, match="radius_fraction: 0.1 times 10 reaches 1"):
+        PerturbationRanges().scaled(10.0)
+    with pytest.raises(PerturbationError, match="scale: must be a finite number of 0 or more"):
+        base.scaled(-1.0)
 
 
 @pytest.mark.slow

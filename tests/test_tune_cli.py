@@ -232,11 +232,15 @@ def test_tune_draws_from_the_envelope_it_is_given(tmp_path):
     from_file = config("--ranges", str(ranges_file), "--range", "lar_position_m=0.007").ranges
     assert (from_file.q_init_rad, from_file.lar_position_m) == (0.04, 0.007)
     assert from_file.base_speed_mps == TUNING_RANGES.base_speed_mps  # the rest: the tuning envelope
+    wide = config("--ranges", "lar_wide", "--scale", "2", "--range", "q_init_rad=0.05").ranges
+    assert (wide.lar_position_m, wide.lar_estimate_angle_rad, wide.q_init_rad) == (0.02, 0.02, 0.05)  # --range last
+    assert wide.stiffness_factor == PerturbationRanges().stiffness_factor ** 2
     for options, message in (
         (["--range", "q_init=0.1"], "unknown perturbation range 'q_init'"),
         (["--ranges", str(tmp_path / "missing.toml")], "missing.toml: no such file"),
         (["--method", "cmaes", "--realism", "flight", "--noise-handling"], "--noise-handling: measures the noise"),
         (["--realism", "flight", "--separable"], "--separable: a setting of CMA-ES"),
+        (["--ranges", "montecarlo", "--scale", "10"], "--scale 10: radius_fraction: 0.1 times 10 reaches 1"),
     ):
         result = subprocess.run(
             [sys.executable, "-m", "spacegrasp_jax.cli", "tune", "--out", str(tmp_path / "y"), *options],

@@ -21,6 +21,7 @@ from spacegrasp_jax.core.model import n_joints
 from spacegrasp_jax.core.robot_files import rate_limits_stated
 from spacegrasp_jax.envelope.criteria import CaptureCriteria
 from spacegrasp_jax.envelope.perturbations import (
+    PerturbationError,
     PerturbationRanges,
     load_ranges,
 )
@@ -297,11 +298,17 @@ def _perturbed(path: str, spec):
 
 def _ranges(args: argparse.Namespace, default: PerturbationRanges) -> PerturbationRanges:
     """``default``, or the ``--ranges`` envelope (a name of ``NAMED_RANGES`` or a TOML
-    file whose missing keys are ``default``'s), then each ``--range NAME=VALUE``."""
+    file whose missing keys are ``default``'s), scaled by ``--scale``, then each
+    ``--range NAME=VALUE``."""
     if args.ranges in NAMED_RANGES:
         ranges = NAMED_RANGES[args.ranges]
     else:
         ranges = load_ranges(args.ranges, base=default) if args.ranges else default
+    if getattr(args, "scale", None) is not None:
+        try:
+            ranges = ranges.scaled(args.scale)
+        except PerturbationError as error:
+            raise UsageError(f"--scale {args.scale:g}: {error}") from None
     overrides = {}
     for item in args.range:
         name, separator, value = item.partition("=")

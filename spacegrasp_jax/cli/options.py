@@ -9,6 +9,7 @@ import sys
 from spacegrasp_jax.core.inputs import did_you_mean
 from spacegrasp_jax.envelope.perturbations import (
     FREE_TARGET_RANGES,
+    LAR_WIDE_RANGES,
     PerturbationRanges,
 )
 from spacegrasp_jax.loop.control import (
@@ -211,18 +212,32 @@ def _add_realism_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
-#: The envelopes ``--ranges`` knows by name: the campaigns' defaults, the tuning batch's and
-#: free-floating targets of 200 to 2,000 kg (with a scenario that has a [target]).
-NAMED_RANGES = {"montecarlo": PerturbationRanges(), "tuning": TUNING_RANGES, "free_target": FREE_TARGET_RANGES}
+#: The envelopes ``--ranges`` knows by name: the campaigns' defaults, the tuning batch's,
+#: the campaigns' twice as wide in the LAR's pose and its estimate, and free-floating targets
+#: of 200 to 2,000 kg (with a scenario that has a [target]).
+NAMED_RANGES = {
+    "montecarlo": PerturbationRanges(),
+    "tuning": TUNING_RANGES,
+    "lar_wide": LAR_WIDE_RANGES,
+    "free_target": FREE_TARGET_RANGES,
+}
 
 
 def add_ranges_arguments(parser: argparse.ArgumentParser, default: str) -> None:
     """``--ranges`` and ``--range`` on ``parser``, whose envelope is ``default`` (a name)."""
     parser.add_argument(
         "--ranges",
-        metavar="montecarlo|tuning|free_target|FILE",
+        metavar="|".join([*NAMED_RANGES, "FILE"]),
         help=f"perturbation half-widths: a named envelope or a TOML file whose missing keys keep the {default} "
         f"envelope's (default: {default}; documentation: File formats)",
+    )
+    parser.add_argument(
+        "--scale",
+        type=_real(0.0, 1e6),
+        default=None,
+        metavar="K",
+        help="the envelope K times as wide: every half-width times K, the contact stiffness's factor to the "
+        "power K (before --range; a fraction that would reach 1 is refused)",
     )
     parser.add_argument(
         "--range",

@@ -71,6 +71,16 @@ class PerturbationError(ValueError):
     """Invalid perturbation ranges; the message names the offending field."""
 
 
+#: The half-widths that are fractions of a positive quantity: each must stay below 1.
+FRACTIONS = (
+    "radius_fraction",
+    "satellite_mass_fraction",
+    "satellite_inertia_fraction",
+    "target_mass_fraction",
+    "target_inertia_fraction",
+)
+
+
 @jax.tree_util.register_pytree_node_class
 @dataclasses.dataclass(frozen=True)
 class PerturbationRanges:
@@ -115,13 +125,7 @@ class PerturbationRanges:
             raise PerturbationError(
                 f"stiffness_factor: must be >= 1 (1 leaves the stiffness unchanged), got {self.stiffness_factor}"
             )
-        for name in (
-            "radius_fraction",
-            "satellite_mass_fraction",
-            "satellite_inertia_fraction",
-            "target_mass_fraction",
-            "target_inertia_fraction",
-        ):
+        for name in FRACTIONS:
             if getattr(self, name) >= 1.0:
                 raise PerturbationError(
                     f"{name}: must be below 1 (the quantity must stay positive), got {getattr(self, name)}"
@@ -158,6 +162,23 @@ class PerturbationRanges:
             return self._flags[1]
         return self.lar_estimate_position_m > 0.0 or self.lar_estimate_angle_rad > 0.0
 
+    def scaled(self, factor: float) -> PerturbationRanges:
+        """The envelope ``factor`` times as wide: every half-width times ``factor``, the
+        contact stiffness's factor raised to the power ``factor`` (it is drawn in its
+        logarithm, ``stiffness_factor ** U``). Raises PerturbationError, naming the field,
+        where a fraction would reach 1 (a mass, inertia or radius would reach zero)."""
+        if not (is_real(factor) and factor >= 0.0):
+            raise PerturbationError(f"scale: must be a finite number of 0 or more, got {short(factor)}")
+        values = {field.name: factor * getattr(self, field.name) for field in dataclasses.fields(self)}
+        values["stiffness_factor"] = self.stiffness_factor**factor
+        for name in FRACTIONS:
+            if values[name] >= 1.0:
+                raise PerturbationError(
+                    f"{name}: {getattr(self, name):g} times {factor:g} reaches {values[name]:g}; a fraction must "
+                    "stay below 1 (the quantity must stay positive)"
+                )
+        return PerturbationRanges(**values)
+
     def to_dict(self) -> dict[str, float]:
         return dataclasses.asdict(self)
 
@@ -184,6 +205,14 @@ FREE_TARGET_RANGES = PerturbationRanges(
     target_speed_mps=0.005 / math.sqrt(3.0),
     target_rate_radps=math.radians(1.0) / math.sqrt(3.0),
     target_com_offset_m=0.25,
+)
+
+
+#: The campaigns' envelope twice as wide in the LAR's pose and in the controller's estimate
+#: of it: the LAR within 10 mm and 0.02 rad per axis, the estimate off by up to 4 mm and
+#: 0.01 rad per axis more (on top of a flight-like loop's fixed bias); the rest the campaigns'.
+LAR_WIDE_RANGES = PerturbationRanges(
+    lar_position_m=0.01, lar_angle_rad=0.02, lar_estimate_position_m=0.004, lar_estimate_angle_rad=0.01
 )
 
 
