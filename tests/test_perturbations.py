@@ -8,6 +8,7 @@ import dataclasses
 import jax
 import numpy as np
 import pytest
+import scipy.optimize
 
 from spacegrasp_jax.envelope.perturbations import (
     PerturbationError,
@@ -180,3 +181,49 @@ def test_the_envelope_draws_leave_the_other_samples_as_they_were(robot, nominal)
     _, with_envelope, _ = sample(robot, nominal, 7, np.arange(8), FREE_TARGET_RANGES)
     for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(with_envelope)):
         np.testing.assert_array_equal(a, b)  # no target: the envelope's draws change nothing
+
+
+def test_an_approach_offset_replans_the_approach_from_the_end_effector_at_its_speed(robot, nominal):
+    from spacegrasp_jax.core.trajectory import desired_state
+    from spacegrasp_jax.envelope.perturbations import check_for_scenario, replanned
+
+    ranges = PerturbationRanges(approach_offset_m=0.012)
+    _, scenarios, drawn = sample(robot, nominal, 3, np.arange(16), ranges)
+    offsets = np.asarray(drawn.approach_offset)
+    assert np.abs(offsets).max() <= 0.012 and np.ptp(offsets) > 0.012
+    # The LAR (and the target with it) moved along its own z axis by the offset; the
+    # desired approach starts where the end-effector is, the offset farther back.
+    _, plain, _ = sample(robot, nominal, 3, np.arange(16), PerturbationRanges())
+    moved = np.einsum("ij,nj->ni", np.asarray(nominal.R_lar).T, scenarios.p_lar - plain.p_lar)
+    np.testing.assert_allclose(moved, np.stack([0 * offsets, 0 * offsets, offsets], axis=1), atol=1e-15)
+    np.testing.assert_allclose(scenarios.trajectory.start_pose[:, 2], -0.08 - offsets, atol=1e-15)
+    np.testing.assert_array_equal(scenarios.trajectory.end_pose, plain.trajectory.end_pose)
+    # Minimum jerk over a move of L in T peaks at 1.875 L / T: the same speed whatever the
+    # offset, and the desired end-effector reaches the sphere's near side (z = -0.045 m,
+    # LAR) later where the LAR is farther.
+    times = np.linspace(0.0, 17.0, 17001)
+    nominal_speed = jax.vmap(lambda t: desired_state(nominal.trajectory, t)[1][2])(times)
+    assert float(nominal_speed.max()) == pytest.approx(1.875 * 0.095 / 10.0, rel=1e-6)
+    reach = {}
+    for offset in (-0.012, 0.0, 0.012):
+        trajectory = replanned(nominal.trajectory, offset)
+        pose, twist, _ = jax.vmap(lambda t, trajectory=trajectory: desired_state(trajectory, t))(times)
+        assert float(twist[:, 2].max()) == pytest.approx(float(nominal_speed.max()), rel=1e-6)
+        reach[offset] = times[np.argmax(np.asarray(pose[:, 2]) >= -0.045)]  # the sphere moves with the LAR
+    # minimum jerk s(tau) = tau^3 (10 - 15 tau + 6 tau^2) reaches (35 mm + d) / (95 mm + d) of
+    # the move at tau T': about 1 s either way for 12 mm (module docstring)
+    for offset, time in reach.items():
+        length = 0.095 + offset
+        tau = scipy.optimize.brentq(lambda x, f=(0.035 + offset) / length: x**3 * (10 - 15 * x + 6 * x**2) - f, 0, 1)
+        assert time == pytest.approx(tau * 10.0 * length / 0.095, abs=2e-3)
+    assert reach[-0.012] < reach[0.0] - 0.99 and reach[0.012] > reach[0.0] + 0.97
+    assert jax.tree.all(
+        jax.tree.map(lambda a, b: bool(np.all(a == b)), replanned(nominal.trajectory, 0.0), nominal.trajectory)
+    )
+    # the other draws are as they were without it
+    for name in ("dq_init", "dp_lar", "dr_lar", "dp_lar_estimate", "V_base_init"):
+        np.testing.assert_array_equal(
+            getattr(drawn, name), getattr(sample(robot, nominal, 3, np.arange(16), PerturbationRanges())[2], name)
+        )
+    with pytest.raises(PerturbationError, match="approach_offset_m: 0.2 m needs an approach .* moves 0.095 m"):
+        check_for_scenario(PerturbationRanges(approach_offset_m=0.2), nominal)

@@ -31,7 +31,7 @@ from jax.flatten_util import ravel_pytree
 from spacegrasp_jax.core import joint_limits
 from spacegrasp_jax.core.model import Robot
 from spacegrasp_jax.envelope.criteria import CaptureCriteria
-from spacegrasp_jax.envelope.perturbations import PerturbationRanges, sample_scenarios
+from spacegrasp_jax.envelope.perturbations import PerturbationRanges, check_for_scenario, sample_scenarios
 from spacegrasp_jax.envelope.scenario import Scenario
 from spacegrasp_jax.jobs import batching, compilation
 from spacegrasp_jax.jobs.experiment import loop_options
@@ -979,6 +979,7 @@ def make_problem(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfi
     and mask, training batch (fresh batches where ``config.fresh_batches``: step k's of seed
     ``seed + FRESH_SEED_STRIDE * k``) and the batch objective's gradient program (compiled
     on its first call only)."""
+    check_for_scenario(config.ranges, nominal)
     objective = make_objective(robot, config, torque_scale_Nm)
     mask = make_mask(base, config.controller, config.frozen)
     params = initial_params(base, config.controller)

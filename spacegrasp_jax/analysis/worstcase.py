@@ -55,6 +55,7 @@ from spacegrasp_jax.core.model import Robot
 from spacegrasp_jax.envelope import metrics
 from spacegrasp_jax.envelope.criteria import CaptureCriteria
 from spacegrasp_jax.envelope.perturbations import (
+    LATER_FIELDS,
     Perturbation,
     PerturbationError,
     PerturbationRanges,
@@ -696,13 +697,17 @@ def units_to_dict(units: Perturbation) -> dict[str, list[float]]:
 
 
 def units_from_dict(document: dict, dtype=np.float64) -> Perturbation:
-    """``units_to_dict()``'s inverse; every field required, each of its shape, in the box (the
-    arm's number of joints is ``dq_init``'s length)."""
+    """``units_to_dict()``'s inverse; every field required (but those added later,
+    ``LATER_FIELDS``, nominal where missing), each of its shape, in the box (the arm's number
+    of joints is ``dq_init``'s length)."""
     angles = document.get("dq_init")
     joints = len(angles) if isinstance(angles, list) and angles else 7  # else refused below as for the paper's arm
     like = jax.tree.map(np.asarray, draw_units(jax.random.PRNGKey(0), dtype, joints))
     fields = {}
     for name, reference in vars(like).items():
+        if name not in document and name in LATER_FIELDS:  # a file of a version before the field
+            fields[name] = np.zeros_like(reference)
+            continue
         if name not in document:
             raise WorstCaseError(f"units: {name} is missing")
         try:

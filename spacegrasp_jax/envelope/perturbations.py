@@ -23,6 +23,14 @@ uniform, ``U`` meaning a fresh uniform number in [-1, 1]:
   believes is off the true one by ``U * value`` along each LAR axis and a rotation vector
   with components ``U * value`` (a flight-like loop's target estimate error,
   [`spacegrasp_jax.loop.realism`][spacegrasp_jax.loop.realism]; the perturbed LAR pose above is the true one).
+* ``approach_offset_m``: the approach's timing. The LAR (with the contact sphere and a target)
+  starts ``d = U * value`` farther along its approach axis (the LAR z axis: farther from the
+  arm for ``d > 0``), and the approach is planned from where the end-effector is: the desired
+  trajectory starts ``d`` farther back in LAR coordinates and its move lasts ``D + d`` over
+  ``D`` times as long (``D``: the nominal move's length along z), so that the minimum-jerk
+  profile keeps its speeds and first contact comes later (``d > 0``) or earlier. The horizon
+  is unchanged. On the paper's approach (95 mm in 10 s, contact at about 4.3 s) 12 mm is
+  about 1 s.
 
 A free-floating target (the scenario's ``target``) is moved with its LAR frame (the target's
 pose is what ``lar_position_m`` and ``lar_angle_rad`` perturb) and draws, from a stream of its
@@ -64,6 +72,7 @@ from spacegrasp_jax.core import spatial
 from spacegrasp_jax.core.inputs import is_real, read_document, short
 from spacegrasp_jax.core.model import N_JOINTS, Robot
 from spacegrasp_jax.core.target import fixed_target_state, initial_target_state
+from spacegrasp_jax.core.trajectory import Trajectory
 from spacegrasp_jax.envelope.scenario import Scenario
 
 
@@ -113,6 +122,7 @@ class PerturbationRanges:
     target_rate_radps: float = 0.005
     target_mass_log_range: float = 0.0
     target_com_offset_m: float = 0.0
+    approach_offset_m: float = 0.0
 
     def __post_init__(self):
         for field in dataclasses.fields(self):
@@ -247,6 +257,7 @@ class Perturbation:
             to the target's initial motion.
         target_mass_log_scale: (), the log of the factor on the target's mass and inertia.
         target_com_offset: (3,) m, LAR axes, the target CoM's displacement.
+        approach_offset: () m, how much farther along the approach axis the LAR starts.
     """
 
     dq_init: jax.Array
@@ -266,6 +277,12 @@ class Perturbation:
     target_angular_velocity: jax.Array
     target_mass_log_scale: jax.Array
     target_com_offset: jax.Array
+    approach_offset: jax.Array
+
+
+#: The fields of a [`Perturbation`][spacegrasp_jax.envelope.perturbations.Perturbation] added
+#: after others: a stored perturbation without one reads it as its nominal unit, 0.
+LATER_FIELDS = ("approach_offset",)
 
 
 def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64, n_joints: int = N_JOINTS) -> Perturbation:
@@ -284,7 +301,7 @@ def draw_units(key: jax.Array, dtype=jnp.float64, n_joints: int = N_JOINTS) -> P
     stiffness; ``fold_in(key, 1)`` the initial velocities, the sphere radius and the
     satellite's mass and inertia; ``fold_in(key, 2)`` the target estimate's error;
     ``fold_in(key, 3)`` the target's mass, inertia and motion; ``fold_in(key, 4)`` the free
-    target envelope's mass scale and CoM offset."""
+    target envelope's mass scale and CoM offset; ``fold_in(key, 5)`` the approach's timing."""
 
     def uniform(k, shape):
         return jax.random.uniform(k, shape, dtype, -1.0, 1.0)
@@ -294,6 +311,7 @@ def draw_units(key: jax.Array, dtype=jnp.float64, n_joints: int = N_JOINTS) -> P
     k_estimate_p, k_estimate_r = jax.random.split(jax.random.fold_in(key, 2), 2)
     k_target_m, k_target_i, k_target_v, k_target_w = jax.random.split(jax.random.fold_in(key, 3), 4)
     k_target_log_m, k_target_com = jax.random.split(jax.random.fold_in(key, 4), 2)
+    k_approach = jax.random.fold_in(key, 5)
     return Perturbation(
         dq_init=uniform(k_q, (n_joints,)),
         dp_lar=uniform(k_p, (3,)),
@@ -312,6 +330,7 @@ def draw_units(key: jax.Array, dtype=jnp.float64, n_joints: int = N_JOINTS) -> P
         target_angular_velocity=uniform(k_target_w, (3,)),
         target_mass_log_scale=uniform(k_target_log_m, ()),
         target_com_offset=_in_unit_ball(k_target_com, dtype),
+        approach_offset=uniform(k_approach, ()),
     )
 
 
@@ -341,6 +360,7 @@ def from_units(units: Perturbation, ranges: PerturbationRanges) -> Perturbation:
         target_angular_velocity=ranges.target_rate_radps * u.target_angular_velocity,
         target_mass_log_scale=ranges.target_mass_log_range * u.target_mass_log_scale,
         target_com_offset=ranges.target_com_offset_m * u.target_com_offset,
+        approach_offset=ranges.approach_offset_m * u.approach_offset,
     )
 
 
@@ -376,7 +396,8 @@ def apply_to_scenario(scenario: Scenario, perturbation: Perturbation) -> Scenari
     fixed target moves with the LAR; only a free-floating one has mass properties and a
     velocity to perturb)."""
     p, initial = perturbation, scenario.initial
-    p_lar = scenario.p_lar + scenario.R_lar @ p.dp_lar
+    approach = jnp.zeros(3, p.dp_lar.dtype).at[2].set(p.approach_offset)
+    p_lar = scenario.p_lar + scenario.R_lar @ (p.dp_lar + approach)
     R_lar = scenario.R_lar @ spatial.rotation_exp(p.dr_lar)
     initial = dataclasses.replace(
         initial, q=initial.q + p.dq_init, V_base=initial.V_base + p.V_base_init, qd=initial.qd + p.qd_init
@@ -401,10 +422,35 @@ def apply_to_scenario(scenario: Scenario, perturbation: Perturbation) -> Scenari
         initial=initial,
         p_lar=p_lar,
         R_lar=R_lar,
+        trajectory=replanned(scenario.trajectory, p.approach_offset),
         sphere_radius=scenario.sphere_radius * p.radius_scale,
         contact_stiffness=scenario.contact_stiffness * p.stiffness_scale,
         target=body,
     )
+
+
+def replanned(trajectory: Trajectory, offset) -> Trajectory:
+    """The approach planned from ``offset`` (m) farther back along the LAR z axis: the start
+    pose that much farther back, the move's duration stretched with its length, so that the
+    minimum-jerk profile keeps its speeds (module docstring). ``offset = 0`` gives
+    ``trajectory`` exactly."""
+    length = trajectory.end_pose[2] - trajectory.start_pose[2]
+    stretch = jnp.where(length != 0.0, (length + offset) / jnp.where(length != 0.0, length, 1.0), 1.0)
+    return dataclasses.replace(
+        trajectory, start_pose=trajectory.start_pose.at[2].add(-offset), duration=trajectory.duration * stretch
+    )
+
+
+def check_for_scenario(ranges: PerturbationRanges, scenario: Scenario) -> None:
+    """Raises PerturbationError where ``ranges`` cannot perturb ``scenario``: an approach
+    offset needs a move along the LAR z axis longer than the offset's half-width."""
+    if ranges.approach_offset_m > 0.0:
+        length = float(scenario.trajectory.end_pose[2] - scenario.trajectory.start_pose[2])
+        if not length > ranges.approach_offset_m:
+            raise PerturbationError(
+                f"approach_offset_m: {ranges.approach_offset_m:g} m needs an approach along the LAR z axis longer "
+                f"than that; this scenario's moves {length:g} m"
+            )
 
 
 def sample_keys(seed: int, indices) -> jax.Array:

@@ -39,7 +39,7 @@ from spacegrasp_jax.core.robot_files import load_robot
 from spacegrasp_jax.envelope import statistics
 from spacegrasp_jax.envelope.criteria import CaptureCriteria
 from spacegrasp_jax.envelope.metrics import METRICS, TARGET_METRICS
-from spacegrasp_jax.envelope.perturbations import PerturbationRanges
+from spacegrasp_jax.envelope.perturbations import PerturbationError, PerturbationRanges, check_for_scenario
 from spacegrasp_jax.envelope.scenario import Scenario, scenario_from_dict
 from spacegrasp_jax.jobs import anatomy, batching, experiment, records, runfiles
 from spacegrasp_jax.jobs.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
@@ -611,6 +611,10 @@ def run_campaign(
         raise CampaignError(
             f"chunk: {config.chunk} is not a multiple of the {devices} devices; use a multiple such as {devices * max(1, round(config.chunk / devices))}"
         )
+    try:
+        check_for_scenario(config.ranges, scenario)
+    except PerturbationError as error:
+        raise CampaignError(str(error)) from None
     if config.timeseries_every is not None and scenario.n_steps % config.timeseries_every:
         raise CampaignError(f"timeseries_every: {config.timeseries_every} does not divide the {scenario.n_steps} steps")
     writer = out is not None and jax.process_index() == 0
