@@ -227,3 +227,34 @@ def test_an_approach_offset_replans_the_approach_from_the_end_effector_at_its_sp
         )
     with pytest.raises(PerturbationError, match="approach_offset_m: 0.2 m needs an approach .* moves 0.095 m"):
         check_for_scenario(PerturbationRanges(approach_offset_m=0.2), nominal)
+
+
+def test_sensor_and_actuator_draws_reach_the_flight_like_loop_of_each_sample(robot, nominal):
+    from spacegrasp_jax.jobs.montecarlo import sample_loops
+    from spacegrasp_jax.loop.realism import Stage, flight
+
+    base = flight(robot)
+    ranges = PerturbationRanges(
+        ft_force_bias_N=0.5, ft_torque_bias_Nm=0.02, ft_force_noise_std_N=0.3, actuator_torque_loss_fraction=0.6
+    )
+    loops = sample_loops(robot, nominal, 5, np.arange(64), ranges, base)
+    realisms = loops.realisms
+    assert Stage.SENSORS in realisms.stages and Stage.ACTUATORS in realisms.stages
+    bias = np.asarray(realisms.force_bias) - np.asarray(base.force_bias)
+    assert np.abs(bias).max() <= 0.5 and np.abs(bias).max() > 0.45
+    assert np.abs(np.asarray(realisms.torque_bias) - np.asarray(base.torque_bias)).max() <= 0.02
+    noise = np.asarray(realisms.force_noise_std) - np.asarray(base.force_noise_std)
+    assert noise.min() >= 0.0 and noise.max() <= 0.3 and np.ptp(noise[:, 0]) > 0.25
+    np.testing.assert_array_equal(noise[:, 0], noise[:, 2])  # one level for the sensor's axes
+    np.testing.assert_array_equal(realisms.torque_noise_std, np.broadcast_to(base.torque_noise_std, (64, 3)))
+    # one joint a sample at 40-100% of its limit, the others at theirs
+    ratio = np.asarray(realisms.torque_limit_Nm) / np.asarray(base.torque_limit_Nm)
+    weakened = ratio < 1.0
+    assert weakened.sum(axis=1).max() == 1 and (ratio[weakened] >= 0.4).all()
+    np.testing.assert_array_equal(ratio[~weakened], 1.0)
+    assert set(np.argmax(weakened, axis=1)[weakened.any(axis=1)]) == set(range(7))  # every joint drawn in 64
+    # their streams leave the other draws alone
+    plain = sample_loops(robot, nominal, 5, np.arange(64), PerturbationRanges(), base)
+    for name in ("dq_init", "dp_lar", "dp_lar_estimate", "V_base_init"):
+        np.testing.assert_array_equal(getattr(loops.perturbations, name), getattr(plain.perturbations, name))
+    np.testing.assert_array_equal(plain.realisms.force_bias, np.broadcast_to(base.force_bias, (64, 3)))

@@ -32,6 +32,17 @@ uniform, ``U`` meaning a fresh uniform number in [-1, 1]:
   is unchanged. On the paper's approach (95 mm in 10 s, contact at about 4.3 s) 12 mm is
   about 1 s.
 
+A flight-like loop's sensors and actuators (their stage is switched on where drawn;
+[`spacegrasp_jax.loop.realism`][spacegrasp_jax.loop.realism]) draw, each group from a stream of its own:
+
+* ``ft_force_bias_N``, ``ft_torque_bias_Nm``: the F/T sensor's bias moves by ``U * value``
+  along each sensor axis (on top of the realism's);
+* ``ft_force_noise_std_N``, ``ft_torque_noise_std_Nm``: its white noise's standard deviation
+  on each axis grows by ``L * value``, one level ``L = (1 + U) / 2`` in [0, 1] for the sensor;
+* ``actuator_torque_loss_fraction``: one joint, drawn uniformly, has its torque limit scaled
+  by ``1 - L * value`` (``L`` in [0, 1] as above): a weak or degraded motor. It scales the
+  realism's limits, so it needs one whose actuators saturate (``flight``).
+
 A free-floating target (the scenario's ``target``) is moved with its LAR frame (the target's
 pose is what ``lar_position_m`` and ``lar_angle_rad`` perturb) and draws, from a stream of its
 own (the other samples stay as they are):
@@ -87,6 +98,7 @@ FRACTIONS = (
     "satellite_inertia_fraction",
     "target_mass_fraction",
     "target_inertia_fraction",
+    "actuator_torque_loss_fraction",
 )
 
 
@@ -123,6 +135,11 @@ class PerturbationRanges:
     target_mass_log_range: float = 0.0
     target_com_offset_m: float = 0.0
     approach_offset_m: float = 0.0
+    ft_force_bias_N: float = 0.0
+    ft_torque_bias_Nm: float = 0.0
+    ft_force_noise_std_N: float = 0.0
+    ft_torque_noise_std_Nm: float = 0.0
+    actuator_torque_loss_fraction: float = 0.0
 
     def __post_init__(self):
         for field in dataclasses.fields(self):
@@ -143,7 +160,12 @@ class PerturbationRanges:
 
     def tree_flatten(self):
         values = tuple(getattr(self, field.name) for field in dataclasses.fields(self))
-        return values, (self.perturbs_robot, self.draws_estimate_errors)
+        return values, (
+            self.perturbs_robot,
+            self.draws_estimate_errors,
+            self.draws_sensor_errors,
+            self.draws_actuator_loss,
+        )
 
     @classmethod
     def tree_unflatten(cls, flags, values):
@@ -188,6 +210,23 @@ class PerturbationRanges:
                     "stay below 1 (the quantity must stay positive)"
                 )
         return PerturbationRanges(**values)
+
+    @property
+    def draws_sensor_errors(self) -> bool:
+        """Whether each sample draws its F/T sensor's bias or noise level."""
+        if "_flags" in vars(self):
+            return self._flags[2]
+        return any(
+            getattr(self, name) > 0.0
+            for name in ("ft_force_bias_N", "ft_torque_bias_Nm", "ft_force_noise_std_N", "ft_torque_noise_std_Nm")
+        )
+
+    @property
+    def draws_actuator_loss(self) -> bool:
+        """Whether each sample draws an actuator at reduced torque."""
+        if "_flags" in vars(self):
+            return self._flags[3]
+        return self.actuator_torque_loss_fraction > 0.0
 
     def to_dict(self) -> dict[str, float]:
         return dataclasses.asdict(self)
@@ -258,6 +297,12 @@ class Perturbation:
         target_mass_log_scale: (), the log of the factor on the target's mass and inertia.
         target_com_offset: (3,) m, LAR axes, the target CoM's displacement.
         approach_offset: () m, how much farther along the approach axis the LAR starts.
+        ft_force_bias: (3,) N and ft_torque_bias: (3,) N m, sensor axes: added to the F/T
+            sensor's bias. ft_force_noise_std: () N and ft_torque_noise_std: () N m: added
+            to its noise's standard deviation on every axis.
+        actuator_joint: () in [-1, 1], the weakened joint's unit: joint
+            ``floor((1 + u) / 2 * N)`` ([`weakened_joint()`][spacegrasp_jax.envelope.perturbations.weakened_joint]).
+        actuator_torque_scale: () the factor on that joint's torque limit.
     """
 
     dq_init: jax.Array
@@ -278,11 +323,25 @@ class Perturbation:
     target_mass_log_scale: jax.Array
     target_com_offset: jax.Array
     approach_offset: jax.Array
+    ft_force_bias: jax.Array
+    ft_torque_bias: jax.Array
+    ft_force_noise_std: jax.Array
+    ft_torque_noise_std: jax.Array
+    actuator_joint: jax.Array
+    actuator_torque_scale: jax.Array
 
 
 #: The fields of a [`Perturbation`][spacegrasp_jax.envelope.perturbations.Perturbation] added
 #: after others: a stored perturbation without one reads it as its nominal unit, 0.
-LATER_FIELDS = ("approach_offset",)
+LATER_FIELDS = (
+    "approach_offset",
+    "ft_force_bias",
+    "ft_torque_bias",
+    "ft_force_noise_std",
+    "ft_torque_noise_std",
+    "actuator_joint",
+    "actuator_torque_scale",
+)
 
 
 def draw(key: jax.Array, ranges: PerturbationRanges, dtype=jnp.float64, n_joints: int = N_JOINTS) -> Perturbation:
@@ -301,7 +360,9 @@ def draw_units(key: jax.Array, dtype=jnp.float64, n_joints: int = N_JOINTS) -> P
     stiffness; ``fold_in(key, 1)`` the initial velocities, the sphere radius and the
     satellite's mass and inertia; ``fold_in(key, 2)`` the target estimate's error;
     ``fold_in(key, 3)`` the target's mass, inertia and motion; ``fold_in(key, 4)`` the free
-    target envelope's mass scale and CoM offset; ``fold_in(key, 5)`` the approach's timing."""
+    target envelope's mass scale and CoM offset; ``fold_in(key, 5)`` the approach's timing;
+    ``fold_in(key, 6)`` the F/T sensor's bias and noise level; ``fold_in(key, 7)`` the
+    weakened actuator."""
 
     def uniform(k, shape):
         return jax.random.uniform(k, shape, dtype, -1.0, 1.0)
@@ -312,6 +373,8 @@ def draw_units(key: jax.Array, dtype=jnp.float64, n_joints: int = N_JOINTS) -> P
     k_target_m, k_target_i, k_target_v, k_target_w = jax.random.split(jax.random.fold_in(key, 3), 4)
     k_target_log_m, k_target_com = jax.random.split(jax.random.fold_in(key, 4), 2)
     k_approach = jax.random.fold_in(key, 5)
+    k_force_bias, k_torque_bias, k_noise = jax.random.split(jax.random.fold_in(key, 6), 3)
+    k_joint, k_loss = jax.random.split(jax.random.fold_in(key, 7), 2)
     return Perturbation(
         dq_init=uniform(k_q, (n_joints,)),
         dp_lar=uniform(k_p, (3,)),
@@ -331,6 +394,12 @@ def draw_units(key: jax.Array, dtype=jnp.float64, n_joints: int = N_JOINTS) -> P
         target_mass_log_scale=uniform(k_target_log_m, ()),
         target_com_offset=_in_unit_ball(k_target_com, dtype),
         approach_offset=uniform(k_approach, ()),
+        ft_force_bias=uniform(k_force_bias, (3,)),
+        ft_torque_bias=uniform(k_torque_bias, (3,)),
+        ft_force_noise_std=uniform(k_noise, ()),
+        ft_torque_noise_std=uniform(k_noise, ()),  # one noise level for the sensor
+        actuator_joint=uniform(k_joint, ()),
+        actuator_torque_scale=uniform(k_loss, ()),
     )
 
 
@@ -361,6 +430,12 @@ def from_units(units: Perturbation, ranges: PerturbationRanges) -> Perturbation:
         target_mass_log_scale=ranges.target_mass_log_range * u.target_mass_log_scale,
         target_com_offset=ranges.target_com_offset_m * u.target_com_offset,
         approach_offset=ranges.approach_offset_m * u.approach_offset,
+        ft_force_bias=ranges.ft_force_bias_N * u.ft_force_bias,
+        ft_torque_bias=ranges.ft_torque_bias_Nm * u.ft_torque_bias,
+        ft_force_noise_std=ranges.ft_force_noise_std_N * 0.5 * (1.0 + u.ft_force_noise_std),
+        ft_torque_noise_std=ranges.ft_torque_noise_std_Nm * 0.5 * (1.0 + u.ft_torque_noise_std),
+        actuator_joint=u.actuator_joint,
+        actuator_torque_scale=1.0 - ranges.actuator_torque_loss_fraction * 0.5 * (1.0 + u.actuator_torque_scale),
     )
 
 
@@ -451,6 +526,13 @@ def check_for_scenario(ranges: PerturbationRanges, scenario: Scenario) -> None:
                 f"approach_offset_m: {ranges.approach_offset_m:g} m needs an approach along the LAR z axis longer "
                 f"than that; this scenario's moves {length:g} m"
             )
+
+
+def weakened_joint(perturbation: Perturbation, n_joints: int) -> jax.Array:
+    """(N,) the factor on each joint's torque limit: ``actuator_torque_scale`` at the drawn
+    joint ``floor((1 + u) / 2 * N)`` (the last for ``u = 1``), 1 elsewhere."""
+    index = jnp.clip(jnp.floor(0.5 * (1.0 + perturbation.actuator_joint) * n_joints), 0, n_joints - 1)
+    return jnp.where(jnp.arange(n_joints) == index, perturbation.actuator_torque_scale, 1.0)
 
 
 def sample_keys(seed: int, indices) -> jax.Array:

@@ -30,6 +30,7 @@ from spacegrasp_jax.envelope.perturbations import (
     apply_to_scenario,
     draw,
     sample_keys,
+    weakened_joint,
 )
 from spacegrasp_jax.envelope.scenario import Scenario
 from spacegrasp_jax.jobs import anatomy
@@ -195,8 +196,8 @@ def perturbed_loop(
     """
     plant, perturbed = apply_to_robot(robot, perturbation), apply_to_scenario(scenario, perturbation)
     believes_nominal = not identified and ranges.perturbs_robot
-    estimates = ranges.draws_estimate_errors
-    if not (believes_nominal or estimates or loop_realism(realism, scenario) is not None):
+    estimates, sensors, actuators = ranges.draws_estimate_errors, ranges.draws_sensor_errors, ranges.draws_actuator_loss
+    if not (believes_nominal or estimates or sensors or actuators or loop_realism(realism, scenario) is not None):
         return plant, perturbed, None, None
     base = ideal() if realism is None else realism
     if estimates:
@@ -206,6 +207,23 @@ def perturbed_loop(
         lar_position_error_m=base.lar_position_error_m + perturbation.dp_lar_estimate,
         lar_angle_error_rad=base.lar_angle_error_rad + perturbation.dr_lar_estimate,
     )
+    p = perturbation
+    if sensors:
+        sample_realism = dataclasses.replace(
+            sample_realism,
+            stages=sample_realism.stages | Stage.SENSORS,
+            force_bias=base.force_bias + p.ft_force_bias,
+            torque_bias=base.torque_bias + p.ft_torque_bias,
+            force_noise_std=base.force_noise_std + p.ft_force_noise_std,
+            torque_noise_std=base.torque_noise_std + p.ft_torque_noise_std,
+        )
+    if actuators:
+        limits = jnp.asarray(base.torque_limit_Nm)
+        sample_realism = dataclasses.replace(
+            sample_realism,
+            stages=sample_realism.stages | Stage.ACTUATORS,
+            torque_limit_Nm=limits * weakened_joint(p, limits.shape[-1]),
+        )
     return plant, perturbed, sample_realism, robot if believes_nominal else None
 
 
