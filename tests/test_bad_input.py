@@ -532,6 +532,19 @@ def cases(paths, out):
         ),
         "simulate target null": ([*SIMULATE, "--scenario", p["target_null.json"], "--out", out], ": target: expected"),
         "tune target null": ([*TUNE, "--scenario", p["target_null.json"], "--out", out], ": target: expected a table"),
+        # envelopes past the nominal: named, scaled, drawn only where the scenario allows
+        "montecarlo fast targets without a target": (
+            [*MONTECARLO, "--ranges", "free_target_fast", "--out", out],
+            "--ranges free_target_fast: needs a scenario with a free-floating [target]",
+        ),
+        "montecarlo scale reaching a fraction of 1": (
+            [*MONTECARLO, "--scale", "12", "--out", out],
+            "--scale 12: radius_fraction: 0.1 times 12 reaches 1.2",
+        ),
+        "montecarlo approach offset past the approach": (
+            [*MONTECARLO, "--range", "approach_offset_m=0.2", "--out", out],
+            "approach_offset_m: 0.2 m needs an approach along the LAR z axis longer than that",
+        ),
         # gradients and tune agree: a target's speed is weighed only where a target floats
         "gradients target speed weight without a target": (
             ["gradients", "--n", "2", "--objective", "weighted", "--weights", "target_speed=1", "--out", out],

@@ -23,6 +23,7 @@ from spacegrasp_jax.envelope.criteria import CaptureCriteria
 from spacegrasp_jax.envelope.perturbations import (
     PerturbationError,
     PerturbationRanges,
+    check_for_scenario,
     load_ranges,
 )
 from spacegrasp_jax.envelope.scenario import load_scenario, paper_scenario
@@ -321,12 +322,18 @@ def _ranges(args: argparse.Namespace, default: PerturbationRanges) -> Perturbati
     return PerturbationRanges.from_mapping(overrides, base=ranges)
 
 
-def _check_envelope(args: argparse.Namespace, scenario) -> None:
-    """``--ranges free_target`` draws targets: refused for a scenario without one."""
-    if getattr(args, "ranges", None) == "free_target" and not scenario.free_target:
+def _check_envelope(args: argparse.Namespace, scenario, ranges: PerturbationRanges | None = None) -> None:
+    """``--ranges free_target`` (or ``free_target_fast``) draws targets: refused for a scenario
+    without one; ``ranges`` that cannot perturb ``scenario`` (``check_for_scenario()``) too."""
+    if getattr(args, "ranges", None) in ("free_target", "free_target_fast") and not scenario.free_target:
         raise UsageError(
-            "--ranges free_target: needs a scenario with a free-floating [target], e.g. --scenario configs/free_target_envelope.toml"
+            f"--ranges {args.ranges}: needs a scenario with a free-floating [target], e.g. --scenario configs/free_target_envelope.toml"
         )
+    if ranges is not None:
+        try:
+            check_for_scenario(ranges, scenario)
+        except PerturbationError as error:
+            raise UsageError(str(error)) from None
 
 
 def _rate_criterion(args: argparse.Namespace, robot) -> tuple[float, ...] | None:

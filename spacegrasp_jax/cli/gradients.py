@@ -81,7 +81,7 @@ def _gradients(args: argparse.Namespace) -> int:
     law = _law(args.controller, args)
     realism = _realism(args, scenario, robot)
     _warn(plausibility.input_warnings(scenario))
-    _check_envelope(args, scenario)
+    _check_envelope(args, scenario, ranges)
     out = Path(args.out)
     _claim(args, out)
     # A fixed torque scale, so that reports at different gains compare: Table 5's row for the

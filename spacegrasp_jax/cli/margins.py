@@ -63,7 +63,7 @@ def _margins(args: argparse.Namespace) -> int:
     realism = _realism(args, scenario, robot)
     config = _criteria(args, robot, n=args.samples, seed=args.seed, ranges=ranges, realism=realism)
     _warn(plausibility.input_warnings(scenario))
-    _check_envelope(args, scenario)
+    _check_envelope(args, scenario, ranges)
     out = Path(args.out)
     _claim(args, out)
     period = margins.control_period(scenario, realism)

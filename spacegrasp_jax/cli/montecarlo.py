@@ -113,7 +113,7 @@ def _montecarlo(args: argparse.Namespace) -> int:
     _check_joint_ranges(args, robot, scenario)
     _realism(args, scenario, robot)  # the control period against the scenario, before compiling
     _warn(plausibility.input_warnings(scenario))
-    _check_envelope(args, scenario)
+    _check_envelope(args, scenario, ranges)
     out = Path(args.out)
     _claim(args, out)
     names = ", ".join(variant.key for variant in variants)

@@ -8,6 +8,7 @@ import sys
 
 from spacegrasp_jax.core.inputs import did_you_mean
 from spacegrasp_jax.envelope.perturbations import (
+    FREE_TARGET_FAST_RANGES,
     FREE_TARGET_RANGES,
     LAR_WIDE_RANGES,
     PerturbationRanges,
@@ -214,12 +215,13 @@ def _add_realism_option(parser: argparse.ArgumentParser) -> None:
 
 #: The envelopes ``--ranges`` knows by name: the campaigns' defaults, the tuning batch's,
 #: the campaigns' twice as wide in the LAR's pose and its estimate, and free-floating targets
-#: of 200 to 2,000 kg (with a scenario that has a [target]).
+#: of 200 to 2,000 kg, drifting and tumbling slowly or fast (with a scenario that has a [target]).
 NAMED_RANGES = {
     "montecarlo": PerturbationRanges(),
     "tuning": TUNING_RANGES,
     "lar_wide": LAR_WIDE_RANGES,
     "free_target": FREE_TARGET_RANGES,
+    "free_target_fast": FREE_TARGET_FAST_RANGES,
 }
 
 

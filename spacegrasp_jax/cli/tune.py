@@ -98,7 +98,7 @@ def _tune(args: argparse.Namespace) -> int:
         raise tune_setting_error(error) from None
     _realism(args, scenario, robot)
     _warn(plausibility.input_warnings(scenario))
-    _check_envelope(args, scenario)
+    _check_envelope(args, scenario, config.ranges)
     if args.fill_from is not None and (args.gains is None or args.gains in NAMED_GAIN_SETS):
         raise UsageError(
             f"--fill-from: completes a gains file given with --gains; {args.gains or 'the paper'}'s gains are whole"

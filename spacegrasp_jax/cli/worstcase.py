@@ -74,7 +74,7 @@ def _worstcase(args: argparse.Namespace) -> int:
     if args.measure == "criteria" and config.criteria.torque_threshold_Nm is None:
         _warn(["--measure criteria with --torque-threshold 0: the peak torque is not among the criteria"])
     _warn(plausibility.input_warnings(scenario))
-    _check_envelope(args, scenario)
+    _check_envelope(args, scenario, ranges)
     out = Path(args.out)
     _claim(args, out)
     unit, meaning = worstcase.MEASURES[args.measure]

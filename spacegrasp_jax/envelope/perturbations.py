@@ -257,6 +257,14 @@ FREE_TARGET_RANGES = PerturbationRanges(
 )
 
 
+#: The free-target envelope with the drift and tumble of a defunct satellite met in flight:
+#: up to 2 cm/s and 3 deg/s (Envisat spun at 2.7 deg/s in 2013: Kucharski et al., IEEE TGRS
+#: 2014), each component up to 1/sqrt(3) of those; the rest as ``FREE_TARGET_RANGES``.
+FREE_TARGET_FAST_RANGES = dataclasses.replace(
+    FREE_TARGET_RANGES, target_speed_mps=0.02 / math.sqrt(3.0), target_rate_radps=math.radians(3.0) / math.sqrt(3.0)
+)
+
+
 #: The campaigns' envelope twice as wide in the LAR's pose and in the controller's estimate
 #: of it: the LAR within 10 mm and 0.02 rad per axis, the estimate off by up to 4 mm and
 #: 0.01 rad per axis more (on top of a flight-like loop's fixed bias); the rest the campaigns'.
