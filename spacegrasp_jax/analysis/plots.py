@@ -490,6 +490,47 @@ def save_campaign_figures(
     save(figures, out_dir, write_atomically)
 
 
+def figure_requirement_curves(document: dict):
+    """Success (95% intervals shaded) against the width of each perturbation group, one panel a
+    group and the last all together, one line a gain set, the requirement levels dashed
+    (a requirements study's ``requirements.json``)."""
+    curves, levels = document["curves"], document["settings"]["levels"]
+    names = list(curves)
+    columns = min(4, len(names))
+    rows = -(-len(names) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(3.6 * columns, 2.9 * rows), squeeze=False, sharey=True)
+    for ax, name in zip(axes.flat, names):
+        entry = curves[name]
+        widths = np.asarray(entry["widths"], dtype=float)
+        for label in [key for key in entry if key not in ("widths", "half_widths")]:
+            intervals = entry[label]["intervals"]
+            rate = 100 * np.array([i["rate"] for i in intervals])
+            low, high = (100 * np.array([i[k] for i in intervals]) for k in ("low", "high"))
+            (line,) = ax.plot(widths, rate, marker="o", label=label)
+            ax.fill_between(widths, low, high, color=line.get_color(), alpha=0.2)
+        for level in levels:
+            ax.axhline(100 * level, color="grey", linestyle="--", linewidth=0.8)
+        ax.set_title(name.replace("_", " "), fontsize=10)
+        ax.set_xlabel("width [x reference]")
+        ax.grid(True, alpha=0.3)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("success [%]")
+    for ax in list(axes.flat)[len(names) :]:
+        ax.set_visible(False)
+    axes.flat[0].legend(fontsize=8)
+    fig.suptitle("Capture success against the width of each perturbation (95% intervals)")
+    fig.tight_layout()
+    return fig
+
+
+def save_requirement_curves(path, document: dict, write_atomically) -> None:
+    """``figure_requirement_curves()`` as ``path`` (a PNG)."""
+    from pathlib import Path
+
+    path = Path(path)
+    save({path.name: figure_requirement_curves(document)}, path.parent, write_atomically)
+
+
 def figure_gradient_health(norm_ratios, cosines, horizon_norms: list[dict], outlier_factor: float, title: str):
     """Gradient health over the envelope: the gradient norm over the nominal's (log scale,
     the outlier threshold marked), the cosine with the nominal gradient, and the gradient

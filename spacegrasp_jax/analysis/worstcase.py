@@ -450,24 +450,13 @@ def _cross_entropy(robot, scenario, gains, controller, config, settings, values,
         born=np.zeros(screened, dtype=int),
     )
     size = batching.chunk_size(settings.generation, settings.generation)
-    variant = Variant(controller, gains)
-    spec = variant_spec(robot, scenario, variant, dataclasses.replace(config, timeseries_every=None))
-    replicated = (spec, gains, config.ranges)
-    function = functools.partial(_metrics_at, identified=config.identified)
-    example = jax.tree.map(lambda x: np.repeat(np.asarray(x)[:1], size, axis=0), (population.points, population.keys))
-    try:
-        executable, samples_compile_s = batching.compile_chunk(
-            f"worst-case samples, {controller}", function, replicated, example, device_batch=config.device_batch
-        )
-    except batching.BatchingError as error:
-        raise CampaignError(str(error)) from None
+    metrics_at, samples_compile_s = units_evaluator(
+        robot, scenario, gains, controller, config, size, f"worst-case samples, {controller}"
+    )
     compile_s += samples_compile_s
 
     def evaluate(points, keys):
-        count = len(keys)
-        block = jax.tree.map(lambda x: np.concatenate([x, np.repeat(x[-1:], size - count, axis=0)]), (points, keys))
-        outputs = batching.run_chunk(executable, replicated, block)
-        return measure_of_metrics({name: value[:count] for name, value in outputs.items()}, settings.measure, config)
+        return measure_of_metrics(metrics_at(points, keys), settings.measure, config)
 
     population, history = cross_entropy(evaluate, population, settings, np.random.default_rng([config.seed, 2]), say)
     worst = int(np.argmax(population.values))
@@ -555,6 +544,37 @@ def cross_entropy(evaluate, population: Population, settings: SearchSettings, rn
                 f"{shown(settings.measure, np.max(population.values))}"
             )
     return population, history
+
+
+def units_evaluator(
+    robot: Robot, scenario: Scenario, gains: Gains, controller: str, config: CampaignConfig, size: int, name: str
+) -> tuple[Callable, float]:
+    """``(metrics_at, compile_s)``: ``metrics_at(units, keys)`` runs up to ``size`` points (a
+    ``Perturbation`` of units with a leading axis, and (n, 2) noise keys) as the campaign of
+    ``config`` runs a sample of those units and key, and returns their campaign metrics
+    (leading axis n); one program of ``size`` points (a shorter block padded), compiled now
+    (``compile_s``, the job's line named ``name``)."""
+    variant = Variant(controller, gains)
+    spec = variant_spec(robot, scenario, variant, dataclasses.replace(config, timeseries_every=None))
+    replicated = (spec, gains, config.ranges)
+    function = functools.partial(_metrics_at, identified=config.identified)
+    joints = scenario.initial.q.shape[-1]
+    like = (units_of_samples(config.seed, range(1), n_joints=joints), noise_keys(config.seed, range(1)))
+    example = jax.tree.map(lambda x: np.repeat(np.asarray(x)[:1], size, axis=0), like)
+    try:
+        executable, compile_s = batching.compile_chunk(
+            name, function, replicated, example, device_batch=config.device_batch
+        )
+    except batching.BatchingError as error:
+        raise CampaignError(str(error)) from None
+
+    def metrics_at(points, keys) -> dict:
+        count = len(keys)
+        block = jax.tree.map(lambda x: np.concatenate([x, np.repeat(x[-1:], size - count, axis=0)]), (points, keys))
+        outputs = batching.run_chunk(executable, replicated, block)
+        return {name: value[:count] for name, value in outputs.items()}
+
+    return metrics_at, compile_s
 
 
 def _metrics_at(spec, gains, ranges, block, *, identified):

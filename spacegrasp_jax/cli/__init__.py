@@ -26,6 +26,7 @@ from spacegrasp_jax.cli import (  # noqa: E402  (the commands, in the order --he
     info,
     margins,
     montecarlo,
+    requirements,
     runs,
     tune,
     worstcase,
@@ -58,12 +59,13 @@ def build_parser() -> argparse.ArgumentParser:
     gradients.add_parsers(commands)
     margins.add_parsers(commands)
     worstcase.add_parsers(commands)
+    requirements.add_parsers(commands)
     benchmark.add_parsers(commands)
     return parser
 
 
 #: The commands that stop cleanly at a safe point on a first signal -> the unit they finish.
-_SAFE_POINTS = {"montecarlo": "chunk", "tune": "step"}
+_SAFE_POINTS = {"montecarlo": "chunk", "tune": "step", "requirements": "chunk"}
 
 
 def _given_options(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
