@@ -70,7 +70,7 @@ def test_the_one_knot_schedule_runs_bit_for_bit_as_the_constant_gains(robot, sho
     spec = RunSpec(robot, short_scenario, "admittance", realism=realism)
     run, key = jax.jit(simulate.closed_loop), jax.random.PRNGKey(5)
     _, constant = run(spec, paper_gains(), key)
-    for variable in ("time", "force"):
+    for variable in ("time", "force", "contact_time"):
         _, scheduled = run(spec, constant_schedule(paper_gains(), variable), key)
         for name, value in vars(constant).items():
             if value is not None:
@@ -129,6 +129,54 @@ def test_a_schedule_changes_the_run_only_where_its_variable_leaves_the_first_kno
     assert early.any() and not early.all()
     assert departed[early].max() < 1e-9
     assert departed[-1] > 1e-4
+
+
+def test_the_contact_latch_counts_from_the_first_reading_above_its_force():
+    from spacegrasp_jax.loop.control.schedule import CONTACT_FORCE_N, contact_phase, contact_time_series
+
+    t = np.arange(8) * 0.01
+    forces = np.array([0.0, 0.5, 0.99, 1.2, 3.0, 0.2, 0.0, 2.0])  # along x: a bounce at 0.05-0.06 s
+    readings = np.zeros((8, 6))
+    readings[:, 0] = forces * CONTACT_FORCE_N
+    phase, values = (jnp.zeros(()), jnp.zeros(())), []
+    for k in range(8):
+        x, phase = contact_phase(phase, jnp.asarray(t[k]), jnp.asarray(readings[k]))
+        values.append(float(x))
+    expected = [0.0, 0.0, 0.0, 0.0, 0.01, 0.02, 0.03, 0.04]  # detected at 0.03 s, latched through the bounce
+    np.testing.assert_allclose(values, expected, atol=1e-15)
+    np.testing.assert_allclose(contact_time_series(t, readings[:, :3]), expected, atol=1e-15)
+
+
+@pytest.mark.slow
+def test_a_contact_time_schedule_switches_at_contact_whatever_the_approachs_timing(robot, short_scenario):
+    """Kd and kp halved over the first 0.05 s after contact: on the nominal approach and on
+    one that starts 6 mm farther (contact later), the run is the constant gains' up to the
+    period the controller reads more than ``CONTACT_FORCE_N`` and departs from it after;
+    the switch moves with the contact, where a time schedule's stays on the clock."""
+    from spacegrasp_jax.envelope.perturbations import apply_to_scenario, draw
+    from spacegrasp_jax.loop.control.schedule import CONTACT_FORCE_N
+
+    gains = paper_gains()
+    knots = (0.0, 0.05)
+    schedule = make_schedule(
+        gains, "contact_time", {"Kd": (knots, [gains.Kd, 0.5 * gains.Kd]), "kp": (knots, [gains.kp, 0.5 * gains.kp])}
+    )
+    run = jax.jit(simulate.closed_loop)
+    nominal = draw(jax.random.PRNGKey(0), PerturbationRanges.nominal())  # every draw at its nominal value
+    detections = []
+    for offset in (0.0, 0.006):
+        scenario = apply_to_scenario(short_scenario, dataclasses.replace(nominal, approach_offset=jnp.asarray(offset)))
+        spec = RunSpec(robot, scenario, "admittance")
+        _, constant = run(spec, gains)
+        _, scheduled = run(spec, schedule)
+        force = np.linalg.norm(np.asarray(constant.fts_force), axis=1)
+        first = int(np.argmax(force > CONTACT_FORCE_N))
+        departed = np.abs(np.asarray(scheduled.pose_ee) - np.asarray(constant.pose_ee)).max(axis=1)
+        assert 0 < first < len(force) - 100
+        assert departed[: first + 1].max() < 1e-9  # the first knot's gains (to the log-blend's rounding) until contact
+        assert departed[first + 100] > 1e-9 and departed[-1] > 1e-5
+        detections.append(first)
+    assert detections[1] > detections[0] + 10  # contact, and the switch, came later
 
 
 @pytest.mark.slow

@@ -57,7 +57,7 @@ from spacegrasp_jax.loop import stages
 from spacegrasp_jax.loop.control.gains import Gains
 from spacegrasp_jax.loop.control.law import ControlInputs, ControllerState
 from spacegrasp_jax.loop.control.registry import as_controller
-from spacegrasp_jax.loop.control.schedule import GainSchedule, scheduling_variable
+from spacegrasp_jax.loop.control.schedule import GainSchedule, contact_phase, scheduling_variable
 from spacegrasp_jax.loop.realism import Realism, Stage, ideal
 
 
@@ -562,13 +562,17 @@ class _Period:
         )
         return inputs, reading, memories
 
-    def gains_now(self, t, inputs: ControlInputs, reading: jax.Array) -> Gains:
-        """The period's gains: the gain set, or a schedule's at its variable as the
-        controller reads it at ``t`` (s) from its ``inputs`` and F/T ``reading`` (6,)
-        ([`control.schedule`][spacegrasp_jax.loop.control.schedule])."""
+    def gains_now(self, t, inputs: ControlInputs, reading: jax.Array, phase: tuple) -> tuple[Gains, tuple]:
+        """The period's gains and the schedule's contact latch after it: the gain set, or a
+        schedule's at its variable as the controller reads it at ``t`` (s) from its
+        ``inputs`` and F/T ``reading`` (6,) ([`control.schedule`][spacegrasp_jax.loop.control.schedule];
+        ``contact_time`` from the latch ``phase``, [`contact_phase()`][spacegrasp_jax.loop.control.schedule.contact_phase])."""
         if not isinstance(self.gains, GainSchedule):
-            return self.gains
-        return self.gains.at(scheduling_variable(self.gains.variable, t, inputs.pose, reading))
+            return self.gains, phase
+        if self.gains.variable == "contact_time":
+            x, phase = contact_phase(phase, t, reading)
+            return self.gains.at(x), phase
+        return self.gains.at(scheduling_variable(self.gains.variable, t, inputs.pose, reading)), phase
 
     def control_update(self, state: LoopState, k, noise, truth: PlantKinematics, observed: Observation | None):
         """The controller's update at the start of period k: the stages' memories moved on,
@@ -579,7 +583,7 @@ class _Period:
             inputs, reading, memories = self.sensed_inputs(memories, state.plant, truth, k * self.period, noise)
         else:
             inputs, reading = observed.inputs, jnp.concatenate([observed.force_fts, observed.torque_fts])
-        gains = self.gains_now(k * self.period, inputs, reading)
+        gains, phase = self.gains_now(k * self.period, inputs, reading, state.controller.phase)
         computed, law_state = self.control.command(gains, inputs, state.controller.law, self.period)
         command, memories = stages.run_chain(self.chain, memories, "command", computed)
         held = self.control.logged(command, state.controller.law)
@@ -589,7 +593,7 @@ class _Period:
                 fts_force_measured=reading[:3],
                 fts_torque_measured=reading[3:],
             )
-        return memories, law_state, command, held, gains
+        return memories, ControllerState(law_state, state.controller.pid, phase), command, held, gains
 
     def servo_update(self, plant: PlantState, pid_state, memories, j, command, held, gains, noise):
         """Servo tick j (a float) of the whole run: the joint sensors and the PID at the
@@ -615,12 +619,13 @@ class _Period:
         noise = self.noise(k)
         t = k * self.spec.scenario.dt
         observed = self.observe(state.plant, truth, t)
-        memories, law_state, command, held, gains = self.control_update(state, k, noise, truth, observed)
+        memories, controller, command, held, gains = self.control_update(state, k, noise, truth, observed)
         fields, pid_state, memories = self.servo_update(
             state.plant, state.controller.pid, memories, k, command, held, gains, noise
         )
         row = self.row(state.plant, truth, t, fields, observed)
-        state = dataclasses.replace(state, controller=ControllerState(law_state, pid_state), stages=memories)
+        controller = dataclasses.replace(controller, pid=pid_state)
+        state = dataclasses.replace(state, controller=controller, stages=memories)
         return fields["u"], (state, row)
 
     def one_step(self, state: LoopState, k):
@@ -680,7 +685,7 @@ class _Period:
 
         if self.spec.options.checkpoint:  # the noise is drawn outside: once, not again in the backward pass
             start_of_period = jax.checkpoint(start_of_period, prevent_cse=False)
-        memories, law_state, command, held, gains = start_of_period(state, k, noise)
+        memories, controller, command, held, gains = start_of_period(state, k, noise)
         if not isinstance(self.gains, GainSchedule):
             gains = self.gains  # the loop's own argument, not a checkpoint's output: no adjoint through it
         # The servo ticks carry the memories of the stages they run, no others.
@@ -711,8 +716,7 @@ class _Period:
         for i, memory in zip(ticking, carried, strict=True):
             memories[i] = memory
         memories = tuple(memories)
-        controller_state = ControllerState(law_state, pid_state)
-        return LoopState(plant, controller_state, memories), rows
+        return LoopState(plant, dataclasses.replace(controller, pid=pid_state), memories), rows
 
 
 def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> LoopBody:
@@ -786,8 +790,12 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
         servo_period=per_servo * scenario.dt,
     )
     one_period = period.one_step if per_period == 1 else period.several_steps
+    start = initial_state(spec)
+    if isinstance(gains, GainSchedule) and gains.variable == "contact_time":  # the latch: not yet in contact
+        zero = jnp.zeros((), scenario.initial.q.dtype)
+        start = dataclasses.replace(start, controller=dataclasses.replace(start.controller, phase=(zero, zero)))
     return LoopBody(
-        start=initial_state(spec),
+        start=start,
         period=one_period,
         periods=scenario.n_steps // per_period,
         steps_per_period=per_period,

@@ -137,10 +137,15 @@ class ControllerState:
             law's empty one).
         pid: the joint servo's memory (``PIDState``), or ``()`` for a law that commands
             torques.
+        phase: a gain schedule's contact latch, ``(detected, t_detected)`` (0 or 1, and s),
+            for a schedule on ``contact_time``
+            ([`contact_phase()`][spacegrasp_jax.loop.control.schedule.contact_phase]); ``()``
+            otherwise.
     """
 
     law: Any
     pid: PIDState | tuple
+    phase: tuple = ()
 
 
 @dataclasses.dataclass(frozen=True)

@@ -20,7 +20,12 @@ start of a control period, as the controller sees it:
 * ``"distance"`` (m): the estimated distance from the EE to the LAR origin (its sensors, its
   model and its LAR estimate: what the law reads as the pose);
 * ``"force"`` (N): the magnitude of the F/T sensor's force reading (filtered and biased as
-  the realism says: what the law reads as the wrench).
+  the realism says: what the law reads as the wrench);
+* ``"contact_time"`` (s): the time since the controller detected the contact, 0 before it:
+  contact is detected the first period the F/T force it reads exceeds ``CONTACT_FORCE_N``,
+  and latched ([`contact_phase()`][spacegrasp_jax.loop.control.schedule.contact_phase]). It
+  marks the capture's phases whatever their timing: an approach that starts farther away,
+  or is slower, meets the contact gains at contact, not at a time on the clock.
 
 A file is the gains file with groups that may be ``{"knots": [...], "values": [[...], ...]}``
 and a ``"schedule"`` entry naming the variable ([`load_schedule()`][spacegrasp_jax.loop.control.schedule.load_schedule];
@@ -50,7 +55,12 @@ from spacegrasp_jax.loop.control.gains import (
 )
 
 #: The scheduling variables and their units (module docstring).
-VARIABLES = {"time": "s", "distance": "m", "force": "N"}
+VARIABLES = {"time": "s", "distance": "m", "force": "N", "contact_time": "s"}
+
+#: The F/T force (N, magnitude, as the controller reads it) above which ``contact_time``
+#: detects the contact: above the flight-like loop's sensor bias (0.36 N in magnitude) and
+#: noise (0.05 N per axis), below the first contact's force within a few periods.
+CONTACT_FORCE_N = 1.0
 
 #: The shipped gain schedules by name -> their data file (beside it, ``*.settings.json``: the
 #: command, the selection and the held-out result).
@@ -291,9 +301,34 @@ def scheduling_variable(variable: str, t, pose: jax.Array, wrench: jax.Array) ->
     = 1e-9 of the unit) so that their gradient stays finite."""
     if variable == "time":
         return t
+    if variable == "contact_time":
+        raise ValueError("contact_time: a latched variable, read with contact_phase() and the loop's phase memory")
     vector = pose[:3] if variable == "distance" else wrench[:3]
     eps = 1e-9
     return jnp.sqrt(jnp.sum(vector * vector) + eps * eps) - eps
+
+
+def contact_phase(phase: tuple, t, wrench: jax.Array) -> tuple[jax.Array, tuple]:
+    """``(contact_time, next phase)`` at the start of a period: ``phase = (detected,
+    t_detected)`` the latch so far (0 and 0 before any contact), ``t`` (s) and the F/T reading
+    ``wrench`` (6,) the controller reads. Contact is detected where the force's magnitude
+    exceeds ``CONTACT_FORCE_N`` and stays so (a capture has one contact phase: a bounce off
+    the ring does not restart it); ``contact_time`` is ``t - t_detected`` after, 0 before."""
+    detected, t_detected = phase
+    now = (jnp.sum(wrench[:3] * wrench[:3]) > CONTACT_FORCE_N**2).astype(t_detected.dtype)
+    t_detected = jnp.where(detected > 0, t_detected, t)
+    detected = jnp.maximum(detected, now)
+    return jnp.where(detected > 0, t - t_detected, jnp.zeros_like(t_detected)), (detected, t_detected)
+
+
+def contact_time_series(t: np.ndarray, force: np.ndarray) -> np.ndarray:
+    """(T,) ``contact_time`` along a run's ``t`` (T,) and F/T force readings ``force`` (T, 3)
+    (NumPy; every row a period's start, as the controller reads them)."""
+    above = np.sum(np.asarray(force) ** 2, axis=-1) > CONTACT_FORCE_N**2
+    if not above.any():
+        return np.zeros_like(np.asarray(t, dtype=float))
+    first = int(np.argmax(above))
+    return np.where(np.arange(len(t)) >= first, np.asarray(t) - t[first], 0.0)
 
 
 def schedule_curves(schedule: GainSchedule, points: int = 241) -> dict[str, dict]:
@@ -316,10 +351,15 @@ def schedule_curves(schedule: GainSchedule, points: int = 241) -> dict[str, dict
 def variable_series(variable: str, log) -> np.ndarray:
     """(T,) the scheduling variable along a run's log (NumPy fields): ``time`` its ``t``;
     ``force`` the norm of the F/T force the controller read (``fts_force_measured`` where the
-    loop logs readings, else ``fts_force``); ``distance`` the norm of the logged EE position in
+    loop logs readings, else ``fts_force``), ``contact_time`` the time since it first exceeded
+    ``CONTACT_FORCE_N`` (the log's rows are plant steps: at a control period longer than a
+    step, detection may come a few steps earlier than the controller's); ``distance`` the norm of the logged EE position in
     LAR (the true one: the controller's estimate differs by its LAR estimate's error)."""
     if variable == "time":
         return np.asarray(log.t)
+    if variable == "contact_time":
+        force = log.fts_force_measured if log.fts_force_measured is not None else log.fts_force
+        return contact_time_series(np.asarray(log.t), np.asarray(force))
     if variable == "force":
         force = log.fts_force_measured if log.fts_force_measured is not None else log.fts_force
         return np.linalg.norm(np.asarray(force), axis=-1)
