@@ -450,6 +450,8 @@ def run_study(
             def failures_at(units, keys, metrics_at=metrics_at):
                 count, pieces = len(keys), []
                 for start in range(0, count, size):
+                    if stop is not None and stop.requested:
+                        raise StudyInterrupted
                     block = jax.tree.map(lambda x: x[start : start + size], (units, keys))
                     pieces.append(~success(metrics_at(*block), config.criteria))
                 return np.concatenate(pieces)
