@@ -68,10 +68,10 @@ GROUPS = {
     ),
     "approach_timing": ("the approach's timing", ("approach_offset_m",), ("approach_offset",)),
     "ft_bias": ("the F/T sensor's bias", ("ft_force_bias_N", "ft_torque_bias_Nm"), ("ft_force_bias", "ft_torque_bias")),
-    "ft_noise": (
+    "ft_noise": (  # one level for the sensor, as a campaign draws it: ft_torque_noise_std follows
         "the F/T sensor's noise level",
         ("ft_force_noise_std_N", "ft_torque_noise_std_Nm"),
-        ("ft_force_noise_std", "ft_torque_noise_std"),
+        ("ft_force_noise_std",),
     ),
     "actuator": (
         "a motor at reduced torque",
@@ -253,6 +253,7 @@ def units_of_points(points: np.ndarray, groups, like: Perturbation) -> tuple[Per
                 value = 2.0 * block - 1.0
             fields[name] = value.reshape(fields[name].shape)
             column += size
+    fields["ft_torque_noise_std"] = fields["ft_force_noise_std"]  # one noise level for the sensor (draw_units)
     return Perturbation(**fields), points[:, column]
 
 
