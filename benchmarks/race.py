@@ -273,19 +273,7 @@ def main(argv=None) -> int:
                 document = snapshot_gains(folder / snapshot["path"], folder / method)
                 path.write_text(json.dumps(document, indent=1) + "\n")
             gain_files.append(path)
-    import spacegrasp_jax
-    from spacegrasp_jax.loop.control.gains import TUNED_GAINS_FILES
-
-    shipped = folder / "shipped_flight.json"
-    shutil.copyfile(Path(spacegrasp_jax.__file__).resolve().parent / "data" / TUNED_GAINS_FILES["flight"], shipped)
-    campaign = [sys.executable, "-m", "spacegrasp_jax.cli", "montecarlo", "--n", str(args.heldout)]
-    campaign += ["--seed", str(args.heldout_seed), "--realism", "flight", "--controller", "admittance"]
-    campaign += [option for path in [shipped, *gain_files] for option in ("--gains", str(path))]
-    campaign += ["--out", str(folder / "heldout")]
-    if (folder / "heldout" / "campaign.json").exists():
-        campaign.append("--resume")
-    print(f"held out: {len(gain_files) + 2} gain sets on {args.heldout} captures...", file=sys.stderr, flush=True)
-    subprocess.run(campaign, check=True)
+    hold_out(folder, folder / "shipped_flight.json", gain_files, args.heldout, args.heldout_seed)
     paired = None if against is None else against / "heldout" / "samples.npz"
     record["heldout"] = summarise(folder / "heldout" / "samples.npz", methods, paired)
     if against is not None:  # where the paired race lies, from this one's folder
@@ -293,6 +281,26 @@ def main(argv=None) -> int:
     record_path.write_text(json.dumps(record, indent=1) + "\n")
     print(json.dumps(record["heldout"], indent=1))
     return 0
+
+
+def hold_out(
+    folder: Path, shipped: Path, gain_files: list[Path], count: int, seed: int, problem: tuple[str, ...] = ()
+) -> None:
+    """The held-out campaign of a race in ``folder/heldout`` (resumed where it stopped): the
+    shipped flight gains (copied to ``shipped``), the paper's and ``gain_files`` on ``count``
+    flight-like captures of ``seed`` (``problem``: ``montecarlo`` options of another envelope)."""
+    import spacegrasp_jax
+    from spacegrasp_jax.loop.control.gains import TUNED_GAINS_FILES
+
+    shutil.copyfile(Path(spacegrasp_jax.__file__).resolve().parent / "data" / TUNED_GAINS_FILES["flight"], shipped)
+    campaign = [sys.executable, "-m", "spacegrasp_jax.cli", "montecarlo", "--n", str(count)]
+    campaign += ["--seed", str(seed), "--realism", "flight", "--controller", "admittance", *problem]
+    campaign += [option for path in [shipped, *gain_files] for option in ("--gains", str(path))]
+    campaign += ["--out", str(folder / "heldout")]
+    if (folder / "heldout" / "campaign.json").exists():
+        campaign.append("--resume")
+    print(f"held out: {len(gain_files) + 2} gain sets on {count} captures...", file=sys.stderr, flush=True)
+    subprocess.run(campaign, check=True)
 
 
 def summarise(samples: Path, methods: list[str], paired: Path | None = None) -> dict:

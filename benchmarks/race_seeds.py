@@ -43,12 +43,10 @@ import json
 import math
 import os
 import platform
-import shutil
-import subprocess
 import sys
 from pathlib import Path
 
-from spacegrasp_jax.benchmarks.race import METHODS, run_method, snapshot_gains
+from spacegrasp_jax.benchmarks.race import METHODS, hold_out, run_method, snapshot_gains
 
 #: The methods raced by default, the reference first: the gradient method on a fresh batch
 #: a step, CMA-ES of pycma's default population on a fresh batch a generation, with noise
@@ -212,19 +210,7 @@ def main(argv=None) -> int:
                 document = snapshot_gains(seed_folder / snapshot["path"], seed_folder / method)
                 path.write_text(json.dumps(document, indent=1) + "\n")
             gain_files.append(path)
-    import spacegrasp_jax
-    from spacegrasp_jax.loop.control.gains import TUNED_GAINS_FILES
-
-    shipped = folder / "gains" / "shipped_flight.json"
-    shutil.copyfile(Path(spacegrasp_jax.__file__).resolve().parent / "data" / TUNED_GAINS_FILES["flight"], shipped)
-    campaign = [sys.executable, "-m", "spacegrasp_jax.cli", "montecarlo", "--n", str(args.heldout)]
-    campaign += ["--seed", str(args.heldout_seed), "--realism", "flight", "--controller", "admittance", *problem]
-    campaign += [option for path in [shipped, *gain_files] for option in ("--gains", str(path))]
-    campaign += ["--out", str(folder / "heldout")]
-    if (folder / "heldout" / "campaign.json").exists():
-        campaign.append("--resume")
-    print(f"held out: {len(gain_files) + 2} gain sets on {args.heldout} captures...", file=sys.stderr, flush=True)
-    subprocess.run(campaign, check=True)
+    hold_out(folder, folder / "gains" / "shipped_flight.json", gain_files, args.heldout, args.heldout_seed, problem)
     record["summary"] = summarise(folder / "heldout" / "samples.npz", methods, seeds, marks, reference)
     record_path.write_text(json.dumps(record, indent=1) + "\n")
     print(json.dumps(record["summary"]["methods"], indent=1))
