@@ -541,6 +541,22 @@ def cases(paths, out):
             [*MONTECARLO, "--scale", "12", "--out", out],
             "--scale 12: radius_fraction: 0.1 times 12 reaches 1.2",
         ),
+        "requirements unknown group": (
+            ["requirements", "--groups", "gravity", "--out", out],
+            "--groups: distinct names of lar_pose",
+        ),
+        "requirements widths not increasing": (
+            ["requirements", "--widths", "2,1", "--out", out],
+            "--widths: positive multiples, increasing",
+        ),
+        "requirements sobol not a power of two": (
+            ["requirements", "--sobol", "12", "--out", out],
+            "--sobol: a power of two",
+        ),
+        "requirements widest point past a fraction": (
+            ["requirements", "--widths", "1,12", "--out", out],
+            "reaches 1.2; it must stay below 1",
+        ),
         "montecarlo approach offset past the approach": (
             [*MONTECARLO, "--range", "approach_offset_m=0.2", "--out", out],
             "approach_offset_m: 0.2 m needs an approach along the LAR z axis longer than that",
