@@ -555,7 +555,11 @@ def cases(paths, out):
         ),
         "requirements widest point past a fraction": (
             ["requirements", "--widths", "1,12", "--out", out],
-            "reaches 1.2; it must stay below 1",
+            "--widths 1,12: radius_fraction: 0.1 times 12 reaches 1.2; a fraction must stay below 1",
+        ),
+        "requirements unknown range": (
+            ["requirements", "--range", "lar_pos=0.01", "--out", out],
+            "unknown perturbation range 'lar_pos'",
         ),
         "montecarlo approach offset past the approach": (
             [*MONTECARLO, "--range", "approach_offset_m=0.2", "--out", out],

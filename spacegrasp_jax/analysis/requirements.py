@@ -41,7 +41,7 @@ import numpy as np
 
 from spacegrasp_jax.analysis import sensitivity
 from spacegrasp_jax.envelope import statistics
-from spacegrasp_jax.envelope.perturbations import FRACTIONS, Perturbation, PerturbationRanges, draw_units
+from spacegrasp_jax.envelope.perturbations import Perturbation, PerturbationError, PerturbationRanges, draw_units
 
 #: Perturbation groups: name -> (words, the half-widths it scales, the drawn units it owns).
 GROUPS = {
@@ -137,21 +137,11 @@ def scaled_group(ranges: PerturbationRanges, group: str, width: float) -> Pertur
     """``ranges`` with ``group``'s half-widths ``width`` times theirs (``ALL``: every
     group's, ``ranges.scaled(width)``); the stiffness factor to the power ``width``. Raises
     RequirementsError where a fraction would reach 1."""
+    if group != ALL and group not in GROUPS:
+        raise RequirementsError(f"group: expected one of {', '.join(GROUPS)} or {ALL}, got {group!r}")
     try:
-        if group == ALL:
-            return ranges.scaled(width)
-        if group not in GROUPS:
-            raise RequirementsError(f"group: expected one of {', '.join(GROUPS)} or {ALL}, got {group!r}")
-        values = {}
-        for name in GROUPS[group][1]:
-            value = getattr(ranges, name)
-            values[name] = value**width if name == "stiffness_factor" else value * width
-            if name in FRACTIONS and values[name] >= 1.0:
-                raise RequirementsError(
-                    f"{name}: {value:g} times {width:g} reaches {values[name]:g}; it must stay below 1"
-                )
-        return dataclasses.replace(ranges, **values)
-    except ValueError as error:
+        return ranges.scaled(width, None if group == ALL else GROUPS[group][1])
+    except PerturbationError as error:
         raise RequirementsError(str(error)) from None
 
 

@@ -36,7 +36,6 @@ from spacegrasp_jax.cli.options import (
     add_robot_arguments,
 )
 from spacegrasp_jax.envelope import plausibility, statistics
-from spacegrasp_jax.envelope.perturbations import PerturbationError
 from spacegrasp_jax.envelope.scenario import load_scenario, paper_scenario
 from spacegrasp_jax.jobs import batching, campaign, runfiles
 from spacegrasp_jax.loop.control import CONTROLLERS
@@ -57,8 +56,8 @@ def _requirements(args: argparse.Namespace) -> int:
     batching.use_all_cpu_cores()  # before anything touches a device
     robot = _load_robot(args)
     scenario = load_scenario(robot, args.scenario) if args.scenario else paper_scenario(robot)
+    reference = _ranges(args, requirements.REFERENCE_RANGES)  # its own errors name their option
     try:
-        reference = _ranges(args, requirements.REFERENCE_RANGES)
         groups = (
             tuple(name for name in args.groups.split(",") if name)
             if args.groups
@@ -74,9 +73,11 @@ def _requirements(args: argparse.Namespace) -> int:
         )
         if "target" in groups and not scenario.free_target:
             raise UsageError("--groups target: needs a scenario with a free-floating [target]")
-        for group in groups:  # the widest point of every curve must be a valid envelope
-            requirements.scaled_group(reference, group, settings.widths[-1])
-        requirements.scaled_group(reference, requirements.ALL, settings.widths[-1])
+        for group in [*groups, requirements.ALL]:  # the widest point of every curve must be a valid envelope
+            try:
+                requirements.scaled_group(reference, group, settings.widths[-1])
+            except requirements.RequirementsError as error:
+                raise UsageError(f"--widths {args.widths}: {error}") from None
         variants = _montecarlo_variants(args, robot)
         config = _criteria(
             args,
@@ -86,10 +87,9 @@ def _requirements(args: argparse.Namespace) -> int:
             device_batch=128 if jax.default_backend() == "cpu" else None,
             realism=load_realism(args.realism, robot) if args.realism else None,
         )
-    except (requirements.RequirementsError, PerturbationError, ValueError) as error:
+    except requirements.RequirementsError as error:  # a study setting: its message leads with the field
         field, _, rest = str(error).partition(": ")
-        option = STUDY_OPTIONS.get(field)
-        raise UsageError(f"{option}: {rest}" if option else f"--widths {args.widths}: {error}") from None
+        raise UsageError(f"{STUDY_OPTIONS.get(field, field)}: {rest}") from None
     _check_joint_ranges(args, robot, scenario)
     _realism(args, scenario, robot)
     _warn(plausibility.input_warnings(scenario))

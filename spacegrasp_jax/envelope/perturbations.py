@@ -194,22 +194,25 @@ class PerturbationRanges:
             return self._flags[1]
         return self.lar_estimate_position_m > 0.0 or self.lar_estimate_angle_rad > 0.0
 
-    def scaled(self, factor: float) -> PerturbationRanges:
-        """The envelope ``factor`` times as wide: every half-width times ``factor``, the
-        contact stiffness's factor raised to the power ``factor`` (it is drawn in its
-        logarithm, ``stiffness_factor ** U``). Raises PerturbationError, naming the field,
-        where a fraction would reach 1 (a mass, inertia or radius would reach zero)."""
+    def scaled(self, factor: float, fields=None) -> PerturbationRanges:
+        """The envelope ``factor`` times as wide (in ``fields`` only, names of half-widths;
+        ``None``: every one): each half-width times ``factor``, the contact stiffness's factor
+        raised to the power ``factor`` (it is drawn in its logarithm, ``stiffness_factor ** U``).
+        Raises PerturbationError, naming the field, where a fraction would reach 1 (a mass,
+        inertia, radius or torque limit would reach zero)."""
         if not (is_real(factor) and factor >= 0.0):
             raise PerturbationError(f"scale: must be a finite number of 0 or more, got {short(factor)}")
-        values = {field.name: factor * getattr(self, field.name) for field in dataclasses.fields(self)}
-        values["stiffness_factor"] = self.stiffness_factor**factor
-        for name in FRACTIONS:
-            if values[name] >= 1.0:
+        names = [field.name for field in dataclasses.fields(self)] if fields is None else list(fields)
+        values = {}
+        for name in names:
+            value = getattr(self, name)
+            values[name] = value**factor if name == "stiffness_factor" else factor * value
+            if name in FRACTIONS and values[name] >= 1.0:
                 raise PerturbationError(
-                    f"{name}: {getattr(self, name):g} times {factor:g} reaches {values[name]:g}; a fraction must "
+                    f"{name}: {value:g} times {factor:g} reaches {values[name]:g}; a fraction must "
                     "stay below 1 (the quantity must stay positive)"
                 )
-        return PerturbationRanges(**values)
+        return dataclasses.replace(self, **values)
 
     @property
     def draws_sensor_errors(self) -> bool:
