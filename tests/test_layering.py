@@ -405,6 +405,7 @@ def test_a_module_by_its_name_before_the_folders_comes_with_a_warning_naming_its
                 on_disk[path.name] = folder
     # modules written in their folder, never at the old place
     added_since = {"frequency": "analysis", "sensitivity": "analysis", "requirements": "analysis"}
+    added_since |= {"reliability": "analysis", "limit_state": "analysis", "standard_space": "envelope"}
     assert spacegrasp_jax.MOVED_MODULES == {name: folder for name, folder in on_disk.items() if name not in added_since}
     assert {name: on_disk[name] for name in added_since} == added_since
     with pytest.warns(DeprecationWarning, match=r"spacegrasp_jax.campaign is now spacegrasp_jax.jobs.campaign"):

@@ -594,6 +594,45 @@ def figure_worst_case_search(history: list, campaign_values, screening: int, lab
     return fig
 
 
+def figure_reliability(estimate, points: dict, title: str):
+    """A failure probability's evidence (``spacegrasp reliability``): left, the margin of every
+    point the estimator evaluated against its distance from the origin of the standard space
+    (failures below 0, the most probable failure points circled); right, the most probable
+    failure point's coordinates, each one's share of its squared distance (what makes it
+    fail)."""
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11.0, 4.5), gridspec_kw={"width_ratios": [3, 2]})
+    fig.suptitle(f"{title}\n{estimate.method}: {estimate.summary()}", fontsize=10)
+    distance, g = np.asarray(points["distance"]), np.asarray(points["g"])
+    failing = g < 0.0
+    left.scatter(distance[~failing], g[~failing], s=4, color="tab:blue", alpha=0.4, label="captured")
+    left.scatter(distance[failing], g[failing], s=6, color="tab:red", alpha=0.6, label="failed")
+    for k, point in enumerate(estimate.design_points):
+        left.scatter(
+            [point["distance"]],
+            [point["g"]],
+            s=60,
+            facecolors="none",
+            edgecolors="black",
+            label="most probable failures" if k == 0 else None,
+        )
+    left.axhline(0.0, color="black", linewidth=1)
+    left.set_xlabel("distance |z| from the nominal capture (standard normal units)")
+    left.set_ylabel("margin g (below 0: failed)")
+    left.grid(True, alpha=0.3)
+    left.legend(fontsize=8)
+    if estimate.design_points:
+        shares = estimate.design_points[0]["importance"]
+        names = list(shares)[::-1]
+        right.barh(names, [100.0 * shares[name] for name in names], color="tab:red")
+        right.set_xlabel("share of |z|^2 (%)")
+        right.set_title(f"most probable failure: |z| = {estimate.design_points[0]['distance']:.2f}", fontsize=9)
+    else:
+        right.text(0.5, 0.5, "no failing point sampled", ha="center", va="center", transform=right.transAxes)
+        right.set_axis_off()
+    fig.tight_layout()
+    return fig
+
+
 def _probe_outcome(probe: dict, captured_at_nominal: np.ndarray) -> float:
     """mm: the largest final position error of a probe's samples that capture at the nominal
     gains (all samples if none does); inf if one of them ran away or diverged."""

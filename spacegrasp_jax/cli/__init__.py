@@ -26,6 +26,7 @@ from spacegrasp_jax.cli import (  # noqa: E402  (the commands, in the order --he
     info,
     margins,
     montecarlo,
+    reliability,
     requirements,
     runs,
     tune,
@@ -59,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     gradients.add_parsers(commands)
     margins.add_parsers(commands)
     worstcase.add_parsers(commands)
+    reliability.add_parsers(commands)
     requirements.add_parsers(commands)
     benchmark.add_parsers(commands)
     return parser

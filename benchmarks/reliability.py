@@ -1,0 +1,235 @@
+"""The failure-probability estimators measured on problems whose probability is known.
+
+    python -m spacegrasp_jax.benchmarks.reliability --out notebooks/data/reliability \\
+        [--repeats 20] [--budgets 1000,2000,5000] [--methods form_is,subset,cross_entropy,montecarlo]
+
+Known problems (``PROBLEMS``): a linear limit state in 20 standard normal dimensions at 1e-3,
+1e-5 and 1e-7 (``Phi(-beta)`` exactly), one with two failure regions in 10 dimensions at 1e-5,
+and otbenchmark's reliability problems RP28 (1.45e-7, 2 dimensions), RP107 (2.92e-7, 10), RP111
+(7.65e-7, 2, four failure regions) and RP25 (4.15e-5, 2), each at its published probability
+(RP77's and RP110's expressions no longer parse in OpenTURNS 1.27). Each method runs ``repeats`` times (seeds 0, 1, ...) at each budget
+(rollouts, a gradient counted ``reliability.GRADIENT_COST``). Appends a row a run to
+``known.jsonl`` as it goes (a run already there is not run again), then writes
+``known.json``: per problem, method and budget, the share of repeats within a factor of 2 of
+the truth, the share whose 95% interval covers it, the repeats' own coefficient of variation
+(their standard deviation over the truth) against the one the estimator reports, and the
+mean rollouts and wall time; and, per problem and method, the rollouts to a coefficient of
+variation of 0.3 (interpolated in log-log between the budgets; ``None`` if no budget reaches it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from spacegrasp_jax.analysis import reliability
+from spacegrasp_jax.analysis.reliability import LimitState, Settings
+from spacegrasp_jax.benchmarks.dynamics import machine
+
+#: The coefficient of variation the rollouts are counted to.
+TARGET_CV = 0.3
+
+
+def linear(dimension: int, probability: float) -> LimitState:
+    """``g(z) = beta - a.z``, ``|a| = 1``: failure probability ``Phi(-beta)`` exactly."""
+    beta = -stats.norm.ppf(probability)
+    a = np.ones(dimension) / math.sqrt(dimension)
+    return LimitState(
+        dimension,
+        values=lambda z, first: {"g": beta - z @ a},
+        value_and_gradient=lambda z: {"g": beta - z @ a, "gradient": -a},
+    )
+
+
+def two_regions(dimension: int, probability: float) -> LimitState:
+    """``g(z) = beta - |z_0|``: two failure regions of ``probability / 2`` each."""
+    beta = -stats.norm.ppf(probability / 2.0)
+    return LimitState(
+        dimension,
+        values=lambda z, first: {"g": beta - np.abs(z[:, 0])},
+        value_and_gradient=lambda z: {
+            "g": beta - abs(z[0]),
+            "gradient": np.r_[-np.sign(z[0]), np.zeros(dimension - 1)],
+        },
+    )
+
+
+def otbenchmark_problem(number: int) -> tuple[LimitState, float]:
+    """otbenchmark's reliability problem ``number`` in its standard space, and its published
+    probability. otbenchmark 0.2.1 builds its distributions with ``ot.ComposedDistribution``,
+    which OpenTURNS 1.26 renamed ``JointDistribution``: the old name is lent to OpenTURNS while
+    the problem is built, then taken back."""
+    import openturns as ot
+    import otbenchmark
+
+    lent = not hasattr(ot, "ComposedDistribution")
+    if lent:
+        ot.ComposedDistribution = ot.JointDistribution
+    try:
+        problem = getattr(otbenchmark, f"ReliabilityProblem{number}")()
+    finally:
+        if lent:
+            del ot.ComposedDistribution
+    event = problem.getEvent()
+    distribution = event.getAntecedent().getDistribution()
+    function = ot.ComposedFunction(event.getFunction(), distribution.getInverseIsoProbabilisticTransformation())
+    threshold = event.getThreshold()
+    less = event.getOperator()
+    if not (less(0.0, 1.0) and not less(1.0, 0.0)):
+        raise ValueError(f"RP{number}: failure is not below the threshold")
+
+    def values(z, first):
+        return {"g": np.asarray(function(ot.Sample(np.asarray(z))))[:, 0] - threshold}
+
+    def value_and_gradient(z):
+        return {
+            "g": float(function(ot.Point(z))[0]) - threshold,
+            "gradient": np.asarray(function.gradient(ot.Point(z)))[:, 0],
+        }
+
+    return LimitState(distribution.getDimension(), values, value_and_gradient), problem.getProbability()
+
+
+#: name -> a function giving ``(limit state, known probability)``.
+PROBLEMS = {
+    "linear 20-D 1e-3": lambda: (linear(20, 1e-3), 1e-3),
+    "linear 20-D 1e-5": lambda: (linear(20, 1e-5), 1e-5),
+    "linear 20-D 1e-7": lambda: (linear(20, 1e-7), 1e-7),
+    "two regions 10-D 1e-5": lambda: (two_regions(10, 1e-5), 1e-5),
+    "RP28": lambda: otbenchmark_problem(28),
+    "RP107": lambda: otbenchmark_problem(107),
+    "RP111": lambda: otbenchmark_problem(111),
+    "RP25": lambda: otbenchmark_problem(25),
+}
+
+
+def run_known(out: Path, repeats: int, budgets: list[int], methods: list[str]) -> dict:
+    """The rows of ``known.jsonl`` (run where missing) and the summary of ``known.json``."""
+    out.mkdir(parents=True, exist_ok=True)
+    rows_path = out / "known.jsonl"
+    rows = [json.loads(line) for line in rows_path.read_text().splitlines()] if rows_path.exists() else []
+    done = {(r["problem"], r["method"], r["budget"], r["seed"]) for r in rows}
+    with rows_path.open("a") as stream:
+        for name, build in PROBLEMS.items():
+            state, truth = build()
+            for method in methods:
+                for budget in budgets:
+                    for seed in range(repeats):
+                        if (name, method, budget, seed) in done:
+                            continue
+                        started = time.perf_counter()
+                        result = reliability.estimate(
+                            state,
+                            Settings(method=method, budget=budget, seed=seed, smallest_probability=1e-8),
+                        )
+                        row = {
+                            "problem": name,
+                            "truth": truth,
+                            "method": method,
+                            "budget": budget,
+                            "seed": seed,
+                            "probability": result.probability,
+                            "low": result.low,
+                            "high": result.high,
+                            "cv": result.coefficient_of_variation,
+                            "rollouts": result.rollouts,
+                            "complete": result.complete,
+                            "wall_s": time.perf_counter() - started,
+                        }
+                        stream.write(json.dumps(row) + "\n")
+                        stream.flush()
+                        rows.append(row)
+                print(f"{name}: {method} done", flush=True)
+    summary = summarise(rows)
+    document = {"machine": machine(), "repeats": repeats, "budgets": budgets, "summary": summary}
+    (out / "known.json").write_text(json.dumps(document, indent=1) + "\n")
+    return document
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Per problem, method and budget: the repeats' accuracy and the intervals' coverage; per
+    problem and method, the rollouts to a coefficient of variation of ``TARGET_CV``."""
+    summary: dict = {}
+    for row in rows:
+        cell = summary.setdefault(row["problem"], {}).setdefault(row["method"], {}).setdefault(str(row["budget"]), [])
+        cell.append(row)
+    table: dict = {}
+    for problem, methods in summary.items():
+        for method, budgets in methods.items():
+            entry = {}
+            for budget, cell in budgets.items():
+                truth = cell[0]["truth"]
+                estimates = np.array([np.nan if r["probability"] is None else r["probability"] for r in cell], float)
+                found = np.isfinite(estimates)
+                ratio = estimates / truth
+                entry[budget] = {
+                    "repeats": len(cell),
+                    "within_2x": int(np.sum(found & (ratio > 0.5) & (ratio < 2.0))),
+                    "covered": int(sum(r["low"] is not None and r["low"] <= truth <= r["high"] for r in cell)),
+                    "no_estimate": int(np.sum(~found)),
+                    "median_ratio": float(np.nanmedian(ratio)) if found.any() else None,
+                    "empirical_cv": float(np.sqrt(np.nanmean((ratio - 1.0) ** 2))) if found.any() else None,
+                    "reported_cv": float(np.nanmean([np.nan if r["cv"] is None else r["cv"] for r in cell])),
+                    "rollouts": float(np.mean([r["rollouts"] for r in cell])),
+                    "wall_s": float(np.mean([r["wall_s"] for r in cell])),
+                }
+            entry["rollouts_to_cv_0.3"] = rollouts_to(entry, TARGET_CV)
+            table.setdefault(problem, {})[method] = entry
+    return table
+
+
+def rollouts_to(entry: dict, target: float) -> float | None:
+    """The rollouts at which the repeats' coefficient of variation (their root mean square
+    relative error) falls to ``target``, interpolated in log-log between budgets."""
+    points = sorted(
+        (cell["rollouts"], cell["empirical_cv"])
+        for cell in entry.values()
+        if isinstance(cell, dict) and cell["empirical_cv"] is not None and cell["no_estimate"] == 0
+    )
+    for (n0, c0), (n1, c1) in zip(points, points[1:], strict=False):
+        if c0 > target >= c1 and c0 > 0 and c1 > 0:
+            slope = (math.log(c1) - math.log(c0)) / (math.log(n1) - math.log(n0))
+            return float(math.exp(math.log(n0) + (math.log(target) - math.log(c0)) / slope))
+    if points and points[0][1] <= target:
+        return float(points[0][0])  # reached at the smallest budget: at most that
+    return None
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--budgets", default="1000,2000,5000")
+    parser.add_argument("--methods", default=",".join(reliability.METHODS))
+    args = parser.parse_args(argv)
+    budgets = [int(b) for b in args.budgets.split(",")]
+    methods = args.methods.split(",")
+    unknown = set(methods) - set(reliability.METHODS)
+    if unknown:
+        parser.error(f"--methods: unknown {', '.join(sorted(unknown))}; expected {', '.join(reliability.METHODS)}")
+    import openturns as ot
+
+    shown = ot.Log.Flags()
+    ot.Log.Show(ot.Log.NONE)  # RP25's gradient falls back on finite differences, with a warning a step
+    try:
+        document = run_known(Path(args.out), args.repeats, budgets, methods)
+    finally:
+        ot.Log.Show(shown)
+    for problem, methods_table in document["summary"].items():
+        for method, entry in methods_table.items():
+            last = entry[str(max(budgets))]
+            print(
+                f"{problem:24s} {method:14s} within 2x {last['within_2x']:2d}/{last['repeats']}, "
+                f"covered {last['covered']:2d}/{last['repeats']}, c.o.v. {last['empirical_cv'] or float('nan'):.2f} "
+                f"(reported {last['reported_cv']:.2f}), rollouts to c.o.v. 0.3: {entry['rollouts_to_cv_0.3']}"
+            )
+
+
+if __name__ == "__main__":
+    main()
