@@ -7,7 +7,8 @@ Known problems (``PROBLEMS``): a linear limit state in 20 standard normal dimens
 1e-5 and 1e-7 (``Phi(-beta)`` exactly), one with two failure regions in 10 dimensions at 1e-5,
 and otbenchmark's reliability problems RP28 (1.45e-7, 2 dimensions), RP107 (2.92e-7, 10), RP111
 (7.65e-7, 2, four failure regions) and RP25 (4.15e-5, 2), each at its published probability
-(RP77's and RP110's expressions no longer parse in OpenTURNS 1.27). Each method runs ``repeats`` times (seeds 0, 1, ...) at each budget
+(RP77's and RP110's expressions no longer parse in OpenTURNS 1.27). Each method runs
+``repeats`` times (seeds 0, 1, ...) at each budget
 (rollouts, a gradient counted ``reliability.GRADIENT_COST``). Appends a row a run to
 ``known.jsonl`` as it goes (a run already there is not run again), then writes
 ``known.json``: per problem, method and budget, the share of repeats within a factor of 2 of
@@ -15,6 +16,22 @@ the truth, the share whose 95% interval covers it, the repeats' own coefficient 
 (their standard deviation over the truth) against the one the estimator reports, and the
 mean rollouts and wall time; and, per problem and method, the rollouts to a coefficient of
 variation of 0.3 (interpolated in log-log between the budgets; ``None`` if no budget reaches it).
+
+On a capture (``--capture TRUTH``): the estimators against a brute-force truth, the campaign in
+the folder ``TRUTH`` (``spacegrasp montecarlo`` of ``CAPTURE``'s gains, loop and envelope, run
+first; about 171/p captures give the truth within 15% at 95%). Each method runs ``repeats``
+times (estimator and noise seed ``CAPTURE_SEED + r``) at one budget (``--budgets``' first),
+each repeat journaled under ``runs/`` (an interrupted repeat resumes), a row a repeat in
+``capture.jsonl``; ``capture.json`` gives each method's coverage of the truth's failure rate,
+its repeats' coefficient of variation about it, rollouts and wall time, beside a campaign of the
+same rollouts (the truth's own captures in consecutive blocks of the budget).
+
+    spacegrasp montecarlo --n 30000 --controller admittance --baseline flight_schedule \\
+        --realism flight --seed 7501 --range lar_position_m=0.0065 \\
+        --range lar_estimate_position_m=0.0026 --range lar_angle_rad=0.013 \\
+        --range lar_estimate_angle_rad=0.0065 --out results/truth
+    python -m spacegrasp_jax.benchmarks.reliability --capture results/truth \\
+        --out notebooks/data/reliability/capture --budgets 2800 --methods subset,form_is,cross_entropy
 """
 
 from __future__ import annotations
@@ -201,18 +218,136 @@ def rollouts_to(entry: dict, target: float) -> float | None:
     return None
 
 
+#: The capture the estimators are measured on: the shipped flight schedule, flight-like loop,
+#: the campaigns' envelope with the LAR's pose and its estimate 1.3 times as wide (a failure
+#: probability near 6e-3).
+CAPTURE = {
+    "gains": "flight_schedule",
+    "controller": "admittance",
+    "realism": "flight",
+    "ranges": {
+        "lar_position_m": 0.0065,
+        "lar_estimate_position_m": 0.0026,
+        "lar_angle_rad": 0.013,
+        "lar_estimate_angle_rad": 0.0065,
+    },
+}
+
+#: The seed of repeat 0 (repeat r: CAPTURE_SEED + r); the truth's campaign has its own seed.
+CAPTURE_SEED = 1000
+
+
+def run_capture(truth: Path, out: Path, repeats: int, budget: int, methods: list[str]) -> dict:
+    """The rows of ``capture.jsonl`` (run where missing) and the summary of ``capture.json``;
+    the campaign in ``truth`` must be ``CAPTURE``'s (its gains, loop and envelope)."""
+    import dataclasses
+
+    import spacegrasp_jax as sg
+    from spacegrasp_jax.analysis import limit_state
+    from spacegrasp_jax.jobs import campaign
+    from spacegrasp_jax.loop.control.schedule import tuned_schedule
+
+    _, config = campaign.campaign_record(truth)
+    for name, value in CAPTURE["ranges"].items():
+        if getattr(config.ranges, name) != value:
+            raise SystemExit(f"--capture {truth}: its {name} is {getattr(config.ranges, name)}, the capture's {value}")
+    _, by_variant = campaign.load_samples(truth / "samples.npz")
+    captured = np.concatenate([np.asarray(v["success"], dtype=bool) for v in by_variant.values()])
+    failures, n = int(np.sum(~captured)), len(captured)
+    truth_p = failures / n
+    truth_low, truth_high = reliability.binomial_interval(failures, n)
+    block_p = np.mean(~captured[: n - n % budget].reshape(-1, budget), axis=1)
+
+    robot = sg.paper_robot()
+    scenario = sg.paper_scenario(robot)
+    gains = tuned_schedule(CAPTURE["gains"])
+    out.mkdir(parents=True, exist_ok=True)
+    rows_path = out / "capture.jsonl"
+    rows = [json.loads(line) for line in rows_path.read_text().splitlines()] if rows_path.exists() else []
+    done = {(r["method"], r["seed"]) for r in rows}
+    with rows_path.open("a") as stream:
+        for method in methods:
+            for r in range(repeats):
+                seed = CAPTURE_SEED + r
+                if (method, seed) in done:
+                    continue
+                state = limit_state.limit_state(
+                    robot,
+                    scenario,
+                    gains,
+                    CAPTURE["controller"],
+                    dataclasses.replace(config, seed=seed),
+                    block=100,
+                    gradient=method in reliability.GRADIENT_METHODS,
+                )
+                result = reliability.estimate(
+                    state.limit_state,
+                    Settings(method=method, budget=budget, seed=seed, smallest_probability=1e-4),
+                    journal=out / "runs" / f"{method}_{seed}" / "journal",
+                )
+                row = {
+                    "method": method,
+                    "seed": seed,
+                    "probability": result.probability,
+                    "low": result.low,
+                    "high": result.high,
+                    "cv": result.coefficient_of_variation,
+                    "rollouts": result.rollouts,
+                    "gradients": result.gradients,
+                    "wall_s": result.wall_s,
+                    "compile_s": state.compile_s,
+                }
+                stream.write(json.dumps(row) + "\n")
+                stream.flush()
+                rows.append(row)
+                print(f"{method} seed {seed}: {result.summary()}", flush=True)
+    summary = {}
+    for method in methods:
+        cell = [r for r in rows if r["method"] == method]
+        if not cell:
+            continue
+        estimates = np.array([np.nan if r["probability"] is None else r["probability"] for r in cell], float)
+        summary[method] = {
+            "repeats": len(cell),
+            "covered": int(sum(r["low"] is not None and r["low"] <= truth_p <= r["high"] for r in cell)),
+            "empirical_cv": float(np.sqrt(np.nanmean((estimates / truth_p - 1.0) ** 2))),
+            "reported_cv": float(np.nanmean([np.nan if r["cv"] is None else r["cv"] for r in cell])),
+            "rollouts": float(np.mean([r["rollouts"] for r in cell])),
+            "wall_s": float(np.mean([r["wall_s"] for r in cell])),
+        }
+    summary["montecarlo, the truth's captures in blocks"] = {
+        "repeats": int(len(block_p)),
+        "empirical_cv": float(np.sqrt(np.mean((block_p / truth_p - 1.0) ** 2))),
+        "rollouts": float(budget),
+    }
+    document = {
+        "machine": machine(),
+        "capture": CAPTURE,
+        "truth": {"failures": failures, "n": n, "probability": truth_p, "low": truth_low, "high": truth_high},
+        "budget": budget,
+        "summary": summary,
+    }
+    (out / "capture.json").write_text(json.dumps(document, indent=1) + "\n")
+    return document
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", required=True)
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--budgets", default="1000,2000,5000")
     parser.add_argument("--methods", default=",".join(reliability.METHODS))
+    parser.add_argument("--capture", metavar="TRUTH", help="measure on the capture against this campaign folder")
     args = parser.parse_args(argv)
     budgets = [int(b) for b in args.budgets.split(",")]
     methods = args.methods.split(",")
     unknown = set(methods) - set(reliability.METHODS)
     if unknown:
         parser.error(f"--methods: unknown {', '.join(sorted(unknown))}; expected {', '.join(reliability.METHODS)}")
+    if args.capture:
+        document = run_capture(Path(args.capture), Path(args.out), args.repeats, budgets[0], methods)
+        print(json.dumps(document["truth"]), json.dumps(document["summary"], indent=1))
+        return
     import openturns as ot
 
     shown = ot.Log.Flags()

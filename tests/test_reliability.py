@@ -96,6 +96,15 @@ def test_the_most_probable_failure_points_are_the_nearest_failing_ones():
         np.testing.assert_allclose(sum(point["importance"].values()), 1.0)
 
 
+def test_the_failures_are_attributed_to_the_coordinates_that_carry_them():
+    """A limit state that fails where ``|z_2|`` is large (either sign: a mean would cancel):
+    the failing points' excess spread is in ``z[2]``, nearly all of it."""
+    state = LimitState(6, values=lambda z, first: {"g": 2.5 - np.abs(z[:, 2])})
+    result = estimate(state, Settings(method="montecarlo", budget=20_000, block=5000))
+    assert result.failing > 100
+    assert next(iter(result.attribution)) == "z[2]" and result.attribution["z[2]"] > 0.9
+
+
 class _Interrupted(Exception):
     pass
 

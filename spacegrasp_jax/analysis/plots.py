@@ -597,9 +597,8 @@ def figure_worst_case_search(history: list, campaign_values, screening: int, lab
 def figure_reliability(estimate, points: dict, title: str):
     """A failure probability's evidence (``spacegrasp reliability``): left, the margin of every
     point the estimator evaluated against its distance from the origin of the standard space
-    (failures below 0, the most probable failure points circled); right, the most probable
-    failure point's coordinates, each one's share of its squared distance (what makes it
-    fail)."""
+    (failures below 0, the most probable failure points circled); right, the perturbations the
+    failing captures have in common (``reliability.attribution()``)."""
     fig, (left, right) = plt.subplots(1, 2, figsize=(11.0, 4.5), gridspec_kw={"width_ratios": [3, 2]})
     fig.suptitle(f"{title}\n{estimate.method}: {estimate.summary()}", fontsize=10)
     distance, g = np.asarray(points["distance"]), np.asarray(points["g"])
@@ -620,12 +619,12 @@ def figure_reliability(estimate, points: dict, title: str):
     left.set_ylabel("margin g (below 0: failed)")
     left.grid(True, alpha=0.3)
     left.legend(fontsize=8)
-    if estimate.design_points:
-        shares = estimate.design_points[0]["importance"]
+    if estimate.attribution:
+        shares = estimate.attribution
         names = list(shares)[::-1]
         right.barh(names, [100.0 * shares[name] for name in names], color="tab:red")
-        right.set_xlabel("share of |z|^2 (%)")
-        right.set_title(f"most probable failure: |z| = {estimate.design_points[0]['distance']:.2f}", fontsize=9)
+        right.set_xlabel("share of the failures' excess spread (%)")
+        right.set_title(f"what the {estimate.failing:,} failing captures have in common", fontsize=9)
     else:
         right.text(0.5, 0.5, "no failing point sampled", ha="center", va="center", transform=right.transAxes)
         right.set_axis_off()

@@ -216,6 +216,8 @@ class Estimate:
         design_points: the most probable failing points, most probable first: each
             ``{"z", "g", "distance", "importance", ...extras}``, ``importance`` the
             coordinates' shares of ``|z|^2``, the largest first.
+        attribution: what the failures have in common (``attribution()``): coordinate name ->
+            its share, the largest first (empty without failing points).
         details: the method's own: FORM's design points and reliability indices, the levels'
             thresholds, ...
         complete: False where the budget ran out before the method finished (no estimate).
@@ -232,6 +234,7 @@ class Estimate:
     failing: int
     wall_s: float
     design_points: list
+    attribution: dict
     details: dict
     complete: bool = True
 
@@ -243,6 +246,11 @@ class Estimate:
         if not self.complete:
             why = self.details.get("error", "the budget ran out")
             return f"no estimate: {why}, after {self.rollouts:,.0f} rollouts"
+        if not math.isfinite(self.probability) and "below" in self.details:
+            return (
+                f"no estimate: the levels reached {self.details['below']:.3g} without a failing capture, "
+                f"after {self.rollouts:,.0f} rollouts"
+            )
         if not math.isfinite(self.probability):
             return f"no failing point sampled in {self.rollouts:,.0f} rollouts: no estimate"
         cv = (
@@ -523,6 +531,7 @@ def estimate(limit_state: LimitState, settings: Settings, *, journal=None, say=N
         failing=len(calls.failing),
         wall_s=calls.recorded_s,
         design_points=most_probable(calls.failing, settings.design_points, limit_state.coordinate_names()),
+        attribution=attribution(calls.failing, limit_state.coordinate_names()),
         details=details,
         complete=complete,
     )
@@ -541,6 +550,24 @@ def journal_points(journal) -> dict[str, np.ndarray]:
     if not g:
         return {"distance": np.zeros(0), "g": np.zeros(0), "kind": np.zeros(0, dtype=str)}
     return {"distance": np.concatenate(distance), "g": np.concatenate(g), "kind": np.asarray(kind)}
+
+
+def attribution(failing: list[dict], names, shown: int = 8) -> dict[str, float]:
+    """Which coordinates the failing points have in common: each coordinate's excess second
+    moment over the failing points, ``max(mean(z_i^2) - 1, 0)`` (a standard normal's is 1: a
+    coordinate that does not matter keeps it, one that carries the failures, in either
+    direction, exceeds it), as shares of their sum, the ``shown`` largest. Over the failing
+    points found, unweighted: the failure domain's conditional distribution for Monte-Carlo
+    and the last level of subset simulation, an approximation of it for importance sampling."""
+    if not failing:
+        return {}
+    z = np.stack([np.asarray(p["z"], dtype=np.float64) for p in failing])
+    excess = np.maximum(np.mean(z * z, axis=0) - 1.0, 0.0)
+    total = float(np.sum(excess))
+    if total == 0.0:
+        return {}
+    order = np.argsort(-excess)[:shown]
+    return {names[i]: float(excess[i] / total) for i in order if excess[i] > 0.0}
 
 
 def most_probable(failing: list[dict], count: int, names) -> list[dict]:
@@ -742,6 +769,7 @@ __all__ = [
     "LimitState",
     "ReliabilityError",
     "Settings",
+    "attribution",
     "binomial_interval",
     "estimate",
     "journal_points",

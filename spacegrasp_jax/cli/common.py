@@ -392,6 +392,31 @@ def _claim(args: argparse.Namespace, out: Path) -> None:
     multihost_utils.sync_global_devices("spacegrasp: output folder claimed")
 
 
+def replay_command(args: argparse.Namespace, perturbation: Path, out: Path) -> list[str]:
+    """The ``spacegrasp simulate`` command line that runs this command's nominal capture (its
+    law, gains, scenario, robot, loop and damping) perturbed as the perturbation file
+    ``perturbation`` says, into ``out``."""
+    command = ["spacegrasp", "simulate", "--controller", args.controller]
+    for option, value in (
+        ("--gains", args.gains),
+        ("--fill-from", args.fill_from),
+        ("--scenario", args.scenario),
+        ("--robot", args.robot),
+        ("--mount", args.mount),
+        ("--base-link", args.base_link),
+        ("--tip-link", args.tip_link),
+    ):
+        if value:
+            command += [option, value]
+    if args.allow_outside_limits:
+        command.append("--allow-outside-limits")
+    if args.realism:
+        command += ["--realism", args.realism]
+    if args.pinv_damping:
+        command += ["--pinv-damping", f"{args.pinv_damping:g}"]
+    return command + ["--perturbation", str(perturbation), "--out", str(out)]
+
+
 def _warn(lines: list[str], prefix: str = "") -> None:
     """Each line as ``spacegrasp: warning: ...`` on stderr (``spacegrasp_jax.envelope.plausibility``)."""
     for line in lines:

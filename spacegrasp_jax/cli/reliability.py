@@ -26,6 +26,7 @@ from spacegrasp_jax.cli.common import (
     _robot_links,
     _warn,
     gains_label,
+    replay_command,
 )
 from spacegrasp_jax.cli.options import (
     UsageError,
@@ -64,6 +65,12 @@ def _reliability(args: argparse.Namespace) -> int:
         )
     except (reliability.ReliabilityError, PerturbationError) as error:
         raise UsageError(str(error)) from None
+    devices = jax.device_count()
+    if settings.block % devices:
+        raise UsageError(
+            f"--block: {settings.block} captures a call are not a whole number for each of the {devices} devices; "
+            f"use a multiple of {devices} such as {devices * max(1, settings.block // devices)}"
+        )
     robot, scenario, gains = _load_inputs(args, schedules=True)
     realism = _realism(args, scenario, robot)
     config = _criteria(args, robot, n=1, seed=args.seed, ranges=ranges, realism=realism)
@@ -128,6 +135,9 @@ def _reliability(args: argparse.Namespace) -> int:
     print(
         f"{result.points:,} points, {result.gradients:,} gradients in {result.wall_s:.1f} s, after compiling ({compiled})"
     )
+    if result.attribution:
+        common = ", ".join(f"{name} {100 * share:.0f}%" for name, share in list(result.attribution.items())[:4])
+        print(f"what the failing captures have in common: {common}")
     for k, point in enumerate(result.design_points[:3]):
         share = ", ".join(f"{name} {100 * value:.0f}%" for name, value in list(point["importance"].items())[:3])
         print(
@@ -165,19 +175,7 @@ def _write_design_points(args, out: Path, result: reliability.Estimate, state, c
         path = folder / f"{k + 1}.json"
         key = np.asarray(point["noise_key"], dtype=np.uint32)
         runfiles.write_json(path, worstcase.perturbation_document(units, config.ranges, key, config.identified))
-        command = ["spacegrasp", "simulate", "--controller", args.controller]
-        for option, value in (
-            ("--gains", args.gains),
-            ("--fill-from", args.fill_from),
-            ("--scenario", args.scenario),
-            ("--robot", args.robot),
-            ("--realism", args.realism),
-        ):
-            if value:
-                command += [option, value]
-        if args.pinv_damping:
-            command += ["--pinv-damping", f"{args.pinv_damping:g}"]
-        command += ["--perturbation", str(path), "--out", str(out / f"replay_{k + 1}")]
+        command = replay_command(args, path, out / f"replay_{k + 1}")
         written.append(
             {"file": str(path), "margin": point["g"], "failure": point["failure"], "replay": shlex.join(command)}
         )

@@ -27,6 +27,7 @@ from spacegrasp_jax.cli.common import (
     _warn,
     _write_results,
     gains_label,
+    replay_command,
 )
 from spacegrasp_jax.cli.options import (
     UsageError,
@@ -127,25 +128,7 @@ def _worstcase(args: argparse.Namespace) -> int:
     spec = perturbed_run(nominal, from_units(units, ranges), ranges, config.identified)
     result = experiment.run(spec, gains, key=jnp.asarray(found.key, dtype=jnp.uint32), check=False)
     perturbation = jax.tree.map(lambda x: np.asarray(x).tolist(), vars(from_units(units, ranges)))
-    replay_command = ["spacegrasp", "simulate", "--controller", args.controller]
-    for option, value in (
-        ("--gains", args.gains),
-        ("--fill-from", args.fill_from),
-        ("--scenario", args.scenario),
-        ("--robot", args.robot),
-        ("--mount", args.mount),
-        ("--base-link", args.base_link),
-        ("--tip-link", args.tip_link),
-    ):
-        if value:
-            replay_command += [option, value]
-    if args.allow_outside_limits:
-        replay_command.append("--allow-outside-limits")
-    if args.realism:
-        replay_command += ["--realism", args.realism]
-    if args.pinv_damping:
-        replay_command += ["--pinv-damping", f"{args.pinv_damping:g}"]
-    replay_command += ["--perturbation", str(replay_file), "--out", str(out / "replay")]
+    replay = replay_command(args, replay_file, out / "replay")
     document = {
         "measure": args.measure,
         "unit": unit,
@@ -172,7 +155,7 @@ def _worstcase(args: argparse.Namespace) -> int:
         "compile_s": found.compile_s,
         "search_s": found.search_s,
         "history": found.history,
-        "replay": shlex.join(replay_command),
+        "replay": shlex.join(replay),
         "settings": dataclasses.asdict(settings)
         | {"record": nominal_document["record"], "campaign": nominal_document["config"]}
         | {"scenario_duration_s": scenario.duration},
@@ -220,7 +203,7 @@ def _worstcase(args: argparse.Namespace) -> int:
         f"campaign of {args.budget}: {worstcase.shown(args.measure, baseline['value'])} (sample {baseline['sample']})"
     )
     print(f"{found.rollouts} rollouts in {found.search_s:.1f} s, after {found.compile_s:.1f} s compiling")
-    print(f"replay it: {shlex.join(replay_command)}")
+    print(f"replay it: {shlex.join(replay)}")
     if baseline["value"] > found.value:
         print(
             "the campaign's worst sample is worse than the search's: replay it with --perturbation "
