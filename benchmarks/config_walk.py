@@ -74,7 +74,7 @@ def walk_of_tune(method: str, realism: str, folder: Path) -> list[tuple[str, str
     scenario = folder / "short.toml"
     scenario.write_text("duration = 0.1\n[trajectory]\nduration = 0.1\n")
     loop = flight().to_dict() if realism == "flight" else None
-    config = TuneConfig(steps=1, batch=2, population=4, method=method, realism=loop)
+    config = TuneConfig.of(steps=1, batch=2, population=4, method=method, realism=loop)
     sys.setprofile(profile)
     try:
         tune(folder / "run", config=config, scenario_file=str(scenario), holdout=0, progress=io.StringIO())

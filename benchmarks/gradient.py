@@ -73,7 +73,7 @@ def measure_flight(mode: str, duration: float, repeats: int, gradient_from_s: fl
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, contact_law="smooth", duration=duration)
     cut = (duration / 2 if gradient_from_s is None else gradient_from_s) if mode == "flight_truncated" else None
-    config = TuneConfig(
+    config = TuneConfig.of(
         method="gradient", batch=1, realism=flight(robot).to_dict(), torque_cap_Nm=4.0, gradient_from_s=cut
     )
     objective = make_objective(robot, config, np.ones(7))
@@ -145,7 +145,7 @@ def measure(mode: str, duration: float, repeats: int, gradient_from_s: float | N
     robot, gains = sg.paper_robot(), paper_gains()
     scenario = paper_scenario(robot, contact_law="smooth", duration=duration)
     cut = (duration / 2 if gradient_from_s is None else gradient_from_s) if mode == "reverse_truncated" else None
-    config = TuneConfig(
+    config = TuneConfig.of(
         batch=1, objective="weighted", method="gradient", gradient_from_s=cut
     )  # one scenario: the cost of one gradient against one rollout
     objective = Objective(weights=Weights(), torque_scale_Nm=(0.80, 2.71, 1.82, 0.77, 1.11, 0.24, 0.028))

@@ -38,12 +38,12 @@ def test_the_truncated_gradient_is_the_schedules_after_the_cut_and_the_loss_is_u
     robot = sg.paper_robot()
     scenario = _short_approach(robot)
     settings = dict(method="gradient", batch=2, realism=realism, aggregate="mean", seed=3)
-    truncated = TuneConfig(**settings, gradient_from_s=CUT_S)
+    truncated = TuneConfig.of(**settings, gradient_from_s=CUT_S)
     period = 1 if truncated.loop_realism is None else truncated.loop_realism.steps_per_period(scenario.dt)
     period_s = period * scenario.dt
     # Knots one control period apart: every period before the cut runs the first knot's
     # gains, every period from the cut on the second's (the schedule is read at a period's start).
-    scheduled = TuneConfig(**settings, schedule_variable="time", schedule_knots=(CUT_S - period_s, CUT_S))
+    scheduled = TuneConfig.of(**settings, schedule_variable="time", schedule_knots=(CUT_S - period_s, CUT_S))
 
     (loss, _), gradient = _tuner_gradient(robot, scenario, truncated)
     (schedule_loss, _), schedule_gradient = _tuner_gradient(robot, scenario, scheduled)
@@ -75,8 +75,8 @@ def test_the_cut_is_the_first_block_boundary_at_or_after_the_time():
 def test_bad_cuts_are_refused_naming_the_setting(robot):
     """(The command line's refusals, before anything compiles: ``tests/test_bad_input.py``.)"""
     with pytest.raises(ValueError, match="gradient_from_s: a setting of the gradient method"):
-        TuneConfig(method="cmaes", gradient_from_s=3.0)
+        TuneConfig.of(method="cmaes", gradient_from_s=3.0)
     with pytest.raises(ValueError, match="gradient_from_s: must be a time of 0 s or more"):
-        TuneConfig(method="gradient", gradient_from_s=float("nan"))
+        TuneConfig.of(method="gradient", gradient_from_s=float("nan"))
     with pytest.raises(ValueError, match="at or past the run's end"):
-        check_gradient_cut(TuneConfig(method="gradient", gradient_from_s=2.0), _short_approach(robot))
+        check_gradient_cut(TuneConfig.of(method="gradient", gradient_from_s=2.0), _short_approach(robot))

@@ -306,7 +306,7 @@ def test_without_method_tune_runs_the_recipe_that_won_the_race_on_its_problem(ra
         3,
     )
     explicit = config(*problem, "--method", "gradient")  # an explicit method keeps its own defaults
-    assert (explicit.aggregate, explicit.fresh_batches, explicit.batch) == ("clip", False, 4)
+    assert (explicit.settings.aggregate, explicit.fresh_batches, explicit.batch) == ("clip", False, 4)
     assert config(*problem, "--method", "cmaes").method == "cmaes"
     ideal = [word for word in problem if word not in ("--realism", "flight")]
     assert (config(*ideal).method, config(*ideal).batch, config(*ideal).steps) == ("cmaes", 4, 60)

@@ -30,6 +30,14 @@ class SearchState:
 
 
 @dataclasses.dataclass(frozen=True)
+class RandomSearchSettings:
+    """Random search's settings in a tuning run (``TuneConfig.settings``)."""
+
+    population: int = 4
+    radius: float = 0.1
+
+
+@dataclasses.dataclass(frozen=True)
 class RandomSearch:
     """Each step: ``population`` points drawn about the best so far (normal, ``radius`` in
     log-gain units on every tuned entry), on the step's batch; the best of all is kept."""
@@ -40,11 +48,11 @@ class RandomSearch:
     title: ClassVar[str] = "random search"
     unit: ClassVar[str] = "step"
     point_words: ClassVar[str] = "the best point"
-    settings: ClassVar[tuple[str, ...]] = ("population", "step_size")
+    settings_type: ClassVar[type] = RandomSearchSettings
 
     @classmethod
     def from_config(cls, config):
-        return cls(config.population or 4, config.step_size)
+        return cls(config.settings.population, config.settings.radius)
 
     def describe(self):
         return f"by random search, {self.population} points a step"
@@ -151,7 +159,9 @@ def test_a_method_named_in_the_registry_runs_as_a_tuning_job_and_resumes_bit_for
     monkeypatch.setitem(tune_module.METHODS, "random", RandomSearch)
     scenario = tmp_path / "short.toml"
     scenario.write_text("duration = 1.0\n[trajectory]\nduration = 1.0\n")
-    config = TuneConfig(method="random", steps=4, batch=2, population=3, step_size=0.2, seed=2)
+    config = TuneConfig(
+        method="random", steps=4, batch=2, settings=RandomSearchSettings(population=3, radius=0.2), seed=2
+    )
     common = dict(scenario_file=str(scenario), holdout=2, progress=io.StringIO())
     whole = tune(tmp_path / "whole", config=config, **common)
     assert whole.status == "done" and len(whole.history) == 5
@@ -207,7 +217,7 @@ def test_a_checkpoint_of_the_older_layout_resumes_to_the_uninterrupted_run(tmp_p
                 {"x": 2.0 * (p["x"] - 0.5)},
             )
         )
-        tuner = make_method(TuneConfig(method="gradient", steps=9, optimizer="sgd", learning_rate=0.1))
+        tuner = make_method(TuneConfig.of(method="gradient", steps=9, optimizer="sgd", learning_rate=0.1))
     run = lambda **options: driver.optimise(problem(), tuner, point, mask, steps=9, seed=1, **options)
     whole = run()
     path = tmp_path / "checkpoint.npz"

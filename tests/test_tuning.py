@@ -31,6 +31,31 @@ from spacegrasp_jax.tuning.tune import (
 SHORT = dict(duration=1.0, move_duration=1.0)  # contact starts at about 0.45 s
 
 
+def test_a_runs_settings_split_into_the_problem_and_the_methods_own_and_read_back_flat():
+    """A ``TuneConfig`` holds the method's settings as its own dataclass; the flat table its
+    files write (the command line's names) reads back to the same settings, and a record of
+    an older version, which held every method's settings, reads as the method's alone."""
+    from spacegrasp_jax.tuning import CMAESSettings, GradientSettings
+
+    structured = TuneConfig(method="gradient", settings=GradientSettings(learning_rate=0.05, optimizer="sgd"), batch=3)
+    assert TuneConfig.of(method="gradient", learning_rate=0.05, optimizer="sgd", batch=3) == structured
+    flat = structured.to_dict()
+    assert flat["learning_rate"] == 0.05 and "population" not in flat and "settings" not in flat
+    assert TuneConfig.from_dict(flat) == structured
+    older = flat | {"population": None, "step_size": CMAESSettings().step_size, "separable": False}
+    assert TuneConfig.from_dict(older) == structured
+    assert TuneConfig(method="cmaes").settings == CMAESSettings()  # None: the method's defaults
+    with pytest.raises(ValueError, match="settings: CMA-ES's are a CMAESSettings, got GradientSettings"):
+        TuneConfig(method="cmaes", settings=GradientSettings())
+    with pytest.raises(ValueError, match="population: a setting of CMA-ES; the gradient method does not use it"):
+        TuneConfig.from_dict(flat | {"population": 8})
+
+
+def _with_aggregate(config, aggregate: str):
+    """``config`` with the gradient method's ``aggregate`` setting replaced."""
+    return dataclasses.replace(config, settings=dataclasses.replace(config.settings, aggregate=aggregate))
+
+
 def test_smooth_max_bounds_the_hard_max():
     rng = np.random.default_rng(0)
     values = jnp.asarray(rng.uniform(0.0, 1.0, size=(500, 7)))
@@ -56,11 +81,11 @@ def test_weights_parse():
 def test_config_validation():
     for change, message in [
         (dict(controller="pid"), "controller"),
-        (dict(learning_rate=0.0), "learning_rate"),
+        (dict(method="gradient", learning_rate=0.0), "learning_rate: must be positive"),
         (dict(steps=0), "steps"),
         (dict(cvar_alpha=1.0), "cvar_alpha"),
-        (dict(optimizer="newton"), "'newton' is not an optax optimiser"),
-        (dict(optimizer="clip"), "'clip' is not an optax optimiser"),
+        (dict(method="gradient", optimizer="newton"), "'newton' is not an optax optimiser"),
+        (dict(method="gradient", optimizer="clip"), "'clip' is not an optax optimiser"),
         (dict(frozen=("K_lin",)), "K_lin not a gain group of the admittance law"),
         (dict(frozen=("Md", "Bd", "Kd", "kp", "ki", "kd", "pinv_damping")), "nothing to tune"),
         (dict(method="newton"), "method: expected one of gradient, cmaes"),
@@ -88,9 +113,9 @@ def test_config_validation():
         (dict(separable=1), "separable: must be true or false"),
     ]:
         with pytest.raises(ValueError, match=message):
-            TuneConfig(**change)
+            TuneConfig.of(**change)
     assert TuneConfig(realism={}, fresh_batches=True).method == "cmaes"  # a new batch every generation
-    assert TuneConfig(realism={}, fresh_batches=True, noise_handling=True, separable=True).noise_handling
+    assert TuneConfig.of(realism={}, fresh_batches=True, noise_handling=True, separable=True).settings.noise_handling
 
 
 def test_torque_constraint_is_the_lower_of_the_fraction_and_the_cap(robot):
@@ -223,7 +248,7 @@ def test_divergence_guard_rejects_and_shrinks_the_step(short_problem):
     closed loop blows up, the step is rejected, the step size halved and the event logged;
     the run goes on from finite gains."""
     _, params, value_and_grad = short_problem("admittance")  # shared with the central-differences test
-    config = TuneConfig(steps=2, learning_rate=3.0, torque_guard_Nm=20.0, objective="weighted", method="gradient")
+    config = TuneConfig.of(steps=2, learning_rate=3.0, torque_guard_Nm=20.0, objective="weighted", method="gradient")
     result = descend(value_and_grad, params, config)
     state, method_state = result.state, result.state.method_state
     assert result.status == "done" and state.step == 2
@@ -304,8 +329,8 @@ def test_a_chaotic_samples_gradient_is_clipped_to_a_multiple_of_the_median():
 
     losses = jnp.array([1.0, 2.0, 3.0, 4.0])
     gradients = {"kp": jnp.array([[1.0, 0.0], [0.0, 1.0], [0.6, 0.8], [100.0, 0.0]])}  # norms 1, 1, 1, 100
-    total, plain, clipped = aggregate_gradients(losses, gradients, TuneConfig(aggregate="mean"))
-    clipping = TuneConfig(method="gradient", realism={}, aggregate="clip")  # the flight-like batch's option
+    total, plain, clipped = aggregate_gradients(losses, gradients, TuneConfig.of(aggregate="mean"))
+    clipping = TuneConfig.of(method="gradient", realism={}, aggregate="clip")  # the flight-like batch's option
     assert float(total) == 2.5 and int(clipped) == 0
     np.testing.assert_allclose(plain["kp"], [101.6 / 4, 1.8 / 4])
     total, robust, clipped = aggregate_gradients(losses, gradients, clipping)
@@ -317,7 +342,7 @@ def test_a_chaotic_samples_gradient_is_clipped_to_a_multiple_of_the_median():
     assert float(total) == 3.5
     np.testing.assert_allclose(worst["kp"], [(0.6 + CLIP_FACTOR) / 2, 0.8 / 2])
     with pytest.raises(ValueError, match="aggregate"):
-        TuneConfig(aggregate="median")
+        TuneConfig.of(aggregate="median")
 
 
 def test_robust_estimators_of_the_batch_gradient_keep_the_gradients_structure():
@@ -334,18 +359,18 @@ def test_robust_estimators_of_the_batch_gradient_keep_the_gradients_structure():
     losses = jnp.asarray(rng.random(20))
     flat = np.concatenate([np.asarray(gradients["kp"]), np.asarray(gradients["Md"]).reshape(20, 4)], axis=1)
     base = TuneConfig(method="gradient", realism={})
-    total, trimmed, clipped = aggregate_gradients(losses, gradients, dataclasses.replace(base, aggregate="trimmed"))
+    total, trimmed, clipped = aggregate_gradients(losses, gradients, _with_aggregate(base, "trimmed"))
     expected = stats.trim_mean(flat, 0.1, axis=0)
     assert float(total) == pytest.approx(float(jnp.mean(losses))) and int(clipped) == 0
     np.testing.assert_allclose(trimmed["kp"], expected[:3], rtol=1e-14)
     np.testing.assert_allclose(trimmed["Md"], expected[3:].reshape(2, 2), rtol=1e-14)
-    _, median, _ = aggregate_gradients(losses, gradients, dataclasses.replace(base, aggregate="median_of_means"))
+    _, median, _ = aggregate_gradients(losses, gradients, _with_aggregate(base, "median_of_means"))
     groups = np.median(np.stack([part.mean(axis=0) for part in np.array_split(flat, 4)]), axis=0)
     np.testing.assert_allclose(median["kp"], groups[:3], rtol=1e-14)
     np.testing.assert_allclose(median["Md"], groups[3:].reshape(2, 2), rtol=1e-14)
     assert abs(float(median["kp"][0])) < 5.0 and abs(float(trimmed["kp"][0])) < 5.0  # the chaotic sample ignored
     with pytest.raises(ValueError, match="aggregate: trimmed estimates the batch mean's gradient; CVaR"):
-        dataclasses.replace(base, aggregate="trimmed", cvar_alpha=0.5)
+        dataclasses.replace(_with_aggregate(base, "trimmed"), cvar_alpha=0.5)
 
 
 def test_a_candidate_whose_loss_runs_away_is_rejected_even_within_the_torque_guard():
@@ -361,7 +386,7 @@ def test_a_candidate_whose_loss_runs_away_is_rejected_even_within_the_torque_gua
         loss = 1.0 - p if p <= 1.5 else 1e3
         return (jnp.asarray(loss), {"max_largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": -jnp.ones(1)}
 
-    config = TuneConfig(
+    config = TuneConfig.of(
         steps=1,
         learning_rate=2.0,
         optimizer="sgd",
@@ -387,7 +412,7 @@ def test_a_run_that_can_take_no_further_step_ends_diverged_keeping_its_best_step
         loss = 1.0 - p if p <= 1.0 + 1e-9 else 1e3
         return (jnp.asarray(loss), {"max_largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": -jnp.ones(1)}
 
-    config = TuneConfig(
+    config = TuneConfig.of(
         steps=5, learning_rate=1.0, optimizer="sgd", clip_norm=10.0, objective="weighted", method="gradient"
     )
     result = descend(value_and_grad, {"kp": jnp.zeros(1)}, config)
@@ -421,7 +446,7 @@ def test_a_resume_checks_the_options_given_against_the_recorded_run(tmp_path, ca
     from spacegrasp_jax.tuning.run import new_record
 
     runs = {
-        "gradient": TuneConfig(method="gradient", realism=flight().to_dict(), aggregate="clip", batch=2),
+        "gradient": TuneConfig.of(method="gradient", realism=flight().to_dict(), aggregate="clip", batch=2),
         "cmaes": TuneConfig(realism=flight().to_dict(), batch=2),
     }
     for name, config in runs.items():
@@ -451,7 +476,7 @@ def test_the_gradient_method_keeps_its_best_step_and_a_checkpoint_keeps_it_too(t
         loss = (p - 1.0) ** 2 + jnp.where((p > 0.9) & (p < 1.1), 5.0, 0.0)
         return (loss, {"max_largest_peak_torque_Nm": jnp.asarray(1.0)}), {"kp": jnp.atleast_1d(2.0 * (p - 1.0))}
 
-    config = TuneConfig(
+    config = TuneConfig.of(
         steps=3,
         learning_rate=0.8,
         optimizer="sgd",
@@ -507,7 +532,7 @@ def test_early_stopping_ends_a_gradient_run_when_the_validation_objective_stalls
             "kp": jnp.atleast_1d(2.0 * (p - 1.0))
         }
 
-    config = TuneConfig(
+    config = TuneConfig.of(
         steps=10,
         learning_rate=0.3,
         optimizer="sgd",

@@ -60,7 +60,7 @@ def run(name: str, folder: Path) -> dict[str, np.ndarray]:
     scenario.write_text(SCENARIO_TOML)
     tune(
         folder / "run",
-        config=TuneConfig(**fields),
+        config=TuneConfig.of(**fields),
         scenario_file=str(scenario),
         holdout=holdout,
         progress=io.StringIO(),

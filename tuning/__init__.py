@@ -10,16 +10,27 @@
 * [`spacegrasp_jax.tuning.run`][tuning.run] - the ``spacegrasp tune`` job: files, evaluation, plots.
 """
 
+from spacegrasp_jax.tuning.cmaes import CMAESSettings
 from spacegrasp_jax.tuning.driver import optimise
 from spacegrasp_jax.tuning.objective import Objective, Weights, objective_parts, smooth_max
 from spacegrasp_jax.tuning.parameters import GROUPS, gains_from_params, initial_params, make_mask
 from spacegrasp_jax.tuning.protocol import Answers, Outcome, Request, TuningMethod
-from spacegrasp_jax.tuning.tune import METHODS, TuneConfig, make_method, make_optimizer, make_problem, setup
+from spacegrasp_jax.tuning.tune import (
+    METHODS,
+    GradientSettings,
+    TuneConfig,
+    make_method,
+    make_optimizer,
+    make_problem,
+    setup,
+)
 
 __all__ = [
     "GROUPS",
     "METHODS",
     "Answers",
+    "CMAESSettings",
+    "GradientSettings",
     "Objective",
     "Outcome",
     "Request",

@@ -201,6 +201,42 @@ def replay(strategy: cma.CMAEvolutionStrategy, asked: list, told: list, noise=No
             strategy.sigma *= measure_noise(noise[0], objectives, indices, values)
 
 
+@dataclasses.dataclass(frozen=True)
+class CMAESSettings:
+    """CMA-ES's settings in a tuning run (``TuneConfig.settings`` with ``method="cmaes"``).
+
+    Attributes:
+        population: candidates per generation (``None``: pycma's default, ``4 + 3 ln n`` for n
+            tuned numbers).
+        step_size: the initial step in log-gain units (0.3: about +-30% on every gain; smaller
+            to refine gains already tuned).
+        separable: a diagonal covariance (sep-CMA-ES; [`CMAES`][tuning.cmaes.CMAES]).
+        noise_handling: pycma's noise handling (UH-CMA-ES; needs the run's ``fresh_batches``): a
+            few candidates of each generation evaluated again on the next batch, the step size
+            raised where their ranks move more than chance allows.
+
+    Raises:
+        ValueError: a setting out of its range, naming it.
+    """
+
+    population: int | None = None
+    step_size: float = SIGMA
+    separable: bool = False
+    noise_handling: bool = False
+
+    def __post_init__(self):
+        population = self.population
+        if population is not None and not (
+            isinstance(population, int) and not isinstance(population, bool) and 2 <= population <= 10_000
+        ):
+            raise ValueError(f"population: must be a whole number from 2 to 10000, got {population!r}")
+        if not (isinstance(self.step_size, (int, float)) and self.step_size > 0.0 and math.isfinite(self.step_size)):
+            raise ValueError(f"step_size: must be positive and finite, got {self.step_size}")
+        for name in ("separable", "noise_handling"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: must be true or false, got {getattr(self, name)!r}")
+
+
 @dataclasses.dataclass
 class CMAESState:
     """A CMA-ES run after ``generation`` generations: the strategy, every generation's
@@ -265,12 +301,21 @@ class CMAES:
     title: ClassVar[str] = "CMA-ES"
     unit: ClassVar[str] = "generation"
     point_words: ClassVar[str] = "the mean"
-    #: the ``TuneConfig`` fields it reads
-    settings: ClassVar[tuple[str, ...]] = ("population", "step_size", "separable", "noise_handling")
+    #: its settings in a ``TuneConfig`` (``TuneConfig.settings``)
+    settings_type: ClassVar[type] = CMAESSettings
 
     @classmethod
     def from_config(cls, config) -> CMAES:
-        return cls(config.population, config.step_size, config.separable, config.noise_handling, config.fresh_batches)
+        s = config.settings
+        return cls(s.population, s.step_size, s.separable, s.noise_handling, config.fresh_batches)
+
+    @classmethod
+    def check(cls, config) -> None:
+        """What CMA-ES's settings need of the rest of a ``TuneConfig``."""
+        if config.settings.noise_handling and not config.fresh_batches:
+            raise ValueError(
+                "noise_handling: measures the noise by evaluating candidates again on a new batch (choose --fresh-batches)"
+            )
 
     def describe(self) -> str:
         variant = ["separable"] if self.separable else []

@@ -91,16 +91,18 @@ class TuningMethod(Protocol):
         unit: what one of its steps is called (``"step"``, ``"generation"``).
         point_words: what its point is called (``"the gains"``, ``"the mean"``).
         title: its name in sentences (``"the gradient method"``, ``"CMA-ES"``).
-        settings: the fields of ``TuneConfig`` it reads in ``from_config(config)`` (the
-            class method that makes it for a run of ``spacegrasp tune``); a run of another
-            method must leave them at their defaults.
+        settings_type: the frozen dataclass of its settings (``TuneConfig.settings``; each
+            field one of ``spacegrasp tune``'s options of the same name), which its class
+            method ``from_config(config)`` reads to make it for a run; a class method
+            ``check(config)``, where it has one, refuses settings the rest of the run does not
+            allow (``ValueError`` naming the field).
     """
 
     name: str
     unit: str
     point_words: str
     title: str
-    settings: tuple[str, ...]
+    settings_type: type
 
     def init(self, point, mask, seed: int) -> Any:
         """The state before the first evaluation, from the starting point, which of its

@@ -443,7 +443,7 @@ def _optimise(robot, smooth, base, config, before, out, resume, progress, stop, 
     if status == "diverged":
         print(
             f"stopped after step {state.step}: every candidate of step {state.step + 1} was rejected "
-            f"(non-finite, over the torque guard or over {config.loss_guard:g} times the starting objective) down to "
+            f"(non-finite, over the torque guard or over {config.settings.loss_guard:g} times the starting objective) down to "
             f"1e-6 of the step size; the run hands back its {config.keep} step",
             file=progress,
             flush=True,

@@ -103,16 +103,76 @@ TUNING_RANGES = PerturbationRanges(
 
 
 @dataclasses.dataclass(frozen=True)
-class TuneConfig:
-    """Everything that defines a tuning run (saved with its checkpoint).
+class GradientSettings:
+    """The gradient method's settings in a tuning run (``TuneConfig.settings`` with
+    ``method="gradient"``; [`GradientMethod`][tuning.tune.GradientMethod]).
 
     Attributes:
-        controller: a law's name (``control.CONTROLLERS``).
-        steps: optimiser steps.
         learning_rate: initial step size in log-gain space (0.15: about 15% per step at most,
             before Adam's normalisation), decayed by a cosine schedule to a tenth.
         optimizer: any optax optimiser taking a learning rate (``adam``, ``sgd``, ...).
         clip_norm: global-norm clipping of the gradient.
+        gradient: ``"reverse"`` (checkpointed; the faster) or ``"forward"``.
+        torque_guard_Nm: a candidate whose peak torque exceeds this is rejected.
+        loss_guard: a candidate whose loss exceeds this many times the starting loss is
+            rejected too.
+        aggregate: how the batch's gradients combine: ``"mean"`` (the gradient of the mean
+            or CVaR); ``"clip"``: each sample's gradient clipped to ``CLIP_FACTOR``
+            times the batch's median gradient norm before the mean (one chaotic sample
+            cannot steer the step); ``"trimmed"`` or ``"median_of_means"``
+            ([`estimators.aggregate()`][tuning.estimators.aggregate]: per gain, the mean
+            without the extreme tenths, or the median of four group means, of fewer in a
+            batch of fewer than four).
+        gradient_from_s: truncated backpropagation (s; ``None``: the whole capture): each
+            capture is differentiated from this time on only, the state there held
+            ([`LoopOptions`][spacegrasp_jax.loop.simulate.LoopOptions]' ``gradient_from_s``):
+            the loss is the same, the gradient cheaper and biased (documentation, Tuning).
+
+    Raises:
+        ValueError: a setting out of its range, naming it.
+    """
+
+    learning_rate: float = 0.15
+    optimizer: str = "adam"
+    clip_norm: float = 1.0
+    gradient: str = "reverse"
+    torque_guard_Nm: float = 100.0
+    loss_guard: float = 10.0
+    aggregate: str = "mean"
+    gradient_from_s: float | None = None
+
+    def __post_init__(self):
+        for name in ("learning_rate", "clip_norm", "torque_guard_Nm", "loss_guard"):
+            value = getattr(self, name)
+            if not (value > 0.0 and math.isfinite(value)):
+                raise ValueError(f"{name}: must be positive and finite, got {value}")
+        if self.gradient not in ("reverse", "forward"):
+            raise ValueError(f"gradient: expected reverse or forward, got {self.gradient!r}")
+        if self.aggregate not in estimators.AGGREGATES:
+            raise ValueError(f"aggregate: expected one of {', '.join(estimators.AGGREGATES)}, got {self.aggregate!r}")
+        if not is_optimizer(self.optimizer):
+            raise ValueError(
+                f"optimizer: {self.optimizer!r} is not an optax optimiser taking a learning rate (e.g. adam, sgd, lamb)"
+            )
+        if self.gradient_from_s is not None and not (
+            isinstance(self.gradient_from_s, int | float) and 0.0 <= self.gradient_from_s < math.inf
+        ):
+            raise ValueError(f"gradient_from_s: must be a time of 0 s or more, got {self.gradient_from_s!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneConfig:
+    """Everything that defines a tuning run (saved with its checkpoint): the problem (the
+    objective and its criteria, the envelope, the loop, the batch), the run (steps, stopping,
+    what it hands back) and the method with its own settings.
+
+    ``to_dict()`` writes the method's settings beside the other fields, one flat table, as the
+    command line names them; ``of()`` and ``from_dict()`` read such a table (and the records of
+    older versions, which held every method's settings).
+
+    Attributes:
+        controller: a law's name (``control.CONTROLLERS``).
+        steps: optimiser steps.
         weights: objective weights.
         temperature: smooth-max temperature of the objective.
         batch: scenarios per step: the nominal one plus ``batch - 1`` perturbed ones.
@@ -120,10 +180,6 @@ class TuneConfig:
             fraction of the batch (conditional value at risk).
         seed: seed of the training perturbations.
         frozen: gain groups kept at their initial values.
-        gradient: ``"reverse"`` (checkpointed; the faster) or ``"forward"``.
-        torque_guard_Nm: a candidate whose peak torque exceeds this is rejected.
-        loss_guard: a candidate whose loss exceeds this many times the starting loss is
-            rejected too.
         ranges: perturbation half-widths for the robust batch (``TUNING_RANGES``).
         realism: the tables of a [`Realism`][spacegrasp_jax.loop.realism.Realism] to train under
             (``None``: the paper's loop). Then every sample of the batch draws its noise key
@@ -132,19 +188,14 @@ class TuneConfig:
         objective: ``"capture"`` (the default) or ``"weighted"``
             ([`spacegrasp_jax.tuning.objective`][tuning.objective]); ``weights`` apply to the weighted one.
         method: a name in ``METHODS``: ``"cmaes"`` (the default; [`CMAES`][tuning.cmaes.CMAES]:
-            ``steps`` generations of ``population`` candidates, forward rollouts only) or
-            ``"gradient"`` ([`GradientMethod`][tuning.tune.GradientMethod]: optax on the
-            reverse- or forward-mode gradient), each run by the one driver
+            ``steps`` generations of candidates, forward rollouts only) or ``"gradient"``
+            ([`GradientMethod`][tuning.tune.GradientMethod]: optax on the reverse- or
+            forward-mode gradient), each run by the one driver
             ([`tuning.driver.optimise()`][tuning.driver.optimise]). ``spacegrasp tune`` without
             ``--method`` runs the problem's measured winner ([`default_recipe()`][tuning.tune.default_recipe]).
-        population: CMA-ES's candidates per generation (``None``: its default,
-            ``4 + 3 ln n`` for n tuned numbers).
-        step_size: CMA-ES's initial step in log-gain units (0.3: about +-30% on every
-            gain; smaller to refine gains already tuned).
-        separable: CMA-ES with a diagonal covariance (sep-CMA-ES; [`CMAES`][tuning.cmaes.CMAES]).
-        noise_handling: CMA-ES with pycma's noise handling (UH-CMA-ES; needs
-            ``fresh_batches``): a few candidates of each generation evaluated again on the
-            next batch, the step size raised where their ranks move more than chance allows.
+        settings: the method's own settings, an instance of its ``settings_type``
+            ([`GradientSettings`][tuning.tune.GradientSettings],
+            [`CMAESSettings`][tuning.cmaes.CMAESSettings]; ``None``: its defaults).
         torque_fraction: the capture objective's torque constraint, as a fraction of the
             motors' limits (the robot's ``joint_torque_limit``; 1: the limits themselves).
         torque_cap_Nm: a torque budget in N m for every joint (``None``: none): the
@@ -152,13 +203,6 @@ class TuneConfig:
             A budget in N m matches a requirement on the largest peak over the joints,
             which a fraction of unequal limits does not (at 40% of the paper's arm's limits
             the wrist's constraint is 0.8 N m, about the paper's own median wrist peak).
-        aggregate: how the batch's gradients combine: ``"mean"`` (the gradient of the mean
-            or CVaR); ``"clip"``: each sample's gradient clipped to ``CLIP_FACTOR``
-            times the batch's median gradient norm before the mean (one chaotic sample
-            cannot steer the step); ``"trimmed"`` or ``"median_of_means"``
-            ([`estimators.aggregate()`][tuning.estimators.aggregate]: per gain, the mean
-            without the extreme tenths, or the median of four group means, of fewer in a
-            batch of fewer than four).
         fresh_batches: a run under a realism draws a new batch of the envelope for every
             step (step k's seed ``seed + FRESH_SEED_STRIDE * k``; step 0 and the held-out
             evaluation as without): the gradient method becomes stochastic gradient descent
@@ -191,35 +235,21 @@ class TuneConfig:
             log-gains at every knot (``None``: constant gains, or the starting file's
             schedule as it is).
         schedule_knots: the knots (increasing, at least two) on ``schedule_variable``.
-        gradient_from_s: truncated backpropagation (s; ``None``: the whole capture): the
-            gradient method differentiates each capture from this time on only, the state
-            there held ([`LoopOptions`][spacegrasp_jax.loop.simulate.LoopOptions]' ``gradient_from_s``):
-            the loss is the same, the gradient cheaper and biased (documentation, Tuning).
     """
 
     controller: str = "admittance"
     steps: int = 60
-    learning_rate: float = 0.15
-    optimizer: str = "adam"
-    clip_norm: float = 1.0
     weights: Weights = Weights()
     temperature: float = 0.02
     batch: int = 4
     cvar_alpha: float | None = None
     seed: int = 0
     frozen: tuple[str, ...] = ()
-    gradient: str = "reverse"
-    torque_guard_Nm: float = 100.0
-    loss_guard: float = 10.0
     ranges: PerturbationRanges = TUNING_RANGES
     realism: dict | None = None
-    aggregate: str = "mean"
     objective: str = "capture"
     method: str = "cmaes"
-    population: int | None = None
-    step_size: float = cmaes.SIGMA
-    separable: bool = False
-    noise_handling: bool = False
+    settings: object = None
     torque_fraction: float = 1.0
     torque_cap_Nm: float | None = None
     fresh_batches: bool = False
@@ -229,7 +259,6 @@ class TuneConfig:
     joint_rate_limits_radps: tuple[float, ...] | None = None
     schedule_variable: str | None = None
     schedule_knots: tuple[float, ...] = ()
-    gradient_from_s: float | None = None
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
@@ -237,22 +266,12 @@ class TuneConfig:
         self._check_schedule()
         if self.steps < 1 or self.batch < 1:
             raise ValueError("steps and batch must be at least 1")
-        for name in (
-            "learning_rate",
-            "clip_norm",
-            "temperature",
-            "torque_guard_Nm",
-            "loss_guard",
-            "torque_fraction",
-            "step_size",
-        ):
+        for name in ("temperature", "torque_fraction"):
             value = getattr(self, name)
             if not (value > 0.0 and math.isfinite(value)):
                 raise ValueError(f"{name}: must be positive and finite, got {value}")
         if self.cvar_alpha is not None and not 0.0 <= self.cvar_alpha < 1.0:
             raise ValueError(f"cvar_alpha: must be in [0, 1), got {self.cvar_alpha}")
-        if self.gradient not in ("reverse", "forward"):
-            raise ValueError(f"gradient: expected reverse or forward, got {self.gradient!r}")
         if self.objective not in OBJECTIVES:
             raise ValueError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
         if self.objective != "weighted" and self.weights != Weights():
@@ -270,13 +289,12 @@ class TuneConfig:
                 )
         if self.method not in METHODS:
             raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
-        if self.population is not None and not (isinstance(self.population, int) and 2 <= self.population <= 10_000):
-            raise ValueError(f"population: must be a whole number from 2 to 10000, got {self.population!r}")
-        if self.aggregate not in estimators.AGGREGATES:
-            raise ValueError(f"aggregate: expected one of {', '.join(estimators.AGGREGATES)}, got {self.aggregate!r}")
-        if self.aggregate in ("trimmed", "median_of_means") and self.cvar_alpha is not None:
+        method = METHODS[self.method]
+        if self.settings is None:
+            object.__setattr__(self, "settings", method.settings_type())
+        elif not isinstance(self.settings, method.settings_type):
             raise ValueError(
-                f"aggregate: {self.aggregate} estimates the batch mean's gradient; CVaR weighs the worst samples"
+                f"settings: {method.title}'s are a {method.settings_type.__name__}, got {type(self.settings).__name__}"
             )
         # Made (and so checked) now, before anything compiles, and once: ``loop_realism``.
         loop = None if self.realism is None else make_realism(self.realism, source="realism")
@@ -289,20 +307,6 @@ class TuneConfig:
             )
         if set(self.frozen) == set(GROUPS[self.controller]):
             raise ValueError(f"frozen: every gain group of the {self.controller} law frozen leaves nothing to tune")
-        if not is_optimizer(self.optimizer):
-            raise ValueError(
-                f"optimizer: {self.optimizer!r} is not an optax optimiser taking a learning rate (e.g. adam, sgd, lamb)"
-            )
-        self._check_method_settings()
-        if self.method == "gradient" and self.realism is None and self.aggregate != "mean":
-            raise ValueError(
-                f"aggregate: {self.aggregate} combines the samples' separate gradients of a run under a realism; "
-                "the ideal loop's batch has one gradient of the mean (choose --realism, or mean)"
-            )
-        if self.gradient_from_s is not None and not (
-            isinstance(self.gradient_from_s, int | float) and 0.0 <= self.gradient_from_s < math.inf
-        ):
-            raise ValueError(f"gradient_from_s: must be a time of 0 s or more, got {self.gradient_from_s!r}")
         if self.patience is not None and self.patience < 1:
             raise ValueError(f"patience: must be at least 1 step, got {self.patience}")
         if self.validation_size < 1:
@@ -319,30 +323,9 @@ class TuneConfig:
             raise ValueError(f"keep: expected one of {', '.join(KEEPS)}, got {self.keep!r}")
         if self.fresh_batches and self.realism is None:
             raise ValueError("fresh_batches: draws each step's samples of a run under a realism (choose --realism)")
-        for name in ("separable", "noise_handling"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name}: must be true or false, got {getattr(self, name)!r}")
-        if self.noise_handling and not self.fresh_batches:
-            raise ValueError(
-                "noise_handling: measures the noise by evaluating candidates again on a new batch (choose --fresh-batches)"
-            )
-        if self.realism is not None and self.gradient != "reverse":
-            raise ValueError(
-                "gradient: tuning under a realism takes each sample's reverse-mode gradient; forward mode runs the ideal loop only"
-            )
-
-    def _check_method_settings(self) -> None:
-        """A field only other methods read (their ``settings``) keeps its default."""
-        chosen = METHODS[self.method]
-        for field in dataclasses.fields(self):
-            if field.name in chosen.settings or getattr(self, field.name) == field.default:
-                continue
-            owners = [method for method in METHODS.values() if field.name in method.settings]
-            if owners:
-                raise ValueError(
-                    f"{field.name}: a setting of {' and '.join(method.title for method in owners)}; "
-                    f"{chosen.title} does not use it (choose --method {owners[0].name})"
-                )
+        check = getattr(method, "check", None)
+        if check is not None:
+            check(self)
 
     def _check_schedule(self) -> None:
         object.__setattr__(self, "schedule_knots", tuple(float(x) for x in self.schedule_knots))
@@ -364,14 +347,58 @@ class TuneConfig:
         when the settings were made (``None``: the paper's ideal loop)."""
         return self._loop_realism
 
+    @property
+    def gradient_settings(self) -> GradientSettings:
+        """How the problem takes a gradient where a method asks for one: the gradient
+        method's settings, or their defaults under another method."""
+        return self.settings if isinstance(self.settings, GradientSettings) else GradientSettings()
+
     def to_dict(self) -> dict:
+        """The settings as one flat table (the run's files): every field but ``settings``,
+        and the method's settings beside them by name."""
         document = dataclasses.asdict(self)
+        document |= document.pop("settings")
         document["frozen"] = list(self.frozen)
         document["schedule_knots"] = list(self.schedule_knots)
         return document
 
     @classmethod
+    def of(cls, **fields) -> TuneConfig:
+        """The settings of flat ``fields`` (the command line's, a run's files'): the problem's
+        and the run's, and the method's settings by name. A setting of another method must
+        keep its default (older records held every method's).
+
+        Raises:
+            ValueError: a setting of another method given, or a name no method knows.
+        """
+        own = {field.name for field in dataclasses.fields(cls)} - {"settings"}
+        name = fields.get("method", cls.method)
+        if name not in METHODS:
+            raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {name!r}")
+        method = METHODS[name]
+        mine = {field.name for field in dataclasses.fields(method.settings_type)}
+        chosen, settings = {}, {}
+        for field, value in fields.items():
+            if field in own:
+                chosen[field] = value
+            elif field in mine:
+                settings[field] = value
+            else:
+                owners = [m for m in METHODS.values() if field in {f.name for f in dataclasses.fields(m.settings_type)}]
+                if not owners:
+                    raise ValueError(f"{field}: not a setting of a tuning run")
+                default = {f.name: f.default for f in dataclasses.fields(owners[0].settings_type)}[field]
+                if value == default:
+                    continue
+                raise ValueError(
+                    f"{field}: a setting of {' and '.join(m.title for m in owners)}; "
+                    f"{method.title} does not use it (choose --method {owners[0].name})"
+                )
+        return cls(**chosen, settings=method.settings_type(**settings))
+
+    @classmethod
     def from_dict(cls, document: dict) -> TuneConfig:
+        """``to_dict()``'s table (or an older version's) read back."""
         document = dict(document)
         if document.get("method") == "cmaes":  # older records wrote clip, which CMA-ES never read
             document["aggregate"] = "mean"
@@ -379,7 +406,7 @@ class TuneConfig:
         document["ranges"] = PerturbationRanges.from_mapping(document["ranges"], base=TUNING_RANGES)
         document["frozen"] = tuple(document["frozen"])
         document["schedule_knots"] = tuple(document.get("schedule_knots", ()))
-        return cls(**document)
+        return cls.of(**document)
 
 
 #: Validation captures (early stopping, ``TuneConfig.patience``) are drawn with seed ``seed +``
@@ -407,11 +434,11 @@ def is_optimizer(name: str) -> bool:
     return isinstance(transformation, optax.GradientTransformation)
 
 
-def make_optimizer(config: TuneConfig):
-    """``chain(clip_by_global_norm, <optimizer>(cosine schedule))`` and its schedule."""
-    schedule = optax.cosine_decay_schedule(config.learning_rate, decay_steps=config.steps, alpha=0.1)
+def make_optimizer(settings: GradientSettings, steps: int):
+    """``chain(clip_by_global_norm, <optimizer>(cosine schedule over steps))`` and its schedule."""
+    schedule = optax.cosine_decay_schedule(settings.learning_rate, decay_steps=steps, alpha=0.1)
     return optax.chain(
-        optax.clip_by_global_norm(config.clip_norm), getattr(optax, config.optimizer)(schedule)
+        optax.clip_by_global_norm(settings.clip_norm), getattr(optax, settings.optimizer)(schedule)
     ), schedule
 
 
@@ -510,18 +537,19 @@ class BoundLoss:
 def tuning_loop_options(config: TuneConfig) -> LoopOptions:
     """The loop options of a tuning run's gradient programs: checkpointed as this process
     compiles best ([`experiment.loop_options()`][spacegrasp_jax.jobs.experiment.loop_options]),
-    truncated at ``config.gradient_from_s``."""
-    return dataclasses.replace(loop_options(checkpoint=True), gradient_from_s=config.gradient_from_s)
+    truncated at the gradient settings' ``gradient_from_s``."""
+    return dataclasses.replace(loop_options(checkpoint=True), gradient_from_s=config.gradient_settings.gradient_from_s)
 
 
 def check_gradient_cut(config: TuneConfig, scenario: Scenario) -> None:
     """Refuse a ``gradient_from_s`` that leaves nothing of ``scenario`` to differentiate,
     before anything compiles (``ValueError`` naming the field)."""
-    if config.gradient_from_s is None:
+    cut = config.gradient_settings.gradient_from_s
+    if cut is None:
         return
     realism = config.loop_realism
     steps = 1 if realism is None else realism.steps_per_period(scenario.dt)
-    gradient_cut(config.gradient_from_s, steps * scenario.dt, 1, scenario.n_steps // steps)
+    gradient_cut(cut, steps * scenario.dt, 1, scenario.n_steps // steps)
 
 
 def make_loss(
@@ -632,13 +660,14 @@ def flight_batch(robot: Robot, nominal: Scenario, config: TuneConfig, seed: int,
 def aggregate_gradients(losses, gradients, config: TuneConfig):
     """``(total, gradient, clipped)``: the batch's objective (mean, or CVaR), its gradient
     from the per-sample ``gradients`` (a pytree with a leading batch axis) as
-    ``config.aggregate`` combines them (clipped per sample under ``"clip"``), and how many
-    samples were clipped."""
+    the gradient settings' ``aggregate`` combines them (clipped per sample under ``"clip"``),
+    and how many samples were clipped."""
     count = losses.shape[0]
-    if config.aggregate in ("trimmed", "median_of_means"):  # the batch mean's gradient, estimated robustly
+    aggregate = config.gradient_settings.aggregate
+    if aggregate in ("trimmed", "median_of_means"):  # the batch mean's gradient, estimated robustly
         leaves, structure = jax.tree.flatten(gradients)
         flat = np.concatenate([np.asarray(leaf).reshape(count, -1) for leaf in leaves], axis=1)
-        combined = estimators.aggregate(flat, config.aggregate, groups=min(estimators.GROUPS, count))
+        combined = estimators.aggregate(flat, aggregate, groups=min(estimators.GROUPS, count))
         estimate = np.split(combined, np.cumsum([leaf[0].size for leaf in leaves])[:-1])
         gradient = jax.tree.unflatten(
             structure,
@@ -646,7 +675,7 @@ def aggregate_gradients(losses, gradients, config: TuneConfig):
         )
         return jnp.mean(losses), gradient, jnp.asarray(0)
     norms = jnp.sqrt(sum(jnp.sum(g.reshape(count, -1) ** 2, axis=1) for g in jax.tree.leaves(gradients)))
-    if config.aggregate == "clip":
+    if aggregate == "clip":
         ceiling = CLIP_FACTOR * jnp.median(norms)
         scale = jnp.where(norms > ceiling, ceiling / jnp.where(norms > 0.0, norms, 1.0), 1.0)
     else:
@@ -805,22 +834,32 @@ class GradientMethod:
     title: ClassVar[str] = "the gradient method"
     unit: ClassVar[str] = "step"
     point_words: ClassVar[str] = "the gains"
-    #: the ``TuneConfig`` fields it reads (``from_config``; other methods leave them at their defaults)
-    settings: ClassVar[tuple[str, ...]] = (
-        "learning_rate",
-        "optimizer",
-        "clip_norm",
-        "gradient",
-        "torque_guard_Nm",
-        "loss_guard",
-        "aggregate",
-        "gradient_from_s",
-    )
+    #: its settings in a ``TuneConfig`` (``TuneConfig.settings``)
+    settings_type: ClassVar[type] = GradientSettings
 
     @classmethod
     def from_config(cls, config: TuneConfig) -> GradientMethod:
-        optimizer, schedule = make_optimizer(config)
-        return cls(optimizer, schedule, config.torque_guard_Nm, config.loss_guard, config.gradient)
+        s = config.settings
+        optimizer, schedule = make_optimizer(s, config.steps)
+        return cls(optimizer, schedule, s.torque_guard_Nm, s.loss_guard, s.gradient)
+
+    @classmethod
+    def check(cls, config: TuneConfig) -> None:
+        """What the gradient method's settings need of the rest of a ``TuneConfig``."""
+        s = config.settings
+        if s.aggregate in ("trimmed", "median_of_means") and config.cvar_alpha is not None:
+            raise ValueError(
+                f"aggregate: {s.aggregate} estimates the batch mean's gradient; CVaR weighs the worst samples"
+            )
+        if config.realism is None and s.aggregate != "mean":
+            raise ValueError(
+                f"aggregate: {s.aggregate} combines the samples' separate gradients of a run under a realism; "
+                "the ideal loop's batch has one gradient of the mean (choose --realism, or mean)"
+            )
+        if config.realism is not None and s.gradient != "reverse":
+            raise ValueError(
+                "gradient: tuning under a realism takes each sample's reverse-mode gradient; forward mode runs the ideal loop only"
+            )
 
     def describe(self) -> str:
         return f"by its {self.mode}-mode gradient"
@@ -917,7 +956,8 @@ class GradientMethod:
 
 
 #: The tuning methods ``--method`` names: each a class of the tuning interface
-#: ([`tuning.protocol.TuningMethod`][tuning.protocol.TuningMethod]) with ``from_config(TuneConfig)``.
+#: ([`tuning.protocol.TuningMethod`][tuning.protocol.TuningMethod]) with its ``settings_type``
+#: and ``from_config(TuneConfig)``.
 METHODS = {"gradient": GradientMethod, "cmaes": cmaes.CMAES}
 
 
@@ -990,9 +1030,10 @@ def make_problem(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfi
     if config.realism is not None:
         value_and_grad = make_flight_value_and_grad(robot, batch, base, mask, config, objective, fresh)
     else:
-        segment = block_steps(nominal.n_steps, config.batch) if config.gradient == "reverse" else None
+        mode = config.gradient_settings.gradient
+        segment = block_steps(nominal.n_steps, config.batch) if mode == "reverse" else None
         loss = make_loss(robot, batch.scenarios, base, mask, config, objective, segment)
-        value_and_grad = make_value_and_grad(loss, params, config.gradient)
+        value_and_grad = make_value_and_grad(loss, params, mode)
     return TuningProblem(
         robot, base, mask, params, objective, config.controller, config.cvar_alpha, batch, fresh, value_and_grad
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -49,6 +50,7 @@ from spacegrasp_jax.loop.control import (
 )
 from spacegrasp_jax.loop.control.schedule import NAMED_GAIN_SETS, VARIABLES, load_schedule
 from spacegrasp_jax.loop.realism import load_realism
+from spacegrasp_jax.tuning.cmaes import CMAESSettings
 from spacegrasp_jax.tuning.estimators import AGGREGATES
 from spacegrasp_jax.tuning.objective import Weights
 from spacegrasp_jax.tuning.run import (
@@ -65,6 +67,7 @@ from spacegrasp_jax.tuning.tune import (
     METHODS,
     RECIPES,
     TUNING_RANGES,
+    GradientSettings,
     TuneConfig,
     check_gradient_cut,
     default_recipe,
@@ -136,7 +139,7 @@ def _say_recipe(config: TuneConfig) -> None:
     if config.method == "gradient":
         chosen = (
             f"the gradient method, {'fresh batches' if config.fresh_batches else 'one batch'} of {config.batch}, "
-            f"{config.aggregate}, {config.steps} steps: the measured winner in a flight-like loop"
+            f"{config.settings.aggregate}, {config.steps} steps: the measured winner in a flight-like loop"
         )
     else:
         chosen = "CMA-ES, the ideal loop's default (not raced)"
@@ -301,7 +304,7 @@ def _tune_finished(out: Path, result) -> int:
 
 def _tune_config(args: argparse.Namespace, robot) -> TuneConfig:
     """The tuning options of the command line (validated by TuneConfig and Weights)."""
-    return TuneConfig(**_tune_fields(args, robot))
+    return TuneConfig.of(**_tune_fields(args, robot))
 
 
 def _tune_fields(args: argparse.Namespace, robot) -> dict:
@@ -325,7 +328,9 @@ def _tune_fields(args: argparse.Namespace, robot) -> dict:
                 )
 
     def given_or(value, field):
-        return value if value is not None else recipe.get(field, getattr(TuneConfig, field))
+        if value is not None:
+            return value
+        return recipe.get(field, _DEFAULTS[field])
 
     method = given_or(args.method, "method")
     return dict(
@@ -361,6 +366,15 @@ def _tune_fields(args: argparse.Namespace, robot) -> dict:
         gradient_from_s=args.gradient_from,
         **(_schedule(args.schedule) if args.schedule else {}),
     )
+
+
+#: Every field ``_tune_fields`` fills -> its default: the run's, or its method's settings'.
+_DEFAULTS = {
+    field.name: field.default
+    for kind in (TuneConfig, GradientSettings, CMAESSettings)
+    for field in dataclasses.fields(kind)
+    if field.name != "settings"
+}
 
 
 def _schedule(text: str) -> dict:
@@ -417,7 +431,7 @@ def add_parsers(commands) -> None:
         "--step-size",
         type=_real(0.0, 10.0, above=True),
         default=None,
-        help=f"CMA-ES's initial step in log-gain units (default {TuneConfig.step_size}: about +-30%% on every gain)",
+        help=f"CMA-ES's initial step in log-gain units (default {CMAESSettings.step_size}: about +-30%% on every gain)",
     )
     tune.add_argument(
         "--separable",
