@@ -50,6 +50,8 @@ SETTINGS_FILE = "settings.json"
 def _reliability(args: argparse.Namespace) -> int:
     """``spacegrasp reliability``: the failure probability of the gains on the envelope."""
     batching.use_all_cpu_cores()  # before anything touches a device
+    devices = jax.device_count()
+    block = args.block if args.block is not None else devices * max(1, round(reliability.Settings.block / devices))
     try:
         ranges = _ranges(args, PerturbationRanges())
         settings = reliability.Settings(
@@ -58,14 +60,13 @@ def _reliability(args: argparse.Namespace) -> int:
             seed=args.seed,
             conditional_probability=args.level_probability,
             smallest_probability=args.smallest_probability,
-            block=args.block,
+            block=block,
             starts=args.starts,
             target_cv=args.target_cv,
             design_points=args.design_points,
         )
     except (reliability.ReliabilityError, PerturbationError) as error:
         raise UsageError(str(error)) from None
-    devices = jax.device_count()
     if settings.block % devices:
         raise UsageError(
             f"--block: {settings.block} captures a call are not a whole number for each of the {devices} devices; "
@@ -220,8 +221,8 @@ def add_parsers(commands) -> None:
     parser.add_argument(
         "--block",
         type=_whole(1, 100_000),
-        default=reliability.Settings.block,
-        help="captures a compiled call runs side by side (default %(default)s)",
+        help=f"captures a compiled call runs side by side, a multiple of the devices (default: the multiple "
+        f"nearest {reliability.Settings.block})",
     )
     parser.add_argument(
         "--starts",
