@@ -390,6 +390,7 @@ class TuneConfig:
                 default = {f.name: f.default for f in dataclasses.fields(owners[0].settings_type)}[field]
                 if value == default:
                     continue
+                owners[0].settings_type(**{field: value})  # a bad value is named as such first
                 raise ValueError(
                     f"{field}: a setting of {' and '.join(m.title for m in owners)}; "
                     f"{method.title} does not use it (choose --method {owners[0].name})"
