@@ -23,8 +23,9 @@ first; about 171/p captures give the truth within 15% at 95%). Each method runs 
 times (estimator and noise seed ``CAPTURE_SEED + r``) at one budget (``--budgets``' first),
 each repeat journaled under ``runs/`` (an interrupted repeat resumes), a row a repeat in
 ``capture.jsonl``; ``capture.json`` gives each method's coverage of the truth's failure rate,
-its repeats' coefficient of variation about it, rollouts and wall time, beside a campaign of the
-same rollouts (the truth's own captures in consecutive blocks of the budget).
+its repeats' coefficient of variation about it, rollouts and wall time, beside a campaign's at
+the same mean rollouts (binomial, at the truth's rate) and the truth's own captures in
+consecutive blocks of the budget.
 
     spacegrasp montecarlo --n 30000 --controller admittance --baseline flight_schedule \\
         --realism flight --seed 7501 --range lar_position_m=0.0065 \\
@@ -247,7 +248,8 @@ def run_capture(truth: Path, out: Path, repeats: int, budget: int, methods: list
     from spacegrasp_jax.jobs import campaign
     from spacegrasp_jax.loop.control.schedule import tuned_schedule
 
-    _, config = campaign.campaign_record(truth)
+    sg.configure()  # float64 and loops compiled whole, as the command line
+    record, config = campaign.campaign_record(truth)
     for name, value in CAPTURE["ranges"].items():
         if getattr(config.ranges, name) != value:
             raise SystemExit(f"--capture {truth}: its {name} is {getattr(config.ranges, name)}, the capture's {value}")
@@ -258,8 +260,7 @@ def run_capture(truth: Path, out: Path, repeats: int, budget: int, methods: list
     truth_low, truth_high = reliability.binomial_interval(failures, n)
     block_p = np.mean(~captured[: n - n % budget].reshape(-1, budget), axis=1)
 
-    robot = sg.paper_robot()
-    scenario = sg.paper_scenario(robot)
+    robot, scenario = record.robot, record.scenario  # the truth's own
     gains = tuned_schedule(CAPTURE["gains"])
     out.mkdir(parents=True, exist_ok=True)
     rows_path = out / "capture.jsonl"
@@ -315,6 +316,9 @@ def run_capture(truth: Path, out: Path, repeats: int, budget: int, methods: list
             "rollouts": float(np.mean([r["rollouts"] for r in cell])),
             "wall_s": float(np.mean([r["wall_s"] for r in cell])),
         }
+        # A campaign of the same rollouts: the binomial coefficient of variation at the truth.
+        rollouts = summary[method]["rollouts"]
+        summary[method]["campaign_cv_at_same_rollouts"] = float(math.sqrt((1.0 - truth_p) / (rollouts * truth_p)))
     summary["montecarlo, the truth's captures in blocks"] = {
         "repeats": int(len(block_p)),
         "empirical_cv": float(np.sqrt(np.mean((block_p / truth_p - 1.0) ** 2))),
