@@ -39,17 +39,14 @@ PROBLEMS = {
 
 def test_the_known_probabilities_are_the_published_ones():
     """The quadratures give the repository's published probabilities: RP28's and RP25's to
-    their computed digits, RP107's and RP111's (sampled, three digits) within 6%."""
+    their computed digits, RP107's and RP111's (sampled, three digits) within 6%, RP77's within
+    7% (2.87e-7 published; quadrature and importance sampling of 6e6 points agree on 2.69e-7)."""
     exact = {name: known.PROBLEMS[name]()[1] for name in known.PUBLISHED}
-    np.testing.assert_allclose(
-        [exact["RP28"], exact["RP25"]], [known.PUBLISHED["RP28"], known.PUBLISHED["RP25"]], rtol=1e-6
-    )
-    np.testing.assert_allclose(
-        [exact["RP107"], exact["RP111"]], [known.PUBLISHED["RP107"], known.PUBLISHED["RP111"]], rtol=0.06
-    )
+    for name, tolerance in {"RP28": 1e-6, "RP25": 1e-6, "RP107": 0.06, "RP111": 0.06, "RP77": 0.07}.items():
+        np.testing.assert_allclose(exact[name], known.PUBLISHED[name], rtol=tolerance, err_msg=name)
 
 
-@pytest.mark.parametrize("name", ["RP28", "RP107", "RP111", "RP25"])
+@pytest.mark.parametrize("name", ["RP28", "RP77", "RP107", "RP111", "RP25"])
 def test_the_known_limit_states_gradients_are_their_central_differences(name):
     limit_state, _ = known.PROBLEMS[name]()
     for z in np.random.default_rng(0).normal(size=(20, limit_state.dimension)) * 2.0:
