@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compile_labels import CompileLabels
 
 from spacegrasp_jax import cli
 from spacegrasp_jax.envelope.perturbations import PerturbationRanges
@@ -368,6 +369,50 @@ def test_a_campaign_runs_schedules_beside_constant_gains_and_reloads_them(robot,
         float(metrics["admittance/softer"]["final_position_error_m"][1]), rel=1e-9
     )
     assert (out / "regime_admittance_softer.png").is_file() and (out / "gain_schedule.png").is_file()
+
+
+@pytest.mark.slow
+def test_a_campaign_of_constant_gains_and_schedules_compiles_one_program_and_runs_each_as_alone(
+    robot, short_scenario, tmp_path
+):
+    """The shipped constant flight gains, the shipped flight schedule (time) and a
+    contact_time schedule on the flight-like loop: one compiled program for the three, every
+    sample's metrics those of each gain set in its own program: bit for bit for the constant
+    gains, to rounding for a schedule (its blend fused otherwise: measured 3e-12 relative)."""
+    from spacegrasp_jax.envelope.metrics import METRICS
+    from spacegrasp_jax.jobs import campaign, compilation
+    from spacegrasp_jax.loop.control.schedule import GainChoice, named_gain_set, program_gains
+
+    flight_gains = named_gain_set("flight")
+    on_contact = make_schedule(
+        flight_gains, "contact_time", {"Kd": ([0.0, 0.5], [flight_gains.Kd, 0.5 * flight_gains.Kd])}
+    )
+    variants = [
+        campaign.Variant("admittance", flight_gains, "flight"),
+        campaign.Variant("admittance", named_gain_set("flight_schedule"), "flight_schedule"),
+        campaign.Variant("admittance", on_contact, "on_contact"),
+    ]
+    arguments = program_gains([variant.gains for variant in variants])
+    assert all(isinstance(a, GainChoice) for a in arguments) and [int(a.chosen) for a in arguments] == [0, 1, 2]
+    same_structure = [flight_gains, paper_gains()]
+    assert all(a is b for a, b in zip(program_gains(same_structure), same_structure, strict=True))  # as they are
+    config = campaign.CampaignConfig(n=2, chunk=2, seed=20261207, realism=flight())
+    heard = CompileLabels()
+    with compilation.listening(heard):
+        result = campaign.run_campaign(robot, short_scenario, variants, config, tmp_path / "c", progress=None)
+    assert len(heard.labels) == 1, heard.labels
+    for variant in variants:
+        alone = campaign.evaluate_indices(robot, short_scenario, variant, config, np.arange(2))
+        compared = [name for name in alone if name in result.metrics[variant.key]]
+        assert set(METRICS) <= set(compared), set(METRICS) - set(compared)
+        for name in compared:
+            together, message = result.metrics[variant.key][name], f"{variant.key}: {name}"
+            if variant.label == "flight":
+                np.testing.assert_array_equal(together, alone[name], err_msg=message)
+            else:
+                np.testing.assert_allclose(together, alone[name], rtol=1e-10, atol=1e-300, err_msg=message)
+    peaks = [result.metrics[variant.key]["largest_peak_torque_Nm"] for variant in variants]
+    assert not np.array_equal(peaks[0], peaks[1]) and not np.array_equal(peaks[0], peaks[2])
 
 
 EXPORT_PRINTER = r"""

@@ -198,7 +198,8 @@ def _print_campaign(result: campaign.CampaignResult) -> None:
     if throughput["rollouts_per_s"]:
         print(
             f"throughput: {throughput['rollouts_per_s']:.2f} rollouts/s, {throughput['simulated_s_per_wall_s']:.1f} simulated s per wall s "
-            f"on {throughput['devices']} {throughput['platform']} device(s); compile {throughput['compile_s']:.1f} s"
+            f"on {throughput['devices']} {throughput['platform']} device(s); compile {throughput['compile_s']:.1f} s "
+            f"({throughput['programs_compiled']} program(s))"
         )
 
 

@@ -44,6 +44,7 @@ from spacegrasp_jax.envelope.scenario import Scenario, scenario_from_dict
 from spacegrasp_jax.jobs import anatomy, batching, experiment, records, runfiles
 from spacegrasp_jax.jobs.montecarlo import FoldedMetrics, evaluate_samples, sample_loops
 from spacegrasp_jax.jobs.records import RecordError, RunRecord, Variant, make_record
+from spacegrasp_jax.loop.control import schedule
 from spacegrasp_jax.loop.control.registry import law_named
 from spacegrasp_jax.loop.control.schedule import gain_set_from_dict
 from spacegrasp_jax.loop.realism import Realism, ideal, make_realism
@@ -208,21 +209,39 @@ def variant_spec(robot: Robot, scenario: Scenario, variant: Variant, config: Cam
     )
 
 
-def _replicated(robot, scenario, variant: Variant, config: CampaignConfig) -> tuple:
-    """The arguments every device of a chunk receives whole."""
-    return variant_spec(robot, scenario, variant, config), variant.gains, np.uint32(config.seed), config.ranges
+def program_gains(variants: list[Variant]) -> dict[str, object]:
+    """variant key -> the gains its chunks run with: every gain set of a law in one compiled
+    program, constant gains and schedules alike
+    ([`schedule.program_gains()`][spacegrasp_jax.loop.control.schedule.program_gains]: a
+    variant's own gains where its law's gain sets share one structure, else a ``GainChoice``
+    choosing them: constant gains then run bit for bit, a schedule to rounding)."""
+    by_law: dict[str, list[Variant]] = {}
+    for variant in variants:
+        by_law.setdefault(variant.controller, []).append(variant)
+    gains = {}
+    for group in by_law.values():
+        for variant, argument in zip(group, schedule.program_gains([v.gains for v in group]), strict=True):
+            gains[variant.key] = argument
+    return gains
 
 
-def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
+def _replicated(robot, scenario, variant: Variant, config: CampaignConfig, gains=None) -> tuple:
+    """The arguments every device of a chunk receives whole (``gains``: the variant's, or
+    what ``program_gains()`` gives it)."""
+    gains = variant.gains if gains is None else gains
+    return variant_spec(robot, scenario, variant, config), gains, np.uint32(config.seed), config.ranges
+
+
+def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig, gains=None):
     """The compiled evaluation of one chunk of ``config.chunk`` samples
     ([`compile_chunk()`][spacegrasp_jax.jobs.batching.compile_chunk]) and its compile time (s; that of the
-    original compile)."""
+    original compile). ``gains``: as ``_replicated()``'s."""
     function = functools.partial(_evaluate_chunk, identified=config.identified)
     try:
         return batching.compile_chunk(
             "campaign",
             function,
-            _replicated(robot, scenario, variant, config),
+            _replicated(robot, scenario, variant, config, gains),
             np.zeros(config.chunk, np.uint32),
             device_batch=config.device_batch,
         )
@@ -230,15 +249,18 @@ def compiled_chunk(robot, scenario, variant: Variant, config: CampaignConfig):
         raise CampaignError(str(error)) from None
 
 
-def evaluate_indices(robot, scenario, variant: Variant, config: CampaignConfig, indices) -> dict[str, np.ndarray]:
+def evaluate_indices(
+    robot, scenario, variant: Variant, config: CampaignConfig, indices, gains=None
+) -> dict[str, np.ndarray]:
     """Samples ``indices`` (``config.chunk`` of them, any values) of the campaign, gathered
     on every host as flat NumPy arrays: ``perturbation.<field>``, the metrics, and
-    ``timeseries.<field>`` when requested."""
-    executable, _ = compiled_chunk(robot, scenario, variant, config)
+    ``timeseries.<field>`` when requested. ``gains``: the variant's gains as the program
+    takes them (``program_gains()``; ``None``: the variant's own)."""
+    executable, _ = compiled_chunk(robot, scenario, variant, config, gains)
     indices = np.asarray(indices, dtype=np.uint32)
     if indices.shape != (config.chunk,):
         raise CampaignError(f"indices: expected {config.chunk} of them (the chunk size), got shape {indices.shape}")
-    replicated = _replicated(robot, scenario, variant, config)
+    replicated = _replicated(robot, scenario, variant, config, gains)
     perturbations, sample_metrics, rows = batching.run_chunk(executable, replicated, indices)
     arrays = {f"perturbation.{name}": value for name, value in vars(perturbations).items()}
     arrays |= dict(sample_metrics)
@@ -639,6 +661,7 @@ def run_campaign(
     total_chunks = len(starts) * len(variants)
     done_chunks, run_s, computed_samples = 0, 0.0, 0
     compile_s_by_program: dict[int, float] = {}  # variants of one law share a program: counted once
+    gains_of = program_gains(variants)
     chunks: dict[str, dict[int, dict]] = {variant.key: {} for variant in variants}
     status = "done"
     for variant in variants:
@@ -649,12 +672,13 @@ def run_campaign(
             arrays = _load_chunk(path) if path is not None and path.exists() else None
             if arrays is None:
                 if not compiled:
-                    executable, seconds = compiled_chunk(robot, scenario, variant, config)
+                    executable, seconds = compiled_chunk(robot, scenario, variant, config, gains_of[variant.key])
                     compile_s_by_program[id(executable)] = seconds
                     compiled = True
                 start = time.perf_counter()
                 # Indices past n pad the last chunk; they are computed and dropped.
-                arrays = evaluate_indices(robot, scenario, variant, config, np.arange(first, first + config.chunk))
+                indices = np.arange(first, first + config.chunk)
+                arrays = evaluate_indices(robot, scenario, variant, config, indices, gains_of[variant.key])
                 arrays = {name: value[: config.n - first] for name, value in arrays.items()}
                 run_s += time.perf_counter() - start
                 computed_samples += config.chunk
@@ -693,6 +717,7 @@ def run_campaign(
         "platform": jax.devices()[0].platform,
         "processes": jax.process_count(),
         "compile_s": sum(compile_s_by_program.values()),
+        "programs_compiled": len(compile_s_by_program),
         "run_s": run_s,
         "rollouts_computed_this_run": computed_samples,
         "rollouts_per_s": computed_samples / run_s if run_s > 0 else None,
@@ -885,6 +910,7 @@ __all__ = [
     "sample_record",
     "classify",
     "compiled_chunk",
+    "program_gains",
     "evaluate_indices",
     "load_campaign",
     "load_samples",

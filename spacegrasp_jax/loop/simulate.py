@@ -57,7 +57,7 @@ from spacegrasp_jax.loop import stages
 from spacegrasp_jax.loop.control.gains import Gains
 from spacegrasp_jax.loop.control.law import ControlInputs, ControllerState
 from spacegrasp_jax.loop.control.registry import as_controller
-from spacegrasp_jax.loop.control.schedule import GainSchedule, contact_phase, scheduling_variable
+from spacegrasp_jax.loop.control.schedule import GainChoice, GainSchedule, contact_phase, scheduling_variable
 from spacegrasp_jax.loop.realism import Realism, Stage, ideal
 
 
@@ -492,6 +492,17 @@ class LoopBody:
     steps_per_period: int
 
 
+def _option_gains(gains: Gains | GainSchedule, t, pose: jax.Array, reading: jax.Array, contact_time) -> Gains:
+    """One option of a [`GainChoice`][spacegrasp_jax.loop.control.schedule.GainChoice] at the
+    start of a period, as ``_Period.gains_now()`` reads a gain set alone: ``t`` (s), the pose
+    and F/T ``reading`` the controller reads, ``contact_time`` (s) from the latch."""
+    if not isinstance(gains, GainSchedule):
+        return gains
+    if gains.variable == "contact_time":
+        return gains.at(contact_time)
+    return gains.at(scheduling_variable(gains.variable, t, pose, reading))
+
+
 @dataclasses.dataclass(frozen=True)
 class _Period:
     """What the parts of one control period share: the run's settings, decided once on the
@@ -567,6 +578,13 @@ class _Period:
         schedule's at its variable as the controller reads it at ``t`` (s) from its
         ``inputs`` and F/T ``reading`` (6,) ([`control.schedule`][spacegrasp_jax.loop.control.schedule];
         ``contact_time`` from the latch ``phase``, [`contact_phase()`][spacegrasp_jax.loop.control.schedule.contact_phase])."""
+        if isinstance(self.gains, GainChoice):
+            contact_time = None
+            if self.gains.latched:
+                contact_time, phase = contact_phase(phase, t, reading)
+            options = [_option_gains(option, t, inputs.pose, reading, contact_time) for option in self.gains.options]
+            chosen = jnp.asarray(self.gains.chosen, jnp.int32)
+            return jax.tree.map(lambda *values: jax.lax.select_n(chosen, *values), *options), phase
         if not isinstance(self.gains, GainSchedule):
             return self.gains, phase
         if self.gains.variable == "contact_time":
@@ -686,7 +704,7 @@ class _Period:
         if self.spec.options.checkpoint:  # the noise is drawn outside: once, not again in the backward pass
             start_of_period = jax.checkpoint(start_of_period, prevent_cse=False)
         memories, controller, command, held, gains = start_of_period(state, k, noise)
-        if not isinstance(self.gains, GainSchedule):
+        if isinstance(self.gains, Gains):
             gains = self.gains  # the loop's own argument, not a checkpoint's output: no adjoint through it
         # The servo ticks carry the memories of the stages they run, no others.
         ticking = [i for i, stage in enumerate(self.chain) if stage.signal in stages.TICK_SIGNALS]
@@ -791,7 +809,8 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
     )
     one_period = period.one_step if per_period == 1 else period.several_steps
     start = initial_state(spec)
-    if isinstance(gains, GainSchedule) and gains.variable == "contact_time":  # the latch: not yet in contact
+    latched = isinstance(gains, GainSchedule) and gains.variable == "contact_time"
+    if latched or (isinstance(gains, GainChoice) and gains.latched):  # the latch: not yet in contact
         zero = jnp.zeros((), scenario.initial.q.dtype)
         start = dataclasses.replace(start, controller=dataclasses.replace(start.controller, phase=(zero, zero)))
     return LoopBody(

@@ -117,6 +117,63 @@ class GainSchedule:
         return document
 
 
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class GainChoice:
+    """One of several gain sets of different structures (constant gains, schedules of any
+    variable and knots), the one in force chosen by an index that is an argument, not a
+    structure: every gain set of a campaign's law runs in one compiled program
+    ([`program_gains()`][spacegrasp_jax.loop.control.schedule.program_gains]).
+
+    The loop evaluates every option at the start of a period and keeps the chosen one's
+    gains (``lax.select_n``): constant gains run bit for bit as in a program of their own; a
+    schedule's blend is fused differently by the compiler beside the other options, so a
+    run with it agrees with its own program's to rounding (relative differences up to a few
+    1e-12 in the contact force on the flight-like loop; documentation, Monte-Carlo).
+
+    Attributes:
+        options: the gain sets (``Gains`` or ``GainSchedule``), one of each structure; those
+            not chosen hold any valid gains of their structure.
+        chosen: () int32, the index of the option in force.
+    """
+
+    options: tuple
+    chosen: jax.Array
+
+    @property
+    def latched(self) -> bool:
+        """Whether an option schedules on ``contact_time`` (the loop then carries the latch)."""
+        return any(isinstance(o, GainSchedule) and o.variable == "contact_time" for o in self.options)
+
+
+def structure(gains) -> tuple:
+    """What decides the program a gain set (``Gains``, ``GainSchedule``) compiles into: its
+    pytree structure (a schedule's variable included) and its leaves' shapes."""
+    leaves, treedef = jax.tree.flatten(gains)
+    return treedef, tuple(np.shape(leaf) for leaf in leaves)
+
+
+def program_gains(gain_sets: list) -> list:
+    """``gain_sets`` (``Gains`` or ``GainSchedule``) as the loop's argument, one per set:
+    each set as it is where all share one structure, otherwise each a
+    [`GainChoice`][spacegrasp_jax.loop.control.schedule.GainChoice] of the same options (the
+    first set of each structure) choosing its own, so that all run in one program."""
+    kinds: dict = {}
+    for gains in gain_sets:
+        kinds.setdefault(structure(gains), gains)
+    if len(kinds) == 1:
+        return list(gain_sets)
+    order = list(kinds)
+    chosen = [order.index(structure(gains)) for gains in gain_sets]
+    return [
+        GainChoice(
+            options=tuple(gains if k == i else kinds[key] for k, key in enumerate(order)),
+            chosen=np.int32(i),
+        )
+        for gains, i in zip(gain_sets, chosen, strict=True)
+    ]
+
+
 def interpolate(knots: jax.Array, values: jax.Array, x) -> jax.Array:
     """(n,) the group's gains at ``x`` from its ``knots`` (K,) and ``values`` (K, n): the
     smoothstep blend of the log-gains of the two knots around ``x`` (module docstring); with
@@ -405,6 +462,7 @@ def regime_labels(schedule: GainSchedule, x: np.ndarray) -> list[str]:
 __all__ = [
     "NAMED_GAIN_SETS",
     "TUNED_SCHEDULE_FILES",
+    "GainChoice",
     "GainSchedule",
     "named_gain_set",
     "tuned_schedule",
@@ -417,6 +475,7 @@ __all__ = [
     "load_gains_or_schedule",
     "load_schedule",
     "make_schedule",
+    "program_gains",
     "schedule_curves",
     "gains_along",
     "regime_labels",
@@ -424,4 +483,5 @@ __all__ = [
     "schedule_of",
     "variable_series",
     "scheduling_variable",
+    "structure",
 ]
