@@ -492,10 +492,17 @@ class LoopBody:
     steps_per_period: int
 
 
-def _option_gains(gains: Gains | GainSchedule, t, pose: jax.Array, reading: jax.Array, contact_time) -> Gains:
-    """One option of a [`GainChoice`][spacegrasp_jax.loop.control.schedule.GainChoice] at the
-    start of a period, as ``_Period.gains_now()`` reads a gain set alone: ``t`` (s), the pose
-    and F/T ``reading`` the controller reads, ``contact_time`` (s) from the latch."""
+def _latched(gains) -> bool:
+    """Whether the loop carries the contact latch for ``gains``: a schedule on
+    ``contact_time``, or a ``GainChoice`` with one among its options."""
+    if isinstance(gains, GainChoice):
+        return gains.latched
+    return isinstance(gains, GainSchedule) and gains.variable == "contact_time"
+
+
+def _gains_at(gains: Gains | GainSchedule, t, pose: jax.Array, reading: jax.Array, contact_time) -> Gains:
+    """A gain set's gains at the start of a period: ``t`` (s), the pose and F/T ``reading``
+    the controller reads, ``contact_time`` (s) from the latch (``None`` without one)."""
     if not isinstance(gains, GainSchedule):
         return gains
     if gains.variable == "contact_time":
@@ -578,19 +585,14 @@ class _Period:
         schedule's at its variable as the controller reads it at ``t`` (s) from its
         ``inputs`` and F/T ``reading`` (6,) ([`control.schedule`][spacegrasp_jax.loop.control.schedule];
         ``contact_time`` from the latch ``phase``, [`contact_phase()`][spacegrasp_jax.loop.control.schedule.contact_phase])."""
-        if isinstance(self.gains, GainChoice):
-            contact_time = None
-            if self.gains.latched:
-                contact_time, phase = contact_phase(phase, t, reading)
-            options = [_option_gains(option, t, inputs.pose, reading, contact_time) for option in self.gains.options]
-            chosen = jnp.asarray(self.gains.chosen, jnp.int32)
-            return jax.tree.map(lambda *values: jax.lax.select_n(chosen, *values), *options), phase
-        if not isinstance(self.gains, GainSchedule):
-            return self.gains, phase
-        if self.gains.variable == "contact_time":
-            x, phase = contact_phase(phase, t, reading)
-            return self.gains.at(x), phase
-        return self.gains.at(scheduling_variable(self.gains.variable, t, inputs.pose, reading)), phase
+        contact_time = None
+        if _latched(self.gains):
+            contact_time, phase = contact_phase(phase, t, reading)
+        if not isinstance(self.gains, GainChoice):
+            return _gains_at(self.gains, t, inputs.pose, reading, contact_time), phase
+        options = [_gains_at(option, t, inputs.pose, reading, contact_time) for option in self.gains.options]
+        chosen = jnp.asarray(self.gains.chosen, jnp.int32)
+        return jax.tree.map(lambda *values: jax.lax.select_n(chosen, *values), *options), phase
 
     def control_update(self, state: LoopState, k, noise, truth: PlantKinematics, observed: Observation | None):
         """The controller's update at the start of period k: the stages' memories moved on,
@@ -809,8 +811,7 @@ def loop_body(spec: RunSpec, gains: Gains, key: jax.Array | None = None) -> Loop
     )
     one_period = period.one_step if per_period == 1 else period.several_steps
     start = initial_state(spec)
-    latched = isinstance(gains, GainSchedule) and gains.variable == "contact_time"
-    if latched or (isinstance(gains, GainChoice) and gains.latched):  # the latch: not yet in contact
+    if _latched(gains):  # the latch: not yet in contact
         zero = jnp.zeros((), scenario.initial.q.dtype)
         start = dataclasses.replace(start, controller=dataclasses.replace(start.controller, phase=(zero, zero)))
     return LoopBody(
