@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -117,6 +118,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--python: expected LABEL=PYTHON, got {entry!r}")
         if label in installs:
             parser.error(f"--python: the label {label!r} is given twice")
+        if shutil.which(python) is None:
+            parser.error(f"--python: {python} is not an executable Python")
         installs[label] = python
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
