@@ -377,8 +377,8 @@ def run_capture(truth: Path, out: Path, repeats: int, budget: int, methods: list
     rows = [json.loads(line) for line in rows_path.read_text().splitlines()] if rows_path.exists() else []
     done = {(r["method"], r["seed"]) for r in rows}
     with rows_path.open("a") as stream:
-        for method in methods:
-            for r in range(repeats):
+        for r in range(repeats):  # repeat by repeat, so that an interrupted run leaves every method even
+            for method in methods:
                 seed = CAPTURE_SEED + r
                 if (method, seed) in done:
                     continue
