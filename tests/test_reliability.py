@@ -115,6 +115,39 @@ def test_montecarlo_without_a_failure_gives_the_clopper_pearson_bound():
     assert result.details == {"failures": 0, "samples": 1000, "source": "standard normal draws"}
 
 
+@pytest.mark.parametrize("method", ["subset", "cross_entropy"])
+def test_where_openturns_refuses_its_estimate_the_first_levels_monte_carlo_is_the_answer(method, monkeypatch):
+    """OpenTURNS has refused subset simulation's estimate on a capture (a variance that is not
+    a number, near a level's probability). Made to refuse after a real run, the estimator
+    reports the failure rate of the first level's points, counted here on the points the
+    limit state was called with, and their exact binomial interval (Beta quantiles)."""
+    beta = float(-stats.norm.ppf(0.1))
+    a = np.ones(20) / math.sqrt(20.0)
+    called = []
+
+    def values(z, first):
+        called.append(np.array(z))
+        return {"g": beta - z @ a}
+
+    real = {"subset": reliability._subset, "cross_entropy": reliability._cross_entropy}[method]
+
+    def refusing(ot_module, calls, settings):
+        real(ot_module, calls, settings)
+        raise RuntimeError("InvalidArgumentException : The variance estimate must be >= 0")
+
+    monkeypatch.setattr(reliability, f"_{method}", refusing)
+    settings = Settings(method=method, budget=3000, seed=3, smallest_probability=1e-4, block=100)
+    result = estimate(LimitState(20, values=values), settings)
+    first = np.concatenate(called)[: (settings.level_size // 100) * 100]
+    k, n = int(np.sum(first @ a > beta)), len(first)
+    assert n >= 500 and result.complete
+    assert result.probability == k / n
+    np.testing.assert_allclose(result.low, stats.beta.ppf(0.025, k, n - k + 1), rtol=1e-9)
+    np.testing.assert_allclose(result.high, stats.beta.ppf(0.975, k + 1, n - k), rtol=1e-9)
+    assert result.details["source"] == "the first level's Monte-Carlo" and "variance" in result.details["error"]
+    assert "first level's Monte-Carlo" in result.summary()
+
+
 def test_form_is_finds_both_failure_regions():
     """Two regions of 5e-6 each on either side of the origin: FORM's starts find both design
     points, and importance sampling from their mixture estimates the sum."""

@@ -26,6 +26,11 @@ standard normal coordinates ``z`` (for a capture: the envelope's perturbations,
   the limit state has them (``LimitState.campaign_values``), else standard normal draws; its
   95% interval is Clopper-Pearson's, an upper bound when nothing fails.
 
+Where OpenTURNS refuses to form subset simulation's or cross-entropy's estimate (a variance
+that is not a number: it has happened on a capture whose failure probability is near a
+level's, 1e-1), the first level, a plain Monte-Carlo of the standard normal, gives the estimate
+with its Clopper-Pearson interval, and the result says so (``details["source"]``).
+
 The budget counts rollouts: a point 1, a gradient ``LimitState.gradient_cost``. The 95% interval
 of the sampling estimators is the lognormal one of their coefficient of variation ``c``,
 ``p exp(+-1.96 sqrt(ln(1 + c^2)))``; with no failing point sampled there is no estimate and
@@ -258,7 +263,13 @@ class Estimate:
             if math.isfinite(self.coefficient_of_variation)
             else "c.o.v. -"
         )
-        return f"p = {self.probability:.3g} [{self.low:.3g}, {self.high:.3g}], {cv}, {self.rollouts:,.0f} rollouts"
+        line = f"p = {self.probability:.3g} [{self.low:.3g}, {self.high:.3g}], {cv}, {self.rollouts:,.0f} rollouts"
+        if self.details.get("source") == "the first level's Monte-Carlo":
+            line += (
+                f" (the first level's Monte-Carlo, {self.details['failures']:,} failures in "
+                f"{self.details['samples']:,}: OpenTURNS refused its estimate, {self.details['error']})"
+            )
+        return line
 
 
 def _plain(value):
@@ -314,6 +325,7 @@ class _Calls:
         self.recorded_s = 0.0  # seconds the calls took, as recorded
         self.position = 0
         self.failing: list[dict] = []
+        self.fresh_g: list[np.ndarray] = []  # g of each call with new noise draws, in order
         self.raised: BaseException | None = None  # what the limit state raised (an interrupt, an error)
         self.stage, self.reported_at = "", -math.inf  # the last progress line's
         self.entries = sorted(journal.glob("*.npz")) if journal is not None and journal.exists() else []
@@ -371,6 +383,7 @@ class _Calls:
         self._spend(len(z))
         outputs = self._call("values", z, lambda: self.limit_state.values(z, first))
         self.fresh += len(z)
+        self.fresh_g.append(np.atleast_1d(np.asarray(outputs["g"], dtype=np.float64)))
         self.points += len(z)
         self._keep_failing(z, outputs, stage)
         self._report(stage)
@@ -509,11 +522,11 @@ def estimate(limit_state: LimitState, settings: Settings, *, journal=None, say=N
                 elif calls.raised is not None:
                     raise calls.raised from None
                 elif _openturns_refusal(error):  # a result OpenTURNS cannot form
-                    result = math.nan, math.nan, {"error": str(error).splitlines()[0][:300]}, False
+                    result = _first_level(calls, settings, str(error).splitlines()[0][:300])
                 else:
                     raise
     probability, cv, details, complete = result
-    if complete and settings.method == "montecarlo":
+    if complete and "samples" in details:  # a Monte-Carlo's failure rate
         low, high = binomial_interval(details["failures"], details["samples"])
     elif complete and probability > 0.0:
         low, high = lognormal_interval(probability, cv)
@@ -606,6 +619,19 @@ def _montecarlo(calls: _Calls, settings: Settings):
     p = failures / samples
     source = "campaign" if calls.limit_state.campaign_values is not None else "standard normal draws"
     return p, _binomial_cv(failures, samples), {"failures": failures, "samples": samples, "source": source}, True
+
+
+def _first_level(calls: _Calls, settings: Settings, error: str):
+    """The failure rate of subset simulation's or cross-entropy's first level, whose points are
+    a plain Monte-Carlo of the standard normal, where OpenTURNS refused to form its estimate;
+    no estimate where the first level did not complete (or for FORM-IS)."""
+    n = (settings.level_size // settings.block) * settings.block
+    g = np.concatenate(calls.fresh_g) if calls.fresh_g else np.zeros(0)
+    if settings.method not in ("subset", "cross_entropy") or len(g) < n:
+        return math.nan, math.nan, {"error": error}, False
+    failures = int(np.sum(g[:n] < 0.0))
+    details = {"failures": failures, "samples": n, "source": "the first level's Monte-Carlo", "error": error}
+    return failures / n, _binomial_cv(failures, n), details, True
 
 
 def _binomial_cv(failures: int, samples: int) -> float:
