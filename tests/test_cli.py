@@ -219,9 +219,26 @@ def test_a_gains_file_runs_with_what_fill_from_gives_and_says_so(tmp_path, capsy
     # a shipped set by name
     args = ["simulate", "--compile-cache", "none", "--controller", "admittance", "--gains", "flight"]
     assert cli.main([*args, "--scenario", str(scenario_file), "--out", str(tmp_path / "flight")]) == 0
+    notice = "spacegrasp: notice: --gains flight: tuned in the flight-like loop (--realism flight); this run's loop is the ideal one"
+    assert notice in capsys.readouterr().err  # gains tuned for another loop than this run's
     record = json.loads((tmp_path / "flight" / "config.json").read_text())["record"]
     assert record["sources"]["gains"] == "flight" and record["variants"][0]["label"] == "flight"
     assert record["variants"][0]["gains"] == tuned_gains("flight").to_dict()
+
+
+def test_the_sets_said_to_be_tuned_in_the_flight_like_loop_are_those_whose_command_says_so():
+    """``TUNED_IN_FLIGHT_LOOP`` (the notice above) against the shipped sets' own records:
+    each ``*.settings.json``'s tuning command names its realism."""
+    from spacegrasp_jax.loop.control.gains import TUNED_GAINS_FILES
+    from spacegrasp_jax.loop.control.schedule import TUNED_IN_FLIGHT_LOOP, TUNED_SCHEDULE_FILES
+
+    data = Path(sg.__file__).parent / "data"
+    in_flight = set()
+    for name, file in {**TUNED_GAINS_FILES, **TUNED_SCHEDULE_FILES}.items():
+        command = json.loads((data / file.replace(".json", ".settings.json")).read_text())["command"]
+        if "--realism flight" in " ".join([command] if isinstance(command, str) else command):
+            in_flight.add(name)
+    assert in_flight == set(TUNED_IN_FLIGHT_LOOP)
 
 
 @pytest.mark.slow

@@ -40,6 +40,7 @@ from spacegrasp_jax.loop.control import (
 )
 from spacegrasp_jax.loop.control.schedule import (
     NAMED_GAIN_SETS,
+    TUNED_IN_FLIGHT_LOOP,
     TUNED_SCHEDULE_FILES,
     VARIABLES,
     GainSchedule,
@@ -161,6 +162,12 @@ def _gains_option(value: str | None, args, robot, controller, schedules: bool = 
             raise UsageError(
                 f"--gains {value}: a gain schedule; this command takes constant gains (schedules run in "
                 f"{', '.join(RUNS_SCHEDULES[:-1])} and {RUNS_SCHEDULES[-1]})"
+            )
+        if value in TUNED_IN_FLIGHT_LOOP and hasattr(args, "realism") and args.realism in (None, "ideal"):
+            print(
+                f"spacegrasp: notice: --gains {value}: tuned in the flight-like loop (--realism flight); "
+                "this run's loop is the ideal one",
+                file=sys.stderr,
             )
         return named_gain_set(value)
     fill_from = getattr(args, "fill_from", None)

@@ -73,6 +73,11 @@ TUNED_SCHEDULE_FILES = {
 #: (``control.gains.NAMED_GAINS``) and the shipped schedules.
 NAMED_GAIN_SETS = NAMED_GAINS + tuple(TUNED_SCHEDULE_FILES)
 
+#: The shipped sets tuned in the flight-like loop (``--realism flight``; their
+#: ``*.settings.json`` give the command): run in the ideal loop they meet a loop they were not
+#: tuned for, and the command line says so.
+TUNED_IN_FLIGHT_LOOP = ("flight", "free_target", "flight_schedule", "free_target_schedule")
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
