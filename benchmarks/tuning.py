@@ -144,10 +144,27 @@ def step_walls(history: Path) -> list[float]:
         return [float(row["wall_s"]) for row in csv.DictReader(file) if row["wall_s"] not in ("", "nan")]
 
 
-def compile_estimate(history: Path) -> float:
-    """A run's compile, about: its first step's wall time less the median of the others (s)."""
+def compile_estimate(history: Path, snapshots: dict | None = None) -> float:
+    """A run's compile, about (s): its first row's wall time less what the row evaluated at
+    the pace of the later steps (their median). The first row is the starting point's
+    evaluation: a step's worth for the gradient method, one batch for CMA-ES, whose steps
+    evaluate a generation. With the run's ``snapshots`` (mark -> ``steps`` and ``rollouts``
+    or ``gradients`` done by then; two marks or more), the row's share of a step is read from
+    the counts; without, it is taken as one step."""
     first, *later = step_walls(history)
-    return first - statistics.median(later) if later else float("nan")
+    if not later:
+        return float("nan")
+    share = 1.0
+    counts = sorted(
+        (snap["steps"], snap.get("rollouts") or snap.get("gradients"))
+        for snap in (snapshots or {}).values()
+        if snap.get("steps") and (snap.get("rollouts") or snap.get("gradients"))
+    )
+    if len(counts) >= 2 and counts[-1][0] > counts[0][0]:
+        (s0, n0), (s1, n1) = counts[0], counts[-1]
+        per_step = (n1 - n0) / (s1 - s0)
+        share = (n0 - s0 * per_step) / per_step
+    return first - share * statistics.median(later)
 
 
 def race_problem(settings: dict) -> str:
@@ -165,7 +182,7 @@ def seeds_race_rows(record_path: Path) -> list[dict]:
     for label, run in record["runs"].items():
         method, seed = label.rsplit("_seed", 1)
         history = record_path.parent / f"seed{seed}" / method / "history.csv"
-        compile_s = compile_estimate(history) if history.exists() else float("nan")
+        compile_s = compile_estimate(history, run["snapshots"]) if history.exists() else float("nan")
         for mark, snapshot in run["snapshots"].items():
             held_out = summary["runs"][f"{label}_{mark}min"]
             versus = held_out.get(f"vs_{summary['reference']}")

@@ -257,3 +257,18 @@ def test_the_version_checks_refuse_bad_options_before_anything_runs(module, argv
         main(argv)
     assert exit_info.value.code == 2 and said in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_runs_compile_estimate_counts_what_its_first_row_evaluated(tmp_path):
+    """A CMA-ES run's first row evaluates the start on one batch (32 rollouts), each later
+    step a generation of 16 candidates (512): its compile is the first row's wall time less a
+    sixteenth of a step's, not less a whole step's. A gradient run's first row is a step."""
+    from spacegrasp_jax.benchmarks.tuning import compile_estimate
+
+    history = tmp_path / "history.csv"
+    history.write_text("step,wall_s\n0,17.2\n1,29.0\n2,29.5\n3,30.0\n")
+    cmaes = {"5": {"steps": 9, "rollouts": 32 + 9 * 512}, "15": {"steps": 29, "rollouts": 32 + 29 * 512}}
+    assert math.isclose(compile_estimate(history, cmaes), 17.2 - 29.5 / 16, rel_tol=1e-12)
+    gradient = {"5": {"steps": 30, "gradients": 31 * 32}, "15": {"steps": 98, "gradients": 99 * 32}}
+    assert math.isclose(compile_estimate(history, gradient), 17.2 - 29.5, rel_tol=1e-12)
+    assert math.isclose(compile_estimate(history), 17.2 - 29.5, rel_tol=1e-12)  # no counts: a step
