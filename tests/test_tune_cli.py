@@ -297,7 +297,8 @@ def test_without_method_tune_runs_the_recipe_that_won_the_race_on_its_problem(ra
     def config(*options):
         return _tune_config(build_parser().parse_args(["tune", "--out", str(tmp_path / "x"), *options]), None)
 
-    assert config(*problem) == config(*problem, *recipe)
+    # A race holds out the run's checkpoint at each mark, its last step: --keep last.
+    assert config(*problem) == config(*problem, *recipe, "--keep", "last")
     overridden = config(*problem, "--batch", "8", "--no-fresh-batches", "--steps", "3")
     assert (overridden.method, overridden.batch, overridden.fresh_batches, overridden.steps) == (
         "gradient",
@@ -311,8 +312,13 @@ def test_without_method_tune_runs_the_recipe_that_won_the_race_on_its_problem(ra
     ideal = [word for word in problem if word not in ("--realism", "flight")]
     assert (config(*ideal).method, config(*ideal).batch, config(*ideal).steps) == ("cmaes", 4, 60)
     assert config(*ideal, "--realism", "ideal").method == "cmaes"  # the paper's loop under the realism code: not raced
+    # The races held out each run's last step (its checkpoint at the mark): the recipe hands it back.
+    assert config(*problem).keep == "last" and config(*problem, "--keep", "best").keep == "best"
+    assert explicit.keep == "best" and config(*ideal).keep == "best"
     _say_recipe(config(*problem))
-    assert "gradient method, fresh batches of 32, median_of_means, 75 steps" in capsys.readouterr().err
+    assert "gradient method, fresh batches of 32, median_of_means, 75 steps, the last step's gains" in (
+        capsys.readouterr().err
+    )
 
 
 @pytest.mark.slow

@@ -276,6 +276,47 @@ def test_shipped_tuned_gains_capture_with_less_torque_on_the_nominal_scenario(ro
     assert np.isnan(tuned["first_runaway_s"])
 
 
+def test_the_shipped_flight_gains_are_the_races_winner_and_their_settings_say_what_the_data_say():
+    """``tuned_gains("flight")`` are bit for bit the race's best gradient-recipe run at 15
+    minutes on its held-out campaign (seed 730001), and the gains the confirmation campaign
+    (seed 7312071, fixed before) ran; the ``settings.json``'s counts, McNemar tests and
+    torques are that campaign's, and the data meet the bar the gains shipped on: at least
+    94% of 1,000 captures, a 95th-percentile largest peak of at most 3.0 N m, no runaway,
+    McNemar p < 0.05 against the gains shipped before."""
+    import json
+    from pathlib import Path
+
+    from spacegrasp_jax.envelope import statistics
+    from spacegrasp_jax.jobs.campaign import campaign_record, load_samples
+    from spacegrasp_jax.loop.control import tuned_gains
+    from spacegrasp_jax.loop.control.gains import load_gains, tuned_gains_file
+
+    race = Path(__file__).resolve().parents[1] / "notebooks" / "data" / "race_seeds_constant"
+    shipped = tuned_gains("flight")
+    winner = load_gains(race / "gains" / "gradient_fresh_seed1_15min.json", "admittance")
+    assert shipped.to_dict("admittance") == winner.to_dict("admittance")
+    summary = json.loads((race / "race.json").read_text())["summary"]["runs"]
+    fifteen = {label: run["success"]["rate"] for label, run in summary.items() if label.startswith("gradient_fresh")}
+    fifteen = {label: rate for label, rate in fifteen.items() if label.endswith("_15min")}
+    assert max(fifteen, key=fifteen.get) == "gradient_fresh_seed1_15min"
+
+    settings = json.loads(tuned_gains_file("flight").with_suffix(".settings.json").read_text())["heldout"]
+    record, _ = campaign_record(race / "confirm_7312071")
+    ran = {variant.label: variant.gains for variant in record.variants}
+    assert ran[settings["labels"]["these"].split("/", 1)[1]].to_dict("admittance") == shipped.to_dict("admittance")
+    _, by_variant = load_samples(race / "confirm_7312071" / "samples.npz")
+    success = {name: np.asarray(by_variant[label]["success"], bool) for name, label in settings["labels"].items()}
+    peaks = np.asarray(by_variant[settings["labels"]["these"]]["largest_peak_torque_Nm"])
+    assert settings["successes"] == {name: int(hits.sum()) for name, hits in success.items()}
+    for reference in ("previous", "paper"):
+        expected = statistics.compare_success(success[reference], success["these"])["p_value"]
+        assert settings["mcnemar_p"][reference] == pytest.approx(expected, rel=1e-12)
+    assert settings["largest_peak_torque_Nm_p50_p95"][1] == round(float(np.percentile(peaks, 95)), 2)
+    assert len(success["these"]) == 1000 and success["these"].mean() >= 0.94
+    assert np.percentile(peaks, 95) <= 3.0 and settings["mcnemar_p"]["previous"] < 0.05
+    assert not np.any(np.isfinite(np.asarray(by_variant[settings["labels"]["these"]]["first_runaway_s"])))
+
+
 @pytest.mark.slow
 def test_shipped_flight_tuned_gains_capture_closer_than_the_paper_under_flight(robot):
     """``tuned_gains("flight")`` (tuned for capture success) under the flight preset, nominal

@@ -73,6 +73,7 @@ RECIPES = {
         "aggregate": "median_of_means",
         "batch": 32,
         "steps": 75,
+        "keep": "last",  # the races held out each run's last step, not its best on its own batch
     },
 }
 

@@ -139,7 +139,8 @@ def _say_recipe(config: TuneConfig) -> None:
     if config.method == "gradient":
         chosen = (
             f"the gradient method, {'fresh batches' if config.fresh_batches else 'one batch'} of {config.batch}, "
-            f"{config.settings.aggregate}, {config.steps} steps: the measured winner in a flight-like loop"
+            f"{config.settings.aggregate}, {config.steps} steps, the last step's gains: the measured winner in a "
+            "flight-like loop"
         )
     else:
         chosen = "CMA-ES, the ideal loop's default (not raced)"
@@ -359,7 +360,7 @@ def _tune_fields(args: argparse.Namespace, robot) -> dict:
         torque_fraction=args.torque_fraction,
         torque_cap_Nm=args.torque_cap,
         fresh_batches=given_or(args.fresh_batches, "fresh_batches"),
-        keep=args.keep,
+        keep=given_or(args.keep, "keep"),
         patience=args.patience,
         validation_size=args.validation_size,
         joint_rate_limits_radps=_rate_criterion(args, robot),
@@ -530,10 +531,10 @@ def add_parsers(commands) -> None:
     tune.add_argument(
         "--keep",
         choices=KEEPS,
-        default=TuneConfig.keep,
         help="the gains the run hands back: best, the least training objective it evaluated (CMA-ES's best "
         "candidate ever, the gradient method's best step), or last; either way gains.json holds the better of "
-        "them and the starting gains on the held-out captures (default best)",
+        "them and the starting gains on the held-out captures (default best; without --method in a flight-like "
+        "loop, last, as the races measured)",
     )
     tune.add_argument(
         "--schedule",
