@@ -299,6 +299,22 @@ def test_the_race_report_reads_each_mark_off_the_committed_campaigns_and_the_run
     for row in report["rows"]:
         _, by_variant = load_samples(data / row["race"] / "heldout" / "samples.npz")
         flags = {key.split("/", 1)[1]: np.asarray(value["success"], bool) for key, value in by_variant.items()}
+        if "versus" in row:  # a race over seeds: each run named by its seed, paired with the reference's
+            mark = f"seed{row['training_seed']}_{row['minutes']:g}min"
+            hits = flags[f"{row['method']}_{mark}"]
+            assert (row["success"]["successes"], row["success"]["samples"]) == (hits.sum(), hits.size)
+            if row["versus"] is not None:
+                reference = flags[f"{row['versus']['method']}_{mark}"]
+                assert (row["versus"]["only_candidate"], row["versus"]["only_reference"]) == (
+                    (hits & ~reference).sum(),
+                    (reference & ~hits).sum(),
+                )
+            counted = row["gradients"] if row["method"].startswith("gradient") else row["rollouts"]
+            assert counted % 32 == 0
+            history = data / row["race"] / f"seed{row['training_seed']}" / row["method"] / "history.csv"
+            with open(history, newline="") as file:
+                assert 0 < row["steps"] <= len(list(csv.DictReader(file))) - 1
+            continue
         hits = flags[f"{row['method']}_{row['minutes']:g}min"]
         assert (row["success"]["successes"], row["success"]["samples"]) == (hits.sum(), hits.size)
         if row["paired_with"] is not None:  # a method raced later on the same captures
