@@ -459,6 +459,9 @@ def main(argv=None) -> None:
     if unknown:
         parser.error(f"--methods: unknown {', '.join(sorted(unknown))}; expected {', '.join(reliability.METHODS)}")
     if args.capture:
+        from spacegrasp_jax.jobs.batching import use_all_cpu_cores
+
+        use_all_cpu_cores()  # a device a core, as the command line: the captures shard over them
         document = run_capture(Path(args.capture), Path(args.out), args.repeats, budgets[0], methods)
         print(json.dumps(document["truth"]), json.dumps(document["summary"], indent=1))
         return
