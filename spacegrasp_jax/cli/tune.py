@@ -139,8 +139,8 @@ def _say_recipe(config: TuneConfig) -> None:
     if config.method == "gradient":
         chosen = (
             f"the gradient method, {'fresh batches' if config.fresh_batches else 'one batch'} of {config.batch}, "
-            f"{config.settings.aggregate}, {config.steps} steps, the last step's gains: the measured winner in a "
-            "flight-like loop"
+            f"{config.settings.aggregate}, {config.steps} steps, the {config.keep} step's gains: the measured winner "
+            "in a flight-like loop"
         )
     else:
         chosen = "CMA-ES, the ideal loop's default (not raced)"
