@@ -26,7 +26,9 @@ each repeat journaled under ``runs/`` (an interrupted repeat resumes), a row a r
 ``capture.jsonl``; ``capture.json`` gives each method's coverage of the truth's failure rate,
 its repeats' coefficient of variation about it, rollouts and wall time, beside a campaign's at
 the same mean rollouts (binomial, at the truth's rate) and the truth's own captures in
-consecutive blocks of the budget.
+consecutive blocks of the budget. A truth folder needs the campaign's ``campaign.json`` and
+either its ``samples.npz`` or the ``outcomes.npz`` that ``--outcomes TRUTH`` writes from it
+(the per-sample verdicts, a few hundred kB: what the repository keeps).
 
     spacegrasp montecarlo --n 30000 --controller admittance --baseline flight_schedule \\
         --realism flight --seed 7501 --range lar_position_m=0.0065 \\
@@ -347,6 +349,47 @@ CAPTURE = {
 #: The seed of repeat 0 (repeat r: CAPTURE_SEED + r); the truth's campaign has its own seed.
 CAPTURE_SEED = 1000
 
+#: What a truth's ``outcomes.npz`` keeps of its campaign's ``samples.npz``: per sample, in
+#: sample order, the verdict, its position and orientation parts and the metrics they judge.
+OUTCOME_FIELDS = (
+    "success",
+    "failed_position",
+    "failed_orientation",
+    "final_position_error_m",
+    "final_orientation_error_rad",
+    "largest_peak_torque_Nm",
+)
+
+
+def write_outcomes(truth: Path) -> Path:
+    """``truth/outcomes.npz`` from the campaign's ``samples.npz`` (one variant): its
+    ``OUTCOME_FIELDS`` and the variant's ``label``, a few hundred kB where the samples are
+    tens of MB, all that ``truth_success()`` and the documentation read."""
+    from spacegrasp_jax.jobs import campaign
+
+    _, by_variant = campaign.load_samples(truth / "samples.npz")
+    if len(by_variant) != 1:
+        raise SystemExit(f"{truth}: a truth is a campaign of one variant, this one has {sorted(by_variant)}")
+    ((label, metrics),) = by_variant.items()
+    path = truth / "outcomes.npz"
+    np.savez_compressed(path, label=np.array(label), **{name: metrics[name] for name in OUTCOME_FIELDS})
+    return path
+
+
+def truth_success(truth: Path) -> np.ndarray:
+    """(n,) bool, sample by sample, whether the truth's campaign captured: from its
+    ``samples.npz`` where the folder has it, else from the ``outcomes.npz`` that
+    ``write_outcomes()`` keeps of it."""
+    from spacegrasp_jax.jobs import campaign
+
+    if (truth / "samples.npz").exists():
+        _, by_variant = campaign.load_samples(truth / "samples.npz")
+        return np.concatenate([np.asarray(v["success"], dtype=bool) for v in by_variant.values()])
+    if (truth / "outcomes.npz").exists():
+        with np.load(truth / "outcomes.npz") as outcomes:
+            return np.asarray(outcomes["success"], dtype=bool)
+    raise SystemExit(f"--capture {truth}: neither samples.npz nor outcomes.npz there")
+
 
 def run_capture(truth: Path, out: Path, repeats: int, budget: int, methods: list[str]) -> dict:
     """The rows of ``capture.jsonl`` (run where missing) and the summary of ``capture.json``;
@@ -363,8 +406,7 @@ def run_capture(truth: Path, out: Path, repeats: int, budget: int, methods: list
     for name, value in CAPTURE["ranges"].items():
         if getattr(config.ranges, name) != value:
             raise SystemExit(f"--capture {truth}: its {name} is {getattr(config.ranges, name)}, the capture's {value}")
-    _, by_variant = campaign.load_samples(truth / "samples.npz")
-    captured = np.concatenate([np.asarray(v["success"], dtype=bool) for v in by_variant.values()])
+    captured = truth_success(truth)
     failures, n = int(np.sum(~captured)), len(captured)
     truth_p = failures / n
     truth_low, truth_high = reliability.binomial_interval(failures, n)
@@ -452,7 +494,15 @@ def main(argv=None) -> None:
     parser.add_argument("--budgets", default="1000,2000,5000")
     parser.add_argument("--methods", default=",".join(reliability.METHODS))
     parser.add_argument("--capture", metavar="TRUTH", help="measure on the capture against this campaign folder")
+    parser.add_argument(
+        "--outcomes",
+        metavar="TRUTH",
+        help="write TRUTH/outcomes.npz (what --capture reads of a truth) from its samples.npz, and stop",
+    )
     args = parser.parse_args(argv)
+    if args.outcomes:
+        print(write_outcomes(Path(args.outcomes)))
+        return
     budgets = [int(b) for b in args.budgets.split(",")]
     methods = args.methods.split(",")
     unknown = set(methods) - set(reliability.METHODS)

@@ -12,7 +12,9 @@ the distributions they claim (uniform units, a uniform ball).
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -90,6 +92,71 @@ def test_cross_entropy_lands_within_a_factor_of_two_on_four_failure_regions():
     assert sum(r.low <= truth <= r.high for r in results) >= 17
 
 
+def test_cross_entropy_agrees_with_openturns_on_a_linear_limit_state():
+    """The cross-entropy estimator written out here against OpenTURNS'
+    ``StandardSpaceCrossEntropyImportanceSampling``, whose algorithm it follows, on the linear
+    limit state at 1e-5 in 20 dimensions, 20 repeats each with levels of 1,000 points (both
+    reach failure well within the budget there): each lands within a factor of 2 in at least
+    18, and the means of their log-estimates agree within 0.25 (their spread over repeats is
+    about 0.1)."""
+    limit_state, truth = linear(20, 1e-5), 1e-5
+    ours = [
+        estimate(limit_state, Settings(method="cross_entropy", budget=5000, seed=seed, smallest_probability=1e-5))
+        for seed in range(20)
+    ]
+    theirs = []
+    a = np.ones(20) / math.sqrt(20.0)
+    beta = float(-stats.norm.ppf(truth))
+    for seed in range(20):
+        ot.RandomGenerator.SetSeed(seed)
+        function = ot.PythonFunction(20, 1, func_sample=lambda x: (beta - np.asarray(x) @ a)[:, None])
+        event = ot.ThresholdEvent(ot.CompositeRandomVector(function, ot.RandomVector(ot.Normal(20))), ot.Less(), 0.0)
+        algorithm = ot.StandardSpaceCrossEntropyImportanceSampling(event, 0.1)
+        algorithm.setBlockSize(100)
+        algorithm.setMaximumOuterSampling(10)
+        algorithm.run()
+        theirs.append(algorithm.getResult().getProbabilityEstimate())
+    ours_ratio = np.array([r.probability for r in ours]) / truth
+    theirs_ratio = np.array(theirs) / truth
+    for ratios in (ours_ratio, theirs_ratio):
+        assert np.sum((ratios > 0.5) & (ratios < 2.0)) >= 18, ratios
+    assert abs(np.mean(np.log(ours_ratio)) - np.mean(np.log(theirs_ratio))) < 0.25
+    assert all(r.details["reached_failure"] and r.rollouts <= 5000 for r in ours)
+
+
+def _bounded_and_noisy(first_failing_share: float = 0.07):
+    """A limit state whose failures need ``u = Phi(z_0)`` above 0.999 and, there, a noise draw
+    that fails with probability ``first_failing_share``: failure probability ``1e-3`` times it
+    (7e-5), and no density of ``z`` makes more than that share of its points fail, so the
+    levels' 10% quantile never reaches failure (a perturbation bounded by its envelope, and
+    sensor noise, as on a capture)."""
+
+    def values(z, first):
+        u = stats.norm.cdf(z[:, 0])
+        coins = np.array([np.random.default_rng(first + k).random() for k in range(len(z))])
+        failed = (u > 0.999) & (coins < first_failing_share)
+        return {"g": np.where(failed, -0.1, 0.05 + np.maximum(0.999 - u, 0.0))}
+
+    return LimitState(10, values=values), 1e-3 * first_failing_share
+
+
+def test_where_the_levels_stall_the_last_level_the_budget_allows_gives_the_estimate():
+    """On a limit state whose levels cannot reach failure (``_bounded_and_noisy``), each of 20
+    repeats of 4,000 rollouts ends at the budget with an estimate from its last level (where
+    OpenTURNS' algorithm draws levels until the budget runs out and gives none), unbiased
+    (the mean ratio to the truth within 3 standard errors of 1), within a factor of 2 in at
+    least 15."""
+    limit_state, truth = _bounded_and_noisy()
+    results = [
+        estimate(limit_state, Settings(method="cross_entropy", budget=4000, seed=seed, smallest_probability=1e-4))
+        for seed in range(20)
+    ]
+    assert all(not r.details["reached_failure"] and r.rollouts == 4000 for r in results)
+    ratios = np.array([r.probability / truth for r in results])
+    assert abs(np.mean(ratios) - 1.0) <= 3.0 * np.std(ratios) / math.sqrt(len(ratios)), ratios
+    assert np.sum((ratios > 0.5) & (ratios < 2.0)) >= 15, ratios
+
+
 @pytest.mark.parametrize("method", reliability.METHODS)
 def test_every_method_is_unbiased_on_a_linear_limit_state_and_its_interval_mostly_covers(method):
     """At 1e-3 in 20 dimensions with 3,000 rollouts, over 40 repeats (seeds 0-39): the mean
@@ -115,7 +182,7 @@ def test_montecarlo_without_a_failure_gives_the_clopper_pearson_bound():
     assert result.details == {"failures": 0, "samples": 1000, "source": "standard normal draws"}
 
 
-@pytest.mark.parametrize("method", ["subset", "cross_entropy"])
+@pytest.mark.parametrize("method", ["subset"])
 def test_where_openturns_refuses_its_estimate_the_first_levels_monte_carlo_is_the_answer(method, monkeypatch):
     """OpenTURNS has refused subset simulation's estimate on a capture (a variance that is not
     a number, near a level's probability). Made to refuse after a real run, the estimator
@@ -129,7 +196,7 @@ def test_where_openturns_refuses_its_estimate_the_first_levels_monte_carlo_is_th
         called.append(np.array(z))
         return {"g": beta - z @ a}
 
-    real = {"subset": reliability._subset, "cross_entropy": reliability._cross_entropy}[method]
+    real = {"subset": reliability._subset}[method]
 
     def refusing(ot_module, calls, settings):
         real(ot_module, calls, settings)
@@ -216,7 +283,8 @@ def test_openturns_random_generator_is_left_as_it_was():
     ot.RandomGenerator.SetSeed(77)
     before = ot.RandomGenerator.Generate()
     ot.RandomGenerator.SetSeed(77)
-    estimate(linear(3, 1e-3), Settings(method="cross_entropy", budget=2000, seed=1, smallest_probability=1e-4))
+    for method in ("subset", "form_is"):
+        estimate(linear(3, 1e-3), Settings(method=method, budget=2000, seed=1, smallest_probability=1e-4))
     assert ot.RandomGenerator.Generate() == before
 
 
@@ -295,3 +363,36 @@ def test_a_campaigns_draws_read_back_from_their_coordinates():
         np.testing.assert_allclose(np.asarray(getattr(back, field)), getattr(units, field), atol=1e-12, err_msg=field)
     gradient = jax.grad(lambda point: jnp.sum(space.to_units(point).target_com_offset ** 2))(jnp.asarray(z[0]))
     assert np.all(np.isfinite(np.asarray(gradient)))
+
+
+def test_the_committed_capture_truth_reads_back_as_its_campaign_counted_it():
+    """The brute-force truth the capture's repeats are measured against, as the repository
+    keeps it (``outcomes.npz``, no ``samples.npz``): the successes its campaign's own summary
+    counted (29,751 of 30,000)."""
+    truth = Path(__file__).parent.parent / "notebooks" / "data" / "reliability" / "capture" / "truth"
+    summary = json.loads((truth / "summary.json").read_text())
+    (variant,) = summary["variants"].values()
+    success = known.truth_success(truth)
+    assert success.shape == (summary["n"],)
+    assert int(np.sum(success)) == variant["successes"] == 29751
+
+
+def test_a_truths_outcomes_keep_its_samples_verdicts(tmp_path):
+    """``write_outcomes()`` keeps a campaign's verdicts and judged metrics field for field, and
+    a truth reads the same successes from either file."""
+    rng = np.random.default_rng(0)
+    samples = {"perturbation/lar_position": rng.normal(size=(50, 3))}
+    for name in known.OUTCOME_FIELDS:
+        kind = bool if name.startswith(("success", "failed")) else float
+        samples[f"admittance/flight_schedule/{name}"] = rng.normal(size=50) > 0 if kind is bool else rng.normal(size=50)
+    np.savez(tmp_path / "samples.npz", **samples)
+    from_samples = known.truth_success(tmp_path)
+    known.write_outcomes(tmp_path)
+    (tmp_path / "samples.npz").unlink()
+    np.testing.assert_array_equal(known.truth_success(tmp_path), from_samples)
+    with np.load(tmp_path / "outcomes.npz") as outcomes:
+        assert str(outcomes["label"]) == "admittance/flight_schedule"
+        for name in known.OUTCOME_FIELDS:
+            np.testing.assert_array_equal(outcomes[name], samples[f"admittance/flight_schedule/{name}"])
+    with pytest.raises(SystemExit, match="neither samples.npz nor outcomes.npz"):
+        known.truth_success(tmp_path / "nowhere")

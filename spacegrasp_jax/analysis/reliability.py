@@ -19,17 +19,19 @@ standard normal coordinates ``z`` (for a capture: the envelope's perturbations,
   (OpenTURNS' ``ProbabilitySimulationAlgorithm`` with an ``ImportanceSamplingExperiment``).
   Uses the gradient; FORM spends at most ``form_share`` of the budget.
 * ``"cross_entropy"``: cross-entropy importance sampling in the standard space (Rubinstein;
-  OpenTURNS' ``StandardSpaceCrossEntropyImportanceSampling``): a normal density adapted
-  level by level to the ``conditional_probability`` quantile, ``level_size`` points a level.
-  No gradient.
+  the algorithm of OpenTURNS' ``StandardSpaceCrossEntropyImportanceSampling``, written out
+  here with two changes, ``_cross_entropy()``): a normal density, never narrower than the
+  standard normal, adapted level by level to the ``conditional_probability`` quantile,
+  ``level_size`` points a level; the last level, the one whose quantile reached failure or
+  the last the budget allows, gives the estimate. No gradient.
 * ``"montecarlo"``: the plain failure rate of ``budget`` points: a campaign's own samples where
   the limit state has them (``LimitState.campaign_values``), else standard normal draws; its
   95% interval is Clopper-Pearson's, an upper bound when nothing fails.
 
-Where OpenTURNS refuses to form subset simulation's or cross-entropy's estimate (a variance
-that is not a number: it has happened on a capture whose failure probability is near a
-level's, 1e-1), the first level, a plain Monte-Carlo of the standard normal, gives the estimate
-with its Clopper-Pearson interval, and the result says so (``details["source"]``).
+Where OpenTURNS refuses to form subset simulation's estimate (a variance that is not a
+number: it has happened on a capture whose failure probability is near a level's, 1e-1), the
+first level, a plain Monte-Carlo of the standard normal, gives the estimate with its
+Clopper-Pearson interval, and the result says so (``details["source"]``).
 
 The budget counts rollouts: a point 1, a gradient ``LimitState.gradient_cost``. The 95% interval
 of the sampling estimators is the lognormal one of their coefficient of variation ``c``,
@@ -510,9 +512,11 @@ def estimate(limit_state: LimitState, settings: Settings, *, journal=None, say=N
     calls = _Calls(limit_state, settings, None if journal is None else Path(journal), say)
     if settings.method == "montecarlo":
         result = _montecarlo(calls, settings)
+    elif settings.method == "cross_entropy":
+        result = _cross_entropy(calls, settings)
     else:
         ot = _openturns()
-        method = {"form_is": _form_is, "subset": _subset, "cross_entropy": _cross_entropy}[settings.method]
+        method = {"form_is": _form_is, "subset": _subset}[settings.method]
         with _openturns_seeded(settings.seed):
             try:
                 result = method(ot, calls, settings)
@@ -622,12 +626,12 @@ def _montecarlo(calls: _Calls, settings: Settings):
 
 
 def _first_level(calls: _Calls, settings: Settings, error: str):
-    """The failure rate of subset simulation's or cross-entropy's first level, whose points are
-    a plain Monte-Carlo of the standard normal, where OpenTURNS refused to form its estimate;
-    no estimate where the first level did not complete (or for FORM-IS)."""
+    """The failure rate of subset simulation's first level, whose points are a plain
+    Monte-Carlo of the standard normal, where OpenTURNS refused to form its estimate; no
+    estimate where the first level did not complete (or for FORM-IS)."""
     n = (settings.level_size // settings.block) * settings.block
     g = np.concatenate(calls.fresh_g) if calls.fresh_g else np.zeros(0)
-    if settings.method not in ("subset", "cross_entropy") or len(g) < n:
+    if settings.method != "subset" or len(g) < n:
         return math.nan, math.nan, {"error": error}, False
     failures = int(np.sum(g[:n] < 0.0))
     details = {"failures": failures, "samples": n, "source": "the first level's Monte-Carlo", "error": error}
@@ -681,18 +685,56 @@ def _subset(ot, calls: _Calls, settings: Settings):
     return float(result.getProbabilityEstimate()), float(result.getCoefficientOfVariation()), details, True
 
 
-def _cross_entropy(ot, calls: _Calls, settings: Settings):
-    event = _event(ot, calls.limit_state.dimension, lambda z: calls.values(z, "cross_entropy"))
-    algorithm = ot.StandardSpaceCrossEntropyImportanceSampling(event, settings.conditional_probability)
-    algorithm.setBlockSize(settings.block)
-    algorithm.setMaximumOuterSampling(settings.level_size // settings.block)
-    algorithm.run()
-    result = algorithm.getResult()
+def _cross_entropy(calls: _Calls, settings: Settings):
+    """Cross-entropy importance sampling in the standard space: the algorithm of OpenTURNS'
+    ``StandardSpaceCrossEntropyImportanceSampling`` (independent normal densities, each
+    level's mean and standard deviations the likelihood-ratio-weighted moments of the points
+    below the level's ``conditional_probability`` quantile of ``g``; the estimate the
+    importance-weighted failure rate of the last level, with OpenTURNS' variance), with two
+    changes. A level's standard deviations are never below 1: a density narrower than the
+    standard normal in a coordinate gives weights ``phi / q`` that grow without bound in that
+    coordinate's tails, and an estimate of unbounded variance whose typical value lies below
+    the truth. And the levels end where the budget does: where the next level would pass it,
+    the last level drawn gives the estimate, as one whose quantile reached 0 does (OpenTURNS'
+    draws levels until the quantile reaches 0, and one that stalls above it, as a capture
+    whose failures need a perturbation at the edge of its bounded range and unlucky sensor
+    noise can, ends with the budget and no estimate). The draws are NumPy's, seeded by
+    ``settings.seed``."""
+    d, n, block = calls.limit_state.dimension, settings.level_size, settings.block
+    rng = np.random.default_rng(settings.seed)
+    mean, std = np.zeros(d), np.ones(d)
+    thresholds = []
+    while True:
+        z = mean + std * rng.standard_normal((n, d))
+        g = np.concatenate([calls.values(z[start : start + block], "cross_entropy") for start in range(0, n, block)])
+        # log(standard normal density / the level's density) at each point
+        log_ratio = np.sum(-0.5 * z**2 + 0.5 * ((z - mean) / std) ** 2 + np.log(std), axis=1)
+        quantile = float(np.quantile(g, settings.conditional_probability))
+        thresholds.append(quantile)
+        if quantile < 0.0 or calls.rollouts + n > settings.budget:
+            break
+        critic = g < quantile
+        if not np.any(critic):  # every point at or above the quantile (values tied there)
+            critic = g <= quantile
+        weights = np.exp(log_ratio[critic] - np.max(log_ratio[critic]))
+        mean = weights @ z[critic] / np.sum(weights)
+        # Never narrower than the standard normal: where a level's density is narrower in a
+        # coordinate, phi / q grows without bound in that coordinate's tails and the
+        # estimate's variance with it (OpenTURNS' follows the points there).
+        std = np.maximum(np.sqrt(weights @ (z[critic] - mean) ** 2 / np.sum(weights)), 1.0)
+    failing = g < 0.0
     details = {
-        "level_size": settings.level_size,
-        "thresholds": [float(t) for t in algorithm.getThresholdPerStep()],
+        "level_size": n,
+        "thresholds": thresholds,
+        "reached_failure": thresholds[-1] < 0.0,
+        "failures_last_level": int(np.sum(failing)),
     }
-    return float(result.getProbabilityEstimate()), float(result.getCoefficientOfVariation()), details, True
+    if not np.any(failing):
+        return 0.0, math.nan, details, True
+    ratios = np.exp(log_ratio[failing])
+    probability = float(np.sum(ratios) / n)
+    variance = (np.sum((ratios - probability) ** 2) + (n - ratios.size) * probability**2) / (n - 1) / n
+    return probability, math.sqrt(variance) / probability, details, True
 
 
 def _form_is(ot, calls: _Calls, settings: Settings):
