@@ -561,6 +561,11 @@ def cases(paths, out):
             ["requirements", "--range", "lar_pos=0.01", "--out", out],
             "unknown perturbation range 'lar_pos'",
         ),
+        "ceiling without a campaign": (
+            ["ceiling", p["a_folder"], "--out", out],
+            "a_folder: holds no readable campaign",
+        ),
+        "ceiling no failures": (["ceiling", p["a_folder"], "--failures", "0", "--out", out], "argument --failures:"),
         "montecarlo approach offset past the approach": (
             [*MONTECARLO, "--range", "approach_offset_m=0.2", "--out", out],
             "approach_offset_m: 0.2 m needs an approach along the LAR z axis longer than that",

@@ -8,6 +8,7 @@
 * [`spacegrasp_jax.tuning.tune`][tuning.tune] - the run's settings, the gradient method and its programs, the method registry.
 * [`spacegrasp_jax.tuning.cmaes`][tuning.cmaes] - CMA-ES.
 * [`spacegrasp_jax.tuning.run`][tuning.run] - the ``spacegrasp tune`` job: files, evaluation, plots.
+* [`spacegrasp_jax.tuning.ceiling`][tuning.ceiling] - what caps a campaign's success: each failed capture tuned alone.
 """
 
 from spacegrasp_jax.tuning.cmaes import CMAESSettings

@@ -1016,16 +1016,32 @@ def training_batch(robot: Robot, nominal: Scenario, config: TuneConfig) -> Sampl
     return ideal_batch(robot, training_scenarios(nominal, config))
 
 
-def make_problem(robot: Robot, nominal: Scenario, base: Gains, config: TuneConfig, torque_scale_Nm) -> TuningProblem:
+def make_problem(
+    robot: Robot,
+    nominal: Scenario,
+    base: Gains,
+    config: TuneConfig,
+    torque_scale_Nm,
+    batch: SampleLoops | None = None,
+    objective: Objective | None = None,
+) -> TuningProblem:
     """The run's [`TuningProblem`][tuning.problem.TuningProblem]: its objective, starting point
     and mask, training batch (fresh batches where ``config.fresh_batches``: step k's of seed
     ``seed + FRESH_SEED_STRIDE * k``) and the batch objective's gradient program (compiled
-    on its first call only)."""
+    on its first call only). ``batch``: under a realism, the training batch instead of
+    [`training_batch()`][tuning.tune.training_batch]'s (for example a campaign's own samples,
+    [`sample_loops()`][spacegrasp_jax.jobs.montecarlo.sample_loops]), of ``config.batch``
+    samples; ``objective``: instead of [`make_objective()`][tuning.tune.make_objective]'s (for
+    example with a campaign's criteria)."""
     check_for_scenario(config.ranges, nominal)
-    objective = make_objective(robot, config, torque_scale_Nm)
+    if objective is None:
+        objective = make_objective(robot, config, torque_scale_Nm)
     mask = make_mask(base, config.controller, config.frozen)
     params = initial_params(base, config.controller)
-    batch = training_batch(robot, nominal, config)
+    if batch is None:
+        batch = training_batch(robot, nominal, config)
+    elif config.realism is None or batching.batch_size(batch.scenarios) != config.batch:
+        raise ValueError(f"batch: a flight-like loop's batch of config.batch = {config.batch} samples")
     fresh = None
     if config.fresh_batches:
         fresh = lambda step: flight_batch(robot, nominal, config, config.seed + FRESH_SEED_STRIDE * step, config.batch)

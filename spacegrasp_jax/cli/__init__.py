@@ -19,6 +19,7 @@ from spacegrasp_jax.analysis import animation
 from spacegrasp_jax.cli import (  # noqa: E402  (the commands, in the order --help lists them)
     animate,
     benchmark,
+    ceiling,
     compare,
     export,
     gains,
@@ -62,12 +63,13 @@ def build_parser() -> argparse.ArgumentParser:
     worstcase.add_parsers(commands)
     reliability.add_parsers(commands)
     requirements.add_parsers(commands)
+    ceiling.add_parsers(commands)
     benchmark.add_parsers(commands)
     return parser
 
 
 #: The commands that stop cleanly at a safe point on a first signal -> the unit they finish.
-_SAFE_POINTS = {"montecarlo": "chunk", "tune": "step", "requirements": "chunk"}
+_SAFE_POINTS = {"montecarlo": "chunk", "tune": "step", "requirements": "chunk", "ceiling": "capture"}
 
 
 def _given_options(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:

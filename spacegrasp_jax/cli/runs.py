@@ -15,6 +15,7 @@ import numpy as np
 from spacegrasp_jax.cli.common import (
     _claim,
     _films,
+    _gains_option,
     _gains_record,
     _is_papers_run,
     _keep_inputs,
@@ -203,6 +204,12 @@ def _replay(args: argparse.Namespace) -> int:
         if not variants:
             keys = ", ".join(variant.key for variant in nominal.variants)
             raise UsageError(f"--variant: {folder} has no variant {args.variant!r}; it has {keys}")
+    if args.gains is not None:  # the sample with other gains (the ceiling's, tuned for it)
+        laws = sorted({variant.controller for variant in variants})
+        if len(laws) != 1:
+            raise UsageError(f"--gains: {folder} runs the laws {', '.join(laws)}; name one variant with --variant")
+        gains = _gains_option(args.gains, args, nominal.robot, laws[0], schedules=True)
+        variants = [Variant(laws[0], gains, gains_label(args.gains))]
     out = Path(args.out)
     _claim(args, out)
     sample = campaign.sample_record(nominal, config, args.sample, variants)
@@ -281,6 +288,12 @@ def add_parsers(commands) -> None:
     replay.add_argument("--sample", type=_whole(0, 100_000_000), required=True, metavar="K", help="the sample's index")
     replay.add_argument(
         "--variant", metavar="LAW/GAINS", help="one variant, e.g. admittance/paper (default: every one)"
+    )
+    replay.add_argument(
+        "--gains",
+        metavar="NAME|FILE",
+        help="run the sample with these gains (a shipped set, a gains or schedule file: ceiling's gains/) instead of "
+        "the variant's, in the variant's law",
     )
     replay.add_argument("--out", required=True, help="output folder")
     _add_overwrite_option(replay)
