@@ -2,7 +2,7 @@
 the compiled program's size, and its run time.
 
     python -m spacegrasp_jax.benchmarks.compile [--out results/benchmarks] [--duration 17]
-        [--programs rollout_ideal,...] [--repeats 3]
+        [--programs rollout_ideal,...] [--repeats 3] [--compiler-options JSON]
 
 Each program is built in a process of its own, with no persistent compilation cache, through
 the same code the commands use (``PROGRAMS``):
@@ -24,7 +24,13 @@ compiled (optimised) HLO's instructions, every computation's (a loop body counts
 The gradients' ``run_s`` is compared with ``forward_s``, one forward rollout of the same
 scenario in the same process, timed in turn with it (``over_forward``: the ratio of the
 medians; ``over_forward_spread``: the smallest and largest ratio of a gradient and the
-rollout timed after it).
+rollout timed after it). ``output_sha256`` is a digest of every number the program's first
+call returned, bit for bit: two builds whose digests agree computed the same numbers.
+
+``--compiler-options JSON`` adds XLA options (a JSON object, e.g.
+``{"xla_llvm_disable_expensive_passes": true}``) to those the package compiles with
+(``compilation.CPU_OPTIONS``), for a probe of what a compiler setting costs in build time and
+run time, and whether it changes a number.
 Writes ``compile.json``.
 """
 
@@ -153,7 +159,7 @@ def measure(name: str, duration: float, repeats: int, warmup: int = WARMUP) -> d
     run, forward = _build(name, duration)
     compiled_before = set(compilation._EXECUTABLES)
     start = time.perf_counter()
-    jax.block_until_ready(run())
+    first = jax.block_until_ready(run())
     first_call_s = time.perf_counter() - start
     phases = {key: totals[event] for key, event in EVENTS.items()}
     compiles = counts[EVENTS["compile_s"]]
@@ -167,6 +173,8 @@ def measure(name: str, duration: float, repeats: int, warmup: int = WARMUP) -> d
         "first_call_s": first_call_s,
         "xla_compiles": compiles,
         "hlo_instructions": sum(hlo_instructions(executable) for executable in new) if new else None,
+        "output_sha256": output_digest(first),
+        "compiler_options": compilation.compiler_options(),
     }
     calls = {"run": lambda: jax.block_until_ready(run())}
     if forward is not None:
@@ -182,6 +190,22 @@ def measure(name: str, duration: float, repeats: int, warmup: int = WARMUP) -> d
         pairs = [a / b for a, b in zip(times["run"], times["forward"], strict=True)]
         report["over_forward_spread"] = [min(pairs), max(pairs)]
     return report
+
+
+def output_digest(outputs) -> str:
+    """SHA-256 of every leaf of ``outputs`` (a pytree of arrays), in order, bytes and shapes:
+    equal exactly when every number is equal bit for bit."""
+    import hashlib
+
+    import jax
+    import numpy as np
+
+    digest = hashlib.sha256()
+    for leaf in jax.tree.leaves(outputs):
+        array = np.ascontiguousarray(np.asarray(leaf))
+        digest.update(str((array.dtype, array.shape)).encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
 
 
 def timed_after_warmup(calls: dict, warmup: int, repeats: int) -> dict[str, list[float]]:
@@ -206,16 +230,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=17.0, help="scenario duration (s)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--programs", default=",".join(PROGRAMS), help="comma-separated subset of the programs")
+    parser.add_argument(
+        "--compiler-options", default="{}", metavar="JSON", help="XLA options added to the package's (a JSON object)"
+    )
     parser.add_argument("--one", help=argparse.SUPPRESS)  # internal: measure one program in this process
     args = parser.parse_args(argv)
+    try:
+        extra = json.loads(args.compiler_options)
+    except ValueError as error:
+        parser.error(f"--compiler-options: not JSON ({error})")
+    if not isinstance(extra, dict) or not all(isinstance(v, (bool, int, float, str)) for v in extra.values()):
+        parser.error(f"--compiler-options: a JSON object of XLA option names to values, got {args.compiler_options}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.one:
+        from spacegrasp_jax.jobs import compilation
         from spacegrasp_jax.jobs.batching import use_all_cpu_cores
         from spacegrasp_jax.jobs.compilation import configure
 
         use_all_cpu_cores()
+        compilation.CPU_OPTIONS.update(extra)  # before the options are first read (and probed)
         configure(compile_cache=False)  # cold: float64, loops compiled whole, no persistent cache
+        if extra and not set(extra) <= set(compilation.compiler_options()):
+            raise SystemExit(f"--compiler-options: this XLA refuses {extra}")
         (out / f"compile-{args.one}.json").write_text(json.dumps(measure(args.one, args.duration, args.repeats)))
         return 0
     names = [name for name in args.programs.split(",") if name]
@@ -239,6 +276,8 @@ def main(argv: list[str] | None = None) -> int:
                 str(args.duration),
                 "--repeats",
                 str(args.repeats),
+                "--compiler-options",
+                args.compiler_options,
             ],
             check=True,
         )
@@ -251,7 +290,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['hlo_instructions'] or 0:>10} {r['run_s']:>8.3f} {ratio:>6}",
             flush=True,
         )
-    (out / "compile.json").write_text(json.dumps({"duration_s": args.duration, "programs": results}, indent=2))
+    document = {"duration_s": args.duration, "compiler_options_added": extra, "programs": results}
+    (out / "compile.json").write_text(json.dumps(document, indent=2))
     return 0
 
 

@@ -272,3 +272,40 @@ def test_a_runs_compile_estimate_counts_what_its_first_row_evaluated(tmp_path):
     gradient = {"5": {"steps": 30, "gradients": 31 * 32}, "15": {"steps": 98, "gradients": 99 * 32}}
     assert math.isclose(compile_estimate(history, gradient), 17.2 - 29.5, rel_tol=1e-12)
     assert math.isclose(compile_estimate(history), 17.2 - 29.5, rel_tol=1e-12)  # no counts: a step
+
+
+def test_the_timing_study_pairs_each_gain_set_with_itself_across_timings():
+    """``benchmarks.timing``'s summary on made-up successes of 1,000 captures: a set that loses
+    12 captures and wins 2 back with the timing drawn changes by -1.0 points, and each set is
+    compared with the clock's schedule on the drawn timing."""
+    from spacegrasp_jax.benchmarks.timing import timing_summary
+
+    nominal = {"time_schedule": np.ones(1000, bool), "contact_time_schedule": np.ones(1000, bool)}
+    nominal["contact_time_schedule"][:2] = False
+    drawn = {"time_schedule": np.ones(1000, bool), "contact_time_schedule": np.ones(1000, bool)}
+    drawn["time_schedule"][100:150] = False
+    drawn["contact_time_schedule"][10:22] = False
+    summary = timing_summary(nominal, drawn, "time_schedule")
+    change = summary["contact_time_schedule"]["timing_change"]
+    assert (change["only_reference"], change["only_candidate"]) == (12, 2)
+    assert change["rate_difference"] == pytest.approx(-0.010)
+    assert change["rate_difference_low"] < -0.010 < change["rate_difference_high"]
+    assert summary["time_schedule"]["drawn"]["rate"] == pytest.approx(0.95)
+    versus = summary["versus_time_schedule"]["contact_time_schedule"]
+    assert (versus["only_reference"], versus["only_candidate"]) == (12, 50)
+    assert list(summary["versus_time_schedule"]) == ["contact_time_schedule"]
+    with pytest.raises(ValueError, match="other gain sets"):
+        timing_summary(nominal, {"time_schedule": drawn["time_schedule"]}, "time_schedule")
+
+
+def test_the_compile_probes_digest_tells_numbers_apart_bit_for_bit():
+    from spacegrasp_jax.benchmarks.compile import output_digest
+
+    outputs = {"a": np.linspace(0.0, 1.0, 7), "b": (np.arange(3), np.float64(2.5))}
+    same = {"a": np.linspace(0.0, 1.0, 7), "b": (np.arange(3), np.float64(2.5))}
+    assert output_digest(outputs) == output_digest(same)
+    nudged = {"a": outputs["a"].copy(), "b": outputs["b"]}
+    nudged["a"][3] = np.nextafter(nudged["a"][3], 2.0)  # one unit in the last place
+    assert output_digest(nudged) != output_digest(outputs)
+    reshaped = {"a": outputs["a"].reshape(7, 1), "b": outputs["b"]}
+    assert output_digest(reshaped) != output_digest(outputs)
